@@ -1,0 +1,20 @@
+"""Multi-bucket sensor model, pure numpy, ordered as the physics.
+
+:mod:`.config` the parameters, :mod:`.photons` radiance to expected electrons,
+:mod:`.readout` shot noise, full wells, floating-diffusion sums, read noise and ADC.
+"""
+
+from .config import SensorConfig
+from .photons import electrons_per_radiance_second, expected_electrons
+from .readout import FixedPattern, SensorReads, dn_to_electrons, fixed_pattern, simulate_reads
+
+__all__ = [
+    "FixedPattern",
+    "SensorConfig",
+    "SensorReads",
+    "dn_to_electrons",
+    "electrons_per_radiance_second",
+    "expected_electrons",
+    "fixed_pattern",
+    "simulate_reads",
+]

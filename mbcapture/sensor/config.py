@@ -1,0 +1,154 @@
+"""Sensor parameters (the ``sensor.*`` config section).
+
+Every value has a unit in its name and a description saying whether it comes from the
+paper (Wan, Horowitz, Levoy et al.; the quad-bucket sensor of [Wan 12]) or is an
+assumption of this project. The paper gives the array (640 x 512), the pixel pitch
+(5.6 um) and the bucket count (4); everything electrical is an assumption chosen to be
+typical of a 2012-era 5.6 um CMOS global-shutter pixel.
+
+Default exposure check (green channel, see :mod:`mbcapture.sensor.photons`): a mid-grey
+surface of radiance 0.3 W m^-2 sr^-1 at f/2.8, tau = 0.9 gives an image-plane irradiance
+E = pi L tau / (4 N^2) = 0.0270 W m^-2; times pixel area 3.136e-11 m^2, fill factor 0.5,
+QE 0.5, 8 ms and lambda/(h c) = 2.72e18 J^-1 at 540 nm gives ~4600 e-, i.e. 46 % of the
+10 000 e- bucket full well: well exposed, not saturated.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+__all__ = ["SensorConfig"]
+
+
+def _three_per_channel(name: str, values: list[float]) -> list[float]:
+    if len(values) != 3:
+        raise ValueError(f"{name}: expected 3 values (R, G, B), got {len(values)}")
+    return values
+
+
+class SensorConfig(BaseModel):
+    """Physical and electrical parameters of one multi-bucket pixel array."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    bucket_count: int = Field(
+        4, ge=1, le=64,
+        description="Number of charge-storage buckets per pixel (paper: the quad-bucket sensor of [Wan 12] has 4).",
+    )
+    pixel_pitch_um: float = Field(
+        5.6, gt=0, le=100, description="Pixel pitch in micrometres (paper: 5.6 um). Pixel area = pitch^2."
+    )
+    f_number: float = Field(
+        2.8, gt=0.3, le=128, description="Lens f-number N, dimensionless (assumption)."
+    )
+    lens_transmittance: float = Field(
+        0.9, gt=0, le=1, description="Lens transmittance tau, fraction of light passed, dimensionless (assumption)."
+    )
+    fill_factor: float = Field(
+        0.5, gt=0, le=1,
+        description="Effective optical fill factor including the microlens, fraction of the pixel area "
+        "(assumption; a 4-bucket pixel spends area on storage gates).",
+    )
+    quantum_efficiency: list[float] = Field(
+        default_factory=lambda: [0.40, 0.50, 0.45],
+        description="Quantum efficiency per colour channel R, G, B including the colour filter, "
+        "electrons per photon (assumption).",
+    )
+    wavelength_nm: list[float] = Field(
+        default_factory=lambda: [600.0, 540.0, 460.0],
+        description="Effective wavelength per channel R, G, B in nanometres, used for the photon energy "
+        "h c / lambda in RGB rendering mode (assumption).",
+    )
+    full_well_e: float = Field(
+        10_000.0, gt=0,
+        description="Capacity of each bucket in electrons (assumption). Charge above it is drained by the "
+        "anti-blooming gate and lost; the affected reads are flagged saturated.",
+    )
+    fd_full_well_e: float = Field(
+        40_000.0, gt=0,
+        description="Capacity of the floating diffusion (output bucket) in electrons (assumption). A read "
+        "that sums buckets on it clips there and is flagged saturated.",
+    )
+    read_noise_e: float = Field(
+        3.0, ge=0, description="Read noise in electrons rms, added once per read (paper's R; value an assumption)."
+    )
+    gain_dn_per_e: float = Field(
+        0.4, gt=0,
+        description="Conversion gain in digital numbers per electron (assumption; maps the floating-diffusion "
+        "full well to about the ADC range).",
+    )
+    adc_bits: int = Field(14, ge=1, le=24, description="ADC resolution in bits; codes 0 .. 2^bits - 1 (assumption).")
+    black_level_dn: float = Field(
+        256.0, ge=0, description="Offset added before quantization, in DN (assumption)."
+    )
+    dark_current_e_per_s: float = Field(
+        10.0, ge=0,
+        description="Dark current in electrons per second per bucket during storage (assumption; room temperature).",
+    )
+    frame_readout_s: float = Field(
+        1.0 / 30.0, ge=0,
+        description="Gap between frames of a conventional sequential capture, in seconds: the time to read "
+        "one frame out (assumption: 30 frames/s). Used by the sequential protocols' timelines.",
+    )
+    prnu: float = Field(
+        0.01, ge=0, lt=1,
+        description="Photo-response non-uniformity: std of the per-pixel relative sensitivity, fraction "
+        "(assumption; 1 %). Fixed pattern: identical in every bucket and read.",
+    )
+    dsnu_e: float = Field(
+        1.0, ge=0,
+        description="Dark-signal non-uniformity: std of a per-pixel fixed offset in electrons, added to "
+        "every read (assumption). Fixed pattern: identical in every read.",
+    )
+    transfer_inefficiency: float = Field(
+        0.0, ge=0, lt=1,
+        description="Fraction of each electron that fails to move from its bucket to the floating diffusion "
+        "when read (binomial loss; 0 = ideal; typical 1e-4 .. 1e-3; assumption).",
+    )
+    parasitic_light: float = Field(
+        0.0, ge=0, lt=1,
+        description="Parasitic light sensitivity: a bucket collects this fraction of the photo-electrons "
+        "generated while the other buckets of the same pixel are gated (0 = ideal; global-shutter storage "
+        "nodes typically 1e-4 .. 1e-3; assumption).",
+    )
+    fpn_seed: int = Field(
+        0, ge=0,
+        description="Seed of the fixed-pattern noise (PRNU, DSNU) maps: it identifies one physical sensor, so "
+        "the maps are identical across reads and captures made with it (assumption).",
+    )
+
+    @field_validator("quantum_efficiency")
+    @classmethod
+    def _check_qe(cls, v: list[float]) -> list[float]:
+        _three_per_channel("quantum_efficiency", v)
+        if not all(0.0 < q <= 1.0 for q in v):
+            raise ValueError(f"quantum_efficiency: each value must be in (0, 1], got {v}")
+        return v
+
+    @field_validator("wavelength_nm")
+    @classmethod
+    def _check_wavelength(cls, v: list[float]) -> list[float]:
+        _three_per_channel("wavelength_nm", v)
+        if not all(200.0 <= w <= 2000.0 for w in v):
+            raise ValueError(f"wavelength_nm: each value must be in [200, 2000] nm, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _check_ranges(self) -> "SensorConfig":
+        adc_max_dn = 2**self.adc_bits - 1
+        if self.black_level_dn >= adc_max_dn:
+            raise ValueError(
+                f"black_level_dn: must be below the ADC maximum 2^adc_bits - 1 = {adc_max_dn}, "
+                f"got {self.black_level_dn}"
+            )
+        return self
+
+    @property
+    def adc_max_dn(self) -> int:
+        """Largest ADC code, 2^adc_bits - 1, in DN."""
+        return 2**self.adc_bits - 1
+
+    @property
+    def pixel_area_m2(self) -> float:
+        """Pixel area in square metres."""
+        return (self.pixel_pitch_um * 1e-6) ** 2

@@ -1,0 +1,212 @@
+"""Multi-bucket pixel physics, from expected electrons to digital reads.
+
+Order of the physics (one capture):
+
+1. Fixed pattern: a per-pixel relative sensitivity (PRNU) multiplies the expected
+   photo-electrons of every bucket (the buckets share one photodiode and microlens).
+   It and the per-pixel DSNU offset come from ``sensor.fpn_seed`` only, so they are the
+   same in every read and every capture of this sensor.
+2. Parasitic light (optional): a bucket also collects ``parasitic_light`` times the
+   photo-electrons generated while the *other* buckets of the pixel were gated.
+3. Dark current: ``dark_current_e_per_s * storage_s[k]`` electrons of mean in bucket k.
+4. Shot noise: ONE Poisson draw per bucket on its total expectation. The charge a bucket
+   collects is a sum of independent Poisson increments (one per gate slot), and a sum of
+   independent Poisson variables is Poisson with the summed mean, so one draw is exact.
+5. Bucket full well: charge above ``full_well_e`` is drained by the anti-blooming gate and
+   lost (it does not spill into other buckets or pixels); every read that includes such a
+   bucket is flagged saturated.
+6. Transfer to the floating diffusion (FD): each electron is left behind with probability
+   ``transfer_inefficiency`` (binomial thinning, one draw per bucket: a bucket is moved onto
+   the FD once, and a non-destructive cumulative read keeps it there for later reads).
+7. A read sums its buckets' transferred charge on the FD, noiselessly (the paper's
+   in-pixel addition, section 4.1). The sum clips at ``fd_full_well_e`` (flagged).
+8. Readout chain, ONCE PER READ: DSNU offset, Gaussian read noise ``read_noise_e`` (the
+   paper's R, figure 11b), conversion gain, black level, rounding to integer codes, ADC
+   clipping to [0, 2^bits - 1] (the top code is flagged saturated; the bottom one is not,
+   as it only happens for black levels below the read noise).
+
+Non-destructive cumulative reads (J1 = B4, J2 = B4 + B3, ...) therefore share the same
+photons and are correlated, Cov(J_i, J_j) = lambda * min(t_i, t_j) for i != j, while each
+read has its own independent read noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .config import SensorConfig
+
+__all__ = ["FixedPattern", "SensorReads", "dn_to_electrons", "fixed_pattern", "simulate_reads"]
+
+
+@dataclass(frozen=True)
+class FixedPattern:
+    """Per-pixel fixed-pattern noise maps of one sensor, each (H, W, C) float64.
+
+    ``prnu_gain``: relative sensitivity, mean 1, dimensionless (clipped at 0).
+    ``dsnu_offset_e``: offset added to every read, electrons (mean 0).
+    """
+
+    prnu_gain: np.ndarray
+    dsnu_offset_e: np.ndarray
+
+
+@dataclass(frozen=True)
+class SensorReads:
+    """What the sensor delivers for one capture.
+
+    Axes: K buckets, R reads, H rows, W columns, C channels (R, G, B).
+
+    ``electrons``: (K, H, W, C) float64, the noisy charge of each bucket after shot noise,
+        dark current and bucket full-well clipping (integer-valued), in electrons.
+    ``reads_dn``: (R, H, W, C) float64 holding integer ADC codes, in DN.
+    ``reads_e_expected``: (R, H, W, C) float64, the ideal sensor's response: the sum of the
+        *input* expected electrons over the read's buckets, noise-free and unclipped, without
+        fixed pattern, dark current, parasitic light or transfer loss. Ground truth.
+    ``saturated``: (R, H, W, C) bool, True where a bucket of the read hit its full well,
+        the FD sum hit ``fd_full_well_e``, or the ADC hit its top code.
+    ``bucket_saturated``: (K, H, W, C) bool, True where the bucket hit its full well.
+    ``reads``: the bucket indices summed by each read, as given.
+    """
+
+    electrons: np.ndarray
+    reads_dn: np.ndarray
+    reads_e_expected: np.ndarray
+    saturated: np.ndarray
+    bucket_saturated: np.ndarray
+    reads: tuple[tuple[int, ...], ...]
+
+
+def fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig) -> FixedPattern:
+    """The PRNU / DSNU maps of the sensor identified by ``cfg.fpn_seed``, for (H, W, C) images.
+
+    Drawn from their own generator so that they do not depend on (nor consume) the
+    capture's random stream: the same sensor gives the same maps in every capture.
+    """
+    rng = np.random.default_rng(np.random.SeedSequence(cfg.fpn_seed))
+    prnu_gain = np.maximum(1.0 + cfg.prnu * rng.standard_normal(shape), 0.0)
+    dsnu_offset_e = cfg.dsnu_e * rng.standard_normal(shape)
+    return FixedPattern(prnu_gain=prnu_gain, dsnu_offset_e=dsnu_offset_e)
+
+
+def _validate_reads(reads: Sequence[Sequence[int]], bucket_count: int) -> tuple[tuple[int, ...], ...]:
+    if len(reads) == 0:
+        raise ValueError("reads: at least one read is needed")
+    out = []
+    for r, read in enumerate(reads):
+        idx = tuple(int(b) for b in read)
+        if not idx:
+            raise ValueError(f"reads[{r}]: a read must sum at least one bucket")
+        if len(set(idx)) != len(idx):
+            raise ValueError(f"reads[{r}]: bucket listed twice in {idx}")
+        if min(idx) < 0 or max(idx) >= bucket_count:
+            raise ValueError(f"reads[{r}]: bucket indices {idx} outside 0..{bucket_count - 1}")
+        out.append(idx)
+    return tuple(out)
+
+
+def simulate_reads(
+    expected_bucket_e: np.ndarray,
+    reads: Sequence[Sequence[int]],
+    cfg: SensorConfig,
+    rng: np.random.Generator,
+    *,
+    storage_s: np.ndarray | Sequence[float] | None = None,
+    shared_photodiode: bool = True,
+) -> SensorReads:
+    """Simulate the noisy buckets and their reads.
+
+    Parameters
+    ----------
+    expected_bucket_e:
+        (K, H, W, C) float64, expected photo-electrons per bucket (noise-free), >= 0.
+    reads:
+        R reads, each the tuple of 0-based bucket indices summed on the floating diffusion
+        for that read (``(3,)``, ``(3, 2)``, ... for cumulative non-destructive reads; one
+        index per read for direct reads).
+    cfg:
+        The sensor.
+    rng:
+        Source of the capture's shot and read noise (the fixed pattern has its own seed).
+    storage_s:
+        (K,) seconds each bucket holds charge before its read (integration plus waiting),
+        for dark current. ``None``: no dark current is added.
+    shared_photodiode:
+        True (a multi-bucket pixel): the K buckets share one photodiode, so parasitic light
+        couples them and K may not exceed ``cfg.bucket_count``. False: the K "buckets" are
+        separate frames of a conventional sequential capture; no parasitic coupling.
+
+    Returns
+    -------
+    SensorReads
+    """
+    expected = np.asarray(expected_bucket_e, dtype=np.float64)
+    if expected.ndim != 4:
+        raise ValueError(f"expected_bucket_e: expected shape (K, H, W, C), got {expected.shape}")
+    if not np.all(np.isfinite(expected)) or np.any(expected < 0):
+        raise ValueError("expected_bucket_e: values must be finite and >= 0")
+    k_buckets = expected.shape[0]
+    if shared_photodiode and k_buckets > cfg.bucket_count:
+        raise ValueError(
+            f"expected_bucket_e: {k_buckets} buckets but sensor.bucket_count is {cfg.bucket_count}"
+        )
+    read_sets = _validate_reads(reads, k_buckets)
+
+    fpn = fixed_pattern(expected.shape[1:], cfg)
+    photo_e = expected * fpn.prnu_gain
+    if shared_photodiode and cfg.parasitic_light > 0.0:
+        others_e = photo_e.sum(axis=0, keepdims=True) - photo_e
+        photo_e = photo_e + cfg.parasitic_light * others_e
+    mean_e = photo_e
+    if storage_s is not None:
+        storage = np.asarray(storage_s, dtype=np.float64)
+        if storage.shape != (k_buckets,) or np.any(storage < 0):
+            raise ValueError(f"storage_s: expected {k_buckets} non-negative seconds, got {storage!r}")
+        mean_e = mean_e + (cfg.dark_current_e_per_s * storage)[:, None, None, None]
+
+    electrons = rng.poisson(mean_e).astype(np.float64)
+    bucket_saturated = electrons >= cfg.full_well_e
+    np.minimum(electrons, cfg.full_well_e, out=electrons)
+
+    if cfg.transfer_inefficiency > 0.0:
+        transferred = rng.binomial(electrons.astype(np.int64), 1.0 - cfg.transfer_inefficiency).astype(np.float64)
+    else:
+        transferred = electrons
+
+    n_reads = len(read_sets)
+    shape = (n_reads, *expected.shape[1:])
+    reads_dn = np.empty(shape, dtype=np.float64)
+    reads_e_expected = np.empty(shape, dtype=np.float64)
+    saturated = np.empty(shape, dtype=bool)
+    adc_max = float(cfg.adc_max_dn)
+    for r, buckets in enumerate(read_sets):
+        idx = list(buckets)
+        fd_e = transferred[idx].sum(axis=0)
+        sat = bucket_saturated[idx].any(axis=0) | (fd_e >= cfg.fd_full_well_e)
+        np.minimum(fd_e, cfg.fd_full_well_e, out=fd_e)
+        signal_e = fd_e + fpn.dsnu_offset_e + cfg.read_noise_e * rng.standard_normal(fd_e.shape)
+        dn = np.rint(cfg.gain_dn_per_e * signal_e + cfg.black_level_dn)
+        sat |= dn >= adc_max
+        reads_dn[r] = np.clip(dn, 0.0, adc_max)
+        reads_e_expected[r] = expected[idx].sum(axis=0)
+        saturated[r] = sat
+
+    return SensorReads(
+        electrons=electrons,
+        reads_dn=reads_dn,
+        reads_e_expected=reads_e_expected,
+        saturated=saturated,
+        bucket_saturated=bucket_saturated,
+        reads=read_sets,
+    )
+
+
+def dn_to_electrons(reads_dn: np.ndarray, cfg: SensorConfig) -> np.ndarray:
+    """Undo black level and gain: (DN - black_level_dn) / gain_dn_per_e, in electrons.
+
+    Any shape; float64. The result can be negative (read noise around zero light).
+    """
+    return (np.asarray(reads_dn, dtype=np.float64) - cfg.black_level_dn) / cfg.gain_dn_per_e
