@@ -1,0 +1,255 @@
+"""HDR merging of several reads of one scene into one photo-electron rate.
+
+Methods (registry :data:`HDR_METHODS`, dispatcher :func:`merge_hdr`):
+
+``ramp_fit``
+    Generalized least squares for the rate lambda (electrons/s) through the origin, with
+    the read covariance in electrons^2
+
+        C_ij = lambda * M_ij + sigma_r^2 * delta_ij,
+        M_ij = min(t_i, t_j)  for cumulative non-destructive reads (they share photons),
+        M_ij = t_i delta_ij   for independent exposures,
+
+    over the usable reads (cumulative: the reads before the first saturated one;
+    independent: every unsaturated read), as in up-the-ramp fitting of infrared detectors.
+    Pass 0 is ordinary least squares through the origin; pass 1 is GLS with C(lambda_0);
+    pass 2 iterates once more with C(lambda_1). The estimate is
+    lambda = t^T C^-1 x / (t^T C^-1 t) with variance 1 / (t^T C^-1 t).
+    sigma_r^2 = read_noise_e^2 + 1 / (12 gain^2) includes the quantization step.
+    Vectorized: pixels are grouped by their set of usable reads; within a group M is
+    shared, so with M = V diag(d) V^T every pixel's C^-1 is V diag(1/(lambda d + sigma_r^2)) V^T
+    and no per-pixel matrix is ever solved.
+
+``inverse_variance``
+    Per-read rates x_i / t_i averaged with weights 1 / Var_i, Var_i = (lambda_0 t_i +
+    sigma_r^2) / t_i^2, where lambda_0 = sum(x_i) / sum(t_i) over the usable reads is a
+    first-pass estimate (weights from each noisy value would bias the merge low).
+    Optimal for independent exposures. Given cumulative reads it treats them as
+    independent (what a naive user does): the estimate stays unbiased but is not the
+    minimum-variance one, and its reported sigma ignores the correlation.
+
+``debevec``
+    Debevec & Malik (1997) with a linear camera response: per-read rates x_i / t_i
+    averaged with the hat weight of the read's code, w(z) = min(z - z_min, z_max - z),
+    z_min = black level, z_max = top ADC code. Averaged in the linear domain, not in log
+    radiance as in the paper, because log is undefined for the zero/negative reads of dark
+    pixels and biased under noise. Cumulative reads are treated as independent, as above.
+    sigma is propagated assuming independent reads.
+
+Every method sees only usable reads. Where none is usable (all saturated) the result is
+``valid = False``, the rate is the lower bound max_i x_i / t_i (finite, >= 0) and sigma is
++inf. Rates are not clipped at zero: around zero light they scatter around zero.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..sensor.config import SensorConfig
+from ..sensor.readout import dn_to_electrons
+
+__all__ = ["HDR_METHODS", "HDRResult", "MergeInput", "merge_hdr", "quantization_read_variance_e2"]
+
+
+@dataclass(frozen=True)
+class HDRResult:
+    """Merged HDR estimate, all arrays (H, W, C) (the trailing shape of the reads).
+
+    ``rate_e_per_s``: photo-electron rate, electrons/s, float64 (a lower bound where not valid).
+    ``sigma_e_per_s``: 1-sigma uncertainty of the rate from the noise model, electrons/s
+        (+inf where not valid).
+    ``valid``: False where every read is saturated.
+    ``n_used``: number of reads that entered the merge, int64.
+    """
+
+    rate_e_per_s: np.ndarray
+    sigma_e_per_s: np.ndarray
+    valid: np.ndarray
+    n_used: np.ndarray
+
+
+@dataclass(frozen=True)
+class MergeInput:
+    """What every merge method receives, pixels flattened to P, only pixels with >= 1 usable read.
+
+    ``x_e``: (R, P) reads in electrons (black level and gain removed).
+    ``dn``: (R, P) the same reads in DN.
+    ``exposures_s``: (R,) seconds.
+    ``usable``: (R, P) bool, reads allowed into the merge.
+    ``read_var_e2``: read-noise plus quantization variance per read, electrons^2.
+    ``cumulative``: reads are nested non-destructive sums (share photons).
+    ``cfg``: the sensor.
+    """
+
+    x_e: np.ndarray
+    dn: np.ndarray
+    exposures_s: np.ndarray
+    usable: np.ndarray
+    read_var_e2: float
+    cumulative: bool
+    cfg: SensorConfig
+
+
+MergeMethod = Callable[[MergeInput], tuple[np.ndarray, np.ndarray]]
+
+
+def quantization_read_variance_e2(cfg: SensorConfig) -> float:
+    """Per-read noise variance in electrons^2: read noise plus uniform quantization (1/12 DN^2)."""
+    return cfg.read_noise_e**2 + 1.0 / (12.0 * cfg.gain_dn_per_e**2)
+
+
+def _first_pass_rate(m: MergeInput) -> np.ndarray:
+    """Pooled rate sum(x_i) / sum(t_i) over usable reads, (P,), electrons/s; >= 0 for use in variances."""
+    t = m.exposures_s[:, None]
+    rate = np.where(m.usable, m.x_e, 0.0).sum(axis=0) / np.where(m.usable, t, 0.0).sum(axis=0)
+    return np.maximum(rate, 0.0)
+
+
+def _ramp_fit(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
+    n_reads, n_pix = m.x_e.shape
+    rate = np.empty(n_pix)
+    sigma = np.empty(n_pix)
+    codes = (m.usable.astype(np.int64) << np.arange(n_reads, dtype=np.int64)[:, None]).sum(axis=0)
+    for code in np.unique(codes):
+        pix = np.flatnonzero(codes == code)
+        reads = np.flatnonzero((int(code) >> np.arange(n_reads)) & 1)
+        t = m.exposures_s[reads]
+        x = m.x_e[np.ix_(reads, pix)]  # (n, P_g)
+        shared = np.minimum.outer(t, t) if m.cumulative else np.diag(t)
+        d, v = np.linalg.eigh(shared)  # shared = v diag(d) v^T, d >= 0
+        a = v.T @ t  # (n,)
+        y = v.T @ x  # (n, P_g)
+        lam = (t @ x) / (t @ t)  # pass 0: ordinary least squares through the origin
+        for _ in range(2):  # pass 1: GLS with C(lam_0); pass 2: iterate once with the fitted lam
+            w = 1.0 / (np.maximum(lam, 0.0)[None, :] * d[:, None] + m.read_var_e2)  # (n, P_g)
+            fisher = np.einsum("i,ip->p", a**2, w)
+            lam = np.einsum("i,ip,ip->p", a, w, y) / fisher
+        w = 1.0 / (np.maximum(lam, 0.0)[None, :] * d[:, None] + m.read_var_e2)
+        rate[pix] = lam
+        sigma[pix] = 1.0 / np.sqrt(np.einsum("i,ip->p", a**2, w))
+    return rate, sigma
+
+
+def _per_read_variance(m: MergeInput, rate0: np.ndarray) -> np.ndarray:
+    """(R, P) variance of x_i / t_i for independent reads at rate ``rate0``, (electrons/s)^2."""
+    t = m.exposures_s[:, None]
+    return (rate0[None, :] * t + m.read_var_e2) / t**2
+
+
+def _inverse_variance(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
+    rates = m.x_e / m.exposures_s[:, None]
+    w = np.where(m.usable, 1.0 / _per_read_variance(m, _first_pass_rate(m)), 0.0)
+    total = w.sum(axis=0)
+    return (w * rates).sum(axis=0) / total, 1.0 / np.sqrt(total)
+
+
+_HAT_FLOOR = 1e-6
+"""Smallest hat weight (relative to the peak), so that reads at the ends of the range still average."""
+
+
+def _debevec(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
+    z_min = m.cfg.black_level_dn
+    z_max = float(m.cfg.adc_max_dn)
+    hat = np.minimum(m.dn - z_min, z_max - m.dn) / (0.5 * (z_max - z_min))
+    w = np.where(m.usable, np.maximum(hat, _HAT_FLOOR), 0.0)
+    rates = m.x_e / m.exposures_s[:, None]
+    total = w.sum(axis=0)
+    rate = (w * rates).sum(axis=0) / total
+    var = _per_read_variance(m, _first_pass_rate(m))
+    sigma = np.sqrt((w**2 * var).sum(axis=0)) / total
+    return rate, sigma
+
+
+HDR_METHODS: dict[str, MergeMethod] = {
+    "ramp_fit": _ramp_fit,
+    "inverse_variance": _inverse_variance,
+    "debevec": _debevec,
+}
+"""Registered merge methods by name; see the module docstring."""
+
+
+def merge_hdr(
+    reads_dn: np.ndarray,
+    exposures_s: np.ndarray,
+    cfg: SensorConfig,
+    *,
+    method: str,
+    cumulative: bool,
+    saturated: np.ndarray | None = None,
+) -> HDRResult:
+    """Merge R reads of the same scene into one rate image.
+
+    Parameters
+    ----------
+    reads_dn:
+        (R, H, W, C) ADC codes (any trailing shape works), in DN.
+    exposures_s:
+        (R,) exposure time of each read in seconds (for cumulative reads: the summed
+        exposure, e.g. T, 2T, 4T, 8T; must then be strictly increasing).
+    cfg:
+        The sensor (black level, gain, read noise, ADC range).
+    method:
+        A key of :data:`HDR_METHODS`, or ``"auto"``: ``ramp_fit`` for cumulative reads,
+        ``inverse_variance`` for independent ones.
+    cumulative:
+        True if read i+1 contains the photons of read i (non-destructive sums).
+    saturated:
+        (R, H, W, C) bool saturation flags from the sensor; ``None`` = none saturated.
+
+    Returns
+    -------
+    HDRResult with the trailing shape of ``reads_dn``.
+    """
+    if method == "auto":
+        method = "ramp_fit" if cumulative else "inverse_variance"
+    if method not in HDR_METHODS:
+        valid = ", ".join(sorted([*HDR_METHODS, "auto"]))
+        raise ConfigError(f"hdr.method: unknown method {method!r}; valid methods: {valid}")
+
+    dn = np.asarray(reads_dn, dtype=np.float64)
+    t = np.asarray(exposures_s, dtype=np.float64)
+    if dn.ndim < 1 or t.shape != (dn.shape[0],):
+        raise ValueError(f"exposures_s: expected one exposure per read ({dn.shape[:1]}), got shape {t.shape}")
+    if not np.all(np.isfinite(t)) or np.any(t <= 0):
+        raise ValueError(f"exposures_s: must be finite and > 0, got {t}")
+    if cumulative and np.any(np.diff(t) <= 0):
+        raise ValueError(f"exposures_s: cumulative reads need strictly increasing exposures, got {t}")
+    sat = np.zeros(dn.shape, dtype=bool) if saturated is None else np.asarray(saturated, dtype=bool)
+    if sat.shape != dn.shape:
+        raise ValueError(f"saturated: expected shape {dn.shape}, got {sat.shape}")
+
+    n_reads = dn.shape[0]
+    pixel_shape = dn.shape[1:]
+    dn2 = dn.reshape(n_reads, -1)
+    x_e = dn_to_electrons(dn2, cfg)
+    ok = ~sat.reshape(n_reads, -1)
+    usable = np.cumprod(ok, axis=0).astype(bool) if cumulative else ok
+    n_used = usable.sum(axis=0)
+    valid = n_used > 0
+
+    # Lower bound where every read is saturated: each clipped read under-reports, so
+    # rate >= x_i / t_i for every i.
+    rate = np.maximum((x_e / t[:, None]).max(axis=0), 0.0)
+    sigma = np.full(rate.shape, np.inf)
+    if np.any(valid):
+        m = MergeInput(
+            x_e=x_e[:, valid],
+            dn=dn2[:, valid],
+            exposures_s=t,
+            usable=usable[:, valid],
+            read_var_e2=quantization_read_variance_e2(cfg),
+            cumulative=cumulative,
+            cfg=cfg,
+        )
+        rate[valid], sigma[valid] = HDR_METHODS[method](m)
+
+    return HDRResult(
+        rate_e_per_s=rate.reshape(pixel_shape),
+        sigma_e_per_s=sigma.reshape(pixel_shape),
+        valid=valid.reshape(pixel_shape),
+        n_used=n_used.astype(np.int64).reshape(pixel_shape),
+    )
