@@ -1,0 +1,254 @@
+"""``run_capture``: one capture from config to outputs, in the order of the data flow.
+
+    config -> scene + timeline -> plan (strata, weights) -> render + accumulate
+           -> sensor (noise, full wells, reads) -> HDR -> metrics -> outputs
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from . import protocols, scenes
+from .config import CaptureConfig
+from .io import staged_outputs
+from .metrics import pu21_psnr, rel_mse
+from .plan import Plan, make_plan
+from .reconstruct.hdr import merge_hdr
+from .sensor import electrons_per_radiance_second, simulate_reads
+from .timeline import Timeline
+
+
+@dataclass
+class CaptureResult:
+    """Everything a capture produced, as arrays (axes: read/bucket, row, column, channel).
+
+    bucket_exposure       (K, H, W, C) noise-free radiant exposure per bucket, W m^-2 sr^-1 s
+    buckets_e             (K, H, W, C) noise-free expected electrons per bucket
+    reads_expected_e      (R, H, W, C) noise-free, unclipped expected electrons of each read
+    reads_dn              (R, H, W, C) simulated reads, DN
+    saturated             (R, H, W, C) bool
+    hdr_radiance          (H, W, C) HDR estimate, W m^-2 sr^-1
+    hdr_sigma             (H, W, C) its 1-sigma uncertainty, W m^-2 sr^-1
+    hdr_valid             (H, W, C) False where every read saturated (radiance is a lower bound)
+    ground_truth          (H, W, C) noise-free gated-time-average radiance over the capture
+    moving_mask           (H, W) pixels the moving parts cross during the capture
+    """
+
+    config: CaptureConfig
+    timeline: Timeline
+    plan: Plan
+    bucket_exposure: np.ndarray
+    buckets_e: np.ndarray
+    reads_expected_e: np.ndarray
+    reads_dn: np.ndarray
+    saturated: np.ndarray
+    hdr_radiance: np.ndarray
+    hdr_sigma: np.ndarray
+    hdr_valid: np.ndarray
+    ground_truth: np.ndarray
+    moving_mask: np.ndarray
+    report: dict = field(default_factory=dict)
+    out_dir: Path | None = None
+
+
+class _Timer:
+    def __init__(self):
+        self.stages: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
+
+
+def _progress(total: int, enabled: bool, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="pass", disable=not enabled, leave=False, dynamic_ncols=True)
+
+
+def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray) -> None:
+    """out[k] += sum_g weights_s[k, g] * radiance[g]  (float64; radiance (G, H, W, C))."""
+    out += np.einsum("kg,ghwc->khwc", weights_s, radiance.astype(np.float64, copy=False), optimize=True)
+
+
+def moving_region(scene: scenes.SceneModel, t0_s: float, t1_s: float, width: int, height: int) -> np.ndarray:
+    """(H, W) bool: pixels within 3 px of where any motion point passes during [t0, t1]."""
+    mask = np.zeros((height, width), dtype=bool)
+    if scene.is_static:
+        return mask
+    times = np.linspace(t0_s, t1_s, 512)
+    px = scene.camera.project(np.asarray(scene.motion_points(times)), width, height).reshape(-1, 2)
+    r = 3
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    disc = (xx**2 + yy**2) <= r * r
+    for dx, dy in zip(xx[disc], yy[disc]):
+        x = np.round(px[:, 0] - 0.5 + dx).astype(int)
+        y = np.round(px[:, 1] - 0.5 + dy).astype(int)
+        ok = (x >= 0) & (x < width) & (y >= 0) & (y < height)
+        mask[y[ok], x[ok]] = True
+    return mask
+
+
+def motion_check(normalized: np.ndarray, names: list[str], truth: np.ndarray, mask: np.ndarray) -> dict:
+    """How far apart the exposure-normalized, noise-free reads are inside the moving region.
+
+    normalized (R, H, W, C) radiance of each read = expected electrons / (K * exposure).
+    Returns per read the RMS difference to the capture's ground truth and the largest
+    pairwise RMS difference between reads, both relative to the mean truth in the region.
+    """
+    if not mask.any():
+        return {"moving_pixels": 0, "note": "static scene: nothing moves"}
+    ref = float(truth[mask].mean()) or 1.0
+    per_read = {n: float(np.sqrt(np.mean((normalized[i][mask] - truth[mask]) ** 2)) / ref) for i, n in enumerate(names)}
+    pair = 0.0
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            pair = max(pair, float(np.sqrt(np.mean((normalized[i][mask] - normalized[j][mask]) ** 2)) / ref))
+    return {"moving_pixels": int(mask.sum()), "rel_rms_vs_truth": per_read, "max_pairwise_rel_rms": pair}
+
+
+def _versions() -> dict:
+    out = {"python": platform.python_version()}
+    for pkg in ("mbcapture", "mitsuba", "drjit", "numpy", "scipy", "pydantic", "OpenEXR"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
+def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True) -> CaptureResult:
+    """Run one capture. With ``out_dir``, write its outputs there (atomically)."""
+    from .render import Renderer, ensure_llvm
+
+    timer = _Timer()
+    t_start = time.perf_counter()
+    seeds = np.random.SeedSequence(cfg.seed).spawn(3)
+    rng_plan, rng_sensor = np.random.default_rng(seeds[0]), np.random.default_rng(seeds[1])
+
+    with timer("plan"):
+        scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
+        timeline = protocols.build(cfg)
+        plan = make_plan(timeline, scene, cfg.render, rng_plan)
+    W, H = cfg.render.width, cfg.render.height
+
+    with timer("render_setup"):
+        llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
+        renderer = Renderer(scene, W, H, variant=cfg.render.variant, max_depth=cfg.render.max_depth)
+    n_ch = len(renderer.channels)
+    exposure = np.zeros((timeline.n_buckets, H, W, n_ch), dtype=np.float64)
+    render_seeds = np.random.default_rng(seeds[2]).integers(0, 2**31 - 1, size=plan.passes)
+    with _progress(plan.passes, progress, "render") as bar:
+        for j in range(plan.passes):
+            with timer("render"):
+                radiance = renderer.render(float(plan.times_s[j]), plan.spp, int(render_seeds[j]), plan.groups)
+            with timer("accumulate"):
+                accumulate(plan.weights_s[j], radiance, exposure)
+            bar.update(1)
+
+    with timer("sensor"):
+        k_e = electrons_per_radiance_second(cfg.sensor)  # (C,) e- per (W m^-2 sr^-1 s)
+        buckets_e = exposure * k_e
+        storage_s = np.array([float(timeline.seconds(timeline.end_tick - timeline.span_ticks([b])[0])) for b in range(timeline.n_buckets)])
+        sensor_out = simulate_reads(buckets_e, [r.buckets for r in timeline.reads], cfg.sensor, rng_sensor, storage_s=storage_s)
+
+    with timer("reconstruct"):
+        exposures_s = np.array([float(timeline.read_exposure_ticks(r) * timeline.tick_s) for r in timeline.reads])
+        cumulative = not timeline.sequential and any(len(r.buckets) > 1 for r in timeline.reads)
+        method = cfg.hdr.method if cfg.hdr.method != "auto" else ("ramp_fit" if cumulative else "inverse_variance")
+        hdr = merge_hdr(
+            sensor_out.reads_dn, exposures_s, cfg.sensor, method=method, cumulative=cumulative, saturated=sensor_out.saturated
+        )
+        hdr_radiance = hdr.rate_e_per_s / k_e
+        hdr_sigma = hdr.sigma_e_per_s / k_e
+        read_buckets = list(plan.buckets_read)
+        total_exposure_s = float(sum(timeline.exposure_ticks(b) for b in read_buckets) * timeline.tick_s)
+        truth = exposure[read_buckets].sum(axis=0) / total_exposure_s
+        normalized = sensor_out.reads_e_expected / (k_e * exposures_s[:, None, None, None])
+        t0_s, t1_s = timeline.seconds(timeline.start_tick), timeline.seconds(timeline.end_tick)
+        mask = moving_region(scene, float(t0_s), float(t1_s), W, H)
+        names = [r.name for r in timeline.reads]
+        metrics = {
+            "hdr_method": method,
+            "hdr_rel_mse": rel_mse(hdr_radiance, truth),
+            "hdr_pu21_psnr_db": pu21_psnr(hdr_radiance, truth),
+            "hdr_valid_fraction": float(hdr.valid.mean()),
+            "motion_check": motion_check(normalized, names, truth, mask),
+        }
+        if mask.any():
+            metrics["hdr_rel_mse_moving"] = rel_mse(hdr_radiance, truth, mask=mask)
+            metrics["hdr_pu21_psnr_db_moving"] = pu21_psnr(hdr_radiance, truth, mask=mask)
+
+    report = {
+        "scene": cfg.scene.name,
+        "protocol": timeline.protocol,
+        "sequential": timeline.sequential,
+        "sensor_type": "conventional (one bucket, destructive read per frame)" if timeline.sequential else f"{cfg.sensor.bucket_count}-bucket",
+        "film": [W, H],
+        "seed": cfg.seed,
+        "capture_span_s": float(t1_s - t0_s),
+        "reads": timeline.describe_reads(),
+        "plan": plan.summary(timeline),
+        "electrons_per_radiance_second": k_e.tolist(),
+        "metrics": metrics,
+        "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant},
+    }
+    result = CaptureResult(
+        config=cfg,
+        timeline=timeline,
+        plan=plan,
+        bucket_exposure=exposure,
+        buckets_e=buckets_e,
+        reads_expected_e=sensor_out.reads_e_expected,
+        reads_dn=sensor_out.reads_dn,
+        saturated=sensor_out.saturated,
+        hdr_radiance=hdr_radiance,
+        hdr_sigma=hdr_sigma,
+        hdr_valid=hdr.valid,
+        ground_truth=truth,
+        moving_mask=mask,
+        report=report,
+    )
+    report["timings_s"] = {k: round(v, 4) for k, v in timer.stages.items()}
+    report["timings_s"]["total_before_write"] = round(time.perf_counter() - t_start, 4)
+    if out_dir is not None:
+        write_outputs(result, Path(out_dir))
+        result.out_dir = Path(out_dir)
+    return result
+
+
+def write_outputs(result: CaptureResult, out: Path) -> None:
+    cfg, tl = result.config, result.timeline
+    names = [r.name for r in tl.reads]
+    pct = cfg.output.png_percentile
+    with staged_outputs(out) as st:
+        st.write_exr("buckets.exr", {f"B{k + 1}": result.buckets_e[k] for k in range(tl.n_buckets)})
+        st.write_exr("reads_expected.exr", {n: result.reads_expected_e[i] for i, n in enumerate(names)})
+        st.write_exr("reads.exr", {n: result.reads_dn[i] for i, n in enumerate(names)})
+        st.write_exr(
+            "hdr.exr",
+            {
+                "radiance": result.hdr_radiance,
+                "sigma": result.hdr_sigma,
+                "valid": result.hdr_valid.astype(np.float32),
+                "truth": result.ground_truth,
+                "moving": result.moving_mask.astype(np.float32),
+            },
+        )
+        st.write_png("hdr.png", result.hdr_radiance, pct)
+        st.write_png("truth.png", result.ground_truth, pct)
+        for i, n in enumerate(names):  # each read at its own exposure, as the sensor saw it
+            st.write_png(f"read_{n}.png", result.reads_dn[i] - cfg.sensor.black_level_dn, 100.0)
+        st.write_yaml("config.yaml", cfg.to_yaml_dict())
+        st.write_json("report.json", result.report)

@@ -1,0 +1,13 @@
+"""Exceptions a user can act on. The CLI prints them as one line and exits with status 2."""
+
+
+class MBCaptureError(Exception):
+    """Base class of errors caused by input (config, files, environment), not by a bug."""
+
+
+class ConfigError(MBCaptureError):
+    """A config key, value or file is wrong; the message names it and what was expected."""
+
+
+class EnvironmentProblem(MBCaptureError):
+    """The machine lacks something (e.g. a usable libLLVM); the message names the fix."""

@@ -1,0 +1,152 @@
+"""Outputs: linear EXR (OpenEXR), sRGB PNG previews, JSON/YAML, all written atomically.
+
+A run writes every file into a hidden staging folder beside the outputs and moves each one
+into place with ``os.replace`` only when the whole run has succeeded. An interrupted or
+failed run leaves the previous run's files in the same folder untouched and no partial file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator, Mapping
+
+import numpy as np
+import yaml
+
+from .errors import MBCaptureError
+
+CHANNELS_RGB = ("R", "G", "B")
+
+
+class OutputError(MBCaptureError):
+    pass
+
+
+def prepare_out_dir(out: Path) -> Path:
+    """Create ``out`` (and parents) or fail with a one-line error if it is not writable."""
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"--out {out}: cannot create output folder ({exc.strerror})") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise OutputError(f"--out {out}: output folder is not writable")
+    return out
+
+
+class Staging:
+    """Files written during a run; moved into the output folder by :func:`staged_outputs`."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.names: list[str] = []
+
+    def path(self, name: str) -> Path:
+        if name not in self.names:
+            self.names.append(name)
+        return self.root / name
+
+    def write_json(self, name: str, data) -> None:
+        self.path(name).write_text(json.dumps(data, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+    def write_yaml(self, name: str, data) -> None:
+        self.path(name).write_text(yaml.safe_dump(data, sort_keys=False))
+
+    def write_exr(self, name: str, layers: Mapping[str, np.ndarray], channels=CHANNELS_RGB) -> None:
+        write_exr(self.path(name), layers, channels)
+
+    def write_png(self, name: str, rgb_linear: np.ndarray, percentile: float = 99.5) -> None:
+        write_png(self.path(name), rgb_linear, percentile)
+
+
+@contextmanager
+def staged_outputs(out: Path) -> Iterator[Staging]:
+    out = prepare_out_dir(out)
+    root = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    staging = Staging(root)
+    try:
+        yield staging
+        for name in staging.names:
+            os.replace(root / name, out / name)
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def _json_default(obj):
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.floating,)):
+        return float(obj)
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serializable: {type(obj).__name__}")
+
+
+# ----------------------------------------------------------------------------- EXR
+def write_exr(path: Path, layers: Mapping[str, np.ndarray], channels=CHANNELS_RGB) -> None:
+    """Write layers ``{'B1': (H, W, C) array, ...}`` as float32 channels ``B1.R, B1.G, ...``.
+
+    A 2-D array becomes a single channel named after its layer.
+    """
+    import OpenEXR
+
+    chans = {}
+    for layer, arr in layers.items():
+        arr = np.asarray(arr)
+        if arr.ndim == 2:
+            chans[layer] = np.ascontiguousarray(arr, dtype=np.float32)
+            continue
+        if arr.shape[-1] != len(channels):
+            raise ValueError(f"layer {layer}: {arr.shape[-1]} channels, expected {len(channels)}")
+        for ci, c in enumerate(channels):
+            # non-contiguous slices are written silently wrong by OpenEXR 3.x: copy
+            chans[f"{layer}.{c}"] = np.ascontiguousarray(arr[..., ci], dtype=np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, chans) as f:
+        f.write(str(path))
+
+
+def read_exr(path: Path, channels=CHANNELS_RGB) -> dict[str, np.ndarray]:
+    """Read an EXR written by :func:`write_exr` back into ``{layer: (H, W, C)}`` (or (H, W))."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        raw = {name: np.array(ch.pixels) for name, ch in f.channels().items()}
+    layers: dict[str, dict[str, np.ndarray]] = {}
+    out: dict[str, np.ndarray] = {}
+    for name, px in raw.items():
+        layer, _, chan = name.rpartition(".")
+        if layer and chan in channels:
+            layers.setdefault(layer, {})[chan] = px
+        else:
+            out[name] = px
+    for layer, chans in layers.items():
+        out[layer] = np.stack([chans[c] for c in channels if c in chans], axis=-1)
+    return out
+
+
+# ----------------------------------------------------------------------------- PNG
+def tonemap(rgb_linear: np.ndarray, percentile: float = 99.5) -> np.ndarray:
+    """Linear RGB (H, W, 3) -> 8-bit sRGB: scale so the luminance ``percentile`` maps to 1,
+    clip, and apply the sRGB transfer function (colour-science)."""
+    import colour
+
+    rgb = np.nan_to_num(np.asarray(rgb_linear, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    lum = rgb @ np.array([0.2126, 0.7152, 0.0722])
+    white = np.percentile(lum, percentile) if lum.size else 1.0
+    scaled = np.clip(rgb / white, 0.0, 1.0) if white > 0 else np.zeros_like(rgb)
+    encoded = colour.cctf_encoding(scaled, function="sRGB")
+    return np.round(encoded * 255).astype(np.uint8)
+
+
+def write_png(path: Path, rgb_linear: np.ndarray, percentile: float = 99.5) -> None:
+    from PIL import Image
+
+    Image.fromarray(tonemap(rgb_linear, percentile), mode="RGB").save(path, format="PNG")

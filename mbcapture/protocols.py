@@ -1,0 +1,121 @@
+"""Capture protocols: each builds a :class:`~mbcapture.timeline.Timeline` from the config.
+
+``photon_efficient_hdr``
+    Slots 4:2:1:1 (for K buckets: 2^(K-2) : ... : 2 : 1 : 1) per period; non-destructive
+    reads of bucket K, K+(K-1), ..., all: exposures T, 2T, 4T, ..., 2^(K-1) T in 2^(K-1) T
+    (the paper's section 4).
+``interleaved_hdr``
+    Slots 8:4:2:1 (2^(K-1) : ... : 1), each bucket read directly: the same exposures in
+    (2^K - 1) T (Wan et al. 2012; the paper's figure 9).
+``custom``
+    One period of slots from ``capture.schedule`` repeated ``capture.periods`` times.
+
+``capture.sequential: true`` turns any of them into the conventional-sensor capture of the
+same reads: one contiguous frame per read (its exposure, with the emitter groups its buckets
+saw), one after another with ``sensor.frame_readout_s`` between frames, each frame read
+destructively.
+"""
+
+from __future__ import annotations
+
+from fractions import Fraction
+from typing import Callable
+
+from .config import CaptureConfig
+from .errors import ConfigError
+from .timeline import DRAIN, ReadEvent, SegmentSeconds, SlotSeconds, Timeline, build_timeline, exact
+
+Builder = Callable[[CaptureConfig], tuple[list[SlotSeconds], list[ReadEvent], int]]
+_REGISTRY: dict[str, Builder] = {}
+
+
+def register(name: str) -> Callable[[Builder], Builder]:
+    def deco(fn: Builder) -> Builder:
+        _REGISTRY[name] = fn
+        return fn
+
+    return deco
+
+
+def names() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def _need_buckets(cfg: CaptureConfig, needed: int) -> int:
+    have = cfg.sensor.bucket_count
+    if needed > have:
+        raise ConfigError(
+            f"capture.protocol: {cfg.capture.protocol!r} needs {needed} buckets but sensor.bucket_count is {have}"
+        )
+    return needed
+
+
+@register("photon_efficient_hdr")
+def photon_efficient_hdr(cfg: CaptureConfig):
+    """One period: bucket 1 gets 2^(K-2) units, ..., bucket K-1 one unit, bucket K one unit."""
+    k = _need_buckets(cfg, max(cfg.sensor.bucket_count, 2))
+    T, N = exact(cfg.capture.unit_exposure_s), cfg.capture.periods
+    units = [2 ** (k - 2 - i) for i in range(k - 1)] + [1]
+    slots = [SlotSeconds(b, T * u / N) for b, u in enumerate(units)]
+    reads = [ReadEvent(f"J{i + 1}", tuple(range(k - 1 - i, k))) for i in range(k)]
+    return slots, reads, k
+
+
+@register("interleaved_hdr")
+def interleaved_hdr(cfg: CaptureConfig):
+    """One period: bucket 1 gets 2^(K-1) units, ..., bucket K one unit; each read directly."""
+    k = _need_buckets(cfg, cfg.sensor.bucket_count)
+    T, N = exact(cfg.capture.unit_exposure_s), cfg.capture.periods
+    slots = [SlotSeconds(b, T * 2 ** (k - 1 - b) / N) for b in range(k)]
+    reads = [ReadEvent(f"J{i + 1}", (k - 1 - i,)) for i in range(k)]
+    return slots, reads, k
+
+
+@register("custom")
+def custom(cfg: CaptureConfig):
+    sched = cfg.capture.schedule
+    used = {s.bucket for s in sched.slots if s.bucket != "drain"} | {b for r in sched.reads for b in r.buckets}
+    bad = sorted(b for b in used if b < 1)
+    if bad:
+        raise ConfigError(f"capture.schedule: buckets are numbered from 1 (got {bad})")
+    k = _need_buckets(cfg, max(used))
+    slots = [
+        SlotSeconds(DRAIN if s.bucket == "drain" else s.bucket - 1, exact(s.duration_s), frozenset(s.groups))
+        for s in sched.slots
+    ]
+    reads = [ReadEvent(r.name or f"J{i + 1}", tuple(b - 1 for b in r.buckets)) for i, r in enumerate(sched.reads)]
+    names_ = [r.name for r in reads]
+    if len(set(names_)) != len(names_):
+        raise ConfigError(f"capture.schedule.reads: read names must be unique (got {names_})")
+    return slots, reads, k
+
+
+def _sequential(slots: list[SlotSeconds], reads: list[ReadEvent], periods: int, cfg: CaptureConfig) -> Timeline:
+    """The same reads captured one after another on a conventional sensor."""
+    gap = exact(cfg.sensor.frame_readout_s)
+    segments, frames = [], []
+    t = exact(cfg.capture.start_s)
+    for i, r in enumerate(reads):
+        exposure = sum((s.duration_s for s in slots if s.bucket in r.buckets), Fraction(0)) * periods
+        groups = {s.groups_on for s in slots if s.bucket in r.buckets}
+        if len(groups) > 1:
+            raise ConfigError(
+                f"capture.sequential: read {r.name} sums buckets lit by different emitter groups; "
+                "a single conventional frame cannot reproduce it"
+            )
+        segments.append(SegmentSeconds(t, (SlotSeconds(i, exposure, groups.pop()),), 1))
+        frames.append(ReadEvent(r.name, (i,), destructive=True))
+        t += exposure + gap
+    return build_timeline(segments, frames, len(frames), cfg.capture.protocol, sequential=True)
+
+
+def build(cfg: CaptureConfig) -> Timeline:
+    """The capture's timeline (interleaved, or sequential when ``capture.sequential``)."""
+    name = cfg.capture.protocol
+    if name not in _REGISTRY:
+        raise ConfigError(f"capture.protocol: unknown protocol {name!r}; expected one of {names()}")
+    slots, reads, k = _REGISTRY[name](cfg)
+    if cfg.capture.sequential:
+        return _sequential(slots, reads, cfg.capture.periods, cfg)
+    segment = SegmentSeconds(exact(cfg.capture.start_s), tuple(slots), cfg.capture.periods)
+    return build_timeline([segment], reads, k, name)

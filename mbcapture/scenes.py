@@ -1,0 +1,151 @@
+"""Scene registry and the contract every ``scenes/<name>/scene.py`` fulfils.
+
+A scene module is plain Python that never imports Mitsuba. It defines
+
+``DESCRIPTION``
+    one line for ``mbcapture scenes``.
+``Params``
+    a pydantic model (``extra="forbid"``) of the scene's own config keys (``scene.*``),
+    every field with a default and a ``description``.
+``make(params) -> SceneModel``
+    the scene as data: camera, emitter groups, motion, and a builder that the render
+    package turns into a Mitsuba scene.
+
+Everything Mitsuba-specific (dict building, parameter updates) happens in
+:mod:`mbcapture.render`; the planner only needs the camera and the motion points, so
+``mbcapture plan`` works without Mitsuba.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from types import ModuleType
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import ConfigError
+
+#: Folder holding ``<name>/scene.py``; ``MBCAPTURE_SCENE_PATH`` (os.pathsep separated) adds more.
+BUILTIN_SCENE_DIR = Path(__file__).resolve().parents[1] / "scenes"
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera. ``fov_deg`` is the horizontal field of view."""
+
+    origin: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float]
+    fov_deg: float
+
+    def project(self, points: np.ndarray, width: int, height: int) -> np.ndarray:
+        """World points (..., 3) -> pixel coordinates (..., 2) as (x right, y down).
+
+        Matches Mitsuba's ``perspective`` sensor with ``fov_axis='x'`` and a
+        ``look_at`` transform, pixel centres at half-integers.
+        """
+        o = np.asarray(self.origin, float)
+        fwd = np.asarray(self.target, float) - o
+        fwd /= np.linalg.norm(fwd)
+        right = np.cross(np.asarray(self.up, float), fwd)  # Mitsuba look_at: left = up x dir
+        right /= np.linalg.norm(right)
+        up = np.cross(fwd, right)
+        d = np.asarray(points, float) - o
+        z = d @ fwd
+        if np.any(z <= 0):
+            raise ValueError("a motion point lies behind the camera")
+        # Mitsuba's look_at builds a left-handed frame: +x of the camera is 'left' in the image.
+        x_cam = -(d @ right) / z
+        y_cam = (d @ up) / z
+        tan_half = np.tan(np.radians(self.fov_deg) / 2)
+        px = (x_cam / tan_half * 0.5 + 0.5) * width
+        py = (0.5 - y_cam / tan_half * 0.5 * width / height) * height
+        return np.stack([px, py], axis=-1)
+
+
+@dataclass(frozen=True)
+class SceneModel:
+    """A scene as plain data, produced by a scene module's ``make(params)``.
+
+    groups
+        Emitter group names, in the order of the render output's group axis.
+    switchable
+        The groups a protocol may switch (flashes, LEDs). Every other group is always on.
+    camera
+        Used by the planner to project motion points to pixels.
+    motion_points
+        ``f(times_s: (T,) array) -> (T, M, 3)`` world-space points on the moving parts;
+        ``None`` for a static scene. The planner bounds image motion with them.
+    build
+        Opaque payload for the render package (the scene's description); the scene module
+        and :mod:`mbcapture.render` agree on its form.
+    params
+        The validated ``Params`` instance.
+    """
+
+    name: str
+    groups: tuple[str, ...]
+    switchable: frozenset[str]
+    camera: Camera
+    build: Any
+    params: Any
+    motion_points: Callable[[np.ndarray], np.ndarray] | None = None
+    default_film: tuple[int, int] = (640, 512)
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def is_static(self) -> bool:
+        return self.motion_points is None
+
+
+def _scene_dirs() -> list[Path]:
+    dirs = [BUILTIN_SCENE_DIR]
+    for p in os.environ.get("MBCAPTURE_SCENE_PATH", "").split(os.pathsep):
+        if p:
+            dirs.append(Path(p))
+    return dirs
+
+
+def available() -> dict[str, Path]:
+    """Scene name -> its ``scene.py``."""
+    found: dict[str, Path] = {}
+    for d in _scene_dirs():
+        if d.is_dir():
+            for sub in sorted(d.iterdir()):
+                if (sub / "scene.py").is_file():
+                    found.setdefault(sub.name, sub / "scene.py")
+    return found
+
+
+@lru_cache(maxsize=None)
+def load_module(name: str) -> ModuleType:
+    """Import ``scenes/<name>/scene.py``; an unknown name lists the valid ones."""
+    scenes = available()
+    if name not in scenes:
+        raise ConfigError(
+            f"scene.name: unknown scene {name!r}; expected one of {sorted(scenes)}"
+        )
+    path = scenes[name]
+    mod_name = f"mbcapture_scene_{name}"
+    spec = importlib.util.spec_from_file_location(mod_name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[mod_name] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:  # a broken scene file is the user's, name it
+        del sys.modules[mod_name]
+        raise ConfigError(f"{path}: cannot load scene module: {exc}") from exc
+    for attr in ("DESCRIPTION", "Params", "make"):
+        if not hasattr(module, attr):
+            raise ConfigError(f"{path}: a scene module must define {attr}")
+    return module
+
+
+def make_scene(name: str, params: Any) -> SceneModel:
+    return load_module(name).make(params)

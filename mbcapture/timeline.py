@@ -1,0 +1,282 @@
+"""Integer-tick time base, gate schedules, emitter drive and read events.
+
+Time is counted in integer ticks of an exact rational length ``tick_s`` chosen so that every
+duration of the schedule is a whole number of ticks (the greatest common divisor of the
+durations, subdivided to at most 1 ns so that render strata can end between slot edges). Summing a million float slot durations drifts; integers do not. Every gated
+time, weight, span and centroid below is exact.
+
+A schedule is a sequence of :class:`Segment`: a pattern of slots (bucket or drain, duration,
+switchable emitter groups on) repeated ``repeats`` times, starting at ``start_tick``. Time
+between segments collects nothing (a conventional sensor's frame readout gap). Buckets are
+0-based here and 1-based in configs and outputs, like the paper.
+
+The central quantity is the cumulative gated time
+
+    F[k, g](t) = integral_0^t gate_k(u) * drive_g(u) du        (ticks)
+
+evaluated in closed form for any number of periods, so the weights of a time stratum
+[t0, t1) are F(t1) - F(t0): the cost follows the number of strata, never the number of slots.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from fractions import Fraction
+from math import gcd, lcm
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from .errors import ConfigError
+
+DRAIN = -1
+_MAX_TICKS = 1 << 62
+
+
+def exact(seconds: float | Fraction | int) -> Fraction:
+    """A float as the exact decimal it was written as (``0.001`` -> 1/1000, not the binary double)."""
+    if isinstance(seconds, (Fraction, int)):
+        return Fraction(seconds)
+    return Fraction(repr(float(seconds)))
+
+
+def common_tick(durations_s: Iterable[Fraction]) -> Fraction:
+    """The largest tick that divides every duration exactly (a rational gcd)."""
+    durs = [Fraction(d) for d in durations_s if d != 0]
+    if not durs:
+        raise ConfigError("capture: the schedule has no time in it")
+    den = lcm(*(d.denominator for d in durs))
+    num = gcd(*(d.numerator * (den // d.denominator) for d in durs))
+    return Fraction(num, den)
+
+
+@dataclass(frozen=True)
+class Slot:
+    bucket: int  #: 0-based bucket, or DRAIN
+    ticks: int
+    groups_on: frozenset[str] = frozenset()
+
+
+@dataclass(frozen=True)
+class Segment:
+    start_tick: int
+    slots: tuple[Slot, ...]
+    repeats: int
+
+    @property
+    def period_ticks(self) -> int:
+        return sum(s.ticks for s in self.slots)
+
+    @property
+    def end_tick(self) -> int:
+        return self.start_tick + self.repeats * self.period_ticks
+
+    def _offsets(self) -> np.ndarray:
+        return np.concatenate([[0], np.cumsum([s.ticks for s in self.slots])[:-1]]).astype(np.int64)
+
+    def gated(self, t: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """Ticks in [start, t) spent in the slots selected by ``mask`` (S,) bool, for each t."""
+        period = self.period_ticks
+        durs = np.array([s.ticks for s in self.slots], dtype=np.int64)
+        rel = np.clip(np.asarray(t, dtype=np.int64) - self.start_tick, 0, self.repeats * period)
+        n_full = np.minimum(rel // period, self.repeats)
+        rem = rel - n_full * period
+        per_period = int(durs[mask].sum())
+        partial = np.clip(rem[:, None] - self._offsets()[None, :], 0, durs[None, :])[:, mask].sum(axis=1)
+        return n_full * per_period + partial
+
+
+@dataclass(frozen=True)
+class ReadEvent:
+    """A read of the floating diffusion holding the sum of ``buckets`` (0-based)."""
+
+    name: str
+    buckets: tuple[int, ...]
+    destructive: bool = False
+
+
+@dataclass(frozen=True)
+class Timeline:
+    """A whole capture: segments, reads, and the exact tick length.
+
+    ``n_buckets`` counts charge stores: the sensor's buckets for an interleaved capture, or the
+    frames of a conventional sensor for a sequential one (each frame is read destructively, so
+    a frame is equivalent to a bucket read once).
+    """
+
+    tick_s: Fraction
+    n_buckets: int
+    segments: tuple[Segment, ...]
+    reads: tuple[ReadEvent, ...]
+    protocol: str
+    sequential: bool = False
+
+    # ----------------------------------------------------------------- basic quantities
+    @property
+    def start_tick(self) -> int:
+        return min(s.start_tick for s in self.segments)
+
+    @property
+    def end_tick(self) -> int:
+        return max(s.end_tick for s in self.segments)
+
+    def seconds(self, ticks) -> np.ndarray | float:
+        """Ticks -> seconds (float64; exact values are kept in ticks)."""
+        return np.asarray(ticks, dtype=np.float64) * float(self.tick_s)
+
+    def switchable_groups(self) -> frozenset[str]:
+        return frozenset(g for seg in self.segments for s in seg.slots for g in s.groups_on)
+
+    def collecting_intervals(self) -> list[tuple[int, int]]:
+        """[start, end) tick intervals of the segments that gate charge into some bucket."""
+        out = []
+        for seg in sorted(self.segments, key=lambda s: s.start_tick):
+            if any(s.bucket != DRAIN for s in seg.slots):
+                if out and out[-1][1] == seg.start_tick:
+                    out[-1] = (out[-1][0], seg.end_tick)
+                else:
+                    out.append((seg.start_tick, seg.end_tick))
+        return out
+
+    # ----------------------------------------------------------------- gated time
+    def gated_ticks(self, t: Sequence[int] | np.ndarray, bucket: int, group: str | None = None) -> np.ndarray:
+        """F(t): ticks before each t during which ``bucket`` collects and ``group`` is on.
+
+        ``group=None`` (or an always-on group) counts all the bucket's gated time.
+        """
+        t = np.atleast_1d(np.asarray(t, dtype=np.int64))
+        total = np.zeros(t.shape, dtype=np.int64)
+        for seg in self.segments:
+            mask = np.array(
+                [s.bucket == bucket and (group is None or group in s.groups_on) for s in seg.slots], dtype=bool
+            )
+            if mask.any():
+                total += seg.gated(t, mask)
+        return total
+
+    def weights_ticks(self, edges: np.ndarray, groups: Sequence[str], switchable: frozenset[str]) -> np.ndarray:
+        """W[j, k, g] = ticks of stratum [edges[j], edges[j+1]) in which bucket k collects
+        while group g is on (int64, exact). A group in ``switchable`` is on only in the slots
+        that name it (a flash no slot names stays dark); every other group is always on."""
+        edges = np.asarray(edges, dtype=np.int64)
+        out = np.zeros((len(edges) - 1, self.n_buckets, len(groups)), dtype=np.int64)
+        for k in range(self.n_buckets):
+            for gi, g in enumerate(groups):
+                f = self.gated_ticks(edges, k, g if g in switchable else None)
+                out[:, k, gi] = np.diff(f)
+        return out
+
+    def exposure_ticks(self, bucket: int) -> int:
+        return int(self.gated_ticks([self.end_tick], bucket)[0])
+
+    def read_exposure_ticks(self, read: ReadEvent) -> int:
+        return sum(self.exposure_ticks(b) for b in read.buckets)
+
+    # ----------------------------------------------------------------- spans and centroids
+    def _bucket_slot_times(self, bucket: int) -> list[tuple[int, int, int, int]]:
+        """(first start, last end, sum of durations, sum of duration*midpoint*2) per segment."""
+        rows = []
+        for seg in self.segments:
+            off = 0
+            P, n = seg.period_ticks, seg.repeats
+            for s in seg.slots:
+                if s.bucket == bucket and s.ticks > 0:
+                    first = seg.start_tick + off
+                    last_end = seg.start_tick + (n - 1) * P + off + s.ticks
+                    dur = n * s.ticks
+                    # sum over repeats of 2*midpoint*ticks, exact integers
+                    mid2 = (2 * (seg.start_tick + off) + s.ticks) * n + 2 * P * (n * (n - 1) // 2)
+                    rows.append((first, last_end, dur, mid2 * s.ticks))
+                off += s.ticks
+        return rows
+
+    def span_ticks(self, buckets: Iterable[int]) -> tuple[int, int]:
+        """First tick and last tick (exclusive) at which any of ``buckets`` collects."""
+        rows = [r for b in buckets for r in self._bucket_slot_times(b)]
+        if not rows:
+            return (0, 0)
+        return min(r[0] for r in rows), max(r[1] for r in rows)
+
+    def centroid_ticks(self, buckets: Iterable[int]) -> Fraction:
+        """Time centroid of the charge collection of the summed ``buckets`` (exact, in ticks)."""
+        rows = [r for b in buckets for r in self._bucket_slot_times(b)]
+        total = sum(r[2] for r in rows)
+        if total == 0:
+            raise ValueError("these buckets never collect")
+        return Fraction(sum(r[3] for r in rows), 2 * total)
+
+    def describe_reads(self) -> list[dict]:
+        """Per read: exposure, time span and centroid in seconds (for report.json and plan)."""
+        out = []
+        for r in self.reads:
+            t0, t1 = self.span_ticks(r.buckets)
+            out.append(
+                {
+                    "name": r.name,
+                    "buckets": [b + 1 for b in r.buckets],
+                    "exposure_s": float(self.read_exposure_ticks(r) * self.tick_s),
+                    "span_start_s": float(t0 * self.tick_s),
+                    "span_end_s": float(t1 * self.tick_s),
+                    "span_s": float((t1 - t0) * self.tick_s),
+                    "centroid_s": float(self.centroid_ticks(r.buckets) * self.tick_s),
+                    "destructive": r.destructive,
+                }
+            )
+        return out
+
+
+# --------------------------------------------------------------------------- building
+@dataclass(frozen=True)
+class SlotSeconds:
+    """A slot before the tick is chosen: duration as an exact fraction of a second."""
+
+    bucket: int
+    duration_s: Fraction
+    groups_on: frozenset[str] = frozenset()
+
+
+@dataclass(frozen=True)
+class SegmentSeconds:
+    start_s: Fraction
+    slots: tuple[SlotSeconds, ...]
+    repeats: int
+
+
+def build_timeline(
+    segments: Sequence[SegmentSeconds],
+    reads: Sequence[ReadEvent],
+    n_buckets: int,
+    protocol: str,
+    sequential: bool = False,
+) -> Timeline:
+    """Choose the exact tick and convert seconds to integer ticks; check every bound."""
+    durations = [s.duration_s for seg in segments for s in seg.slots] + [seg.start_s for seg in segments]
+    for seg in segments:
+        if seg.repeats < 1:
+            raise ConfigError("capture.periods: must be >= 1")
+        for s in seg.slots:
+            if s.duration_s <= 0:
+                raise ConfigError(f"capture: slot durations must be > 0 s (got {float(s.duration_s)})")
+    # subdivide the common divisor down to <= 1 ns so that strata can end anywhere, not only
+    # on slot boundaries (durations stay exact integers)
+    tick = common_tick(durations)
+    tick /= max(1, -(-tick.numerator * 10**9 // tick.denominator))
+    out_segments = []
+    for seg in segments:
+        slots = tuple(Slot(s.bucket, int(s.duration_s / tick), s.groups_on) for s in seg.slots)
+        segment = Segment(int(seg.start_s / tick), slots, seg.repeats)
+        if segment.end_tick >= _MAX_TICKS:
+            raise ConfigError(
+                "capture: the schedule needs more than 2^62 ticks of the common time unit "
+                f"({float(tick):.3g} s); use durations with a coarser common divisor"
+            )
+        out_segments.append(segment)
+    for r in reads:
+        bad = [b + 1 for b in r.buckets if not 0 <= b < n_buckets]
+        if bad:
+            raise ConfigError(f"capture.schedule.reads: read {r.name} names bucket(s) {bad}; the schedule has {n_buckets}")
+    tl = Timeline(tick, n_buckets, tuple(out_segments), tuple(reads), protocol, sequential)
+    for r in tl.reads:
+        if tl.read_exposure_ticks(r) == 0:
+            raise ConfigError(f"capture: read {r.name} sums buckets {[b + 1 for b in r.buckets]} that never collect light")
+    return tl

@@ -1,0 +1,181 @@
+"""Schedule arithmetic: exact ticks, the paper's spans (15T vs 8T) and equations 1-5."""
+
+from fractions import Fraction
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mbcapture import protocols
+from mbcapture.config import config_from_dict
+from mbcapture.errors import ConfigError
+from mbcapture.timeline import DRAIN, ReadEvent, SegmentSeconds, SlotSeconds, build_timeline, common_tick, exact
+
+
+def cfg(**capture):
+    sensor = capture.pop("sensor", {})
+    return config_from_dict({"scene": {"name": "flatfield"}, "capture": capture, "sensor": sensor})
+
+
+def exposure_s(tl, read):
+    return tl.read_exposure_ticks(read) * tl.tick_s
+
+
+def span_s(tl, buckets):
+    a, b = tl.span_ticks(buckets)
+    return (b - a) * tl.tick_s
+
+
+def test_common_tick_is_exact_gcd():
+    assert common_tick([Fraction(1, 1000) / 1024 * 4, Fraction(1, 1000) / 1024]) == Fraction(1, 1024000)
+    assert exact(0.001) == Fraction(1, 1000)  # the decimal as written, not the binary double
+    assert common_tick([exact(1e-6), exact(0.5)]) == Fraction(1, 10**6)
+
+
+@pytest.mark.parametrize("periods", [1, 3, 64, 1024, 10**6])
+def test_photon_efficient_reads_T_2T_4T_8T_in_8T(periods):
+    T = Fraction(1, 1000)
+    tl = protocols.build(cfg(protocol="photon_efficient_hdr", unit_exposure_s=0.001, periods=periods))
+    assert [exposure_s(tl, r) for r in tl.reads] == [T, 2 * T, 4 * T, 8 * T]
+    assert (tl.end_tick - tl.start_tick) * tl.tick_s == 8 * T
+    assert span_s(tl, tl.reads[-1].buckets) == 8 * T  # the longest exposure spans exactly 8T
+    assert [r.buckets for r in tl.reads] == [(3,), (2, 3), (1, 2, 3), (0, 1, 2, 3)]  # J1 = bucket 4, ...
+
+
+@pytest.mark.parametrize("periods", [1, 2, 16, 1000])
+def test_interleaved_spans_follow_the_paper(periods):
+    """Section 4: image i spans T_i + (N-1)/N * (sum of the other exposures); capture is 15T."""
+    T, N = Fraction(1, 1000), periods
+    tl = protocols.build(cfg(protocol="interleaved_hdr", unit_exposure_s=0.001, periods=N))
+    assert (tl.end_tick - tl.start_tick) * tl.tick_s == 15 * T
+    exps = {r.buckets[0]: exposure_s(tl, r) for r in tl.reads}
+    assert [exps[b] for b in range(4)] == [8 * T, 4 * T, 2 * T, T]
+    # bucket 1 (first slot of each period): T1 + (N-1)/N (T2+T3+T4), as printed in the paper
+    assert span_s(tl, (0,)) == 8 * T + Fraction(N - 1, N) * 7 * T
+    # the last slot's bucket (4) starts after the other three slots of the first period
+    assert span_s(tl, (3,)) == 15 * T - Fraction(14, N) * T
+
+
+def three_frame_timeline(T1, T2, T3, N):
+    slots = (SlotSeconds(0, T1 / N), SlotSeconds(1, T2 / N), SlotSeconds(2, T3 / N))
+    reads = [ReadEvent(f"F{i + 1}", (i,)) for i in range(3)]
+    return build_timeline([SegmentSeconds(Fraction(0), slots, N)], reads, 3, "custom")
+
+
+@pytest.mark.parametrize("N", [1, 2, 5, 100])
+def test_equations_1_to_5_centroids(N):
+    T1, T2, T3 = Fraction(1, 125), Fraction(1, 250), Fraction(1, 500)
+    tl = three_frame_timeline(T1, T2, T3, N)
+    C = [tl.centroid_ticks((k,)) * tl.tick_s for k in range(3)]
+    assert C[1] - C[0] == (T1 + T2) / (2 * N)  # eq. 4
+    assert C[2] - C[1] == (T2 + T3) / (2 * N)  # eq. 5
+    # duration (span) differences shrink to (T2 - T1)/N
+    assert span_s(tl, (1,)) - span_s(tl, (0,)) == (T2 - T1) / N
+    assert span_s(tl, (2,)) - span_s(tl, (1,)) == (T3 - T2) / N
+
+
+def test_sequential_centroids_and_gap():
+    """N = 1 back-to-back frames with a readout gap: centroids (T1+T2)/2 + gap apart."""
+    tl = protocols.build(
+        cfg(protocol="interleaved_hdr", unit_exposure_s=0.001, periods=8, sequential=True, sensor={"frame_readout_s": 0.02})
+    )
+    assert tl.sequential and all(r.destructive for r in tl.reads)
+    T, gap = Fraction(1, 1000), Fraction(2, 100)
+    exps = [exposure_s(tl, r) for r in tl.reads]
+    assert exps == [T, 2 * T, 4 * T, 8 * T]  # same reads as the interleaved capture
+    C = [tl.centroid_ticks(r.buckets) * tl.tick_s for r in tl.reads]
+    assert C[1] - C[0] == (exps[0] + exps[1]) / 2 + gap
+    assert (tl.end_tick - tl.start_tick) * tl.tick_s == 15 * T + 3 * gap
+    # each frame is one contiguous exposure
+    assert all(span_s(tl, r.buckets) == e for r, e in zip(tl.reads, exps))
+
+
+def brute_force_gated(tl, t, bucket, group=None):
+    """Slot-by-slot enumeration (the naive way) of gated ticks before t."""
+    total = 0
+    for seg in tl.segments:
+        start = seg.start_tick
+        for _ in range(seg.repeats):
+            for s in seg.slots:
+                if s.bucket == bucket and (group is None or group in s.groups_on):
+                    total += max(0, min(t, start + s.ticks) - start)
+                start += s.ticks
+    return total
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    durs=st.lists(st.integers(1, 50), min_size=1, max_size=5),
+    buckets=st.lists(st.integers(-1, 2), min_size=5, max_size=5),
+    flash=st.lists(st.booleans(), min_size=5, max_size=5),
+    repeats=st.integers(1, 7),
+    t=st.lists(st.integers(-5, 2000), min_size=1, max_size=8),
+)
+def test_closed_form_gated_time_matches_enumeration(durs, buckets, flash, repeats, t):
+    slots = tuple(
+        SlotSeconds(buckets[i], Fraction(d, 10**6), frozenset({"flash"}) if flash[i] else frozenset())
+        for i, d in enumerate(durs)
+    )
+    if all(s.bucket == DRAIN for s in slots):
+        slots = slots + (SlotSeconds(0, Fraction(1, 10**6)),)
+    used = sorted({s.bucket for s in slots if s.bucket != DRAIN})
+    tl = build_timeline([SegmentSeconds(Fraction(3, 10**6), slots, repeats)], [ReadEvent("J1", (used[0],))], 3, "custom")
+    scale = int(Fraction(1, 10**6) / tl.tick_s)
+    ts = np.array(t, dtype=np.int64) * scale
+    for k in range(3):
+        for g in (None, "flash"):
+            got = tl.gated_ticks(ts, k, g)
+            want = [brute_force_gated(tl, int(x), k, g) for x in ts]
+            assert got.tolist() == want
+
+
+@settings(max_examples=40, deadline=None)
+@given(cuts=st.lists(st.integers(0, 10**6), min_size=0, max_size=20), periods=st.integers(1, 5000))
+def test_weights_of_any_partition_sum_exactly_to_exposures(cuts, periods):
+    tl = protocols.build(cfg(protocol="photon_efficient_hdr", unit_exposure_s=0.001, periods=periods))
+    span = tl.end_tick - tl.start_tick
+    inner = sorted({tl.start_tick + c * span // 10**6 for c in cuts} - {tl.start_tick, tl.end_tick})
+    edges = np.array([tl.start_tick, *inner, tl.end_tick], dtype=np.int64)
+    w = tl.weights_ticks(edges, ("ambient", "flash"), frozenset({"flash"}))
+    assert (w >= 0).all()
+    assert w[:, :, 0].sum(axis=0).tolist() == [tl.exposure_ticks(k) for k in range(4)]
+    assert w[:, :, 1].sum() == 0  # no slot turns the flash on: it stays dark
+
+
+def test_flash_weights_follow_the_slots():
+    slots = (SlotSeconds(0, Fraction(1, 1000), frozenset({"flash"})), SlotSeconds(1, Fraction(1, 1000)))
+    tl = build_timeline([SegmentSeconds(Fraction(0), slots, 10)], [ReadEvent("F", (0,)), ReadEvent("A", (1,))], 2, "custom")
+    w = tl.weights_ticks(np.array([tl.start_tick, tl.end_tick]), ("ambient", "flash"), frozenset({"flash"}))[0]
+    ms = int(Fraction(1, 1000) / tl.tick_s)
+    assert w.tolist() == [[10 * ms, 10 * ms], [10 * ms, 0]]
+
+
+def test_a_million_periods_of_1us_slots_are_exact():
+    tl = protocols.build(cfg(protocol="photon_efficient_hdr", unit_exposure_s=1.0, periods=10**6, sensor={}))
+    assert Fraction(1, 10**6) / tl.tick_s == 1000  # T/N = 1 us slot for bucket 4, ticks of 1 ns
+    assert (tl.end_tick - tl.start_tick) * tl.tick_s == 8
+    assert [tl.exposure_ticks(k) * tl.tick_s for k in range(4)] == [4, 2, 1, 1]
+
+
+def test_protocol_needing_more_buckets_than_the_sensor_is_an_error():
+    with pytest.raises(ConfigError, match=r"needs 4 buckets but sensor.bucket_count is 2"):
+        protocols.build(cfg(protocol="custom", sensor={"bucket_count": 2}, schedule={
+            "slots": [{"bucket": 4, "duration_s": 1e-3}], "reads": [{"buckets": [4]}]}))
+
+
+def test_two_bucket_photon_efficient():
+    tl = protocols.build(cfg(protocol="photon_efficient_hdr", sensor={"bucket_count": 2}))
+    assert [r.buckets for r in tl.reads] == [(1,), (0, 1)]
+    assert [exposure_s(tl, r) for r in tl.reads] == [Fraction(1, 1000), Fraction(2, 1000)]
+
+
+def test_custom_schedule_with_drain_and_flash():
+    tl = protocols.build(cfg(protocol="custom", periods=4, schedule={
+        "slots": [{"bucket": 1, "duration_s": 2e-4, "groups": ["flash"]}, {"bucket": "drain", "duration_s": 1e-4},
+                  {"bucket": 2, "duration_s": 2e-4}],
+        "reads": [{"name": "flash", "buckets": [1]}, {"name": "ambient", "buckets": [2]}]}))
+    assert [r.name for r in tl.reads] == ["flash", "ambient"]
+    assert tl.switchable_groups() == {"flash"}
+    assert (tl.end_tick - tl.start_tick) * tl.tick_s == Fraction(2, 1000)
+    assert exposure_s(tl, tl.reads[0]) == Fraction(8, 10000)
