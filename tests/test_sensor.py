@@ -1,0 +1,245 @@
+"""Sensor physics: conversion factor, shot noise, full wells, figure 11, covariance, PTC.
+
+Statistical tolerances come from the sample size: the standard error of a sample mean is
+sqrt(var / n); of a sample variance sqrt(2 / (n - 1)) * var (Gaussian) plus the excess
+kurtosis term var^2 * kappa / n (Poisson: kappa = 1 / lambda); of a sample covariance
+sqrt((var_i var_j + cov_ij^2) / n). Assertions use 5 standard errors.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from mbcapture.sensor import (
+    SensorConfig,
+    dn_to_electrons,
+    electrons_per_radiance_second,
+    expected_electrons,
+    fixed_pattern,
+    simulate_reads,
+)
+
+N_SIGMA = 5.0
+
+# The paper's photon-efficient HDR protocol: buckets 4:2:1:1 of slot time, i.e. with the
+# 0-based bucket index b = bucket number - 1, expected signal 4S, 2S, S, S in b = 0, 1, 2, 3,
+# and cumulative reads J1 = B4, J2 = B4 + B3, J3 = B4 + B3 + B2, J4 = all.
+CUMULATIVE_READS = [(3,), (3, 2), (3, 2, 1), (3, 2, 1, 0)]
+SEPARATE_READS = [(3,), (2,), (1,), (0,)]
+
+
+def ideal(**overrides) -> SensorConfig:
+    """Default sensor without fixed-pattern noise (statistics over pixels = over captures)."""
+    return SensorConfig(**{"prnu": 0.0, "dsnu_e": 0.0, **overrides})
+
+
+def var_se(var: float, n: int, excess_kurtosis: float = 0.0) -> float:
+    return var * np.sqrt(2.0 / (n - 1) + excess_kurtosis / n)
+
+
+def flat(k_values: list[float], n_pix: int, channels: int = 1) -> np.ndarray:
+    """(K, 1, n_pix, channels) flat expected electrons."""
+    return np.broadcast_to(np.asarray(k_values, dtype=np.float64)[:, None, None, None], (len(k_values), 1, n_pix, channels)).copy()
+
+
+# --------------------------------------------------------------------------- conversion
+
+
+def test_conversion_factor_matches_hand_computation():
+    cfg = SensorConfig()
+    # Green channel by hand: E/L = pi * 0.9 / (4 * 2.8^2) = 2.827433 / 31.36 = 0.0901605 sr;
+    # A * ff = (5.6e-6)^2 * 0.5 = 1.568e-11 m^2; QE 0.5;
+    # lambda / (h c) = 540e-9 / (6.62607015e-34 * 299792458) = 540e-9 / 1.98645e-25 = 2.718423e18 J^-1.
+    # K_G = 0.0901605 * 1.568e-11 * 0.5 * 2.718423e18 = 1.92154e6 e- per (W m^-2 sr^-1 s).
+    k = electrons_per_radiance_second(cfg)
+    assert k.shape == (3,)
+    assert k[1] == pytest.approx(1.92154e6, rel=1e-5)
+    # Channels scale with QE * lambda.
+    ratio = np.array([0.40 * 600, 0.50 * 540, 0.45 * 460]) / (0.50 * 540)
+    np.testing.assert_allclose(k / k[1], ratio, rtol=1e-12)
+
+
+def test_mid_grey_is_well_exposed_at_8ms():
+    cfg = SensorConfig()
+    e = expected_electrons(np.full((1, 1, 1, 3), 0.3 * 8e-3), cfg)[0, 0, 0]
+    assert np.all(e > 0.3 * cfg.full_well_e) and np.all(e < 0.8 * cfg.full_well_e)
+
+
+def test_config_rejects_nonsense_naming_the_key():
+    with pytest.raises(ValidationError, match="full_well_e"):
+        SensorConfig(full_well_e=0)
+    with pytest.raises(ValidationError, match="quantum_efficiency"):
+        SensorConfig(quantum_efficiency=[0.5, 0.5])
+    with pytest.raises(ValidationError, match="quantum_efficiency"):
+        SensorConfig(quantum_efficiency=[0.5, 1.5, 0.5])
+    with pytest.raises(ValidationError, match="black_level_dn"):
+        SensorConfig(adc_bits=8, black_level_dn=300)
+    with pytest.raises(ValidationError, match="no_such_key"):
+        SensorConfig(no_such_key=1)
+
+
+# --------------------------------------------------------------------------- shot noise, wells
+
+
+def test_single_bucket_poisson_mean_and_variance():
+    lam, n = 50.0, 200_000
+    out = simulate_reads(flat([lam], n), [(0,)], ideal(), np.random.default_rng(1))
+    e = out.electrons[0].ravel()
+    assert np.all(e == np.rint(e))
+    assert abs(e.mean() - lam) < N_SIGMA * np.sqrt(lam / n)
+    assert abs(e.var(ddof=1) - lam) < N_SIGMA * var_se(lam, n, 1.0 / lam)
+    assert not out.saturated.any()
+
+
+def test_bucket_full_well_clips_and_flags():
+    cfg = ideal()
+    fw = cfg.full_well_e
+    n = 20_000
+    exp_e = flat([2.0 * fw, fw, 0.5 * fw], n)
+    out = simulate_reads(exp_e, [(0,), (1,), (2,), (2, 0)], cfg, np.random.default_rng(2))
+    assert np.all(out.electrons[0] == fw) and out.saturated[0].all()
+    # A bucket expecting exactly its full well hits it about half of the time; flags follow the charge.
+    np.testing.assert_array_equal(out.saturated[1], out.electrons[1] >= fw)
+    assert 0.4 < out.saturated[1].mean() < 0.6
+    assert not out.saturated[2].any()
+    assert out.saturated[3].all(), "a read summing a clipped bucket is flagged"
+    assert out.electrons.max() <= fw
+
+
+def test_floating_diffusion_and_adc_clipping_flagged():
+    cfg = ideal(fd_full_well_e=15_000.0)
+    out = simulate_reads(flat([6000.0, 6000.0, 6000.0], 1000), [(0,), (0, 1), (0, 1, 2)], cfg, np.random.default_rng(3))
+    assert not out.saturated[0].any() and not out.saturated[1].any()
+    assert out.saturated[2].all()
+    assert np.allclose(dn_to_electrons(out.reads_dn[2], cfg), 15_000.0, atol=6 * cfg.read_noise_e + 2 / cfg.gain_dn_per_e)
+    cfg_adc = ideal(gain_dn_per_e=2.0)  # 9000 e- * 2 DN/e + 256 > 16383
+    out = simulate_reads(flat([9000.0], 1000), [(0,)], cfg_adc, np.random.default_rng(4))
+    assert out.saturated.all() and np.all(out.reads_dn == cfg_adc.adc_max_dn)
+
+
+def test_fixed_pattern_is_per_sensor_and_identical_across_captures():
+    cfg = SensorConfig(prnu=0.05, dsnu_e=2.0, fpn_seed=7)
+    a = fixed_pattern((4, 5, 3), cfg)
+    b = fixed_pattern((4, 5, 3), cfg)
+    np.testing.assert_array_equal(a.prnu_gain, b.prnu_gain)
+    np.testing.assert_array_equal(a.dsnu_offset_e, b.dsnu_offset_e)
+    other = fixed_pattern((4, 5, 3), cfg.model_copy(update={"fpn_seed": 8}))
+    assert not np.array_equal(a.prnu_gain, other.prnu_gain)
+
+
+def test_dark_current_transfer_inefficiency_and_parasitic_light_means():
+    n = 100_000
+    cfg = ideal(dark_current_e_per_s=1000.0, transfer_inefficiency=0.1, parasitic_light=0.01, read_noise_e=0.0)
+    exp_e = flat([1000.0, 0.0], n)
+    out = simulate_reads(exp_e, [(0,), (1,)], cfg, np.random.default_rng(5), storage_s=[0.05, 0.1])
+    # Bucket means: photo + parasitic share of the other bucket + dark.
+    mean_b0 = 1000.0 + 0.0 + 50.0
+    mean_b1 = 0.0 + 0.01 * 1000.0 + 100.0
+    e = out.electrons.reshape(2, -1).mean(axis=1)
+    assert abs(e[0] - mean_b0) < N_SIGMA * np.sqrt(mean_b0 / n)
+    assert abs(e[1] - mean_b1) < N_SIGMA * np.sqrt(mean_b1 / n)
+    # Reads see 90 % of the charge (binomial thinning keeps the Poisson law: var = mean).
+    read_e = dn_to_electrons(out.reads_dn, cfg).reshape(2, -1)
+    q = 1.0 / (12 * cfg.gain_dn_per_e**2)
+    for r, m in enumerate([0.9 * mean_b0, 0.9 * mean_b1]):
+        assert abs(read_e[r].mean() - m) < N_SIGMA * np.sqrt((m + q) / n)
+    # Separate frames of a sequential capture do not couple.
+    seq = simulate_reads(exp_e, [(0,), (1,)], cfg, np.random.default_rng(6), shared_photodiode=False)
+    assert abs(seq.electrons[1].mean()) < N_SIGMA * np.sqrt(1.0 / n)
+
+
+# --------------------------------------------------------------------------- figure 11
+
+
+@pytest.mark.parametrize("signal_s", [20.0, 200.0])
+def test_figure_11_in_pixel_addition_beats_read_then_add(signal_s):
+    """Buckets 4, 3, 2, 1 hold S, S, 2S, 4S. J_k has signal s_k = S, 2S, 4S, 8S.
+
+    In-pixel (figure 11b): Var(J_k) = s_k + R^2.  Read then add (11a): Var = s_k + k R^2.
+    (Plus quantization 1/(12 g^2) per read, in electrons^2.)
+    """
+    cfg = ideal(read_noise_e=8.0)
+    n = 100_000
+    exp_e = flat([4 * signal_s, 2 * signal_s, signal_s, signal_s], n)
+    q = 1.0 / (12 * cfg.gain_dn_per_e**2)
+    r2 = cfg.read_noise_e**2
+    s_k = signal_s * np.array([1.0, 2.0, 4.0, 8.0])
+
+    inpix = simulate_reads(exp_e, CUMULATIVE_READS, cfg, np.random.default_rng(10))
+    j_in = dn_to_electrons(inpix.reads_dn, cfg).reshape(4, -1)
+    sep = simulate_reads(exp_e, SEPARATE_READS, cfg, np.random.default_rng(11))
+    j_add = np.cumsum(dn_to_electrons(sep.reads_dn, cfg).reshape(4, -1), axis=0)
+
+    k = np.arange(1, 5)
+    var_in_model = s_k + r2 + q
+    var_add_model = s_k + k * (r2 + q)
+    for i in range(4):
+        assert abs(j_in[i].mean() - s_k[i]) < N_SIGMA * np.sqrt(var_in_model[i] / n)
+        assert abs(j_in[i].var(ddof=1) - var_in_model[i]) < N_SIGMA * var_se(var_in_model[i], n, s_k[i] / var_in_model[i] ** 2)
+        assert abs(j_add[i].var(ddof=1) - var_add_model[i]) < N_SIGMA * var_se(var_add_model[i], n, s_k[i] / var_add_model[i] ** 2)
+    snr_in = j_in.mean(axis=1) / j_in.std(axis=1)
+    snr_add = j_add.mean(axis=1) / j_add.std(axis=1)
+    assert np.all(snr_in[1:] > snr_add[1:])
+
+
+def test_cumulative_reads_covariance_is_lambda_min_t():
+    cfg = ideal(read_noise_e=5.0)
+    n = 200_000
+    s = 100.0  # electrons per unit time T in each slot of T
+    exp_e = flat([4 * s, 2 * s, s, s], n)
+    out = simulate_reads(exp_e, CUMULATIVE_READS, cfg, np.random.default_rng(12))
+    j = dn_to_electrons(out.reads_dn, cfg).reshape(4, -1)
+    t = np.array([1.0, 2.0, 4.0, 8.0])
+    model = s * np.minimum.outer(t, t) + (cfg.read_noise_e**2 + 1 / (12 * cfg.gain_dn_per_e**2)) * np.eye(4)
+    sample = np.cov(j)
+    se = np.sqrt((np.outer(np.diag(model), np.diag(model)) + model**2) / n)
+    assert np.all(np.abs(sample - model) < N_SIGMA * se), (sample, model)
+
+
+# --------------------------------------------------------------------------- photon transfer curve
+
+
+def test_photon_transfer_curve_recovers_gain_read_noise_and_full_well():
+    """EMVA 1288 style: two captures of each flat level with the same sensor (same fixed
+    pattern), temporal variance from their difference: var = Var(A - B) / 2 over pixels.
+    Model: var_dn = g * (mu_dn - mu_dark) + (g R)^2 + 1/12.
+    """
+    cfg = SensorConfig(dark_current_e_per_s=0.0)  # default PRNU and DSNU on: the difference removes them
+    n = 20_000
+    levels_e = np.concatenate([[0.0], np.geomspace(20.0, 7000.0, 24), np.linspace(9000.0, 14000.0, 11)])
+    exp_e = np.broadcast_to(levels_e[None, :, None, None], (1, levels_e.size, n, 1)).copy()
+    a = simulate_reads(exp_e, [(0,)], cfg, np.random.default_rng(20)).reads_dn[0, :, :, 0]
+    b = simulate_reads(exp_e, [(0,)], cfg, np.random.default_rng(21)).reads_dn[0, :, :, 0]
+    mu = 0.5 * (a.mean(axis=1) + b.mean(axis=1)) - 0.5 * (a[0].mean() + b[0].mean())
+    var = (a - b).var(axis=1, ddof=1) / 2.0
+
+    # Linear range: below 70 % of the full well. Weighted least squares, weights 1 / SE(var)^2.
+    lin = levels_e < 0.7 * cfg.full_well_e
+    design = np.stack([mu[lin], np.ones(lin.sum())], axis=1)
+    g_true = cfg.gain_dn_per_e
+    var_model = g_true * mu[lin] + (g_true * cfg.read_noise_e) ** 2 + 1 / 12
+    w = 1.0 / var_se(var_model, n) ** 2
+    cov = np.linalg.inv(design.T @ (design * w[:, None]))
+    slope, intercept = cov @ (design.T @ (w * var[lin]))
+    se_slope, se_intercept = np.sqrt(np.diag(cov))
+    print(f"PTC: gain {slope:.5f} DN/e (true {g_true}, SE {se_slope:.5f}); "
+          f"intercept {intercept:.4f} DN^2 (SE {se_intercept:.4f})")
+    assert abs(slope - g_true) < N_SIGMA * se_slope
+    read_noise_est = np.sqrt(max(intercept - 1 / 12, 0.0)) / slope
+    # Propagated SE of R from the intercept: dR/dI = 1 / (2 g^2 R).
+    se_r = se_intercept / (2 * g_true**2 * cfg.read_noise_e)
+    print(f"PTC: read noise {read_noise_est:.4f} e- (true {cfg.read_noise_e}, SE {se_r:.4f})")
+    assert abs(read_noise_est - cfg.read_noise_e) < N_SIGMA * se_r
+    # Full well: EMVA saturation point = mean signal at the variance peak; above it the
+    # variance collapses to the read noise and the mean plateaus at the full well. With
+    # 1 % PRNU the pixels reach their well over a spread of a few percent of the light, so
+    # the variance peaks some 5 % below the full well (at 9485 e- with these seeds).
+    peak = int(np.argmax(var))
+    sat_e = mu[peak] / slope
+    plateau_e = mu[-1] / slope
+    print(f"PTC: saturation (variance peak) {sat_e:.0f} e-, plateau {plateau_e:.0f} e- (full well {cfg.full_well_e:.0f})")
+    assert 0.9 * cfg.full_well_e < sat_e <= cfg.full_well_e
+    assert plateau_e == pytest.approx(cfg.full_well_e, rel=0.01)
+    assert var[-1] < 0.01 * var.max()
