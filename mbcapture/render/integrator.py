@@ -1,0 +1,148 @@
+"""One-pass per-emitter-group path tracer (a Python ``mi.SamplingIntegrator``).
+
+Light transport is linear in the emitters, so the image of the whole scene is the sum of the
+images lit by each emitter group alone. This integrator renders every *requested* group into
+its own three channels in one pass over the same paths:
+
+* a unidirectional path tracer, at most ``max_depth`` segments per path (Mitsuba's
+  convention: ``max_depth=1`` sees emitters directly, ``2`` adds direct lighting, ...), no
+  Russian roulette;
+* at every non-specular vertex, next-event estimation towards *every* emitter of every
+  requested group (a Python loop over the few emitters: each one is sampled with probability
+  1, so there is no emitter-selection noise and no group starves another of samples);
+* BSDF-sampled rays that hit an emitter are attributed to that emitter's group, weighted by
+  the power heuristic against that emitter's own ``pdf_direction`` (its selection probability
+  is 1). Emitters seen directly from the camera get weight 1.
+
+Emitters of groups that are not requested are never sampled, and their emission is ignored
+when a path hits them (they still occlude). Without any group requested the kernel would be
+empty; the renderer never asks for that.
+
+Output: the film's RGB is the sum over the requested groups, followed by the AOV channels
+``<group>.R, <group>.G, <group>.B`` for each requested group, in the requested order.
+
+Mitsuba's Python classes exist per variant, so the class is created by :func:`integrator_class`
+after ``mi.set_variant``.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Any, Sequence
+
+#: Name under which the integrator is registered with ``mi.register_integrator``.
+PLUGIN_NAME = "mbcapture_groups"
+
+
+def mis_power(pdf_a: Any, pdf_b: Any) -> Any:
+    """Power heuristic (exponent 2) weight of strategy a; 0 where both pdfs are 0."""
+    import drjit as dr
+
+    a2 = dr.square(pdf_a)
+    w = a2 / (a2 + dr.square(pdf_b))
+    return dr.select(dr.isfinite(w), w, 0.0)
+
+
+@lru_cache(maxsize=None)
+def integrator_class(variant: str) -> type:
+    """The integrator class for the active Mitsuba ``variant`` (registered on first call)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if mi.variant() != variant:
+        raise RuntimeError(f"integrator_class({variant!r}) called with variant {mi.variant()!r}")
+
+    class GroupPathIntegrator(mi.SamplingIntegrator):
+        """Path tracer writing each emitter group into its own channels (see module doc)."""
+
+        def __init__(self, props: mi.Properties) -> None:
+            super().__init__(props)
+            self.max_depth: int = int(props.get("max_depth", 4))
+            if self.max_depth < 1:
+                raise ValueError("max_depth must be >= 1")
+            self.group_names: list[str] = []
+            self.group_emitters: list[list[mi.Emitter]] = []
+
+        def set_groups(self, names: Sequence[str], emitters: Sequence[Sequence[Any]]) -> None:
+            """Choose the groups to render: ``emitters[g]`` are the emitters of ``names[g]``."""
+            if len(names) != len(emitters) or not names:
+                raise ValueError("need one emitter list per group, at least one group")
+            self.group_names = list(names)
+            self.group_emitters = [list(e) for e in emitters]
+
+        def aov_names(self) -> list[str]:
+            return [f"{g}.{c}" for g in self.group_names for c in "RGB"]
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            ctx = mi.BSDFContext()
+            n_groups = len(self.group_names)
+            result = [mi.Color3f(0.0) for _ in range(n_groups)]
+            ptrs = [[mi.EmitterPtr(e) for e in ems] for ems in self.group_emitters]
+
+            ray = mi.Ray3f(ray)
+            active = mi.Bool(active)
+            throughput = mi.Spectrum(1.0)
+            prev_si = dr.zeros(mi.SurfaceInteraction3f)
+            prev_bsdf_pdf = mi.Float(1.0)
+            prev_bsdf_delta = mi.Bool(True)
+            valid_first = mi.Bool(False)
+
+            for depth in range(self.max_depth):
+                si = scene.ray_intersect(
+                    ray, ray_flags=mi.RayFlags.All, coherent=mi.Bool(depth == 0), active=active
+                )
+                if depth == 0:
+                    valid_first = si.is_valid()
+
+                # Emission hit by this segment (camera ray or BSDF sample), per group.
+                em_hit = si.emitter(scene, active)
+                ds = mi.DirectionSample3f(scene, si, prev_si)
+                for g in range(n_groups):
+                    for emitter, ptr in zip(self.group_emitters[g], ptrs[g]):
+                        hit = active & (em_hit == ptr)
+                        em_pdf = emitter.pdf_direction(prev_si, ds, hit & ~prev_bsdf_delta)
+                        w = dr.select(prev_bsdf_delta, 1.0, mis_power(prev_bsdf_pdf, em_pdf))
+                        value = emitter.eval(si, hit & (prev_bsdf_pdf > 0))
+                        result[g] += dr.select(hit, throughput * value * w, 0.0)
+
+                if depth + 1 >= self.max_depth:
+                    break
+                active_next = active & si.is_valid()
+                bsdf = si.bsdf(ray)
+
+                # Next-event estimation towards every emitter of every requested group.
+                active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+                for g in range(n_groups):
+                    for emitter in self.group_emitters[g]:
+                        ds_em, em_weight = emitter.sample_direction(
+                            si, sampler.next_2d(active_em), active_em
+                        )
+                        ok = active_em & (ds_em.pdf != 0.0)
+                        ok &= ~scene.ray_test(si.spawn_ray_to(ds_em.p), ok)
+                        wo = si.to_local(ds_em.d)
+                        bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, ok)
+                        w = dr.select(ds_em.delta, 1.0, mis_power(ds_em.pdf, bsdf_pdf))
+                        result[g] += dr.select(ok, throughput * bsdf_val * em_weight * w, 0.0)
+
+                # BSDF sampling: continue the path.
+                bs, bsdf_weight = bsdf.sample(
+                    ctx, si, sampler.next_1d(active_next), sampler.next_2d(active_next), active_next
+                )
+                throughput = dr.select(active_next, throughput * bsdf_weight, 0.0)
+                ray = si.spawn_ray(si.to_world(bs.wo))
+                prev_si = si
+                prev_bsdf_pdf = bs.pdf
+                prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+                active = active_next & (dr.max(throughput) > 0.0)
+
+            total = mi.Color3f(0.0)
+            for g in range(n_groups):
+                total = total + result[g]  # not '+=': Dr.Jit's += is in place
+            aovs = [result[g][c] for g in range(n_groups) for c in range(3)]
+            return mi.Spectrum(total), valid_first, aovs
+
+        def to_string(self) -> str:
+            return f"GroupPathIntegrator[max_depth={self.max_depth}, groups={self.group_names}]"
+
+    mi.register_integrator(PLUGIN_NAME, lambda props: GroupPathIntegrator(props))
+    return GroupPathIntegrator
