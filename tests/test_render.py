@@ -1,0 +1,281 @@
+"""mbcapture.render: LLVM selection (no Mitsuba), and rendering tests (marked ``render``).
+
+Rendering tests use tiny films and few samples; statistical comparisons use independent
+seed replicates, so their tolerances follow from the Monte Carlo error actually measured.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mbcapture.errors import EnvironmentProblem
+from mbcapture.render import llvm
+from mbcapture.render.build import Light, SceneBuild, Shape, rotate, scale, translate
+from mbcapture.scenes import Camera, SceneModel, load_module, make_scene
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+# -- LLVM selection: fake library directories ---------------------------------------------------
+def _fake_libs(root: Path, names: dict[str, str | None]) -> Path:
+    """Create files (value None) or symlinks (value = target name) in ``root``."""
+    root.mkdir(parents=True, exist_ok=True)
+    for name, target in names.items():
+        if target is None:
+            (root / name).write_bytes(b"\x7fELF")
+    for name, target in names.items():
+        if target is not None:
+            (root / name).symlink_to(target)
+    return root
+
+
+@pytest.mark.parametrize("name, version", [
+    ("libLLVM-19.so", 19), ("libLLVM-14.0.6.so.1", 14), ("libLLVM-15.so.1", 15),
+    ("libLLVM.so.19.1", 19), ("libLLVM.so.18", 18), ("libLLVM.so", None), ("libLLVM.so.1", None),
+    ("libLLVM-17git.so", 17), ("libLLVMCore.a", None),
+])
+def test_version_from_name(name, version):
+    assert llvm.version_from_name(name) == version
+
+
+def test_finder_picks_newest_at_least_16(tmp_path):
+    a = _fake_libs(tmp_path / "x86_64-linux-gnu", {
+        "libLLVM-14.so.1": None, "libLLVM-15.so.1": None, "libLLVM-15.so": "libLLVM-15.so.1",
+        "libLLVM.so.19.1": None, "libLLVM-19.so": "libLLVM.so.19.1",
+    })
+    b = _fake_libs(tmp_path / "llvm-17" / "lib", {"libLLVM-17.so": None, "libLLVM.so": "libLLVM-17.so"})
+    env: dict[str, str] = {}
+    v, path = llvm.select_llvm(env, dirs=[str(a), str(tmp_path / "llvm-*" / "lib")], use_ldconfig=False)
+    assert v == 19 and Path(path).parent == a and env[llvm.ENV_VAR] == path
+    v, path = llvm.select_llvm({}, dirs=[str(b)], use_ldconfig=False)
+    assert v == 17
+
+
+def test_finder_refuses_only_old_llvm(tmp_path):
+    a = _fake_libs(tmp_path / "lib", {"libLLVM-14.so.1": None, "libLLVM-15.so.1": None,
+                                      "libLLVM-15.so": "libLLVM-15.so.1", "libLLVM.so": "libLLVM-15.so"})
+    env: dict[str, str] = {}
+    with pytest.raises(EnvironmentProblem) as err:
+        llvm.select_llvm(env, dirs=[str(a)], use_ldconfig=False)
+    msg = str(err.value)
+    assert "\n" not in msg and "apt-get install libllvm19" in msg and llvm.ENV_VAR in msg
+    assert "14, 15" in msg and llvm.ENV_VAR not in env
+    with pytest.raises(EnvironmentProblem, match="no libLLVM found"):
+        llvm.select_llvm({}, dirs=[str(tmp_path / "empty")], use_ldconfig=False)
+
+
+def test_preset_env_var_is_checked(tmp_path):
+    a = _fake_libs(tmp_path / "lib", {"libLLVM-15.so.1": None, "libLLVM.so": "libLLVM-15.so.1",
+                                      "libLLVM.so.19.1": None, "libLLVM-19.so": "libLLVM.so.19.1",
+                                      "libfoo.so": None})
+    for bad in ("libLLVM-15.so.1", "libLLVM.so"):  # the unversioned name resolves to 15
+        with pytest.raises(EnvironmentProblem, match="LLVM 15"):
+            llvm.select_llvm({llvm.ENV_VAR: str(a / bad)}, dirs=[], use_ldconfig=False)
+    with pytest.raises(EnvironmentProblem, match="cannot tell"):
+        llvm.select_llvm({llvm.ENV_VAR: str(a / "libfoo.so")}, dirs=[], use_ldconfig=False)
+    with pytest.raises(EnvironmentProblem, match="does not exist"):
+        llvm.select_llvm({llvm.ENV_VAR: str(a / "nope.so")}, dirs=[], use_ldconfig=False)
+    good = str(a / "libLLVM-19.so")
+    assert llvm.select_llvm({llvm.ENV_VAR: good}, dirs=[], use_ldconfig=False) == (19, good)
+
+
+def test_import_render_does_not_import_mitsuba():
+    code = ("import sys, mbcapture.render, mbcapture.scenes; "
+            "sys.exit(int('mitsuba' in sys.modules or 'drjit' in sys.modules))")
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    assert subprocess.run([sys.executable, "-c", code], env=env, cwd=REPO).returncode == 0
+
+
+# -- rendering ----------------------------------------------------------------------------------
+render = pytest.mark.render
+
+
+@pytest.fixture(scope="module")
+def mitsuba_ready():
+    try:
+        llvm.ensure_llvm()
+    except EnvironmentProblem as exc:
+        pytest.skip(str(exc))
+
+
+def _metronome(**kw) -> SceneModel:
+    mod = load_module("metronome")
+    return make_scene("metronome", mod.Params(**kw))
+
+
+def _replicate_z(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """z-scores of mean(a) - mean(b) over axis 0 (replicates), per remaining element."""
+    k = a.shape[0]
+    se = np.sqrt(a.var(axis=0, ddof=1) / k + b.var(axis=0, ddof=1) / k)
+    return (a.mean(axis=0) - b.mean(axis=0)) / np.maximum(se, 1e-12)
+
+
+@render
+def test_flatfield_is_exact(mitsuba_ready):
+    from mbcapture.render import Renderer
+
+    mod = load_module("flatfield")
+    radiance = [0.25, 1.0, 3.5]
+    sc = make_scene("flatfield", mod.Params(radiance=radiance))
+    assert sc.is_static and sc.groups == ("field",)
+    r = Renderer(sc, 32, 24)
+    img = r.render(0.0, spp=3, seed=7)
+    assert img.shape == (1, 24, 32, 3) and img.dtype == np.float32
+    np.testing.assert_allclose(img[0], np.broadcast_to(radiance, (24, 32, 3)), rtol=1e-5)
+    np.testing.assert_allclose(img[0], np.broadcast_to(sc.extra["radiance"], (24, 32, 3)), rtol=1e-5)
+
+
+@render
+def test_group_images_sum_to_path_traced_image(mitsuba_ready):
+    """Sum over groups of the one-pass integrator == Mitsuba's 'path' (unbiased, same depth).
+
+    K seeds of each; per 4x4-pixel block and channel, the difference of the replicate means
+    is compared with its standard error (|z| < 4.5 over 3 x 48 blocks: a false alarm has
+    probability ~1e-3 even for somewhat heavy tails), and the whole-image mean to 4 sigma.
+    """
+    from mbcapture.render import Renderer
+
+    r = Renderer(_metronome(), 32, 24)
+    k, spp = 8, 16
+    mine = np.stack([r.render(0.05, spp, seed=100 + i).sum(axis=0) for i in range(k)])
+    ref = np.stack([r.render_path(0.05, spp, seed=200 + i) for i in range(k)])
+    blocks = lambda x: x.reshape(k, 6, 4, 8, 4, 3).mean(axis=(2, 4))  # noqa: E731
+    z_blocks = _replicate_z(blocks(mine), blocks(ref))
+    assert np.max(np.abs(z_blocks)) < 4.5, np.max(np.abs(z_blocks))
+    z_all = _replicate_z(mine.mean(axis=(1, 2)), ref.mean(axis=(1, 2)))
+    assert np.all(np.abs(z_all) < 4.0), z_all
+    # and the mean agrees to a few percent (guards against a tiny-variance pass)
+    np.testing.assert_allclose(mine.mean(axis=(0, 1, 2)), ref.mean(axis=(0, 1, 2)), rtol=0.05)
+
+
+@render
+def test_only_requested_groups_are_rendered(mitsuba_ready):
+    import drjit as dr
+
+    from mbcapture.render import Renderer
+
+    r = Renderer(_metronome(), 32, 24)
+    assert r.groups == ("ambient", "lamp", "flash") and r.channels == ("R", "G", "B")
+    full = r.render(0.0, 4, seed=1)
+    assert full.shape == (3, 24, 32, 3)
+    flash = r.render(0.0, 4, seed=1, groups=["flash"])
+    assert flash.shape == (1, 24, 32, 3)
+    swapped = r.render(0.0, 4, seed=1, groups=["flash", "ambient"])
+    assert swapped.shape == (2, 24, 32, 3)
+
+    def ops(groups):
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        dr.kernel_history()
+        r.render(0.0, 4, seed=2, groups=groups)
+        hist = dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+        return max(h.get("operation_count", 0) for h in hist)
+
+    # The render kernel for one group does less work than for all three.
+    assert ops(["flash"]) < 0.8 * ops(None)
+
+    # The flash-only output is the image under the flash alone: same expectation as the whole
+    # scene rendered by 'path' with the other lights switched off (it would be ~2x brighter if
+    # ambient and lamp leaked in), and exactly zero with the flash at zero radiance.
+    dark = Renderer(_metronome(ambient_scale=0.0, lamp_scale=0.0), 32, 24)
+    k = 6
+    mine = np.stack([r.render(0.0, 8, seed=10 + i, groups=["flash"])[0].mean(axis=(0, 1)) for i in range(k)])
+    ref = np.stack([dark.render_path(0.0, 8, seed=20 + i).mean(axis=(0, 1)) for i in range(k)])
+    assert np.all(np.abs(_replicate_z(mine, ref)) < 4.0)
+    off = Renderer(_metronome(flash_scale=0.0), 32, 24)
+    assert np.all(off.render(0.0, 2, seed=3, groups=["flash"]) == 0.0)
+
+
+@render
+def test_time_change_does_not_recompile_and_moves_the_needle(mitsuba_ready):
+    import drjit as dr
+
+    from mbcapture.render import Renderer
+
+    sc = _metronome()
+    w, h = 64, 48
+    r = Renderer(sc, w, h)
+    r.render(0.0, 2, seed=5)  # compile
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        a = r.render(0.0, 4, seed=5).sum(axis=0)
+        t1 = 0.25  # a quarter period at 120 bpm: the needle at its extreme
+        b = r.render(t1, 4, seed=5).sum(axis=0)
+        hist = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    compiled = [e for e in hist if e.get("type") == dr.KernelType.JIT and not e.get("cache_hit")]
+    assert compiled == []
+    # the image changes where the S is, at either time, and far less elsewhere
+    diff = np.abs(a - b).mean(axis=-1)
+    pts = sc.camera.project(sc.motion_points(np.array([0.0, t1])), w, h).reshape(-1, 2)
+    near = np.zeros((h, w), bool)
+    for x, y in pts[:, :]:
+        near[max(int(y) - 1, 0):int(y) + 2, max(int(x) - 1, 0):int(x) + 2] = True
+    assert diff[near].mean() > 10 * diff[~near].mean()
+
+
+def _marker_scene(camera: Camera) -> SceneModel:
+    """Three tiny emitting spheres, one per group; m2 circles about the y axis (moving light)."""
+    radius = 0.004
+    static = {"m0": (0.05, 0.02, -0.03), "m1": (-0.1, -0.06, 0.1)}
+    shapes = [Shape(n, "sphere", translate(*p) @ scale(radius), None, Light(n, (100.0, 100.0, 100.0)))
+              for n, p in static.items()]
+    shapes.append(Shape("m2", "sphere", translate(0.12, 0.05, 0.0) @ scale(radius), None,
+                        Light("m2", (100.0, 100.0, 100.0)), part="spin"))
+    spin = lambda t: rotate((0, 1, 0), 2.0 * t)  # noqa: E731
+    points = np.array(list(static.values()) + [(0.12, 0.05, 0.0)])
+
+    def motion_points(times):
+        out = np.repeat(points[None], len(times), axis=0)
+        for i, t in enumerate(times):
+            out[i, 2] = (spin(t) @ np.append(points[2], 1.0))[:3]
+        return out
+
+    return SceneModel(name="markers", groups=("m0", "m1", "m2"), switchable=frozenset(), camera=camera,
+                      build=SceneBuild(shapes=tuple(shapes), parts={"spin": spin}), params=None,
+                      motion_points=motion_points)
+
+
+@render
+@pytest.mark.parametrize("camera", [
+    Camera(origin=(0.1, 0.3, 0.8), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=35.0),
+    Camera(origin=(-0.5, 0.2, 0.4), target=(0.02, -0.01, 0.03), up=(0.1, 1.0, 0.2), fov_deg=50.0),
+])
+def test_camera_project_matches_rendered_marker_positions(mitsuba_ready, camera):
+    from mbcapture.render import Renderer
+
+    sc = _marker_scene(camera)
+    w, h = 64, 48
+    r = Renderer(sc, w, h)
+    for t in (0.0, 0.6):
+        img = r.render(t, 64, seed=3).mean(axis=-1)  # (group, row, col)
+        expect = camera.project(sc.motion_points(np.array([t]))[0], w, h)
+        xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+        for g in range(3):
+            wsum = img[g].sum()
+            assert wsum > 0, f"marker {g} not visible"
+            centroid = np.array([(img[g] * xs).sum() / wsum, (img[g] * ys).sum() / wsum])
+            assert np.linalg.norm(centroid - expect[g]) < 1.0, (g, t, centroid, expect[g])
+
+
+@render
+def test_metronome_dynamic_range(mitsuba_ready):
+    """The visible bulb is >= 1e4 x the darkest lit diffuse surfaces; lit surfaces ~0.005..1."""
+    from mbcapture.render import Renderer
+
+    r = Renderer(_metronome(), 80, 64)
+    img = r.render(0.0, 16, seed=11, groups=["ambient", "lamp"]).sum(axis=0).mean(axis=-1)
+    assert img.max() >= 50.0
+    lit = img[img < 5.0]  # everything but the bulb and its immediate neighbourhood
+    darkest = np.percentile(lit, 0.5)
+    assert 0.003 < darkest and np.median(lit) < 1.0
+    assert img.max() / darkest >= 1e4
