@@ -27,7 +27,20 @@ class Renderer:
     ``dr.make_opaque``, so changing the time does not compile a new kernel (a new *set* of
     requested groups compiles once, then is cached by Dr.Jit).
 
-    TIMINGS_PLACEHOLDER
+    Measured on the 2-core x86 VM (llvm_ad_rgb, LLVM 19.1, Mitsuba 3.9.1), metronome scene,
+    max_depth 4, best of 3 warm renders, each at a new scene time (so the acceleration
+    structure rebuild of ``params.update()`` is included)::
+
+        film      spp   3 groups, one pass   flash only   mi.render 'path'   ratio 3 groups/path
+        160x128     4        0.083 s           0.060 s         0.047 s             1.8
+        160x128    16        0.22 s            0.14 s          0.13 s              1.7
+        640x512     4        0.75 s            0.46 s          0.49 s              1.5
+        640x512    16        2.9 s             2.0 s           2.3 s               1.3
+
+    ``path`` gives only the summed image, choosing one emitter per vertex; separate renders
+    per group would cost about 3x ``path``, so one pass is 1.7-2.4x cheaper, and it has no
+    emitter-selection noise. The first render of a new film size or requested-group set adds
+    about 1.5 s of kernel compilation (later renders hit Dr.Jit's kernel cache).
 
     Attributes
     ----------
