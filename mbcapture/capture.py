@@ -18,7 +18,7 @@ import numpy as np
 from . import protocols, scenes
 from .config import CaptureConfig
 from .io import staged_outputs
-from .metrics import pu21_psnr, rel_mse
+from .metrics import pu21_psnr, relative_mse
 from .plan import Plan, make_plan
 from .reconstruct.hdr import merge_hdr
 from .sensor import electrons_per_radiance_second, simulate_reads
@@ -37,7 +37,7 @@ class CaptureResult:
     hdr_radiance          (H, W, C) HDR estimate, W m^-2 sr^-1
     hdr_sigma             (H, W, C) its 1-sigma uncertainty, W m^-2 sr^-1
     hdr_valid             (H, W, C) False where every read saturated (radiance is a lower bound)
-    ground_truth          (H, W, C) noise-free gated-time-average radiance over the capture
+    ground_truth          (H, W, C) reference: the noise-free, unclipped radiance the longest read saw
     moving_mask           (H, W) pixels the moving parts cross during the capture
     """
 
@@ -118,6 +118,20 @@ def motion_check(normalized: np.ndarray, names: list[str], truth: np.ndarray, ma
     return {"moving_pixels": int(mask.sum()), "rel_rms_vs_truth": per_read, "max_pairwise_rel_rms": pair}
 
 
+#: lm/W at 555 nm: radiance (W m^-2 sr^-1) -> luminance (cd m^-2) for PU21, treating the RGB
+#: channels' luminance weights (Rec. 709) as photometric. An approximation, used for the metric only.
+LUMINOUS_EFFICACY_LM_PER_W = 683.0
+
+
+#: relMSE floor for radiance images: (0.01 W m^-2 sr^-1)^2, about the darkest lit surfaces of the
+#: shipped scenes, so black pixels do not dominate the mean.
+REL_MSE_EPS_RADIANCE = 1e-4
+
+
+def luminance_cd_m2(rgb_radiance: np.ndarray) -> np.ndarray:
+    return LUMINOUS_EFFICACY_LM_PER_W * (np.asarray(rgb_radiance) @ np.array([0.2126, 0.7152, 0.0722]))
+
+
 def _versions() -> dict:
     out = {"python": platform.python_version()}
     for pkg in ("mbcapture", "mitsuba", "drjit", "numpy", "scipy", "pydantic", "OpenEXR"):
@@ -160,8 +174,20 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     with timer("sensor"):
         k_e = electrons_per_radiance_second(cfg.sensor)  # (C,) e- per (W m^-2 sr^-1 s)
         buckets_e = exposure * k_e
-        storage_s = np.array([float(timeline.seconds(timeline.end_tick - timeline.span_ticks([b])[0])) for b in range(timeline.n_buckets)])
-        sensor_out = simulate_reads(buckets_e, [r.buckets for r in timeline.reads], cfg.sensor, rng_sensor, storage_s=storage_s)
+        # dark current accumulates from a bucket's first gated slot until it is read: at the end
+        # of its own frame for a conventional sensor, at the end of the capture otherwise
+        spans = [timeline.span_ticks([b]) for b in range(timeline.n_buckets)]
+        storage_s = np.array(
+            [float(timeline.seconds((b1 if timeline.sequential else timeline.end_tick) - b0)) for b0, b1 in spans]
+        )
+        sensor_out = simulate_reads(
+            buckets_e,
+            [r.buckets for r in timeline.reads],
+            cfg.sensor,
+            rng_sensor,
+            storage_s=storage_s,
+            shared_photodiode=not timeline.sequential,
+        )
 
     with timer("reconstruct"):
         exposures_s = np.array([float(timeline.read_exposure_ticks(r) * timeline.tick_s) for r in timeline.reads])
@@ -172,23 +198,30 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         )
         hdr_radiance = hdr.rate_e_per_s / k_e
         hdr_sigma = hdr.sigma_e_per_s / k_e
-        read_buckets = list(plan.buckets_read)
-        total_exposure_s = float(sum(timeline.exposure_ticks(b) for b in read_buckets) * timeline.tick_s)
-        truth = exposure[read_buckets].sum(axis=0) / total_exposure_s
+        # exposure-normalized noise-free reads (radiance each read saw) and the reference: what
+        # the longest read saw, noise-free and unclipped. HDR extends that read's dynamic range
+        # with the shorter ones; wherever they saw something else (motion), it shows as error.
         normalized = sensor_out.reads_e_expected / (k_e * exposures_s[:, None, None, None])
+        reference_read = int(np.argmax(exposures_s))
+        truth = normalized[reference_read]
         t0_s, t1_s = timeline.seconds(timeline.start_tick), timeline.seconds(timeline.end_tick)
-        mask = moving_region(scene, float(t0_s), float(t1_s), W, H)
         names = [r.name for r in timeline.reads]
+        mask = moving_region(scene, float(t0_s), float(t1_s), W, H)
         metrics = {
             "hdr_method": method,
-            "hdr_rel_mse": rel_mse(hdr_radiance, truth),
-            "hdr_pu21_psnr_db": pu21_psnr(hdr_radiance, truth),
+            "reference": f"noise-free radiance seen by the longest read, {names[reference_read]}",
+            "hdr_rel_mse": relative_mse(hdr_radiance, truth, eps=REL_MSE_EPS_RADIANCE),
+            "hdr_pu21_psnr_db": pu21_psnr(luminance_cd_m2(hdr_radiance), luminance_cd_m2(truth)),
             "hdr_valid_fraction": float(hdr.valid.mean()),
             "motion_check": motion_check(normalized, names, truth, mask),
         }
         if mask.any():
-            metrics["hdr_rel_mse_moving"] = rel_mse(hdr_radiance, truth, mask=mask)
-            metrics["hdr_pu21_psnr_db_moving"] = pu21_psnr(hdr_radiance, truth, mask=mask)
+            metrics["hdr_rel_mse_moving"] = relative_mse(
+                hdr_radiance, truth, mask=mask[..., None].repeat(n_ch, -1), eps=REL_MSE_EPS_RADIANCE
+            )
+            metrics["hdr_pu21_psnr_db_moving"] = pu21_psnr(
+                luminance_cd_m2(hdr_radiance), luminance_cd_m2(truth), mask=mask
+            )
 
     report = {
         "scene": cfg.scene.name,
