@@ -17,7 +17,7 @@ import pytest
 
 from mbcapture.errors import EnvironmentProblem
 from mbcapture.render import llvm
-from mbcapture.render.build import Light, SceneBuild, Shape, rotate, scale, translate
+from mbcapture.render.build import Light, SceneBuild, Shape, frame_towards, rotate, scale, translate
 from mbcapture.scenes import Camera, SceneModel, load_module, make_scene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -224,14 +224,16 @@ def test_time_change_does_not_recompile_and_moves_the_needle(mitsuba_ready):
 
 
 def _marker_scene(camera: Camera) -> SceneModel:
-    """Three tiny emitting spheres, one per group; m2 circles about the y axis (moving light)."""
+    """Three tiny markers, one group each: spheres m0, m1 and a square m2 facing the camera that
+    circles about the y axis (a moving rectangle light: the case that recompiles every update
+    unless its transform is opaque)."""
     radius = 0.004
     static = {"m0": (0.05, 0.02, -0.03), "m1": (-0.1, -0.06, 0.1)}
     shapes = [Shape(n, "sphere", translate(*p) @ scale(radius), None, Light(n, (100.0, 100.0, 100.0)))
               for n, p in static.items()]
-    shapes.append(Shape("m2", "sphere", translate(0.12, 0.05, 0.0) @ scale(radius), None,
-                        Light("m2", (100.0, 100.0, 100.0)), part="spin"))
-    spin = lambda t: rotate((0, 1, 0), 2.0 * t)  # noqa: E731
+    shapes.append(Shape("m2", "rectangle", frame_towards((0.12, 0.05, 0.0), camera.origin) @ scale(radius),
+                        None, Light("m2", (100.0, 100.0, 100.0)), part="spin"))
+    spin = lambda t: rotate((0, 1, 0), 0.5 * t)  # noqa: E731
     points = np.array(list(static.values()) + [(0.12, 0.05, 0.0)])
 
     def motion_points(times):
@@ -253,11 +255,22 @@ def _marker_scene(camera: Camera) -> SceneModel:
 def test_camera_project_matches_rendered_marker_positions(mitsuba_ready, camera):
     from mbcapture.render import Renderer
 
+    import drjit as dr
+
     sc = _marker_scene(camera)
     w, h = 64, 48
     r = Renderer(sc, w, h)
+    r.render(0.3, 64, seed=3)  # compile
     for t in (0.0, 0.6):
-        img = r.render(t, 64, seed=3).mean(axis=-1)  # (group, row, col)
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        dr.kernel_history()
+        try:
+            img = r.render(t, 64, seed=3).mean(axis=-1)  # (group, row, col)
+            hist = dr.kernel_history()
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+        # moving an area light (m2) does not compile a new kernel either
+        assert not [e for e in hist if e.get("type") == dr.KernelType.JIT and not e.get("cache_hit")]
         expect = camera.project(sc.motion_points(np.array([t]))[0], w, h)
         xs, ys = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
         for g in range(3):

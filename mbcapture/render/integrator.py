@@ -21,6 +21,12 @@ empty; the renderer never asks for that.
 Output: the film's RGB is the sum over the requested groups, followed by the AOV channels
 ``<group>.R, <group>.G, <group>.B`` for each requested group, in the requested order.
 
+Cost (metronome, 3 groups with one emitter each, max_depth 4, 2-core VM): 1.3x (640x512,
+16 spp) to 1.8x (160x128, 4 spp, where Python tracing overhead weighs more) the time of
+``mi.render`` with the built-in ``path`` integrator at equal spp, against about 3x for separate
+renders per group; so no fallback to per-group renders is needed (numbers in
+:class:`mbcapture.render.Renderer`).
+
 Mitsuba's Python classes exist per variant, so the class is created by :func:`integrator_class`
 after ``mi.set_variant``.
 """
