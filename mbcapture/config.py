@@ -112,12 +112,12 @@ class OutputSection(_Model):
 
 class CaptureConfig(_Model):
     seed: int = Field(0, ge=0, description="One seed for the whole run; split per stage (rendering, shot noise, fixed pattern).")
-    scene: SceneSection = Field(default_factory=SceneSection)
-    render: RenderSection = Field(default_factory=RenderSection)
-    capture: CaptureSection = Field(default_factory=CaptureSection)
-    sensor: SensorConfig = Field(default_factory=SensorConfig)
-    hdr: HDRSection = Field(default_factory=HDRSection)
-    output: OutputSection = Field(default_factory=OutputSection)
+    scene: SceneSection = Field(default_factory=SceneSection, description="What is in front of the camera: scene.name and its parameters.")
+    render: RenderSection = Field(default_factory=RenderSection, description="Film size, samples and the motion tolerance of the render plan.")
+    capture: CaptureSection = Field(default_factory=CaptureSection, description="Protocol: gate schedule, exposures, interleaving periods.")
+    sensor: SensorConfig = Field(default_factory=SensorConfig, description="The multi-bucket pixel: optics, full wells, noise, ADC.")
+    hdr: HDRSection = Field(default_factory=HDRSection, description="HDR reconstruction method.")
+    output: OutputSection = Field(default_factory=OutputSection, description="Preview images.")
 
     @field_validator("render")
     @classmethod
