@@ -83,20 +83,34 @@ def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray) -> 
 
 
 def moving_region(scene: scenes.SceneModel, t0_s: float, t1_s: float, width: int, height: int) -> np.ndarray:
-    """(H, W) bool: pixels within 3 px of where any motion point passes during [t0, t1]."""
+    """(H, W) bool: pixels the moving parts cover at some time in [t0, t1].
+
+    At 64 times the convex hull of the projected motion points (grown by 1.5 px) is
+    rasterized; the union over times is the region swept by the moving parts.
+    """
+    from matplotlib.path import Path as PolyPath
+    from scipy.spatial import ConvexHull, QhullError
+
     mask = np.zeros((height, width), dtype=bool)
     if scene.is_static:
         return mask
-    times = np.linspace(t0_s, t1_s, 512)
-    px = scene.camera.project(np.asarray(scene.motion_points(times)), width, height).reshape(-1, 2)
-    r = 3
-    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
-    disc = (xx**2 + yy**2) <= r * r
-    for dx, dy in zip(xx[disc], yy[disc]):
-        x = np.round(px[:, 0] - 0.5 + dx).astype(int)
-        y = np.round(px[:, 1] - 0.5 + dy).astype(int)
-        ok = (x >= 0) & (x < width) & (y >= 0) & (y < height)
-        mask[y[ok], x[ok]] = True
+    times = np.linspace(t0_s, t1_s, 64)
+    px = scene.camera.project(np.asarray(scene.motion_points(times)), width, height)  # (T, M, 2)
+    yy, xx = np.mgrid[0:height, 0:width]
+    centres = np.stack([xx.ravel() + 0.5, yy.ravel() + 0.5], axis=1)
+    for pts in px:
+        try:
+            poly = pts[ConvexHull(pts).vertices]
+        except (QhullError, ValueError):  # fewer than 3 points or collinear: use the points' bounding box
+            lo, hi = pts.min(axis=0), pts.max(axis=0)
+            poly = np.array([lo, [hi[0], lo[1]], hi, [lo[0], hi[1]]])
+        lo, hi = poly.min(axis=0) - 2, poly.max(axis=0) + 2
+        near = (centres[:, 0] >= lo[0]) & (centres[:, 0] <= hi[0]) & (centres[:, 1] >= lo[1]) & (centres[:, 1] <= hi[1])
+        if near.any():
+            inside = PolyPath(poly).contains_points(centres[near], radius=3.0) | PolyPath(poly[::-1]).contains_points(
+                centres[near], radius=3.0
+            )
+            mask.ravel()[np.flatnonzero(near)[inside]] = True
     return mask
 
 
