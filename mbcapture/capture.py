@@ -17,7 +17,7 @@ import numpy as np
 
 from . import protocols, scenes
 from .config import CaptureConfig
-from .io import staged_outputs
+from .io import check_out_dir, staged_outputs
 from .metrics import pu21_psnr, relative_mse
 from .plan import Plan, make_plan
 from .reconstruct.hdr import merge_hdr
@@ -160,6 +160,8 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     """Run one capture. With ``out_dir``, write its outputs there (atomically)."""
     from .render import Renderer, ensure_llvm
 
+    if out_dir is not None:
+        check_out_dir(Path(out_dir))
     timer = _Timer()
     t_start = time.perf_counter()
     seeds = np.random.SeedSequence(cfg.seed).spawn(3)

@@ -27,6 +27,18 @@ class OutputError(MBCaptureError):
     pass
 
 
+def check_out_dir(out: Path) -> None:
+    """Fail early (before any rendering) if ``out`` could not be created or written; creates nothing."""
+    out = Path(out).absolute()
+    probe = out
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir():
+        raise OutputError(f"--out {out}: {probe} is a file, not a folder")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise OutputError(f"--out {out}: {probe} is not writable")
+
+
 def prepare_out_dir(out: Path) -> Path:
     """Create ``out`` (and parents) or fail with a one-line error if it is not writable."""
     out = Path(out)

@@ -97,6 +97,10 @@ def test_bad_input_exits_2_with_one_line_and_writes_nothing(tmp_path):
     proc = cli("run", TINY, "--set", "capture.protocol=custom", "--set",
                "capture.schedule={slots: [{bucket: 5, duration_s: 0.001}], reads: [{buckets: [5]}]}", "--out", out)
     assert proc.returncode == 2 and "needs 5 buckets" in proc.stderr and not out.exists()
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    proc = cli("run", TINY, "--out", blocker / "sub")
+    assert proc.returncode == 2 and "is a file, not a folder" in proc.stderr and "render" not in proc.stderr
 
 
 def test_failed_run_keeps_previous_outputs(tmp_path, monkeypatch):
