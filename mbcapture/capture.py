@@ -39,6 +39,7 @@ class CaptureResult:
     hdr_valid             (H, W, C) False where every read saturated (radiance is a lower bound)
     ground_truth          (H, W, C) reference: the noise-free, unclipped radiance the longest read saw
     moving_mask           (H, W) pixels the moving parts cross during the capture
+    render_var_exposure   (K, H, W, C) estimated Monte Carlo variance of bucket_exposure (None if spp = 1)
     """
 
     config: CaptureConfig
@@ -54,6 +55,7 @@ class CaptureResult:
     hdr_valid: np.ndarray
     ground_truth: np.ndarray
     moving_mask: np.ndarray
+    render_var_exposure: np.ndarray | None = None
     report: dict = field(default_factory=dict)
     out_dir: Path | None = None
 
@@ -132,6 +134,34 @@ def motion_check(normalized: np.ndarray, names: list[str], truth: np.ndarray, ma
     return {"moving_pixels": int(mask.sum()), "rel_rms_vs_truth": per_read, "max_pairwise_rel_rms": pair}
 
 
+def render_error(
+    mc_var_exposure: np.ndarray | None, buckets_e: np.ndarray, k_e: np.ndarray, buckets: list[int], full_well_e: float
+) -> dict:
+    """The run's own estimate of its Monte Carlo rendering error, from two half-sample renders.
+
+    Over the bucket samples that hold light but stay below the full well (saturated samples
+    carry no image information, and partly covered lamp pixels would dominate every mean):
+    ``rel_rms``: RMS Monte Carlo error over the mean signal; ``to_shot_noise_variance``:
+    median and 95th percentile of MC variance / photon shot-noise variance (electrons^2).
+    Below ~0.1 the sensor's own noise dominates and more samples are wasted; above 1
+    rendering noise is visible in the simulated images.
+    """
+    if mc_var_exposure is None:
+        return {"note": "render.spp = 1: no half-sample error estimate"}
+    var_e = mc_var_exposure[buckets] * k_e**2
+    signal = buckets_e[buckets]
+    use = (signal > 1.0) & (signal < full_well_e)
+    if not use.any():
+        return {"note": "no unsaturated lit samples"}
+    ratio = var_e[use] / signal[use]
+    return {
+        "method": "two independent half-sample renders per stratum",
+        "rel_rms": float(np.sqrt(var_e[use].mean()) / signal[use].mean()),
+        "to_shot_noise_variance_median": float(np.median(ratio)),
+        "to_shot_noise_variance_p95": float(np.percentile(ratio, 95)),
+    }
+
+
 #: lm/W at 555 nm: radiance (W m^-2 sr^-1) -> luminance (cd m^-2) for PU21, treating the RGB
 #: channels' luminance weights (Rec. 709) as photometric. An approximation, used for the metric only.
 LUMINOUS_EFFICACY_LM_PER_W = 683.0
@@ -177,15 +207,21 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
         renderer = Renderer(scene, W, H, variant=cfg.render.variant, max_depth=cfg.render.max_depth)
     n_ch = len(renderer.channels)
-    exposure = np.zeros((timeline.n_buckets, H, W, n_ch), dtype=np.float64)
-    render_seeds = np.random.default_rng(seeds[2]).integers(0, 2**31 - 1, size=plan.passes)
+    # Each stratum is rendered as two independent half-sample passes accumulated apart, so the
+    # run measures its own Monte Carlo error: Var[combined] ~ (A - B)^2 * n_a n_b / n^2.
+    halves = (plan.spp // 2, plan.spp - plan.spp // 2) if plan.spp >= 2 else (plan.spp,)
+    parts = [np.zeros((timeline.n_buckets, H, W, n_ch), dtype=np.float64) for _ in halves]
+    render_seeds = np.random.default_rng(seeds[2]).integers(0, 2**31 - 1, size=(plan.passes, len(halves)))
     with _progress(plan.passes, progress, "render") as bar:
         for j in range(plan.passes):
-            with timer("render"):
-                radiance = renderer.render(float(plan.times_s[j]), plan.spp, int(render_seeds[j]), plan.groups)
-            with timer("accumulate"):
-                accumulate(plan.weights_s[j], radiance, exposure)
+            for h, spp_h in enumerate(halves):
+                with timer("render"):
+                    radiance = renderer.render(float(plan.times_s[j]), spp_h, int(render_seeds[j, h]), plan.groups)
+                with timer("accumulate"):
+                    accumulate(plan.weights_s[j], radiance, parts[h])
             bar.update(1)
+    exposure = sum(n * p for n, p in zip(halves, parts)) / plan.spp
+    mc_var_exposure = (parts[0] - parts[1]) ** 2 * (halves[0] * halves[1] / plan.spp**2) if len(halves) == 2 else None
 
     with timer("sensor"):
         k_e = electrons_per_radiance_second(cfg.sensor)  # (C,) e- per (W m^-2 sr^-1 s)
@@ -239,6 +275,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
                 luminance_cd_m2(hdr_radiance), luminance_cd_m2(truth), mask=mask
             )
 
+    report_render_error = render_error(mc_var_exposure, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e)
     report = {
         "scene": cfg.scene.name,
         "protocol": timeline.protocol,
@@ -251,6 +288,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         "plan": plan.summary(timeline),
         "electrons_per_radiance_second": k_e.tolist(),
         "metrics": metrics,
+        "render_error": report_render_error,
         "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant},
     }
     result = CaptureResult(
@@ -267,6 +305,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         hdr_valid=hdr.valid,
         ground_truth=truth,
         moving_mask=mask,
+        render_var_exposure=mc_var_exposure,
         report=report,
     )
     report["timings_s"] = {k: round(v, 4) for k, v in timer.stages.items()}

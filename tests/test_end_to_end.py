@@ -135,3 +135,17 @@ def test_plan_and_scenes_commands():
     proc = cli("scenes")
     assert proc.returncode == 0 and "metronome" in proc.stdout and "flatfield" in proc.stdout
     assert "scene.tempo_bpm" in proc.stdout
+
+
+def test_render_error_estimate_is_calibrated():
+    """The half-sample variance estimate predicts the actual error against a high-spp render."""
+    base = ["render.width=32", "render.height=24", "render.max_motion_px=50", "scene.lamp_scale=0"]
+    ref = run_capture(load_config(TINY, base + ["render.spp=512"]), progress=False)
+    run = run_capture(load_config(TINY, base + ["render.spp=8", "seed=11"]), progress=False)
+    assert ref.plan.passes == run.plan.passes == 1
+    err2 = (run.bucket_exposure - ref.bucket_exposure) ** 2
+    predicted = run.render_var_exposure + ref.render_var_exposure
+    ratio = err2.mean() / predicted.mean()
+    # the mean over 32*24*3*4 samples of a chi-square-like quantity: well within a factor 1.5
+    assert 0.67 < ratio < 1.5, ratio
+    assert "rel_rms" in run.report["render_error"]
