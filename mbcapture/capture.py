@@ -21,7 +21,7 @@ from .io import check_out_dir, staged_outputs
 from .metrics import pu21_psnr, relative_mse
 from .plan import Plan, make_plan
 from .reconstruct.hdr import merge_hdr
-from .sensor import electrons_per_radiance_second, simulate_reads
+from .sensor import electrons_per_render_second, simulate_reads
 from .timeline import Timeline
 
 
@@ -205,7 +205,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
 
     with timer("render_setup"):
         llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
-        renderer = Renderer(scene, W, H, variant=cfg.render.variant, max_depth=cfg.render.max_depth)
+        renderer = Renderer(scene, W, H, variant=cfg.render.variant, max_depth=cfg.render.max_depth, sensor=cfg.sensor)
     n_ch = len(renderer.channels)
     # Each stratum is rendered as two independent half-sample passes accumulated apart, so the
     # run measures its own Monte Carlo error: Var[combined] ~ (A - B)^2 * n_a n_b / n^2.
@@ -224,7 +224,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     mc_var_exposure = (parts[0] - parts[1]) ** 2 * (halves[0] * halves[1] / plan.spp**2) if len(halves) == 2 else None
 
     with timer("sensor"):
-        k_e = electrons_per_radiance_second(cfg.sensor)  # (C,) e- per (W m^-2 sr^-1 s)
+        k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)  # (C,) e- per render unit s (spectral: film units)
         buckets_e = exposure * k_e
         # dark current accumulates from a bucket's first gated slot until it is read: at the end
         # of its own frame for a conventional sensor, at the end of the capture otherwise

@@ -43,7 +43,7 @@ class RenderSection(_Model):
     width: int = Field(640, gt=0, le=16384, description="Film width in pixels (the paper's sensor: 640).")
     height: int = Field(512, gt=0, le=16384, description="Film height in pixels (the paper's sensor: 512).")
     spp: int = Field(16, ge=1, le=1 << 16, description="Samples per pixel of each render pass (one pass per time stratum).")
-    variant: str = Field("llvm_ad_rgb", description="Mitsuba variant; an llvm_* or scalar_* RGB variant on CPU, cuda_* where a GPU exists.")
+    variant: str = Field("llvm_ad_rgb", description="Mitsuba variant: llvm_ad_rgb on CPU, cuda_ad_rgb where a GPU exists; llvm_ad_spectral / cuda_ad_spectral apply sensor.spectral_response exactly (spectral mode).")
     max_depth: int = Field(4, ge=1, le=64, description="Path length limit of the per-group path tracer (1 = emitters seen directly only).")
     max_motion_px: float = Field(
         0.5, gt=0, description="Largest image motion, in pixels, of any moving point inside one time stratum (the paper's vT << p)."
@@ -125,6 +125,23 @@ class CaptureConfig(_Model):
         if not any(render.variant.startswith(p) for p in ("llvm_", "scalar_", "cuda_")):
             raise ValueError(f"render.variant: {render.variant!r} is not a Mitsuba variant name")
         return render
+
+    @model_validator(mode="after")
+    def _spectral_response_needs_spectral_variant(self) -> "CaptureConfig":
+        from .sensor.spectral import EFFECTIVE_WAVELENGTH, is_spectral_variant
+
+        spectral = is_spectral_variant(self.render.variant)
+        if self.sensor.spectral_response != EFFECTIVE_WAVELENGTH and not spectral:
+            raise ValueError(
+                f"sensor.spectral_response {self.sensor.spectral_response!r} needs a spectral render.variant "
+                f"(e.g. llvm_ad_spectral), got render.variant {self.render.variant!r}"
+            )
+        if spectral and self.sensor.spectral_response == EFFECTIVE_WAVELENGTH:
+            raise ValueError(
+                f"render.variant {self.render.variant!r} needs sensor.spectral_response to name a camera "
+                "(e.g. 'Nikon 5100 (NPL)'), not 'effective_wavelength'"
+            )
+        return self
 
     def to_yaml_dict(self) -> dict:
         """The resolved config as plain data (scene parameters filled in with their defaults)."""

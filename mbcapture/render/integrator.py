@@ -21,6 +21,11 @@ empty; the renderer never asks for that.
 Output: the film's RGB is the sum over the requested groups, followed by the AOV channels
 ``<group>.R, <group>.G, <group>.B`` for each requested group, in the requested order.
 
+Spectral variants (``*_spectral``): the path carries a ``mi.Spectrum`` of sampled wavelengths and
+only the film's main output is meaningful. AOVs are plain floats that ``specfilm`` stores
+without applying its sensitivity curves, so there are none; the renderer requests one group per
+pass and reads the film's channels (see :class:`mbcapture.render.Renderer`).
+
 Cost (metronome, 3 groups with one emitter each, max_depth 4, 2-core VM): 1.3x (640x512,
 16 spp) to 1.8x (160x128, 4 spp, where Python tracing overhead weighs more) the time of
 ``mi.render`` with the built-in ``path`` integrator at equal spp, against about 3x for separate
@@ -68,21 +73,26 @@ def integrator_class(variant: str) -> type:
                 raise ValueError("max_depth must be >= 1")
             self.group_names: list[str] = []
             self.group_emitters: list[list[mi.Emitter]] = []
+            self.spectral: bool = bool(mi.is_spectral)
 
         def set_groups(self, names: Sequence[str], emitters: Sequence[Sequence[Any]]) -> None:
             """Choose the groups to render: ``emitters[g]`` are the emitters of ``names[g]``."""
             if len(names) != len(emitters) or not names:
                 raise ValueError("need one emitter list per group, at least one group")
+            if self.spectral and len(names) != 1:
+                raise ValueError("spectral variants render one group per pass (no per-group AOVs)")
             self.group_names = list(names)
             self.group_emitters = [list(e) for e in emitters]
 
         def aov_names(self) -> list[str]:
+            if self.spectral:
+                return []
             return [f"{g}.{c}" for g in self.group_names for c in "RGB"]
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
             ctx = mi.BSDFContext()
             n_groups = len(self.group_names)
-            result = [mi.Color3f(0.0) for _ in range(n_groups)]
+            result = [mi.Spectrum(0.0) for _ in range(n_groups)]
             ptrs = [[mi.EmitterPtr(e) for e in ems] for ems in self.group_emitters]
 
             ray = mi.Ray3f(ray)
@@ -141,11 +151,13 @@ def integrator_class(variant: str) -> type:
                 prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                 active = active_next & (dr.max(throughput) > 0.0)
 
-            total = mi.Color3f(0.0)
+            total = mi.Spectrum(0.0)
             for g in range(n_groups):
                 total = total + result[g]  # not '+=': Dr.Jit's += is in place
+            if self.spectral:
+                return total, valid_first, []
             aovs = [result[g][c] for g in range(n_groups) for c in range(3)]
-            return mi.Spectrum(total), valid_first, aovs
+            return total, valid_first, aovs
 
         def to_string(self) -> str:
             return f"GroupPathIntegrator[max_depth={self.max_depth}, groups={self.group_names}]"

@@ -5,7 +5,12 @@
 """
 
 from .config import SensorConfig
-from .photons import electrons_per_radiance_second, expected_electrons
+from .photons import (
+    electrons_per_film_second,
+    electrons_per_radiance_second,
+    electrons_per_render_second,
+    expected_electrons,
+)
 from .readout import FixedPattern, SensorReads, dn_to_electrons, fixed_pattern, simulate_reads
 
 __all__ = [
@@ -13,7 +18,9 @@ __all__ = [
     "SensorConfig",
     "SensorReads",
     "dn_to_electrons",
+    "electrons_per_film_second",
     "electrons_per_radiance_second",
+    "electrons_per_render_second",
     "expected_electrons",
     "fixed_pattern",
     "simulate_reads",

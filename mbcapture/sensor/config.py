@@ -59,6 +59,17 @@ class SensorConfig(BaseModel):
         description="Effective wavelength per channel R, G, B in nanometres, used for the photon energy "
         "h c / lambda in RGB rendering mode (assumption).",
     )
+    spectral_response: str = Field(
+        "effective_wavelength",
+        description="Per-channel spectral response. 'effective_wavelength': one wavelength (wavelength_nm) and one "
+        "QE per channel, the RGB rendering mode's model. Otherwise a camera name from colour-science's "
+        "colour.MSDS_CAMERA_SENSITIVITIES (e.g. 'Nikon 5100 (NPL)'), applied exactly by a spectral variant "
+        "(render.variant *_spectral, required): each relative curve is scaled so that its peak equals the "
+        "channel's quantum_efficiency (assumption: the datasets give shapes, not absolute QE). In spectral mode "
+        "the scene's RGB colours are upsampled by Mitsuba to spectra (emission in W m^-2 sr^-1 nm^-1) and the "
+        "reported HDR 'radiance' is the camera-response-weighted film value, integral QE_c(lambda) lambda/(hc) "
+        "L(lambda) d lambda, in photo-electrons per (m^2 sr s) before the optics.",
+    )
     full_well_e: float = Field(
         10_000.0, gt=0,
         description="Capacity of each bucket in electrons (assumption). Charge above it is drained by the "
@@ -132,6 +143,13 @@ class SensorConfig(BaseModel):
         if not all(200.0 <= w <= 2000.0 for w in v):
             raise ValueError(f"wavelength_nm: each value must be in [200, 2000] nm, got {v}")
         return v
+
+    @field_validator("spectral_response")
+    @classmethod
+    def _check_spectral_response(cls, v: str) -> str:
+        from .spectral import check_spectral_response
+
+        return check_spectral_response(v)
 
     @model_validator(mode="after")
     def _check_ranges(self) -> "SensorConfig":

@@ -19,6 +19,12 @@ Hence electrons = H * K with H = L * t and, per channel c,
              [electrons per (W m^-2 sr^-1 s)].
 
 In RGB mode lambda_c is one effective wavelength per channel (``sensor.wavelength_nm``).
+
+In spectral mode (a ``*_spectral`` Mitsuba variant, :mod:`.spectral`) the film already integrates
+QE_c(lambda) * lambda / (h c) against the spectral radiance, giving electrons per (m^2 sr s); what
+is left is the optics and the pixel area (:func:`electrons_per_film_second`):
+
+       K_c = pi * tau / (4 N^2) * A_pixel * fill_factor      [m^2 sr]
 """
 
 from __future__ import annotations
@@ -27,7 +33,14 @@ import numpy as np
 
 from .config import SensorConfig
 
-__all__ = ["PLANCK_J_S", "SPEED_OF_LIGHT_M_PER_S", "electrons_per_radiance_second", "expected_electrons"]
+__all__ = [
+    "PLANCK_J_S",
+    "SPEED_OF_LIGHT_M_PER_S",
+    "electrons_per_film_second",
+    "electrons_per_radiance_second",
+    "electrons_per_render_second",
+    "expected_electrons",
+]
 
 PLANCK_J_S = 6.62607015e-34
 """Planck constant h in J s (exact, SI 2019)."""
@@ -47,6 +60,27 @@ def electrons_per_radiance_second(cfg: SensorConfig) -> np.ndarray:
     irradiance_per_radiance = np.pi * cfg.lens_transmittance / (4.0 * cfg.f_number**2)  # sr
     photons_per_joule = wavelength_m / (PLANCK_J_S * SPEED_OF_LIGHT_M_PER_S)
     return irradiance_per_radiance * cfg.pixel_area_m2 * cfg.fill_factor * qe * photons_per_joule
+
+
+def electrons_per_film_second(cfg: SensorConfig) -> np.ndarray:
+    """Spectral mode: electrons per second per unit spectral-film value, per channel.
+
+    The spectral film (:func:`mbcapture.sensor.spectral.film_sensitivity`) records
+    integral QE_c(lambda) lambda/(h c) L(lambda) d lambda in electrons per (m^2 sr s); this returns
+    K, shape (3,), float64, in m^2 sr: pi tau / (4 N^2) * A_pixel * fill_factor, the same for
+    every channel (QE and photon energy are in the film already).
+    """
+    etendue_m2_sr = np.pi * cfg.lens_transmittance / (4.0 * cfg.f_number**2) * cfg.pixel_area_m2 * cfg.fill_factor
+    return np.full(3, etendue_m2_sr, dtype=np.float64)
+
+
+def electrons_per_render_second(cfg: SensorConfig, variant: str) -> np.ndarray:
+    """The factor from the renderer's output to electrons per second, for Mitsuba ``variant``:
+    :func:`electrons_per_film_second` for spectral variants, :func:`electrons_per_radiance_second`
+    otherwise. Shape (3,), float64."""
+    from .spectral import is_spectral_variant
+
+    return electrons_per_film_second(cfg) if is_spectral_variant(variant) else electrons_per_radiance_second(cfg)
 
 
 def expected_electrons(radiant_exposure: np.ndarray, cfg: SensorConfig) -> np.ndarray:
