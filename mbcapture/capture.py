@@ -224,6 +224,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     mc_var_exposure = (parts[0] - parts[1]) ** 2 * (halves[0] * halves[1] / plan.spp**2) if len(halves) == 2 else None
 
     with timer("sensor"):
+        spectral = cfg.render.variant.endswith("_spectral")
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)  # (C,) e- per render unit s (spectral: film units)
         buckets_e = exposure * k_e
         # dark current accumulates from a bucket's first gated slot until it is read: at the end
@@ -259,11 +260,13 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         t0_s, t1_s = timeline.seconds(timeline.start_tick), timeline.seconds(timeline.end_tick)
         names = [r.name for r in timeline.reads]
         mask = moving_region(scene, float(t0_s), float(t1_s), W, H)
+        # PU21 needs luminance: defined for RGB radiance, not for a spectral camera's film units
+        photometric = not spectral
         metrics = {
             "hdr_method": method,
             "reference": f"noise-free radiance seen by the longest read, {names[reference_read]}",
             "hdr_rel_mse": relative_mse(hdr_radiance, truth, eps=REL_MSE_EPS_RADIANCE),
-            "hdr_pu21_psnr_db": pu21_psnr(luminance_cd_m2(hdr_radiance), luminance_cd_m2(truth)),
+            "hdr_pu21_psnr_db": pu21_psnr(luminance_cd_m2(hdr_radiance), luminance_cd_m2(truth)) if photometric else None,
             "hdr_valid_fraction": float(hdr.valid.mean()),
             "motion_check": motion_check(normalized, names, truth, mask),
         }
@@ -271,9 +274,10 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
             metrics["hdr_rel_mse_moving"] = relative_mse(
                 hdr_radiance, truth, mask=mask[..., None].repeat(n_ch, -1), eps=REL_MSE_EPS_RADIANCE
             )
-            metrics["hdr_pu21_psnr_db_moving"] = pu21_psnr(
-                luminance_cd_m2(hdr_radiance), luminance_cd_m2(truth), mask=mask
-            )
+            if photometric:
+                metrics["hdr_pu21_psnr_db_moving"] = pu21_psnr(
+                    luminance_cd_m2(hdr_radiance), luminance_cd_m2(truth), mask=mask
+                )
 
     report_render_error = render_error(mc_var_exposure, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e)
     report = {
@@ -286,7 +290,8 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         "capture_span_s": float(t1_s - t0_s),
         "reads": timeline.describe_reads(),
         "plan": plan.summary(timeline),
-        "electrons_per_radiance_second": k_e.tolist(),
+        "render_units": "camera-weighted film value, e- m^-2 sr^-1 s^-1 before optics" if spectral else "W m^-2 sr^-1",
+        "electrons_per_render_unit_second": k_e.tolist(),
         "metrics": metrics,
         "render_error": report_render_error,
         "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant},

@@ -56,7 +56,8 @@ def _cmd_run(args) -> int:
         m = r["metrics"]
         print(f"wrote {out}/  ({r['plan']['passes']} render passes x {r['plan']['spp']} spp, "
               f"{r['timings_s']['total_before_write']:.1f} s)")
-        print(f"HDR ({m['hdr_method']}): relMSE {m['hdr_rel_mse']:.4g}, PU21-PSNR {m['hdr_pu21_psnr_db']:.2f} dB")
+        pu21 = f", PU21-PSNR {m['hdr_pu21_psnr_db']:.2f} dB" if m["hdr_pu21_psnr_db"] is not None else ""
+        print(f"HDR ({m['hdr_method']}): relMSE {m['hdr_rel_mse']:.4g}{pu21}")
         mc = m["motion_check"]
         if mc.get("moving_pixels"):
             print(f"motion check: largest difference between exposure-normalized reads in the moving region "
