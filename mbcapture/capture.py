@@ -20,7 +20,7 @@ from .config import CaptureConfig
 from .io import check_out_dir, staged_outputs
 from .metrics import pu21_psnr, relative_mse
 from .plan import Plan, make_plan
-from .reconstruct.hdr import merge_hdr
+from .reconstruct.hdr import merge_hdr, resolve_method
 from .sensor import electrons_per_render_second, simulate_reads
 from .timeline import Timeline
 
@@ -186,6 +186,33 @@ def _versions() -> dict:
     return out
 
 
+def prepare(cfg: CaptureConfig) -> tuple[scenes.SceneModel, Timeline, Plan, list[np.random.SeedSequence]]:
+    """Scene, timeline and render plan of a capture, and the run's seeds split per stage
+    (0: plan jitter, 1: sensor noise, 2: render seeds). Shared by ``run`` and ``plan``."""
+    seeds = np.random.SeedSequence(cfg.seed).spawn(3)
+    scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
+    timeline = protocols.build(cfg)
+    plan = make_plan(timeline, scene, cfg.render, np.random.default_rng(seeds[0]))
+    return scene, timeline, plan, seeds
+
+
+def describe(cfg: CaptureConfig, timeline: Timeline, plan: Plan) -> dict:
+    """What is captured and how it is rendered: the head of report.json and of ``mbcapture plan``."""
+    return {
+        "scene": cfg.scene.name,
+        "protocol": timeline.protocol,
+        "sequential": timeline.sequential,
+        "sensor_type": "conventional (one bucket, destructive read per frame)"
+        if timeline.sequential
+        else f"{cfg.sensor.bucket_count}-bucket",
+        "film": [cfg.render.width, cfg.render.height],
+        "seed": cfg.seed,
+        "capture_span_s": float(timeline.seconds(timeline.end_tick - timeline.start_tick)),
+        "reads": timeline.describe_reads(),
+        "plan": plan.summary(timeline),
+    }
+
+
 def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True) -> CaptureResult:
     """Run one capture. With ``out_dir``, write its outputs there (atomically)."""
     from .render import Renderer, ensure_llvm
@@ -194,13 +221,9 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         check_out_dir(Path(out_dir))
     timer = _Timer()
     t_start = time.perf_counter()
-    seeds = np.random.SeedSequence(cfg.seed).spawn(3)
-    rng_plan, rng_sensor = np.random.default_rng(seeds[0]), np.random.default_rng(seeds[1])
-
     with timer("plan"):
-        scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
-        timeline = protocols.build(cfg)
-        plan = make_plan(timeline, scene, cfg.render, rng_plan)
+        scene, timeline, plan, seeds = prepare(cfg)
+    rng_sensor = np.random.default_rng(seeds[1])
     W, H = cfg.render.width, cfg.render.height
 
     with timer("render_setup"):
@@ -245,7 +268,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     with timer("reconstruct"):
         exposures_s = np.array([float(timeline.read_exposure_ticks(r) * timeline.tick_s) for r in timeline.reads])
         cumulative = not timeline.sequential and any(len(r.buckets) > 1 for r in timeline.reads)
-        method = cfg.hdr.method if cfg.hdr.method != "auto" else ("ramp_fit" if cumulative else "inverse_variance")
+        method = resolve_method(cfg.hdr.method, cumulative)
         hdr = merge_hdr(
             sensor_out.reads_dn, exposures_s, cfg.sensor, method=method, cumulative=cumulative, saturated=sensor_out.saturated
         )
@@ -281,15 +304,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
 
     report_render_error = render_error(mc_var_exposure, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e)
     report = {
-        "scene": cfg.scene.name,
-        "protocol": timeline.protocol,
-        "sequential": timeline.sequential,
-        "sensor_type": "conventional (one bucket, destructive read per frame)" if timeline.sequential else f"{cfg.sensor.bucket_count}-bucket",
-        "film": [W, H],
-        "seed": cfg.seed,
-        "capture_span_s": float(t1_s - t0_s),
-        "reads": timeline.describe_reads(),
-        "plan": plan.summary(timeline),
+        **describe(cfg, timeline, plan),
         "render_units": "camera-weighted film value, e- m^-2 sr^-1 s^-1 before optics" if spectral else "W m^-2 sr^-1",
         "electrons_per_render_unit_second": k_e.tolist(),
         "metrics": metrics,

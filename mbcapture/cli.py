@@ -66,26 +66,12 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_plan(args) -> int:
-    import numpy as np
-
-    from . import protocols, scenes
+    from .capture import describe, prepare
     from .config import load_config
-    from .plan import make_plan
 
     cfg = load_config(args.config, args.overrides)
-    scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
-    timeline = protocols.build(cfg)
-    seeds = np.random.SeedSequence(cfg.seed).spawn(3)
-    plan = make_plan(timeline, scene, cfg.render, np.random.default_rng(seeds[0]))
-    info = {
-        "scene": cfg.scene.name,
-        "protocol": timeline.protocol,
-        "sequential": timeline.sequential,
-        "film": [cfg.render.width, cfg.render.height],
-        "capture_span_s": float(timeline.seconds(timeline.end_tick - timeline.start_tick)),
-        "reads": timeline.describe_reads(),
-        "plan": plan.summary(timeline),
-    }
+    _, timeline, plan, _ = prepare(cfg)
+    info = describe(cfg, timeline, plan)
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
@@ -107,7 +93,7 @@ def _cmd_plan(args) -> int:
 def _cmd_scenes(args) -> int:
     from . import scenes
 
-    for name, path in scenes.available().items():
+    for name in scenes.available():
         mod = scenes.load_module(name)
         print(f"{name}: {mod.DESCRIPTION}")
         for key, f in mod.Params.model_fields.items():

@@ -172,6 +172,13 @@ HDR_METHODS: dict[str, MergeMethod] = {
 """Registered merge methods by name; see the module docstring."""
 
 
+def resolve_method(method: str, cumulative: bool) -> str:
+    """``"auto"`` -> ``ramp_fit`` for cumulative reads, ``inverse_variance`` for independent ones."""
+    if method == "auto":
+        return "ramp_fit" if cumulative else "inverse_variance"
+    return method
+
+
 def merge_hdr(
     reads_dn: np.ndarray,
     exposures_s: np.ndarray,
@@ -204,8 +211,7 @@ def merge_hdr(
     -------
     HDRResult with the trailing shape of ``reads_dn``.
     """
-    if method == "auto":
-        method = "ramp_fit" if cumulative else "inverse_variance"
+    method = resolve_method(method, cumulative)
     if method not in HDR_METHODS:
         valid = ", ".join(sorted([*HDR_METHODS, "auto"]))
         raise ConfigError(f"hdr.method: unknown method {method!r}; valid methods: {valid}")
