@@ -17,10 +17,10 @@ import numpy as np
 
 from . import protocols, scenes
 from .config import CaptureConfig
+from .apps import AppOutput, CaptureData
+from .integrate import integrate
 from .io import check_out_dir, staged_outputs
-from .metrics import pu21_psnr, relative_mse
 from .plan import Plan, make_plan
-from .reconstruct.hdr import merge_hdr, resolve_method
 from .sensor import electrons_per_render_second, simulate_reads
 from .timeline import Timeline
 
@@ -34,12 +34,10 @@ class CaptureResult:
     reads_expected_e      (R, H, W, C) noise-free, unclipped expected electrons of each read
     reads_dn              (R, H, W, C) simulated reads, DN
     saturated             (R, H, W, C) bool
-    hdr_radiance          (H, W, C) HDR estimate, W m^-2 sr^-1
-    hdr_sigma             (H, W, C) its 1-sigma uncertainty, W m^-2 sr^-1
-    hdr_valid             (H, W, C) False where every read saturated (radiance is a lower bound)
-    ground_truth          (H, W, C) reference: the noise-free, unclipped radiance the longest read saw
     moving_mask           (H, W) pixels the moving parts cross during the capture
     render_var_exposure   (K, H, W, C) estimated Monte Carlo variance of bucket_exposure (None if spp = 1)
+    app                   name of the application that reconstructed the reads
+    images                its images by name (hdr: radiance, sigma, valid, truth, moving; see docs)
     """
 
     config: CaptureConfig
@@ -50,14 +48,13 @@ class CaptureResult:
     reads_expected_e: np.ndarray
     reads_dn: np.ndarray
     saturated: np.ndarray
-    hdr_radiance: np.ndarray
-    hdr_sigma: np.ndarray
-    hdr_valid: np.ndarray
-    ground_truth: np.ndarray
     moving_mask: np.ndarray
+    app: str
+    images: dict[str, np.ndarray]
     render_var_exposure: np.ndarray | None = None
     report: dict = field(default_factory=dict)
     out_dir: Path | None = None
+    app_output: AppOutput | None = None
 
 
 class _Timer:
@@ -71,17 +68,6 @@ class _Timer:
             yield
         finally:
             self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
-
-
-def _progress(total: int, enabled: bool, desc: str):
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit="pass", disable=not enabled, leave=False, dynamic_ncols=True)
-
-
-def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray) -> None:
-    """out[k] += sum_g weights_s[k, g] * radiance[g]  (float64; radiance (G, H, W, C))."""
-    out += np.einsum("kg,ghwc->khwc", weights_s, radiance.astype(np.float64, copy=False), optimize=True)
 
 
 def moving_region(scene: scenes.SceneModel, t0_s: float, t1_s: float, width: int, height: int) -> np.ndarray:
@@ -116,24 +102,6 @@ def moving_region(scene: scenes.SceneModel, t0_s: float, t1_s: float, width: int
     return mask
 
 
-def motion_check(normalized: np.ndarray, names: list[str], truth: np.ndarray, mask: np.ndarray) -> dict:
-    """How far apart the exposure-normalized, noise-free reads are inside the moving region.
-
-    normalized (R, H, W, C) radiance of each read = expected electrons / (K * exposure).
-    Returns per read the RMS difference to the capture's ground truth and the largest
-    pairwise RMS difference between reads, both relative to the mean truth in the region.
-    """
-    if not mask.any():
-        return {"moving_pixels": 0, "note": "static scene: nothing moves"}
-    ref = float(truth[mask].mean()) or 1.0
-    per_read = {n: float(np.sqrt(np.mean((normalized[i][mask] - truth[mask]) ** 2)) / ref) for i, n in enumerate(names)}
-    pair = 0.0
-    for i in range(len(names)):
-        for j in range(i + 1, len(names)):
-            pair = max(pair, float(np.sqrt(np.mean((normalized[i][mask] - normalized[j][mask]) ** 2)) / ref))
-    return {"moving_pixels": int(mask.sum()), "rel_rms_vs_truth": per_read, "max_pairwise_rel_rms": pair}
-
-
 def render_error(
     mc_var_exposure: np.ndarray | None, buckets_e: np.ndarray, k_e: np.ndarray, buckets: list[int], full_well_e: float
 ) -> dict:
@@ -162,20 +130,6 @@ def render_error(
     }
 
 
-#: lm/W at 555 nm: radiance (W m^-2 sr^-1) -> luminance (cd m^-2) for PU21, treating the RGB
-#: channels' luminance weights (Rec. 709) as photometric. An approximation, used for the metric only.
-LUMINOUS_EFFICACY_LM_PER_W = 683.0
-
-
-#: relMSE floor for radiance images: (0.01 W m^-2 sr^-1)^2, about the darkest lit surfaces of the
-#: shipped scenes, so black pixels do not dominate the mean.
-REL_MSE_EPS_RADIANCE = 1e-4
-
-
-def luminance_cd_m2(rgb_radiance: np.ndarray) -> np.ndarray:
-    return LUMINOUS_EFFICACY_LM_PER_W * (np.asarray(rgb_radiance) @ np.array([0.2126, 0.7152, 0.0722]))
-
-
 def _versions() -> dict:
     out = {"python": platform.python_version()}
     for pkg in ("mbcapture", "mitsuba", "drjit", "numpy", "scipy", "pydantic", "OpenEXR"):
@@ -188,8 +142,9 @@ def _versions() -> dict:
 
 def prepare(cfg: CaptureConfig) -> tuple[scenes.SceneModel, Timeline, Plan, list[np.random.SeedSequence]]:
     """Scene, timeline and render plan of a capture, and the run's seeds split per stage
-    (0: plan jitter, 1: sensor noise, 2: render seeds). Shared by ``run`` and ``plan``."""
-    seeds = np.random.SeedSequence(cfg.seed).spawn(3)
+    (0: plan jitter, 1: sensor noise, 2: render seeds, 3: the application's reference renders).
+    Shared by ``run`` and ``plan``."""
+    seeds = np.random.SeedSequence(cfg.seed).spawn(4)
     scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
     timeline = protocols.build(cfg)
     plan = make_plan(timeline, scene, cfg.render, np.random.default_rng(seeds[0]))
@@ -213,6 +168,15 @@ def describe(cfg: CaptureConfig, timeline: Timeline, plan: Plan) -> dict:
     }
 
 
+def bucket_group_seconds(timeline: Timeline, switchable: tuple[str, ...]) -> np.ndarray:
+    """(K, S): seconds bucket k collected while switchable group ``switchable[s]`` was on."""
+    out = np.zeros((timeline.n_buckets, len(switchable)))
+    for k in range(timeline.n_buckets):
+        for s, g in enumerate(switchable):
+            out[k, s] = float(timeline.gated_ticks([timeline.end_tick], k, g)[0] * timeline.tick_s)
+    return out
+
+
 def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True) -> CaptureResult:
     """Run one capture. With ``out_dir``, write its outputs there (atomically)."""
     from .render import Renderer, ensure_llvm
@@ -223,6 +187,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     t_start = time.perf_counter()
     with timer("plan"):
         scene, timeline, plan, seeds = prepare(cfg)
+        app, app_params = cfg.app.resolve(cfg.capture.protocol)
     rng_sensor = np.random.default_rng(seeds[1])
     W, H = cfg.render.width, cfg.render.height
 
@@ -230,21 +195,9 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
         renderer = Renderer(scene, W, H, variant=cfg.render.variant, max_depth=cfg.render.max_depth, sensor=cfg.sensor)
     n_ch = len(renderer.channels)
-    # Each stratum is rendered as two independent half-sample passes accumulated apart, so the
-    # run measures its own Monte Carlo error: Var[combined] ~ (A - B)^2 * n_a n_b / n^2.
-    halves = (plan.spp // 2, plan.spp - plan.spp // 2) if plan.spp >= 2 else (plan.spp,)
-    parts = [np.zeros((timeline.n_buckets, H, W, n_ch), dtype=np.float64) for _ in halves]
-    render_seeds = np.random.default_rng(seeds[2]).integers(0, 2**31 - 1, size=(plan.passes, len(halves)))
-    with _progress(plan.passes, progress, "render") as bar:
-        for j in range(plan.passes):
-            for h, spp_h in enumerate(halves):
-                with timer("render"):
-                    radiance = renderer.render(float(plan.times_s[j]), spp_h, int(render_seeds[j, h]), plan.groups)
-                with timer("accumulate"):
-                    accumulate(plan.weights_s[j], radiance, parts[h])
-            bar.update(1)
-    exposure = sum(n * p for n, p in zip(halves, parts)) / plan.spp
-    mc_var_exposure = (parts[0] - parts[1]) ** 2 * (halves[0] * halves[1] / plan.spp**2) if len(halves) == 2 else None
+    integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
+                           progress=progress)
+    exposure = integrated.exposure
 
     with timer("sensor"):
         spectral = cfg.render.variant.endswith("_spectral")
@@ -266,49 +219,37 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         )
 
     with timer("reconstruct"):
-        exposures_s = np.array([float(timeline.read_exposure_ticks(r) * timeline.tick_s) for r in timeline.reads])
-        cumulative = not timeline.sequential and any(len(r.buckets) > 1 for r in timeline.reads)
-        method = resolve_method(cfg.hdr.method, cumulative)
-        hdr = merge_hdr(
-            sensor_out.reads_dn, exposures_s, cfg.sensor, method=method, cumulative=cumulative, saturated=sensor_out.saturated
-        )
-        hdr_radiance = hdr.rate_e_per_s / k_e
-        hdr_sigma = hdr.sigma_e_per_s / k_e
-        # exposure-normalized noise-free reads (radiance each read saw) and the reference: what
-        # the longest read saw, noise-free and unclipped. HDR extends that read's dynamic range
-        # with the shorter ones; wherever they saw something else (motion), it shows as error.
-        normalized = sensor_out.reads_e_expected / (k_e * exposures_s[:, None, None, None])
-        reference_read = int(np.argmax(exposures_s))
-        truth = normalized[reference_read]
         t0_s, t1_s = timeline.seconds(timeline.start_tick), timeline.seconds(timeline.end_tick)
-        names = [r.name for r in timeline.reads]
         mask = moving_region(scene, float(t0_s), float(t1_s), W, H)
-        # PU21 needs luminance: defined for RGB radiance, not for a spectral camera's film units
-        photometric = not spectral
-        metrics = {
-            "hdr_method": method,
-            "reference": f"noise-free radiance seen by the longest read, {names[reference_read]}",
-            "hdr_rel_mse": relative_mse(hdr_radiance, truth, eps=REL_MSE_EPS_RADIANCE),
-            "hdr_pu21_psnr_db": pu21_psnr(luminance_cd_m2(hdr_radiance), luminance_cd_m2(truth)) if photometric else None,
-            "hdr_valid_fraction": float(hdr.valid.mean()),
-            "motion_check": motion_check(normalized, names, truth, mask),
-        }
-        if mask.any():
-            metrics["hdr_rel_mse_moving"] = relative_mse(
-                hdr_radiance, truth, mask=mask[..., None].repeat(n_ch, -1), eps=REL_MSE_EPS_RADIANCE
-            )
-            if photometric:
-                metrics["hdr_pu21_psnr_db_moving"] = pu21_psnr(
-                    luminance_cd_m2(hdr_radiance), luminance_cd_m2(truth), mask=mask
-                )
+        switchable = tuple(g for g in scene.groups if g in scene.switchable)
+        data = CaptureData(
+            cfg=cfg,
+            scene=scene,
+            timeline=timeline,
+            plan=plan,
+            read_names=[r.name for r in timeline.reads],
+            exposure_s=np.array([float(timeline.read_exposure_ticks(r) * timeline.tick_s) for r in timeline.reads]),
+            reads_dn=sensor_out.reads_dn,
+            saturated=sensor_out.saturated,
+            reads_e_expected=sensor_out.reads_e_expected,
+            bucket_exposure=exposure,
+            k_e=k_e,
+            moving_mask=mask,
+            switchable=switchable,
+            bucket_group_s=bucket_group_seconds(timeline, switchable),
+            group_exposure=integrated.group_exposure,
+            renderer=renderer,
+            seed=seeds[3],
+        )
+        out = app.reconstruct(data, app_params)
 
-    report_render_error = render_error(mc_var_exposure, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e)
     report = {
         **describe(cfg, timeline, plan),
+        "app": app.name,
         "render_units": "camera-weighted film value, e- m^-2 sr^-1 s^-1 before optics" if spectral else "W m^-2 sr^-1",
         "electrons_per_render_unit_second": k_e.tolist(),
-        "metrics": metrics,
-        "render_error": report_render_error,
+        "metrics": out.metrics,
+        "render_error": render_error(integrated.mc_var, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
         "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant},
     }
     result = CaptureResult(
@@ -320,13 +261,12 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         reads_expected_e=sensor_out.reads_e_expected,
         reads_dn=sensor_out.reads_dn,
         saturated=sensor_out.saturated,
-        hdr_radiance=hdr_radiance,
-        hdr_sigma=hdr_sigma,
-        hdr_valid=hdr.valid,
-        ground_truth=truth,
         moving_mask=mask,
-        render_var_exposure=mc_var_exposure,
+        app=app.name,
+        images=out.images,
+        render_var_exposure=integrated.mc_var,
         report=report,
+        app_output=out,
     )
     report["timings_s"] = {k: round(v, 4) for k, v in timer.stages.items()}
     report["timings_s"]["total_before_write"] = round(time.perf_counter() - t_start, 4)
@@ -339,23 +279,16 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
 def write_outputs(result: CaptureResult, out: Path) -> None:
     cfg, tl = result.config, result.timeline
     names = [r.name for r in tl.reads]
-    pct = cfg.output.png_percentile
     with staged_outputs(out) as st:
         st.write_exr("buckets.exr", {f"B{k + 1}": result.buckets_e[k] for k in range(tl.n_buckets)})
         st.write_exr("reads_expected.exr", {n: result.reads_expected_e[i] for i, n in enumerate(names)})
         st.write_exr("reads.exr", {n: result.reads_dn[i] for i, n in enumerate(names)})
-        st.write_exr(
-            "hdr.exr",
-            {
-                "radiance": result.hdr_radiance,
-                "sigma": result.hdr_sigma,
-                "valid": result.hdr_valid.astype(np.float32),
-                "truth": result.ground_truth,
-                "moving": result.moving_mask.astype(np.float32),
-            },
-        )
-        st.write_png("hdr.png", result.hdr_radiance, pct)
-        st.write_png("truth.png", result.ground_truth, pct)
+        app_out = result.app_output
+        st.write_exr(f"{result.app}.exr", app_out.images)
+        for file, layers in app_out.extra_exr.items():
+            st.write_exr(file, layers)
+        for stem, (image, percentile) in app_out.png.items():
+            st.write_png(f"{stem}.png", app_out.images[image], percentile)
         for i, n in enumerate(names):  # each read at its own exposure, as the sensor saw it
             st.write_png(f"read_{n}.png", result.reads_dn[i] - cfg.sensor.black_level_dn, 100.0)
         st.write_yaml("config.yaml", cfg.to_yaml_dict())

@@ -1,4 +1,4 @@
-"""Command line: ``mbcapture run | plan | scenes``.
+"""Command line: ``mbcapture run | plan | scenes | apps``.
 
 Input errors (config, files, environment) print one line and exit with status 2.
 """
@@ -41,6 +41,7 @@ def _parser() -> argparse.ArgumentParser:
     plan.add_argument("--json", action="store_true", help="print the plan as JSON")
 
     sub.add_parser("scenes", help="list the scenes and their parameters")
+    sub.add_parser("apps", help="list the applications (reconstructions), their protocols and parameters")
     return p
 
 
@@ -53,15 +54,10 @@ def _cmd_run(args) -> int:
     result = run_capture(cfg, out, progress=not args.quiet)
     if not args.quiet:
         r = result.report
-        m = r["metrics"]
         print(f"wrote {out}/  ({r['plan']['passes']} render passes x {r['plan']['spp']} spp, "
               f"{r['timings_s']['total_before_write']:.1f} s)")
-        pu21 = f", PU21-PSNR {m['hdr_pu21_psnr_db']:.2f} dB" if m["hdr_pu21_psnr_db"] is not None else ""
-        print(f"HDR ({m['hdr_method']}): relMSE {m['hdr_rel_mse']:.4g}{pu21}")
-        mc = m["motion_check"]
-        if mc.get("moving_pixels"):
-            print(f"motion check: largest difference between exposure-normalized reads in the moving region "
-                  f"{100 * mc['max_pairwise_rel_rms']:.2f}% of its mean")
+        for line in result.app_output.summary:
+            print(line)
     return 0
 
 
@@ -101,9 +97,23 @@ def _cmd_scenes(args) -> int:
     return 0
 
 
+def _cmd_apps(args) -> int:
+    from . import apps, protocols
+
+    by_app: dict[str, list[str]] = {}
+    for p in protocols.names():
+        by_app.setdefault(protocols.default_app(p), []).append(p)
+    for name in apps.names():
+        app = apps.get(name)
+        print(f"{name}: {app.description}  (protocols: {', '.join(by_app.get(name, [])) or 'custom only'})")
+        for key, f in app.params.model_fields.items():
+            print(f"    app.{key} = {f.default!r}    {f.description or ''}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    handlers = {"run": _cmd_run, "plan": _cmd_plan, "scenes": _cmd_scenes}
+    handlers = {"run": _cmd_run, "plan": _cmd_plan, "scenes": _cmd_scenes, "apps": _cmd_apps}
     try:
         return handlers[args.command](args)
     except MBCaptureError as exc:

@@ -74,8 +74,10 @@ class ScheduleSpec(_Model):
 
 
 class CaptureSection(_Model):
-    protocol: Literal["photon_efficient_hdr", "interleaved_hdr", "custom"] = Field(
-        "photon_efficient_hdr", description="Gate schedule; see docs/protocols.md."
+    protocol: str = Field(
+        "photon_efficient_hdr",
+        description="Gate schedule: photon_efficient_hdr, interleaved_hdr, custom, or an application's "
+        "(flash_no_flash, ...); see docs/protocols.md and `mbcapture apps`.",
     )
     unit_exposure_s: float = Field(
         1e-3, gt=0, description="T: the shortest exposure of the HDR protocols (reads are T, 2T, 4T, ...). Unused by 'custom'."
@@ -104,6 +106,26 @@ class HDRSection(_Model):
     )
 
 
+class AppSection(BaseModel):
+    """``app.name`` picks the reconstruction applied to the reads; every other ``app.*`` key is that
+    application's own parameter (``mbcapture apps`` lists them)."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+    name: str | None = Field(
+        None, description="Application that reconstructs the reads; default: the protocol's own (hdr for the HDR protocols)."
+    )
+
+    def resolve(self, protocol: str) -> tuple[Any, Any]:
+        """(App, its validated params) for a capture with ``protocol``; ConfigError names ``app.<key>``."""
+        from . import apps, protocols
+
+        app = apps.get(self.name or protocols.default_app(protocol))
+        try:
+            return app, app.params(**(self.model_extra or {}))
+        except ValidationError as exc:
+            raise ConfigError(_format_validation(exc, prefix="app")) from None
+
+
 class OutputSection(_Model):
     png_percentile: float = Field(
         99.5, gt=0, le=100, description="Tone mapping of PNG previews: this luminance percentile maps to white before the sRGB curve."
@@ -117,6 +139,7 @@ class CaptureConfig(_Model):
     capture: CaptureSection = Field(default_factory=CaptureSection, description="Protocol: gate schedule, exposures, interleaving periods.")
     sensor: SensorConfig = Field(default_factory=SensorConfig, description="The multi-bucket pixel: optics, full wells, noise, ADC.")
     hdr: HDRSection = Field(default_factory=HDRSection, description="HDR reconstruction method.")
+    app: AppSection = Field(default_factory=AppSection, description="Reconstruction applied to the reads and its parameters.")
     output: OutputSection = Field(default_factory=OutputSection, description="Preview images.")
 
     @field_validator("render")
@@ -147,6 +170,8 @@ class CaptureConfig(_Model):
         """The resolved config as plain data (scene parameters filled in with their defaults)."""
         data = self.model_dump(mode="json")
         data["scene"] = {"name": self.scene.name, **self.scene.params().model_dump(mode="json")}
+        app, params = self.app.resolve(self.capture.protocol)
+        data["app"] = {"name": app.name, **params.model_dump(mode="json")}
         return data
 
 
@@ -203,7 +228,8 @@ def config_from_dict(data: dict, source: str = "config") -> CaptureConfig:
         cfg = CaptureConfig.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(f"{source}: {_format_validation(exc)}") from None
-    cfg.scene.params()  # validate the scene's own keys now, not halfway through a run
+    cfg.scene.params()  # validate the scene's and the application's own keys now, not halfway through a run
+    cfg.app.resolve(cfg.capture.protocol)
     return cfg
 
 

@@ -6,12 +6,13 @@ code's own ``Field(description=...)``. A test fails when the file is out of date
 
 from __future__ import annotations
 
+import inspect
 import json
 
 from pydantic import BaseModel
 
 from . import scenes
-from .config import CaptureConfig, ScheduleSpec
+from .config import AppSection, CaptureConfig, ScheduleSpec
 
 
 def _default(field) -> str:
@@ -45,7 +46,7 @@ def config_markdown() -> str:
     ]
     for section, field in CaptureConfig.model_fields.items():
         ann = field.annotation
-        if isinstance(ann, type) and issubclass(ann, BaseModel) and section != "scene":
+        if isinstance(ann, type) and issubclass(ann, BaseModel) and section not in ("scene", "app"):
             out += ["", f"## `{section}`", ""]
             if ann.__doc__ and not ann.__doc__.startswith("Usage docs"):
                 out += [ann.__doc__.strip(), ""]
@@ -58,6 +59,18 @@ def config_markdown() -> str:
     for name in scenes.available():
         mod = scenes.load_module(name)
         out += ["", f"### scene `{name}`", "", mod.DESCRIPTION, "", *_table(mod.Params, "scene.")]
+    from . import apps, protocols
+
+    out += ["", "## `app`", "", inspect.cleandoc(AppSection.__doc__), "", *_table(AppSection, "app.")]
+    for name in apps.names():
+        app = apps.get(name)
+        used_by = [p for p in protocols.names() if protocols.default_app(p) == name]
+        out += ["", f"### app `{name}`", "", app.description, ""]
+        if used_by:
+            out += [f"Default for protocol(s): {', '.join(f'`{p}`' for p in used_by)}.", ""]
+        keys = {k: f for k, f in app.params.model_fields.items()}
+        out += [*_table(app.params, "app."), ""] if keys else ["No parameters of its own.", ""]
+        out.pop()
     return "\n".join(out) + "\n"
 
 

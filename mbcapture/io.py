@@ -72,7 +72,7 @@ class Staging:
     def write_exr(self, name: str, layers: Mapping[str, np.ndarray], channels=CHANNELS_RGB) -> None:
         write_exr(self.path(name), layers, channels)
 
-    def write_png(self, name: str, rgb_linear: np.ndarray, percentile: float = 99.5) -> None:
+    def write_png(self, name: str, rgb_linear: np.ndarray, percentile: float | None = 99.5) -> None:
         write_png(self.path(name), rgb_linear, percentile)
 
 
@@ -145,20 +145,28 @@ def read_exr(path: Path, channels=CHANNELS_RGB) -> dict[str, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- PNG
-def tonemap(rgb_linear: np.ndarray, percentile: float = 99.5) -> np.ndarray:
-    """Linear RGB (H, W, 3) -> 8-bit sRGB: scale so the luminance ``percentile`` maps to 1,
-    clip, and apply the sRGB transfer function (colour-science)."""
+def tonemap(rgb_linear: np.ndarray, percentile: float | None = 99.5) -> np.ndarray:
+    """Linear RGB (H, W, 3), or grey (H, W) / (H, W, 1), -> 8-bit sRGB: scale so the luminance
+    ``percentile`` maps to 1 (None: 1.0 is white), clip, and apply the sRGB transfer function
+    (colour-science)."""
     import colour
 
     rgb = np.nan_to_num(np.asarray(rgb_linear, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    if rgb.ndim == 2:
+        rgb = rgb[..., None]
+    if rgb.shape[-1] == 1:
+        rgb = np.repeat(rgb, 3, axis=-1)
     lum = rgb @ np.array([0.2126, 0.7152, 0.0722])
-    white = np.percentile(lum, percentile) if lum.size else 1.0
+    if percentile is None:
+        white = 1.0
+    else:
+        white = np.percentile(lum, percentile) if lum.size else 1.0
     scaled = np.clip(rgb / white, 0.0, 1.0) if white > 0 else np.zeros_like(rgb)
     encoded = colour.cctf_encoding(scaled, function="sRGB")
     return np.round(encoded * 255).astype(np.uint8)
 
 
-def write_png(path: Path, rgb_linear: np.ndarray, percentile: float = 99.5) -> None:
+def write_png(path: Path, rgb_linear: np.ndarray, percentile: float | None = 99.5) -> None:
     from PIL import Image
 
     Image.fromarray(tonemap(rgb_linear, percentile), mode="RGB").save(path, format="PNG")

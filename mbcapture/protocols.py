@@ -27,18 +27,41 @@ from .timeline import DRAIN, ReadEvent, SegmentSeconds, SlotSeconds, Timeline, b
 
 Builder = Callable[[CaptureConfig], tuple[list[SlotSeconds], list[ReadEvent], int]]
 _REGISTRY: dict[str, Builder] = {}
+_APP: dict[str, str] = {}
 
 
-def register(name: str) -> Callable[[Builder], Builder]:
+def register(name: str, app: str = "hdr") -> Callable[[Builder], Builder]:
+    """Decorator: ``fn(cfg) -> (slots of one period, reads, buckets used)`` is protocol ``name``;
+    ``app`` is the application (:mod:`mbcapture.apps`) that reconstructs its reads by default."""
+
     def deco(fn: Builder) -> Builder:
         _REGISTRY[name] = fn
+        _APP[name] = app
         return fn
 
     return deco
 
 
+def _load() -> None:
+    from . import apps
+
+    apps.load_all()  # application modules register their own protocols
+
+
 def names() -> list[str]:
+    _load()
     return sorted(_REGISTRY)
+
+
+def default_app(protocol: str) -> str:
+    _check(protocol)
+    return _APP[protocol]
+
+
+def _check(name: str) -> None:
+    _load()
+    if name not in _REGISTRY:
+        raise ConfigError(f"capture.protocol: unknown protocol {name!r}; expected one of {names()}")
 
 
 def _need_buckets(cfg: CaptureConfig, needed: int) -> int:
@@ -112,8 +135,7 @@ def _sequential(slots: list[SlotSeconds], reads: list[ReadEvent], periods: int, 
 def build(cfg: CaptureConfig) -> Timeline:
     """The capture's timeline (interleaved, or sequential when ``capture.sequential``)."""
     name = cfg.capture.protocol
-    if name not in _REGISTRY:
-        raise ConfigError(f"capture.protocol: unknown protocol {name!r}; expected one of {names()}")
+    _check(name)
     slots, reads, k = _REGISTRY[name](cfg)
     if cfg.capture.sequential:
         return _sequential(slots, reads, cfg.capture.periods, cfg)

@@ -35,4 +35,4 @@ def test_shipped_config_loads_and_plans(path):
 def test_shipped_config_runs_at_tiny_size(path):
     cfg = load_config(path, ["render.width=16", "render.height=12", "render.spp=1", "render.max_motion_px=4"])
     result = run_capture(cfg, progress=False)
-    assert np.isfinite(result.hdr_radiance).all() and result.hdr_radiance.shape == (12, 16, 3)
+    assert np.isfinite(result.images["radiance"]).all() and result.images["radiance"].shape == (12, 16, 3)

@@ -79,8 +79,8 @@ def test_interleaved_reads_agree_sequential_reads_ghost(moving_pair):
 
 def test_hdr_matches_truth_within_its_own_uncertainty(moving_pair):
     inter, _ = moving_pair
-    ok = inter.hdr_valid & ~inter.moving_mask[..., None] & (inter.hdr_sigma > 0)
-    z = (inter.hdr_radiance - inter.ground_truth)[ok] / inter.hdr_sigma[ok]
+    ok = inter.images["valid"].astype(bool) & ~inter.moving_mask[..., None] & (inter.images["sigma"] > 0)
+    z = (inter.images["radiance"] - inter.images["truth"])[ok] / inter.images["sigma"][ok]
     # standardized errors: mean ~ 0 and spread ~ 1 (fixed-pattern noise and Monte Carlo shared by all reads
     # are not in sigma, so allow a little more than unit spread)
     n = z.size

@@ -1,0 +1,101 @@
+"""HDR: merge the reads of an HDR protocol into radiance with its uncertainty (``hdr.method``).
+
+Reference: the noise-free, unclipped radiance seen by the longest read. HDR extends that read's
+dynamic range with the shorter ones; wherever they saw something else (motion), it shows as
+error, and the motion check measures how far apart the exposure-normalized reads are.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..metrics import pu21_psnr, relative_mse
+from ..reconstruct.hdr import merge_hdr, resolve_method
+from . import AppOutput, CaptureData, register
+
+#: lm/W at 555 nm: radiance (W m^-2 sr^-1) -> luminance (cd m^-2) for PU21, treating the RGB
+#: channels' luminance weights (Rec. 709) as photometric. An approximation, used for the metric only.
+LUMINOUS_EFFICACY_LM_PER_W = 683.0
+
+#: relMSE floor for radiance images: (0.01 W m^-2 sr^-1)^2, about the darkest lit surfaces of the
+#: shipped scenes, so black pixels do not dominate the mean.
+REL_MSE_EPS_RADIANCE = 1e-4
+
+
+def luminance_cd_m2(rgb_radiance: np.ndarray) -> np.ndarray:
+    return LUMINOUS_EFFICACY_LM_PER_W * (np.asarray(rgb_radiance) @ np.array([0.2126, 0.7152, 0.0722]))
+
+
+def normalized_reads(data: CaptureData) -> np.ndarray:
+    """(R, H, W, C) radiance each read saw, noise-free: expected electrons / (k_e * exposure)."""
+    return data.reads_e_expected / (data.k_e * data.exposure_s[:, None, None, None])
+
+
+def motion_check(normalized: np.ndarray, names: list[str], truth: np.ndarray, mask: np.ndarray) -> dict:
+    """How far apart the exposure-normalized, noise-free reads are inside the moving region.
+
+    normalized (R, H, W, C) radiance of each read. Returns per read the RMS difference to the
+    capture's ground truth and the largest pairwise RMS difference between reads, both relative
+    to the mean truth in the region.
+    """
+    if not mask.any():
+        return {"moving_pixels": 0, "note": "static scene: nothing moves"}
+    ref = float(truth[mask].mean()) or 1.0
+    per_read = {n: float(np.sqrt(np.mean((normalized[i][mask] - truth[mask]) ** 2)) / ref) for i, n in enumerate(names)}
+    pair = 0.0
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            pair = max(pair, float(np.sqrt(np.mean((normalized[i][mask] - normalized[j][mask]) ** 2)) / ref))
+    return {"moving_pixels": int(mask.sum()), "rel_rms_vs_truth": per_read, "max_pairwise_rel_rms": pair}
+
+
+@register("hdr", description="HDR merge of the reads (hdr.method), with sigma and valid layers")
+def reconstruct(data: CaptureData, params) -> AppOutput:
+    cfg, tl = data.cfg, data.timeline
+    cumulative = not data.sequential and any(len(r.buckets) > 1 for r in tl.reads)
+    method = resolve_method(cfg.hdr.method, cumulative)
+    hdr = merge_hdr(data.reads_dn, data.exposure_s, cfg.sensor, method=method, cumulative=cumulative,
+                    saturated=data.saturated)
+    radiance = hdr.rate_e_per_s / data.k_e
+    sigma = hdr.sigma_e_per_s / data.k_e
+    normalized = normalized_reads(data)
+    ref = int(np.argmax(data.exposure_s))
+    truth = normalized[ref]
+    mask = data.moving_mask
+    n_ch = radiance.shape[-1]
+    # PU21 needs luminance: defined for RGB radiance, not for a spectral camera's film units
+    photometric = not cfg.render.variant.endswith("_spectral")
+    metrics = {
+        "hdr_method": method,
+        "reference": f"noise-free radiance seen by the longest read, {data.read_names[ref]}",
+        "hdr_rel_mse": relative_mse(radiance, truth, eps=REL_MSE_EPS_RADIANCE),
+        "hdr_pu21_psnr_db": pu21_psnr(luminance_cd_m2(radiance), luminance_cd_m2(truth)) if photometric else None,
+        "hdr_valid_fraction": float(hdr.valid.mean()),
+        "motion_check": motion_check(normalized, data.read_names, truth, mask),
+    }
+    if mask.any():
+        metrics["hdr_rel_mse_moving"] = relative_mse(
+            radiance, truth, mask=mask[..., None].repeat(n_ch, -1), eps=REL_MSE_EPS_RADIANCE
+        )
+        if photometric:
+            metrics["hdr_pu21_psnr_db_moving"] = pu21_psnr(luminance_cd_m2(radiance), luminance_cd_m2(truth), mask=mask)
+    pu21 = f", PU21-PSNR {metrics['hdr_pu21_psnr_db']:.2f} dB" if photometric else ""
+    summary = [f"HDR ({method}): relMSE {metrics['hdr_rel_mse']:.4g}{pu21}"]
+    mc = metrics["motion_check"]
+    if mc.get("moving_pixels"):
+        summary.append(
+            "motion check: largest difference between exposure-normalized reads in the moving region "
+            f"{100 * mc['max_pairwise_rel_rms']:.2f}% of its mean"
+        )
+    return AppOutput(
+        images={
+            "radiance": radiance,
+            "sigma": sigma,
+            "valid": hdr.valid.astype(np.float32),
+            "truth": truth,
+            "moving": np.repeat(mask[..., None], n_ch, -1).astype(np.float32),
+        },
+        metrics=metrics,
+        png={"hdr": ("radiance", cfg.output.png_percentile), "truth": ("truth", cfg.output.png_percentile)},
+        summary=summary,
+    )
