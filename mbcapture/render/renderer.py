@@ -206,6 +206,16 @@ class Renderer:
         return out
 
     # -- state and rendering ------------------------------------------------------------------
+    @property
+    def mitsuba_scene(self) -> Any:
+        """The loaded ``mi.Scene`` (at the last :meth:`set_time`), for AOV or reference renders."""
+        return self._scene
+
+    @property
+    def mitsuba(self) -> Any:
+        """The ``mitsuba`` module, with this renderer's variant set."""
+        return self._mi
+
     def set_time(self, t_s: float) -> None:
         """Move every part to scene time ``t_s`` (s); no kernel is recompiled."""
         t_s = float(t_s)
