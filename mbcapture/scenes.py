@@ -87,6 +87,10 @@ class SceneModel:
         and :mod:`mbcapture.render` agree on its form.
     params
         The validated ``Params`` instance.
+    drives
+        Optional group -> :class:`~mbcapture.drive.Drive`: emitter drive that varies
+        continuously in time (mains flicker), integrated exactly into the render weights.
+        Groups not named have a constant drive of 1.
     """
 
     name: str
@@ -98,6 +102,7 @@ class SceneModel:
     motion_points: Callable[[np.ndarray], np.ndarray] | None = None
     default_film: tuple[int, int] = (640, 512)
     extra: dict = field(default_factory=dict)
+    drives: dict = field(default_factory=dict)
 
     @property
     def is_static(self) -> bool:

@@ -23,11 +23,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from fractions import Fraction
 from math import gcd, lcm
-from typing import Iterable, Sequence
+from typing import TYPE_CHECKING, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from .errors import ConfigError
+
+if TYPE_CHECKING:
+    from .drive import Drive
 
 DRAIN = -1
 _MAX_TICKS = 1 << 62
@@ -84,6 +87,28 @@ class Segment:
         per_period = int(durs[mask].sum())
         partial = np.clip(rem[:, None] - self._offsets()[None, :], 0, durs[None, :])[:, mask].sum(axis=1)
         return n_full * per_period + partial
+
+    def drive_oscillation(self, t: np.ndarray, mask: np.ndarray, drive: "Drive", tick_s: Fraction) -> np.ndarray:
+        """The oscillating part of integral_start^t gate(u) drive(u) du (ticks, float64) over the
+        slots selected by ``mask``, for each t: the finished occurrences of each slot in closed
+        form (:func:`mbcapture.drive.periodic_oscillation_ticks`, O(1) in periods), plus the one
+        that t cuts."""
+        from .drive import periodic_oscillation_ticks
+
+        period = self.period_ticks
+        out = np.zeros(len(t), dtype=np.float64)
+        for off, s, on in zip(self._offsets().tolist(), self.slots, mask):
+            if not on or s.ticks == 0:
+                continue
+            first = self.start_tick + off
+            for i, ti in enumerate(np.asarray(t, dtype=np.int64).tolist()):
+                done = min(max((ti - first - s.ticks) // period + 1, 0), self.repeats)  # occurrences ended by ti
+                val = periodic_oscillation_ticks(drive, tick_s, first, s.ticks, period, done)
+                a = first + done * period
+                if done < self.repeats and ti > a:  # the occurrence in progress at ti
+                    val += periodic_oscillation_ticks(drive, tick_s, a, ti - a, period, 1)
+                out[i] += val
+        return out
 
 
 @dataclass(frozen=True)
@@ -154,16 +179,42 @@ class Timeline:
                 total += seg.gated(t, mask)
         return total
 
-    def weights_ticks(self, edges: np.ndarray, groups: Sequence[str], switchable: frozenset[str]) -> np.ndarray:
+    def drive_gated_ticks(self, t: Sequence[int] | np.ndarray, bucket: int, group: str | None, drive: "Drive") -> np.ndarray:
+        """Oscillating part of integral_0^t gate_bucket(u) on_group(u) drive(u) du, ticks (float64);
+        the constant part is ``drive.c0 * gated_ticks(t, bucket, group)``."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.int64))
+        total = np.zeros(t.shape, dtype=np.float64)
+        if drive.is_constant:
+            return total
+        for seg in self.segments:
+            mask = np.array(
+                [s.bucket == bucket and (group is None or group in s.groups_on) for s in seg.slots], dtype=bool
+            )
+            if mask.any():
+                total += seg.drive_oscillation(t, mask, drive, self.tick_s)
+        return total
+
+    def weights_ticks(
+        self, edges: np.ndarray, groups: Sequence[str], switchable: frozenset[str], drives: "Mapping[str, Drive] | None" = None
+    ) -> np.ndarray:
         """W[j, k, g] = ticks of stratum [edges[j], edges[j+1]) in which bucket k collects
         while group g is on (int64, exact). A group in ``switchable`` is on only in the slots
-        that name it (a flash no slot names stays dark); every other group is always on."""
+        that name it (a flash no slot names stays dark); every other group is always on.
+
+        ``drives``: group -> :class:`~mbcapture.drive.Drive`. A driven group's weight is the
+        exact integral of gate x drive over the stratum (float64 ticks: ``c0`` x the integer
+        ticks, plus the closed-form oscillating part), and the result is float64."""
         edges = np.asarray(edges, dtype=np.int64)
-        out = np.zeros((len(edges) - 1, self.n_buckets, len(groups)), dtype=np.int64)
+        drives = {g: d for g, d in (drives or {}).items() if g in groups}
+        out = np.zeros((len(edges) - 1, self.n_buckets, len(groups)), dtype=np.float64 if drives else np.int64)
         for k in range(self.n_buckets):
             for gi, g in enumerate(groups):
-                f = self.gated_ticks(edges, k, g if g in switchable else None)
-                out[:, k, gi] = np.diff(f)
+                sel = g if g in switchable else None
+                f = self.gated_ticks(edges, k, sel)
+                if g in drives:
+                    out[:, k, gi] = drives[g].c0 * np.diff(f) + np.diff(self.drive_gated_ticks(edges, k, sel, drives[g]))
+                else:
+                    out[:, k, gi] = np.diff(f)
         return out
 
     def exposure_ticks(self, bucket: int) -> int:
