@@ -1,4 +1,4 @@
-"""Command line: ``mbcapture run | plan | scenes | apps``.
+"""Command line: ``mbcapture run | plan | scenes | apps | figures``.
 
 Input errors (config, files, environment) print one line and exit with status 2.
 """
@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from .errors import MBCaptureError
@@ -39,8 +41,26 @@ def _parser() -> argparse.ArgumentParser:
     plan = sub.add_parser("plan", help="show what would be rendered, without rendering")
     _add_config_args(plan)
     plan.add_argument("--json", action="store_true", help="print the plan as JSON")
+    plan.add_argument("--no-probe", action="store_true",
+                      help="no pilot/probe render: no spp from render.noise_budget and no time estimate")
+
+    conv = sub.add_parser("converge", help="rendering error vs run time: planner and naive per-slot ladders")
+    _add_config_args(conv)
+    conv.add_argument("--out", type=Path, default=None, help="output folder (default: out/converge_<config name>)")
+    conv.add_argument("--quick", action="store_true", help="short ladders and a 64-spp reference")
+    conv.add_argument("--spp", type=str, default=None, help="planner ladder, comma-separated (default 1,2,4,8,16,32,64)")
+    conv.add_argument("--naive-spp", type=str, default=None, help="naive ladder, spp per slot (default 1,2,4,8)")
+    conv.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 256; --quick 64)")
 
     sub.add_parser("scenes", help="list the scenes and their parameters")
+    figs = sub.add_parser("figures", help="regenerate the paper's figures (PNG, PDF, data, index.html)")
+    figs.add_argument("--out", type=Path, default=Path("out/figures"), help="output folder (default: out/figures)")
+    figs.add_argument("--quick", action="store_true", help="small size (160x128, 4 spp): every figure in minutes")
+    figs.add_argument("--only", nargs="+", metavar="NAME", default=None, help="only these figures (see --list)")
+    figs.add_argument("--list", action="store_true", help="list the figures and exit")
+    figs.add_argument("--seed", type=int, default=0, help="seed of every capture and simulation")
+    figs.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+
     sub.add_parser("apps", help="list the applications (reconstructions), their protocols and parameters")
     return p
 
@@ -54,7 +74,7 @@ def _cmd_run(args) -> int:
     result = run_capture(cfg, out, progress=not args.quiet)
     if not args.quiet:
         r = result.report
-        print(f"wrote {out}/  ({r['plan']['passes']} render passes x {r['plan']['spp']} spp, "
+        print(f"wrote {out}/  ({r['plan']['passes']} render passes x {result.plan.spp_label()} spp, "
               f"{r['timings_s']['total_before_write']:.1f} s)")
         for line in result.app_output.summary:
             print(line)
@@ -66,7 +86,16 @@ def _cmd_plan(args) -> int:
     from .config import load_config
 
     cfg = load_config(args.config, args.overrides)
-    _, timeline, plan, _ = prepare(cfg)
+    scene, timeline, plan, seeds = prepare(cfg)
+    if not args.no_probe and plan.passes:
+        from .plan import probe_cost, resolve_spp
+        from .render import Renderer
+
+        renderer = Renderer(scene, cfg.render.width, cfg.render.height, variant=cfg.render.variant,
+                            max_depth=cfg.render.max_depth, sensor=cfg.sensor)
+        plan = resolve_spp(plan, renderer, cfg, seeds[2])  # the run's own pilot (render.spp null)
+        if plan.cost is None:
+            plan = probe_cost(plan, renderer, seeds[2])
     info = describe(cfg, timeline, plan)
     if args.json:
         print(json.dumps(info, indent=2))
@@ -78,11 +107,53 @@ def _cmd_plan(args) -> int:
         print(f"  {r['name']}: buckets {r['buckets']}, exposure {r['exposure_s'] * 1e3:.4g} ms, "
               f"span {r['span_s'] * 1e3:.4g} ms, centroid {r['centroid_s'] * 1e3:.4g} ms")
     s = info["plan"]
-    print(f"render: {s['passes']} passes x {s['spp']} spp, groups {s['groups_rendered']}"
-          + (f" (left out: {s['groups_left_out']})" if s["groups_left_out"] else ""))
+    print(f"render ({s['planner']} planner): {s['passes']} passes x {plan.spp_label()} spp ({s['spp_source']}), "
+          f"groups {s['groups_rendered']}" + (f" (left out: {s['groups_left_out']})" if s["groups_left_out"] else ""))
+    if s["pilot"]:
+        print(f"pilot: {s['pilot']['renders']} renders, {s['pilot']['seconds']:.2f} s; predicted Monte Carlo / shot "
+              f"noise variance per bucket {s['pilot']['predicted_mc_to_shot_variance']} (budget {s['noise_budget']})")
+    if s["estimate_s"]:
+        c, e = s["cost_model"], s["estimate_s"]
+        print(f"time estimate: render {e['render_s']:.2f} s + accumulate {e['accumulate_s']:.2f} s "
+              f"({s['renders']} renders x {c['c0_s'] * 1e3:.1f} ms + {c['c1_s_per_spp'] * 1e3:.2f} ms per spp; "
+              f"kernel compilation ~{c['compile_s']:.1f} s)")
     print(f"image motion during the capture: {s['image_motion_px_total']:.2f} px (at most {s['max_motion_px']} px per stratum)")
     for n in s["notes"]:
         print(f"note: {n}")
+    return 0
+
+
+def _cmd_converge(args) -> int:
+    from . import converge
+    from .config import load_config
+    from .errors import ConfigError
+
+    cfg = load_config(args.config, args.overrides)
+
+    def ladder(text, default, key):
+        if text is None:
+            return default
+        try:
+            vals = tuple(int(v) for v in text.split(",") if v.strip())
+        except ValueError:
+            raise ConfigError(f"{key}: expected comma-separated integers, got {text!r}") from None
+        if not vals or min(vals) < 1:
+            raise ConfigError(f"{key}: expected integers >= 1, got {text!r}")
+        return vals
+
+    motion = ladder(args.spp, converge.QUICK_MOTION_LADDER if args.quick else converge.DEFAULT_MOTION_LADDER, "--spp")
+    naive = ladder(args.naive_spp, converge.QUICK_NAIVE_LADDER if args.quick else converge.DEFAULT_NAIVE_LADDER,
+                   "--naive-spp")
+    ref_spp = args.ref_spp or (64 if args.quick else 256)
+    out = args.out or Path("out") / f"converge_{args.config.stem}"
+    result = converge.run_converge(cfg, motion, naive, ref_spp=ref_spp, ref_motion_div=4.0 if args.quick else 8.0,
+                                   progress=print)
+    converge.write_outputs(result, out)
+    print(f"slopes of log error vs log time: {result['slopes']} (Monte Carlo: -0.5)")
+    for s in result["speedups"]:
+        print(f"equal error {s['error']:.3e}: naive {s['naive_s']:.2f} s (spp {s['naive_spp']}) vs planner "
+              f"{s['planner_s']:.2f} s: {s['speedup']:.1f}x{' (extrapolated)' if s['extrapolated'] else ''}")
+    print(f"wrote {out}/converge.png, converge.csv, converge.json")
     return 0
 
 
@@ -94,6 +165,22 @@ def _cmd_scenes(args) -> int:
         print(f"{name}: {mod.DESCRIPTION}")
         for key, f in mod.Params.model_fields.items():
             print(f"    scene.{key} = {f.default!r}    {f.description or ''}")
+    return 0
+
+
+def _cmd_figures(args) -> int:
+    from . import figures
+
+    if args.list:
+        for name in figures.names():
+            spec = figures._REGISTRY[name]
+            print(f"{name}: {spec.title} ({spec.paper})")
+        return 0
+    entries = figures.make_figures(args.out, quick=args.quick, only=args.only, seed=args.seed, progress=not args.quiet)
+    if not args.quiet:
+        for e in entries:
+            print(f"{e['name']:<24} {e['seconds']:7.1f} s  {e['title']}")
+        print(f"wrote {args.out}/index.html")
     return 0
 
 
@@ -113,7 +200,10 @@ def _cmd_apps(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    handlers = {"run": _cmd_run, "plan": _cmd_plan, "scenes": _cmd_scenes, "apps": _cmd_apps}
+    handlers = {"run": _cmd_run, "plan": _cmd_plan, "scenes": _cmd_scenes, "apps": _cmd_apps, "figures": _cmd_figures,
+                "converge": _cmd_converge}
+    # SIGTERM (kill, a batch system's time limit) ends a run like Ctrl-C: staging removed, outputs untouched
+    previous = signal.signal(signal.SIGTERM, _terminated) if threading.current_thread() is threading.main_thread() else None
     try:
         return handlers[args.command](args)
     except MBCaptureError as exc:
@@ -122,6 +212,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("mbcapture: interrupted; no output was changed", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _terminated(signum, frame):
+    raise KeyboardInterrupt
 
 
 if __name__ == "__main__":

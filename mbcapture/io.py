@@ -3,6 +3,8 @@
 A run writes every file into a hidden staging folder beside the outputs and moves each one
 into place with ``os.replace`` only when the whole run has succeeded. An interrupted or
 failed run leaves the previous run's files in the same folder untouched and no partial file.
+A run killed outright (SIGKILL) leaves its hidden ``.staging-<host>-<pid>-*`` folder behind;
+the next run into the same folder removes it (:func:`remove_stale_staging`).
 """
 
 from __future__ import annotations
@@ -10,7 +12,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
+import socket
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator, Mapping
@@ -63,6 +68,9 @@ class Staging:
             self.names.append(name)
         return self.root / name
 
+    def write_bytes(self, name: str, data: bytes) -> None:
+        self.path(name).write_bytes(data)
+
     def write_json(self, name: str, data) -> None:
         self.path(name).write_text(json.dumps(data, indent=2, sort_keys=False, default=_json_default) + "\n")
 
@@ -76,15 +84,71 @@ class Staging:
         write_png(self.path(name), rgb_linear, percentile)
 
 
+STAGING_PREFIX = ".staging-"
+"""Staging folders are ``.staging-<host>-<pid>-<random>`` inside the output folder."""
+
+
+def _staging_owner(name: str) -> tuple[str, int] | None:
+    """(host, pid) of a staging folder's name, or None for a name not made by this version."""
+    if not name.startswith(STAGING_PREFIX):
+        return None
+    parts = name[len(STAGING_PREFIX):].rsplit("-", 2)
+    if len(parts) != 3 or not parts[1].isdigit():
+        return None
+    return parts[0], int(parts[1])
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def remove_stale_staging(out: Path) -> list[str]:
+    """Remove the staging folders of killed runs (SIGKILL, power loss) from ``out``: those made on
+    this host by a process that no longer exists. A live run's folder, another host's, and names
+    this version did not make are left alone. Returns the names removed."""
+    removed = []
+    host = socket.gethostname()
+    for p in Path(out).glob(STAGING_PREFIX + "*"):
+        owner = _staging_owner(p.name)
+        if owner is None or owner[0] != host or owner[1] == os.getpid() or _process_alive(owner[1]):
+            continue
+        shutil.rmtree(p, ignore_errors=True)
+        removed.append(p.name)
+    return removed
+
+
+@contextmanager
+def _signals_deferred():
+    """Hold SIGINT/SIGTERM/SIGHUP back while the outputs are moved into place (a few renames), so that
+    Ctrl-C cannot leave half of the new files beside half of the old ones. SIGKILL cannot be held."""
+    sigs = {getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)}
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 @contextmanager
 def staged_outputs(out: Path) -> Iterator[Staging]:
     out = prepare_out_dir(out)
-    root = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    remove_stale_staging(out)
+    root = Path(tempfile.mkdtemp(prefix=f"{STAGING_PREFIX}{socket.gethostname()}-{os.getpid()}-", dir=out))
     staging = Staging(root)
     try:
         yield staging
-        for name in staging.names:
-            os.replace(root / name, out / name)
+        with _signals_deferred():
+            for name in staging.names:
+                os.replace(root / name, out / name)
     finally:
         shutil.rmtree(root, ignore_errors=True)
 
