@@ -1,0 +1,502 @@
+"""Multi-flash photography: a shadow-free image and depth edges (Raskar et al. 2004; the paper's 5.3).
+
+Protocol ``multi_flash``
+    Four LED groups around the lens (``flash_top``, ``flash_bottom``, ``flash_left``,
+    ``flash_right``), each synced with one bucket: per period, bucket 1 collects for T/N with the
+    top LED on, bucket 2 with the bottom one, bucket 3 left, bucket 4 right (T =
+    ``capture.unit_exposure_s``, N = ``capture.periods``); each bucket is read directly (reads
+    ``top``, ``bottom``, ``left``, ``right``). When ``sensor.bucket_count`` >= 5 a fifth slot of
+    T/N with every LED off fills bucket 5 (read ``ambient``): Raskar's ambient image I_0, taken
+    interleaved with the flash images. ``capture.sequential: true`` takes the same 4 (5) images
+    one after another on a conventional sensor.
+
+Ambient handling (``app.ambient``)
+    ``auto``: subtract the ambient read from every flash read when the capture has one, else
+    keep the ambient light in the flash images. ``subtract``: require the ambient read.
+    ``none``: never subtract (the paper's quad-bucket setup: a weak ambient only lifts the
+    shadows' ratio from ~0 to A/(A+F)). A min composite is not used as the ambient estimate: it
+    holds the dimmest flash's light wherever no LED is shadowed, so subtracting it would erase
+    the ratios. All images are in radiance units, W m^-2 sr^-1 during the flash:
+    read electrons / (k_e * exposure).
+
+Reconstruction (``app.method``; :data:`DEPTH_EDGE_METHODS`)
+    ``raskar2004``: the shadow-free image is the max composite I_max = max_k I_k (per channel).
+    Each flash image's luminance is divided by I_max's (ratio R_k, ~1 where LED k lights the
+    surface, ~0 in its shadow). R_k is traversed along epipolar lines away from LED k's epipole
+    (the projection of the LED centre; for an LED in the lens plane it is at infinity in the LED's
+    image direction, so the lines are rows or columns): a pixel p is a depth edge of flash k when
+    the step R_k(p) - R_k(p + d) (d: one pixel further from the epipole) exceeds
+    ``app.step_threshold`` and is the largest step of its three neighbours along the line (non-
+    maximum suppression), with both pixels valid (I_max above ``app.min_signal_fraction`` of its
+    99th percentile, no read saturated). Depth edges are the union over flashes; they lie on the
+    occluding (near) side of the discontinuity.
+    ``canny_max_composite``: a baseline without the flashes' geometry: OpenCV Canny edges of the
+    max composite (texture and shading edges included), to show what the ratios add.
+
+Ground truth and metrics
+    Depth from Mitsuba's ``aov`` integrator (:mod:`mbcapture.render.aov`) at pixel centres:
+    a pixel is a true depth edge when a 4-neighbour's depth differs by more than
+    ``app.truth_depth_jump`` of the nearer depth and it is the nearer one. ``app.truth_time``:
+    ``mid`` (default) takes the scene at the capture's mid-time, the instant the interleaved
+    buckets are all centred on and the middle of the sequential frames: one answer for both
+    captures, so the comparison is fair; ``strata_union`` is the union over the render strata's
+    times (every position the moving edges held; lenient towards long captures). Precision: the
+    fraction of detected pixels within ``app.tolerance_px`` of a true edge pixel; recall: the
+    fraction of true edge pixels within that distance of a detected one (Euclidean distance
+    transform); F1 their harmonic mean; over the image and over the capture's moving region.
+    Shadow-free truth: the max composite of the flash groups rendered noise-free at the
+    mid-time (plus the ambient group when it is not subtracted). Residual shadow: over pixels
+    shadowed in some truth flash image (ratio below ``app.shadow_ratio``), the fraction where the
+    shadow-free image is below half the truth, and the mean darkening max(0, 1 - I/I_truth).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from fractions import Fraction
+from typing import Callable, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from .. import protocols
+from ..errors import ConfigError
+from ..metrics import relative_mse
+from ..timeline import ReadEvent, SlotSeconds, Timeline, exact
+from . import AppOutput, CaptureData, register
+
+#: Flash groups in bucket order, and the read names of the protocol.
+FLASH_GROUPS = ("flash_top", "flash_bottom", "flash_left", "flash_right")
+AMBIENT_READ = "ambient"
+
+#: relMSE floor for radiance images (W m^-2 sr^-1)^2: about 0.1 x the darkest lit surfaces.
+REL_MSE_EPS_RADIANCE = 1e-3
+
+
+# --------------------------------------------------------------------------------- protocol
+@protocols.register("multi_flash", app="multi_flash")
+def multi_flash_protocol(cfg):
+    """Buckets 1-4: one LED group each for T/N per period; bucket 5 (if any): ambient only."""
+    have = cfg.sensor.bucket_count
+    if have < 4:
+        raise ConfigError(f"capture.protocol: 'multi_flash' needs 4 buckets but sensor.bucket_count is {have}")
+    k = 5 if have >= 5 else 4
+    T, N = exact(cfg.capture.unit_exposure_s), cfg.capture.periods
+    slots = [SlotSeconds(b, T / N, frozenset({g})) for b, g in enumerate(FLASH_GROUPS)]
+    reads = [ReadEvent(g.removeprefix("flash_"), (b,)) for b, g in enumerate(FLASH_GROUPS)]
+    if k == 5:
+        slots.append(SlotSeconds(4, T / N))
+        reads.append(ReadEvent(AMBIENT_READ, (4,)))
+    return slots, reads, k
+
+
+# --------------------------------------------------------------------------------- params
+class MultiFlashParams(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    method: str = Field("raskar2004", description="Depth-edge method: raskar2004 (ratio images traversed away from "
+                        "each flash's epipole) or canny_max_composite (baseline: Canny on the max composite).")
+    ambient: Literal["auto", "subtract", "none"] = Field(
+        "auto", description="Ambient light: 'auto' subtracts the ambient-only read when the capture has one "
+        "(sensor.bucket_count >= 5), 'subtract' requires it, 'none' keeps the ambient in the flash images.")
+    step_threshold: float = Field(0.3, gt=0.0, lt=1.0, description="raskar2004: smallest drop of a ratio image "
+                                  "(R(p) - R(p+d), dimensionless) one pixel away from the epipole that marks a depth edge.")
+    smooth_px: float = Field(0.0, ge=0.0, le=5.0, description="raskar2004: Gaussian sigma (px) applied to each "
+                             "flash image's luminance before the ratios (0: none).")
+    min_signal_fraction: float = Field(0.03, ge=0.0, lt=1.0, description="Pixels whose max-composite luminance is "
+                                       "below this fraction of its 99th percentile carry no ratio (too dark).")
+    canny_low: float = Field(0.1, gt=0.0, lt=1.0, description="canny_max_composite: low hysteresis threshold as a "
+                             "fraction of the largest gradient of the tone-mapped luminance.")
+    canny_high: float = Field(0.25, gt=0.0, le=1.0, description="canny_max_composite: high hysteresis threshold, "
+                              "same units.")
+    truth_depth_jump: float = Field(0.05, gt=0.0, lt=10.0, description="Ground truth: relative depth jump "
+                                    "|z1 - z2| / min(z1, z2) between 4-neighbours that makes a depth edge.")
+    truth_time: Literal["mid", "strata_union"] = Field(
+        "mid", description="Ground-truth depth edges at the capture's mid-time ('mid') or the union over the "
+        "render strata's times ('strata_union').")
+    tolerance_px: float = Field(1.5, ge=0.0, le=10.0, description="Precision/recall: a detected and a true edge "
+                                "pixel match within this distance, px.")
+    shadow_ratio: float = Field(0.5, gt=0.0, lt=1.0, description="Residual-shadow metric: a pixel is shadowed in a "
+                                "truth flash image when its luminance is below this fraction of the truth max composite.")
+    truth_spp: int = Field(0, ge=0, le=4096, description="Samples per pixel of the noise-free shadow-free truth "
+                           "render (0: 4 x render.spp).")
+
+
+# --------------------------------------------------------------------------------- geometry
+@dataclass(frozen=True)
+class Epipole:
+    """Where a light's centre projects in the image, pixels (x right, y down).
+
+    finite: ``xy`` is the epipole; ``sign`` +1 when the light is in front of the lens plane
+    (shadows run away from the epipole), -1 behind it (they run towards it).
+    infinite (light in the lens plane): ``xy`` is the unit image direction towards the light;
+    shadows run the opposite way along parallel lines.
+    """
+
+    finite: bool
+    xy: tuple[float, float]
+    sign: int = 1
+
+    def away(self, height: int, width: int) -> np.ndarray:
+        """(H, W, 2) unit steps (dx, dy) per pixel along the epipolar line, away from the light."""
+        if not self.finite:
+            d = -np.asarray(self.xy, float)
+            return np.broadcast_to(d / np.linalg.norm(d), (height, width, 2)).copy()
+        yy, xx = np.mgrid[0:height, 0:width]
+        v = np.stack([xx + 0.5 - self.xy[0], yy + 0.5 - self.xy[1]], axis=-1) * self.sign
+        n = np.linalg.norm(v, axis=-1, keepdims=True)
+        return np.divide(v, n, out=np.zeros_like(v), where=n > 0)
+
+
+def epipole(camera, position, width: int, height: int) -> Epipole:
+    """The epipole of a light at world ``position`` for ``camera`` (a :class:`~mbcapture.scenes.Camera`)."""
+    o = np.asarray(camera.origin, float)
+    fwd = np.asarray(camera.target, float) - o
+    fwd /= np.linalg.norm(fwd)
+    off = np.asarray(position, float) - o
+    dist = float(np.linalg.norm(off))
+    if dist == 0.0:
+        raise ConfigError("scene: a flash at the lens centre has no epipole (no shadows to see)")
+    z = float(off @ fwd)
+    if abs(z) <= 1e-9 * dist:  # in the lens plane: the image direction of the offset, at infinity
+        p0 = camera.project(o + fwd, width, height)
+        p1 = camera.project(o + fwd + off / dist * 1e-3, width, height)
+        d = p1 - p0
+        return Epipole(False, tuple(float(v) for v in d / np.linalg.norm(d)))
+    if z > 0:
+        return Epipole(True, tuple(float(v) for v in camera.project(np.asarray(position, float), width, height)), 1)
+    mirrored = o - off  # project() refuses points behind the camera: the mirror image has the same epipole
+    return Epipole(True, tuple(float(v) for v in camera.project(mirrored, width, height)), -1)
+
+
+# --------------------------------------------------------------------------------- images
+def luminance(img: np.ndarray) -> np.ndarray:
+    """(..., C) -> (...): Rec. 709 weights for 3 channels, else the channel mean."""
+    img = np.asarray(img, dtype=np.float64)
+    if img.shape[-1] == 3:
+        return img @ np.array([0.2126, 0.7152, 0.0722])
+    return img.mean(axis=-1)
+
+
+def flash_images(reads_e: np.ndarray, exposure_s: np.ndarray, k_e: np.ndarray, flash_reads: list[int],
+                 ambient_read: int | None) -> np.ndarray:
+    """(F, H, W, C) radiance of each flash read (W m^-2 sr^-1 while the flash was on), with the
+    ambient read's radiance subtracted when ``ambient_read`` is given (exposures may differ)."""
+    rad = np.asarray(reads_e, np.float64) / (np.asarray(k_e)[None, None, None, :]
+                                             * np.asarray(exposure_s, np.float64)[:, None, None, None])
+    out = rad[flash_reads]
+    if ambient_read is not None:
+        out = out - rad[ambient_read][None]
+    return out
+
+
+def max_composite(images: np.ndarray) -> np.ndarray:
+    """Raskar's shadow-free image: the per-pixel, per-channel maximum over flash images (F, H, W, C)."""
+    return np.max(images, axis=0)
+
+
+@dataclass
+class DepthEdges:
+    """edges (H, W) bool union; per_flash (F, H, W) bool; ratios (F, H, W) or None; valid (H, W) bool."""
+
+    edges: np.ndarray
+    per_flash: np.ndarray
+    ratios: np.ndarray | None
+    valid: np.ndarray
+
+
+def _sample(img: np.ndarray, yy: np.ndarray, xx: np.ndarray) -> np.ndarray:
+    from scipy.ndimage import map_coordinates
+
+    return map_coordinates(img, [yy, xx], order=1, mode="nearest")
+
+
+def _signal_valid(lum_max: np.ndarray, min_signal_fraction: float, bad: np.ndarray | None) -> np.ndarray:
+    ref = float(np.percentile(lum_max, 99)) if lum_max.size else 0.0
+    valid = lum_max > min_signal_fraction * ref if ref > 0 else np.zeros(lum_max.shape, bool)
+    if bad is not None:
+        valid &= ~bad
+    return valid
+
+
+def raskar_depth_edges(images: np.ndarray, epipoles: list[Epipole], *, step_threshold: float = 0.3,
+                       smooth_px: float = 0.0, min_signal_fraction: float = 0.03,
+                       bad: np.ndarray | None = None) -> DepthEdges:
+    """Depth edges from flash images (F, H, W, C) lit from ``epipoles`` (Raskar et al. 2004).
+
+    ``bad`` (H, W) bool: pixels with no usable value (e.g. a saturated read). See the module
+    docstring for the steps.
+    """
+    images = np.asarray(images, np.float64)
+    if images.ndim != 4 or len(epipoles) != images.shape[0]:
+        raise ValueError(f"images (F, H, W, C) and one epipole per flash expected, got {images.shape}, {len(epipoles)}")
+    F, H, W, _ = images.shape
+    lum = np.maximum(luminance(images), 0.0)
+    if smooth_px > 0:
+        from scipy.ndimage import gaussian_filter
+
+        lum = np.stack([gaussian_filter(x, smooth_px, mode="nearest") for x in lum])
+    lum_max = lum.max(axis=0)
+    valid = _signal_valid(lum_max, min_signal_fraction, bad)
+    ratios = np.divide(lum, lum_max[None], out=np.zeros_like(lum), where=valid[None])
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float64)
+    per = np.zeros((F, H, W), bool)
+    for k, ep in enumerate(epipoles):
+        d = ep.away(H, W)
+        dx, dy = d[..., 0], d[..., 1]
+        r = ratios[k]
+        r_next = _sample(r, yy + dy, xx + dx)
+        step = r - r_next                                      # drop into the shadow: positive
+        step_prev = _sample(step, yy - dy, xx - dx)
+        step_next = _sample(step, yy + dy, xx + dx)
+        ok = valid & (_sample(valid.astype(float), yy + dy, xx + dx) > 0.999)
+        inside = (xx + dx >= 0) & (xx + dx <= W - 1) & (yy + dy >= 0) & (yy + dy <= H - 1)
+        per[k] = ok & inside & (step > step_threshold) & (step >= step_prev) & (step > step_next)
+    return DepthEdges(edges=per.any(axis=0), per_flash=per, ratios=ratios, valid=valid)
+
+
+def canny_edges(image: np.ndarray, *, low: float = 0.1, high: float = 0.25) -> np.ndarray:
+    """(H, W) bool Canny edges of an image's luminance (tone-mapped to its 99th percentile, 8 bit);
+    thresholds are fractions of the largest Sobel gradient magnitude (OpenCV's L1 norm)."""
+    import cv2
+
+    lum = luminance(image)
+    white = float(np.percentile(lum, 99)) or 1.0
+    u8 = np.round(np.clip(lum / white, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
+    gx = cv2.Sobel(u8, cv2.CV_64F, 1, 0, ksize=3)
+    gy = cv2.Sobel(u8, cv2.CV_64F, 0, 1, ksize=3)
+    gmax = float(np.max(np.abs(gx) + np.abs(gy))) or 1.0
+    return cv2.Canny(u8, low * gmax, high * gmax, L2gradient=False) > 0
+
+
+def depth_discontinuities(depth: np.ndarray, rel_jump: float) -> np.ndarray:
+    """(H, W) bool: pixels whose depth is nearer than a 4-neighbour's by more than ``rel_jump``
+    of their own depth (the occluding side of a depth edge). ``inf`` depth (no surface) counts
+    as infinitely far."""
+    z = np.asarray(depth, np.float64)
+    out = np.zeros(z.shape, bool)
+    for axis in (0, 1):
+        a = np.swapaxes(z, 0, axis)
+        near = np.minimum(a[:-1], a[1:])
+        far = np.maximum(a[:-1], a[1:])
+        with np.errstate(invalid="ignore"):
+            jump = np.isfinite(near) & ((far - near) > rel_jump * near)
+        o = np.swapaxes(out, 0, axis)
+        o[:-1] |= jump & (a[:-1] <= a[1:])
+        o[1:] |= jump & (a[1:] < a[:-1])
+    return out
+
+
+def edge_scores(detected: np.ndarray, truth: np.ndarray, tolerance_px: float, mask: np.ndarray | None = None) -> dict:
+    """Precision, recall, F1 of a detected edge map against a true one, matching within
+    ``tolerance_px`` (Euclidean distance transform). ``mask`` restricts the pixels counted (both
+    maps are matched against the other's full extent). None where undefined (nothing to count)."""
+    from scipy.ndimage import distance_transform_edt
+
+    detected, truth = np.asarray(detected, bool), np.asarray(truth, bool)
+    m = np.ones(detected.shape, bool) if mask is None else np.asarray(mask, bool)
+    d_to_truth = distance_transform_edt(~truth) if truth.any() else np.full(truth.shape, np.inf)
+    d_to_det = distance_transform_edt(~detected) if detected.any() else np.full(truth.shape, np.inf)
+    n_det, n_true = int((detected & m).sum()), int((truth & m).sum())
+    precision = float((d_to_truth[detected & m] <= tolerance_px).mean()) if n_det else None
+    recall = float((d_to_det[truth & m] <= tolerance_px).mean()) if n_true else None
+    f1 = (2 * precision * recall / (precision + recall) if precision is not None and recall is not None
+          and precision + recall > 0 else (0.0 if precision is not None and recall is not None else None))
+    return {"precision": precision, "recall": recall, "f1": f1, "detected_px": n_det, "true_px": n_true}
+
+
+def shadow_metrics(shadow_free: np.ndarray, truth_flash: np.ndarray, *, shadow_ratio: float = 0.5,
+                   min_signal_fraction: float = 0.03) -> dict:
+    """How much shadow the shadow-free image keeps, against noise-free truth flash images (F, H, W, C).
+
+    Over the pixels shadowed in some truth image (luminance below ``shadow_ratio`` x the truth
+    max composite's) where the truth max composite is lit: ``residual_shadow_fraction`` the
+    fraction where ``shadow_free`` is below half the truth max composite, ``residual_shadow_mean``
+    the mean of max(0, 1 - I / I_truth) (luminance)."""
+    truth_max = max_composite(truth_flash)
+    lt, lf = luminance(truth_max), luminance(shadow_free)
+    lit = _signal_valid(lt, min_signal_fraction, None)
+    shadowed = lit & (luminance(truth_flash).min(axis=0) < shadow_ratio * lt)
+    if not shadowed.any():
+        return {"shadowed_px": 0}
+    rel = lf[shadowed] / lt[shadowed]
+    return {
+        "shadowed_px": int(shadowed.sum()),
+        "residual_shadow_fraction": float((rel < 0.5).mean()),
+        "residual_shadow_mean": float(np.maximum(0.0, 1.0 - rel).mean()),
+    }
+
+
+def edges_overlay(base: np.ndarray, detected: np.ndarray, truth: np.ndarray | None, tolerance_px: float) -> np.ndarray:
+    """(H, W, 3) linear preview: the base image's luminance dimmed to 0..0.25, detected edges that
+    match a true edge green, unmatched detections red, missed true edges blue (no truth: white)."""
+    from scipy.ndimage import distance_transform_edt
+
+    lum = luminance(base)
+    white = float(np.percentile(lum, 99)) or 1.0
+    out = np.repeat((0.25 * np.clip(lum / white, 0, 1))[..., None], 3, -1)
+    if truth is None:
+        out[detected] = 1.0
+        return out
+    d_truth = distance_transform_edt(~truth) if truth.any() else np.full(truth.shape, np.inf)
+    d_det = distance_transform_edt(~detected) if detected.any() else np.full(truth.shape, np.inf)
+    out[truth & (d_det > tolerance_px)] = (0.1, 0.3, 1.0)
+    out[detected & (d_truth <= tolerance_px)] = (0.1, 1.0, 0.1)
+    out[detected & (d_truth > tolerance_px)] = (1.0, 0.1, 0.1)
+    return out
+
+
+# --------------------------------------------------------------------------------- methods
+def _method_raskar(images, epipoles, bad, p: MultiFlashParams) -> DepthEdges:
+    return raskar_depth_edges(images, epipoles, step_threshold=p.step_threshold, smooth_px=p.smooth_px,
+                              min_signal_fraction=p.min_signal_fraction, bad=bad)
+
+
+def _method_canny(images, epipoles, bad, p: MultiFlashParams) -> DepthEdges:
+    e = canny_edges(max_composite(images), low=p.canny_low, high=max(p.canny_high, p.canny_low))
+    return DepthEdges(edges=e, per_flash=e[None], ratios=None, valid=~bad)
+
+
+#: Depth-edge methods: ``fn(flash images (F, H, W, C), epipoles, bad (H, W), params) -> DepthEdges``
+#: (``ratios`` None for methods that do not form ratio images).
+DEPTH_EDGE_METHODS: dict[str, Callable] = {"raskar2004": _method_raskar, "canny_max_composite": _method_canny}
+
+
+def depth_edges(images, epipoles, bad, params: MultiFlashParams) -> DepthEdges:
+    if params.method not in DEPTH_EDGE_METHODS:
+        raise ConfigError(f"app.method: unknown depth-edge method {params.method!r}; expected one of "
+                          f"{sorted(DEPTH_EDGE_METHODS)}")
+    return DEPTH_EDGE_METHODS[params.method](images, epipoles, bad, params)
+
+
+# --------------------------------------------------------------------------------- capture glue
+def read_groups(timeline: Timeline, read: ReadEvent) -> frozenset[str]:
+    """Switchable groups lit while the buckets of ``read`` collected."""
+    return frozenset(g for seg in timeline.segments for s in seg.slots if s.bucket in read.buckets
+                     for g in s.groups_on)
+
+
+def _layout(data: CaptureData, params: MultiFlashParams) -> tuple[list[int], list[str], int | None]:
+    """(flash read indices, their groups, ambient read index or None) from the timeline."""
+    flash_idx, groups, ambient = [], [], None
+    for i, r in enumerate(data.timeline.reads):
+        g = read_groups(data.timeline, r)
+        if len(g) == 1 and next(iter(g)) in FLASH_GROUPS:
+            flash_idx.append(i)
+            groups.append(next(iter(g)))
+        elif not g:
+            ambient = i
+    if len(flash_idx) < 2:
+        raise ConfigError("capture.protocol: multi_flash needs reads lit by at least two of "
+                          f"{list(FLASH_GROUPS)}, one LED group each (got {data.read_names})")
+    if params.ambient == "subtract" and ambient is None:
+        raise ConfigError("app.ambient: 'subtract' needs an ambient-only read (sensor.bucket_count >= 5)")
+    return flash_idx, groups, (ambient if params.ambient != "none" else None)
+
+
+def _mid_time_s(tl: Timeline) -> float:
+    return float(Fraction(tl.start_tick + tl.end_tick, 2) * tl.tick_s)
+
+
+@register("multi_flash", params=MultiFlashParams,
+          description="multi-flash: shadow-free max composite and depth edges from ratio images (Raskar 2004)")
+def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
+    cfg = data.cfg
+    W, H = cfg.render.width, cfg.render.height
+    flash_idx, groups, ambient = _layout(data, params)
+    positions = data.scene.extra.get("flash_positions_m")
+    if not positions or any(g not in positions for g in groups):
+        raise ConfigError(f"scene.name: {data.scene.name!r} does not give extra['flash_positions_m'] for {groups}")
+    epipoles = [epipole(data.scene.camera, positions[g], W, H) for g in groups]
+    images = flash_images(data.reads_e(), data.exposure_s, data.k_e, flash_idx, ambient)
+    used = flash_idx + ([ambient] if ambient is not None else [])
+    bad = data.saturated[used].any(axis=(0, -1))
+    shadow_free = max_composite(images)
+    det = depth_edges(images, epipoles, bad, params)
+    edges = det.edges
+    names = [data.read_names[i] for i in flash_idx]
+
+    out_images: dict[str, np.ndarray] = {"shadow_free": shadow_free, "depth_edges": edges.astype(np.float32)}
+    if det.ratios is not None:
+        for n, r in zip(names, det.ratios):
+            out_images[f"ratio_{n}"] = r.astype(np.float32)
+    for n, img in zip(names, images):
+        out_images[f"flash_{n}"] = img
+    metrics: dict = {
+        "method": params.method,
+        "ambient": "ambient read subtracted" if ambient is not None else "kept in the flash images",
+        "flash_reads": dict(zip(names, groups)),
+        "epipoles_px": {n: {"at_infinity": not e.finite, ("direction" if not e.finite else "xy"): list(e.xy)}
+                        for n, e in zip(names, epipoles)},
+        "saturated_px": int(bad.sum()),
+        "detected_edge_px": int(edges.sum()),
+    }
+    png = {"shadow_free": ("shadow_free", cfg.output.png_percentile)}
+    summary = [f"multi-flash ({params.method}): {int(edges.sum())} depth-edge pixels, ambient {metrics['ambient']}"]
+
+    if data.renderer is not None:
+        truth = _truth(data, params, groups, ambient is None)
+        metrics.update(_scores(data, params, edges, shadow_free, truth))
+        out_images.update({"shadow_free_truth": truth["shadow_free"], "depth_edges_truth": truth["edges"].astype(np.float32),
+                           "depth_truth_z": truth["z_m"].astype(np.float32),
+                           "edges_overlay": edges_overlay(shadow_free, edges, truth["edges"], params.tolerance_px)})
+        png["shadow_free_truth"] = ("shadow_free_truth", cfg.output.png_percentile)
+        e = metrics["depth_edges"]["all"]
+        fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
+        summary.append(f"depth edges vs truth ({params.truth_time}): precision {fmt(e['precision'])}, "
+                       f"recall {fmt(e['recall'])}, F1 {fmt(e['f1'])} (tolerance {params.tolerance_px} px)")
+        s = metrics["shadow_free"]
+        summary.append(f"shadow-free: relMSE {s['rel_mse']:.4g}, residual shadow "
+                       f"{100 * s.get('residual_shadow_fraction', 0.0):.2f}% of shadowed pixels")
+    else:
+        out_images["edges_overlay"] = edges_overlay(shadow_free, edges, None, params.tolerance_px)
+    png["depth_edges"] = ("edges_overlay", None)
+    return AppOutput(images=out_images, metrics=metrics, png=png, summary=summary)
+
+
+def _truth(data: CaptureData, params: MultiFlashParams, groups: list[str], with_ambient: bool) -> dict:
+    """Noise-free references rendered at the capture's mid-time (depth edges: per truth_time)."""
+    from ..render.aov import render_depth
+
+    renderer, tl = data.renderer, data.timeline
+    t_mid = _mid_time_s(tl)
+    spp = params.truth_spp or 4 * data.cfg.render.spp
+    seed = int(np.random.default_rng(data.seed).integers(0, 2**31 - 1))
+    # the capture's own group set: its render kernel is compiled already
+    render_groups = list(dict.fromkeys(list(data.plan.groups) + list(groups)))
+    rad = renderer.render(t_mid, spp, seed, render_groups).astype(np.float64)
+    flash = np.stack([rad[render_groups.index(g)] for g in groups])
+    always_on = [i for i, g in enumerate(render_groups) if g not in data.scene.switchable]
+    if with_ambient and always_on:  # the flash reads hold the always-on light too
+        flash = flash + rad[always_on].sum(axis=0)[None]
+    depth_mid = render_depth(renderer, t_mid)
+    times = [t_mid] if params.truth_time == "mid" else sorted(set(float(t) for t in data.plan.times_s))
+    edges = np.zeros(depth_mid.z_m.shape, bool)
+    for t in times:
+        z = depth_mid.z_m if t == t_mid else render_depth(renderer, t).z_m
+        edges |= depth_discontinuities(z, params.truth_depth_jump)
+    return {"t_s": t_mid, "times_s": times, "flash": flash, "shadow_free": max_composite(flash), "edges": edges,
+            "z_m": depth_mid.z_m, "spp": spp}
+
+
+def _scores(data: CaptureData, params: MultiFlashParams, edges: np.ndarray, shadow_free: np.ndarray, truth: dict) -> dict:
+    mask = data.moving_mask
+    de = {"all": edge_scores(edges, truth["edges"], params.tolerance_px)}
+    if mask.any():
+        de["moving_region"] = edge_scores(edges, truth["edges"], params.tolerance_px, mask)
+        de["static_region"] = edge_scores(edges, truth["edges"], params.tolerance_px, ~mask)
+    sf = {"rel_mse": relative_mse(shadow_free, truth["shadow_free"], eps=REL_MSE_EPS_RADIANCE),
+          **shadow_metrics(shadow_free, truth["flash"], shadow_ratio=params.shadow_ratio,
+                           min_signal_fraction=params.min_signal_fraction)}
+    if mask.any():
+        sf["rel_mse_moving"] = relative_mse(shadow_free, truth["shadow_free"], mask=mask[..., None], eps=REL_MSE_EPS_RADIANCE)
+    return {
+        "truth": {"time_s": truth["t_s"], "edge_times_s": truth["times_s"], "mode": params.truth_time,
+                  "depth_jump": params.truth_depth_jump, "tolerance_px": params.tolerance_px,
+                  "shadow_free_spp": truth["spp"],
+                  "what": "depth edges of the aov depth at pixel centres; shadow-free truth = max composite of "
+                          "the flash groups rendered noise-free at the capture's mid-time"},
+        "moving_px": int(mask.sum()),
+        "depth_edges": de,
+        "shadow_free": sf,
+    }
