@@ -214,5 +214,6 @@ def make(params: Params) -> SceneModel:
         params=params,
         motion_points=motion_points,
         default_film=(640, 512),
-        extra={"pendulum": pendulum},
+        # letter_s_points: indices of motion_points on the letter S (corners, centre; see _tracked_points_part)
+        extra={"pendulum": pendulum, "letter_s_points": (2, 3, 4, 5, 6)},
     )

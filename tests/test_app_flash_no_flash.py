@@ -1,0 +1,290 @@
+"""flash_no_flash: protocol, filters and reconstruction on small synthetic inputs with known
+answers, and one tiny render (interleaved vs sequential).
+
+Statistical tolerances: a mean over n independent samples of variance s^2 has standard error
+s / sqrt(n); variances estimated from n samples have relative standard error sqrt(2 / (n - 1)).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from mbcapture import load_config, protocols
+from mbcapture.apps import CaptureData, get
+from mbcapture.apps.flash_no_flash import (
+    METHODS,
+    FlashNoFlashParams,
+    components,
+    display_psnr,
+    enhance,
+    flash_mask,
+    joint_bilateral,
+    reconstruct,
+)
+from mbcapture.capture import bucket_group_seconds
+from mbcapture.config import config_from_dict
+from mbcapture.errors import ConfigError
+from mbcapture.sensor import electrons_per_render_second, simulate_reads
+
+N_SIGMA = 5.0
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "flash_no_flash.yaml"
+
+
+def brute_joint_bilateral(img, guide, ss, sr, truncate=2.5):
+    """The filter's definition, one pixel at a time (mirrored borders)."""
+    H, W = img.shape[:2]
+    r = int(np.ceil(truncate * ss))
+    out = np.zeros_like(img, dtype=float)
+    for y in range(H):
+        for x in range(W):
+            num, den = 0.0, 0.0
+            for dy in range(-r, r + 1):
+                for dx in range(-r, r + 1):
+                    if dy * dy + dx * dx > r * r:
+                        continue
+                    qy, qx = y + dy, x + dx
+                    qy = -qy if qy < 0 else (2 * (H - 1) - qy if qy >= H else qy)
+                    qx = -qx if qx < 0 else (2 * (W - 1) - qx if qx >= W else qx)
+                    w = np.exp(-(dy * dy + dx * dx) / (2 * ss**2) - np.sum((guide[qy, qx] - guide[y, x]) ** 2) / (2 * sr**2))
+                    num = num + w * img[qy, qx]
+                    den += w
+            out[y, x] = num / den
+    return out
+
+
+# ----------------------------------------------------------------------------- filters
+def test_joint_bilateral_matches_its_definition():
+    rng = np.random.default_rng(0)
+    img, guide = rng.random((9, 11, 3)), rng.random((9, 11, 3))
+    np.testing.assert_allclose(joint_bilateral(img, guide, 1.3, 0.4), brute_joint_bilateral(img, guide, 1.3, 0.4),
+                               rtol=1e-12, atol=1e-12)
+
+
+def test_joint_bilateral_keeps_constants_and_the_guides_edges():
+    const = np.full((16, 16, 3), 0.7)
+    np.testing.assert_allclose(joint_bilateral(const, np.random.default_rng(1).random((16, 16)), 2.0, 0.1), 0.7)
+    # image = guide = a step: a range sigma far below the step keeps it exactly (weights e^-5000)
+    step = np.zeros((16, 16, 1))
+    step[:, 8:] = 1.0
+    np.testing.assert_allclose(joint_bilateral(step, step, 2.0, 0.01), step, atol=1e-12)
+    # a noisy image with a clean step guide: smoothed within each side, the edge stays sharp
+    rng = np.random.default_rng(2)
+    noisy = step + rng.normal(0, 0.05, step.shape)
+    out = joint_bilateral(noisy, step, 2.0, 0.05)
+    assert abs(out[:, 7].mean() - 0.0) < 0.02 and abs(out[:, 8].mean() - 1.0) < 0.02
+
+
+def test_joint_bilateral_noise_reduction_is_the_spatial_kernels():
+    """Guide constant: the range kernel is 1, so for interior pixels the output variance is
+    sigma^2 sum w^2 / (sum w)^2 exactly (w the truncated spatial Gaussian)."""
+    ss, sigma = 1.5, 1.0
+    rng = np.random.default_rng(3)
+    noise = rng.normal(0, sigma, (400, 400, 1))
+    out = joint_bilateral(noise, np.zeros((400, 400)), ss, 0.1)
+    r = int(np.ceil(2.5 * ss))
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    w = np.exp(-(yy**2 + xx**2) / (2 * ss**2)) * (yy**2 + xx**2 <= r * r)
+    expected = sigma**2 * (w**2).sum() / w.sum() ** 2
+    # independent samples: pixels 2r + 1 apart
+    sample = out[r:-r:2 * r + 1, r:-r:2 * r + 1].ravel()
+    n = sample.size
+    assert sample.var(ddof=1) == pytest.approx(expected, rel=N_SIGMA * np.sqrt(2 / (n - 1)))
+
+
+def test_detail_transfer_recovers_an_ambient_image_proportional_to_the_flash():
+    """A = c F, noise-free, no mask: A_NR = c F_base and F_detail = (F + eps) / (F_base + eps),
+    so A_NR F_detail -> c F = A as eps -> 0 (the bilateral's smoothing is undone exactly)."""
+    rng = np.random.default_rng(4)
+    f = 0.2 + rng.random((20, 24, 3))
+    a = 0.03 * f
+    p = FlashNoFlashParams(sigma_range=0.5, detail_eps=1e-9, shadow_threshold=0.0, mask_feather_px=0.0)
+    c = components(a, f, np.zeros((20, 24), bool), p)
+    assert not c.mask.any()
+    assert np.abs(c.a_nr - a).max() > 0.1 * a.max()  # the filter did smooth
+    np.testing.assert_allclose(enhance(c, "petschnigg"), a, rtol=1e-7)
+    np.testing.assert_allclose(enhance(c, "none"), a)
+
+
+def test_mask_marks_flash_shadows_and_specularities():
+    fo = np.ones((30, 30, 3))
+    fo[5:15, 5:15] = 0.01  # shadow
+    fo[20, 20] = 0.0       # one dark noise pixel: removed by the opening
+    spec = np.zeros((30, 30), bool)
+    spec[25, 5] = True
+    m, shadow, specular = flash_mask(fo, spec, 0.05, dilate_px=1, feather_px=0.0)
+    assert shadow[5:15, 5:15].all() and shadow[4, 5:15].all() and not shadow[3, 10]
+    assert not shadow[20, 20] and not shadow[25:, 25:].any()
+    assert specular[24:27, 5].all() and specular[25, 4:7].all() and specular.sum() == 5
+    np.testing.assert_array_equal(m, (shadow | specular).astype(float))
+    m_soft, _, _ = flash_mask(fo, spec, 0.05, dilate_px=1, feather_px=1.0)
+    assert 0 < m_soft[10, 16] < 1 and m_soft[10, 10] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_display_psnr_clips_to_white():
+    t = np.full((4, 4, 3), 0.5)
+    x = t + 0.1
+    assert display_psnr(x, t, 1.0) == pytest.approx(20.0)
+    # above white both clip: no error
+    assert display_psnr(np.full((4, 4, 3), 3.0), np.full((4, 4, 3), 2.0), 1.0) == np.inf
+
+
+# ----------------------------------------------------------------------------- protocol
+def _cfg(**capture):
+    return config_from_dict({
+        "scene": {"name": "metronome"},
+        "render": {"width": 32, "height": 24, "spp": 2},
+        "capture": {"protocol": "flash_no_flash", "unit_exposure_s": 0.01, "periods": 8, **capture},
+    })
+
+
+def test_protocol_interleaves_flash_and_ambient_buckets():
+    cfg = _cfg()
+    tl = protocols.build(cfg)
+    assert [r.name for r in tl.reads] == ["flash", "noflash"] and tl.n_buckets == 2
+    bg = bucket_group_seconds(tl, ("flash",))
+    np.testing.assert_allclose(bg[:, 0], [0.01, 0.0], atol=1e-15)
+    np.testing.assert_allclose([float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads], [0.01, 0.01])
+    assert float(tl.seconds(tl.end_tick - tl.start_tick)) == pytest.approx(0.02)
+    assert protocols.default_app("flash_no_flash") == "flash_no_flash"
+    assert get("flash_no_flash").per_group
+
+
+def test_sequential_protocol_is_two_frames_flash_first():
+    cfg = _cfg(sequential=True)
+    tl = protocols.build(cfg)
+    assert tl.sequential and [r.name for r in tl.reads] == ["flash", "noflash"]
+    np.testing.assert_allclose(bucket_group_seconds(tl, ("flash",))[:, 0], [0.01, 0.0], atol=1e-15)
+    s0, s1 = tl.span_ticks([0]), tl.span_ticks([1])
+    assert s0[1] < s1[0]
+    gap = float(tl.seconds(s1[0] - s0[1]))
+    assert gap == pytest.approx(cfg.sensor.frame_readout_s, rel=1e-6)
+
+
+def test_bad_keys_are_config_errors():
+    with pytest.raises(ConfigError, match="app.sigma_spatial_px"):
+        config_from_dict({"capture": {"protocol": "flash_no_flash"}, "app": {"sigma_spatial_px": -1}})
+    with pytest.raises(ConfigError, match="app.method"):
+        config_from_dict({"capture": {"protocol": "flash_no_flash"}, "app": {"method": "magic"}})
+    with pytest.raises(ConfigError, match="app.bogus"):
+        config_from_dict({"capture": {"protocol": "flash_no_flash"}, "app": {"bogus": 1}})
+    with pytest.raises(ConfigError, match="sensor.bucket_count"):
+        protocols.build(config_from_dict({"capture": {"protocol": "flash_no_flash"}, "sensor": {"bucket_count": 1}}))
+
+
+# ----------------------------------------------------------------------------- reconstruction
+H, W = 40, 48
+
+
+def synthetic(sequential: bool, seed: int = 0):
+    """A capture whose noise-free per-group exposures are known: groups (ambient, flash).
+
+    Albedo: a ramp 0.1..0.2 (grey-ish colour) with a bar of 0.9, the 'needle', at columns
+    20..24 while the flash read collects; while the no-flash read collects the bar is there too
+    (interleaved) or at columns 30..34 (sequential). Radiance = albedo x 0.05 for the ambient
+    light (0.005..0.01, i.e. a noisy ~100..200 e- in 10 ms at ~1.8e6 e- per unit and second) and
+    albedo x 0.3 for the flash, which casts a shadow (rows 5..14, columns 5..14).
+    """
+    cfg = _cfg(sequential=sequential)
+    tl = protocols.build(cfg)
+    t = 0.01
+    yy, xx = np.mgrid[0:H, 0:W] / np.array([H, W])[:, None, None]
+    rho = (0.1 + 0.1 * xx)[..., None] * np.array([1.0, 0.9, 0.8])
+    rho_f, rho_a = rho.copy(), rho.copy()
+    rho_f[:, 20:25] = 0.9
+    rho_a[:, slice(30, 35) if sequential else slice(20, 25)] = 0.9
+    amb_f, amb_a = 0.05 * rho_f, 0.05 * rho_a
+    fl = 0.3 * rho_f
+    fl[5:15, 5:15] = 0.0
+    ge = np.zeros((2, 2, H, W, 3))
+    ge[0, 0], ge[0, 1], ge[1, 0] = amb_f * t, fl * t, amb_a * t
+    k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
+    moving = np.zeros((H, W), bool)
+    moving[:, 18:37] = True
+    sens = simulate_reads(ge.sum(1) * k_e, [(0,), (1,)], cfg.sensor, np.random.default_rng(seed))
+    data = CaptureData(
+        cfg=cfg, scene=None, timeline=tl, plan=SimpleNamespace(groups=("ambient", "flash")),
+        read_names=["flash", "noflash"], exposure_s=np.array([t, t]), reads_dn=sens.reads_dn,
+        saturated=sens.saturated, reads_e_expected=sens.reads_e_expected, bucket_exposure=ge.sum(1), k_e=k_e,
+        moving_mask=moving, switchable=("flash",), bucket_group_s=bucket_group_seconds(tl, ("flash",)),
+        group_exposure=ge,
+    )
+    return data, dict(amb_f=amb_f, amb_a=amb_a, flash_only=fl, k_e=k_e, t=t)
+
+
+def test_reconstruction_images_and_truths():
+    data, tr = synthetic(sequential=False)
+    out = reconstruct(data, FlashNoFlashParams())
+    im = out.images
+    np.testing.assert_allclose(im["truth_ambient"], tr["amb_a"], rtol=1e-12)
+    np.testing.assert_allclose(im["truth_flash_only"], tr["flash_only"], rtol=1e-12)
+    # flash and no-flash reads are unbiased radiance: mean over the image within shot + read noise
+    e_per_px = tr["amb_a"] * tr["k_e"] * tr["t"]
+    se = np.sqrt((e_per_px + data.cfg.sensor.read_noise_e**2).sum()) / e_per_px.size / (tr["k_e"].mean() * tr["t"])
+    dsnu = data.cfg.sensor.dsnu_e / np.sqrt(e_per_px.size) / (tr["k_e"].min() * tr["t"])
+    prnu = data.cfg.sensor.prnu / np.sqrt(e_per_px.size) * tr["amb_a"].mean()
+    assert abs(im["noflash"].mean() - tr["amb_a"].mean()) < N_SIGMA * (se + dsnu + prnu) + 1e-12
+    fo, sl = im["flash_only"], np.s_[20:, 26:]
+    assert abs(fo[sl].mean() - tr["flash_only"][sl].mean()) < 0.01 * tr["flash_only"][sl].mean()  # PRNU 1 %
+    m = out.metrics
+    assert m["reads"] == {"flash": "flash", "noflash": "noflash"} and m["flash_groups"] == ["flash"]
+    # interleaved: identical ambient components, so the noise-free difference is exact
+    assert m["motion_blur_agreement"]["moving_region"]["rel_rms"] == 0.0
+    assert m["flash_only"]["ghost_rel_mse_moving"] < 1e-25  # float rounding of x t / t only
+    # the shadow rectangle is in the mask, the flash-lit area is not
+    assert m["mask_fraction"]["shadow"] > 100 / (H * W)
+    assert im["mask"][8, 8, 0] == 1.0 and im["mask"][30, 40, 0] == 0.0
+    assert set(m["enhanced"]["by_method"]) == set(METHODS)
+    for name in ("flash", "noflash", "flash_only", "enhanced", "truth_ambient", "truth_flash_only", "mask"):
+        assert name in out.png
+
+
+def test_flash_guided_denoising_beats_the_noisy_read_interleaved():
+    data, _ = synthetic(sequential=False)
+    m = reconstruct(data, FlashNoFlashParams(method="joint_bilateral")).metrics["enhanced"]
+    assert m["gain_db"] > 3.0 and m["gain_db_moving"] > 3.0
+
+
+def test_sequential_capture_shows_ghosts_the_interleaved_one_does_not():
+    (di, _), (ds, tr) = synthetic(False, seed=5), synthetic(True, seed=5)
+    p = FlashNoFlashParams(method="joint_bilateral")
+    mi, ms = reconstruct(di, p).metrics, reconstruct(ds, p).metrics
+    # known answer: the bar is at columns 20..24 in one read and 30..34 in the other
+    base = tr["amb_a"]
+    d = tr["amb_f"] - tr["amb_a"]
+    mask = ds.moving_mask
+    expected = np.sqrt(np.mean(d[mask] ** 2)) / base[mask].mean()
+    got = ms["motion_blur_agreement"]["moving_region"]["rel_rms"]
+    assert got == pytest.approx(expected, rel=1e-12) and got > 0.5
+    assert mi["motion_blur_agreement"]["moving_region"]["rel_rms"] == 0.0
+    # ghosts in the flash-only image: the ambient bar, +0.045 where it was and -0.045 where it went
+    assert ms["flash_only"]["ghost_rel_mse_moving"] > 0.0
+    assert ms["flash_only"]["rel_mse_moving"] > 2 * mi["flash_only"]["rel_mse_moving"]
+    assert mi["enhanced"]["psnr_db_moving"] > ms["enhanced"]["psnr_db_moving"] + 3.0
+
+
+def test_reconstruction_needs_one_flash_read():
+    data, _ = synthetic(False)
+    data.bucket_group_s = np.zeros_like(data.bucket_group_s)
+    with pytest.raises(ConfigError, match="capture.protocol"):
+        reconstruct(data, FlashNoFlashParams())
+
+
+# ----------------------------------------------------------------------------- tiny render
+@pytest.mark.render
+def test_tiny_render_interleaved_beats_sequential():
+    from mbcapture import run_capture
+
+    over = ["render.width=64", "render.height=48", "render.spp=2", "render.max_motion_px=2.0"]
+    res = {}
+    for seq in (False, True):
+        cfg = load_config(CONFIG, over + [f"capture.sequential={str(seq).lower()}"])
+        res[seq] = run_capture(cfg, progress=False).report["metrics"]
+    i, s = res[False], res[True]
+    assert i["motion_blur_agreement"]["letter_s"]["pixels"] > 0
+    assert i["motion_blur_agreement"]["letter_s"]["rel_rms"] < 0.05
+    assert s["motion_blur_agreement"]["letter_s"]["rel_rms"] > 5 * i["motion_blur_agreement"]["letter_s"]["rel_rms"]
+    assert s["flash_only"]["ghost_rel_mse_moving"] > 10 * i["flash_only"]["ghost_rel_mse_moving"]
