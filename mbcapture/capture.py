@@ -18,9 +18,9 @@ import numpy as np
 from . import protocols, scenes
 from .config import CaptureConfig
 from .apps import AppOutput, CaptureData
-from .integrate import integrate
+from .integrate import integrate, temporal_error
 from .io import check_out_dir, staged_outputs
-from .plan import Plan, make_plan
+from .plan import Plan, make_plan, resolve_spp
 from .sensor import electrons_per_render_second, simulate_reads
 from .timeline import Timeline
 
@@ -125,6 +125,7 @@ def render_error(
     return {
         "method": "two independent half-sample renders per stratum",
         "rel_rms": float(np.sqrt(var_e[use].mean()) / signal[use].mean()),
+        "to_shot_noise_variance_mean": float(var_e[use].sum() / signal[use].sum()),  # render.noise_budget's measure
         "to_shot_noise_variance_median": float(np.median(ratio)),
         "to_shot_noise_variance_p95": float(np.percentile(ratio, 95)),
     }
@@ -194,6 +195,8 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     with timer("render_setup"):
         llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
         renderer = Renderer(scene, W, H, variant=cfg.render.variant, max_depth=cfg.render.max_depth, sensor=cfg.sensor)
+    with timer("pilot"):
+        plan = resolve_spp(plan, renderer, cfg, seeds[2])  # render.spp null: spp from render.noise_budget
     n_ch = len(renderer.channels)
     integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
                            progress=progress)
@@ -249,7 +252,10 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         "render_units": "camera-weighted film value, e- m^-2 sr^-1 s^-1 before optics" if spectral else "W m^-2 sr^-1",
         "electrons_per_render_unit_second": k_e.tolist(),
         "metrics": out.metrics,
-        "render_error": render_error(integrated.mc_var, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
+        "render_error": {
+            **render_error(integrated.mc_var, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
+            **temporal_error(integrated, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
+        },
         "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant},
     }
     result = CaptureResult(

@@ -42,7 +42,22 @@ class SceneSection(BaseModel):
 class RenderSection(_Model):
     width: int = Field(640, gt=0, le=16384, description="Film width in pixels (the paper's sensor: 640).")
     height: int = Field(512, gt=0, le=16384, description="Film height in pixels (the paper's sensor: 512).")
-    spp: int = Field(16, ge=1, le=1 << 16, description="Samples per pixel of each render pass (one pass per time stratum).")
+    spp: int | None = Field(
+        16,
+        ge=1,
+        le=1 << 16,
+        description="Samples per pixel of every time stratum; null = chosen per stratum from render.noise_budget by a pilot render.",
+    )
+    noise_budget: float = Field(
+        0.1,
+        gt=0,
+        description="With render.spp null: Monte Carlo variance of the bucket electrons allowed, as a fraction of the photon shot-noise variance the sensor adds (0.1 = rendering adds ~5% to the noise).",
+    )
+    max_spp: int = Field(1024, ge=2, le=1 << 16, description="Upper bound on the samples per pixel render.noise_budget may choose for one stratum.")
+    planner: Literal["motion", "naive"] = Field(
+        "motion",
+        description="'motion': time strata from image motion (one render per stratum); 'naive': one render per collecting slot of every period (the baseline of `mbcapture converge`).",
+    )
     variant: str = Field("llvm_ad_rgb", description="Mitsuba variant: llvm_ad_rgb on CPU, cuda_ad_rgb where a GPU exists; llvm_ad_spectral / cuda_ad_spectral apply sensor.spectral_response exactly (spectral mode).")
     max_depth: int = Field(4, ge=1, le=64, description="Path length limit of the per-group path tracer (1 = emitters seen directly only).")
     max_motion_px: float = Field(

@@ -8,12 +8,37 @@ gate x drive analytically (:meth:`Timeline.weights_ticks`). A static scene is on
 however many buckets, flashes and periods there are.
 
 Left out: emitter groups with no weight in any read bucket, buckets never read, strata with
-no weight at all.
+no weight at all (and, per stratum, groups with no weight in it: see integrate).
+
+``render.planner: naive`` is the baseline the planner is measured against: one render per
+collecting slot of every period, at a jittered time inside the slot.
+
+Samples per pixel (``render.spp`` null): :func:`choose_spp` renders a pilot and allocates
+samples so that the Monte Carlo variance of every read bucket's electrons is
+``render.noise_budget`` times the photon shot-noise variance the sensor adds there. The rule,
+with B_k = sum_j w_jk . L_j the bucket exposure, k_e the electrons per radiance-second:
+
+    shot variance (e-^2)   V_k = f * sum_pixels k_e B_k            (= f x expected electrons)
+    MC variance   (e-^2)   sum_j a_jk / n_j,   a_jk = sum_pixels (k_e w_jk . sigma_j)^2
+    n_j = max_k  sqrt(a_jk) * sum_i sqrt(a_ik) / V_k
+
+(for one bucket this is the Neyman allocation, the cheapest n that meets the budget exactly;
+the max over buckets meets every bucket's budget). sigma_j^2, the per-sample variance of the
+radiance, and B_k come from the pilot: at up to ``PILOT_TIMES`` strata, one render at 1 spp
+and one at 4 spp (their difference has variance 1.25 sigma^2); every other stratum uses the
+nearest pilot. Sums run over the pixel channels that are lit (> 1 e-) and below the full well
+in that bucket (saturated samples carry no information). n_j is rounded up to an even number
+(two equal halves give an exact half-sample error estimate) within [2, ``render.max_spp``].
+A dim scene gets fewer samples: a_jk scales with the square of the light, V_k with the light.
+
+The pilot also times its renders: seconds per pass = c0 + c1 x spp (two-point fit, medians
+over the pilot times) is the cost model behind ``Plan.estimate``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -24,6 +49,10 @@ from .timeline import Timeline
 
 #: Motion is sampled this finely (per collecting interval) to bound image motion.
 _MOTION_SAMPLES = 4096
+#: Strata at which the pilot renders (spread evenly over the capture).
+PILOT_TIMES = 3
+#: The naive planner refuses captures with more slots than this.
+MAX_NAIVE_PASSES = 200_000
 
 
 @dataclass(frozen=True)
@@ -34,6 +63,11 @@ class Plan:
     times_s       (J,) scene time at which each stratum is rendered (jittered inside it).
     weights_s     (J, K, G) seconds of stratum j in which bucket k collects while group g is on.
     groups        the emitter groups rendered (G), in the scene's order.
+    spp           (J,) int64 samples per pixel of each stratum, or None until :func:`choose_spp`.
+    spp_source    'render.spp', 'noise_budget' (pilot) or 'pending' (noise budget, no pilot yet).
+    planner       'motion' or 'naive'.
+    pilot         what the pilot measured (None without one).
+    cost          the cost model {c0_s, c1_s_per_spp, compile_s, accumulate_s} (None without a pilot/probe).
     """
 
     starts_ticks: np.ndarray
@@ -42,22 +76,67 @@ class Plan:
     weights_s: np.ndarray
     groups: tuple[str, ...]
     buckets_read: tuple[int, ...]
-    spp: int
+    spp: np.ndarray | None
     max_motion_px: float
     motion_px_total: float
     coarsened: bool
     left_out_groups: tuple[str, ...]
     notes: list[str] = field(default_factory=list)
+    spp_source: str = "render.spp"
+    planner: str = "motion"
+    noise_budget: float | None = None
+    pilot: dict | None = None
+    cost: dict | None = None
 
     @property
     def passes(self) -> int:
         return len(self.times_s)
 
-    def summary(self, timeline: Timeline) -> dict:
+    @property
+    def renders(self) -> int:
+        """Mitsuba renders of the main pass: two halves per stratum with spp >= 2, else one."""
+        if self.spp is None:
+            return 2 * self.passes
+        return int(np.where(self.spp >= 2, 2, 1).sum())
+
+    def spp_label(self) -> str:
+        """'16' (uniform), '2-48 (mean 11.3)' (per stratum) or 'pending (noise budget)'."""
+        if self.spp is None:
+            return "chosen by the pilot (render.noise_budget)"
+        lo, hi = int(self.spp.min()), int(self.spp.max())
+        return str(lo) if lo == hi else f"{lo}-{hi} (mean {self.spp.mean():.1f})"
+
+    def estimate(self) -> dict | None:
+        """Seconds the main render (and accumulation) should take, from the cost model."""
+        if self.cost is None or self.spp is None:
+            return None
+        c = self.cost
+        render_s = self.renders * c["c0_s"] + c["c1_s_per_spp"] * float(self.spp.sum())
+        acc_s = self.renders * c["accumulate_s"]
         return {
+            "render_s": round(render_s, 3),
+            "accumulate_s": round(acc_s, 3),
+            "total_render_stages_s": round(render_s + acc_s, 3),
+            "model": "renders x c0 + c1 x sum(spp) + renders x accumulate, constants timed by the pilot/probe renders",
+        }
+
+    def summary(self, timeline: Timeline) -> dict:
+        spp = None if self.spp is None else self.spp
+        uniform = spp is not None and int(spp.min()) == int(spp.max())
+        return {
+            "planner": self.planner,
             "passes": self.passes,
-            "spp": self.spp,
-            "samples_per_pixel_total": self.passes * self.spp,
+            # an int when every stratum has the same spp; otherwise the (rounded) mean, with the
+            # per-stratum values in "strata" and the range in "spp_range"
+            "spp": None if spp is None else (int(spp[0]) if uniform else int(round(float(spp.mean())))),
+            "spp_range": None if spp is None else [int(spp.min()), int(spp.max())],
+            "spp_source": self.spp_source,
+            "noise_budget": self.noise_budget,
+            "samples_per_pixel_total": None if spp is None else int(spp.sum()),
+            "renders": self.renders,
+            "pilot": self.pilot,
+            "cost_model": self.cost,
+            "estimate_s": self.estimate(),
             "groups_rendered": list(self.groups),
             "groups_left_out": list(self.left_out_groups),
             "buckets_read": [b + 1 for b in self.buckets_read],
@@ -70,8 +149,11 @@ class Plan:
                     "start_s": float(timeline.seconds(a)),
                     "end_s": float(timeline.seconds(b)),
                     "render_time_s": float(t),
+                    "spp": None if spp is None else int(n),
                 }
-                for a, b, t in zip(self.starts_ticks, self.ends_ticks, self.times_s)
+                for a, b, t, n in zip(
+                    self.starts_ticks, self.ends_ticks, self.times_s, spp if spp is not None else [None] * self.passes
+                )
             ],
             "notes": self.notes,
         }
@@ -106,7 +188,10 @@ def make_plan(
     intervals = timeline.collecting_intervals()
     notes: list[str] = []
     motion_total = 0.0
-    if scene.is_static:
+    if render.planner == "naive":
+        edges = _slot_edges(timeline)
+        notes.append("naive planner: one render per collecting slot of every period")
+    elif scene.is_static:
         edges = [intervals[0][0], intervals[-1][1]]
         notes.append("static scene: one stratum")
     else:
@@ -118,7 +203,7 @@ def make_plan(
     edges = np.unique(np.asarray(edges, dtype=np.int64))
 
     coarsened = False
-    if len(edges) - 1 > render.max_strata:
+    if render.planner == "motion" and len(edges) - 1 > render.max_strata:
         keep = np.unique(np.linspace(0, len(edges) - 1, render.max_strata + 1).round().astype(int))
         edges = edges[keep]
         coarsened = True
@@ -129,7 +214,7 @@ def make_plan(
 
     buckets_read = tuple(sorted({b for r in timeline.reads for b in r.buckets}))
     all_groups = scene.groups
-    w = timeline.weights_ticks(edges, all_groups, scene.switchable)  # (J, K, G) ticks
+    w = timeline.weights_ticks(edges, all_groups, scene.switchable, scene.drives)  # (J, K, G) ticks
     read_mask = np.zeros(timeline.n_buckets, dtype=bool)
     read_mask[list(buckets_read)] = True
     w[:, ~read_mask, :] = 0
@@ -160,10 +245,167 @@ def make_plan(
         weights_s=w.astype(np.float64) * float(timeline.tick_s),
         groups=groups,
         buckets_read=buckets_read,
-        spp=render.spp,
+        spp=None if render.spp is None else np.full(len(starts), render.spp, dtype=np.int64),
         max_motion_px=render.max_motion_px,
         motion_px_total=motion_total,
         coarsened=coarsened,
         left_out_groups=left_out,
         notes=notes,
+        spp_source="render.spp" if render.spp is not None else "pending",
+        planner=render.planner,
+        noise_budget=None if render.spp is not None else render.noise_budget,
     )
+
+
+def _slot_edges(timeline: Timeline) -> np.ndarray:
+    """Every slot boundary of every period of the collecting segments (the naive plan's strata)."""
+    n = sum(seg.repeats * len(seg.slots) for seg in timeline.segments if any(s.bucket >= 0 for s in seg.slots))
+    if n > MAX_NAIVE_PASSES:
+        raise ConfigError(
+            f"render.planner: 'naive' would render {n} slots (more than {MAX_NAIVE_PASSES}); use 'motion' "
+            "or fewer capture.periods"
+        )
+    out = []
+    for seg in timeline.segments:
+        if not any(s.bucket >= 0 for s in seg.slots):
+            continue
+        offs = np.concatenate([[0], np.cumsum([s.ticks for s in seg.slots])[:-1]]).astype(np.int64)
+        starts = seg.start_tick + np.arange(seg.repeats, dtype=np.int64)[:, None] * seg.period_ticks + offs[None, :]
+        out.append(starts.ravel())
+        out.append(np.array([seg.end_tick], dtype=np.int64))
+    return np.unique(np.concatenate(out))
+
+
+def _pilot_indices(plan: Plan) -> np.ndarray:
+    """Strata the pilot renders at: up to PILOT_TIMES, spread evenly over the capture."""
+    return np.unique(np.linspace(0, plan.passes - 1, min(PILOT_TIMES, plan.passes)).round().astype(int))
+
+
+def _timed_render(renderer, t_s: float, spp: int, seed: int, groups) -> tuple[np.ndarray, float]:
+    t0 = time.perf_counter()
+    img = renderer.render(float(t_s), int(spp), int(seed), groups)
+    return img.astype(np.float64), time.perf_counter() - t0
+
+
+def _cost_model(pairs: list[tuple[float, float]], first_s: float, accumulate_s: float) -> dict:
+    """c0 + c1 x spp from (seconds at 1 spp, seconds at 4 spp) pairs; medians over pairs."""
+    t1 = float(np.median([a for a, _ in pairs]))
+    t4 = float(np.median([b for _, b in pairs]))
+    c1 = max((t4 - t1) / 3.0, 1e-6)
+    c0 = max(t1 - c1, 0.0)
+    return {
+        "c0_s": round(c0, 5),
+        "c1_s_per_spp": round(c1, 6),
+        "compile_s": round(max(first_s - (c0 + c1), 0.0), 3),
+        "accumulate_s": round(accumulate_s, 5),
+    }
+
+
+def _timed_accumulate(weights_s: np.ndarray, radiance: np.ndarray, K: int) -> float:
+    from .integrate import accumulate
+
+    out = np.zeros((K, *radiance.shape[1:]), dtype=np.float64)
+    t0 = time.perf_counter()
+    accumulate(weights_s, radiance, out)
+    return time.perf_counter() - t0
+
+
+def probe_cost(plan: Plan, renderer, seed: np.random.SeedSequence) -> Plan:
+    """Time a warm-up render (kernel compilation), one at 1 spp and one at 4 spp at the first
+    stratum, and attach the cost model (``Plan.cost``) without changing the plan."""
+    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=3)
+    t = float(plan.times_s[0])
+    _, first = _timed_render(renderer, t, 1, seeds[0], plan.groups)
+    a, ta = _timed_render(renderer, t, 1, seeds[1], plan.groups)
+    _, tb = _timed_render(renderer, t, 4, seeds[2], plan.groups)
+    acc = _timed_accumulate(plan.weights_s[0], a, plan.weights_s.shape[1])
+    return replace(plan, cost=_cost_model([(ta, tb)], first, acc))
+
+
+def choose_spp(
+    plan: Plan,
+    renderer,
+    k_e: np.ndarray,
+    full_well_e: float,
+    noise_budget: float,
+    max_spp: int,
+    seed: np.random.SeedSequence,
+) -> Plan:
+    """Samples per pixel per stratum from a pilot render (the rule is in the module docstring).
+
+    ``k_e`` (C,): electrons per render unit and second. Returns the plan with ``spp``,
+    ``pilot`` and ``cost`` filled in; the pilot's renders are not used in the image (their
+    samples chose n_j: reusing them would bias the estimate).
+    """
+    if plan.passes == 0:
+        return replace(plan, spp=np.zeros(0, np.int64), spp_source="noise_budget")
+    t_start = time.perf_counter()
+    k_e = np.asarray(k_e, dtype=np.float64)
+    idx = _pilot_indices(plan)
+    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(len(idx), 2))
+    w = plan.weights_s  # (J, K, G)
+    J, K, G = w.shape
+    # nearest pilot (in time) of every stratum
+    owner = np.abs(plan.times_s[:, None] - plan.times_s[idx][None, :]).argmin(axis=1)
+    _, first = _timed_render(renderer, float(plan.times_s[idx[0]]), 1, seeds[0, 0] ^ 0x5A5A, plan.groups)  # compiles
+    means, diffs, pairs = [], [], []
+    for p, j in enumerate(idx):
+        a, ta = _timed_render(renderer, plan.times_s[j], 1, seeds[p, 0], plan.groups)
+        b, tb = _timed_render(renderer, plan.times_s[j], 4, seeds[p, 1], plan.groups)
+        means.append((a + 4 * b) / 5)  # (G, H, W, C)
+        diffs.append(a - b)  # variance sigma^2 (1 + 1/4) per group combination
+        pairs.append((ta, tb))
+    acc = _timed_accumulate(w[idx[0]], means[0], K)
+    # expected electrons per bucket from the pilot means
+    wp = np.stack([w[owner == p].sum(axis=0) for p in range(len(idx))])  # (P, K, G)
+    electrons = np.einsum("pkg,pghwc->khwc", wp, np.stack(means), optimize=True) * k_e
+    a_jk = np.zeros((J, K))
+    V = np.zeros(K)
+    for k in range(K):
+        use = (electrons[k] > 1.0) & (electrons[k] < full_well_e)  # (H, W, C)
+        if not use.any():
+            continue
+        V[k] = noise_budget * electrons[k][use].sum()
+        for p in range(len(idx)):
+            d = diffs[p][:, use] * k_e[np.nonzero(use)[-1]][None, :]  # (G, n): electrons-per-second units
+            M = d @ d.T / 1.25  # (G, G): sum over samples of sigma_g sigma_g' (per-sample covariance)
+            sel = owner == p
+            a_jk[sel, k] = np.einsum("jg,gh,jh->j", w[sel, k], M, w[sel, k])
+    a_jk = np.maximum(a_jk, 0.0)
+    root = np.sqrt(a_jk)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        per_bucket = np.where(V > 0, root * root.sum(axis=0)[None, :] / V[None, :], 0.0)  # (J, K)
+    n = per_bucket.max(axis=1)
+    spp = np.clip(2 * np.ceil(n / 2), 2, max_spp - (max_spp % 2)).astype(np.int64)
+    capped = int((n > max_spp).sum())
+    pred_ratio = [
+        float((a_jk[:, k] / spp).sum() / V[k] * noise_budget) if V[k] > 0 else None for k in range(K)
+    ]
+    notes = list(plan.notes)
+    if capped:
+        notes.append(f"render.max_spp={max_spp} capped {capped} strata: the noise budget is not met there")
+    pilot = {
+        "times": len(idx),
+        "renders": 1 + 2 * len(idx),
+        "spp": [1, 4],
+        "seconds": round(time.perf_counter() - t_start, 3),
+        "buckets_lit": [b + 1 for b in range(K) if V[b] > 0],
+        "predicted_mc_to_shot_variance": [None if r is None else round(r, 4) for r in pred_ratio],
+        "uncapped_spp_max": float(n.max()),
+    }
+    return replace(
+        plan, spp=spp, spp_source="noise_budget", pilot=pilot, cost=_cost_model(pairs, first, acc), notes=notes
+    )
+
+
+def resolve_spp(plan: Plan, renderer, cfg, seed: np.random.SeedSequence) -> Plan:
+    """The plan ready to render: with ``render.spp`` null, run :func:`choose_spp` for this
+    capture's sensor; otherwise return ``plan`` unchanged. ``seed``: the run's render seed (the
+    pilot uses an independent child of it)."""
+    if plan.spp is not None:
+        return plan
+    from .sensor import electrons_per_render_second
+
+    pilot_seed = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x9117))
+    k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
+    return choose_spp(plan, renderer, k_e, cfg.sensor.full_well_e, cfg.render.noise_budget, cfg.render.max_spp, pilot_seed)

@@ -8,6 +8,10 @@
    number of passes and samples (the per-group integrator splits 2 groups into their own
    channels, which 'path' cannot do).
 3. Sensor + reconstruction share of the total run time at the chosen film (4 buckets).
+4. Equal-error speed-up over naive per-slot rendering at capture.periods 64: the naive
+   baseline (one render per slot, spp per slot in --naive-spp) against the planner's ladder
+   (--ladder), both measured against a high-spp fine-strata reference (mbcapture.converge);
+   the planner's time at the naive point's error is interpolated on its log-log ladder.
 """
 
 from __future__ import annotations
@@ -30,13 +34,39 @@ def timed_capture(overrides: list[str]) -> tuple[float, dict]:
     return time.perf_counter() - t0, result.report
 
 
+def equal_error(args) -> None:
+    from mbcapture.converge import run_converge, write_outputs
+
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
+                      [f"render.width={args.width}", f"render.height={args.height}", "capture.periods=64"])
+    res = run_converge(cfg, tuple(int(x) for x in args.ladder.split(",")), tuple(int(x) for x in args.naive_spp.split(",")),
+                       ref_spp=args.ref_spp)
+    out = ROOT / "out" / "benchmark_converge"
+    write_outputs(res, out)
+    for p in res["points"]:
+        print(f"    {p['method']:6s} spp {p['spp']:4d}: {p['passes']:4d} passes {p['seconds']:8.2f} s  error {p['error']:.3e}")
+    for s in res["speedups"]:
+        print(f"[4] equal error {s['error']:.3e}: naive {s['naive_s']:.2f} s ({s['naive_spp']} spp per slot) vs planner "
+              f"{s['planner_s']:.2f} s: speed-up {s['speedup']:.1f}x{' (extrapolated)' if s['extrapolated'] else ''} "
+              f"(target >= 20x); slopes {res['slopes']}; plot {out}/converge.png")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--width", type=int, default=160)
     ap.add_argument("--height", type=int, default=128)
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--repeats", type=int, default=3, help="runs of each configuration; the fastest counts")
+    ap.add_argument("--ladder", default="2,4,8,16,32,64,128", help="[4] planner spp ladder")
+    ap.add_argument("--naive-spp", default="1,2", help="[4] naive spp per slot")
+    ap.add_argument("--ref-spp", type=int, default=256, help="[4] reference spp")
+    ap.add_argument("--only", default="1,2,3,4", help="which benchmarks to run, e.g. 4")
     args = ap.parse_args()
+    only = {int(x) for x in args.only.split(",")}
+    if 4 in only:
+        equal_error(args)
+    if not only & {1, 2, 3}:
+        return
     film = [f"render.width={args.width}", f"render.height={args.height}", f"render.spp={args.spp}"]
 
     timed_capture(film + ["capture.periods=4"])  # warm-up: kernel compilation, imports

@@ -88,3 +88,132 @@ def test_render_times_are_inside_their_strata():
 def test_max_strata_coarsens_and_says_so():
     p = plan(point_scene(500.0), timeline(periods=16), max_strata=8)
     assert p.passes == 8 and p.coarsened and "coarsened" in p.notes[0]
+
+
+# --------------------------------------------------------------------------- naive planner, spp
+class FakeRenderer:
+    """Radiance mu_g(t) plus Gaussian noise of per-sample sigma_g: the mean of spp samples."""
+
+    channels = ("R", "G", "B")
+
+    def __init__(self, groups, mu, sigma, height=24, width=32, slope=0.0):
+        self.groups, self.mu, self.sigma = tuple(groups), dict(mu), dict(sigma)
+        self.height, self.width, self.slope = height, width, slope
+        self.calls = []
+
+    def render(self, t_s, spp, seed, groups=None):
+        groups = tuple(self.groups if groups is None else groups)
+        self.calls.append((t_s, spp, groups))
+        rng = np.random.default_rng(seed)
+        shape = (self.height, self.width, 3)
+        ramp = np.linspace(0, 1, self.width)[None, :, None] * self.slope * t_s  # an image that changes in time
+        return np.stack([self.mu[g] + ramp + self.sigma[g] / np.sqrt(spp) * rng.standard_normal(shape) for g in groups]).astype(np.float32)
+
+
+def test_naive_plan_renders_every_slot_of_every_period():
+    tl = timeline(periods=8)  # photon-efficient HDR: 4 slots per period, each to its own bucket
+    scene = point_scene(50.0)
+    naive = plan(scene, tl, planner="naive", spp=2)
+    motion = plan(scene, tl, spp=2)
+    assert naive.passes == 8 * 4 and naive.planner == "naive"
+    assert np.all((naive.weights_s.sum(axis=2) > 0).sum(axis=1) == 1)  # one bucket per slot
+    assert naive.weights_s.sum(axis=0) == pytest.approx(motion.weights_s.sum(axis=0), rel=1e-12)
+    assert naive.spp.tolist() == [2] * 32
+
+
+def test_explicit_spp_wins_and_null_spp_waits_for_the_pilot():
+    from mbcapture.plan import resolve_spp
+
+    p = plan(point_scene(None), timeline(), spp=8)
+    assert p.spp.tolist() == [8] and p.spp_source == "render.spp"
+    cfg = config_from_dict({"scene": {"name": "flatfield"}, "render": {"spp": 8}})
+    assert resolve_spp(p, renderer=None, cfg=cfg, seed=np.random.SeedSequence(0)) is p  # no pilot render
+    q = plan(point_scene(None), timeline(), spp=None)
+    assert q.spp is None and q.spp_source == "pending" and q.summary(timeline())["spp"] is None
+
+
+def _budget_plan(mu, sigma, k_e=np.array([1e5, 1e5, 1e5]), budget=0.1, max_spp=1 << 14, speed=50.0):
+    tl = timeline(periods=16)
+    p = plan(point_scene(speed), tl, spp=None)
+    r = FakeRenderer(p.groups, {g: mu for g in p.groups}, {g: sigma for g in p.groups})
+    from mbcapture.plan import choose_spp
+
+    return p, choose_spp(p, r, k_e, 1e12, budget, max_spp, np.random.SeedSequence(5)), r
+
+
+def test_noise_budget_spp_matches_the_closed_form():
+    # one always-on group (the unused flash is left out), Gaussian noise: per bucket k
+    # MC variance (e-^2) = sum_j k_e^2 w_jk^2 sigma^2 / n_j,  shot variance = k_e sum_j w_jk mu.
+    mu, sigma, k_e, f = 2.0, 3.0, 1e5, 0.1
+    p0, p, r = _budget_plan(mu, sigma, budget=f)
+    assert p.groups == ("ambient",)
+    assert p.spp_source == "noise_budget" and p.spp.min() > 20 and np.all(p.spp % 2 == 0)  # well above the floor of 2
+    w = p0.weights_s[:, :, 0]  # (J, K)
+    ratios = [(k_e**2 * w[:, k] ** 2 * sigma**2 / p.spp).sum() / (k_e * (w[:, k] * mu).sum()) for k in range(4)]
+    # the pilot estimates sigma^2 from 2304 pixel samples per pilot time (relative sd
+    # sqrt(2/2304) = 3 %; 5 sd = 15 %); rounding n_j up to even numbers only lowers the ratio
+    assert max(ratios) <= f * 1.15
+    assert max(ratios) == pytest.approx(f, rel=0.15)  # the binding bucket meets it, not far below
+    assert p.pilot["predicted_mc_to_shot_variance"][int(np.argmax(ratios))] == pytest.approx(max(ratios), rel=0.15)
+    assert p.pilot["renders"] == 1 + 2 * p.pilot["times"] and p.cost["c1_s_per_spp"] > 0
+    assert len(r.calls) == p.pilot["renders"]  # the pilot renders nothing else
+
+
+def test_dim_scene_gets_fewer_samples_and_the_cap_holds():
+    _, bright, _ = _budget_plan(2.0, 3.0)
+    _, dim, _ = _budget_plan(0.2, 0.3)  # the same scene 10x dimmer: MC var /100, shot var /10
+    assert dim.spp.sum() == pytest.approx(bright.spp.sum() / 10, rel=0.2)
+    _, capped, _ = _budget_plan(2.0, 3.0, max_spp=64)
+    assert capped.spp.max() == 64 and any("max_spp" in n for n in capped.notes)
+
+
+def test_per_stratum_spp_follows_the_weights():
+    # Neyman allocation: n_j proportional to the stratum's weight (equal sigma everywhere)
+    _, p, _ = _budget_plan(2.0, 3.0, speed=80.0)
+    w = p.weights_s.sum(axis=(1, 2))
+    big = p.spp[w > np.median(w)].mean()
+    small = p.spp[w < np.median(w)].mean() if (w < np.median(w)).any() else big
+    assert big >= small
+    assert np.corrcoef(w, p.spp)[0, 1] > 0.9 or np.ptp(w) < 0.05 * w.mean()
+
+
+def test_integrate_per_stratum_spp_is_unbiased_and_its_error_estimate_is_right():
+    from dataclasses import replace
+
+    from mbcapture.integrate import integrate
+
+    tl = timeline(periods=16)
+    p = plan(point_scene(50.0), tl, spp=2)
+    spp = np.array([2, 4, 8, 16, 32, 6, 10, 12][: p.passes] * (p.passes // 8 + 1))[: p.passes]
+    p = replace(p, spp=spp)
+    mu, sigma = 2.0, 3.0
+    r = FakeRenderer(p.groups, {g: mu for g in p.groups}, {g: sigma for g in p.groups}, height=48, width=64)
+    out = integrate(r, p, tl.n_buckets, np.random.SeedSequence(1))
+    w = p.weights_s  # (J, K, G)
+    expect = w.sum(axis=(0, 2)) * mu
+    true_var = (w**2 * sigma**2 / spp[:, None, None]).sum(axis=(0, 2))  # (K,)
+    n = 48 * 64 * 3
+    for k in range(4):
+        assert out.exposure[k].mean() == pytest.approx(expect[k], abs=5 * np.sqrt(true_var[k] / n))
+        assert out.exposure[k].var() == pytest.approx(true_var[k], rel=5 * np.sqrt(2 / n))
+        assert out.mc_var[k].mean() == pytest.approx(true_var[k], rel=5 * np.sqrt(2 / n))
+    # renders: two halves per stratum, only the groups with weight
+    assert len(r.calls) == 2 * p.passes
+
+
+def test_temporal_error_sees_change_in_time_and_not_noise():
+    from dataclasses import replace
+
+    from mbcapture.integrate import integrate, temporal_error
+
+    tl = timeline(periods=16)
+    p = plan(point_scene(50.0), tl, spp=16)
+    k_e = np.array([1e4, 1e4, 1e4])
+    still = FakeRenderer(p.groups, {g: 1.0 for g in p.groups}, {g: 0.5 for g in p.groups})
+    moving = FakeRenderer(p.groups, {g: 1.0 for g in p.groups}, {g: 0.5 for g in p.groups}, slope=200.0)
+    e_still = temporal_error(integrate(still, p, 4, np.random.SeedSequence(2)), k_e, [0, 1, 2, 3], 1e12)
+    e_moving = temporal_error(integrate(moving, p, 4, np.random.SeedSequence(2)), k_e, [0, 1, 2, 3], 1e12)
+    assert e_moving["temporal_rel_rms_coarse"] > 5 * e_still["temporal_rel_rms_coarse"]
+    assert e_still["temporal_rel_rms_coarse"] < 0.3 * e_still["temporal_raw_rel_rms_coarse"]
+    one = replace(plan(point_scene(None), tl, spp=4))
+    assert temporal_error(integrate(still, one, 4, np.random.SeedSequence(3)), k_e, [0], 1e12)["temporal_rel_rms_estimate"] == 0.0

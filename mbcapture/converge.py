@@ -1,0 +1,224 @@
+"""``mbcapture converge``: rendering error against run time, for the planner and the naive baseline.
+
+For one capture config, a ladder of sample budgets is rendered twice:
+
+``motion``   the planner (time strata from image motion), ``render.spp`` in the motion ladder;
+``naive``    one render per collecting slot of every period, spp per slot in the naive ladder.
+
+Each point's error is the relative RMS difference of the read buckets' noise-free exposures
+(before the sensor) from a high-budget reference (the planner with strata ``ref_motion_div``
+times finer and ``ref_spp`` samples), less the reference's own Monte Carlo variance (from its
+half-sample estimate), averaged over buckets:
+
+    e_k^2 = (mean (B_k - R_k)^2 - mean Var[R_k]) / mean(R_k)^2,     error = sqrt(mean_k e_k^2)
+
+Each point's run time is the wall time of planning and rendering + accumulating (kernels are
+compiled before the clock starts, as in a long run). Monte Carlo error falls as
+seconds^(-1/2) once the per-render overhead is amortized; the plot has that slope as a guide.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from .config import CaptureConfig
+from .integrate import integrate
+from .plan import make_plan
+
+DEFAULT_MOTION_LADDER = (1, 2, 4, 8, 16, 32, 64)
+DEFAULT_NAIVE_LADDER = (1, 2, 4, 8)
+QUICK_MOTION_LADDER = (1, 4, 16)
+QUICK_NAIVE_LADDER = (1, 2)
+
+
+@dataclass
+class Point:
+    method: str  #: 'motion' or 'naive'
+    spp: int  #: samples per pixel per render pass (per stratum / per slot)
+    passes: int
+    samples_per_pixel_total: int
+    seconds: float
+    error: float  #: relative RMS error, the reference's MC variance subtracted
+    error_raw: float  #: the same without the subtraction
+
+
+def _setup(cfg: CaptureConfig):
+    from . import protocols, scenes
+    from .render import Renderer, ensure_llvm
+
+    if cfg.render.variant.startswith("llvm"):
+        ensure_llvm()
+    scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
+    timeline = protocols.build(cfg)
+    renderer = Renderer(scene, cfg.render.width, cfg.render.height, variant=cfg.render.variant,
+                        max_depth=cfg.render.max_depth, sensor=cfg.sensor)
+    return scene, timeline, renderer
+
+
+def _warm(renderer, plan) -> None:
+    """Compile the kernels of every group set the plan renders (outside the timed region)."""
+    used = plan.weights_s.sum(axis=1) > 0
+    for key in {tuple(np.flatnonzero(u)) for u in used}:
+        renderer.render(float(plan.times_s[0]), 1, 0, tuple(plan.groups[g] for g in key))
+
+
+def _seed(cfg: CaptureConfig, *key: int) -> np.random.SeedSequence:
+    return np.random.SeedSequence([cfg.seed, *key])
+
+
+def render_point(cfg, scene, timeline, renderer, planner: str, spp: int, seed_key: tuple[int, ...],
+                 max_motion_px: float | None = None):
+    """(integrated, plan, seconds) of one capture rendered with ``planner`` at ``spp``."""
+    render = replace_render(cfg, planner=planner, spp=int(spp),
+                            max_motion_px=max_motion_px or cfg.render.max_motion_px)
+    seeds = _seed(cfg, *seed_key).spawn(2)
+    probe = make_plan(timeline, scene, render, np.random.default_rng(seeds[0]))
+    _warm(renderer, probe)
+    t0 = time.perf_counter()
+    plan = make_plan(timeline, scene, render, np.random.default_rng(seeds[0]))
+    out = integrate(renderer, plan, timeline.n_buckets, seeds[1])
+    return out, plan, time.perf_counter() - t0
+
+
+def replace_render(cfg: CaptureConfig, **changes):
+    return cfg.render.model_copy(update=changes)
+
+
+def relative_error(exposure: np.ndarray, reference: np.ndarray, ref_var: np.ndarray | None,
+                   buckets: list[int]) -> tuple[float, float]:
+    """(error with the reference's MC variance subtracted, raw error): RMS over buckets of each
+    bucket's RMS difference over its mean reference exposure."""
+    e2, raw2 = [], []
+    for k in buckets:
+        mean = reference[k].mean()
+        if mean <= 0:
+            continue
+        d2 = np.mean((exposure[k] - reference[k]) ** 2)
+        v = float(np.mean(ref_var[k])) if ref_var is not None else 0.0
+        e2.append(max(d2 - v, 0.0) / mean**2)
+        raw2.append(d2 / mean**2)
+    return float(np.sqrt(np.mean(e2))), float(np.sqrt(np.mean(raw2)))
+
+
+def run_converge(
+    cfg: CaptureConfig,
+    motion_ladder=DEFAULT_MOTION_LADDER,
+    naive_ladder=DEFAULT_NAIVE_LADDER,
+    ref_spp: int = 256,
+    ref_motion_div: float = 8.0,
+    progress=None,
+) -> dict:
+    """Render the reference and both ladders; returns {'points': [...], 'reference': {...}, ...}."""
+    say = progress or (lambda msg: None)
+    scene, timeline, renderer = _setup(cfg)
+    buckets = sorted({b for r in timeline.reads for b in r.buckets})
+    say(f"reference: strata for {cfg.render.max_motion_px / ref_motion_div:g} px motion, {ref_spp} spp")
+    ref, ref_plan, ref_s = render_point(cfg, scene, timeline, renderer, "motion", ref_spp, (99, ref_spp),
+                                        cfg.render.max_motion_px / ref_motion_div)
+    points: list[Point] = []
+    for method, ladder, mid in (("motion", motion_ladder, 1), ("naive", naive_ladder, 2)):
+        for spp in ladder:
+            out, plan, secs = render_point(cfg, scene, timeline, renderer, method, spp, (mid, spp))
+            err, raw = relative_error(out.exposure, ref.exposure, ref.mc_var, buckets)
+            points.append(Point(method, int(spp), plan.passes, int(plan.spp.sum()), secs, err, raw))
+            say(f"{method:6s} spp {spp:4d}: {plan.passes} passes, {secs:7.2f} s, error {err:.3e}")
+    ref_err = relative_error(ref.exposure + np.sqrt(ref.mc_var), ref.exposure, None, buckets)[1] if ref.mc_var is not None else None
+    return {
+        "film": [cfg.render.width, cfg.render.height],
+        "periods": cfg.capture.periods,
+        "protocol": cfg.capture.protocol,
+        "scene": cfg.scene.name,
+        "reference": {"passes": ref_plan.passes, "spp": ref_spp, "seconds": ref_s, "own_rel_rms_error": ref_err},
+        "points": [asdict(p) for p in points],
+        "slopes": {m: fit_slope([p for p in points if p.method == m]) for m in ("motion", "naive")},
+        "speedups": equal_error_speedups(points),
+    }
+
+
+def fit_slope(points: list[Point]) -> float | None:
+    """Least-squares slope of log(error) against log(seconds) (-1/2 for Monte Carlo)."""
+    pts = [p for p in points if p.error > 0]
+    if len(pts) < 2:
+        return None
+    return float(np.polyfit(np.log([p.seconds for p in pts]), np.log([p.error for p in pts]), 1)[0])
+
+
+def planner_seconds_at(points: list[Point], error: float) -> tuple[float, bool]:
+    """Seconds the motion planner needs for ``error``: log-log interpolation on its ladder
+    (extrapolation with the fitted slope outside it; the bool says so)."""
+    pts = sorted((p for p in points if p.method == "motion" and p.error > 0), key=lambda p: p.seconds)
+    le = np.log([p.error for p in pts])
+    lt = np.log([p.seconds for p in pts])
+    if le.min() <= np.log(error) <= le.max():
+        # errors fall along the ladder: interpolate time against error (error decreasing)
+        order = np.argsort(le)
+        return float(np.exp(np.interp(np.log(error), le[order], lt[order]))), False
+    slope = fit_slope(pts)
+    if slope is None or slope >= 0:
+        raise ValueError("the planner's error does not fall with run time: cannot extrapolate")
+    end = int(np.argmin(le)) if np.log(error) < le.min() else int(np.argmax(le))
+    return float(np.exp(lt[end] + (np.log(error) - le[end]) / slope)), True
+
+
+def equal_error_speedups(points: list[Point]) -> list[dict]:
+    """For each naive point: naive seconds / planner seconds at the naive point's error."""
+    out = []
+    for p in (p for p in points if p.method == "naive"):
+        try:
+            t, extrap = planner_seconds_at(points, p.error)
+        except ValueError:
+            continue
+        out.append({"naive_spp": p.spp, "error": p.error, "naive_s": p.seconds, "planner_s": t,
+                    "speedup": p.seconds / t, "extrapolated": extrap})
+    return out
+
+
+def write_outputs(result: dict, out_dir: Path) -> None:
+    """converge.csv, converge.json and converge.png (log-log error vs seconds)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pts = result["points"]
+    with open(out_dir / "converge.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(pts[0]))
+        w.writeheader()
+        w.writerows(pts)
+    (out_dir / "converge.json").write_text(json.dumps(result, indent=2))
+    fig, ax = plt.subplots(figsize=(6, 4.5), dpi=120)
+    styles = {"motion": ("o-", "C0", "planner (motion strata)"), "naive": ("s--", "C3", "naive (one render per slot)")}
+    for m, (style, color, label) in styles.items():
+        sel = sorted((p for p in pts if p["method"] == m), key=lambda p: p["seconds"])
+        if not sel:
+            continue
+        slope = result["slopes"].get(m)
+        ax.loglog([p["seconds"] for p in sel], [p["error"] for p in sel], style, color=color,
+                  label=f"{label}, slope {slope:.2f}" if slope is not None else label)
+        for p in sel:
+            ax.annotate(str(p["spp"]), (p["seconds"], p["error"]), textcoords="offset points", xytext=(4, 4),
+                        fontsize=7, color=color)
+    motion = sorted((p for p in pts if p["method"] == "motion"), key=lambda p: p["seconds"])
+    if motion:
+        t = np.array([min(p["seconds"] for p in pts), max(p["seconds"] for p in pts)])
+        anchor = motion[len(motion) // 2]
+        ax.loglog(t, anchor["error"] * (t / anchor["seconds"]) ** -0.5, ":", color="gray", label="slope -1/2 (Monte Carlo)")
+    for s in result.get("speedups", [])[:1]:
+        ax.annotate(f"{s['speedup']:.1f}x at equal error", (s["planner_s"], s["error"]), xytext=(s["planner_s"] * 1.3, s["error"] * 1.4),
+                    arrowprops={"arrowstyle": "->", "color": "gray"}, fontsize=8)
+    ax.set_xlabel("run time: plan + render + accumulate (s)")
+    ax.set_ylabel("relative RMS error of the bucket exposures")
+    W, H = result["film"]
+    ax.set_title(f"{result['scene']} {result['protocol']}, {result['periods']} periods, {W}x{H}", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out_dir / "converge.png")
+    plt.close(fig)
