@@ -1,0 +1,206 @@
+"""moving_light: shadow-sweep region, read consistency and flicker gains on synthetic inputs with
+known answers, the scene's shadow geometry, and a tiny capture interleaved vs sequential."""
+
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from mbcapture import load_config, run_capture, scenes
+from mbcapture.apps.moving_light import (
+    consistency,
+    drive_gains_exact,
+    drive_gains_measured,
+    rasterize_convex,
+    read_spread_rel,
+    sweep_region,
+)
+from mbcapture.drive import Drive
+from mbcapture.errors import ConfigError
+from mbcapture.timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
+
+
+def square(x0, y0, size):
+    return np.array([[x0, y0], [x0 + size, y0], [x0 + size, y0 + size], [x0, y0 + size]], float)
+
+
+def test_rasterize_counts_pixel_centres_inside():
+    m = rasterize_convex([square(2, 3, 4)], 12, 10)  # x in [2, 6], y in [3, 7]: centres 2.5..5.5, 3.5..6.5
+    assert m.sum() == 16 and m[3:7, 2:6].all()
+    m2 = rasterize_convex([square(2.2, 3.2, 4)], 12, 10)  # centres 2.5..5.5 inside x in [2.2, 6.2]
+    assert m2.sum() == 16
+    assert not rasterize_convex([np.array([[0, 0], [5, 5], [9, 9]], float)], 12, 10).any()  # no area
+
+
+def test_sweep_region_is_union_minus_intersection():
+    # a 6 px square moving right by 1 px per step for 4 steps: swept by some but not all: 4 columns left + 4 right
+    frames = [[square(5 + t, 2, 6)] for t in range(5)]
+    m = sweep_region(frames, 24, 12)
+    assert m.sum() == (4 + 4) * 6
+    assert m[2:8, 5:9].all() and m[2:8, 11:15].all() and not m[2:8, 9:11].any()
+    still = sweep_region([[square(5, 2, 6)]] * 5, 24, 12)
+    assert not still.any()
+    grown = sweep_region(frames, 24, 12, grow_px=1.0)  # a disk of radius 1 adds one pixel all round
+    assert grown.sum() > m.sum() and grown[2:8, 4].all() and grown[1, 5:9].all()
+
+
+def test_consistency_known_offsets():
+    rng = np.random.default_rng(0)
+    truth = np.full((8, 10, 3), 2.0)
+    delta = np.array([0.1, -0.05, 0.0])
+    normalized = truth[None] * (1 + delta[:, None, None, None])
+    mask = np.zeros((8, 10), bool)
+    mask[2:5, 3:9] = True
+    normalized[:, ~mask] += rng.normal(size=(3, (~mask).sum(), 3))  # outside the mask: ignored
+    c = consistency(normalized, ["J1", "J2", "J3"], truth, mask)
+    assert c["rel_rms_vs_truth"] == pytest.approx({"J1": 0.1, "J2": 0.05, "J3": 0.0})
+    assert c["pairwise_rel_rms"] == pytest.approx({"J1-J2": 0.15, "J1-J3": 0.1, "J2-J3": 0.05})
+    assert c["max_pairwise_rel_rms"] == pytest.approx(0.15)
+    assert c["moving_pixels"] == mask.sum()
+    spread = read_spread_rel(normalized, truth)
+    np.testing.assert_allclose(spread[mask], 0.1)
+
+
+def sequential_frames(exposures_s, gap_s):
+    segs, t = [], Fraction(0)
+    for i, e in enumerate(exposures_s):
+        segs.append(SegmentSeconds(t, (SlotSeconds(i, e),), 1))
+        t += e + gap_s
+    reads = [ReadEvent(f"J{i + 1}", (i,), True) for i in range(len(exposures_s))]
+    return build_timeline(segs, reads, len(exposures_s), "seq", sequential=True)
+
+
+def test_flicker_gains_match_hand_integrals():
+    """Frames of 1, 2, 4 ms with 3 ms gaps under 1 - cos(2 pi 100 t): mean drive of each frame by hand."""
+    ms = Fraction(1, 1000)
+    exp = [1 * ms, 2 * ms, 4 * ms]
+    tl = sequential_frames(exp, 3 * ms)
+    drive = Drive.mains_flicker(50.0)
+    edges = np.array([tl.start_tick, tl.end_tick])
+    w_s = tl.weights_ticks(edges, ["lamp", "ambient"], frozenset(), {"ambient": drive}) * float(tl.tick_s)
+    exposure = np.array([float(e) for e in exp])
+    gains = drive_gains_exact(w_s, 1, [r.buckets for r in tl.reads], exposure, drive.c0)
+    starts = [0.0, 0.004, 0.009]
+    w = 2 * np.pi * 100
+    expect = [1 - (np.sin(w * (a + e)) - np.sin(w * a)) / (w * e) for a, e in zip(starts, exposure)]
+    np.testing.assert_allclose(gains, expect, rtol=1e-12)
+    lamp = drive_gains_exact(w_s, 0, [r.buckets for r in tl.reads], exposure, 1.0)
+    np.testing.assert_allclose(lamp, 1.0, rtol=1e-15)  # the steady group: exactly its exposure
+    # renders of a static ambient radiance (any image) give the same gains from the images
+    L = np.random.default_rng(1).uniform(0.1, 2.0, size=(5, 6, 3))
+    group_exposure = w_s.sum(axis=0)[:, :, None, None, None] * L[None, None]  # (K, G, H, W, C)
+    measured = drive_gains_measured(group_exposure, w_s, 1, [r.buckets for r in tl.reads], exposure, drive.c0)
+    np.testing.assert_allclose(measured, gains, rtol=1e-12)
+
+
+def test_shadow_points_lie_on_the_table_along_rays_from_the_lamp():
+    mod = scenes.load_module("moving_light")
+    p = mod.Params()
+    scene = scenes.make_scene("moving_light", p)
+    times = np.array([0.0, 0.05, 0.1])
+    lamp = mod.lamp_position(p, times)
+    assert np.allclose(np.linalg.norm(lamp[:, [0, 2]], axis=1), p.arc_radius_m)
+    ang = np.degrees(np.arctan2(lamp[:, 0], lamp[:, 2]))
+    np.testing.assert_allclose(ang, p.lamp_start_deg + p.lamp_speed_deg_per_s * times)
+    occ = mod.OCCLUDERS[0]
+    shadow = scene.extra["shadow_polygons"](times)[0]  # (T, P, 3)
+    top = occ.points[:, 1] > 0
+    assert np.allclose(shadow[:, top, 1], 0.0)  # on the table plane
+    for t in range(3):  # lamp, occluder point and its shadow are collinear, the point between them
+        d1 = occ.points[top] - lamp[t]
+        d2 = shadow[t, top] - lamp[t]
+        assert np.allclose(np.cross(d1, d2), 0.0, atol=1e-12)
+        assert np.all(np.linalg.norm(d2, axis=1) > np.linalg.norm(d1, axis=1))
+    np.testing.assert_allclose(shadow[:, ~top], np.broadcast_to(occ.points[~top], shadow[:, ~top].shape))  # footprint
+    mp = scene.motion_points(times)
+    np.testing.assert_allclose(mp[:, 0], lamp)  # the lamp's centre leads the motion points
+    assert "ambient" in scene.drives and scene.drives["ambient"].terms[0][1] == 100.0
+    with pytest.raises(Exception, match="lamp_height_m"):
+        mod.Params(lamp_height_m=0.2)
+
+
+@pytest.mark.render
+class TestTinyCapture:
+    """One interleaved and one sequential capture at 64 x 48, 2 spp."""
+
+    SETS = ["render.width=64", "render.height=48", "render.spp=2", "render.max_motion_px=1.0"]
+
+    @pytest.fixture(scope="class")
+    @classmethod
+    def runs(cls):
+        from pathlib import Path
+
+        path = Path(__file__).resolve().parents[1] / "configs" / "moving_light.yaml"
+        out = {}
+        for seq in (False, True):
+            cfg = load_config(path, cls.SETS + [f"capture.sequential={str(seq).lower()}"])
+            out[seq] = run_capture(cfg, progress=False)
+        return out
+
+    def test_interleaved_reads_are_consistent_sequential_are_not(self, runs):
+        ci = runs[False].report["metrics"]["consistency"]
+        cs = runs[True].report["metrics"]["consistency"]
+        assert ci["sweep_fraction_of_image"] == cs["sweep_fraction_of_image"] > 0.0  # the same region in both
+        for region in ("whole_image", "shadow_sweep"):
+            assert ci[region]["max_pairwise_rel_rms"] < 0.2 * cs[region]["max_pairwise_rel_rms"]
+        assert {"hdr_rel_mse", "hdr_pu21_psnr_db"} <= set(runs[False].report["metrics"])  # the HDR app's metrics
+
+    def test_flicker_gains(self, runs):
+        fi = runs[False].report["metrics"]["flicker"]
+        fs = runs[True].report["metrics"]["flicker"]
+        # interleaved: 16 periods of 0.625 ms span exactly one 100 Hz cycle, each bucket samples it evenly
+        assert all(abs(g - 1) < 1e-12 for g in fi["gain_vs_time_average"].values())
+        # sequential: frame i starts at sum of the earlier exposures + i x frame_readout_s
+        cfg = runs[True].config
+        T, gap = cfg.capture.unit_exposure_s, cfg.sensor.frame_readout_s
+        w = 2 * np.pi * 100.0
+        start, expect = 0.0, []
+        for e in (T, 2 * T, 4 * T, 8 * T):
+            expect.append(1 - (np.sin(w * (start + e)) - np.sin(w * start)) / (w * e))
+            start += e + gap
+        np.testing.assert_allclose(list(fs["gain_vs_time_average"].values()), expect, rtol=1e-9)
+        assert fs["gain_spread"] > 0.5
+        # the renders agree with the weights: the ambient light is static, only its drive varies;
+        # tolerance: 8 x the run's own Monte Carlo error of an image mean (rel. RMS / sqrt(samples))
+        rep = runs[True].report
+        n = 64 * 48 * 3
+        tol = 8 * rep["render_error"]["rel_rms"] / np.sqrt(n) * np.sqrt(2)
+        for r, g in fs["gain_measured_from_renders"].items():
+            assert g == pytest.approx(fs["gain_vs_time_average"][r], rel=tol)
+
+    def test_outputs(self, runs):
+        res = runs[False]
+        imgs = res.images
+        assert {"radiance", "truth", "sweep", "read_spread_rel"} <= set(imgs)
+        assert imgs["sweep"].shape == (48, 64, 3) and imgs["sweep"].any()
+        assert np.isfinite(imgs["radiance"]).all()
+        assert res.plan.motion_px_total > 0  # the shadows move
+        assert runs[True].plan.passes >= 4  # at least one stratum per sequential frame
+        assert {"read_spread", "sweep", "hdr", "truth"} <= set(res.app_output.png)
+
+
+def test_unknown_flicker_group_names_the_key():
+    from mbcapture.apps import CaptureData
+    from mbcapture.apps.moving_light import flicker_metrics
+
+    scene = scenes.make_scene("moving_light", scenes.load_module("moving_light").Params())
+    data = CaptureData(cfg=None, scene=scene, timeline=None, plan=None, read_names=[], exposure_s=np.zeros(0),
+                       reads_dn=np.zeros(0), saturated=np.zeros(0), reads_e_expected=np.zeros(0),
+                       bucket_exposure=np.zeros(0), k_e=np.ones(3), moving_mask=np.zeros((1, 1), bool))
+    with pytest.raises(ConfigError, match="app.flicker_group"):
+        flicker_metrics(data, "lamp")
+
+
+def test_still_lamp_is_one_pass_and_the_flicker_is_still_integrated():
+    """A static scene renders once however many frames; the flicker lives in the weights only."""
+    from pathlib import Path
+
+    from mbcapture.capture import prepare
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "moving_light.yaml"
+    cfg = load_config(path, ["scene.lamp_speed_deg_per_s=0", "capture.sequential=true"])
+    scene, tl, plan, _ = prepare(cfg)
+    assert scene.is_static and plan.passes == 1
+    gains = drive_gains_exact(plan.weights_s, plan.groups.index("ambient"), [r.buckets for r in tl.reads],
+                              np.array([float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads]), 1.0)
+    assert gains.max() - gains.min() > 0.5  # four frames at four flicker phases, from one render
