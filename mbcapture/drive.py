@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from fractions import Fraction
+from functools import lru_cache
 
 import numpy as np
 
@@ -85,14 +86,21 @@ class Drive:
         return out
 
 
-def _sin_cos_cycles(x: Fraction) -> tuple[float, float]:
-    """(sin 2 pi x, cos 2 pi x) for an exact ``x`` in cycles: reduced exactly to within 1/8 cycle
-    of a quarter turn first, so that values near zero keep their full relative accuracy."""
-    quarter = round(4 * x)
-    r = float(x - Fraction(quarter, 4))  # in [-1/8, 1/8]
+def _sin_cos_cycles(num: int, den: int) -> tuple[float, float]:
+    """(sin 2 pi x, cos 2 pi x) for the exact x = num / den cycles (Python ints): reduced exactly
+    modulo one cycle and to within 1/8 cycle of a quarter turn first, so that values near zero
+    keep their full relative accuracy however many cycles x holds."""
+    num %= den
+    quarter = (8 * num + den) // (2 * den)  # round(4 x)
+    r = (4 * num - quarter * den) / (4 * den)  # in [-1/8, 1/8], one correctly rounded division
     s, c = math.sin(2 * math.pi * r), math.cos(2 * math.pi * r)
-    q = quarter % 4
-    return ((s, c), (c, -s), (-s, -c), (-c, s))[q]
+    return ((s, c), (c, -s), (-s, -c), (-c, s))[quarter % 4]
+
+
+@lru_cache(maxsize=256)
+def _cycles_per_tick(f_hz: float, tick_s: Fraction) -> tuple[int, int]:
+    x = _exact(f_hz) * tick_s
+    return x.numerator, x.denominator
 
 
 def periodic_oscillation_ticks(
@@ -102,7 +110,7 @@ def periodic_oscillation_ticks(
     [start + n period, start + n period + duration), n = 0..count-1 (all in ticks), in ticks.
 
     The oscillating part only; the constant part is ``c0 * count * duration`` ticks (exact).
-    Closed form, O(1) in ``count``.
+    Closed form, O(1) in ``count``; phases in exact integer arithmetic (f t = num t / den cycles).
     """
     if count <= 0 or duration <= 0:
         return 0.0
@@ -110,17 +118,15 @@ def periodic_oscillation_ticks(
     # twice the midpoint of the first and last occurrences, in ticks (an integer)
     mid2 = 2 * start + duration + (count - 1) * period
     for a, f, phi in drive.terms:
-        cyc_per_tick = _exact(f) * tick_s  # f in cycles per tick, exact
-        x = math.pi * float(cyc_per_tick * duration)  # w d / 2, radians
+        num, den = _cycles_per_tick(f, tick_s)
+        x = math.pi * (num * duration / den)  # w d / 2, radians
         sinc = 1.0 if x == 0 else math.sin(x) / x
-        half = cyc_per_tick * period / 2  # theta / 2, cycles
         if count == 1:
             dirichlet = 1.0
-        elif (2 * half).denominator == 1:  # resonance: theta / 2 = k pi, D = N cos(N k pi) / cos(k pi)
-            dirichlet = count * _sin_cos_cycles(half * count)[1] / _sin_cos_cycles(half)[1]
-        else:
-            dirichlet = _sin_cos_cycles(half * count)[0] / _sin_cos_cycles(half)[0]
-        sin_m, cos_m = _sin_cos_cycles(cyc_per_tick * mid2 / 2)  # phase of the mean occurrence midpoint
-        cos_phase = cos_m * math.cos(phi) - sin_m * math.sin(phi)
-        total += a * duration * sinc * dirichlet * cos_phase
+        elif (num * period) % den == 0:  # resonance: theta / 2 = k pi, D = N cos(N k pi) / cos(k pi)
+            dirichlet = count * _sin_cos_cycles(num * period * count, 2 * den)[1] / _sin_cos_cycles(num * period, 2 * den)[1]
+        else:  # D = sin(N theta / 2) / sin(theta / 2), theta / 2 = num period / (2 den) cycles
+            dirichlet = _sin_cos_cycles(num * period * count, 2 * den)[0] / _sin_cos_cycles(num * period, 2 * den)[0]
+        sin_m, cos_m = _sin_cos_cycles(num * mid2, 2 * den)  # phase of the mean occurrence midpoint
+        total += a * duration * sinc * dirichlet * (cos_m * math.cos(phi) - sin_m * math.sin(phi))
     return total
