@@ -12,6 +12,17 @@ Canonical shapes (before ``to_world``), as in Mitsuba:
 ``sphere``     unit sphere at the origin (use uniform scales only)
 ``cylinder``   radius 1 from z = 0 to z = 1, open ends (close them with disks)
 
+Colours and textures: a ``reflectance`` is an RGB albedo tuple, a :class:`Spectrum` (e.g. a
+ColorChecker patch's measured reflectance) or a :class:`Texture` (a PNG/JPEG/EXR bitmap on the
+shape's uv); a ``radiance`` is an RGB tuple or a :class:`Spectrum` in W m^-2 sr^-1 nm^-1. Spectral
+Mitsuba variants use spectra as they are (irregular spectra); RGB variants get their linear-sRGB
+values (:func:`spectrum_to_rgb_reflectance`, :func:`spectrum_to_rgb_radiance`).
+
+Meshes: ``kind="mesh"`` with ``mesh=<path>`` loads a PLY or OBJ file (``to_world`` applies on top).
+Texture and mesh files are checked (:meth:`SceneBuild.check_files`) before Mitsuba sees them: a
+missing, unreadable or corrupt file is a :class:`~mbcapture.errors.ConfigError` naming the file
+and the shape.
+
 Moving geometry: a shape with ``part=<name>`` has its ``to_world`` relative to that part's
 frame, and ``SceneBuild.parts[name](t_s)`` gives the part's world-from-part matrix at scene
 time ``t_s`` (s). Non-emitting shapes of a part become one Mitsuba ``shapegroup`` + ``instance``;
@@ -22,31 +33,92 @@ through their own ``to_world``. Neither recompiles the render kernel.
 from __future__ import annotations
 
 import math
+import struct
 from dataclasses import dataclass, field
-from typing import Callable, Literal, Mapping
+from pathlib import Path
+from typing import Callable, Literal, Mapping, Union
 
 import numpy as np
 
-ShapeKind = Literal["rectangle", "disk", "cube", "sphere", "cylinder"]
+from ..errors import ConfigError
+
+ShapeKind = Literal["rectangle", "disk", "cube", "sphere", "cylinder", "mesh"]
 RGB = tuple[float, float, float]
 #: Shape kinds whose ``to_world`` Mitsuba exposes as an updatable parameter.
 MOVABLE_EMITTER_KINDS: frozenset[str] = frozenset({"rectangle", "disk", "sphere", "cylinder"})
 
 
+@dataclass(frozen=True, eq=False)
+class Spectrum:
+    """A sampled spectrum: ``values`` at ``wavelengths_nm`` (strictly increasing, >= 2 samples).
+
+    As a reflectance: unitless, 0..1. As a radiance: W m^-2 sr^-1 nm^-1. Mitsuba's spectral
+    variants interpolate it linearly and treat it as zero outside the sampled range.
+    """
+
+    wavelengths_nm: tuple[float, ...]
+    values: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        wl = np.asarray(self.wavelengths_nm, float)
+        v = np.asarray(self.values, float)
+        if wl.ndim != 1 or wl.size < 2 or v.shape != wl.shape:
+            raise ValueError(f"Spectrum: need matching 1-D wavelengths and values (>= 2), got {wl.shape} and {v.shape}")
+        if not np.all(np.diff(wl) > 0) or not np.all(np.isfinite(v)) or np.any(v < 0):
+            raise ValueError("Spectrum: wavelengths must increase and values be finite and >= 0")
+        object.__setattr__(self, "wavelengths_nm", tuple(map(float, wl)))
+        object.__setattr__(self, "values", tuple(map(float, v)))
+
+    @classmethod
+    def from_sd(cls, sd, scale: float = 1.0) -> "Spectrum":
+        """From a ``colour.SpectralDistribution`` (values times ``scale``)."""
+        return cls(tuple(np.asarray(sd.wavelengths, float)), tuple(np.asarray(sd.values, float) * scale))
+
+    @property
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self.wavelengths_nm), np.asarray(self.values)
+
+    def integral(self) -> float:
+        """Trapezoidal integral over wavelength (W m^-2 sr^-1 for a radiance)."""
+        wl, v = self.arrays
+        return float(np.trapezoid(v, wl))
+
+
+@dataclass(frozen=True)
+class Texture:
+    """A bitmap (PNG, JPEG or OpenEXR file) mapped onto the shape's uv parameterization.
+
+    8-bit files are sRGB-encoded albedo (decoded to linear by Mitsuba); EXR is linear. In
+    spectral variants Mitsuba upsamples the texels' RGB to reflectance spectra.
+    """
+
+    path: str
+    filter_type: Literal["bilinear", "nearest"] = "bilinear"
+
+
+Reflectance = Union[RGB, Spectrum, Texture]
+Radiance = Union[RGB, Spectrum]
+
+TEXTURE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".exr"})
+MESH_SUFFIXES = frozenset({".ply", ".obj"})
+
+
 @dataclass(frozen=True)
 class Material:
-    """Lambertian reflector: ``reflectance`` (albedo per channel, 0..1)."""
+    """Lambertian reflector: ``reflectance`` an albedo per channel (0..1), a :class:`Spectrum`
+    or a :class:`Texture`."""
 
-    reflectance: RGB
+    reflectance: Reflectance
     twosided: bool = False
 
 
 @dataclass(frozen=True)
 class Light:
-    """Area emission of a shape's front side: ``radiance`` W m^-2 sr^-1, in emitter ``group``."""
+    """Area emission of a shape's front side: ``radiance`` W m^-2 sr^-1 per RGB channel, or a
+    :class:`Spectrum` in W m^-2 sr^-1 nm^-1, in emitter ``group``."""
 
     group: str
-    radiance: RGB
+    radiance: Radiance
 
 
 @dataclass(frozen=True)
@@ -59,6 +131,7 @@ class Shape:
     material: Material | None = None  # None: black (e.g. the surface of a light)
     light: Light | None = None
     part: str | None = None
+    mesh: str | None = None  # kind "mesh": a .ply or .obj file
 
 
 @dataclass(frozen=True)
@@ -66,7 +139,7 @@ class Environment:
     """Constant radiance ``radiance`` (W m^-2 sr^-1) from every direction, in ``group``."""
 
     group: str
-    radiance: RGB
+    radiance: Radiance
 
 
 @dataclass(frozen=True)
@@ -94,6 +167,222 @@ class SceneBuild:
         if self.environment is not None:
             seen.setdefault(self.environment.group)
         return tuple(seen)
+
+    def check_files(self, scene_name: str = "scene") -> None:
+        """Every texture and mesh file exists and decodes; else ConfigError naming file and shape."""
+        for s in self.shapes:
+            where = f"scene {scene_name!r}, shape {s.name!r}"
+            if s.kind == "mesh":
+                if not s.mesh:
+                    raise ConfigError(f"{where}: kind 'mesh' needs a mesh file (.ply or .obj)")
+                try:
+                    check_mesh_file(s.mesh)
+                except ValueError as exc:
+                    raise ConfigError(f"{where}: mesh {s.mesh}: {exc}") from None
+            elif s.mesh is not None:
+                raise ConfigError(f"{where}: a mesh file is only read by kind 'mesh', not {s.kind!r}")
+            if s.material is not None and isinstance(s.material.reflectance, Texture):
+                tex = s.material.reflectance
+                try:
+                    check_texture_file(tex.path)
+                except ValueError as exc:
+                    raise ConfigError(f"{where}: texture {tex.path}: {exc}") from None
+            if s.light is not None and isinstance(s.light.radiance, Texture):
+                raise ConfigError(f"{where}: a light's radiance must be RGB or a Spectrum, not a texture")
+
+
+# -- files -------------------------------------------------------------------------------------
+def _readable(path: str | Path, suffixes: frozenset[str], what: str) -> Path:
+    p = Path(path)
+    if p.suffix.lower() not in suffixes:
+        raise ValueError(f"unsupported {what} file type {p.suffix!r}; expected one of {sorted(suffixes)}")
+    if not p.exists():
+        raise ValueError("file not found")
+    if not p.is_file():
+        raise ValueError("not a regular file")
+    try:
+        with p.open("rb") as f:
+            f.read(1)
+    except OSError as exc:
+        raise ValueError(f"cannot read file ({exc.strerror})") from None
+    return p
+
+
+def read_texture(path: str | Path) -> np.ndarray:
+    """Decode a texture file to float32 (H, W, C): 8/16-bit files scaled to 0..1 (still
+    sRGB-encoded, channels R, G, B[, A]); EXR as stored. ValueError if missing or corrupt."""
+    p = _readable(path, TEXTURE_SUFFIXES, "texture")
+    if p.suffix.lower() == ".exr":
+        import OpenEXR
+
+        try:
+            with OpenEXR.File(str(p), separate_channels=True) as f:
+                chans = f.channels()
+                names = [c for c in ("R", "G", "B", "A", "Y") if c in chans] or sorted(chans)
+                arr = np.stack([np.asarray(chans[c].pixels, np.float32) for c in names], axis=-1)
+        except Exception as exc:  # the OpenEXR binding raises plain RuntimeError/OSError
+            raise ValueError(f"corrupt or unreadable OpenEXR file ({exc})") from None
+    else:
+        import cv2
+
+        data = np.fromfile(str(p), np.uint8)
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        if img is None:
+            raise ValueError("corrupt or unreadable image (cannot be decoded)")
+        if _truncated(p, data):
+            raise ValueError("corrupt image: the file is truncated")
+        peak = 65535.0 if img.dtype == np.uint16 else 255.0
+        arr = img.astype(np.float32) / peak
+        if arr.ndim == 3 and arr.shape[2] >= 3:  # OpenCV's BGR(A) -> RGB(A)
+            arr = arr[..., [2, 1, 0, *range(3, arr.shape[2])]]
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.size == 0 or arr.shape[2] not in (1, 2, 3, 4):
+        raise ValueError(f"unsupported image layout {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("the image holds NaN or infinite values")
+    return arr
+
+
+def _truncated(p: Path, data: np.ndarray) -> bool:
+    """A PNG must end in its IEND chunk, a JPEG in the EOI marker (decoders may pad silently)."""
+    raw = data.tobytes()
+    if p.suffix.lower() == ".png":
+        return not raw.rstrip(b"\x00").endswith(b"IEND\xaeB`\x82")
+    return not raw.rstrip(b"\x00").endswith(b"\xff\xd9")
+
+
+def check_texture_file(path: str | Path) -> None:
+    """ValueError (reason) unless ``path`` is a readable, decodable texture."""
+    read_texture(path)
+
+
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def check_mesh_file(path: str | Path) -> None:
+    """ValueError (reason) unless ``path`` is a PLY or OBJ file with vertices and faces whose
+    declared sizes fit the file."""
+    p = _readable(path, MESH_SUFFIXES, "mesh")
+    raw = p.read_bytes()
+    if p.suffix.lower() == ".ply":
+        _check_ply(raw)
+    else:
+        _check_obj(raw)
+
+
+def _check_ply(raw: bytes) -> None:
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise ValueError("corrupt PLY: no 'ply' magic or no end_header")
+    try:
+        header = raw[:end].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise ValueError("corrupt PLY: header is not ASCII") from None
+    body = raw[raw.index(b"\n", end) + 1:] if b"\n" in raw[end:] else b""
+    fmt, elements = None, []  # elements: [name, count, [(kind, size | (count_size, item_size))]]
+    for line in header[1:]:
+        w = line.split()
+        if not w or w[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if w[0] == "format":
+                fmt = w[1]
+            elif w[0] == "element":
+                elements.append([w[1], int(w[2]), []])
+            elif w[0] == "property" and w[1] == "list":
+                elements[-1][2].append((_PLY_SIZES[w[2]], _PLY_SIZES[w[3]]))
+            elif w[0] == "property":
+                elements[-1][2].append(_PLY_SIZES[w[1]])
+        except (IndexError, KeyError, ValueError):
+            raise ValueError(f"corrupt PLY header line {line!r}") from None
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise ValueError(f"corrupt PLY: unknown format {fmt!r}")
+    counts = {name: n for name, n, _ in elements}
+    if counts.get("vertex", 0) < 3 or counts.get("face", 0) < 1:
+        raise ValueError("PLY without vertices or faces")
+    if fmt == "ascii":
+        lines = [ln for ln in body.splitlines() if ln.strip()]
+        need = sum(n for _, n, _ in elements)
+        if len(lines) < need:
+            raise ValueError(f"truncated PLY: {len(lines)} data lines, the header declares {need}")
+        return
+    order = "<" if fmt == "binary_little_endian" else ">"
+    pos = 0
+    for name, n, props in elements:
+        if all(isinstance(pr, int) for pr in props):
+            pos += n * sum(props)
+        else:  # walk the list properties (faces)
+            for _ in range(n):
+                for pr in props:
+                    if isinstance(pr, int):
+                        pos += pr
+                        continue
+                    cs, item = pr
+                    if pos + cs > len(body):
+                        raise ValueError(f"truncated PLY: element {name!r} runs past the end of the file")
+                    code = {1: "B", 2: "H", 4: "I"}[cs]
+                    pos += cs + item * struct.unpack_from(order + code, body, pos)[0]
+        if pos > len(body):
+            raise ValueError(f"truncated PLY: element {name!r} runs past the end of the file")
+
+
+def _check_obj(raw: bytes) -> None:
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ValueError("corrupt OBJ: not a text file") from None
+    n_v, n_f = 0, 0
+    for i, line in enumerate(text.splitlines(), 1):
+        w = line.split()
+        if not w:
+            continue
+        try:
+            if w[0] == "v":
+                if len(w) < 4:
+                    raise ValueError
+                [float(x) for x in w[1:4]]
+                n_v += 1
+            elif w[0] == "f":
+                idx = [int(x.split("/")[0]) for x in w[1:]]
+                if len(idx) < 3 or any(j == 0 or abs(j) > n_v for j in idx):
+                    raise ValueError
+                n_f += 1
+        except ValueError:
+            raise ValueError(f"corrupt OBJ: line {i}: {line.strip()[:60]!r}") from None
+    if n_v < 3 or n_f < 1:
+        raise ValueError("OBJ without vertices or faces")
+
+
+# -- spectra -> linear sRGB (RGB variants) -------------------------------------------------------
+def spectrum_to_rgb_reflectance(spec: Spectrum) -> RGB:
+    """Linear-sRGB albedo of a reflectance spectrum under CIE D65 (the sRGB white): a perfect
+    white reflector gives (1, 1, 1). Clipped to [0, 1]."""
+    import colour
+
+    sd = colour.SpectralDistribution(dict(zip(*spec.arrays)))
+    xyz = colour.sd_to_XYZ(sd, illuminant=colour.SDS_ILLUMINANTS["D65"]) / 100.0
+    rgb = colour.XYZ_to_RGB(xyz, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_encoding=False)
+    return tuple(float(v) for v in np.clip(rgb, 0.0, 1.0))
+
+
+def spectrum_to_rgb_radiance(spec: Spectrum) -> RGB:
+    """Linear-sRGB radiance of a spectral radiance L (W m^-2 sr^-1 nm^-1), in W m^-2 sr^-1:
+    the sRGB primaries of (X, Y, Z) = integral (xbar, ybar, zbar)(lambda) L(lambda) d lambda (CIE 1931
+    2-degree observer, peak of ybar = 1). This is the inverse of Mitsuba's RGB upsampling of emission
+    (an RGB white (1, 1, 1) becomes D65 scaled to integral ybar L = 1), so a spectrum and its RGB have
+    the same XYZ. Negative components (colours outside the sRGB gamut, e.g. narrow-band LEDs) are
+    clipped to 0."""
+    import colour
+
+    wl, v = spec.arrays
+    cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+    grid = np.arange(max(360.0, np.floor(wl[0])), min(830.0, np.ceil(wl[-1])) + 1.0, 1.0)
+    lv = np.interp(grid, wl, v, left=0.0, right=0.0)
+    xyz = np.trapezoid(cmfs[grid] * lv[:, None], grid, axis=0)
+    rgb = colour.XYZ_to_RGB(xyz, colour.RGB_COLOURSPACES["sRGB"], apply_cctf_encoding=False)
+    return tuple(float(x) for x in np.clip(rgb, 0.0, None))
 
 
 # -- small numpy transform helpers (column-vector convention, like Mitsuba) ---------------------

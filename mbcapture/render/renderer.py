@@ -13,7 +13,16 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..scenes import SceneModel
-from .build import MOVABLE_EMITTER_KINDS, Material, SceneBuild, Shape
+from .build import (
+    MOVABLE_EMITTER_KINDS,
+    Material,
+    SceneBuild,
+    Shape,
+    Spectrum,
+    Texture,
+    spectrum_to_rgb_radiance,
+    spectrum_to_rgb_reflectance,
+)
 from .integrator import PLUGIN_NAME, integrator_class
 from .llvm import ensure_llvm
 
@@ -58,6 +67,15 @@ class Renderer:
     0.33-0.44 s for the one-pass RGB render, i.e. about 2.5-3.5x (3 passes x ~1.3x spectral);
     the first spectral render adds ~5 s of kernel compilation (one kernel per group).
 
+    Spectra and textures (:mod:`.build`): a :class:`~.build.Spectrum` reflectance or radiance is an
+    ``irregular`` spectrum in spectral variants and its linear-sRGB value in RGB variants; a
+    :class:`~.build.Texture` is a ``bitmap``. Texture and mesh files are checked before Mitsuba
+    loads them (:meth:`~.build.SceneBuild.check_files`), so a missing or corrupt file is a
+    ConfigError naming the file and the shape.
+
+    ``film_curves`` (spectral variants only): (wavelengths_nm (n,), curves (3, n)) replaces the
+    sensor's film sensitivities, e.g. the CIE 1931 colour-matching functions for an XYZ reference.
+
     Attributes
     ----------
     groups
@@ -72,7 +90,8 @@ class Renderer:
 
     def __init__(self, scene: SceneModel, width: int, height: int, *,
                  variant: str = "llvm_ad_rgb", max_depth: int = 4,
-                 sensor: "SensorConfig | None" = None) -> None:
+                 sensor: "SensorConfig | None" = None,
+                 film_curves: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         if not isinstance(scene.build, SceneBuild):
             raise ConfigError(f"scene {scene.name!r}: build payload is not a SceneBuild")
         if width < 1 or height < 1:
@@ -85,7 +104,14 @@ class Renderer:
             )
         self.spectral = variant.endswith("_spectral")
         self._sensitivity: tuple[np.ndarray, np.ndarray] | None = None
-        if self.spectral:
+        if film_curves is not None:
+            if not self.spectral:
+                raise ConfigError(f"render.variant {variant!r}: film_curves need a spectral variant")
+            wl, curves = (np.asarray(a, np.float64) for a in film_curves)
+            if wl.ndim != 1 or curves.shape != (3, wl.size):
+                raise ConfigError(f"film_curves: expected wavelengths (n,) and curves (3, n), got {wl.shape}, {curves.shape}")
+            self._sensitivity = (wl, curves)
+        elif self.spectral:
             from ..sensor.spectral import film_sensitivity
 
             if sensor is None:
@@ -114,9 +140,19 @@ class Renderer:
             raise ConfigError(f"scene {scene.name!r}: emitters in undeclared groups {sorted(unknown)}")
 
         self._build = build
-        self._scene = mi.load_dict(self._scene_dict())
+        build.check_files(scene.name)
+        self._scene = self._load(self._scene_dict())
         self._params = mi.traverse(self._scene)
-        self._group_emitters = self._collect_emitters()
+        self._group_emitters = self._collect_emitters(self._scene)
+        # spectral: a group whose emitters share one spectral shape f_g gets its own scene, with
+        # flat emitters and film curves S_c f_g, so wavelengths are sampled where the group emits
+        self._group_scenes: dict[str, tuple[Any, Any, list[Any]]] = {}
+        if self.spectral:
+            for g in self.groups:
+                shape = self._group_spectral_shape(g)
+                if shape is not None:
+                    sc = self._load(self._scene_dict(flat_group=g, film_shape=shape))
+                    self._group_scenes[g] = (sc, mi.traverse(sc), self._collect_emitters(sc)[g])
         integrator_class(variant)  # registers the plugin
         self._integrator = mi.load_dict({"type": PLUGIN_NAME, "max_depth": self.max_depth})
         self._time_s: float | None = None
@@ -124,7 +160,40 @@ class Renderer:
         self.last_render_s = 0.0
 
     # -- scene construction -------------------------------------------------------------------
-    def _scene_dict(self) -> dict[str, Any]:
+    def _load(self, d: dict[str, Any]) -> Any:
+        try:
+            return self._mi.load_dict(d)
+        except RuntimeError as exc:  # Mitsuba's own loader errors (e.g. a file it cannot parse)
+            msg = " ".join(str(exc).split())
+            raise ConfigError(f"scene {self.scene_model.name!r}: Mitsuba cannot load the scene: {msg[:400]}") from None
+
+    def _group_emission(self, group: str) -> list[Any]:
+        out = [s.light.radiance for s in self._build.shapes if s.light is not None and s.light.group == group]
+        env = self._build.environment
+        if env is not None and env.group == group:
+            out.append(env.radiance)
+        return out
+
+    def _group_spectral_shape(self, group: str) -> Spectrum | None:
+        """The common spectral shape (integral 1) of a group's emitters, or None when they are not
+        all Spectra proportional to one another."""
+        rads = self._group_emission(group)
+        if not rads or not all(isinstance(r, Spectrum) for r in rads):
+            return None
+        wl0, v0 = rads[0].arrays
+        total = rads[0].integral()
+        if not total > 0:
+            return None
+        f = v0 / total
+        for r in rads[1:]:
+            wl, v = r.arrays
+            if wl.shape != wl0.shape or not np.allclose(wl, wl0) or not np.allclose(v / max(r.integral(), 1e-300), f,
+                                                                                     rtol=1e-6, atol=1e-12 * f.max()):
+                return None
+        return Spectrum(tuple(wl0), tuple(f))
+
+    def _scene_dict(self, flat_group: str | None = None, film_shape: Spectrum | None = None) -> dict[str, Any]:
+        self._flat_group = flat_group
         mi = self._mi
         cam = self.scene_model.camera
         T = mi.ScalarTransform4f
@@ -137,7 +206,7 @@ class Renderer:
                 "near_clip": 1e-3,
                 "to_world": T().look_at(origin=list(cam.origin), target=list(cam.target),
                                         up=list(cam.up)),
-                "film": self._film_dict(),
+                "film": self._film_dict(film_shape),
                 "sampler": {"type": "independent", "sample_count": 1},
             },
         }
@@ -165,10 +234,10 @@ class Renderer:
         env = self._build.environment
         if env is not None:
             d["environment"] = {"type": "constant",
-                                "radiance": {"type": "rgb", "value": list(env.radiance)}}
+                                "radiance": self._emission_dict(env.radiance, env.group == flat_group)}
         return d
 
-    def _film_dict(self) -> dict[str, Any]:
+    def _film_dict(self, shape: Spectrum | None = None) -> dict[str, Any]:
         film: dict[str, Any] = {"width": self.width, "height": self.height, "rfilter": {"type": "box"}}
         if self._sensitivity is None:
             return {"type": "hdrfilm", "pixel_format": "rgb", **film}
@@ -176,6 +245,15 @@ class Renderer:
         step = np.diff(wl)
         if not np.allclose(step, step[0]):
             raise ConfigError("sensor.spectral_response: the camera curves are not on a regular grid")
+        if shape is not None:  # S_c(lambda) f_g(lambda) on a 1 nm grid over the overlap
+            swl, sv = shape.arrays
+            lo, hi = max(np.ceil(wl[0]), np.ceil(swl[0])), min(np.floor(wl[-1]), np.floor(swl[-1]))
+            if hi - lo < 2:
+                raise ConfigError("a spectral emitter lies outside the sensor's spectral range")
+            grid = np.arange(lo, hi + 0.5, 1.0)
+            f = np.interp(grid, swl, sv)
+            srf = np.stack([np.interp(grid, wl, c) * f for c in srf])
+            wl = grid
         film["type"] = "specfilm"
         for c, values in zip(self.channels, srf):
             film[c] = {"type": "regular", "wavelength_min": float(wl[0]), "wavelength_max": float(wl[-1]),
@@ -185,24 +263,48 @@ class Renderer:
     def _shape_dict(self, s: Shape, to_world: np.ndarray) -> dict[str, Any]:
         mi = self._mi
         out: dict[str, Any] = {"type": s.kind, "to_world": mi.ScalarTransform4f(to_world)}
+        if s.kind == "mesh":
+            out["type"] = "ply" if str(s.mesh).lower().endswith(".ply") else "obj"
+            out["filename"] = str(s.mesh)
+            out["face_normals"] = True
         mat = s.material or Material((0.0, 0.0, 0.0))
-        bsdf: dict[str, Any] = {"type": "diffuse",
-                                "reflectance": {"type": "rgb", "value": list(mat.reflectance)}}
+        bsdf: dict[str, Any] = {"type": "diffuse", "reflectance": self._reflectance_dict(mat.reflectance)}
         out["bsdf"] = {"type": "twosided", "material": bsdf} if mat.twosided else bsdf
         if s.light is not None:
             out["emitter"] = {"type": "area",
-                              "radiance": {"type": "rgb", "value": list(s.light.radiance)}}
+                              "radiance": self._emission_dict(s.light.radiance, s.light.group == self._flat_group)}
         return out
 
-    def _collect_emitters(self) -> dict[str, list[Any]]:
-        """Group name -> its Mitsuba emitter objects."""
-        by_name = {sh.id(): sh.emitter() for sh in self._scene.shapes() if sh.emitter() is not None}
+    def _emission_dict(self, value: Any, flat: bool) -> dict[str, Any]:
+        """Emission; ``flat``: a Spectrum's integral as a constant (its shape is in the film)."""
+        if flat:
+            return {"type": "uniform", "value": float(value.integral())}
+        return self._spectrum_dict(value, emission=True)
+
+    def _spectrum_dict(self, value: Any, *, emission: bool) -> dict[str, Any]:
+        """An RGB tuple or a Spectrum as a Mitsuba texture dict for this variant."""
+        if isinstance(value, Spectrum):
+            if self.spectral:
+                wl, v = value.arrays
+                return {"type": "irregular", "wavelengths": ", ".join(repr(float(x)) for x in wl),
+                        "values": ", ".join(repr(float(x)) for x in v)}
+            value = spectrum_to_rgb_radiance(value) if emission else spectrum_to_rgb_reflectance(value)
+        return {"type": "rgb", "value": [float(x) for x in value]}
+
+    def _reflectance_dict(self, value: Any) -> dict[str, Any]:
+        if isinstance(value, Texture):
+            return {"type": "bitmap", "filename": str(value.path), "filter_type": value.filter_type}
+        return self._spectrum_dict(value, emission=False)
+
+    def _collect_emitters(self, scene: Any) -> dict[str, list[Any]]:
+        """Group name -> its Mitsuba emitter objects in ``scene``."""
+        by_name = {sh.id(): sh.emitter() for sh in scene.shapes() if sh.emitter() is not None}
         out: dict[str, list[Any]] = {g: [] for g in self.groups}
         for s in self._build.shapes:
             if s.light is not None:
                 out[s.light.group].append(by_name[s.name])
         if self._build.environment is not None:
-            out[self._build.environment.group].append(self._scene.environment())
+            out[self._build.environment.group].append(scene.environment())
         return out
 
     # -- state and rendering ------------------------------------------------------------------
@@ -222,20 +324,21 @@ class Renderer:
         if t_s == self._time_s or not self._build.parts:
             self._time_s = t_s
             return
-        moved = False
         parts = self._build.parts
-        for s in self._build.shapes:
-            if s.part is not None and s.light is not None:
-                m = np.asarray(parts[s.part](t_s), float) @ s.to_world
-                self._params[f"{s.name}.to_world"] = self._opaque_transform(m)
-                moved = True
-        for part, f in parts.items():
-            key = f"{part}.to_world"
-            if key in self._params:
-                self._params[key] = self._opaque_transform(f(t_s))
-                moved = True
-        if moved:
-            self._params.update()
+        for params in [self._params, *(p for _, p, _ in self._group_scenes.values())]:
+            moved = False
+            for s in self._build.shapes:
+                if s.part is not None and s.light is not None:
+                    m = np.asarray(parts[s.part](t_s), float) @ s.to_world
+                    params[f"{s.name}.to_world"] = self._opaque_transform(m)
+                    moved = True
+            for part, f in parts.items():
+                key = f"{part}.to_world"
+                if key in params:
+                    params[key] = self._opaque_transform(f(t_s))
+                    moved = True
+            if moved:
+                params.update()
         self._time_s = t_s
 
     def _opaque_transform(self, matrix: np.ndarray) -> Any:
@@ -266,8 +369,10 @@ class Renderer:
         if lit and self.spectral:
             self.set_time(t_s)
             for g in lit:
-                self._integrator.set_groups([g], [self._group_emitters[g]])
-                img = self._mi.render(self._scene, integrator=self._integrator, spp=int(spp),
+                scene, emitters = (self._group_scenes[g][0], self._group_scenes[g][2]) if g in self._group_scenes \
+                    else (self._scene, self._group_emitters[g])
+                self._integrator.set_groups([g], [emitters])
+                img = self._mi.render(scene, integrator=self._integrator, spp=int(spp),
                                       seed=int(seed) & 0xFFFFFFFF)
                 out[req.index(g)] = np.asarray(img, dtype=np.float32)[..., :3]
         elif lit:

@@ -6,6 +6,14 @@ camera of colour-science's ``colour.MSDS_CAMERA_SENSITIVITIES`` dataset (e.g. ``
 (NPL)"``); its relative R, G, B sensitivity curves are used as the spectral *shape* of each
 channel's quantum efficiency.
 
+``"monochrome:<camera>"`` (e.g. ``"monochrome:Nikon 5100 (NPL)"``) is a panchromatic sensor with
+no colour filter array, as the multi-bucket sensor of the RGB-illumination application (its
+colours come from the LEDs): all three channels get the same curve, the sum of the camera's R, G
+and B curves (assumption: what the same silicon and IR-cut filter see without the colour filters,
+up to the filters' peak transmissions), peak-scaled per channel to ``sensor.quantum_efficiency``.
+Give the three ``quantum_efficiency`` values equal to make the channels identical; a
+reconstruction then reads one channel as the monochrome pixel (:func:`is_monochrome`).
+
 Assumption (documented in the config reference): each camera curve is scaled so that its peak
 equals that channel's ``sensor.quantum_efficiency`` value, i.e. ``quantum_efficiency`` becomes the
 peak QE (colour filter included) and the dataset supplies the shape only. The datasets are
@@ -35,11 +43,16 @@ __all__ = [
     "channel_quantum_efficiency",
     "check_spectral_response",
     "film_sensitivity",
+    "is_monochrome",
     "is_spectral_variant",
+    "MONOCHROME_PREFIX",
 ]
 
 EFFECTIVE_WAVELENGTH = "effective_wavelength"
 """``sensor.spectral_response`` value meaning: one effective wavelength per channel (RGB mode)."""
+
+MONOCHROME_PREFIX = "monochrome:"
+"""``sensor.spectral_response`` prefix: a panchromatic (no colour filter) version of a camera."""
 
 _PLANCK_J_S = 6.62607015e-34
 _SPEED_OF_LIGHT_M_PER_S = 299_792_458.0
@@ -59,14 +72,21 @@ def camera_names() -> tuple[str, ...]:
 
 
 def check_spectral_response(name: str) -> str:
-    """``name`` if it is ``effective_wavelength`` or a known camera, else ValueError listing names."""
-    if name == EFFECTIVE_WAVELENGTH or name in camera_names():
+    """``name`` if it is ``effective_wavelength``, a known camera or ``monochrome:<known camera>``,
+    else ValueError listing the names."""
+    camera = name[len(MONOCHROME_PREFIX):] if name.startswith(MONOCHROME_PREFIX) else name
+    if name == EFFECTIVE_WAVELENGTH or camera in camera_names():
         return name
     valid = [EFFECTIVE_WAVELENGTH, *camera_names()]
     raise ValueError(
-        f"spectral_response: unknown camera {name!r}; expected one of {valid} "
-        "(colour.MSDS_CAMERA_SENSITIVITIES keys)"
+        f"spectral_response: unknown camera {camera!r}; expected one of {valid} "
+        f"(colour.MSDS_CAMERA_SENSITIVITIES keys), optionally prefixed by {MONOCHROME_PREFIX!r}"
     )
+
+
+def is_monochrome(name: str) -> bool:
+    """True when ``sensor.spectral_response`` names a panchromatic (``monochrome:``) sensor."""
+    return name.startswith(MONOCHROME_PREFIX)
 
 
 def channel_quantum_efficiency(cfg: "SensorConfig") -> tuple[np.ndarray, np.ndarray]:
@@ -80,10 +100,13 @@ def channel_quantum_efficiency(cfg: "SensorConfig") -> tuple[np.ndarray, np.ndar
         raise ValueError("spectral_response 'effective_wavelength' has no spectral curves; name a camera")
     import colour
 
-    msds = colour.MSDS_CAMERA_SENSITIVITIES[name]
+    mono = is_monochrome(name)
+    msds = colour.MSDS_CAMERA_SENSITIVITIES[name[len(MONOCHROME_PREFIX):] if mono else name]
     wl = np.asarray(msds.wavelengths, dtype=np.float64)
     rel = np.asarray(msds.values, dtype=np.float64).T.copy()  # (3, n): red, green, blue
     rel = np.clip(rel, 0.0, None)
+    if mono:  # panchromatic: the same silicon without the colour filters
+        rel = np.repeat(rel.sum(axis=0, keepdims=True), 3, axis=0)
     qe = rel / rel.max(axis=1, keepdims=True) * np.asarray(cfg.quantum_efficiency, np.float64)[:, None]
     return wl, qe
 
