@@ -1,0 +1,394 @@
+"""Flash matting: a flash lights the near foreground far more than the distant background, so the
+flash-only image (flash read minus no-flash read) separates them; a trimap from it and a matting
+method turn that into an alpha matte (the paper's section 5.4 and figure 16; Sun, Kang and Shum,
+"Flash matting", SIGGRAPH 2006).
+
+Protocol ``flash_matting`` (4 buckets, each collecting ``capture.unit_exposure_s`` = T in total,
+over ``capture.periods`` = N periods), ``app.flash_buckets``:
+
+``2``    the 2:2 split: per period: bucket 1 (flash), bucket 3, bucket 4, bucket 2 (flash), each T / N; reads
+         ``flash`` = buckets 1 + 2 (2T) and ``noflash`` = buckets 3 + 4 (2T). The slot order is a
+         palindrome, so both reads have the same time centroid.
+``3``    the 3:1 split: per period: bucket 4 for T / 2N, buckets 1, 2, 3 (flash) T / N each, bucket 4 for T / 2N;
+         reads ``flash`` = buckets 1 + 2 + 3 (3T) and ``noflash`` = bucket 4 (T): the brighter flash
+         image gets three buckets' full wells, the centroids still coincide.
+
+``capture.sequential: true`` takes the two reads as two frames one after another (flash first):
+the leaves move between them and the flash-only difference ghosts.
+
+Reconstruction, in radiance (W m^-2 sr^-1; reads in electrons / k_e / exposure):
+
+1. flash-only image  F = flash rate - no-flash rate (the ambient part cancels where both reads
+   saw the same thing).
+2. trimap from the flash-only luminance Y, scaled so that its ``app.trimap_reference_percentile``
+   percentile is 1: Y >= ``app.trimap_fg_fraction`` is candidate foreground, Y <=
+   ``app.trimap_bg_fraction`` candidate background; each is opened (disc of radius
+   ``app.trimap_open_px``, removes noise specks) then eroded (radius ``app.trimap_erode_px``), so
+   that mixed pixels (edges, motion blur) end up unknown (0.5).
+3. alpha from a matting method (``app.matting``, registry :data:`MATTING_METHODS`; pymatting's
+   solvers) applied to ``app.matting_image`` (by default the flash read, whose coverage the truth
+   is), scaled to [0, 1] by the 99.9th percentile of its largest channel.
+4. foreground colours: pymatting's multilevel foreground estimation on the no-flash image;
+   ``extracted`` = alpha x foreground (the paper's figure 16c).
+
+Ground truth: the alpha the flash read saw, i.e. the coverage of the scene's foreground shapes
+(``SceneModel.extra['foreground']``) integrated over the capture's time strata with the flash
+read's weights (:func:`mbcapture.render.coverage.coverage_alpha`), and the noise-free flash-only
+image of the flash read (per-group exposures). Metrics: SAD (sum of |alpha - truth|, pixels) and
+MSE, over the whole image, the trimap's unknown region and the moving region.
+"""
+
+from __future__ import annotations
+
+from fractions import Fraction
+from typing import Callable, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from .. import protocols
+from ..errors import ConfigError
+from ..metrics import relative_mse
+from ..timeline import ReadEvent, SlotSeconds, exact
+from . import AppOutput, CaptureData, register
+from .hdr import REL_MSE_EPS_RADIANCE
+
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+FLASH_READ, NOFLASH_READ = "flash", "noflash"
+#: The matting image is divided by this percentile of its largest channel (then clipped to [0, 1]).
+MATTING_WHITE_PERCENTILE = 99.9
+
+
+class FlashMattingParams(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    flash_buckets: Literal[2, 3] = Field(
+        2,
+        description="How many of the 4 buckets collect with the flash on (read by the flash_matting protocol): 2 is the "
+        "2:2 split (flash and no-flash reads of 2T each), 3 the 3:1 split (a flash read of 3T, a no-flash read of T).",
+    )
+    flash_group: str = Field("flash", description="The scene's switchable emitter group that the protocol pulses.")
+    matting: Literal["closed_form", "knn", "lkm", "random_walk", "learning_based", "threshold"] = Field(
+        "closed_form",
+        description="Alpha matting method: 'closed_form' (Levin et al. 2008), 'knn' (Chen et al. 2013), 'lkm' (large "
+        "kernel, He et al. 2010), 'random_walk' (Grady et al. 2005), 'learning_based' (Zheng and Kambhamettu 2009), "
+        "all pymatting; 'threshold': alpha ramps linearly in the flash-only luminance between the two trimap fractions.",
+    )
+    matting_image: Literal["flash_only", "flash", "noflash"] = Field(
+        "flash",
+        description="Image the matting method sees: the flash read (default: the ground truth is its coverage), the "
+        "flash-only difference (its shading falls off towards silhouettes, which reads as partial alpha) or the "
+        "no-flash read. report.json scores the chosen method on all three (metrics.alpha_by_image).",
+    )
+    trimap_cue: Literal["flash_ratio", "flash_only"] = Field(
+        "flash_ratio",
+        description="What the trimap thresholds: 'flash_ratio' = flash-only luminance / (no-flash luminance + "
+        "trimap_ratio_eps x its reference), which cancels the albedo and keeps only the flash's 1/d^2 falloff; "
+        "'flash_only' = the flash-only luminance itself.",
+    )
+    trimap_ratio_eps: float = Field(
+        0.05, gt=0, le=10,
+        description="With trimap_cue 'flash_ratio': added to the no-flash luminance, as a fraction of its "
+        "trimap_reference_percentile, so that dark, noisy pixels do not blow up the ratio.",
+    )
+    trimap_reference_percentile: float = Field(
+        99.0, gt=0, le=100,
+        description="Percentile of the trimap cue (and of the matting image) that is 1.0 for the trimap fractions.",
+    )
+    trimap_fg_fraction: float = Field(
+        0.25, gt=0, le=1, description="Cue at or above this fraction of its reference: candidate foreground."
+    )
+    trimap_bg_fraction: float = Field(
+        0.15, ge=0, lt=1, description="Cue at or below this fraction of its reference: candidate background."
+    )
+    trimap_open_px: int = Field(1, ge=0, le=20, description="Radius of the opening that removes specks from both candidates, pixels.")
+    trimap_erode_px: int = Field(
+        2, ge=0, le=50, description="Radius by which the definite foreground and background are eroded into unknown, pixels."
+    )
+    truth_spp: int = Field(
+        16, ge=1, le=4096, description="Samples per pixel per time stratum of the ground-truth coverage render (max_depth 1)."
+    )
+
+    @model_validator(mode="after")
+    def _fractions_ordered(self) -> "FlashMattingParams":
+        if self.trimap_bg_fraction >= self.trimap_fg_fraction:
+            raise ValueError(
+                f"trimap_bg_fraction ({self.trimap_bg_fraction}) must be below trimap_fg_fraction ({self.trimap_fg_fraction})"
+            )
+        return self
+
+
+# ----------------------------------------------------------------------------- protocol
+@protocols.register("flash_matting", app="flash_matting")
+def flash_matting_protocol(cfg):
+    """2:2 or 3:1 flash / no-flash buckets (``app.flash_buckets``); reads ``flash`` and ``noflash``."""
+    if cfg.sensor.bucket_count < 4:
+        raise ConfigError(
+            f"capture.protocol: 'flash_matting' needs 4 buckets but sensor.bucket_count is {cfg.sensor.bucket_count}"
+        )
+    _, params = cfg.app.resolve(cfg.capture.protocol)
+    # another application reconstructing this schedule (app.name) has no split keys: the defaults
+    n_flash = getattr(params, "flash_buckets", FlashMattingParams().flash_buckets)
+    on = frozenset({getattr(params, "flash_group", FlashMattingParams().flash_group)})
+    slot = exact(cfg.capture.unit_exposure_s) / Fraction(cfg.capture.periods)
+    if n_flash == 2:
+        slots = [SlotSeconds(0, slot, on), SlotSeconds(2, slot), SlotSeconds(3, slot), SlotSeconds(1, slot, on)]
+        reads = [ReadEvent(FLASH_READ, (0, 1)), ReadEvent(NOFLASH_READ, (2, 3))]
+    else:
+        slots = [SlotSeconds(3, slot / 2), SlotSeconds(0, slot, on), SlotSeconds(1, slot, on), SlotSeconds(2, slot, on),
+                 SlotSeconds(3, slot / 2)]
+        reads = [ReadEvent(FLASH_READ, (0, 1, 2)), ReadEvent(NOFLASH_READ, (3,))]
+    return slots, reads, 4
+
+
+# ----------------------------------------------------------------------------- pure functions
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """Rec. 709 luminance of linear RGB (..., 3); the channel mean for other channel counts."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    return rgb @ LUMA if rgb.shape[-1] == 3 else rgb.mean(-1)
+
+
+def flash_only_image(flash_e: np.ndarray, flash_exposure_s: float, noflash_e: np.ndarray, noflash_exposure_s: float,
+                     k_e: np.ndarray) -> np.ndarray:
+    """Flash-only radiance (H, W, C): the reads' rates difference, electrons -> render units."""
+    rate = np.asarray(flash_e, np.float64) / flash_exposure_s - np.asarray(noflash_e, np.float64) / noflash_exposure_s
+    return rate / np.asarray(k_e, np.float64)
+
+
+def reference_level(y: np.ndarray, percentile: float) -> float:
+    """The ``percentile`` of ``y`` (1.0 where that is not positive)."""
+    ref = float(np.percentile(y, percentile)) if np.size(y) else 1.0
+    return ref if ref > 0 else 1.0
+
+
+def trimap_cue(flash_only: np.ndarray, noflash: np.ndarray, kind: str = "flash_ratio", percentile: float = 99.0,
+               ratio_eps: float = 0.05) -> np.ndarray:
+    """The trimap's cue (H, W), scaled so that its ``percentile`` is 1.
+
+    ``flash_only``: the flash-only luminance. ``flash_ratio``: flash-only luminance / (no-flash
+    luminance + ``ratio_eps`` x the no-flash luminance's ``percentile``): albedo cancels, what is left
+    is how much more the flash lights a point than the ambient light does, which falls off as 1/d^2."""
+    y = luminance(flash_only)
+    if kind == "flash_ratio":
+        yn = luminance(noflash)
+        y = y / (np.maximum(yn, 0.0) + ratio_eps * reference_level(yn, percentile))
+    elif kind != "flash_only":
+        raise ConfigError(f"app.trimap_cue: unknown cue {kind!r}; expected 'flash_ratio' or 'flash_only'")
+    return y / reference_level(y, percentile)
+
+
+def _disc(radius: int) -> np.ndarray:
+    import cv2
+
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def make_trimap(cue: np.ndarray, fg_fraction: float, bg_fraction: float, open_px: int = 1, erode_px: int = 2) -> np.ndarray:
+    """Trimap (H, W) float64: 1 foreground, 0 background, 0.5 unknown, from a cue scaled so that
+    the foreground is about 1 (``cue >= fg_fraction``: candidate foreground, ``<= bg_fraction``:
+    candidate background). Each candidate is opened by a disc of radius ``open_px`` and eroded by
+    one of radius ``erode_px``; every other pixel is unknown."""
+    import cv2
+
+    if not 0 <= bg_fraction < fg_fraction:
+        raise ValueError("make_trimap: need 0 <= bg_fraction < fg_fraction")
+    cue = np.asarray(cue, np.float64)
+    out = np.full(cue.shape, 0.5)
+    for value, cand in ((1.0, cue >= fg_fraction), (0.0, cue <= bg_fraction)):
+        m = cand.astype(np.uint8)
+        if open_px > 0:
+            m = cv2.morphologyEx(m, cv2.MORPH_OPEN, _disc(open_px), borderType=cv2.BORDER_REPLICATE)
+        if erode_px > 0:
+            m = cv2.erode(m, _disc(erode_px), borderType=cv2.BORDER_REPLICATE)
+        out[m.astype(bool)] = value
+    return out
+
+
+def _pymatting(name: str) -> Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    def solve(image: np.ndarray, trimap: np.ndarray, ramp: np.ndarray) -> np.ndarray:
+        import pymatting
+
+        return getattr(pymatting, name)(image, trimap)
+
+    solve.__name__ = name
+    return solve
+
+
+def _threshold(image: np.ndarray, trimap: np.ndarray, ramp: np.ndarray) -> np.ndarray:
+    return np.asarray(ramp, np.float64)
+
+
+#: name -> f(image (H, W, 3) in [0, 1], trimap (H, W), ramp (H, W)) -> alpha (H, W).
+#: ``ramp`` is the flash-only cue mapped linearly from the background fraction (0) to the
+#: foreground fraction (1), clipped.
+MATTING_METHODS: dict[str, Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]] = {
+    "closed_form": _pymatting("estimate_alpha_cf"),
+    "knn": _pymatting("estimate_alpha_knn"),
+    "lkm": _pymatting("estimate_alpha_lkm"),
+    "random_walk": _pymatting("estimate_alpha_rw"),
+    "learning_based": _pymatting("estimate_alpha_lbdm"),
+    "threshold": _threshold,
+}
+
+
+def estimate_alpha(image: np.ndarray, trimap: np.ndarray, method: str = "closed_form",
+                   ramp: np.ndarray | None = None) -> np.ndarray:
+    """Alpha (H, W) in [0, 1] by ``method``; the trimap's definite pixels are kept as they are.
+
+    A trimap without foreground or without background has nothing to propagate: alpha is then
+    the trimap's definite part (unknown pixels get the ramp, or 0)."""
+    if method not in MATTING_METHODS:
+        raise ConfigError(f"app.matting: unknown method {method!r}; expected one of {sorted(MATTING_METHODS)}")
+    image = np.clip(np.ascontiguousarray(image, dtype=np.float64), 0.0, 1.0)
+    trimap = np.asarray(trimap, np.float64)
+    ramp = np.zeros(trimap.shape) if ramp is None else np.clip(np.asarray(ramp, np.float64), 0.0, 1.0)
+    fg, bg = trimap == 1.0, trimap == 0.0
+    unknown = ~(fg | bg)
+    if not fg.any() or not bg.any() or not unknown.any():
+        alpha = np.where(unknown, ramp, trimap)
+    else:
+        alpha = np.asarray(MATTING_METHODS[method](image, trimap, ramp), np.float64)
+    alpha = np.clip(alpha, 0.0, 1.0)
+    alpha[fg], alpha[bg] = 1.0, 0.0
+    return alpha
+
+
+def matte_scores(alpha: np.ndarray, truth: np.ndarray, region: np.ndarray | None = None) -> dict:
+    """SAD (sum of |alpha - truth| over the region, pixels) and MSE (mean squared error) of a matte."""
+    a, t = np.asarray(alpha, np.float64), np.asarray(truth, np.float64)
+    if region is not None:
+        a, t = a[region], t[region]
+    if a.size == 0:
+        return {"pixels": 0, "sad": 0.0, "mse": None}
+    d = a - t
+    return {"pixels": int(a.size), "sad": float(np.abs(d).sum()), "mse": float(np.mean(d * d))}
+
+
+def trimap_errors(trimap: np.ndarray, truth: np.ndarray, tol: float = 0.05) -> dict:
+    """Definite trimap pixels that the truth contradicts: labelled foreground with truth alpha
+    below ``tol``, labelled background with truth alpha above 1 - ``tol`` (pixels)."""
+    return {"fg_on_background": int(((trimap == 1.0) & (truth < tol)).sum()),
+            "bg_on_foreground": int(((trimap == 0.0) & (truth > 1 - tol)).sum())}
+
+
+# ----------------------------------------------------------------------------- application
+def _read(data: CaptureData, name: str) -> int:
+    if name not in data.read_names:
+        raise ConfigError(
+            f"app.name: flash_matting needs reads named {FLASH_READ!r} and {NOFLASH_READ!r} (capture.protocol "
+            f"flash_matting, or a custom schedule with those read names); got {data.read_names}"
+        )
+    return data.read_names.index(name)
+
+
+def alpha_truth(data: CaptureData, params: FlashMattingParams) -> np.ndarray | None:
+    """Coverage of the scene's foreground as the flash read saw it (None without a renderer)."""
+    if data.renderer is None:
+        return None
+    from ..render.coverage import coverage_alpha
+
+    g = data.group_index(params.flash_group)
+    buckets = list(data.timeline.reads[_read(data, FLASH_READ)].buckets)
+    weights = data.plan.weights_s[:, buckets, g].sum(axis=1)  # (J,) seconds the flash read collected, flash on
+    cfg = data.cfg
+    seed = data.seed if data.seed is not None else np.random.SeedSequence(cfg.seed)
+    return coverage_alpha(data.scene, data.plan.times_s, weights, cfg.render.width, cfg.render.height,
+                          params.truth_spp, seed, variant=cfg.render.variant)
+
+
+def flash_only_truth(data: CaptureData, params: FlashMattingParams) -> np.ndarray | None:
+    """Noise-free flash-only radiance of the flash read: its flash-group exposure / its flash time."""
+    if data.group_exposure is None or params.flash_group not in data.plan.groups:
+        return None
+    buckets = list(data.timeline.reads[_read(data, FLASH_READ)].buckets)
+    g = data.group_index(params.flash_group)
+    s = data.switchable.index(params.flash_group)
+    return data.group_exposure[buckets, g].sum(axis=0) / data.bucket_group_s[buckets, s].sum()
+
+
+@register("flash_matting", params=FlashMattingParams, per_group=True,
+          description="flash-only image, trimap and alpha matte (app.matting) scored against the rendered coverage")
+def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
+    if params.flash_group not in data.switchable:
+        raise ConfigError(f"app.flash_group: {params.flash_group!r} is not a switchable group of scene "
+                          f"{data.scene.name!r} (switchable: {list(data.switchable)})")
+    i_f, i_n = _read(data, FLASH_READ), _read(data, NOFLASH_READ)
+    reads_e = data.reads_e()
+    t_f, t_n = float(data.exposure_s[i_f]), float(data.exposure_s[i_n])
+    flash = reads_e[i_f] / t_f / data.k_e
+    noflash = reads_e[i_n] / t_n / data.k_e
+    flash_only = flash - noflash
+    y = luminance(flash_only)
+    ref = reference_level(y, params.trimap_reference_percentile)
+    cue = trimap_cue(flash_only, noflash, params.trimap_cue, params.trimap_reference_percentile, params.trimap_ratio_eps)
+    trimap = make_trimap(cue, params.trimap_fg_fraction, params.trimap_bg_fraction,
+                         params.trimap_open_px, params.trimap_erode_px)
+    ramp = (cue - params.trimap_bg_fraction) / (params.trimap_fg_fraction - params.trimap_bg_fraction)
+    sources = {"flash_only": flash_only, "flash": flash, "noflash": noflash}
+
+    def matte(name: str) -> np.ndarray:
+        img = sources[name]  # to [0, 1] by its largest channel: clipping would break the colour-line model
+        return estimate_alpha(img / reference_level(img.max(axis=-1), MATTING_WHITE_PERCENTILE), trimap,
+                              params.matting, ramp)
+
+    alpha = matte(params.matting_image)
+
+    from pymatting import estimate_foreground_ml
+
+    white = reference_level(luminance(noflash), 99.5)
+    fg_colour = estimate_foreground_ml(np.clip(noflash / white, 0.0, 1.0), alpha) * white
+    extracted = alpha[..., None] * fg_colour
+
+    n_ch = flash.shape[-1]
+    unknown = trimap == 0.5
+    mask = data.moving_mask
+    metrics: dict = {
+        "split": f"{params.flash_buckets}:{4 - params.flash_buckets}",
+        "matting": params.matting,
+        "matting_image": params.matting_image,
+        "reads": {"flash_exposure_s": t_f, "noflash_exposure_s": t_n},
+        "flash_read_saturated_fraction": float(data.saturated[i_f].any(axis=-1).mean()),
+        "trimap": {"cue": params.trimap_cue, "flash_only_reference_luminance": ref, "foreground_fraction": float((trimap == 1.0).mean()),
+                   "background_fraction": float((trimap == 0.0).mean()), "unknown_fraction": float(unknown.mean())},
+    }
+    images = {
+        "flash": flash, "noflash": noflash, "flash_only": flash_only,
+        "trimap": np.repeat(trimap[..., None], n_ch, -1), "alpha": np.repeat(alpha[..., None], n_ch, -1),
+        "foreground": fg_colour, "extracted": extracted,
+        "moving": np.repeat(mask[..., None], n_ch, -1).astype(np.float64),
+    }
+    png = {"flash": ("flash", 99.5), "noflash": ("noflash", 99.5), "flash_only": ("flash_only", 99.5),
+           "trimap": ("trimap", None), "alpha": ("alpha", None), "extracted": ("extracted", 99.5)}
+    summary = [f"flash matting ({params.flash_buckets}:{4 - params.flash_buckets}, {params.matting} on {params.matting_image}): trimap "
+               f"{100 * unknown.mean():.1f}% unknown"]
+
+    fo_truth = flash_only_truth(data, params)
+    if fo_truth is not None:
+        images["flash_only_truth"] = fo_truth
+        metrics["flash_only_rel_mse"] = relative_mse(flash_only, fo_truth, eps=REL_MSE_EPS_RADIANCE)
+        if mask.any():
+            metrics["flash_only_rel_mse_moving"] = relative_mse(
+                flash_only, fo_truth, mask=np.repeat(mask[..., None], n_ch, -1), eps=REL_MSE_EPS_RADIANCE)
+    truth = alpha_truth(data, params)
+    if truth is None:
+        metrics["alpha_truth"] = None
+        metrics["note"] = "no renderer: no ground-truth alpha"
+    else:
+        metrics["alpha_truth"] = (f"coverage of the scene's foreground shapes as the flash read saw it, "
+                                  f"{params.truth_spp} spp per stratum")
+        metrics["alpha"] = matte_scores(alpha, truth)
+        metrics["alpha_unknown"] = matte_scores(alpha, truth, unknown)
+        metrics["alpha_moving"] = matte_scores(alpha, truth, mask) if mask.any() else None
+        metrics["trimap_errors"] = trimap_errors(trimap, truth)
+        metrics["alpha_by_image"] = {
+            name: matte_scores(alpha if name == params.matting_image else matte(name), truth) for name in sources
+        }
+        err = np.abs(alpha - truth)
+        images["alpha_truth"] = np.repeat(truth[..., None], n_ch, -1)
+        images["alpha_error"] = np.repeat(err[..., None], n_ch, -1)
+        png["alpha_truth"] = ("alpha_truth", None)
+        png["alpha_error"] = ("alpha_error", None)
+        a = metrics["alpha"]
+        summary.append(f"alpha vs truth: SAD {a['sad']:.1f} px, MSE {a['mse']:.3g}; in the unknown region "
+                       f"SAD {metrics['alpha_unknown']['sad']:.1f}, MSE {metrics['alpha_unknown']['mse'] or 0:.3g}")
+    return AppOutput(images=images, metrics=metrics, png=png, summary=summary)
