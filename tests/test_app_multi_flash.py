@@ -262,3 +262,16 @@ def test_interleaved_beats_sequential_on_the_moving_scene():
     img = inter.images
     assert img["shadow_free"].shape == (64, 80, 3) and img["depth_edges"].shape == (64, 80)
     assert {"ratio_top", "ratio_left", "flash_right", "shadow_free_truth", "edges_overlay"} <= set(img)
+
+
+def test_step_span_catches_a_two_pixel_shadow_onset():
+    row = np.array([1.0, 1.0, 1.0, 0.5, 0.05, 0.05, 0.05, 1.0, 1.0, 0.05, 1.0, 1.0])  # onset at 2..4; 1-px shadow at 9
+    img = np.repeat(np.tile(row, (3, 1))[None, ..., None], 3, -1)
+    lit = np.ones_like(img)
+    images = np.concatenate([img, lit])  # flash 0 from the left casts the shadows; flash 1 lights everything
+    eps = [mf.Epipole(False, (-1.0, 0.0)), mf.Epipole(False, (1.0, 0.0))]
+    one = mf.raskar_depth_edges(images, eps, step_threshold=0.6, step_span_px=1).edges[1]
+    two = mf.raskar_depth_edges(images, eps, step_threshold=0.6, step_span_px=2).edges[1]
+    assert not one[2:5].any() and one[8]         # each 1-px drop of the onset is below 0.6; the 1-px shadow is found
+    # span 2: the onset's last fully lit pixel; the 1-px shadow is seen one pixel early (7 -> 9 skips it)
+    assert np.flatnonzero(two).tolist() == [2, 7]
