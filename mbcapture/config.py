@@ -8,6 +8,7 @@ Units are in the names (``_s``, ``_e``, ``_px``).
 from __future__ import annotations
 
 import copy
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -236,9 +237,29 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
     return data
 
 
+def _first_non_finite(node: Any, path: tuple = ()) -> tuple[str, float] | None:
+    """Dotted path and value of the first inf/nan number anywhere in raw config data, or None."""
+    if isinstance(node, float) and not math.isfinite(node):
+        return ".".join(map(str, path)), node
+    if isinstance(node, dict):
+        items = node.items()
+    elif isinstance(node, (list, tuple)):
+        items = enumerate(node)
+    else:
+        return None
+    for key, value in items:
+        found = _first_non_finite(value, (*path, key))
+        if found:
+            return found
+    return None
+
+
 def config_from_dict(data: dict, source: str = "config") -> CaptureConfig:
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a mapping of sections at the top level, got {type(data).__name__}")
+    bad = _first_non_finite(data)
+    if bad:  # YAML .inf / .nan: no key of any section accepts them (durations, radiances, noise, phases)
+        raise ConfigError(f"{source}: {bad[0]}: expected a finite number (got {bad[1]!r})")
     try:
         cfg = CaptureConfig.model_validate(data)
     except ValidationError as exc:

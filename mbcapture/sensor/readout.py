@@ -41,6 +41,9 @@ from .config import SensorConfig
 
 __all__ = ["FixedPattern", "SensorReads", "dn_to_electrons", "fixed_pattern", "simulate_reads"]
 
+POISSON_MAX_E = 1e18
+"""Largest mean drawn from a Poisson law; above it a bucket gets its rounded mean (tests/test_stability.py)."""
+
 
 @dataclass(frozen=True)
 class FixedPattern:
@@ -167,7 +170,12 @@ def simulate_reads(
             raise ValueError(f"storage_s: expected {k_buckets} non-negative seconds, got {storage!r}")
         mean_e = mean_e + (cfg.dark_current_e_per_s * storage)[:, None, None, None]
 
-    electrons = rng.poisson(mean_e).astype(np.float64)
+    # numpy refuses Poisson means above ~9.2e18; from 1e18 on the relative shot noise (1e-9) is below
+    # float64 resolution of anything downstream, and such a bucket is far above any full well
+    electrons = rng.poisson(np.minimum(mean_e, POISSON_MAX_E)).astype(np.float64)
+    beyond = mean_e > POISSON_MAX_E
+    if beyond.any():
+        electrons[beyond] = np.rint(mean_e[beyond])
     bucket_saturated = electrons >= cfg.full_well_e
     np.minimum(electrons, cfg.full_well_e, out=electrons)
 
