@@ -6,7 +6,8 @@ Cases already covered elsewhere are referenced there, not repeated here:
 tests/test_hdr.py (every read saturated, negative reads at zero light, one usable cumulative
 read), tests/test_timeline.py (10^6 periods of 1 us slots, closed-form gated time vs
 enumeration), tests/test_config.py (malformed YAML, unknown keys, wrong types),
-tests/test_end_to_end.py (an exception while writing keeps the previous outputs).
+tests/test_end_to_end.py (an exception while writing keeps the previous outputs). The application
+cases (flash_no_flash, multi_flash, flash_matting) call their public functions on synthetic arrays.
 
 Sizes are CI-sized: renders at most 32x24, few strata; statistical tolerances are 5 standard
 errors of the sample sizes used.
@@ -646,3 +647,65 @@ def test_flat_field_at_zero_and_a_million_full_wells(tmp_path, radiance, expect)
         assert e_full > 1e5 * c.sensor.full_well_e
         assert res.saturated.all() and not res.images["valid"].any()
         assert np.all(res.images["radiance"] > 0)
+
+
+# =============================================================================== applications
+def test_flash_a_million_times_brighter_than_ambient():
+    """flash_no_flash on synthetic radiance: flash-only = F - A stays exact to float64 rounding whichever
+    dominates (relative error <= ratio x 1.1e-16; a float32 pipeline would lose ratio x 6e-8)."""
+    from mbcapture.apps.flash_no_flash import FlashNoFlashParams, components, enhance
+
+    rng = np.random.default_rng(31)
+    a = rng.uniform(0.5, 1.0, (24, 32, 3))
+    for ratio in (1e6, 1e-6):  # flash 1e6 x ambient, then ambient 1e6 x flash
+        f_only = ratio * rng.uniform(0.5, 1.0, (24, 32, 3))
+        f = a + f_only
+        c = components(a, f, np.zeros((24, 32), bool), FlashNoFlashParams())
+        got = c.flash - c.ambient
+        rel = np.abs(got - f_only) / f_only
+        assert rel.max() < max(1.0, 1.0 / ratio) * 4 * np.finfo(float).eps, rel.max()
+        for name in ("a_nr", "a_base", "f_detail", "mask"):
+            assert np.all(np.isfinite(getattr(c, name))), name
+        assert 0.0 <= c.mask.min() and c.mask.max() <= 1.0
+        assert a.min() - 1e-9 <= c.a_nr.min() and c.a_nr.max() <= a.max() + 1e-9  # a weighted mean of A
+        assert np.all(np.isfinite(enhance(c, "petschnigg")))
+
+
+def test_multi_flash_ratio_images_where_the_max_is_zero():
+    """Pixels that no flash lights (max = 0) get ratio 0, are invalid and never edges; no NaN."""
+    from mbcapture.apps.multi_flash import Epipole, flash_images, max_composite, raskar_depth_edges
+
+    eps = [Epipole(False, (1.0, 0.0)), Epipole(False, (-1.0, 0.0)), Epipole(False, (0.0, 1.0)), Epipole(False, (0.0, -1.0))]
+    d = raskar_depth_edges(np.zeros((4, 24, 32, 3)), eps)
+    assert np.all(d.ratios == 0.0) and not d.valid.any() and not d.edges.any()
+    rng = np.random.default_rng(32)
+    imgs = rng.uniform(0.5, 1.0, (4, 24, 32, 3))
+    imgs[:, :, :10] = 0.0  # a black region
+    d = raskar_depth_edges(imgs, eps)
+    assert np.all(np.isfinite(d.ratios)) and not d.valid[:, :10].any() and not d.edges[:, :10].any()
+    assert np.all(d.ratios[:, :, 10:] <= 1.0) and np.allclose(d.ratios.max(axis=0)[:, 10:], 1.0)
+    # reads with no light at all, ambient subtracted: zero images, a zero composite
+    fi = flash_images(np.zeros((5, 24, 32, 3)), np.ones(5), np.ones(3), [0, 1, 2, 3], 4)
+    assert np.all(fi == 0.0) and np.all(max_composite(fi) == 0.0)
+
+
+@pytest.mark.parametrize("noise_e", [0.0, 30.0])
+def test_matte_where_the_flash_adds_nothing(noise_e):
+    """flash_matting with identical flash and no-flash light: no foreground is found, alpha = 0."""
+    from mbcapture.apps.flash_matting import FlashMattingParams, estimate_alpha, flash_only_image, make_trimap, trimap_cue
+
+    rng = np.random.default_rng(33)
+    p = FlashMattingParams()
+    lit = np.full((24, 32, 3), 2.0)  # electrons in each 2 ms read
+    fl = lit + noise_e * rng.standard_normal(lit.shape)
+    nf = lit + noise_e * rng.standard_normal(lit.shape)
+    fo = flash_only_image(fl, 2e-3, nf, 2e-3, np.ones(3))
+    if noise_e == 0.0:
+        assert np.all(fo == 0.0)
+    for kind in ("flash_ratio", "flash_only"):
+        cue = trimap_cue(fo, nf / 2e-3, kind, p.trimap_reference_percentile, p.trimap_ratio_eps)
+        assert np.all(np.isfinite(cue))
+        tri = make_trimap(cue, p.trimap_fg_fraction, p.trimap_bg_fraction, p.trimap_open_px, p.trimap_erode_px)
+        assert not (tri == 1.0).any()
+        alpha = estimate_alpha(np.clip(fl, 0, 1), tri, "closed_form")
+        assert np.all(alpha == 0.0)
