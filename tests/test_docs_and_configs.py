@@ -35,4 +35,9 @@ def test_shipped_config_loads_and_plans(path):
 def test_shipped_config_runs_at_tiny_size(path):
     cfg = load_config(path, ["render.width=16", "render.height=12", "render.spp=1", "render.max_motion_px=4"])
     result = run_capture(cfg, progress=False)
-    assert np.isfinite(result.images["radiance"]).all() and result.images["radiance"].shape == (12, 16, 3)
+    assert result.images and result.report["metrics"]
+    for name, img in result.images.items():
+        assert img.shape[:2] == (12, 16), name
+        assert np.isfinite(img).all(), name
+    for image, _ in result.app_output.png.values():  # every preview names an image that exists
+        assert image in result.images
