@@ -34,6 +34,11 @@ Reconstruction (``app.method``; :data:`DEPTH_EDGE_METHODS`)
     ``canny_max_composite``: a baseline without the flashes' geometry: OpenCV Canny edges of the
     max composite (texture and shading edges included), to show what the ratios add.
 
+    Fair comparisons: every interleaved bucket collects in every render stratum, so its image
+    averages passes x ``render.spp`` samples; a sequential frame lies in one stratum and gets
+    ``render.spp`` only. Give the sequential run ``render.spp`` x (the interleaved run's passes,
+    ``mbcapture plan``) so both captures carry the same rendering noise and differ by motion only.
+
     Known limitation of the ratio test (seen in the shipped scene): a face lit at grazing incidence
     by one LED (the top face of a box seen from above, lit by the LED below the lens) has a low
     ratio too, so its crease with the front face is marked although its depth is continuous.
