@@ -167,15 +167,46 @@ def _image_path_length(scene: SceneModel, times_s: np.ndarray, width: int, heigh
     return np.concatenate([[0.0], np.cumsum(step)])
 
 
+def _period_of(tl: Timeline, a: int, b: int) -> tuple[int, int] | None:
+    """(start tick, period ticks) of the one repeating segment that spans [a, b], else None."""
+    for seg in tl.segments:
+        if seg.start_tick <= a and b <= seg.end_tick and seg.repeats > 1:
+            return seg.start_tick, seg.period_ticks
+    return None
+
+
 def _split_interval(scene, tl: Timeline, a: int, b: int, render: RenderSection) -> tuple[list[int], float]:
-    """Boundaries inside [a, b] so that each piece moves at most max_motion_px."""
+    """Boundaries inside [a, b] so that each piece moves at most max_motion_px.
+
+    Where the gate pattern repeats and one period moves the image by less than a quarter of
+    max_motion_px, the cuts fall on period boundaries: every stratum then holds whole periods,
+    so each bucket's weight in it is exactly proportional to its duty cycle and the interleaved
+    reads mix the same renders in the same proportions (identical motion sampling, no
+    stratum-to-bucket aliasing). The pieces are planned for max_motion_px minus one period's
+    motion, so moving a cut by up to half a period on either side keeps the bound.
+    """
     ticks = np.unique(np.linspace(a, b, _MOTION_SAMPLES + 1).round().astype(np.int64))
     s = _image_path_length(scene, tl.seconds(ticks), render.width, render.height)
     total = float(s[-1])
-    n = max(1, int(np.ceil(total / render.max_motion_px - 1e-9)))
+    budget = render.max_motion_px
+    periodic = _period_of(tl, a, b)
+    snap = None
+    if periodic is not None:
+        start, period = periodic
+        # largest image motion within any window of one period (sampled path length)
+        reach = np.interp(ticks + period, ticks, s, right=total) - s
+        per_period = float(reach.max())
+        if per_period < budget / 4:
+            snap, budget = periodic, budget - per_period
+    n = max(1, int(np.ceil(total / budget - 1e-9)))
     n = min(n, len(ticks) - 1)
     targets = np.linspace(0.0, total, n + 1)[1:-1]
-    inner = np.interp(targets, s, ticks.astype(np.float64)).round().astype(np.int64) if n > 1 else np.array([], np.int64)
+    inner = np.interp(targets, s, ticks.astype(np.float64)) if n > 1 else np.array([])
+    if snap is not None and inner.size:
+        start, period = snap
+        inner = start + np.round((inner - start) / period) * period
+        inner = inner[(inner > a) & (inner < b)]
+    inner = np.unique(np.round(inner).astype(np.int64))
     return [a, *inner.tolist(), b], total
 
 
