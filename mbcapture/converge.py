@@ -208,6 +208,16 @@ def write_outputs(result: dict, out_dir: Path) -> None:
         w.writeheader()
         w.writerows(pts)
     (out_dir / "converge.json").write_text(json.dumps(result, indent=2))
+    fig = plot(result)
+    fig.savefig(out_dir / "converge.png")
+    plt.close(fig)
+
+
+def plot(result: dict):
+    """The log-log plot of error against run time for both methods, as a matplotlib Figure."""
+    import matplotlib.pyplot as plt
+
+    pts = result["points"]
     fig, ax = plt.subplots(figsize=(6, 4.5), dpi=120)
     styles = {"motion": ("o-", "C0", "planner (motion strata)"), "naive": ("s--", "C3", "naive (one render per slot)")}
     for m, (style, color, label) in styles.items():
@@ -235,5 +245,4 @@ def write_outputs(result: dict, out_dir: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out_dir / "converge.png")
-    plt.close(fig)
+    return fig
