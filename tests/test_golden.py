@@ -29,6 +29,12 @@ CAPTURE_CASES = [
     ("photon_efficient_hdr", "metronome_hdr.yaml", []),
     ("interleaved_hdr", "metronome_hdr.yaml", ["capture.protocol=interleaved_hdr"]),
     ("sequential_hdr", "metronome_hdr.yaml", ["capture.sequential=true"]),
+    ("flash_no_flash", "flash_no_flash.yaml", []),
+    ("flash_no_flash_sequential", "flash_no_flash.yaml", ["capture.sequential=true"]),
+    ("multi_flash", "multi_flash.yaml", []),
+    ("flash_matting", "flash_matting.yaml", []),
+    ("moving_light", "moving_light.yaml", []),
+    ("rgb_illumination", "rgb_illumination.yaml", []),
 ]
 
 
