@@ -192,7 +192,7 @@ def _cmd_apps(args) -> int:
         by_app.setdefault(protocols.default_app(p), []).append(p)
     for name in apps.names():
         app = apps.get(name)
-        print(f"{name}: {app.description}  (protocols: {', '.join(by_app.get(name, [])) or 'custom only'})")
+        print(f"{name}: {app.description}  (protocols: {', '.join(by_app.get(name, [])) or 'any, chosen with app.name'})")
         for key, f in app.params.model_fields.items():
             print(f"    app.{key} = {f.default!r}    {f.description or ''}")
     return 0

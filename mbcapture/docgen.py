@@ -68,6 +68,8 @@ def config_markdown() -> str:
         out += ["", f"### app `{name}`", "", app.description, ""]
         if used_by:
             out += [f"Default for protocol(s): {', '.join(f'`{p}`' for p in used_by)}.", ""]
+        else:
+            out += [f"Chosen with `app.name: {name}` over any protocol.", ""]
         keys = {k: f for k, f in app.params.model_fields.items()}
         out += [*_table(app.params, "app."), ""] if keys else ["No parameters of its own.", ""]
         out.pop()
