@@ -313,7 +313,10 @@ def _pilot_indices(plan: Plan) -> np.ndarray:
 
 
 def _timed_render(renderer, t_s: float, spp: int, seed: int, groups) -> tuple[np.ndarray, float]:
+    """One render and its seconds, the scene update included: every pass of a run moves the
+    geometry (and rebuilds the acceleration structure) before it renders."""
     t0 = time.perf_counter()
+    renderer.set_time(float(t_s), force=True)
     img = renderer.render(float(t_s), int(spp), int(seed), groups)
     return img.astype(np.float64), time.perf_counter() - t0
 

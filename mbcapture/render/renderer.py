@@ -318,10 +318,11 @@ class Renderer:
         """The ``mitsuba`` module, with this renderer's variant set."""
         return self._mi
 
-    def set_time(self, t_s: float) -> None:
-        """Move every part to scene time ``t_s`` (s); no kernel is recompiled."""
+    def set_time(self, t_s: float, force: bool = False) -> None:
+        """Move every part to scene time ``t_s`` (s); no kernel is recompiled. ``force`` redoes the
+        update (and the acceleration-structure rebuild) even at the current time, e.g. to time it."""
         t_s = float(t_s)
-        if t_s == self._time_s or not self._build.parts:
+        if (t_s == self._time_s and not force) or not self._build.parts:
             self._time_s = t_s
             return
         parts = self._build.parts
