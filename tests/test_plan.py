@@ -126,6 +126,9 @@ class FakeRenderer:
         self.height, self.width, self.slope = height, width, slope
         self.calls = []
 
+    def set_time(self, t_s, force=False):
+        pass
+
     def render(self, t_s, spp, seed, groups=None):
         groups = tuple(self.groups if groups is None else groups)
         self.calls.append((t_s, spp, groups))
