@@ -1,18 +1,8 @@
 """HDR signal-to-noise ratio against scene radiance for three capture protocols.
 
-All three capture the exposures T, 2T, 4T, 8T of a static flat scene on the same sensor
-(the default :class:`SensorConfig`, fixed-pattern noise off unless ``--fixed-pattern``):
-
-``photon_efficient``
-    Buckets 1..4 gated 4T, 2T, T, T (interleaved over 8T); non-destructive cumulative reads
-    J1 = B4, J2 = B4 + B3, J3 = B4 + B3 + B2, J4 = all (exposures T, 2T, 4T, 8T), merged by
-    ``ramp_fit``. Buckets hold charge for 8T (dark current).
-``interleaved``
-    Buckets gated 8T, 4T, 2T, T (interleaved over 15T), each read directly, merged by
-    ``inverse_variance``. Buckets hold charge for 15T.
-``sequential``
-    A conventional sensor takes 4 frames 8T, 4T, 2T, T one after another (each a separate
-    destructive read of its own exposure), merged by ``inverse_variance``.
+The protocols, the sensor model they run through and the SNR estimate are in
+:mod:`mbcapture.snr` (also used by ``mbcapture figures``); the default sensor here has
+fixed-pattern noise off unless ``--fixed-pattern``.
 
 For a static scene interleaved and sequential differ only by dark current; sequential's
 drawback is motion, which this script does not model. At equal T, photon_efficient collects
