@@ -163,9 +163,13 @@ def _cmd_scenes(args) -> int:
     for name in scenes.available():
         mod = scenes.load_module(name)
         print(f"{name}: {mod.DESCRIPTION}")
-        for key, f in mod.Params.model_fields.items():
-            print(f"    scene.{key} = {f.default!r}    {f.description or ''}")
+        _print_keys("scene", mod.Params)
     return 0
+
+
+def _print_keys(prefix: str, model) -> None:
+    for key, f in model.model_fields.items():
+        print(f"    {prefix}.{key} = {f.default!r}    {f.description or ''}")
 
 
 def _cmd_figures(args) -> int:
@@ -173,7 +177,7 @@ def _cmd_figures(args) -> int:
 
     if args.list:
         for name in figures.names():
-            spec = figures._REGISTRY[name]
+            spec = figures.spec(name)
             print(f"{name}: {spec.title} ({spec.paper})")
         return 0
     entries = figures.make_figures(args.out, quick=args.quick, only=args.only, seed=args.seed, progress=not args.quiet)
@@ -193,8 +197,7 @@ def _cmd_apps(args) -> int:
     for name in apps.names():
         app = apps.get(name)
         print(f"{name}: {app.description}  (protocols: {', '.join(by_app.get(name, [])) or 'any, chosen with app.name'})")
-        for key, f in app.params.model_fields.items():
-            print(f"    app.{key} = {f.default!r}    {f.description or ''}")
+        _print_keys("app", app.params)
     return 0
 
 

@@ -215,12 +215,14 @@ def tonemap(rgb_linear: np.ndarray, percentile: float | None = 99.5) -> np.ndarr
     (colour-science)."""
     import colour
 
+    from .metrics import luminance
+
     rgb = np.nan_to_num(np.asarray(rgb_linear, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     if rgb.ndim == 2:
         rgb = rgb[..., None]
     if rgb.shape[-1] == 1:
         rgb = np.repeat(rgb, 3, axis=-1)
-    lum = rgb @ np.array([0.2126, 0.7152, 0.0722])
+    lum = luminance(rgb)
     if percentile is None:
         white = 1.0
     else:

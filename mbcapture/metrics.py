@@ -17,8 +17,19 @@ __all__ = [
     "psnr",
     "pu21_encode",
     "pu21_psnr",
+    "REC709_LUMA",
+    "luminance",
     "relative_mse",
 ]
+
+#: Rec. 709 luminance weights of linear RGB.
+REC709_LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """(..., C) -> (...): Rec. 709 luminance of linear RGB for 3 channels, the channel mean otherwise (float64)."""
+    rgb = np.asarray(rgb, dtype=np.float64)
+    return rgb @ REC709_LUMA if rgb.shape[-1] == 3 else rgb.mean(axis=-1)
 
 RELMSE_EPS = 1e-2
 """Default eps of :func:`relative_mse`, in the squared units of the reference.

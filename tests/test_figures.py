@@ -13,7 +13,7 @@ from mbcapture import figures
 from mbcapture.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
-NO_RENDER = [n for n in figures.names() if not figures._REGISTRY[n].renders]
+NO_RENDER = [n for n in figures.names() if not figures.spec(n).renders]
 
 
 def test_schedule_figures_are_written_with_data_and_index(tmp_path):

@@ -48,12 +48,11 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from .. import protocols
 from ..errors import ConfigError
-from ..metrics import relative_mse
+from ..metrics import luminance, relative_mse
 from ..timeline import ReadEvent, SlotSeconds, exact
 from . import AppOutput, CaptureData, register
 from .hdr import REL_MSE_EPS_RADIANCE
 
-LUMA = np.array([0.2126, 0.7152, 0.0722])
 FLASH_READ, NOFLASH_READ = "flash", "noflash"
 #: The matting image is divided by this percentile of its largest channel (then clipped to [0, 1]).
 MATTING_WHITE_PERCENTILE = 99.9
@@ -142,12 +141,6 @@ def flash_matting_protocol(cfg):
 
 
 # ----------------------------------------------------------------------------- pure functions
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    """Rec. 709 luminance of linear RGB (..., 3); the channel mean for other channel counts."""
-    rgb = np.asarray(rgb, dtype=np.float64)
-    return rgb @ LUMA if rgb.shape[-1] == 3 else rgb.mean(-1)
-
-
 def flash_only_image(flash_e: np.ndarray, flash_exposure_s: float, noflash_e: np.ndarray, noflash_exposure_s: float,
                      k_e: np.ndarray) -> np.ndarray:
     """Flash-only radiance (H, W, C): the reads' rates difference, electrons -> render units."""

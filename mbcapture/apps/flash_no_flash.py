@@ -41,14 +41,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .. import protocols
 from ..errors import ConfigError
-from ..metrics import psnr, relative_mse
+from ..metrics import luminance, psnr, relative_mse
 from ..timeline import ReadEvent, SlotSeconds, exact
 from . import AppOutput, CaptureData, register
 from .hdr import REL_MSE_EPS_RADIANCE
 
 #: The switchable emitter group the protocol pulses.
 FLASH_GROUP = "flash"
-LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 # ----------------------------------------------------------------------------- protocol
@@ -106,14 +105,9 @@ class FlashNoFlashParams(BaseModel):
 
 
 # ----------------------------------------------------------------------------- filters
-def _luminance(rgb: np.ndarray) -> np.ndarray:
-    rgb = np.asarray(rgb, dtype=np.float64)
-    return rgb @ LUMA if rgb.shape[-1] == 3 else rgb.mean(-1)
-
-
 def white_level(rgb: np.ndarray, percentile: float) -> float:
     """The ``percentile`` of the image's luminance (1.0 if that is not positive)."""
-    w = float(np.percentile(_luminance(rgb), percentile))
+    w = float(np.percentile(luminance(rgb), percentile))
     return w if w > 0 else 1.0
 
 
@@ -167,7 +161,7 @@ def flash_mask(flash_only_n: np.ndarray, specular: np.ndarray, shadow_threshold:
     """
     from scipy import ndimage
 
-    shadow = _luminance(flash_only_n) < shadow_threshold
+    shadow = luminance(flash_only_n) < shadow_threshold
     shadow = ndimage.binary_opening(shadow, structure=np.ones((3, 3), bool))
     spec = np.asarray(specular, bool)
     if dilate_px > 0:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..metrics import pu21_psnr, relative_mse
+from ..metrics import REC709_LUMA, pu21_psnr, relative_mse
 from ..reconstruct.hdr import merge_hdr, resolve_method
 from . import AppOutput, CaptureData, register
 
@@ -23,7 +23,7 @@ REL_MSE_EPS_RADIANCE = 1e-4
 
 
 def luminance_cd_m2(rgb_radiance: np.ndarray) -> np.ndarray:
-    return LUMINOUS_EFFICACY_LM_PER_W * (np.asarray(rgb_radiance) @ np.array([0.2126, 0.7152, 0.0722]))
+    return LUMINOUS_EFFICACY_LM_PER_W * (np.asarray(rgb_radiance) @ REC709_LUMA)
 
 
 def normalized_reads(data: CaptureData) -> np.ndarray:

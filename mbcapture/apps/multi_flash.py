@@ -71,7 +71,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .. import protocols
 from ..errors import ConfigError
-from ..metrics import relative_mse
+from ..metrics import luminance, relative_mse
 from ..timeline import ReadEvent, SlotSeconds, Timeline, exact
 from . import AppOutput, CaptureData, register
 
@@ -184,14 +184,6 @@ def epipole(camera, position, width: int, height: int) -> Epipole:
 
 
 # --------------------------------------------------------------------------------- images
-def luminance(img: np.ndarray) -> np.ndarray:
-    """(..., C) -> (...): Rec. 709 weights for 3 channels, else the channel mean."""
-    img = np.asarray(img, dtype=np.float64)
-    if img.shape[-1] == 3:
-        return img @ np.array([0.2126, 0.7152, 0.0722])
-    return img.mean(axis=-1)
-
-
 def flash_images(reads_e: np.ndarray, exposure_s: np.ndarray, k_e: np.ndarray, flash_reads: list[int],
                  ambient_read: int | None) -> np.ndarray:
     """(F, H, W, C) radiance of each flash read (W m^-2 sr^-1 while the flash was on), with the

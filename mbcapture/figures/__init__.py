@@ -81,6 +81,11 @@ def names() -> list[str]:
     return sorted(_REGISTRY, key=_order)
 
 
+def spec(name: str) -> FigureSpec:
+    _load()
+    return _REGISTRY[name]
+
+
 @dataclass
 class FigureContext:
     """quick: small film and few samples; captures are cached by (config, overrides)."""
