@@ -212,6 +212,9 @@ def main(argv: list[str] | None = None) -> int:
     except MBCaptureError as exc:
         print(f"mbcapture: error: {exc}", file=sys.stderr)
         return EXIT_INPUT
+    except BrokenPipeError:  # output piped into e.g. `head`, which stopped reading
+        sys.stderr.close()
+        return 0
     except KeyboardInterrupt:
         print("mbcapture: interrupted; no output was changed", file=sys.stderr)
         return 130

@@ -44,3 +44,13 @@ def test_shipped_config_runs_at_tiny_size(path):
         assert (np.isfinite(img) | invalid).all(), name
     for image, _ in result.app_output.png.values():  # every preview names an image that exists
         assert image in result.images
+
+
+def test_cli_output_piped_into_head_ends_quietly():
+    import subprocess
+    import sys
+
+    proc = subprocess.run(["bash", "-o", "pipefail", "-c", f"'{sys.executable}' -m mbcapture apps | head -c 20"],
+                          capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == 0 and len(proc.stdout) == 20
+    assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr
