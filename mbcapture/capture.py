@@ -189,7 +189,6 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     with timer("plan"):
         scene, timeline, plan, seeds = prepare(cfg)
         app, app_params = cfg.app.resolve(cfg.capture.protocol)
-    rng_sensor = np.random.default_rng(seeds[1])
     W, H = cfg.render.width, cfg.render.height
 
     with timer("render_setup"):
@@ -216,7 +215,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
             buckets_e,
             [r.buckets for r in timeline.reads],
             cfg.sensor,
-            rng_sensor,
+            seeds[1],
             storage_s=storage_s,
             shared_photodiode=not timeline.sequential,
         )

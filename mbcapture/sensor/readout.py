@@ -11,17 +11,21 @@ Order of the physics (one capture):
 3. Dark current: ``dark_current_e_per_s * storage_s[k]`` electrons of mean in bucket k.
 4. Shot noise: ONE Poisson draw per bucket on its total expectation. The charge a bucket
    collects is a sum of independent Poisson increments (one per gate slot), and a sum of
-   independent Poisson variables is Poisson with the summed mean, so one draw is exact.
+   independent Poisson variables is Poisson with the summed mean, so one draw is exact. It
+   is drawn by inversion of a per-bucket, per-pixel uniform fixed by the seed
+   (:mod:`.sampling`): the same seed on another CPU, whose renderer differs in the last bits,
+   gives the same counts except where a step of the Poisson CDF falls between the two means.
 5. Bucket full well: charge above ``full_well_e`` is drained by the anti-blooming gate and
    lost (it does not spill into other buckets or pixels); every read that includes such a
    bucket is flagged saturated.
 6. Transfer to the floating diffusion (FD): each electron is left behind with probability
-   ``transfer_inefficiency`` (binomial thinning, one draw per bucket: a bucket is moved onto
-   the FD once, and a non-destructive cumulative read keeps it there for later reads).
+   ``transfer_inefficiency`` (binomial thinning, one draw per bucket by inversion of its own
+   uniform field: a bucket is moved onto the FD once, and a non-destructive cumulative read
+   keeps it there for later reads).
 7. A read sums its buckets' transferred charge on the FD, noiselessly (the paper's
    in-pixel addition, section 4.1). The sum clips at ``fd_full_well_e`` (flagged).
 8. Readout chain, ONCE PER READ: DSNU offset, Gaussian read noise ``read_noise_e`` (the
-   paper's R, figure 11b), conversion gain, black level, rounding to integer codes, ADC
+   paper's R, figure 11b; a normal field of its own), conversion gain, black level, rounding to integer codes, ADC
    clipping to [0, 2^bits - 1] (the top code is flagged saturated; the bottom one is not,
    as it only happens for black levels below the read noise).
 
@@ -38,11 +42,9 @@ from typing import Sequence
 import numpy as np
 
 from .config import SensorConfig
+from .sampling import NoiseStreams, binomial_quantile, poisson_quantile
 
 __all__ = ["FixedPattern", "SensorReads", "dn_to_electrons", "fixed_pattern", "simulate_reads"]
-
-POISSON_MAX_E = 1e18
-"""Largest mean drawn from a Poisson law; above it a bucket gets its rounded mean (tests/test_stability.py)."""
 
 
 @dataclass(frozen=True)
@@ -115,7 +117,7 @@ def simulate_reads(
     expected_bucket_e: np.ndarray,
     reads: Sequence[Sequence[int]],
     cfg: SensorConfig,
-    rng: np.random.Generator,
+    noise: NoiseStreams | np.random.SeedSequence | np.random.Generator | int,
     *,
     storage_s: np.ndarray | Sequence[float] | None = None,
     shared_photodiode: bool = True,
@@ -132,8 +134,10 @@ def simulate_reads(
         index per read for direct reads).
     cfg:
         The sensor.
-    rng:
-        Source of the capture's shot and read noise (the fixed pattern has its own seed).
+    noise:
+        Source of the capture's shot, transfer and read noise: :class:`~.sampling.NoiseStreams`
+        or what it is made from (a SeedSequence, an int, a Generator). Each noise source has
+        its own stream (the fixed pattern has its own seed, ``cfg.fpn_seed``).
     storage_s:
         (K,) seconds each bucket holds charge before its read (integration plus waiting),
         for dark current. ``None``: no dark current is added.
@@ -170,17 +174,14 @@ def simulate_reads(
             raise ValueError(f"storage_s: expected {k_buckets} non-negative seconds, got {storage!r}")
         mean_e = mean_e + (cfg.dark_current_e_per_s * storage)[:, None, None, None]
 
-    # numpy refuses Poisson means above ~9.2e18; from 1e18 on the relative shot noise (1e-9) is below
-    # float64 resolution of anything downstream, and such a bucket is far above any full well
-    electrons = rng.poisson(np.minimum(mean_e, POISSON_MAX_E)).astype(np.float64)
-    beyond = mean_e > POISSON_MAX_E
-    if beyond.any():
-        electrons[beyond] = np.rint(mean_e[beyond])
+    streams = noise if isinstance(noise, NoiseStreams) else NoiseStreams(noise)
+    electrons = poisson_quantile(streams.uniform("shot", mean_e.shape), mean_e)
     bucket_saturated = electrons >= cfg.full_well_e
     np.minimum(electrons, cfg.full_well_e, out=electrons)
 
     if cfg.transfer_inefficiency > 0.0:
-        transferred = rng.binomial(electrons.astype(np.int64), 1.0 - cfg.transfer_inefficiency).astype(np.float64)
+        lost = binomial_quantile(streams.uniform("transfer", electrons.shape), electrons, cfg.transfer_inefficiency)
+        transferred = electrons - lost
     else:
         transferred = electrons
 
@@ -190,12 +191,13 @@ def simulate_reads(
     reads_e_expected = np.empty(shape, dtype=np.float64)
     saturated = np.empty(shape, dtype=bool)
     adc_max = float(cfg.adc_max_dn)
+    read_noise = streams.normal("read", shape)
     for r, buckets in enumerate(read_sets):
         idx = list(buckets)
         fd_e = transferred[idx].sum(axis=0)
         sat = bucket_saturated[idx].any(axis=0) | (fd_e >= cfg.fd_full_well_e)
         np.minimum(fd_e, cfg.fd_full_well_e, out=fd_e)
-        signal_e = fd_e + fpn.dsnu_offset_e + cfg.read_noise_e * rng.standard_normal(fd_e.shape)
+        signal_e = fd_e + fpn.dsnu_offset_e + cfg.read_noise_e * read_noise[r]
         dn = np.rint(cfg.gain_dn_per_e * signal_e + cfg.black_level_dn)
         sat |= dn >= adc_max
         reads_dn[r] = np.clip(dn, 0.0, adc_max)
