@@ -141,6 +141,14 @@ def _versions() -> dict:
     return out
 
 
+def _llvm_target_label() -> str:
+    """'znver4, vector width 16': the CPU target Dr.Jit compiled this run's kernels for."""
+    from .render.llvm import llvm_target
+
+    t = llvm_target()
+    return f"{t['cpu']}, vector width {t['vector_width']}"
+
+
 def prepare(cfg: CaptureConfig) -> tuple[scenes.SceneModel, Timeline, Plan, list[np.random.SeedSequence]]:
     """Scene, timeline and render plan of a capture, and the run's seeds split per stage
     (0: plan jitter, 1: sensor noise, 2: render seeds, 3: the application's reference renders).
@@ -255,7 +263,8 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
             **render_error(integrated.mc_var, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
             **temporal_error(integrated, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
         },
-        "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant},
+        "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant,
+                     "llvm_target": _llvm_target_label() if llvm else None},
     }
     result = CaptureResult(
         config=cfg,

@@ -14,6 +14,16 @@ Rules
   by someone else first).
 
 Every refusal is an :class:`~mbcapture.errors.EnvironmentProblem` with one line naming the fix.
+
+CPU target
+----------
+Dr.Jit compiles its LLVM kernels for the host CPU (instruction set and vector width), so the
+same render differs in the last bits between machines. ``MBCAPTURE_LLVM_TARGET`` makes it
+compile for another x86-64 target instead, to reproduce another machine's renders (the golden
+tests use it to prove that they pass on other CPUs): a name from :data:`CPU_TARGETS`, or
+``cpu:features:width`` in LLVM's terms (``haswell:+avx,+avx2,+fma:8``; FMA is required). It must be set before
+the process renders anything; the target must run on the host (an AVX2 target on an AVX-512
+host, not the reverse). :func:`llvm_target` reports what kernels are compiled for.
 """
 
 from __future__ import annotations
@@ -27,6 +37,28 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 from ..errors import EnvironmentProblem
+
+#: Environment variable naming the CPU target Dr.Jit compiles for (see the module doc).
+TARGET_ENV_VAR = "MBCAPTURE_LLVM_TARGET"
+#: Named x86-64 targets: (LLVM cpu name, LLVM feature string, Dr.Jit vector width).
+_BASE = "+64bit,+cmov,+cx8,+cx16,+fxsr,+mmx,+sse,+sse2,+sse3,+ssse3,+sse4.1,+sse4.2,+popcnt,+xsave"
+_AVX2 = _BASE + ",+avx,+avx2,+fma,+f16c,+bmi,+bmi2,+lzcnt,+movbe"
+# LLVM >= 18 also wants +evex512 for 512-bit vectors (without it: "Do not know how to split")
+_AVX512 = _AVX2 + ",+avx512f,+avx512dq,+avx512bw,+avx512vl,+avx512cd,+evex512"
+CPU_TARGETS: dict[str, tuple[str, str, int]] = {
+    "haswell": ("haswell", _AVX2, 8),
+    # AVX2 instructions on 4-wide vectors: not Dr.Jit's choice on any machine, but another
+    # vector width that every AVX2 host can run (its second target when it is not AVX-512)
+    "haswell-w4": ("haswell", _AVX2, 4),
+    "skylake-avx512": ("skylake-avx512", _AVX512, 16),
+}
+# Targets without FMA (x86-64-v2, sandybridge) cannot be used: LLVM lowers Dr.Jit's fma intrinsic
+# to a library call there and Dr.Jit aborts ("a global offset table was generated").
+# Dr.Jit's C++ entry points (drjit-core 1.x, not bound in Python): mangled names
+_SYM_SET_TARGET = "_Z19jit_llvm_set_targetPKcS0_j"
+_SYM_CPU = "_Z19jit_llvm_target_cpuv"
+_SYM_FEATURES = "_Z24jit_llvm_target_featuresv"
+_SYM_WIDTH = "_Z21jit_llvm_vector_widthv"
 
 #: Oldest LLVM major version that renders without crashing.
 MIN_LLVM_MAJOR = 16
@@ -160,3 +192,66 @@ def ensure_llvm() -> tuple[int, int, int]:
             f"Dr.Jit loaded LLVM {'.'.join(map(str, version))} (crashes Mitsuba); {FIX}"
         )
     return version  # type: ignore[return-value]
+
+
+def parse_target(spec: str) -> tuple[str, str, int]:
+    """A :data:`TARGET_ENV_VAR` value as (cpu, features, vector width); EnvironmentProblem if malformed."""
+    spec = spec.strip()
+    if spec in CPU_TARGETS:
+        return CPU_TARGETS[spec]
+    parts = spec.split(":")
+    if len(parts) != 3 or not parts[0] or not parts[2].isdigit() or int(parts[2]) not in (1, 4, 8, 16):
+        raise EnvironmentProblem(
+            f"{TARGET_ENV_VAR}={spec!r}: expected one of {sorted(CPU_TARGETS)} or cpu:features:width "
+            "with width 1, 4, 8 or 16 (e.g. haswell:+avx,+avx2,+fma:8)")
+    return parts[0], parts[1], int(parts[2])
+
+
+def _core_lib():
+    import ctypes
+
+    import drjit as dr
+
+    return ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so"))
+
+
+def llvm_target() -> dict:
+    """What Dr.Jit's LLVM backend compiles for: {"cpu", "features", "vector_width"}."""
+    import ctypes
+
+    lib = _core_lib()
+    try:
+        cpu, features, width = getattr(lib, _SYM_CPU), getattr(lib, _SYM_FEATURES), getattr(lib, _SYM_WIDTH)
+    except AttributeError:
+        return {"cpu": None, "features": None, "vector_width": None}
+    cpu.restype = features.restype = ctypes.c_char_p
+    width.restype = ctypes.c_uint32
+    return {"cpu": (cpu() or b"").decode(), "features": (features() or b"").decode(), "vector_width": int(width())}
+
+
+_applied_target: tuple[str, str, int] | None = None
+
+
+def apply_target_from_env() -> tuple[str, str, int] | None:
+    """Compile for :data:`TARGET_ENV_VAR`'s target, if set (once per process, before the first
+    kernel: call it right after ``mi.set_variant`` of an llvm variant). Returns the target or None."""
+    global _applied_target
+    spec = os.environ.get(TARGET_ENV_VAR)
+    if not spec:
+        return None
+    target = parse_target(spec)
+    if _applied_target is not None:
+        if _applied_target != target:
+            raise EnvironmentProblem(f"{TARGET_ENV_VAR} changed within one process ({_applied_target[0]} -> {target[0]})")
+        return target
+    import ctypes
+
+    try:
+        fn = getattr(_core_lib(), _SYM_SET_TARGET)
+    except AttributeError:
+        raise EnvironmentProblem(f"{TARGET_ENV_VAR}: this Dr.Jit has no jit_llvm_set_target (drjit 1.5 has)") from None
+    fn.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32]
+    fn.restype = None
+    fn(target[0].encode(), target[1].encode(), target[2])
+    _applied_target = target
+    return target

@@ -24,7 +24,7 @@ from .build import (
     spectrum_to_rgb_reflectance,
 )
 from .integrator import PLUGIN_NAME, integrator_class
-from .llvm import ensure_llvm
+from .llvm import apply_target_from_env, ensure_llvm
 
 if TYPE_CHECKING:
     from ..sensor.config import SensorConfig
@@ -128,6 +128,8 @@ class Renderer:
         if variant not in mi.variants():
             raise ConfigError(f"render.variant: {variant!r} not in {mi.variants()}")
         mi.set_variant(variant)
+        if variant.startswith("llvm"):
+            apply_target_from_env()  # MBCAPTURE_LLVM_TARGET: compile for another CPU (before any kernel)
         self._mi, self._dr = mi, dr
         self.variant = variant
         self.scene_model = scene
