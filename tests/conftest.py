@@ -1,19 +1,27 @@
 """Shared test options and fixtures.
 
-``--regen-golden`` rewrites the golden images of tests/golden/ from the current code, and every
-golden test still fails so that the change is reviewed (``git diff --stat tests/golden``) before
-it is committed.
+``--regen-golden`` rewrites the golden images of tests/golden/ from the current code, recording
+on which machine and CPU target they were made, and every golden test still fails so that the
+change is reviewed (``git diff --stat tests/golden``) before it is committed; then
+``python scripts/golden_spread.py`` measures how much each image differs between CPU targets,
+which sets its tolerance.
 """
 
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from golden_cases import SPREAD_FILE, compare, tolerance, within
+
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
 FAILURE_DIR = Path(__file__).resolve().parents[1] / "out" / "golden-failures"
+#: Key of the JSON metadata (machine, target, versions, date) inside each golden .npz.
+META_KEY = "__meta__"
 
 
 def pytest_addoption(parser):
@@ -21,49 +29,89 @@ def pytest_addoption(parser):
                      help="rewrite tests/golden/*.npz from the current code (the golden tests then fail for review)")
 
 
-def relative_l2(obtained: np.ndarray, expected: np.ndarray) -> float:
-    """||obtained - expected|| / ||expected|| over the finite samples (float64); 0 for two all-zero
-    images; inf when the non-finite samples (e.g. sigma = inf where every read saturated) differ."""
-    a, b = np.asarray(obtained, np.float64), np.asarray(expected, np.float64)
-    finite = np.isfinite(b)
-    if not np.array_equal(finite, np.isfinite(a)) or not np.array_equal(a[~finite], b[~finite], equal_nan=True):
-        return float("inf")
-    a, b = a[finite], b[finite]
-    norm = float(np.linalg.norm(b))
-    diff = float(np.linalg.norm(a - b))
-    return diff / norm if norm > 0 else diff
+def machine_description() -> dict:
+    """Where an image was computed: CPU model, Dr.Jit's compile target, library versions, commit."""
+    import platform
+    import subprocess
+    from datetime import datetime, timezone
+    from importlib import metadata
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    except OSError:
+        pass
+    target = {"cpu": None, "vector_width": None}
+    try:
+        from mbcapture.render.llvm import llvm_target
+
+        target = llvm_target()
+    except Exception as exc:  # no usable Dr.Jit: the numpy-only goldens still record the rest
+        target = {"cpu": f"unavailable ({exc})", "vector_width": None}
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=GOLDEN_DIR, timeout=10).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    versions = {}
+    for pkg in ("mitsuba", "drjit", "numpy", "scipy", "opencv-python-headless", "pymatting"):
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    return {"cpu": cpu, "llvm_target": target.get("cpu"), "vector_width": target.get("vector_width"),
+            "emulated": os.environ.get("MBCAPTURE_LLVM_TARGET"), "commit": commit, "versions": versions,
+            "made": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+
+
+def read_golden(path: Path) -> tuple[dict[str, np.ndarray], dict]:
+    """(images, metadata) of a golden .npz."""
+    with np.load(path) as data:
+        images = {k: data[k] for k in data.files if k != META_KEY}
+        meta = json.loads(str(data[META_KEY])) if META_KEY in data.files else {}
+    return images, meta
 
 
 class Golden:
-    """Compare named float images with ``tests/golden/<case>.npz`` (linear float, relative L2)."""
+    """Compare named images with ``tests/golden/<case>.npz`` within tolerances derived from the
+    differences measured between CPU targets (see tests/golden_cases.py)."""
 
     def __init__(self, regen: bool):
         self.regen = regen
+        self._spread: dict | None = None
 
-    def check(self, case: str, images: dict[str, np.ndarray], tolerance: dict[str, float] | float) -> None:
+    def measured(self, case: str, name: str) -> dict | None:
+        if self._spread is None:
+            self._spread = json.loads(SPREAD_FILE.read_text()) if SPREAD_FILE.exists() else {"cases": {}}
+        return self._spread["cases"].get(case, {}).get(name)
+
+    def check(self, case: str, images: dict[str, np.ndarray]) -> None:
         path = GOLDEN_DIR / f"{case}.npz"
         images = {k: np.asarray(v, dtype=np.float32) for k, v in images.items()}
         if self.regen:
             GOLDEN_DIR.mkdir(exist_ok=True)
-            np.savez_compressed(path, **images)
-            pytest.fail(f"--regen-golden: rewrote {path.name}; review the change and run the tests again without it")
+            meta = np.array(json.dumps(machine_description()))
+            np.savez_compressed(path, **images, **{META_KEY: meta})
+            pytest.fail(f"--regen-golden: rewrote {path.name}; review the change, run scripts/golden_spread.py "
+                        "to measure its cross-target differences, and run the tests again without the flag")
         if not path.exists():
             pytest.fail(f"{path} is missing: run pytest --regen-golden to create it, then review it")
-        with np.load(path) as data:
-            expected = {k: data[k] for k in data.files}
+        expected, meta = read_golden(path)
         assert sorted(expected) == sorted(images), f"{case}: image names changed: {sorted(expected)} -> {sorted(images)}"
         failures = []
         for name, exp in expected.items():
             got = images[name]
-            tol = tolerance if isinstance(tolerance, float) else tolerance[name]
             if got.shape != exp.shape:
                 failures.append(f"{name}: shape {got.shape} != golden {exp.shape}")
                 continue
-            err = relative_l2(got, exp)
-            if not np.isfinite(err) or err > tol:
-                failures.append(f"{name}: relative L2 error {err:.3g} > {tol:g}")
+            why = within(compare(got, exp), tolerance(case, name, exp, self.measured(case, name)), got)
+            if why:
+                failures.append(f"{name}: {why}")
                 self._write_failure(case, name, exp, got)
-        assert not failures, f"{case} differs from its golden images ({FAILURE_DIR / case}): " + "; ".join(failures)
+        made = f"golden made on {meta.get('cpu')}, {meta.get('llvm_target')} x{meta.get('vector_width')}" if meta else ""
+        assert not failures, f"{case} differs from its golden images ({made}; evidence in {FAILURE_DIR / case}): " + \
+            "; ".join(failures)
 
     @staticmethod
     def _write_failure(case: str, name: str, expected: np.ndarray, obtained: np.ndarray) -> None:
@@ -71,7 +119,8 @@ class Golden:
 
         out = FAILURE_DIR / case
         out.mkdir(parents=True, exist_ok=True)
-        diff = np.abs(obtained.astype(np.float64) - expected)
+        with np.errstate(invalid="ignore"):  # inf - inf where both saturated
+            diff = np.abs(obtained.astype(np.float64) - expected)
         for label, img in (("expected", expected), ("obtained", obtained), ("difference", diff)):
             arr = np.asarray(img, np.float32)
             flat = arr.reshape(arr.shape[0], arr.shape[1], -1) if arr.ndim >= 2 else arr.reshape(1, -1, 1)

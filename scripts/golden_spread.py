@@ -1,0 +1,124 @@
+"""Measure how much each golden image differs between CPU targets; write tests/golden/cross_target.json.
+
+    python scripts/golden_spread.py [--targets native,haswell,haswell-w4,skylake-avx512] [--cases A,B]
+
+Every golden case (tests/golden_cases.py) is computed once per target, each in its own process
+whose libraries compile and dispatch for that target (mbcapture.portability: Dr.Jit's vector
+width and instruction set, numpy's SIMD loops, OpenBLAS's kernels, numba, OpenCV). For every
+image the largest difference over all pairs of targets is kept (relative L2, samples that
+differ, samples finite in one only, largest absolute difference); the golden tests allow
+SAFETY times that (tests/golden_cases.py). Targets the host cannot run are left out.
+Takes about a minute per target on 2 cores. Run it after ``pytest --regen-golden``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+from golden_cases import SPREAD_FILE, all_cases, compare  # noqa: E402
+
+from mbcapture.portability import emulation_env, runnable_targets  # noqa: E402
+
+
+def dump(out: Path, cases: list[str]) -> None:
+    """Child process: compute the cases and save each as <out>/<case>.npz (float32, as stored)."""
+    out.mkdir(parents=True, exist_ok=True)
+    every = all_cases()
+    for name in cases:
+        images = {k: np.asarray(v, np.float32) for k, v in every[name]().items()}
+        np.savez(out / f"{name}.npz", **images)
+        print(f"  {name}", flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--targets", default="native," + ",".join(runnable_targets()))
+    ap.add_argument("--cases", default=",".join(all_cases()))
+    ap.add_argument("--out", type=Path, default=SPREAD_FILE)
+    ap.add_argument("--dump", type=Path, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    cases = [c for c in args.cases.split(",") if c]
+    if args.dump:
+        dump(args.dump, cases)
+        return
+
+    targets = [t for t in args.targets.split(",") if t]
+    runnable = set(runnable_targets()) | {"native"}
+    skipped = [t for t in targets if t not in runnable]
+    targets = [t for t in targets if t in runnable]
+    if skipped:
+        print(f"left out (this host cannot run them): {', '.join(skipped)}")
+    with tempfile.TemporaryDirectory() as tmp:
+        results: dict[str, Path] = {}
+        described: dict[str, str] = {}
+        for t in targets:
+            env = dict(os.environ) if t == "native" else emulation_env(t)
+            if t == "native":
+                for k in ("MBCAPTURE_LLVM_TARGET", "NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE",
+                          "NUMBA_CPU_NAME", "OPENCV_CPU_DISABLE"):
+                    env.pop(k, None)
+            print(f"{t}:", flush=True)
+            subprocess.run([sys.executable, __file__, "--dump", str(Path(tmp) / t), "--cases", ",".join(cases)],
+                           env=env, cwd=ROOT, check=True)
+            probe = ("from mbcapture.render import ensure_llvm; ensure_llvm(); import mitsuba as mi; "
+                     "mi.set_variant('llvm_ad_rgb'); from mbcapture.render.llvm import apply_target_from_env, "
+                     "llvm_target; apply_target_from_env(); t = llvm_target(); print(t['cpu'], t['vector_width'])")
+            described[t] = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
+                                          check=True).stdout.strip()
+            results[t] = Path(tmp) / t
+
+        spread: dict[str, dict] = {}
+        for case in cases:
+            per_target = {t: dict(np.load(results[t] / f"{case}.npz")) for t in targets}
+            names = sorted(per_target[targets[0]])
+            spread[case] = {}
+            for name in names:
+                worst = {"rel_l2": 0.0, "flips": 0, "nonfinite": 0, "max_abs": 0.0}
+                for a, b in itertools.combinations(targets, 2):
+                    d = compare(per_target[a][name], per_target[b][name])
+                    worst = {k: max(worst[k], d[k]) for k in worst}
+                spread[case][name] = worst
+
+    made = {}
+    for case in cases:
+        path = ROOT / "tests" / "golden" / f"{case}.npz"
+        if path.exists():
+            with np.load(path) as data:
+                made[case] = json.loads(str(data["__meta__"]))["made"] if "__meta__" in data.files else None
+    doc = {
+        "about": "largest difference of each golden image between the CPU targets below "
+                 "(scripts/golden_spread.py); tests/golden_cases.py turns it into a tolerance",
+        "measured": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "targets": {t: described[t] for t in targets},
+        "golden_made": made,
+        "cases": spread,
+    }
+    old = json.loads(args.out.read_text()) if args.out.exists() else {"cases": {}}
+    if set(cases) != set(all_cases()):  # a partial run updates its cases only
+        doc["cases"] = {**old.get("cases", {}), **spread}
+        doc["golden_made"] = {**old.get("golden_made", {}), **made}
+    tmp_out = args.out.with_suffix(".json.tmp")
+    tmp_out.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    os.replace(tmp_out, args.out)
+    print(f"wrote {args.out.relative_to(ROOT)}")
+    for case in cases:
+        worst = max(spread[case].items(), key=lambda kv: kv[1]["rel_l2"])
+        flips = sum(v["flips"] for v in spread[case].values())
+        print(f"  {case:28s} largest relative L2 {worst[1]['rel_l2']:.2e} ({worst[0]}), samples differing {flips}")
+
+
+if __name__ == "__main__":
+    main()
