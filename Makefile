@@ -7,5 +7,6 @@ setup:
 capture: setup
 	.venv/bin/mbcapture run configs/metronome_hdr.yaml --out out/metronome_hdr
 
+# two or more worker processes (pytest-xdist), at most 4: renders are multi-threaded already
 test: setup
-	.venv/bin/python -m pytest -q
+	.venv/bin/python -m pytest -q -n auto --maxprocesses 4
