@@ -12,17 +12,22 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from . import protocols, scenes
 from .config import CaptureConfig
+from .errors import ConfigError
 from .apps import AppOutput, CaptureData
 from .integrate import integrate, temporal_error
 from .io import check_out_dir, staged_outputs
 from .plan import Plan, make_plan, resolve_spp
 from .sensor import electrons_per_render_second, simulate_reads
 from .timeline import Timeline
+
+if TYPE_CHECKING:
+    from .render.cache import RenderCache
 
 
 @dataclass
@@ -103,32 +108,65 @@ def moving_region(scene: scenes.SceneModel, t0_s: float, t1_s: float, width: int
 
 
 def render_error(
-    mc_var_exposure: np.ndarray | None, buckets_e: np.ndarray, k_e: np.ndarray, buckets: list[int], full_well_e: float
+    mc_var_exposure: np.ndarray | None, buckets_e: np.ndarray, k_e: np.ndarray, buckets: list[int], full_well_e: float,
+    *, plan: Plan | None = None, noise_budget: float = 0.1, noise_budget_p95: float = 1.0,
 ) -> dict:
-    """The run's own estimate of its Monte Carlo rendering error, from two half-sample renders.
+    """The run's own estimate of its Monte Carlo rendering error, from two half-sample renders,
+    and whether it is within the noise budget.
 
     Over the bucket samples that hold light but stay below the full well (saturated samples
     carry no image information, and partly covered lamp pixels would dominate every mean):
-    ``rel_rms``: RMS Monte Carlo error over the mean signal; ``to_shot_noise_variance``:
-    median and 95th percentile of MC variance / photon shot-noise variance (electrons^2).
-    Below ~0.1 the sensor's own noise dominates and more samples are wasted; above 1
-    rendering noise is visible in the simulated images.
+    ``rel_rms``: RMS Monte Carlo error over the mean signal; ``to_shot_noise_variance_*``: the
+    ratio of Monte Carlo variance to photon shot-noise variance (electrons^2) per sample, its
+    median and 95th percentile computed from squared half differences pooled over 3x3 pixels
+    (a single squared difference is a 1-degree-of-freedom chi-square variable whose median is 0.45
+    of its mean; see :func:`mbcapture.plan.budget_quantiles`). Below ~0.1 the sensor's own noise
+    dominates and more samples are wasted; above 1 rendering noise is visible in the images.
+    ``budget``: the targets (render.noise_budget for the median, render.noise_budget_p95 for the
+    95th percentile), whether they are met, and if not, the samples per pixel that would meet them
+    (scaled from this run's as 1/spp, which randomized quasi-Monte Carlo beats: an upper bound).
     """
+    from .plan import budget_quantiles, pooled
+
     if mc_var_exposure is None:
         return {"note": "render.spp = 1: no half-sample error estimate"}
-    var_e = mc_var_exposure[buckets] * k_e**2
+    var_e = pooled(mc_var_exposure[buckets]) * k_e**2
     signal = buckets_e[buckets]
     use = (signal > 1.0) & (signal < full_well_e)
     if not use.any():
         return {"note": "no unsaturated lit samples"}
     ratio = var_e[use] / signal[use]
+    median, p95 = budget_quantiles(ratio)
+    factor = max(median / noise_budget, p95 / noise_budget_p95)
+    budget = {"median_target": noise_budget, "p95_target": noise_budget_p95, "met": bool(factor <= 1.0)}
+    if plan is not None and plan.spp is not None and factor > 1.0:
+        budget["spp_that_would_meet"] = int(2 * np.ceil(float(plan.spp.max()) * factor / 2))
     return {
-        "method": "two independent half-sample renders per stratum",
+        "method": "two independent half-sample renders per stratum; squared differences pooled over 3x3 pixels",
         "rel_rms": float(np.sqrt(var_e[use].mean()) / signal[use].mean()),
-        "to_shot_noise_variance_mean": float(var_e[use].sum() / signal[use].sum()),  # render.noise_budget's measure
-        "to_shot_noise_variance_median": float(np.median(ratio)),
-        "to_shot_noise_variance_p95": float(np.percentile(ratio, 95)),
+        "to_shot_noise_variance_mean": float(var_e[use].sum() / signal[use].sum()),
+        "to_shot_noise_variance_median": median,
+        "to_shot_noise_variance_p95": p95,
+        "budget": budget,
     }
+
+
+def render_summary(report: dict) -> list[str]:
+    """The lines a run prints about its rendering: noise against the budget, and the cache."""
+    err, plan, out = report.get("render_error", {}), report.get("plan", {}), []
+    b = err.get("budget")
+    if b is not None:
+        level = (f"rendering noise: Monte Carlo / shot-noise variance median {err['to_shot_noise_variance_median']:.3g}, "
+                 f"p95 {err['to_shot_noise_variance_p95']:.3g} (budget {b['median_target']:g} / {b['p95_target']:g})")
+        if b["met"]:
+            out.append(level + ": within budget, the sensor's noise dominates")
+        else:
+            fix = f"render.spp >= {b['spp_that_would_meet']} or " if "spp_that_would_meet" in b else ""
+            out.append(level + f": NOT within budget, rendering noise is visible; {fix}render.spp: null would meet it")
+    cache = report.get("render_cache", {})
+    if cache.get("folder"):
+        out.append(f"render cache: {cache['hits']} renders reused, {cache['rendered']} rendered ({cache['folder']})")
+    return out
 
 
 def _versions() -> dict:
@@ -147,6 +185,24 @@ def _llvm_target_label() -> str:
 
     t = llvm_target()
     return f"{t['cpu']}, vector width {t['vector_width']}"
+
+
+def render_cache(render) -> "RenderCache | None":
+    """The render cache ``render.cache`` names (None when 'off'); ConfigError if its folder cannot be made."""
+    from .render.cache import open_cache
+
+    cache = open_cache(render.cache, render.cache_max_gb)
+    if cache is not None:
+        try:
+            cache.root.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"render.cache: cannot create the cache folder {cache.root} ({exc.strerror})") from None
+    return cache
+
+
+def sensor_seed(cfg: CaptureConfig, seeds: list[np.random.SeedSequence]) -> np.random.SeedSequence:
+    """The sensor's temporal-noise seed: ``sensor.noise_seed`` when set, else the run seed's stage 1."""
+    return seeds[1] if cfg.sensor.noise_seed is None else np.random.SeedSequence(cfg.sensor.noise_seed)
 
 
 def prepare(cfg: CaptureConfig) -> tuple[scenes.SceneModel, Timeline, Plan, list[np.random.SeedSequence]]:
@@ -201,7 +257,8 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
 
     with timer("render_setup"):
         llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
-        renderer = Renderer(scene, W, H, variant=cfg.render.variant, max_depth=cfg.render.max_depth, sensor=cfg.sensor)
+        cache = render_cache(cfg.render)
+        renderer = Renderer.from_config(scene, cfg, cache=cache)
     with timer("pilot"):
         plan = resolve_spp(plan, renderer, cfg, seeds[2])  # render.spp null: spp from render.noise_budget
     n_ch = len(renderer.channels)
@@ -223,7 +280,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
             buckets_e,
             [r.buckets for r in timeline.reads],
             cfg.sensor,
-            seeds[1],
+            sensor_seed(cfg, seeds),
             storage_s=storage_s,
             shared_photodiode=not timeline.sequential,
         )
@@ -260,9 +317,11 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         "electrons_per_render_unit_second": k_e.tolist(),
         "metrics": out.metrics,
         "render_error": {
-            **render_error(integrated.mc_var, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
+            **render_error(integrated.mc_var, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e,
+                           plan=plan, noise_budget=cfg.render.noise_budget, noise_budget_p95=cfg.render.noise_budget_p95),
             **temporal_error(integrated, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
         },
+        "render_cache": {"folder": str(cache.root), **cache.stats.as_dict()} if cache is not None else {"folder": None},
         "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant,
                      "llvm_target": _llvm_target_label() if llvm else None},
     }

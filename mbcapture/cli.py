@@ -1,4 +1,4 @@
-"""Command line: ``mbcapture run | plan | scenes | apps | figures``.
+"""Command line: ``mbcapture run | plan | scenes | apps | figures | converge | cache``.
 
 Input errors (config, files, environment) print one line and exit with status 2.
 """
@@ -62,11 +62,29 @@ def _parser() -> argparse.ArgumentParser:
     figs.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
     sub.add_parser("apps", help="list the applications (reconstructions), their protocols and parameters")
+
+    cache = sub.add_parser("cache", help="the render cache: where it is and how big, or empty it")
+    cache.add_argument("action", choices=["info", "clear"], help="info: folder, entries, size; clear: remove every render")
+    cache.add_argument("--dir", type=Path, default=None,
+                       help="cache folder (default: $MBCAPTURE_CACHE_DIR or the user cache folder, as render.cache: on)")
     return p
 
 
+def _cmd_cache(args) -> int:
+    from .render.cache import RenderCache, default_cache_dir
+
+    cache = RenderCache(args.dir or default_cache_dir(), max_bytes=0)
+    if args.action == "clear":
+        print(f"removed {cache.clear() if cache.root.is_dir() else 0} renders from {cache.root}")
+        return 0
+    info = cache.info()
+    print(f"{info['folder']}: {info['entries']} renders, {info['size_bytes'] / 1e9:.3f} GB "
+          "(cap: render.cache_max_gb, default 20 GB)")
+    return 0
+
+
 def _cmd_run(args) -> int:
-    from .capture import run_capture
+    from .capture import render_summary, run_capture
     from .config import load_config
 
     cfg = load_config(args.config, args.overrides)
@@ -76,7 +94,7 @@ def _cmd_run(args) -> int:
         r = result.report
         print(f"wrote {out}/  ({r['plan']['passes']} render passes x {result.plan.spp_label()} spp, "
               f"{r['timings_s']['total_before_write']:.1f} s)")
-        for line in result.app_output.summary:
+        for line in [*result.app_output.summary, *render_summary(r)]:
             print(line)
     return 0
 
@@ -91,8 +109,9 @@ def _cmd_plan(args) -> int:
         from .plan import probe_cost, resolve_spp
         from .render import Renderer
 
-        renderer = Renderer(scene, cfg.render.width, cfg.render.height, variant=cfg.render.variant,
-                            max_depth=cfg.render.max_depth, sensor=cfg.sensor)
+        from .capture import render_cache
+
+        renderer = Renderer.from_config(scene, cfg, cache=render_cache(cfg.render))
         plan = resolve_spp(plan, renderer, cfg, seeds[2])  # the run's own pilot (render.spp null)
         if plan.cost is None:
             plan = probe_cost(plan, renderer, seeds[2])
@@ -110,8 +129,11 @@ def _cmd_plan(args) -> int:
     print(f"render ({s['planner']} planner): {s['passes']} passes x {plan.spp_label()} spp ({s['spp_source']}), "
           f"groups {s['groups_rendered']}" + (f" (left out: {s['groups_left_out']})" if s["groups_left_out"] else ""))
     if s["pilot"]:
-        print(f"pilot: {s['pilot']['renders']} renders, {s['pilot']['seconds']:.2f} s; predicted Monte Carlo / shot "
-              f"noise variance per bucket {s['pilot']['predicted_mc_to_shot_variance']} (budget {s['noise_budget']})")
+        need = [f"B{k + 1} {q['spp_for_median']:.0f}/{q['spp_for_p95']:.0f}" for k, q in enumerate(s["pilot"]["per_bucket"])
+                if q is not None]
+        t = s["pilot"]["targets"]
+        print(f"pilot: {s['pilot']['renders']} renders, {s['pilot']['seconds']:.2f} s; spp each bucket needs for "
+              f"Monte Carlo / shot-noise variance median <= {t['median']:g} / p95 <= {t['p95']:g}: {', '.join(need)}")
     if s["estimate_s"]:
         c, e = s["cost_model"], s["estimate_s"]
         print(f"time estimate: render {e['render_s']:.2f} s + accumulate {e['accumulate_s']:.2f} s "
@@ -204,7 +226,7 @@ def _cmd_apps(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     handlers = {"run": _cmd_run, "plan": _cmd_plan, "scenes": _cmd_scenes, "apps": _cmd_apps, "figures": _cmd_figures,
-                "converge": _cmd_converge}
+                "converge": _cmd_converge, "cache": _cmd_cache}
     # SIGTERM (kill, a batch system's time limit) ends a run like Ctrl-C: staging removed, outputs untouched
     previous = signal.signal(signal.SIGTERM, _terminated) if threading.current_thread() is threading.main_thread() else None
     try:

@@ -44,29 +44,73 @@ class RenderSection(_Model):
     width: int = Field(640, gt=0, le=16384, description="Film width in pixels (the paper's sensor: 640).")
     height: int = Field(512, gt=0, le=16384, description="Film height in pixels (the paper's sensor: 512).")
     spp: int | None = Field(
-        16,
+        None,
         ge=1,
         le=1 << 16,
-        description="Samples per pixel of every time stratum; null = chosen per stratum from render.noise_budget by a pilot render.",
+        description="Samples per pixel of every time stratum; null (the default) = chosen per stratum by a pilot render so that the Monte Carlo noise stays within render.noise_budget / render.noise_budget_p95 of the photon shot noise.",
     )
     noise_budget: float = Field(
         0.1,
         gt=0,
-        description="With render.spp null: Monte Carlo variance of the bucket electrons allowed, as a fraction of the photon shot-noise variance the sensor adds (0.1 = rendering adds ~5% to the noise).",
+        description="With render.spp null: the median, over lit unsaturated bucket samples, of the Monte Carlo variance of the bucket electrons as a fraction of the photon shot-noise variance the sensor adds there (0.1 = rendering adds ~5% to the noise).",
+    )
+    noise_budget_p95: float = Field(
+        1.0,
+        gt=0,
+        description="With render.spp null: the same ratio's 95th percentile (1.0: in 95% of the samples rendering adds at most as much variance as the photons).",
     )
     max_spp: int = Field(1024, ge=2, le=1 << 16, description="Upper bound on the samples per pixel render.noise_budget may choose for one stratum.")
+    estimator: Literal["independent", "difference"] = Field(
+        "independent",
+        description="'independent': each stratum rendered with its own random numbers. 'difference': each stratum "
+        "rendered with the same random numbers as a render of the capture's start, and added as a difference to a "
+        "base render of the start at render.base_spp (control variate; unbiased): static pixels carry only the "
+        "base's error, identically in every bucket (see mbcapture/integrate.py and scripts/benchmark.py [5]).",
+    )
+    base_spp: int | None = Field(
+        None, ge=2, le=1 << 20,
+        description="Samples per pixel of the 'difference' estimator's base render (rendered in chunks of at most "
+        "render.max_spp); null: the strata's total samples per pixel.",
+    )
     planner: Literal["motion", "naive"] = Field(
         "motion",
         description="'motion': time strata from image motion (one render per stratum); 'naive': one render per collecting slot of every period (the baseline of `mbcapture converge`).",
     )
     variant: str = Field("llvm_ad_rgb", description="Mitsuba variant: llvm_ad_rgb on CPU, cuda_ad_rgb where a GPU exists; llvm_ad_spectral / cuda_ad_spectral apply sensor.spectral_response exactly (spectral mode).")
     max_depth: int = Field(4, ge=1, le=64, description="Path length limit of the per-group path tracer (1 = emitters seen directly only).")
+    sampler: Literal["multijitter", "ldsampler", "independent"] = Field(
+        "multijitter",
+        description="Mitsuba sample generator. 'multijitter' (correlated multi-jittered, Kensler 2013; any count) and "
+        "'ldsampler' (a scrambled low-discrepancy sequence; counts rounded up to powers of 4) are randomized "
+        "quasi-Monte Carlo: unbiased, independent between seeds, and on the metronome at 128 spp 4.6x and 10.6x lower "
+        "in Monte Carlo variance than 'independent' (uniform random numbers).",
+    )
     max_motion_px: float = Field(
         0.5, gt=0, description="Largest image motion, in pixels, of any moving point inside one time stratum (the paper's vT << p)."
     )
     max_strata: int = Field(
         2048, ge=1, description="Upper bound on render passes; a plan that needs more is coarsened with a warning in the report."
     )
+    cache: str = Field(
+        "on",
+        description="Render cache: 'on' (the user cache folder, ~/.cache/mbcapture/renders on Linux, or "
+        "$MBCAPTURE_CACHE_DIR), 'off', or a folder. Every render is stored under a key of everything that determines "
+        "it, so a run that changes only sensor.*, hdr.*, app.*, output.* or sensor.noise_seed renders nothing "
+        "(in spectral mode the sensor's spectral response and QE shape the film and do count). `mbcapture cache "
+        "info | clear`.",
+    )
+    cache_max_gb: float = Field(
+        20.0, gt=0, description="Size cap of the render cache in GB (10^9 bytes); beyond it the least recently used renders are removed."
+    )
+
+    @field_validator("cache", mode="before")
+    @classmethod
+    def _cache_setting(cls, v):
+        if isinstance(v, bool):  # YAML reads a bare on / off as a boolean
+            return "on" if v else "off"
+        if not isinstance(v, str) or not v.strip():
+            raise ValueError("expected 'on', 'off' or a folder path")
+        return v.strip()
 
 
 class SlotSpec(_Model):
@@ -149,7 +193,11 @@ class OutputSection(_Model):
 
 
 class CaptureConfig(_Model):
-    seed: int = Field(0, ge=0, description="One seed for the whole run; split per stage (rendering, shot noise, fixed pattern).")
+    seed: int = Field(
+        0, ge=0,
+        description="One seed for the whole run, split per stage: render times and samples (the renders), and the "
+        "sensor's temporal noise unless sensor.noise_seed is set; the fixed pattern has sensor.fpn_seed.",
+    )
     scene: SceneSection = Field(default_factory=SceneSection, description="What is in front of the camera: scene.name and its parameters.")
     render: RenderSection = Field(default_factory=RenderSection, description="Film size, samples and the motion tolerance of the render plan.")
     capture: CaptureSection = Field(default_factory=CaptureSection, description="Protocol: gate schedule, exposures, interleaving periods.")

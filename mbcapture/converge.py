@@ -61,8 +61,7 @@ def _setup(cfg: CaptureConfig):
         ensure_llvm()
     scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
     timeline = protocols.build(cfg)
-    renderer = Renderer(scene, cfg.render.width, cfg.render.height, variant=cfg.render.variant,
-                        max_depth=cfg.render.max_depth, sensor=cfg.sensor)
+    renderer = Renderer.from_config(scene, cfg)  # no cache: converge measures rendering time
     return scene, timeline, renderer
 
 

@@ -6,6 +6,20 @@ Each stratum is rendered as two independent half-sample passes accumulated apart
 measures its own Monte Carlo error: Var[combined] ~ (A - B)^2 n_a n_b / n^2. Applications that
 need the exposure of each emitter group separately (flash-only ground truths, per-LED colour
 channels) ask for ``per_group``: the same renders, accumulated without summing over groups.
+
+Estimators (``render.estimator``):
+
+``independent``  L_j is a render of stratum j with its own seeds: unbiased; every stratum
+                 carries its own Monte Carlo noise everywhere in the image.
+``difference``   common random numbers against a base: L_j = L_j^crn + (B - B^crn), where
+                 L_j^crn renders stratum j and B^crn the base time t_0 (the capture's start) with
+                 the *same* seed and sample count for every stratum, and B renders t_0 at
+                 ``plan.base_spp`` with seeds of its own. E[L_j] = L(t_j): unbiased. A pixel whose
+                 paths never meet a moving part gets exactly L_j^crn = B^crn, hence L_j = B in every
+                 stratum: static pixels carry only the base's error, identical in every bucket, and
+                 the moving region carries the strata's differences. B and B^crn do not depend on
+                 the protocol, so captures of the same scene, start and seed share them (cache).
+                 Both halves of the error estimate have their own B, B^crn and seeds.
 """
 
 from __future__ import annotations
@@ -83,7 +97,13 @@ def integrate(
     seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(plan.passes, 2))
     used = plan.weights_s.sum(axis=1) > 0  # (J, G): groups with weight in each stratum
     prev = None  # the previous (even) stratum's combined radiance, (G, H, W, C)
-    with _progress(plan.passes, progress, desc) as bar:
+    control = _Control(renderer, plan, seed, stage) if plan.estimator == "difference" else None
+    if control is not None and not two:
+        raise ValueError("render.estimator 'difference' needs at least 2 samples per pixel per stratum")
+    total = plan.passes + (control.renders_before() if control is not None else 0)
+    with _progress(total, progress, desc) as bar:
+        if control is not None:
+            control.render_base(bar)
         for j in range(plan.passes):
             n = int(spp[j])
             halves = (n // 2, n - n // 2) if two else (n,)
@@ -93,7 +113,10 @@ def integrate(
             combined = np.zeros((len(gsel), H, W, C), dtype=np.float64) if temporal is not None or groups_out is not None else None
             for h, spp_h in enumerate(halves):
                 with stage("render"):
-                    radiance = renderer.render(float(plan.times_s[j]), spp_h, int(seeds[j, h]), groups_j)
+                    if control is None:
+                        radiance = renderer.render(float(plan.times_s[j]), spp_h, int(seeds[j, h]), groups_j)
+                    else:
+                        radiance = control.stratum(float(plan.times_s[j]), h, spp_h, gsel)
                 with stage("accumulate"):
                     accumulate(w_j * (spp_h / n), radiance, parts[h])
                     if combined is not None:
@@ -117,6 +140,48 @@ def integrate(
         rbar = float(np.average(r, weights=np.maximum(plan.weights_s.sum(axis=(1, 2)), 1e-300)))
         mc_var = (parts[0] / rbar - parts[1] / (1 - rbar)) ** 2 * (rbar * (1 - rbar))
     return Integrated(exposure=exposure, mc_var=mc_var, group_exposure=groups_out, temporal_diff=temporal)
+
+
+class _Control:
+    """The ``difference`` estimator's base B and common-random-number base B^crn, per half."""
+
+    def __init__(self, renderer, plan: Plan, seed: np.random.SeedSequence, stage):
+        self.renderer, self.plan, self.stage = renderer, plan, stage
+        # seeds of their own (not the strata's), fixed by the run's render seed alone, so that every
+        # capture of the same scene, start and seed shares the base (render cache)
+        rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xBA5E)))
+        self.crn_seeds = rng.integers(0, 2**31 - 1, size=2)
+        n_base = int(plan.base_spp) // 2
+        chunk = max(int(plan.max_spp_per_render) // 2, 1)
+        count = getattr(renderer, "sample_count", lambda n: n)  # what the sampler takes
+        self.base_chunks = [count(min(chunk, n_base - i)) for i in range(0, n_base, chunk)]
+        self.base_seeds = rng.integers(0, 2**31 - 1, size=(2, len(self.base_chunks)))
+        self.t0 = float(plan.base_time_s)
+        self.delta: dict[tuple[int, int], np.ndarray] = {}  # (half, spp) -> B_h - B^crn_h, all groups
+        self.base: list[np.ndarray] = []
+
+    def renders_before(self) -> int:
+        return 2 * len(self.base_chunks)
+
+    def render_base(self, bar) -> None:
+        groups = self.plan.groups
+        for h in range(2):
+            acc = None
+            for c, n in enumerate(self.base_chunks):
+                with self.stage("render"):
+                    img = self.renderer.render(self.t0, n, int(self.base_seeds[h, c]), groups).astype(np.float64)
+                acc = img * n if acc is None else acc + img * n
+                bar.update(1)
+            self.base.append(acc / sum(self.base_chunks))
+
+    def stratum(self, t_s: float, h: int, spp_h: int, gsel: np.ndarray) -> np.ndarray:
+        """Stratum radiance of half h: its common-random-number render plus B_h - B^crn_h."""
+        groups = tuple(self.plan.groups[g] for g in gsel)
+        key = (h, int(spp_h))
+        if key not in self.delta:  # B^crn at this sample count (strata of one count share it)
+            crn = self.renderer.render(self.t0, spp_h, int(self.crn_seeds[h]), self.plan.groups).astype(np.float64)
+            self.delta[key] = self.base[h] - crn
+        return self.renderer.render(t_s, spp_h, int(self.crn_seeds[h]), groups) + self.delta[key][gsel]
 
 
 def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], full_well_e: float) -> dict:

@@ -14,22 +14,26 @@ no weight at all (and, per stratum, groups with no weight in it: see integrate).
 collecting slot of every period, at a jittered time inside the slot.
 
 Samples per pixel (``render.spp`` null): :func:`choose_spp` renders a pilot and allocates
-samples so that the Monte Carlo variance of every read bucket's electrons is
-``render.noise_budget`` times the photon shot-noise variance the sensor adds there. The rule,
-with B_k = sum_j w_jk . L_j the bucket exposure, k_e the electrons per radiance-second:
+samples so that, over the lit unsaturated samples of every read bucket, the ratio of the
+Monte Carlo variance of the bucket's electrons to the photon shot-noise variance the sensor adds
+there has its median at most ``render.noise_budget`` (0.1) and its 95th percentile at most
+``render.noise_budget_p95`` (1.0). A median and a percentile rather than a mean: a handful of
+hard pixels (the lamp's rim, speculars) would otherwise set the samples of the whole image
+(measured on the metronome at 640x512: 7 x ~765 spp for a mean of 0.1, 7 x ~420 for the median
+and p95 with independent samples).
 
-    shot variance (e-^2)   V_k = f * sum_pixels k_e B_k            (= f x expected electrons)
-    MC variance   (e-^2)   sum_j a_jk / n_j,   a_jk = sum_pixels (k_e w_jk . sigma_j)^2
-    n_j = max_k  sqrt(a_jk) * sum_i sqrt(a_ik) / V_k
-
-(for one bucket this is the Neyman allocation, the cheapest n that meets the budget exactly;
-the max over buckets meets every bucket's budget). sigma_j^2, the per-sample variance of the
-radiance, and B_k come from the pilot: at up to ``PILOT_TIMES`` strata, one render at 1 spp
-and one at 4 spp (their difference has variance 1.25 sigma^2); every other stratum uses the
-nearest pilot. Sums run over the pixel channels that are lit (> 1 e-) and below the full well
-in that bucket (saturated samples carry no information). n_j is rounded up to an even number
-(two equal halves give an exact half-sample error estimate) within [2, ``render.max_spp``].
-A dim scene gets fewer samples: a_jk scales with the square of the light, V_k with the light.
+The pilot, at up to ``PILOT_TIMES`` strata: two independent renders at each of ``PILOT_SPP``
+(4 and 16). Each pair is the main render's two-halves estimator at twice the count, and its
+squared difference over 4 that estimator's variance, per pixel; pooled over 3x3 pixels (9
+degrees of freedom; :func:`budget_quantiles` corrects the median for the chi-square spread) and
+divided by the pilot's expected electrons, this gives each bucket's ratios at the two counts. With
+randomized quasi-Monte Carlo samplers (``render.sampler``) variance falls faster than 1/spp, so
+the exponent between the two counts is measured (clipped to [1, 2]) and each target's quantile is
+extrapolated to the count that meets it. Strata share that count in proportion to their Neyman
+shape (sqrt of each stratum's summed variance: a stratum that weighs more in the buckets gets
+more samples); every stratum uses its nearest pilot. Counts are rounded up to what the sampler
+takes for each half (ldsampler: powers of 4) within [2, ``render.max_spp``]. A dim scene gets
+fewer samples: the variance scales with the square of the light, the shot noise with the light.
 
 The pilot also times its renders: seconds per pass = c0 + c1 x spp (two-point fit, medians
 over the pilot times) is the cost model behind ``Plan.estimate``.
@@ -87,6 +91,18 @@ class Plan:
     noise_budget: float | None = None
     pilot: dict | None = None
     cost: dict | None = None
+    estimator: str = "independent"
+    base_spp_setting: int | None = None
+    base_time_s: float = 0.0
+    max_spp_per_render: int = 1024
+
+    @property
+    def base_spp(self) -> int:
+        """Samples per pixel of the ``difference`` estimator's base: render.base_spp, or as many as
+        all strata together (the base then matches what the strata would give static pixels)."""
+        if self.base_spp_setting is not None:
+            return int(self.base_spp_setting)
+        return int(2 * np.ceil(self.spp.sum() / 2)) if self.spp is not None else 0
 
     @property
     def passes(self) -> int:
@@ -94,10 +110,15 @@ class Plan:
 
     @property
     def renders(self) -> int:
-        """Mitsuba renders of the main pass: two halves per stratum with spp >= 2, else one."""
+        """Mitsuba renders of the main pass: two halves per stratum with spp >= 2, else one; with the
+        ``difference`` estimator also the base (in chunks of at most max_spp) and B^crn per count."""
         if self.spp is None:
             return 2 * self.passes
-        return int(np.where(self.spp >= 2, 2, 1).sum())
+        n = int(np.where(self.spp >= 2, 2, 1).sum())
+        if self.estimator == "difference":
+            chunk = max(self.max_spp_per_render // 2, 1)
+            n += 2 * int(np.ceil(self.base_spp / 2 / chunk)) + 2 * len(np.unique(self.spp))
+        return n
 
     def spp_label(self) -> str:
         """'16' (uniform), '2-48 (mean 11.3)' (per stratum) or 'pending (noise budget)'."""
@@ -111,7 +132,9 @@ class Plan:
         if self.cost is None or self.spp is None:
             return None
         c = self.cost
-        render_s = self.renders * c["c0_s"] + c["c1_s_per_spp"] * float(self.spp.sum())
+        samples = float(self.spp.sum()) + (self.base_spp + float(np.unique(self.spp).sum())
+                                           if self.estimator == "difference" else 0.0)
+        render_s = self.renders * c["c0_s"] + c["c1_s_per_spp"] * samples
         acc_s = self.renders * c["accumulate_s"]
         return {
             "render_s": round(render_s, 3),
@@ -131,6 +154,8 @@ class Plan:
             "spp": None if spp is None else (int(spp[0]) if uniform else int(round(float(spp.mean())))),
             "spp_range": None if spp is None else [int(spp.min()), int(spp.max())],
             "spp_source": self.spp_source,
+            "estimator": self.estimator,
+            "base_spp": self.base_spp if self.estimator == "difference" and self.spp is not None else None,
             "noise_budget": self.noise_budget,
             "samples_per_pixel_total": None if spp is None else int(spp.sum()),
             "renders": self.renders,
@@ -285,6 +310,10 @@ def make_plan(
         spp_source="render.spp" if render.spp is not None else "pending",
         planner=render.planner,
         noise_budget=None if render.spp is not None else render.noise_budget,
+        estimator=render.estimator,
+        base_spp_setting=render.base_spp,
+        base_time_s=float(timeline.seconds(timeline.start_tick)),
+        max_spp_per_render=render.max_spp,
     )
 
 
@@ -318,15 +347,20 @@ def _timed_render(renderer, t_s: float, spp: int, seed: int, groups) -> tuple[np
     t0 = time.perf_counter()
     renderer.set_time(float(t_s), force=True)
     img = renderer.render(float(t_s), int(spp), int(seed), groups)
-    return img.astype(np.float64), time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
+    if getattr(renderer, "last_cached", False):  # from the render cache: the seconds it took when made
+        seconds = renderer.last_render_s
+    return img.astype(np.float64), seconds
 
 
-def _cost_model(pairs: list[tuple[float, float]], first_s: float, accumulate_s: float) -> dict:
-    """c0 + c1 x spp from (seconds at 1 spp, seconds at 4 spp) pairs; medians over pairs."""
+def _cost_model(pairs: list[tuple[float, float]], first_s: float, accumulate_s: float,
+                spp_pair: tuple[int, int] = (1, 4)) -> dict:
+    """c0 + c1 x spp from (seconds at spp_pair[0], seconds at spp_pair[1]) pairs; medians over pairs."""
+    lo, hi = spp_pair
     t1 = float(np.median([a for a, _ in pairs]))
     t4 = float(np.median([b for _, b in pairs]))
-    c1 = max((t4 - t1) / 3.0, 1e-6)
-    c0 = max(t1 - c1, 0.0)
+    c1 = max((t4 - t1) / (hi - lo), 1e-6)
+    c0 = max(t1 - c1 * lo, 0.0)
     return {
         "c0_s": round(c0, 5),
         "c1_s_per_spp": round(c1, 6),
@@ -356,6 +390,67 @@ def probe_cost(plan: Plan, renderer, seed: np.random.SeedSequence) -> Plan:
     return replace(plan, cost=_cost_model([(ta, tb)], first, acc))
 
 
+#: Pixels pooled (a box of this size) in per-pixel variance estimates: a single squared difference
+#: is a chi-square variable with 1 degree of freedom per channel, far too noisy for a quantile;
+#: pooling 3x3 neighbours gives 9.
+POOL_PX = 3
+
+
+def pooled(v: np.ndarray) -> np.ndarray:
+    """Per-pixel variance estimates (..., H, W, C) averaged over POOL_PX x POOL_PX neighbours."""
+    from scipy.ndimage import uniform_filter
+
+    size = [1] * (v.ndim - 3) + [POOL_PX, POOL_PX, 1]
+    return uniform_filter(np.asarray(v, dtype=np.float64), size=size, mode="nearest")
+
+
+def chi2_median_factor(dof: float) -> float:
+    """Median of chi^2_dof / dof (Wilson-Hilferty): how far below the mean the median of noisy
+    variance estimates lies; 0.93 for 9 degrees of freedom."""
+    return (1.0 - 2.0 / (9.0 * dof)) ** 3
+
+
+def budget_quantiles(ratio: np.ndarray) -> tuple[float, float]:
+    """(median, 95th percentile) of per-sample Monte Carlo / shot variance ratios estimated from
+    pooled squared differences: the median is divided by :func:`chi2_median_factor` of the
+    POOL_PX^2 degrees of freedom (unbiased for a uniform ratio); the 95th percentile is left as it
+    is (the estimates' own spread only widens it: conservative)."""
+    return float(np.median(ratio)) / chi2_median_factor(POOL_PX**2), float(np.percentile(ratio, 95))
+
+
+#: The pilot's two sample counts: at each, two independent renders (their mean is the main
+#: render's two-halves estimator at twice the count, their difference its error).
+PILOT_SPP = (4, 16)
+#: Range of the fitted convergence exponent: Monte Carlo variance ~ spp^-exponent (1 for
+#: independent samples, up to 2 for randomized quasi-Monte Carlo on smooth integrands).
+EXPONENT_RANGE = (1.0, 2.0)
+
+
+def _ladder(x: float) -> int:
+    """x rounded up to the ladder round(2^(i/4)) (steps of at most 19 %): strata get few distinct
+    sample counts, and Dr.Jit compiles one kernel per count."""
+    if x <= 4:
+        return max(int(np.ceil(x)), 1)
+    i = int(np.ceil(4 * np.log2(x) - 1e-9))
+    while round(2 ** (i / 4)) < x:
+        i += 1
+    return int(round(2 ** (i / 4)))
+
+
+def _pilot_ratios(diffs: list[np.ndarray], owner: np.ndarray, w: np.ndarray, alpha: np.ndarray,
+                  electrons: np.ndarray, lit: np.ndarray, k: int) -> np.ndarray:
+    """Per-sample ratio of bucket k's Monte Carlo variance to its shot noise, for strata rendered
+    at alpha_j times the pilot's count, over the lit samples: diffs[p] (G, H, W, C) are one pilot
+    time's differences of two independent renders (electrons per second), whose square over 4
+    estimates the variance of their mean; pooled over POOL_PX^2 pixels."""
+    var_k = np.zeros(lit.shape[1:])
+    for p, d in enumerate(diffs):
+        sel = owner == p
+        C = np.einsum("jg,jh->gh", w[sel, k] / alpha[sel, None], w[sel, k])  # (G, G)
+        var_k += pooled(np.einsum("gh,gywc,hywc->ywc", C, d, d, optimize=True)) / 4.0
+    return var_k[lit[k]] / electrons[k][lit[k]]
+
+
 def choose_spp(
     plan: Plan,
     renderer,
@@ -364,8 +459,9 @@ def choose_spp(
     noise_budget: float,
     max_spp: int,
     seed: np.random.SeedSequence,
+    noise_budget_p95: float | None = None,
 ) -> Plan:
-    """Samples per pixel per stratum from a pilot render (the rule is in the module docstring).
+    """Samples per pixel per stratum from a pilot (the rule is in the module docstring).
 
     ``k_e`` (C,): electrons per render unit and second. Returns the plan with ``spp``,
     ``pilot`` and ``cost`` filled in; the pilot's renders are not used in the image (their
@@ -373,63 +469,89 @@ def choose_spp(
     """
     if plan.passes == 0:
         return replace(plan, spp=np.zeros(0, np.int64), spp_source="noise_budget")
+    p95_target = 10.0 * noise_budget if noise_budget_p95 is None else noise_budget_p95
     t_start = time.perf_counter()
     k_e = np.asarray(k_e, dtype=np.float64)
     idx = _pilot_indices(plan)
-    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(len(idx), 2))
+    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(len(idx), len(PILOT_SPP), 2))
     w = plan.weights_s  # (J, K, G)
     J, K, G = w.shape
-    # nearest pilot (in time) of every stratum
-    owner = np.abs(plan.times_s[:, None] - plan.times_s[idx][None, :]).argmin(axis=1)
-    _, first = _timed_render(renderer, float(plan.times_s[idx[0]]), 1, seeds[0, 0] ^ 0x5A5A, plan.groups)  # compiles
-    means, diffs, pairs = [], [], []
+    owner = np.abs(plan.times_s[:, None] - plan.times_s[idx][None, :]).argmin(axis=1)  # nearest pilot
+    means: list[np.ndarray] = []
+    diffs: dict[int, list[np.ndarray]] = {s: [] for s in PILOT_SPP}
+    seconds: dict[int, list[float]] = {s: [] for s in PILOT_SPP}
     for p, j in enumerate(idx):
-        a, ta = _timed_render(renderer, plan.times_s[j], 1, seeds[p, 0], plan.groups)
-        b, tb = _timed_render(renderer, plan.times_s[j], 4, seeds[p, 1], plan.groups)
-        means.append((a + 4 * b) / 5)  # (G, H, W, C)
-        diffs.append(a - b)  # variance sigma^2 (1 + 1/4) per group combination
-        pairs.append((ta, tb))
+        total = 0.0
+        for level, spp in enumerate(PILOT_SPP):
+            (a, ta), (b, tb) = (_timed_render(renderer, plan.times_s[j], spp, seeds[p, level, h], plan.groups)
+                                for h in range(2))
+            diffs[spp].append((a - b) * k_e)  # (G, H, W, C), electrons per second
+            seconds[spp] += [ta, tb]
+            total = total + (a + b) * spp
+        means.append(total / (2 * sum(PILOT_SPP)))  # every pilot sample of this time
     acc = _timed_accumulate(w[idx[0]], means[0], K)
-    # expected electrons per bucket from the pilot means
     wp = np.stack([w[owner == p].sum(axis=0) for p in range(len(idx))])  # (P, K, G)
-    electrons = np.einsum("pkg,pghwc->khwc", wp, np.stack(means), optimize=True) * k_e
+    # the ratios' denominator, pooled like their numerator so that its own noise does not scatter them
+    electrons = pooled(np.einsum("pkg,pghwc->khwc", wp, np.stack(means), optimize=True) * k_e)
+    lit = (electrons > 1.0) & (electrons < full_well_e)  # (K, H, W, C)
+    # Neyman shape of n_j: sqrt of each stratum's summed variance, max over buckets
+    hi = diffs[PILOT_SPP[-1]]
     a_jk = np.zeros((J, K))
-    V = np.zeros(K)
     for k in range(K):
-        use = (electrons[k] > 1.0) & (electrons[k] < full_well_e)  # (H, W, C)
-        if not use.any():
-            continue
-        V[k] = noise_budget * electrons[k][use].sum()
-        for p in range(len(idx)):
-            d = diffs[p][:, use] * k_e[np.nonzero(use)[-1]][None, :]  # (G, n): electrons-per-second units
-            M = d @ d.T / 1.25  # (G, G): sum over samples of sigma_g sigma_g' (per-sample covariance)
-            sel = owner == p
-            a_jk[sel, k] = np.einsum("jg,gh,jh->j", w[sel, k], M, w[sel, k])
-    a_jk = np.maximum(a_jk, 0.0)
-    root = np.sqrt(a_jk)
+        if lit[k].any():
+            for p in range(len(idx)):
+                d = hi[p][:, lit[k]]
+                sel = owner == p
+                a_jk[sel, k] = np.einsum("jg,gh,jh->j", w[sel, k], d @ d.T, w[sel, k])
+    root = np.sqrt(np.maximum(a_jk, 0.0))
     with np.errstate(divide="ignore", invalid="ignore"):
-        per_bucket = np.where(V > 0, root * root.sum(axis=0)[None, :] / V[None, :], 0.0)  # (J, K)
-    n = per_bucket.max(axis=1)
-    spp = np.clip(2 * np.ceil(n / 2), 2, max_spp - (max_spp % 2)).astype(np.int64)
-    capped = int((n > max_spp).sum())
-    pred_ratio = [
-        float((a_jk[:, k] / spp).sum() / V[k] * noise_budget) if V[k] > 0 else None for k in range(K)
-    ]
+        shape = np.nan_to_num(root * root.sum(axis=0)[None, :] / np.maximum(root.sum(axis=0) ** 2, 1e-300)).max(axis=1)
+    alpha = np.maximum(shape / shape.max(), 1e-3) if shape.max() > 0 else np.ones(J)
+    # per bucket: median and p95 of the pooled ratios at both pilot counts (strata at alpha_j x the
+    # count), the exponent between them, and the count each target needs
+    scale, per_bucket = 0.0, []
+    n_lo, n_hi = 2 * PILOT_SPP[0], 2 * PILOT_SPP[-1]  # two halves: the main render's total count
+    for k in range(K):
+        if not lit[k].any():
+            per_bucket.append(None)
+            continue
+        q = {n: budget_quantiles(_pilot_ratios(diffs[s], owner, w, alpha, electrons, lit, k))
+             for n, s in ((n_lo, PILOT_SPP[0]), (n_hi, PILOT_SPP[-1]))}
+        need = []
+        for i, target in enumerate((noise_budget, p95_target)):
+            lo, hi_q = q[n_lo][i], q[n_hi][i]
+            expo = float(np.clip(np.log(max(lo, 1e-300) / max(hi_q, 1e-300)) / np.log(n_hi / n_lo), *EXPONENT_RANGE))
+            need.append(n_hi * (hi_q / target) ** (1.0 / expo) if hi_q > 0 else 0.0)
+        per_bucket.append({"median_at": {n_lo: round(q[n_lo][0], 4), n_hi: round(q[n_hi][0], 4)},
+                           "p95_at": {n_lo: round(q[n_lo][1], 4), n_hi: round(q[n_hi][1], 4)},
+                           "spp_for_median": round(need[0], 1), "spp_for_p95": round(need[1], 1)})
+        scale = max(scale, *need)
+    n = scale * alpha
+    count = getattr(renderer, "sample_count", lambda m: m)  # what the sampler takes
+    half = np.array([count(_ladder(x / 2)) for x in n])
+    cap = max(max_spp // 2, 1)
+    spp = (2 * np.minimum(half, cap)).astype(np.int64)
+    capped = int((n > 2 * cap).sum())
     notes = list(plan.notes)
     if capped:
         notes.append(f"render.max_spp={max_spp} capped {capped} strata: the noise budget is not met there")
+    # the first render at each count compiled its kernel (Dr.Jit compiles one per sample count):
+    # the cost model takes medians, and the compile time is what the first renders took beyond it
+    pairs = list(zip(seconds[PILOT_SPP[0]], seconds[PILOT_SPP[-1]]))
+    model = _cost_model(pairs, 0.0, acc, spp_pair=PILOT_SPP)
+    model["compile_s"] = round(max(sum(seconds[s][0] - (model["c0_s"] + model["c1_s_per_spp"] * s) for s in PILOT_SPP),
+                                   0.0), 3)
     pilot = {
         "times": len(idx),
-        "renders": 1 + 2 * len(idx),
-        "spp": [1, 4],
+        "renders": 2 * len(PILOT_SPP) * len(idx),
+        "spp": list(PILOT_SPP),
         "seconds": round(time.perf_counter() - t_start, 3),
-        "buckets_lit": [b + 1 for b in range(K) if V[b] > 0],
-        "predicted_mc_to_shot_variance": [None if r is None else round(r, 4) for r in pred_ratio],
+        "buckets_lit": [b + 1 for b in range(K) if lit[b].any()],
+        "per_bucket": per_bucket,
+        "targets": {"median": noise_budget, "p95": p95_target},
         "uncapped_spp_max": float(n.max()),
     }
-    return replace(
-        plan, spp=spp, spp_source="noise_budget", pilot=pilot, cost=_cost_model(pairs, first, acc), notes=notes
-    )
+    return replace(plan, spp=spp, spp_source="noise_budget", pilot=pilot, cost=model, notes=notes)
 
 
 def resolve_spp(plan: Plan, renderer, cfg, seed: np.random.SeedSequence) -> Plan:
@@ -442,4 +564,5 @@ def resolve_spp(plan: Plan, renderer, cfg, seed: np.random.SeedSequence) -> Plan
 
     pilot_seed = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x9117))
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
-    return choose_spp(plan, renderer, k_e, cfg.sensor.full_well_e, cfg.render.noise_budget, cfg.render.max_spp, pilot_seed)
+    return choose_spp(plan, renderer, k_e, cfg.sensor.full_well_e, cfg.render.noise_budget, cfg.render.max_spp, pilot_seed,
+                      noise_budget_p95=cfg.render.noise_budget_p95)

@@ -12,6 +12,13 @@
    baseline (one render per slot, spp per slot in --naive-spp) against the planner's ladder
    (--ladder), both measured against a high-spp fine-strata reference (mbcapture.converge);
    the planner's time at the naive point's error is interpolated on its log-log ladder.
+5. The noise budget and the render cache (`make capture`'s config at --budget-film, default
+   640x512): the capture with an empty cache (targets: within the budget, at most 3 minutes on
+   2 cores), the same again with a sensor change (target: at most 15 s, zero passes rendered),
+   and the cost split of each (renders rendered / reused, render seconds / the rest).
+6. What meeting the budget costs with each sampler and estimator (--compare-film, default
+   160x128): samples chosen, wall time and the measured Monte Carlo / shot-noise ratio, then a
+   second capture of the same scene with another protocol (interleaved_hdr) on the warm cache.
 """
 
 from __future__ import annotations
@@ -28,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def timed_capture(overrides: list[str]) -> tuple[float, dict]:
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", overrides)
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", ["render.cache=off", *overrides])
     t0 = time.perf_counter()
     result = run_capture(cfg, progress=False)
     return time.perf_counter() - t0, result.report
@@ -51,6 +58,56 @@ def equal_error(args) -> None:
               f"(target >= 20x); slopes {res['slopes']}; plot {out}/converge.png")
 
 
+def _budget_line(report: dict) -> str:
+    e = report["render_error"]
+    b = e.get("budget", {})
+    return (f"Monte Carlo / shot variance median {e.get('to_shot_noise_variance_median', float('nan')):.3g}, "
+            f"p95 {e.get('to_shot_noise_variance_p95', float('nan')):.3g}: {'within' if b.get('met') else 'NOT within'} "
+            f"the budget ({b.get('median_target')} / {b.get('p95_target')})")
+
+
+def _split(seconds: float, report: dict) -> str:
+    c, t = report["render_cache"], report["timings_s"]
+    render = t.get("render", 0.0) + t.get("pilot", 0.0)
+    return (f"{c['rendered']} renders rendered, {c['hits']} reused; render + pilot {render:.1f} s, "
+            f"the rest {seconds - render:.1f} s")
+
+
+def budget_and_cache(args) -> None:
+    import tempfile
+
+    w, h = (int(x) for x in args.budget_film.split("x"))
+    with tempfile.TemporaryDirectory() as cache:
+        film = [f"render.width={w}", f"render.height={h}", f"render.cache={cache}"]
+        t_cold, cold = timed_capture(film)
+        print(f"[5] {w}x{h}, empty cache: {t_cold:.1f} s (target <= 180 s), {cold['plan']['passes']} passes x "
+              f"{cold['plan']['spp_range']} spp; {_budget_line(cold)}")
+        print(f"    cost split: {_split(t_cold, cold)}")
+        t_warm, warm = timed_capture([*film, "sensor.read_noise_e=5"])
+        print(f"[5] the same with sensor.read_noise_e=5: {t_warm:.1f} s (target <= 15 s), "
+              f"{warm['render_cache']['rendered']} renders rendered (target 0); ratio warm / cold {t_warm / t_cold:.3f}")
+        print(f"    cost split: {_split(t_warm, warm)}")
+
+
+def compare(args) -> None:
+    import tempfile
+
+    w, h = (int(x) for x in args.compare_film.split("x"))
+    rows = [("independent", "independent"), ("multijitter", "independent"), ("ldsampler", "independent"),
+            ("multijitter", "difference")]
+    for sampler, estimator in rows:
+        with tempfile.TemporaryDirectory() as cache:
+            film = [f"render.width={w}", f"render.height={h}", f"render.cache={cache}",
+                    f"render.sampler={sampler}", f"render.estimator={estimator}"]
+            t1, r1 = timed_capture(film)
+            t2, r2 = timed_capture([*film, "capture.protocol=interleaved_hdr"])
+            p = r1["plan"]
+            print(f"[6] {sampler:11s} {estimator:11s}: spp {p['spp_range']}"
+                  f"{' + base ' + str(p['base_spp']) if p.get('base_spp') else ''}, {t1:.1f} s; {_budget_line(r1)}; "
+                  f"then interleaved_hdr on the warm cache {t2:.1f} s ({r2['render_cache']['hits']} renders reused, "
+                  f"{r2['render_cache']['rendered']} rendered)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--width", type=int, default=160)
@@ -60,15 +117,20 @@ def main() -> None:
     ap.add_argument("--ladder", default="2,4,8,16,32,64,128", help="[4] planner spp ladder")
     ap.add_argument("--naive-spp", default="1,2", help="[4] naive spp per slot")
     ap.add_argument("--ref-spp", type=int, default=256, help="[4] reference spp")
-    ap.add_argument("--only", default="1,2,3,4", help="which benchmarks to run, e.g. 4")
+    ap.add_argument("--budget-film", default="640x512", help="[5] film, WxH")
+    ap.add_argument("--compare-film", default="160x128", help="[6] film, WxH")
+    ap.add_argument("--only", default="1,2,3,4,5,6", help="which benchmarks to run, e.g. 4")
     args = ap.parse_args()
     only = {int(x) for x in args.only.split(",")}
+    if 5 in only:
+        budget_and_cache(args)
+    if 6 in only:
+        compare(args)
     if 4 in only:
         equal_error(args)
     if not only & {1, 2, 3}:
         return
     film = [f"render.width={args.width}", f"render.height={args.height}", f"render.spp={args.spp}"]
-
     timed_capture(film + ["capture.periods=4"])  # warm-up: kernel compilation, imports
     # alternate the two and keep the fastest of each: the machine is shared and noisy
     runs = {4: [], 1024: []}
@@ -86,7 +148,7 @@ def main() -> None:
 
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", film)
     scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
-    renderer = Renderer(scene, args.width, args.height, variant=cfg.render.variant, max_depth=cfg.render.max_depth)
+    renderer = Renderer.from_config(scene, cfg)
     times = [s["render_time_s"] for s in r4["plan"]["strata"]]
     renderer.render_path(times[0], args.spp, 0)  # warm-up compile
     raw = []

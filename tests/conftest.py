@@ -24,6 +24,30 @@ FAILURE_DIR = Path(__file__).resolve().parents[1] / "out" / "golden-failures"
 META_KEY = "__meta__"
 
 
+_OWN_CACHE: str | None = None
+
+
+def pytest_configure(config):
+    """Renders are cached in a folder of this test session (shared by xdist workers, which inherit
+    the environment, and by the second-CPU golden run, whose keys differ by CPU target), never in
+    the user's cache; removed at the end."""
+    global _OWN_CACHE
+    if hasattr(config, "workerinput") or os.environ.get("MBCAPTURE_TEST_CACHE_SET") == "1":
+        return
+    import tempfile
+
+    _OWN_CACHE = tempfile.mkdtemp(prefix="mbcapture-test-cache-")
+    os.environ["MBCAPTURE_CACHE_DIR"] = _OWN_CACHE
+    os.environ["MBCAPTURE_TEST_CACHE_SET"] = "1"
+
+
+def pytest_unconfigure(config):
+    if _OWN_CACHE is not None:
+        import shutil
+
+        shutil.rmtree(_OWN_CACHE, ignore_errors=True)
+
+
 def pytest_addoption(parser):
     parser.addoption("--regen-golden", action="store_true", default=False,
                      help="rewrite tests/golden/*.npz from the current code (the golden tests then fail for review)")

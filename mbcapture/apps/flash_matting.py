@@ -286,7 +286,8 @@ def alpha_truth(data: CaptureData, params: FlashMattingParams) -> np.ndarray | N
     cfg = data.cfg
     seed = data.seed if data.seed is not None else np.random.SeedSequence(cfg.seed)
     return coverage_alpha(data.scene, data.plan.times_s, weights, cfg.render.width, cfg.render.height,
-                          params.truth_spp, seed, variant=cfg.render.variant)
+                          params.truth_spp, seed, variant=cfg.render.variant,
+                          cache=getattr(data.renderer, "cache", None))
 
 
 def flash_only_truth(data: CaptureData, params: FlashMattingParams) -> np.ndarray | None:

@@ -133,7 +133,7 @@ class MultiFlashParams(BaseModel):
     shadow_ratio: float = Field(0.5, gt=0.0, lt=1.0, description="Residual-shadow metric: a pixel is shadowed in a "
                                 "truth flash image when its luminance is below this fraction of the truth max composite.")
     truth_spp: int = Field(0, ge=0, le=4096, description="Samples per pixel of the noise-free shadow-free truth "
-                           "render (0: 4 x render.spp).")
+                           "render (0: 4 x the capture's largest samples per pixel per stratum, render.spp or the noise budget's).")
 
 
 # --------------------------------------------------------------------------------- geometry
@@ -467,7 +467,7 @@ def _truth(data: CaptureData, params: MultiFlashParams, groups: list[str], with_
 
     renderer, tl = data.renderer, data.timeline
     t_mid = _mid_time_s(tl)
-    spp = params.truth_spp or 4 * data.cfg.render.spp
+    spp = params.truth_spp or 4 * int(data.plan.spp.max())  # 4x the capture's samples per stratum
     seed = int(np.random.default_rng(data.seed).integers(0, 2**31 - 1))
     # the capture's own group set: its render kernel is compiled already
     render_groups = list(dict.fromkeys(list(data.plan.groups) + list(groups)))

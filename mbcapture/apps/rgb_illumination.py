@@ -90,7 +90,7 @@ class Params(BaseModel):
     demosaic: Literal["bilinear", "edge_aware"] = Field("edge_aware", description="OpenCV demosaicing of the Bayer "
                                                          "capture: bilinear or edge-aware (cv2.demosaicing).")
     bayer_spp: int | None = Field(None, ge=1, le=4096, description="Samples per pixel of the Bayer frame's renders "
-                                  "(default render.spp).")
+                                  "(default: the capture's largest samples per pixel per stratum, render.spp or the noise budget's).")
 
 
 # -- pure numpy: signals, masks, colour -------------------------------------------------------
@@ -271,8 +271,8 @@ def reference_xyz(data: CaptureData, params: Params, white_mask: np.ndarray, whi
 
     cfg, scene = data.cfg, data.scene
     spectral = cfg.render.variant.endswith("_spectral")
-    renderer = (Renderer(scene, cfg.render.width, cfg.render.height, variant=cfg.render.variant,
-                         max_depth=cfg.render.max_depth, film_curves=_cmf_curves()) if spectral else data.renderer)
+    renderer = (Renderer.from_config(scene, cfg, film_curves=_cmf_curves(), sensor=None,
+                                     cache=getattr(data.renderer, "cache", None)) if spectral else data.renderer)
     seed = int(np.random.default_rng(data.seed.spawn(1)[0]).integers(0, 2**31 - 1))
     img = renderer.render(float(scene.extra["rest_time_s"]), params.reference_spp, seed, list(LED_GROUPS)).sum(0)
     img = img.astype(np.float64)
@@ -317,14 +317,14 @@ def bayer_capture(data: CaptureData, params: Params) -> dict:
             channel_quantum_efficiency(sensor)
         except ValueError as exc:
             raise ConfigError(f"app.bayer_camera: {exc}") from None
-        renderer = Renderer(scene, W, H, variant=cfg.render.variant, max_depth=cfg.render.max_depth, sensor=sensor)
+        renderer = Renderer.from_config(scene, cfg, sensor=sensor, cache=getattr(data.renderer, "cache", None))
     else:
         sensor, renderer, curves_wl, curves = cfg.sensor, data.renderer, None, None
     t0, t1 = bayer_window(data)
     T = float(cfg.capture.unit_exposure_s)
     mids = _strata(scene, t0, t1, W, H, cfg.render.max_motion_px, cfg.render.max_strata)
     dt = (t1 - t0) / len(mids)
-    spp = params.bayer_spp or cfg.render.spp
+    spp = params.bayer_spp or int(data.plan.spp.max())  # the capture's own samples (render.spp or the budget's)
     groups = ["ambient", *LED_GROUPS]
     seeds = np.random.default_rng(data.seed.spawn(2)[1]).integers(0, 2**31 - 1, size=len(mids))
     drive = np.array([1.0] + [T / (t1 - t0)] * 3)  # ambient always; each LED delivers T's worth

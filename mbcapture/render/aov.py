@@ -62,14 +62,19 @@ def render_depth(renderer, t_s: float) -> DepthImage:
     renderer's camera but sampling pixel centres.
     """
     mi = renderer.mitsuba
-    renderer.set_time(t_s)
-    cache = renderer.__dict__.setdefault("_aov_cache", {})
-    key = (renderer.width, renderer.height)
-    if key not in cache:
-        cache[key] = (_centre_sensor(renderer), mi.load_dict({"type": "aov", "aovs": "dd.y:depth"}))
-    sensor, integrator = cache[key]
-    img = np.asarray(mi.render(renderer.mitsuba_scene, sensor=sensor, integrator=integrator, spp=1, seed=0),
-                     dtype=np.float64)
+
+    def make() -> np.ndarray:
+        renderer.set_time(t_s)
+        kernels = renderer.__dict__.setdefault("_aov_cache", {})
+        key = (renderer.width, renderer.height)
+        if key not in kernels:
+            kernels[key] = (_centre_sensor(renderer), mi.load_dict({"type": "aov", "aovs": "dd.y:depth"}))
+        sensor, integrator = kernels[key]
+        return np.asarray(mi.render(renderer.mitsuba_scene, sensor=sensor, integrator=integrator, spp=1, seed=0),
+                          dtype=np.float32)[..., -1]
+
+    # the renderer's cache (if any) keeps it: the key holds the scene, its pose at t_s and this kind
+    img = np.asarray(renderer.cached("depth_aov_centre", t_s, {}, make), dtype=np.float64)[..., None]
     t = img[..., -1]
     cos = pixel_cosines(renderer.scene_model.camera, renderer.width, renderer.height)
     hit = t > 0

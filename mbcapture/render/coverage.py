@@ -64,13 +64,15 @@ def coverage_alpha(
     *,
     variant: str = "llvm_ad_rgb",
     names: Iterable[str] | None = None,
+    cache=None,
 ) -> np.ndarray:
     """(H, W) float64 alpha: the weighted mean over time strata of the shapes' coverage.
 
     ``times_s`` (J,) the scene times at which the capture rendered its strata (``Plan.times_s``),
     ``weights_s`` (J,) how long the wanted bucket(s) collected in each stratum, s. Strata of weight
     0 are not rendered. Rendering at the capture's own times puts the parts exactly where the
-    capture's renders saw them.
+    capture's renders saw them. ``cache``: a :class:`~mbcapture.render.cache.RenderCache` for the
+    coverage renders (None: not kept).
     """
     from .renderer import Renderer
 
@@ -80,7 +82,8 @@ def coverage_alpha(
         raise ValueError(f"coverage weights: expected {t.size} non-negative values with a positive sum")
     if spp < 1:
         raise ValueError("coverage spp must be >= 1")
-    renderer = Renderer(coverage_scene(scene, names), width, height, variant=rgb_variant(variant), max_depth=1)
+    renderer = Renderer(coverage_scene(scene, names), width, height, variant=rgb_variant(variant), max_depth=1,
+                        cache=cache)
     seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=t.size)
     uncovered = np.zeros((height, width), dtype=np.float64)
     for j in np.flatnonzero(w > 0):

@@ -6,8 +6,11 @@ has pinned a libLLVM that does not crash.
 
 from __future__ import annotations
 
+import hashlib
 import time
-from typing import TYPE_CHECKING, Any, Sequence
+from functools import lru_cache
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -23,11 +26,49 @@ from .build import (
     spectrum_to_rgb_radiance,
     spectrum_to_rgb_reflectance,
 )
+from .cache import RenderCache, digest
 from .integrator import PLUGIN_NAME, integrator_class
 from .llvm import apply_target_from_env, ensure_llvm
 
 if TYPE_CHECKING:
     from ..sensor.config import SensorConfig
+
+#: Mitsuba samplers a Renderer may use (render.sampler).
+SAMPLERS = ("multijitter", "ldsampler", "independent")
+
+#: Modules whose code turns a scene description into pixels: part of every cache key.
+_PIXEL_CODE = ("renderer.py", "integrator.py", "build.py", "aov.py", "coverage.py")
+
+
+@lru_cache(maxsize=None)
+def _file_sha256(path: str, mtime_ns: int, size: int) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def file_digest(path: str | Path) -> str:
+    """SHA-256 of a file's content (memoized by path, modification time and size)."""
+    st = Path(path).stat()
+    return _file_sha256(str(Path(path).resolve()), st.st_mtime_ns, st.st_size)
+
+
+def _canonical(obj: Any, mi: Any) -> Any:
+    """A Mitsuba scene dict as plain JSON data for hashing: transforms as matrices, files by content."""
+    if isinstance(obj, dict):
+        return {str(k): ({"file": Path(v).name, "sha256": file_digest(v)} if k == "filename" else _canonical(v, mi))
+                for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_canonical(v, mi) for v in obj]
+    if isinstance(obj, (bool, int, str)) or obj is None:
+        return obj
+    if isinstance(obj, float):
+        return repr(obj)
+    if isinstance(obj, mi.ScalarTransform4f):
+        return [[repr(float(x)) for x in row] for row in np.asarray(obj.matrix, dtype=np.float64)]
+    return repr(obj)
 
 
 class Renderer:
@@ -91,7 +132,8 @@ class Renderer:
     def __init__(self, scene: SceneModel, width: int, height: int, *,
                  variant: str = "llvm_ad_rgb", max_depth: int = 4,
                  sensor: "SensorConfig | None" = None,
-                 film_curves: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 film_curves: tuple[np.ndarray, np.ndarray] | None = None,
+                 cache: RenderCache | None = None, sampler: str = "multijitter") -> None:
         if not isinstance(scene.build, SceneBuild):
             raise ConfigError(f"scene {scene.name!r}: build payload is not a SceneBuild")
         if width < 1 or height < 1:
@@ -102,6 +144,9 @@ class Renderer:
             raise ConfigError(
                 f"render.variant: expected an llvm/cuda *_rgb or *_spectral variant, got {variant!r}"
             )
+        if sampler not in SAMPLERS:
+            raise ConfigError(f"render.sampler: expected one of {list(SAMPLERS)}, got {sampler!r}")
+        self.sampler = sampler
         self.spectral = variant.endswith("_spectral")
         self._sensitivity: tuple[np.ndarray, np.ndarray] | None = None
         if film_curves is not None:
@@ -143,7 +188,10 @@ class Renderer:
 
         self._build = build
         build.check_files(scene.name)
-        self._scene = self._load(self._scene_dict())
+        self.cache = cache
+        main_dict = self._scene_dict()
+        self._scene = self._load(main_dict)
+        dicts = [main_dict]
         self._params = mi.traverse(self._scene)
         self._group_emitters = self._collect_emitters(self._scene)
         # spectral: a group whose emitters share one spectral shape f_g gets its own scene, with
@@ -153,13 +201,31 @@ class Renderer:
             for g in self.groups:
                 shape = self._group_spectral_shape(g)
                 if shape is not None:
-                    sc = self._load(self._scene_dict(flat_group=g, film_shape=shape))
+                    d = self._scene_dict(flat_group=g, film_shape=shape)
+                    dicts.append(d)
+                    sc = self._load(d)
                     self._group_scenes[g] = (sc, mi.traverse(sc), self._collect_emitters(sc)[g])
         integrator_class(variant)  # registers the plugin
         self._integrator = mi.load_dict({"type": PLUGIN_NAME, "max_depth": self.max_depth})
         self._time_s: float | None = None
-        #: Seconds spent in the last :meth:`render` (scene update + Mitsuba pass).
+        #: Seconds spent in the last :meth:`render` (scene update + Mitsuba pass; for a render read
+        #: from the cache, the seconds it took when it was made).
         self.last_render_s = 0.0
+        #: Whether the last :meth:`render` came from the cache.
+        self.last_cached = False
+        self.identity = self._identity(dicts) if cache is not None else None
+        self._sampler_probe = None
+        self._sample_counts: dict[int, int] = {}
+
+    @classmethod
+    def from_config(cls, scene: SceneModel, cfg: Any, *, cache: RenderCache | None = None, **overrides: Any) -> "Renderer":
+        """The renderer a capture config asks for (film, variant, depth, sampler, sensor), with
+        ``overrides`` of any keyword of :class:`Renderer` (e.g. ``film_curves``, ``sensor``)."""
+        r = cfg.render
+        kw: dict[str, Any] = {"variant": r.variant, "max_depth": r.max_depth, "sampler": r.sampler,
+                              "sensor": cfg.sensor, "cache": cache}
+        kw.update(overrides)
+        return cls(scene, r.width, r.height, **kw)
 
     # -- scene construction -------------------------------------------------------------------
     def _load(self, d: dict[str, Any]) -> Any:
@@ -209,7 +275,7 @@ class Renderer:
                 "to_world": T().look_at(origin=list(cam.origin), target=list(cam.target),
                                         up=list(cam.up)),
                 "film": self._film_dict(film_shape),
-                "sampler": {"type": "independent", "sample_count": 1},
+                "sampler": {"type": self.sampler, "sample_count": 4},
             },
         }
         parts = self._build.parts
@@ -320,6 +386,76 @@ class Renderer:
         """The ``mitsuba`` module, with this renderer's variant set."""
         return self._mi
 
+    def _identity(self, dicts: list[dict[str, Any]]) -> str:
+        """Digest of everything but the time that determines this renderer's pixels: the scene
+        description(s) with file contents, integrator, variant, the pixel code, library versions,
+        and the CPU target the kernels are compiled for."""
+        from importlib import metadata
+
+        from .llvm import llvm_target
+
+        here = Path(__file__).resolve().parent
+        code = {name: file_digest(here / name) for name in _PIXEL_CODE}
+        target = llvm_target() if self.variant.startswith("llvm") else {"backend": "cuda"}
+        return digest({
+            "scene": [_canonical(d, self._mi) for d in dicts],
+            "groups": list(self.groups),
+            "variant": self.variant,
+            "max_depth": self.max_depth,
+            "code": code,
+            "versions": {p: metadata.version(p) for p in ("mitsuba", "drjit")},
+            "target": target,
+        })
+
+    def sample_count(self, spp: int) -> int:
+        """The samples per pixel this renderer's sampler takes when asked for ``spp`` (ldsampler
+        rounds up to a power of 4, multijitter to a product of two near-equal factors)."""
+        key = int(spp)
+        if key not in self._sample_counts:
+            mi = self._mi
+            if self._sampler_probe is None:
+                self._sampler_probe = mi.load_dict({"type": self.sampler, "sample_count": 4})
+            level = mi.log_level()
+            mi.set_log_level(mi.LogLevel.Error)  # the sampler warns when it rounds: that is what we ask
+            try:
+                self._sampler_probe.set_sample_count(key)
+                self._sample_counts[key] = int(self._sampler_probe.sample_count())
+            finally:
+                mi.set_log_level(level)
+        return self._sample_counts[key]
+
+    def state_at(self, t_s: float) -> list:
+        """The time-dependent part of the scene at ``t_s``: every moving part's and moving light's
+        pose (4x4, as in :meth:`set_time`). Two times with equal states render equal images."""
+        parts = self._build.parts
+        out = []
+        for s in self._build.shapes:
+            if s.part is not None and s.light is not None:
+                out.append([s.name, np.asarray(parts[s.part](t_s), float) @ s.to_world])
+        for part, f in sorted(parts.items()):
+            out.append([part, np.asarray(f(t_s), float)])
+        return [[name, [[repr(float(x)) for x in row] for row in m]] for name, m in out]
+
+    def cached(self, kind: str, t_s: float, params: dict, make: Callable[[], np.ndarray]) -> np.ndarray:
+        """``make()`` (an image of the scene at ``t_s``), read from the cache when this renderer
+        made it before with the same ``kind`` and ``params``, else computed and stored."""
+        self.last_cached = False
+        if self.cache is None:
+            return make()
+        key = digest({"renderer": self.identity, "kind": kind, "state": self.state_at(float(t_s)), **params})
+        hit = self.cache.get(key, kind)
+        if hit is not None:
+            self.last_cached = True
+            self.last_render_s = float(hit[1].get("seconds", 0.0))
+            return hit[0]
+        start = time.perf_counter()
+        img = make()
+        seconds = time.perf_counter() - start
+        self.cache.put(key, img, seconds=seconds, about={"kind": kind, "scene": self.scene_model.name,
+                                                         "film": [self.width, self.height], **params})
+        self.last_render_s = seconds
+        return img
+
     def set_time(self, t_s: float, force: bool = False) -> None:
         """Move every part to scene time ``t_s`` (s); no kernel is recompiled. ``force`` redoes the
         update (and the acceleration-structure rebuild) even at the current time, e.g. to time it."""
@@ -360,13 +496,18 @@ class Renderer:
         for a given ``seed``. ``groups`` defaults to all of :attr:`groups`, in any order given;
         groups not requested are not rendered at all.
         """
-        start = time.perf_counter()
         req = list(self.groups if groups is None else groups)
         bad = [g for g in req if g not in self.groups]
         if bad or len(set(req)) != len(req):
             raise ConfigError(f"render groups {req}: expected distinct names from {list(self.groups)}")
         if spp < 1:
             raise ConfigError(f"render spp must be >= 1, got {spp}")
+        spp = self.sample_count(spp)  # what the sampler really takes
+        params = {"spp": int(spp), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
+        return self.cached("radiance", t_s, params, lambda: self._render(t_s, int(spp), int(seed), req))
+
+    def _render(self, t_s: float, spp: int, seed: int, req: list[str]) -> np.ndarray:
+        start = time.perf_counter()
         out = np.zeros((len(req), self.height, self.width, 3), np.float32)
         lit = [g for g in req if self._group_emitters[g]]
         if lit and self.spectral:

@@ -127,6 +127,12 @@ class SensorConfig(BaseModel):
         description="Seed of the fixed-pattern noise (PRNU, DSNU) maps: it identifies one physical sensor, so "
         "the maps are identical across reads and captures made with it (assumption).",
     )
+    noise_seed: int | None = Field(
+        None, ge=0,
+        description="Seed of the temporal noise of the capture (shot, transfer and read noise). null: derived "
+        "from the top-level seed. The renders depend on the top-level seed only, so changing noise_seed draws new "
+        "noise on the same (cached) renders.",
+    )
 
     @field_validator("quantum_efficiency")
     @classmethod
