@@ -15,7 +15,8 @@ from typing import Callable
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["render.width=32", "render.height=24", "render.spp=2", "render.max_motion_px=2.0"]
+TINY = ["render.width=32", "render.height=24", "render.spp=4", "render.max_motion_px=2.0"]  # 2 spp per half: the default
+# sampler (multijitter) stratifies; at 1 spp it draws what the independent sampler draws
 
 # (case name, config file, overrides). Applications add their configs here as they land.
 CAPTURE_CASES = [
