@@ -70,6 +70,7 @@ def main() -> None:
                 for k in ("MBCAPTURE_LLVM_TARGET", "NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE",
                           "NUMBA_CPU_NAME", "OPENCV_CPU_DISABLE"):
                     env.pop(k, None)
+            env["MBCAPTURE_CACHE_DIR"] = str(Path(tmp) / "render-cache")  # not the user's cache
             print(f"{t}:", flush=True)
             subprocess.run([sys.executable, __file__, "--dump", str(Path(tmp) / t), "--cases", ",".join(cases)],
                            env=env, cwd=ROOT, check=True)
