@@ -32,9 +32,11 @@ def test_shipped_config_loads_and_plans(path):
 
 @pytest.mark.render
 @pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
-def test_shipped_config_runs_at_tiny_size(path):
+def test_shipped_config_runs_at_tiny_size(path, tmp_path):
+    from report_checks import check_report_folder, undocumented_keys
+
     cfg = load_config(path, ["render.width=16", "render.height=12", "render.spp=1", "render.max_motion_px=4"])
-    result = run_capture(cfg, progress=False)
+    result = run_capture(cfg, tmp_path, progress=False)
     assert result.images and result.report["metrics"]
     # non-finite values only where the application flags the pixel invalid (HDR: sigma = inf
     # where every read saturated and the radiance is a lower bound)
@@ -44,6 +46,13 @@ def test_shipped_config_runs_at_tiny_size(path):
         assert (np.isfinite(img) | invalid).all(), name
     for image, _ in result.app_output.png.values():  # every preview names an image that exists
         assert image in result.images
+    # every application's run has a report.html that opens offline, shows each preview with what it is,
+    # and a report.json whose every key docs/report.md explains
+    refs = check_report_folder(tmp_path)
+    assert {f"{stem}.png" for stem in result.app_output.png} <= set(refs.images)
+    assert set(result.app_output.png) <= set(result.app_output.captions), "a preview without a caption"
+    reads = [r.name for r in result.timeline.reads]
+    assert undocumented_keys(result.report, reads) == [], "document these keys in docs/report.md"
 
 
 def test_cli_output_piped_into_head_ends_quietly():
