@@ -160,6 +160,9 @@ def _cmd_converge(args) -> int:
                    "--naive-spp")
     ref_spp = args.ref_spp or (64 if args.quick else 256)
     out = args.out or Path("out") / f"converge_{args.config.stem}"
+    from .io import check_out_dir
+
+    check_out_dir(out)  # before the ladders run, not after
     result = converge.run_converge(cfg, motion, naive, ref_spp=ref_spp, ref_motion_div=4.0 if args.quick else 8.0,
                                    progress=print)
     converge.write_outputs(result, out)

@@ -409,9 +409,31 @@ def resolve_config_path(path: str | Path) -> Path:
     raise ConfigError(f"{p}: config file not found, and not a shipped config ({', '.join(names)}){hint}")
 
 
+#: Environment variable of extra ``--set`` overrides applied after the command line's to every
+#: config loaded (shell words, e.g. ``"render.width=16 render.height=12"``): any command of the
+#: README runs at a tiny size with it (the test suite does), a script's captures too.
+ENV_OVERRIDES = "MBCAPTURE_SET"
+
+
+def env_overrides() -> list[str]:
+    """The overrides in ``$MBCAPTURE_SET`` (shell words), announced by a :class:`ConfigNotice`."""
+    import os
+    import shlex
+
+    text = os.environ.get(ENV_OVERRIDES, "").strip()
+    if not text:
+        return []
+    try:
+        words = shlex.split(text)
+    except ValueError as exc:
+        raise ConfigError(f"${ENV_OVERRIDES}: {exc} in {text!r}") from None
+    warnings.warn(f"${ENV_OVERRIDES} adds --set {' --set '.join(words)}", ConfigNotice, stacklevel=3)
+    return words
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> CaptureConfig:
     """Load a YAML config (a path, or a shipped config's name; the defaults when ``path`` is None)
-    and apply ``--set`` overrides. Switching ``scene.name`` or ``app.name`` by an override drops the
+    and apply ``--set`` overrides, then those of ``$MBCAPTURE_SET``. Switching ``scene.name`` or ``app.name`` by an override drops the
     file's parameters of the old scene or application with a :class:`ConfigNotice` warning."""
     data: Any = {}
     source = "defaults"
@@ -430,7 +452,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise ConfigError(f"{p}:{where}: malformed YAML ({getattr(exc, 'problem', exc)})") from None
         if data is None:
             data = {}
-    overrides = list(overrides)
+    overrides = [*overrides, *env_overrides()]
     if isinstance(data, dict):
         data, notices = _switch_selected(data, overrides)
         for n in notices:

@@ -125,3 +125,28 @@ def test_shipped_config_by_name_from_any_folder(capsys, monkeypatch, tmp_path):
     assert load_config("flash_no_flash.yaml").capture.protocol == "flash_no_flash"
     rc, _, err = run_cli(["plan", "metronome_hrd", "--no-probe"], capsys)
     assert rc == 2 and "not a shipped config" in err and "did you mean metronome_hdr?" in err
+
+
+def test_mbcapture_set_applies_after_the_command_line_with_a_notice(monkeypatch):
+    monkeypatch.setenv("MBCAPTURE_SET", "render.width=16 'scene.amplitude_deg=45'")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cfg = load_config(HDR, ["render.width=320"])
+    assert cfg.render.width == 16 and cfg.scene.params().amplitude_deg == 45
+    assert any("$MBCAPTURE_SET adds --set render.width=16" in str(w.message) for w in caught)
+    monkeypatch.setenv("MBCAPTURE_SET", "render.sp=4")
+    with warnings.catch_warnings(), pytest.raises(ConfigError, match="did you mean render.spp"):
+        warnings.simplefilter("ignore", ConfigNotice)
+        load_config(HDR)
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc")
+def test_converge_checks_its_out_before_the_ladders(capsys, monkeypatch):
+    import mbcapture.converge as converge
+
+    def no_work(*a, **k):
+        raise AssertionError("the ladders started before --out was checked")
+
+    monkeypatch.setattr(converge, "run_converge", no_work)
+    rc, _, err = run_cli(["converge", HDR, "--quick", "--out", "/proc/nope"], capsys)
+    assert rc == 2 and "cannot create a folder in /proc" in err
