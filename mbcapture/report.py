@@ -144,7 +144,7 @@ def timeline_png(tl: "Timeline") -> bytes:
     reads = tl.describe_reads()
     rows = 1 + len(groups) + len(reads)
     panels = 1 if detail else 2
-    fig = Figure(figsize=(10, 0.9 + 0.42 * rows * panels + 0.5 * (panels - 1)))
+    fig = Figure(figsize=(10, 1.2 + 0.42 * rows * panels + 0.6 * (panels - 1)))
     axes = fig.subplots(panels, 1, squeeze=False)[:, 0]
     group_colour = "#222222"
 
@@ -209,8 +209,10 @@ def timeline_png(tl: "Timeline") -> bytes:
     handles.append(Patch(color="#dddddd", label="no bucket collects (drain, readout)"))
     if groups:
         handles.append(Patch(color=group_colour, label="switchable group on"))
-    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 6), fontsize=7, frameon=False)
-    _margins(fig, left_in=1.45, right_in=0.15, bottom_in=0.85, top_in=0.3, hspace_in=0.75)
+    ncol = min(len(handles), 8)
+    fig.legend(handles=handles, loc="lower center", ncol=ncol, fontsize=7, frameon=False)
+    _margins(fig, left_in=1.45, right_in=0.15, bottom_in=0.7 + 0.2 * -(-len(handles) // ncol), top_in=0.3,
+             hspace_in=0.75)
     return _png(fig)
 
 
@@ -329,8 +331,9 @@ def _png8(rgb: np.ndarray) -> bytes:
 
 def snr_map(result: "CaptureResult") -> tuple[np.ndarray, str]:
     """(H, W) SNR and its description: of the HDR radiance's luminance where the application has
-    ``radiance`` and ``sigma`` (NaN where not valid); otherwise of the longest read, expected from
-    its noise-free electrons with photon shot noise and read noise (NaN where it saturated)."""
+    ``radiance`` and ``sigma`` (NaN where not valid); otherwise of the read with the most light,
+    expected from its noise-free electrons with photon shot noise and read noise (NaN where it
+    saturated)."""
     img = result.images
     if "radiance" in img and "sigma" in img and img["radiance"].shape[-1] == 3:
         w = np.array([0.2126, 0.7152, 0.0722])  # the luminance weights of metrics.luminance (Rec. 709)
@@ -340,12 +343,13 @@ def snr_map(result: "CaptureResult") -> tuple[np.ndarray, str]:
         if "valid" in img:
             snr = np.where(img["valid"].min(axis=-1) > 0, snr, np.nan)
         return snr, "HDR radiance: luminance / its 1-sigma uncertainty (grey: no valid read)"
-    i = int(np.argmax([r["exposure_s"] for r in result.report["reads"]]))
+    i = int(np.argmax(result.reads_expected_e.reshape(len(result.timeline.reads), -1).sum(axis=1)))
     e = result.reads_expected_e[i].mean(axis=-1)
     noise = np.sqrt(e + result.config.sensor.read_noise_e ** 2)
     snr = np.where(result.saturated[i].any(axis=-1), np.nan, e / noise)
     name = result.timeline.reads[i].name
-    return snr, f"read {name} (the longest), expected: electrons / sqrt(electrons + read noise^2) (grey: saturated)"
+    return snr, (f"read {name} (the one with the most light), expected: electrons / sqrt(electrons + read noise^2) "
+                 "(grey: saturated)")
 
 
 # ----------------------------------------------------------------------------- html
@@ -357,7 +361,7 @@ table{border-collapse:collapse;font-size:.9em;margin:.5em 0}td,th{border:1px sol
 vertical-align:top}th{background:#f5f5f5}td.num{text-align:right;font-variant-numeric:tabular-nums}
 .grid{display:grid;grid-template-columns:repeat(auto-fill,minmax(230px,1fr));gap:1em}
 figure{margin:0}figure img{width:100%;image-rendering:pixelated;border:1px solid #ccc;background:#000}
-figure.plot img{image-rendering:auto;background:#fff;border:none}figcaption{font-size:.82em;color:#444}
+figure.plot img{image-rendering:auto;background:#fff;border:none;width:auto;max-width:100%}figcaption{font-size:.82em;color:#444}
 .lead{font-size:1.05em}.verdict{padding:.6em 1em;border-left:4px solid #888;background:#f7f7f7}
 code{background:#f2f2f2;padding:0 .2em}.muted{color:#666;font-size:.85em}
 .scale{font-size:.8em;margin:.3em 0}.bar{height:.8em;border:1px solid #aaa}.ticks{display:flex;justify-content:space-between}
@@ -511,7 +515,8 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
         "<h2 id='reads'>Reads</h2><p>Top row: every read on one DN scale (black level removed; white = the "
         f"{COMMON_SCALE_PERCENTILE:g}th percentile luminance of the brightest read), so exposure ratios are visible. "
         "Bottom row: each read scaled to its own maximum. sRGB.</p>"
-        f"<div class='grid' style='grid-template-columns:repeat({len(names)},1fr)'>" + "".join(cells) + "</div>")
+        f"<div class='grid' style='grid-template-columns:repeat({len(names)},minmax(0,300px))'>" + "".join(cells)
+        + "</div>")
     # ---- application images
     app_cells = []
     for stem, (image, pct) in app_out.png.items():
@@ -523,7 +528,7 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
                     "previews:</p><div class='grid'>" + "".join(app_cells) + "</div>")
     # ---- maps and histograms
     sections.append("<h2 id='maps'>Saturation and SNR</h2><div class='grid' style='grid-template-columns:"
-                    f"repeat({len(maps)},1fr)'>" + "".join(_figure(f, t) for f, t in maps) + "</div>")
+                    f"repeat({len(maps)},minmax(0,400px))'>" + "".join(_figure(f, t) for f, t in maps) + "</div>")
     sections.append("<h2 id='histograms'>Histograms</h2>" + _figure(
         "report_histograms.png", "Each read in DN, per channel (pixels per bin, log scale). Dotted: black level; dashed: the "
         "read's full well (its buckets' full wells summed, or the floating diffusion's, whichever is lower); red: "
