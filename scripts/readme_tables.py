@@ -37,15 +37,18 @@ TABLES: dict[str, tuple[str, list[tuple[str, list[str]]]]] = {
 }
 
 
-def measure(config: str, overrides: list[str]) -> dict:
-    """One ``mbcapture run`` in its own process; the numbers of its report.json that the table shows."""
+def run_in_own_process(args: list[str]) -> None:
+    """``mbcapture <args>`` in a new Python process (what a user's command costs, kernel loading included)."""
+    proc = subprocess.run([sys.executable, "-m", "mbcapture", *args], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"readme_tables: mbcapture {' '.join(args)} failed: {proc.stderr.strip()}")
+
+
+def measure(config: str, overrides: list[str], run=run_in_own_process) -> dict:
+    """One ``mbcapture run`` (by ``run``, default in its own process); the numbers of its report.json
+    that the table shows."""
     with tempfile.TemporaryDirectory(prefix="readme-tables-") as tmp:
-        cmd = [sys.executable, "-m", "mbcapture", "run", config, "--quiet", "--out", tmp]
-        for o in overrides:
-            cmd += ["--set", o]
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise SystemExit(f"readme_tables: {' '.join(cmd)} failed: {proc.stderr.strip()}")
+        run(["run", config, "--quiet", "--out", tmp, *[a for o in overrides for a in ("--set", o)]])
         rep = json.loads((Path(tmp) / "report.json").read_text())
     m = rep["metrics"]
     plan = rep["plan"]
@@ -79,7 +82,8 @@ def render_table(name: str, data: dict) -> str:
     lines = [
         f"Measured on {data['machine']} with `python scripts/readme_tables.py` ({data['seconds']:.0f} s, load "
         f"average {data['load_average_5min']:g} over its last 5 minutes: other work on the machine stretches wall "
-        "times); "
+        "times)" + (f", with $MBCAPTURE_SET={data['mbcapture_set']!r} (not the sizes the rows name)"
+                    if data.get("mbcapture_set") else "") + "; "
         "each row is the `mbcapture run` below, read from its `report.json` (`timings_s.total_before_write`, "
         "`metrics`):",
         "",
@@ -138,6 +142,8 @@ def main(argv: list[str] | None = None) -> int:
         data["machine"] += f", {first['variant']}, LLVM {first['llvm']}"
         data["seconds"] = round(time.perf_counter() - t0, 1)
         data["load_average_5min"] = round(os.getloadavg()[1], 2)  # other work on the machine stretches wall times
+        if os.environ.get("MBCAPTURE_SET"):  # the rows are not what their labels say: make it visible
+            data["mbcapture_set"] = os.environ["MBCAPTURE_SET"]
         args.data.parent.mkdir(parents=True, exist_ok=True)
         args.data.write_text(json.dumps(data, indent=2) + "\n")
     text = args.readme.read_text()

@@ -51,10 +51,20 @@ def test_rewrite_changes_only_the_table_and_check_sees_a_hand_edit(tmp_path):
 
 
 @pytest.mark.render
-def test_a_row_is_what_mbcapture_run_reports(monkeypatch):
+def test_a_row_is_what_mbcapture_run_reports(monkeypatch, capsys):
+    """The same `mbcapture run` command line, here in this process (the script starts a new one)."""
+    from mbcapture.cli import main
+
     monkeypatch.setenv("MBCAPTURE_SET", "render.width=16 render.height=12 render.spp=2")
     monkeypatch.chdir(ROOT)
-    row = _script().measure("configs/metronome_hdr.yaml", ["capture.protocol=interleaved_hdr"])
+    calls = []
+
+    def run(args):
+        calls.append(args)
+        assert main(args) == 0, capsys.readouterr().err
+
+    row = _script().measure("configs/metronome_hdr.yaml", ["capture.protocol=interleaved_hdr"], run=run)
+    assert calls[0][:3] == ["run", "configs/metronome_hdr.yaml", "--quiet"]
     assert row["film"] == [16, 12] and row["spp"] == 2 and row["passes"] >= 1
     assert row["wall_s"] > 0 and row["hdr_rel_mse"] > 0 and row["reads_disagreement_moving"] is not None
     assert row["command"] == "mbcapture run configs/metronome_hdr.yaml --quiet --set capture.protocol=interleaved_hdr"
