@@ -16,18 +16,28 @@ from contextlib import contextmanager
 from typing import Iterator, TextIO
 
 
+def _isatty(file) -> bool:
+    try:
+        return bool(file.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
 class StageStatus:
     """``with status.stage("reconstruct"): ...`` shows 'reconstruct  12.5 s  [stage 5/7, 31 s]'.
 
     ``enabled=False`` shows nothing (and starts no thread). ``stages``: how many stages the run
-    has (for the 'stage i/n' count; None leaves it out). ``refreshes`` counts redraws (tests).
+    has (for the 'stage i/n' count; None leaves it out). ``interval_s``: seconds between redraws
+    (default 0.5 on a terminal, 10 into a file). ``refreshes`` counts redraws (tests).
     """
 
     def __init__(self, enabled: bool = True, stages: int | None = None, *, file: TextIO | None = None,
-                 interval_s: float = 0.5):
+                 interval_s: float | None = None):
+        file = file if file is not None else sys.stderr
         self.enabled = enabled
         self.stages = stages
-        self.interval_s = interval_s
+        # a terminal redraws in place; a log file gets every redraw appended: fewer of them there
+        self.interval_s = interval_s if interval_s is not None else (0.5 if _isatty(file) else 10.0)
         self.refreshes = 0
         self._done = 0
         self._name: str | None = None
@@ -38,8 +48,7 @@ class StageStatus:
         if enabled:
             from tqdm import tqdm
 
-            self._bar = tqdm(total=stages, bar_format="{desc}", leave=False, dynamic_ncols=True,
-                             file=file if file is not None else sys.stderr)
+            self._bar = tqdm(total=stages, bar_format="{desc}", leave=False, dynamic_ncols=True, file=file)
 
     def _text(self) -> str:
         now = time.perf_counter()
