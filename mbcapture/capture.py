@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import platform
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
@@ -23,6 +23,8 @@ from .apps import AppOutput, CaptureData
 from .integrate import integrate, temporal_error
 from .io import check_out_dir, staged_outputs
 from .plan import Plan, make_plan, resolve_spp
+from .progress import StageStatus
+from .report import noise_verdict, write_read_previews, write_report
 from .sensor import electrons_per_render_second, simulate_reads
 from .timeline import Timeline
 
@@ -153,16 +155,9 @@ def render_error(
 
 def render_summary(report: dict) -> list[str]:
     """The lines a run prints about its rendering: noise against the budget, and the cache."""
-    err, plan, out = report.get("render_error", {}), report.get("plan", {}), []
-    b = err.get("budget")
-    if b is not None:
-        level = (f"rendering noise: Monte Carlo / shot-noise variance median {err['to_shot_noise_variance_median']:.3g}, "
-                 f"p95 {err['to_shot_noise_variance_p95']:.3g} (budget {b['median_target']:g} / {b['p95_target']:g})")
-        if b["met"]:
-            out.append(level + ": within budget, the sensor's noise dominates")
-        else:
-            fix = f"render.spp >= {b['spp_that_would_meet']} or " if "spp_that_would_meet" in b else ""
-            out.append(level + f": NOT within budget, rendering noise is visible; {fix}render.spp: null would meet it")
+    from .report import noise_verdict
+
+    out = [noise_verdict(report.get("render_error", {}))]
     cache = report.get("render_cache", {})
     if cache.get("folder"):
         out.append(f"render cache: {cache['hits']} renders reused, {cache['rendered']} rendered ({cache['folder']})")
@@ -243,30 +238,38 @@ def bucket_group_seconds(timeline: Timeline, switchable: tuple[str, ...]) -> np.
 
 
 def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True) -> CaptureResult:
-    """Run one capture. With ``out_dir``, write its outputs there (atomically)."""
-    from .render import Renderer, ensure_llvm
-
+    """Run one capture. With ``out_dir``, write its outputs there (atomically). ``progress``: a
+    status line for every stage and a bar for the render passes (stderr)."""
     if out_dir is not None:
         check_out_dir(Path(out_dir))
+    with StageStatus(progress, stages=5 + (cfg.render.spp is None) + (out_dir is not None)) as status:
+        return _run(cfg, out_dir, progress, status)
+
+
+def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status: StageStatus) -> CaptureResult:
+    from .render import Renderer, ensure_llvm
+
     timer = _Timer()
     t_start = time.perf_counter()
-    with timer("plan"):
+    with timer("plan"), status.stage("plan"):
         scene, timeline, plan, seeds = prepare(cfg)
         app, app_params = cfg.app.resolve(cfg.capture.protocol)
     W, H = cfg.render.width, cfg.render.height
 
-    with timer("render_setup"):
+    with timer("render_setup"), status.stage("render setup (kernels, scene)"):
         llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
         cache = render_cache(cfg.render)
         renderer = Renderer.from_config(scene, cfg, cache=cache)
-    with timer("pilot"):
+    pilot = status.stage("pilot render (spp from render.noise_budget)") if cfg.render.spp is None else nullcontext()
+    with timer("pilot"), pilot:
         plan = resolve_spp(plan, renderer, cfg, seeds[2])  # render.spp null: spp from render.noise_budget
     n_ch = len(renderer.channels)
-    integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
-                           progress=progress)
+    with status.stage(f"render ({plan.passes} passes)"):
+        integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
+                               progress=progress)
     exposure = integrated.exposure
 
-    with timer("sensor"):
+    with timer("sensor"), status.stage("sensor"):
         spectral = cfg.render.variant.endswith("_spectral")
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)  # (C,) e- per render unit s (spectral: film units)
         buckets_e = exposure * k_e
@@ -285,7 +288,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
             shared_photodiode=not timeline.sequential,
         )
 
-    with timer("reconstruct"):
+    with timer("reconstruct"), status.stage(f"reconstruct ({app.name})"):
         t0_s, t1_s = timeline.seconds(timeline.start_tick), timeline.seconds(timeline.end_tick)
         mask = moving_region(scene, float(t0_s), float(t1_s), W, H)
         switchable = tuple(g for g in scene.groups if g in scene.switchable)
@@ -314,7 +317,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         **describe(cfg, timeline, plan),
         "app": app.name,
         "render_units": "camera-weighted film value, e- m^-2 sr^-1 s^-1 before optics" if spectral else "W m^-2 sr^-1",
-        "electrons_per_render_unit_second": k_e.tolist(),
+        "electrons_per_render_unit_second": dict(zip(renderer.channels, k_e.tolist())),  # per film channel
         "metrics": out.metrics,
         "render_error": {
             **render_error(integrated.mc_var, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e,
@@ -325,6 +328,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant,
                      "llvm_target": _llvm_target_label() if llvm else None},
     }
+    report["render_error"]["verdict"] = noise_verdict(report["render_error"])
     result = CaptureResult(
         config=cfg,
         timeline=timeline,
@@ -344,7 +348,8 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     report["timings_s"] = {k: round(v, 4) for k, v in timer.stages.items()}
     report["timings_s"]["total_before_write"] = round(time.perf_counter() - t_start, 4)
     if out_dir is not None:
-        write_outputs(result, Path(out_dir))
+        with status.stage("write outputs and report"):
+            write_outputs(result, Path(out_dir))
         result.out_dir = Path(out_dir)
     return result
 
@@ -362,7 +367,7 @@ def write_outputs(result: CaptureResult, out: Path) -> None:
             st.write_exr(file, layers)
         for stem, (image, percentile) in app_out.png.items():
             st.write_png(f"{stem}.png", app_out.images[image], percentile)
-        for i, n in enumerate(names):  # each read at its own exposure, as the sensor saw it
-            st.write_png(f"read_{n}.png", result.reads_dn[i] - cfg.sensor.black_level_dn, 100.0)
+        result.report["previews"] = write_read_previews(st, result)  # one common DN scale, and each its own
         st.write_yaml("config.yaml", cfg.to_yaml_dict())
         st.write_json("report.json", result.report)
+        write_report(st, result)  # report.html and its plots, last: it lists every file

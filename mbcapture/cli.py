@@ -1,6 +1,7 @@
 """Command line: ``mbcapture run | plan | scenes | apps | figures | converge | cache``.
 
-Input errors (config, files, environment) print one line and exit with status 2.
+Input errors (config, files, environment) print one line and exit with status 2; notices
+(:class:`~mbcapture.errors.ConfigNotice`) print one line ``mbcapture: note: ...`` and go on.
 """
 
 from __future__ import annotations
@@ -10,27 +11,31 @@ import json
 import signal
 import sys
 import threading
+import warnings
 from pathlib import Path
 
-from .errors import MBCaptureError
+from .errors import ConfigNotice, MBCaptureError
 
 EXIT_INPUT = 2
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", type=Path, help="YAML config, e.g. configs/metronome_hdr.yaml")
+    p.add_argument("config", type=Path,
+                   help="YAML config: a path (configs/metronome_hdr.yaml) or a shipped config's name (metronome_hdr)")
     p.add_argument(
         "--set",
         dest="overrides",
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override a config key by its dotted path; VALUE is YAML (e.g. render.spp=4, scene.radiance=[1,1,1])",
+        help="override a config key by its dotted path; VALUE is YAML (e.g. render.spp=4, scene.amplitude_deg=45, "
+        "scene.name=flatfield)",
     )
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mbcapture", description="Multi-bucket sensor capture simulator (Mitsuba 3).")
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", help="render, simulate the sensor, reconstruct, write outputs")
@@ -81,6 +86,15 @@ def _cmd_cache(args) -> int:
     print(f"{info['folder']}: {info['entries']} renders, {info['size_bytes'] / 1e9:.3f} GB "
           "(cap: render.cache_max_gb, default 20 GB)")
     return 0
+
+
+def _version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("mbcapture")
+    except metadata.PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
 
 
 def _cmd_run(args) -> int:
@@ -168,6 +182,9 @@ def _cmd_converge(args) -> int:
                    "--naive-spp")
     ref_spp = args.ref_spp or (64 if args.quick else 256)
     out = args.out or Path("out") / f"converge_{args.config.stem}"
+    from .io import check_out_dir
+
+    check_out_dir(out)  # before the ladders run, not after
     result = converge.run_converge(cfg, motion, naive, ref_spp=ref_spp, ref_motion_div=4.0 if args.quick else 8.0,
                                    progress=print)
     converge.write_outputs(result, out)
@@ -230,7 +247,13 @@ def main(argv: list[str] | None = None) -> int:
     # SIGTERM (kill, a batch system's time limit) ends a run like Ctrl-C: staging removed, outputs untouched
     previous = signal.signal(signal.SIGTERM, _terminated) if threading.current_thread() is threading.main_thread() else None
     try:
-        return handlers[args.command](args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", ConfigNotice)
+            shown = warnings.showwarning
+            warnings.showwarning = lambda message, category, *a, **k: (
+                print(f"mbcapture: note: {message}", file=sys.stderr) if issubclass(category, ConfigNotice)
+                else shown(message, category, *a, **k))
+            return handlers[args.command](args)
     except MBCaptureError as exc:
         print(f"mbcapture: error: {exc}", file=sys.stderr)
         return EXIT_INPUT

@@ -3,21 +3,32 @@
 Every key is documented by its ``Field(description=...)``; ``docs/config.md`` is generated from
 these descriptions (``mbcapture config-doc``). Unknown keys are rejected with their dotted path.
 Units are in the names (``_s``, ``_e``, ``_px``).
+
+Every error names where the offending key came from (the config file, or the ``--set`` that
+set it) and, for an unknown key, suggests the nearest valid one. ``--set scene.name=...`` (or
+``app.name=...``) that switches to another scene (application) drops the file's parameters of the
+old one with a :class:`~mbcapture.errors.ConfigNotice`. A config is named by its path or, for the
+shipped ones in ``configs/``, by its name (``metronome_hdr``).
 """
 
 from __future__ import annotations
 
 import copy
+import difflib
 import math
+import warnings
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Callable, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from . import scenes
-from .errors import ConfigError
+from .errors import ConfigError, ConfigNotice
 from .sensor.config import SensorConfig
+
+#: The shipped configs, which ``load_config`` (and ``mbcapture run``) also finds by name.
+SHIPPED_CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
 
 class _Model(BaseModel):
@@ -31,13 +42,16 @@ class SceneSection(BaseModel):
     model_config = ConfigDict(extra="allow", frozen=True)
     name: str = Field("metronome", description="Scene name: a folder scenes/<name>/ (see `mbcapture scenes`).")
 
-    def params(self) -> Any:
-        """The scene's own validated ``Params`` (raises ConfigError naming ``scene.<key>``)."""
+    def params(self, origin: "Callable[[tuple], str] | None" = None) -> Any:
+        """The scene's own validated ``Params`` (raises ConfigError naming ``scene.<key>``; an
+        unknown key lists this scene's keys). ``origin``: where a key came from (see
+        :func:`config_from_dict`)."""
         module = scenes.load_module(self.name)
         try:
             return module.Params(**(self.model_extra or {}))
         except ValidationError as exc:
-            raise ConfigError(_format_validation(exc, prefix="scene")) from None
+            raise ConfigError(_format_validation(exc, prefix="scene", origin=origin, model=module.Params,
+                                                 owner=f"scene {self.name!r}")) from None
 
 
 class RenderSection(_Model):
@@ -175,15 +189,17 @@ class AppSection(BaseModel):
         None, description="Application that reconstructs the reads; default: the protocol's own (hdr for the HDR protocols)."
     )
 
-    def resolve(self, protocol: str) -> tuple[Any, Any]:
-        """(App, its validated params) for a capture with ``protocol``; ConfigError names ``app.<key>``."""
+    def resolve(self, protocol: str, origin: "Callable[[tuple], str] | None" = None) -> tuple[Any, Any]:
+        """(App, its validated params) for a capture with ``protocol``; ConfigError names ``app.<key>``
+        (an unknown key lists this application's keys)."""
         from . import apps, protocols
 
         app = apps.get(self.name or protocols.default_app(protocol))
         try:
             return app, app.params(**(self.model_extra or {}))
         except ValidationError as exc:
-            raise ConfigError(_format_validation(exc, prefix="app")) from None
+            raise ConfigError(_format_validation(exc, prefix="app", origin=origin, model=app.params,
+                                                 owner=f"application {app.name!r}")) from None
 
 
 class OutputSection(_Model):
@@ -239,18 +255,59 @@ class CaptureConfig(_Model):
         return data
 
 
-def _format_validation(exc: ValidationError, prefix: str = "") -> str:
+def _model_at(model: type[BaseModel], path: tuple) -> type[BaseModel] | None:
+    """The pydantic model of the section at ``path`` (field names) below ``model``, or None."""
+    for name in path:
+        field = model.model_fields.get(name) if isinstance(name, str) else None
+        if field is None:
+            return None
+        nested = [a for a in (field.annotation, *getattr(field.annotation, "__args__", ()))
+                  if isinstance(a, type) and issubclass(a, BaseModel)]
+        if not nested:
+            return None
+        model = nested[0]
+    return model
+
+
+def _suggest(key: str, section: tuple, model: type[BaseModel] | None) -> str:
+    """'; did you mean render.spp?': the nearest valid key of the same section (difflib), or a
+    key of that name in another section of the config."""
+    valid = list(model.model_fields) if model is not None else []
+    close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
+    if close:
+        return f"; did you mean {'.'.join((*map(str, section), close[0]))}?"
+    elsewhere = [f"{name}.{key}" for name, f in CaptureConfig.model_fields.items()
+                 if (sub := _model_at(CaptureConfig, (name,))) is not None and key in sub.model_fields]
+    if elsewhere:
+        return f"; did you mean {elsewhere[0]}?"
+    return ""
+
+
+def _format_validation(exc: ValidationError, prefix: str = "", origin: Callable[[tuple], str] | None = None,
+                       model: type[BaseModel] | None = None, owner: str | None = None) -> str:
+    """One line for all of ``exc``'s errors: ``[origin: ]key: message`` joined by '; '.
+
+    ``model``: the model that was validated (for the valid keys of an unknown key's section; default
+    the whole config); ``owner``: 'scene 'metronome'' when ``model`` is a scene's or application's
+    own parameters, named in the message with its keys; ``origin(path)``: where the key at ``path``
+    came from (the file or a ``--set``)."""
     parts = []
     for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"] if not (isinstance(p, str) and p.startswith("function-")))
-        if prefix:
-            loc = f"{prefix}.{loc}" if loc else prefix
+        path = tuple(p for p in err["loc"] if not (isinstance(p, str) and p.startswith("function-")))
+        full = ((prefix,) if prefix else ()) + path
+        loc = ".".join(map(str, full))
         msg = err["msg"]
         if err["type"] == "extra_forbidden":
-            msg = "unknown key"
+            section = _model_at(model or CaptureConfig, path[:-1])
+            if owner and section is not None and len(path) == 1:
+                msg = (f"unknown key for {owner} (its keys: {', '.join(section.model_fields) or 'none'})"
+                       + _suggest(str(path[-1]), full[:-1], section))
+            else:
+                msg = "unknown key" + _suggest(str(path[-1]), full[:-1], section)
         elif "input" in err and not isinstance(err["input"], (dict, list)):
             msg = f"{msg} (got {err['input']!r})"
-        parts.append(f"{loc}: {msg}" if loc else msg)
+        where = origin(full) if origin else ""
+        parts.append(f"{where + ': ' if where else ''}{loc + ': ' if loc else ''}{msg}")
     return "; ".join(parts)
 
 
@@ -285,6 +342,64 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
     return data
 
 
+#: Sections whose other keys belong to what their ``name`` selects (a scene, an application).
+_SELECTED_BY_NAME = {"scene": "scene", "app": "application"}
+
+
+def _switch_selected(data: dict, overrides: list[str]) -> tuple[dict, list[str]]:
+    """Drop the config file's ``scene.*`` (``app.*``) parameters when ``--set`` switches to another
+    scene (application): they belong to the old one. Parameters that a ``--set`` gives are kept.
+    Returns the data and one notice per switched section."""
+    data = copy.deepcopy(data)
+    parsed = [parse_override(t) for t in overrides]
+    notices = []
+    for section, what in _SELECTED_BY_NAME.items():
+        names = [v.get("name") if p == [section] and isinstance(v, dict) else v
+                 for p, v in parsed if p in ([section, "name"], [section])]
+        old = data.get(section)
+        if not names or not isinstance(old, dict) or names[-1] is None or names[-1] == _selected_name(data, section):
+            continue
+        dropped = [k for k in old if k != "name"]
+        if dropped:
+            data[section] = {k: v for k, v in old.items() if k == "name"}
+            notices.append(f"--set {section}.name={names[-1]} replaces {what} {_selected_name(data, section)!r} of the "
+                           "config file: "
+                           f"dropped its keys {', '.join(f'{section}.{k}' for k in dropped)}")
+    return data, notices
+
+
+def _selected_name(data: dict, section: str) -> str | None:
+    """The scene (application) that raw config ``data`` selects, defaults included."""
+    name = (data.get(section) or {}).get("name")
+    if name is not None or section == "scene":
+        return name or SceneSection.model_fields["name"].default
+    from . import protocols
+
+    capture = data.get("capture") if isinstance(data.get("capture"), dict) else {}
+    try:
+        return protocols.default_app(capture.get("protocol", CaptureSection.model_fields["protocol"].default))
+    except (ConfigError, KeyError, TypeError):
+        return None
+
+
+def _origin_of(overrides: list[str], source: str) -> Callable[[tuple], str]:
+    """path -> '--set render.spp=4' for the last override that set the key at path (or a section
+    holding it, or a key inside it), else ``source`` (the file, or 'defaults')."""
+    parsed = [(tuple(parse_override(t)[0]), t) for t in overrides]
+
+    def origin(path: tuple) -> str:
+        path = tuple(map(str, path))
+        if not path:  # a check across sections: no one key to blame
+            return source
+        for p, text in reversed(parsed):
+            n = min(len(p), len(path))
+            if p[:n] == path[:n]:
+                return f"--set {text}"
+        return source
+
+    return origin
+
+
 def _first_non_finite(node: Any, path: tuple = ()) -> tuple[str, float] | None:
     """Dotted path and value of the first inf/nan number anywhere in raw config data, or None."""
     if isinstance(node, float) and not math.isfinite(node):
@@ -302,32 +417,79 @@ def _first_non_finite(node: Any, path: tuple = ()) -> tuple[str, float] | None:
     return None
 
 
-def config_from_dict(data: dict, source: str = "config") -> CaptureConfig:
+def config_from_dict(data: dict, source: str = "config", origin: Callable[[tuple], str] | None = None) -> CaptureConfig:
+    """Validate raw config data. ``origin(path)`` says where the key at ``path`` came from (default:
+    ``source`` for every key); every error names it."""
+    origin = origin or (lambda path: source)
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: expected a mapping of sections at the top level, got {type(data).__name__}")
     bad = _first_non_finite(data)
     if bad:  # YAML .inf / .nan: no key of any section accepts them (durations, radiances, noise, phases)
-        raise ConfigError(f"{source}: {bad[0]}: expected a finite number (got {bad[1]!r})")
+        raise ConfigError(f"{origin(tuple(bad[0].split('.')))}: {bad[0]}: expected a finite number (got {bad[1]!r})")
     try:
         cfg = CaptureConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(f"{source}: {_format_validation(exc)}") from None
-    cfg.scene.params()  # validate the scene's and the application's own keys now, not halfway through a run
-    cfg.app.resolve(cfg.capture.protocol)
+        raise ConfigError(_format_validation(exc, origin=origin)) from None
+    cfg.scene.params(origin)  # validate the scene's and the application's own keys now, not halfway through a run
+    cfg.app.resolve(cfg.capture.protocol, origin)
     return cfg
 
 
+def shipped_configs() -> list[str]:
+    """Names of the configs shipped in ``configs/`` (``mbcapture run <name>`` finds them)."""
+    return sorted(p.stem for p in SHIPPED_CONFIG_DIR.glob("*.yaml"))
+
+
+def resolve_config_path(path: str | Path) -> Path:
+    """``path`` if it exists, else the shipped config of that name (``metronome_hdr`` or
+    ``metronome_hdr.yaml``); a name that is neither fails naming the shipped ones."""
+    p = Path(path)
+    if p.exists() or len(p.parts) != 1:
+        if not p.exists():
+            raise ConfigError(f"{p}: config file not found")
+        return p
+    shipped = SHIPPED_CONFIG_DIR / (p.name if p.suffix in (".yaml", ".yml") else f"{p.name}.yaml")
+    if shipped.is_file():
+        return shipped
+    names = shipped_configs()
+    close = difflib.get_close_matches(p.stem, names, n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]}?" if close else ""
+    raise ConfigError(f"{p}: config file not found, and not a shipped config ({', '.join(names)}){hint}")
+
+
+#: Environment variable of extra ``--set`` overrides applied after the command line's to every
+#: config loaded (shell words, e.g. ``"render.width=16 render.height=12"``): any command of the
+#: README runs at a tiny size with it (the test suite does), a script's captures too.
+ENV_OVERRIDES = "MBCAPTURE_SET"
+
+
+def env_overrides() -> list[str]:
+    """The overrides in ``$MBCAPTURE_SET`` (shell words), announced by a :class:`ConfigNotice`."""
+    import os
+    import shlex
+
+    text = os.environ.get(ENV_OVERRIDES, "").strip()
+    if not text:
+        return []
+    try:
+        words = shlex.split(text)
+    except ValueError as exc:
+        raise ConfigError(f"${ENV_OVERRIDES}: {exc} in {text!r}") from None
+    warnings.warn(f"${ENV_OVERRIDES} adds --set {' --set '.join(words)}", ConfigNotice, stacklevel=3)
+    return words
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> CaptureConfig:
-    """Load a YAML config (or the defaults when ``path`` is None) and apply ``--set`` overrides."""
+    """Load a YAML config (a path, or a shipped config's name; the defaults when ``path`` is None)
+    and apply ``--set`` overrides, then those of ``$MBCAPTURE_SET``. Switching ``scene.name`` or ``app.name`` by an override drops the
+    file's parameters of the old scene or application with a :class:`ConfigNotice` warning."""
     data: Any = {}
     source = "defaults"
     if path is not None:
-        p = Path(path)
-        source = str(p)
+        p = resolve_config_path(path)
+        source = str(path) if Path(path) == p else f"{path} ({p})"
         try:
             text = p.read_text()
-        except FileNotFoundError:
-            raise ConfigError(f"{p}: config file not found") from None
         except OSError as exc:
             raise ConfigError(f"{p}: cannot read config file ({exc.strerror})") from None
         try:
@@ -338,5 +500,10 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise ConfigError(f"{p}:{where}: malformed YAML ({getattr(exc, 'problem', exc)})") from None
         if data is None:
             data = {}
-    data = apply_overrides(data, list(overrides))
-    return config_from_dict(data, source)
+    overrides = [*overrides, *env_overrides()]
+    if isinstance(data, dict):
+        data, notices = _switch_selected(data, overrides)
+        for n in notices:
+            warnings.warn(n, ConfigNotice, stacklevel=2)
+    data = apply_overrides(data, overrides)
+    return config_from_dict(data, source, _origin_of(overrides, source))

@@ -25,6 +25,7 @@ seconds^(-1/2) once the per-render overhead is amortized; the plot has that slop
 from __future__ import annotations
 
 import csv
+import io
 import json
 import time
 from dataclasses import asdict, dataclass, replace
@@ -200,16 +201,21 @@ def write_outputs(result: dict, out_dir: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    out_dir.mkdir(parents=True, exist_ok=True)
+    from .io import staged_outputs
+
     pts = result["points"]
-    with open(out_dir / "converge.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(pts[0]))
-        w.writeheader()
-        w.writerows(pts)
-    (out_dir / "converge.json").write_text(json.dumps(result, indent=2))
+    table = io.StringIO()
+    w = csv.DictWriter(table, fieldnames=list(pts[0]))
+    w.writeheader()
+    w.writerows(pts)
     fig = plot(result)
-    fig.savefig(out_dir / "converge.png")
+    png = io.BytesIO()
+    fig.savefig(png, format="png")
     plt.close(fig)
+    with staged_outputs(out_dir) as st:  # all three files or none (an interrupted run changes nothing)
+        st.write_bytes("converge.csv", table.getvalue().encode())
+        st.write_bytes("converge.json", (json.dumps(result, indent=2) + "\n").encode())
+        st.write_bytes("converge.png", png.getvalue())
 
 
 def plot(result: dict):

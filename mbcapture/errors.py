@@ -11,3 +11,8 @@ class ConfigError(MBCaptureError):
 
 class EnvironmentProblem(MBCaptureError):
     """The machine lacks something (e.g. a usable libLLVM); the message names the fix."""
+
+
+class ConfigNotice(UserWarning):
+    """Not an error: the config was changed in a way the user should know of (e.g. ``--set
+    scene.name=...`` dropped the old scene's keys). The CLI prints it as ``mbcapture: note: ...``."""

@@ -197,17 +197,25 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
     """
     D = integrated.temporal_diff
     if D is None:
-        return {"temporal_method": "one stratum: no temporal error", "temporal_rel_rms_estimate": 0.0}
+        return {"temporal_method": "one stratum: not measured (strata are compared in pairs); the image motion "
+                                   "inside it is plan.image_motion_px_total",
+                "temporal_rel_rms_estimate": None}
     e = integrated.exposure[buckets] * k_e
     use = (e > 1.0) & (e < full_well_e)
     if not use.any():
         return {"temporal_method": "no unsaturated lit samples"}
     d2 = (D[buckets] * k_e)[use] ** 2
     mc = (integrated.mc_var[buckets] * k_e**2)[use] if integrated.mc_var is not None else np.zeros_like(d2)
+    resolved = bool(d2.mean() > mc.mean())
     coarse = float(np.sqrt(max(d2.mean() - mc.mean(), 0.0)) / e[use].mean())
-    return {
+    out = {
         "temporal_method": "strata merged in pairs (coarse minus fine), Monte Carlo part subtracted",
         "temporal_rel_rms_coarse": coarse,
         "temporal_rel_rms_estimate": coarse / 2,
         "temporal_raw_rel_rms_coarse": float(np.sqrt(d2.mean()) / e[use].mean()),
+        "temporal_resolved": resolved,
     }
+    if not resolved:
+        out["temporal_note"] = ("the coarse-minus-fine difference is within the Monte Carlo noise: 0 means too small "
+                                "to measure at this spp, not exactly 0")
+    return out

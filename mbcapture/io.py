@@ -33,15 +33,39 @@ class OutputError(MBCaptureError):
 
 
 def check_out_dir(out: Path) -> None:
-    """Fail early (before any rendering) if ``out`` could not be created or written; creates nothing."""
+    """Fail early (before any rendering) if ``out`` could not be created or written; leaves nothing behind.
+
+    Permission bits are not enough (root passes ``os.access`` on ``/proc``, read-only mounts
+    and full quotas say nothing), so this really creates the missing folders and a probe file in
+    the deepest one, and removes what it made."""
     out = Path(out).absolute()
     probe = out
     while not probe.exists():
         probe = probe.parent
     if not probe.is_dir():
         raise OutputError(f"--out {out}: {probe} is a file, not a folder")
-    if not os.access(probe, os.W_OK | os.X_OK):
-        raise OutputError(f"--out {out}: {probe} is not writable")
+    missing = [out, *out.parents][: len(out.parts) - len(probe.parts)]  # deepest first
+    made: list[Path] = []
+    try:
+        for folder in reversed(missing):
+            folder.mkdir()
+            made.append(folder)
+        fd, name = tempfile.mkstemp(prefix=".mbcapture-probe-", dir=out)
+        os.close(fd)
+        os.unlink(name)
+    except OSError as exc:
+        created = len(made) == len(missing)  # the folder exists: writing into it failed
+        at = out if created else (made[-1] if made else probe)
+        if isinstance(exc, PermissionError):
+            raise OutputError(f"--out {out}: {at} is not writable") from None
+        raise OutputError(f"--out {out}: cannot {'write into' if created else 'create a folder in'} {at} "
+                          f"({exc.strerror})") from None
+    finally:
+        for folder in reversed(made):
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
 
 
 def prepare_out_dir(out: Path) -> Path:

@@ -168,7 +168,8 @@ class Plan:
             "max_motion_px": self.max_motion_px,
             "image_motion_px_total": round(self.motion_px_total, 3),
             "coarsened": self.coarsened,
-            "tick_s": str(timeline.tick_s),
+            "tick_s": float(timeline.tick_s),  # every time of the schedule is a whole number of ticks
+            "tick_s_exact": str(timeline.tick_s),  # ... of exactly this fraction of a second
             "strata": [
                 {
                     "start_s": float(timeline.seconds(a)),

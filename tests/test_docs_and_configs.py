@@ -32,11 +32,14 @@ def test_shipped_config_loads_and_plans(path):
 
 @pytest.mark.render
 @pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
-def test_shipped_config_runs_at_tiny_size(path):
-    """Each shipped config as it is (samples from render.noise_budget, every app with render.spp null)."""
+def test_shipped_config_runs_at_tiny_size(path, tmp_path):
+    """Each shipped config as it is (samples from render.noise_budget, every app with render.spp null),
+    with its outputs and report.html."""
+    from report_checks import check_report_folder, undocumented_keys
+
     cfg = load_config(path, ["render.width=16", "render.height=12", "render.max_motion_px=4"])
     assert cfg.render.spp is None or path.name == "tiny_hdr.yaml"
-    result = run_capture(cfg, progress=False)
+    result = run_capture(cfg, tmp_path, progress=False)
     if cfg.render.spp is None:
         assert result.plan.spp_source == "noise_budget"
     assert result.images and result.report["metrics"]
@@ -48,6 +51,13 @@ def test_shipped_config_runs_at_tiny_size(path):
         assert (np.isfinite(img) | invalid).all(), name
     for image, _ in result.app_output.png.values():  # every preview names an image that exists
         assert image in result.images
+    # every application's run has a report.html that opens offline, shows each preview with what it is,
+    # and a report.json whose every key docs/report.md explains
+    refs = check_report_folder(tmp_path)
+    assert {f"{stem}.png" for stem in result.app_output.png} <= set(refs.images)
+    assert set(result.app_output.png) <= set(result.app_output.captions), "a preview without a caption"
+    reads = [r.name for r in result.timeline.reads]
+    assert undocumented_keys(result.report, reads) == [], "document these keys in docs/report.md"
 
 
 def test_cli_output_piped_into_head_ends_quietly():

@@ -275,4 +275,6 @@ def test_temporal_error_sees_change_in_time_and_not_noise():
     assert e_moving["temporal_rel_rms_coarse"] > 5 * e_still["temporal_rel_rms_coarse"]
     assert e_still["temporal_rel_rms_coarse"] < 0.3 * e_still["temporal_raw_rel_rms_coarse"]
     one = replace(plan(point_scene(None), tl, spp=4))
-    assert temporal_error(integrate(still, one, 4, np.random.SeedSequence(3)), k_e, [0], 1e12)["temporal_rel_rms_estimate"] == 0.0
+    single = temporal_error(integrate(still, one, 4, np.random.SeedSequence(3)), k_e, [0], 1e12)
+    assert single["temporal_rel_rms_estimate"] is None and "not measured" in single["temporal_method"]
+    assert e_moving["temporal_resolved"] and "temporal_note" not in e_moving

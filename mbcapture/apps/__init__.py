@@ -84,13 +84,16 @@ class AppOutput:
     """images: name -> (H, W, C) float linear, written as the layers of ``<app>.exr``.
     png: file stem -> (image name, tone-map percentile; None = linear, 1.0 is white): previews.
     extra_exr: file name -> layers, written as they are. metrics go to report.json.
-    summary: lines the CLI prints after a run."""
+    summary: lines the CLI prints after a run.
+    captions: png stem -> what the preview shows and how it is scaled (what each colour of a mask
+    means); shown under it in report.html."""
 
     images: dict[str, np.ndarray]
     metrics: dict
     png: dict[str, tuple[str, float | None]] = field(default_factory=dict)
     extra_exr: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     summary: list[str] = field(default_factory=list)
+    captions: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

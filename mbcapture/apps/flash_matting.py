@@ -300,6 +300,19 @@ def flash_only_truth(data: CaptureData, params: FlashMattingParams) -> np.ndarra
     return data.group_exposure[buckets, g].sum(axis=0) / data.bucket_group_s[buckets, s].sum()
 
 
+#: What each preview shows (report.html).
+CAPTIONS = {
+    "flash": "the flash read as radiance (the near foreground lit by the flash, plus ambient)",
+    "noflash": "the no-flash read as radiance (ambient only)",
+    "flash_only": "flash minus no-flash: the flash falls off with distance, so the foreground stands out",
+    "trimap": "white = foreground, black = background, grey = unknown (solved by the matting)",
+    "alpha": "the matte: coverage of the foreground, 0 (black) to 1 (white)",
+    "extracted": "alpha x the estimated foreground colour: the foreground cut out",
+    "alpha_truth": "reference matte: the foreground's coverage as the flash read saw it, motion blur included",
+    "alpha_error": "|alpha - reference|, linear: white = 1",
+}
+
+
 @register("flash_matting", params=FlashMattingParams, per_group=True,
           description="flash-only image, trimap and alpha matte (app.matting) scored against the rendered coverage")
 def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
@@ -385,4 +398,4 @@ def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
         a = metrics["alpha"]
         summary.append(f"alpha vs truth: SAD {a['sad']:.1f} px, MSE {a['mse']:.3g}; in the unknown region "
                        f"SAD {metrics['alpha_unknown']['sad']:.1f}, MSE {metrics['alpha_unknown']['mse'] or 0:.3g}")
-    return AppOutput(images=images, metrics=metrics, png=png, summary=summary)
+    return AppOutput(images=images, metrics=metrics, png=png, summary=summary, captions=CAPTIONS)

@@ -50,6 +50,21 @@ from .hdr import REL_MSE_EPS_RADIANCE
 FLASH_GROUP = "flash"
 
 
+#: What each preview shows (report.html); mask.png's channels are (shadow, specular, M).
+CAPTIONS = {
+    "flash": "the flash read as radiance (ambient light plus the flash)",
+    "noflash": "the no-flash read as radiance (ambient light only)",
+    "flash_only": "flash minus no-flash: the scene lit by the flash alone",
+    "enhanced": "the no-flash image enhanced with the flash image (app.method)",
+    "truth_ambient": "reference: the noise-free ambient image the no-flash read saw",
+    "truth_flash_only": "reference: the noise-free flash-only image the flash read saw",
+    "mask": "Petschnigg's mask: red = flash shadow, green = flash specularity (saturation), blue = M, the "
+            "dilated and feathered union of both, where the enhanced image falls back to the no-flash bilateral "
+            "base; so magenta = shadow inside M, cyan = specularity inside M, pure blue = M's feathered rim, "
+            "black = detail transfer applies",
+}
+
+
 # ----------------------------------------------------------------------------- protocol
 @protocols.register("flash_no_flash", app="flash_no_flash")
 def flash_no_flash_protocol(cfg):
@@ -395,4 +410,5 @@ def reconstruct(data: CaptureData, p: FlashNoFlashParams) -> AppOutput:
             "mask": ("mask", None),
         },
         summary=summary,
+        captions=CAPTIONS,
     )

@@ -49,6 +49,13 @@ def motion_check(normalized: np.ndarray, names: list[str], truth: np.ndarray, ma
     return {"moving_pixels": int(mask.sum()), "rel_rms_vs_truth": per_read, "max_pairwise_rel_rms": pair}
 
 
+#: What each preview shows (report.html).
+CAPTIONS = {
+    "hdr": "the HDR radiance merged from the reads (hdr.method); where every read saturated, a lower bound",
+    "truth": "the reference: noise-free, unclipped radiance that the longest read saw",
+}
+
+
 @register("hdr", description="HDR merge of the reads (hdr.method), with sigma and valid layers")
 def reconstruct(data: CaptureData, params) -> AppOutput:
     cfg, tl = data.cfg, data.timeline
@@ -98,4 +105,5 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
         metrics=metrics,
         png={"hdr": ("radiance", cfg.output.png_percentile), "truth": ("truth", cfg.output.png_percentile)},
         summary=summary,
+        captions=CAPTIONS,
     )

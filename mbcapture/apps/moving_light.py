@@ -109,6 +109,14 @@ def consistency(normalized: np.ndarray, names: list[str], truth: np.ndarray, mas
     return out
 
 
+#: What each preview shows (report.html), besides the HDR ones.
+CAPTIONS = {
+    "read_spread": "the largest departure of any exposure-normalized read from the reference, relative, linear: "
+                   "white = 100 %",
+    "sweep": "white: the region the moving lamp's shadows sweep during the capture",
+}
+
+
 def read_spread_rel(normalized: np.ndarray, truth: np.ndarray, floor: float = 0.01) -> np.ndarray:
     """(H, W, C): the largest departure of any exposure-normalized read from the truth, relative
     to the truth (floored at ``floor`` render units so black pixels do not blow up)."""
@@ -223,4 +231,5 @@ def reconstruct(data: CaptureData, params: MovingLightParams) -> AppOutput:
     png = dict(base.png)
     png["read_spread"] = ("read_spread_rel", None)  # linear: white = 100 % departure, the same scale in every run
     png["sweep"] = ("sweep", None)
-    return AppOutput(images=images, metrics=metrics, png=png, extra_exr=base.extra_exr, summary=summary)
+    return AppOutput(images=images, metrics=metrics, png=png, extra_exr=base.extra_exr, summary=summary,
+                     captions={**base.captions, **CAPTIONS})

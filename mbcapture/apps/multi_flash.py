@@ -405,6 +405,16 @@ def _mid_time_s(tl: Timeline) -> float:
     return float(Fraction(tl.start_tick + tl.end_tick, 2) * tl.tick_s)
 
 
+#: What each preview shows (report.html).
+CAPTIONS = {
+    "shadow_free": "the per-pixel maximum of the flash images: no flash shadows",
+    "shadow_free_truth": "reference: the noise-free shadow-free image",
+    "depth_edges": "detected depth edges on the dimmed shadow-free image: green = matches a true depth edge "
+                   "(within app.tolerance_px), red = no true edge near, blue = true edge missed (without a "
+                   "reference: white = detected)",
+}
+
+
 @register("multi_flash", params=MultiFlashParams,
           description="multi-flash: shadow-free max composite and depth edges from ratio images (Raskar 2004)")
 def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
@@ -458,7 +468,7 @@ def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
     else:
         out_images["edges_overlay"] = edges_overlay(shadow_free, edges, None, params.tolerance_px)
     png["depth_edges"] = ("edges_overlay", None)
-    return AppOutput(images=out_images, metrics=metrics, png=png, summary=summary)
+    return AppOutput(images=out_images, metrics=metrics, png=png, summary=summary, captions=CAPTIONS)
 
 
 def _truth(data: CaptureData, params: MultiFlashParams, groups: list[str], with_ambient: bool) -> dict:

@@ -55,6 +55,14 @@ READ_NAMES = ("R", "G", "B", "ambient")
 CMFS_NAME = "CIE 1931 2 Degree Standard Observer"
 #: ΔE maps in the PNG previews: this ΔE is white.
 DELTA_E_PNG_WHITE = 20.0
+#: What each preview shows (report.html).
+CAPTIONS = {
+    "colour": "the colour image from the three LED buckets (ambient subtracted, app.method matrix to XYZ), sRGB",
+    "reference": "reference: the chart at rest under the three LEDs, noise-free",
+    "delta_e2000": "CIEDE2000 against the reference, linear: white = %g" % DELTA_E_PNG_WHITE,
+    "bayer": "an ordinary Bayer colour camera over the same span, for comparison",
+    "delta_e2000_bayer": "the Bayer image's CIEDE2000 against the reference, linear: white = %g" % DELTA_E_PNG_WHITE,
+}
 #: cv2 names a Bayer pattern by the 2x2 block at row 1, column 1 (so an RGGB sensor is 'BG').
 _CV2_BAYER = {"RGGB": "BG", "BGGR": "RG", "GRBG": "GB", "GBRG": "GR"}
 
@@ -435,4 +443,4 @@ def reconstruct(data: CaptureData, params: Params) -> AppOutput:
         png["delta_e2000_bayer"] = ("delta_e2000_bayer_png", None)
         summary.append(f"bayer: CIEDE2000 mean {scores_b['delta_e2000_mean']:.2f}, max {scores_b['delta_e2000_max']:.1f}; "
                        f"patch interiors mean {scores_b['delta_e2000_patch_interior_mean']:.2f}")
-    return AppOutput(images=images, metrics=metrics, png=png, summary=summary)
+    return AppOutput(images=images, metrics=metrics, png=png, summary=summary, captions=CAPTIONS)

@@ -117,7 +117,7 @@ class FigureContext:
 
         key = (name, overrides)
         if key not in self._cache:
-            self._cache[key] = run_capture(self.config(name, overrides), progress=False)
+            self._cache[key] = run_capture(self.config(name, overrides), progress=self.progress)  # a status line per stage
         return self._cache[key]
 
 

@@ -25,21 +25,35 @@ def _timeline(capture: dict, sensor: dict | None = None):
     return protocols.build(config_from_dict({"capture": capture, "sensor": sensor or {}}, "figure"))
 
 
-def _draw_timeline(ax, tl, y: float, unit_s: float, label: str, height: float = 0.6) -> None:
-    """Coloured slots (one colour per bucket) on a horizontal bar at ``y``; grey = idle, x in units."""
+def draw_timeline(ax, tl, y: float, unit_s: float, label: str, height: float = 0.6, *, colour=None,
+                  until_tick: int | None = None, background: str = "#dddddd") -> int:
+    """Coloured slots on a horizontal bar at ``y`` over a ``background`` bar (idle time), x in units of
+    ``unit_s`` from the capture's start. ``colour(slot)``: the slot's colour or None to leave it out
+    (default: one colour per bucket, drained slots left out). ``until_tick``: draw only the slots
+    that start before it (a long schedule's first periods). Returns the number of slots drawn.
+    Also used by :mod:`mbcapture.report` for the run's own schedule."""
+    colour = colour or (lambda s: BUCKET_COLOURS[s.bucket % len(BUCKET_COLOURS)] if s.bucket >= 0 else None)
     t0 = tl.start_tick
+    stop = tl.end_tick if until_tick is None else min(until_tick, tl.end_tick)
+    drawn = 0
     for seg in tl.segments:
         tick = seg.start_tick
         for _ in range(seg.repeats):
+            if tick >= stop:
+                break
             for s in seg.slots:
-                if s.bucket >= 0:
+                c = colour(s) if tick < stop else None
+                if c is not None:
                     x = float((tick - t0) * tl.tick_s) / unit_s
                     w = float(s.ticks * tl.tick_s) / unit_s
-                    ax.add_patch(_rect(x, y - height / 2, w, height, BUCKET_COLOURS[s.bucket % len(BUCKET_COLOURS)]))
+                    ax.add_patch(_rect(x, y - height / 2, w, height, c))
+                    drawn += 1
                 tick += s.ticks
-    end = float((tl.end_tick - t0) * tl.tick_s) / unit_s
-    ax.add_patch(_rect(0, y - height / 2, end, height, "#dddddd", zorder=0))
-    ax.text(-0.02 * end, y, label, ha="right", va="center", fontsize=9)
+    end = float((stop - t0) * tl.tick_s) / unit_s
+    ax.add_patch(_rect(0, y - height / 2, end, height, background, zorder=0))
+    if label:
+        ax.text(-0.02 * end, y, label, ha="right", va="center", fontsize=9)
+    return drawn
 
 
 def _rect(x, y, w, h, colour, zorder=1):
@@ -81,7 +95,7 @@ def fig01_timing(ctx: FigureContext) -> FigureOutput:
     data = {}
     for i, (label, tl) in enumerate(rows.items()):
         y = len(rows) - 1 - i
-        _draw_timeline(ax, tl, y, T, label)
+        draw_timeline(ax, tl, y, T, label)
         end = float((tl.end_tick - tl.start_tick) * tl.tick_s) / T
         reads = _read_rows(tl, T)
         ax.text(end + 0.2, y, "reads: " + ", ".join(f"{r['name']}={'+'.join(f'B{b}' for b in r['buckets'])}"
@@ -231,7 +245,7 @@ def fig03_frame_rates(ctx: FigureContext) -> FigureOutput:
     for i, (label, gap) in enumerate(cases.items()):
         tl = _three_frames(T123, 1, True, gap)
         y = len(cases) - 1 - i
-        _draw_timeline(ax, tl, y, unit, label)
+        draw_timeline(ax, tl, y, unit, label)
         for r in tl.describe_reads():
             ax.plot(r["centroid_s"] / unit, y, "k.", ms=5)
         data[label] = {"frame_readout_s": gap, "capture_span_s": float((tl.end_tick - tl.start_tick) * tl.tick_s),
@@ -258,7 +272,7 @@ def fig05_centroids(ctx: FigureContext) -> FigureOutput:
     fig, ax = plt.subplots(figsize=(9, 2.6))
     for y, (label, tl) in zip((1, 0), (("(a) sequential, infinite frame rate", _three_frames(T123, 1, True, 0.0)),
                                        (f"(b) time-multiplexed, N = {N}", _three_frames(T123, N, False, 0.0)))):
-        _draw_timeline(ax, tl, y, unit, label)
+        draw_timeline(ax, tl, y, unit, label)
         for r in tl.describe_reads():
             ax.plot(r["centroid_s"] / unit, y, "ko", ms=4)
     ax.set_ylim(-0.6, 1.6)

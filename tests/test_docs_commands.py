@@ -1,0 +1,264 @@
+"""Every command that README.md and docs/*.md show works as shown (issue 15).
+
+* Fenced ``sh``/``bash``/``shell``/``console`` blocks are run, one command per line, from a scratch
+  copy of the repository with ``$MBCAPTURE_SET`` making every capture tiny (16x12 px, 1 spp):
+  ``mbcapture ...`` in this process (``cli.main``), ``make <target>`` as its Makefile recipe, a
+  ``. file`` checks the file, anything else goes to bash. Fenced ``python`` blocks are executed.
+  A command that cannot run here is in ``NOT_RUN`` with the reason and the form run instead.
+* Inline code that names a command (``mbcapture``, ``python``, ``pytest``, ``make``, ``--set``) is
+  checked without running: the subcommand, script, module, test file or make target exists, each
+  ``--option`` it shows is one the program has, and a ``--set KEY=VALUE`` loads on the default config
+  (configs/metronome_hdr.yaml). Synopses (``[--out DIR]``, ``CONFIG``) are checked the same way.
+
+A new command in a fenced block needs nothing here: it runs at the tiny size automatically.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+DEFAULT_CONFIG = ROOT / "configs" / "metronome_hdr.yaml"
+TINY = "render.width=16 render.height=12 render.spp=1 render.max_motion_px=4"
+SHELL_BLOCKS = {"sh", "bash", "shell", "console"}
+
+#: Commands shown that are not run as shown: the reason, and what runs instead (None: nothing).
+NOT_RUN = {
+    "make test": ("it is this test suite", None),
+    "make setup": ("installs system packages and the .venv these tests run in", None),
+    "mbcapture converge configs/metronome_hdr.yaml --quick": (
+        "its --quick ladders are ~40 renders and a 64-spp reference: 18 s even at 16x12",
+        "mbcapture converge configs/metronome_hdr.yaml --quick --spp 1,2 --naive-spp 1 --ref-spp 4 "
+        "--set capture.periods=2"),
+}
+
+
+# ----------------------------------------------------------------------------- extraction
+def fenced_commands() -> list[tuple[str, int, str, str]]:
+    """(file, line, language, command or code) of every fenced shell line and python block."""
+    out = []
+    for path in DOCS:
+        text = path.read_text()
+        for m in re.finditer(r"^```(\w*)[^\n]*\n(.*?)^```", text, re.S | re.M):
+            lang, body = m.group(1).lower(), m.group(2)
+            line0 = text[: m.start()].count("\n") + 2
+            if lang == "python":
+                out.append((path.name, line0, "python", body))
+            elif lang in SHELL_BLOCKS:
+                for i, line in enumerate(body.replace("\\\n", " ").splitlines()):
+                    words = shlex.split(line, comments=True)
+                    if words:
+                        out.append((path.name, line0 + i, "sh", shlex.join(words)))
+    return out
+
+
+def inline_commands() -> list[tuple[str, int, str]]:
+    """(file, line, text) of every inline code span that names a command with arguments."""
+    out = []
+    for path in DOCS:
+        text = re.sub(r"^```.*?^```", lambda m: "\n" * m.group(0).count("\n"), path.read_text(), flags=re.S | re.M)
+        for i, line in enumerate(text.splitlines(), 1):
+            for span in re.findall(r"(?<!`)`([^`\n]+)`(?!`)", line):
+                words = span.split()
+                if len(words) >= 2 and words[0] in ("mbcapture", "python", "pytest", ".venv/bin/pytest", "make", "--set"):
+                    out.append((path.name, i, span))
+    return out
+
+
+FENCED = fenced_commands()
+INLINE = inline_commands()
+
+
+# ----------------------------------------------------------------------------- running
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    """A scratch copy of the repository (big folders linked, the rest copied, so that a command
+    that writes, e.g. into README.md or out/, cannot touch the real one)."""
+    ws = tmp_path_factory.mktemp("docs-commands")
+    for entry in ROOT.iterdir():
+        if entry.name in ("out", ".git") or entry.name.startswith((".pytest", ".hypothesis")):
+            continue
+        if entry.name in (".venv", "mbcapture", "scenes", "tests") or entry.name.endswith(".egg-info"):
+            (ws / entry.name).symlink_to(entry)
+        elif entry.is_dir():
+            shutil.copytree(entry, ws / entry.name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy2(entry, ws / entry.name)
+    return ws
+
+
+def make_recipe(target: str, makefile: Path) -> list[str]:
+    """The commands ``make target`` runs: its prerequisites' recipes, then its own."""
+    text = makefile.read_text()
+    m = re.search(rf"^{re.escape(target)}:([^\n]*)\n((?:\t[^\n]*\n?)*)", text, re.M)
+    assert m, f"Makefile has no target {target!r}"
+    cmds = []
+    for dep in m.group(1).split():
+        cmds += [f"make {dep}"] if f"make {dep}" in NOT_RUN else make_recipe(dep, makefile)
+    return cmds + [line.strip() for line in m.group(2).splitlines() if line.strip()]
+
+
+def run_command(cmd: str, ws: Path, capsys) -> None:
+    from mbcapture.cli import main
+
+    if cmd in NOT_RUN:
+        reason, instead = NOT_RUN[cmd]
+        if instead:
+            run_command(instead, ws, capsys)
+        return
+    words = shlex.split(cmd)
+    if words[0] in (".", "source"):
+        assert (ws / words[1]).exists(), f"{cmd}: {words[1]} does not exist"
+    elif words[0] == "make":
+        for step in make_recipe(words[1], ws / "Makefile"):
+            run_command(step, ws, capsys)
+    elif words[0] in ("mbcapture", ".venv/bin/mbcapture"):
+        try:
+            rc = main(words[1:])
+        except SystemExit as exc:  # --version, --help
+            rc = exc.code
+        err = capsys.readouterr().err
+        assert rc == 0, f"{cmd}: exit {rc}: {err.strip()[-500:]}"
+    else:
+        env_path = f"{ROOT / '.venv' / 'bin'}:{Path(sys.executable).parent}"
+        proc = subprocess.run(["bash", "-c", f'export PATH="{env_path}:$PATH"; {cmd}'], cwd=ws, capture_output=True,
+                              text=True)
+        assert proc.returncode == 0, f"{cmd}: exit {proc.returncode}: {proc.stderr.strip()[-500:]}"
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("where,line,lang,cmd", FENCED, ids=[f"{f}:{n}" for f, n, _, _ in FENCED])
+def test_fenced_command_runs(where, line, lang, cmd, workspace, monkeypatch, capsys):
+    monkeypatch.chdir(workspace)
+    monkeypatch.setenv("MBCAPTURE_SET", TINY)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the $MBCAPTURE_SET notice
+        if lang == "python":
+            exec(compile(cmd, f"{where}:{line}", "exec"), {"__name__": "__docs__"})
+        else:
+            run_command(cmd, workspace, capsys)
+
+
+def test_commands_were_found():
+    """The extraction sees the quick start, the Use block and the inline mentions."""
+    shown = {c for _, _, lang, c in FENCED if lang == "sh"}
+    assert {"make capture", "make test", "mbcapture scenes"} <= shown
+    assert any(c.startswith("mbcapture run metronome_hdr") for c in shown)  # a shipped config by name
+    assert any(lang == "python" for _, _, lang, _ in FENCED)
+    assert any(t.startswith("--set ") for _, _, t in INLINE) and any(t.startswith("python scripts/") for _, _, t in INLINE)
+    shown |= {step for c in shown if c.startswith("make ") for step in make_recipe(c.split()[1], ROOT / "Makefile")}
+    for cmd, (reason, _) in NOT_RUN.items():  # no stale entries: each is a command the docs show
+        assert reason and cmd in shown, cmd
+
+
+# ----------------------------------------------------------------------------- checking inline code
+def _placeholder(word: str) -> bool:
+    """DIR, NAME, KEY=VALUE, section.key=VALUE, app.name=...: a synopsis's stand-in, not a value."""
+    value = word.split("=", 1)[-1]
+    return bool(re.fullmatch(r"[A-Z][A-Z_]*|\.\.\.", value))
+
+
+def _words(span: str) -> list[str]:
+    """The words of an inline command; a synopsis's optional brackets ([--out DIR]) removed."""
+    try:
+        words = shlex.split(span)
+    except ValueError:
+        words = span.split()
+    if words and words[0] == "--set":
+        return words
+    return [w.lstrip("[").rstrip("]") for w in words if w.lstrip("[").rstrip("]")]
+
+
+def _options(parser) -> set[str]:
+    return {o for a in parser._actions for o in a.option_strings}
+
+
+def check_inline(span: str) -> None:
+    from mbcapture.cli import _parser
+    from mbcapture.config import load_config
+
+    words = _words(span)
+    prog, args = words[0], words[1:]
+    if prog == "--set":
+        if not any(_placeholder(a) for a in args):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                load_config(DEFAULT_CONFIG, args)  # raises ConfigError if the example is wrong
+    elif prog == "mbcapture":
+        parser = _parser()
+        subs = next(a for a in parser._actions if a.dest == "command").choices
+        known = _options(parser)
+        positional = [a for a in args if not a.startswith("-")]
+        if positional and positional[0] in subs:
+            known |= _options(subs[positional[0]])
+        elif positional and not _placeholder(positional[0]):
+            raise AssertionError(f"`{span}`: no subcommand {positional[0]!r} (expected one of {sorted(subs)})")
+        for a in args:
+            if a.startswith("--"):
+                assert a.split("=")[0] in known, f"`{span}`: no option {a.split('=')[0]}"
+    elif prog == "python":
+        if args[0] == "-m":
+            import importlib.util
+
+            assert importlib.util.find_spec(args[1]), f"`{span}`: no module {args[1]}"
+            return
+        script = ROOT / args[0]
+        assert script.is_file(), f"`{span}`: no file {args[0]}"
+        source = script.read_text()
+        for a in args[1:]:
+            if a.startswith("--"):
+                assert f'"{a.split("=")[0]}"' in source, f"`{span}`: {args[0]} has no option {a}"
+    elif prog in ("pytest", ".venv/bin/pytest"):
+        conftest = (ROOT / "tests" / "conftest.py").read_text()
+        for a in args:
+            if a.startswith("--"):
+                assert f'"{a.split("=")[0]}"' in conftest, f"`{span}`: no pytest option {a} in tests/conftest.py"
+            elif "/" in a or a.endswith(".py"):
+                assert (ROOT / a.split("::")[0]).exists(), f"`{span}`: no file {a}"
+    elif prog == "make":
+        text = (ROOT / "Makefile").read_text()
+        for target in args:
+            assert re.search(rf"^{re.escape(target)}:", text, re.M), f"`{span}`: no make target {target}"
+
+
+@pytest.mark.parametrize("where,line,span", INLINE, ids=[f"{f}:{n}" for f, n, _ in INLINE])
+def test_inline_command_is_valid(where, line, span):
+    check_inline(span)
+
+
+def test_inline_check_catches_what_went_wrong_before():
+    """The README's old `--set scene.radiance=[1,1,1]` on the default (metronome) config, a missing
+    option and a missing script fail the check."""
+    from mbcapture.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="scene.radiance: unknown key"):
+        check_inline("--set scene.radiance=[1,1,1]")
+    with pytest.raises(AssertionError, match="no option --fast"):
+        check_inline("mbcapture figures --fast")
+    with pytest.raises(AssertionError, match="no file"):
+        check_inline("python scripts/nope.py --out DIR")
+    check_inline("mbcapture figures [--out DIR] [--quick] [--only NAME ...]")  # a synopsis is fine
+
+
+def test_help_examples_load_on_the_default_config():
+    """`mbcapture run --help` shows --set examples; each loads on configs/metronome_hdr.yaml."""
+    from mbcapture.cli import _parser
+    from mbcapture.config import load_config
+
+    run = next(a for a in _parser()._actions if a.dest == "command").choices["run"]
+    text = next(a for a in run._actions if a.dest == "overrides").help
+    examples = re.findall(r"\b([a-z_]+\.[a-z_.]+=[^\s,)]+)", text)
+    assert len(examples) >= 2, text
+    for ex in examples:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            load_config(DEFAULT_CONFIG, [ex])

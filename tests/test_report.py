@@ -1,0 +1,156 @@
+"""report.html and what a run shows while it runs (issue 15): one tiny real run checked end to end,
+and the pieces (verdict, scales, long schedules, the status line) on synthetic input."""
+
+import io
+import json
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from report_checks import check_report_folder, undocumented_keys
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ROOT / "configs" / "tiny_hdr.yaml"
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A tiny photon-efficient HDR run written with progress on; (folder, stderr)."""
+    import sys
+
+    from mbcapture import load_config, run_capture
+
+    out = tmp_path_factory.mktemp("report")
+    err = io.StringIO()
+    real, sys.stderr = sys.stderr, err
+    try:
+        run_capture(load_config(TINY, ["render.width=32", "render.height=24", "render.spp=2"]), out, progress=True)
+    finally:
+        sys.stderr = real
+    return out, err.getvalue()
+
+
+@pytest.mark.render
+def test_report_html_opens_offline_and_shows_every_part(tiny_run):
+    out, _ = tiny_run
+    refs = check_report_folder(out)
+    shown = set(refs.images)
+    reads = ["J1", "J2", "J3", "J4"]
+    assert {f"read_{n}_common_scale.png" for n in reads} | {f"read_{n}_own_scale.png" for n in reads} <= shown
+    assert {"report_timeline.png", "report_histograms.png", "map_saturation.png", "map_snr.png", "map_valid.png",
+            "hdr.png", "truth.png"} <= shown
+    text = " ".join(refs.text)
+    rep = json.loads((out / "report.json").read_text())
+    for part in ("Gate schedule", "Histograms", "Metrics", "Rendering noise against shot noise", "Timings",
+                 "hdr_rel_mse", rep["render_error"]["verdict"], "photon_efficient_hdr", "B1+B2+B3+B4"):
+        assert part in text, part
+    listed = {h for h in refs.links if not h.startswith("#")}
+    assert {p.name for p in out.iterdir() if not p.name.startswith(".")} <= listed  # every file is listed
+
+
+@pytest.mark.render
+def test_reads_on_a_common_scale_show_the_exposure_ratios(tiny_run):
+    """read_J*_common_scale.png: one DN scale, so J1 (T) is ~1/8 of J4 (8T) in linear light; each
+    read on its own scale hides that."""
+    import colour
+
+    out, _ = tiny_run
+    rep = json.loads((out / "report.json").read_text())
+
+    def linear(name):
+        return colour.cctf_decoding(np.asarray(Image.open(out / name), dtype=np.float64) / 255, function="sRGB")
+
+    common = [np.median(linear(f"read_{n}_common_scale.png")) for n in ("J1", "J4")]
+    own = [np.median(linear(f"read_{n}_own_scale.png")) for n in ("J1", "J4")]
+    assert 0.5 / 8 < common[0] / common[1] < 2.0 / 8
+    assert own[0] / own[1] > 0.4  # own scales are close to each other: the ratio is not visible there
+    w = rep["previews"]["read_common_scale_white_dn"]
+    assert w > max(rep["previews"]["read_own_scale_white_dn"][n] for n in ("J1", "J2"))
+
+
+@pytest.mark.render
+def test_report_json_labels_its_numbers(tiny_run):
+    out, _ = tiny_run
+    rep = json.loads((out / "report.json").read_text())
+    k_e = rep["electrons_per_render_unit_second"]
+    assert list(k_e) == ["R", "G", "B"] and all(v > 0 for v in k_e.values())
+    assert rep["plan"]["tick_s"] == pytest.approx(1e-9) and rep["plan"]["tick_s_exact"] == "1/1000000000"
+    err = rep["render_error"]
+    assert err["temporal_rel_rms_estimate"] is None or "temporal_resolved" in err  # never an unexplained 0.0
+    assert undocumented_keys(rep, ["J1", "J2", "J3", "J4"]) == []
+
+
+@pytest.mark.render
+def test_every_stage_shows_progress(tiny_run):
+    _, err = tiny_run
+    for stage in ("plan", "render setup", "render (", "sensor", "reconstruct (hdr)", "write outputs"):
+        assert stage in err, stage
+
+
+def test_status_line_moves_during_a_silent_stage():
+    """A stage with no progress of its own (a reconstruction, a write) is redrawn while it runs."""
+    from mbcapture.progress import StageStatus
+
+    buf = io.StringIO()
+    with StageStatus(True, stages=2, file=buf, interval_s=0.01) as status:
+        with status.stage("reconstruct (x)"):
+            start = status.refreshes
+            deadline = time.monotonic() + 20
+            while status.refreshes < start + 3 and time.monotonic() < deadline:
+                time.sleep(0.005)  # the stage itself says nothing
+            moved = status.refreshes - start
+    assert moved >= 3
+    assert "reconstruct (x)" in buf.getvalue() and "stage 1/2" in buf.getvalue()
+    assert not any(t.name == "mbcapture-status" for t in threading.enumerate())  # the ticker is stopped
+    quiet = io.StringIO()
+    with StageStatus(False, file=quiet) as status:
+        with status.stage("x"):
+            pass
+    assert quiet.getvalue() == "" and status.refreshes == 0
+
+
+def test_noise_verdict_follows_the_budget():
+    from mbcapture.report import noise_verdict
+
+    within = {"to_shot_noise_variance_median": 0.05, "to_shot_noise_variance_p95": 0.5,
+              "budget": {"median_target": 0.1, "p95_target": 1.0, "met": True}}
+    assert noise_verdict(within).startswith("Sensor noise dominates")
+    assert "adding 2.5 %" in noise_verdict(within)  # sqrt(1.05) - 1
+    over = {"to_shot_noise_variance_median": 3.0, "to_shot_noise_variance_p95": 30.0,
+            "budget": {"median_target": 0.1, "p95_target": 1.0, "met": False, "spp_that_would_meet": 480}}
+    assert noise_verdict(over).startswith("Rendering noise is visible") and "render.spp >= 480" in noise_verdict(over)
+    assert "spp = 1" in noise_verdict({"note": "render.spp = 1: no half-sample error estimate"})
+
+
+def test_long_schedule_is_drawn_in_outline_plus_its_first_periods(monkeypatch):
+    """10^6 periods: the timeline draws a bounded number of slots, not one patch per slot."""
+    import mbcapture.figures.paper as paper
+    from mbcapture import protocols
+    from mbcapture.config import load_config
+    from mbcapture.report import MAX_DETAIL_SLOTS, timeline_png
+
+    tl = protocols.build(load_config(None, ["scene.name=flatfield", "capture.periods=1000000"]))
+    drawn = []
+    real = paper.draw_timeline
+    monkeypatch.setattr(paper, "draw_timeline", lambda *a, **k: drawn.append(real(*a, **k)) or drawn[-1])
+    png = timeline_png(tl)
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    assert 0 < sum(drawn) <= MAX_DETAIL_SLOTS
+    assert Image.open(io.BytesIO(png)).size[0] > 500
+
+
+def test_colour_map_and_its_scale():
+    from mbcapture.report import MISSING_GREY, colour_map
+
+    v = np.array([[0.0, 1.0], [2.0, np.nan]])
+    rgb, scale = colour_map(v, levels=2)
+    assert rgb.shape == (2, 2, 3) and tuple(rgb[1, 1]) == MISSING_GREY
+    assert len(scale["levels"]) == 3 and len({tuple(rgb[0, 0]), tuple(rgb[0, 1]), tuple(rgb[1, 0])}) == 3
+    rgb, scale = colour_map(np.array([[1.0, 10.0], [100.0, np.nan]]), log=True)
+    assert scale == {**scale, "min": 1.0, "max": 100.0, "log": True}
+    # 10 is half-way on a log scale from 1 to 100: its colour is the middle stop's
+    assert "#%02x%02x%02x" % tuple(rgb[0, 1]) == scale["stops"][5]

@@ -1,0 +1,152 @@
+"""What a new user hits first (issue 15): where a bad key came from, switching scene on the command
+line, an --out that cannot be made, --version, shipped configs by name. No renders."""
+
+import json
+import warnings
+from importlib import metadata
+from pathlib import Path
+
+import pytest
+
+from mbcapture.cli import main
+from mbcapture.config import load_config
+from mbcapture.errors import ConfigError, ConfigNotice
+
+ROOT = Path(__file__).resolve().parents[1]
+HDR = ROOT / "configs" / "metronome_hdr.yaml"
+
+
+def run_cli(argv, capsys):
+    rc = main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+# ----------------------------------------------------------------------------- where a key came from
+def test_unknown_key_from_set_names_the_set_and_the_nearest_key():
+    with pytest.raises(ConfigError) as e:
+        load_config(HDR, ["render.sp=4"])
+    msg = str(e.value)
+    assert msg.startswith("--set render.sp=4: render.sp: unknown key") and "did you mean render.spp?" in msg
+    assert "metronome_hdr.yaml" not in msg  # the file is not to blame
+
+
+def test_unknown_key_from_the_file_names_the_file(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("render: {sp: 4}\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(p, ["render.width=32"])  # an unrelated --set is not blamed
+    assert str(e.value).startswith(f"{p}: render.sp: unknown key; did you mean render.spp?")
+
+
+def test_key_of_another_section_is_suggested_and_bad_values_name_their_set():
+    with pytest.raises(ConfigError, match=r"--set render\.periods=3: render\.periods: unknown key; did you mean capture\.periods\?"):
+        load_config(HDR, ["render.periods=3"])
+    with pytest.raises(ConfigError, match=r"^--set render\.spp=-3: render\.spp: .*greater than or equal to 1"):
+        load_config(HDR, ["render.spp=-3"])
+    with pytest.raises(ConfigError, match=r"^--set scene\.phase_s=\.nan: scene\.phase_s: expected a finite number"):
+        load_config(HDR, ["scene.phase_s=.nan"])
+
+
+# ----------------------------------------------------------------------------- switching scene / app
+def test_set_scene_name_drops_the_old_scenes_keys_with_a_notice():
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cfg = load_config(HDR, ["scene.name=flatfield", "scene.radiance=[2,2,2]"])
+    assert cfg.scene.name == "flatfield" and cfg.scene.params().radiance == [2.0, 2.0, 2.0]
+    notes = [str(w.message) for w in caught if issubclass(w.category, ConfigNotice)]
+    assert len(notes) == 1 and "scene.tempo_bpm" in notes[0] and "'metronome'" in notes[0]
+    assert cfg.render.width == 640 and cfg.seed == 1  # the rest of the file is kept
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no notice when the scene does not change
+        load_config(HDR, ["scene.name=metronome", "scene.tempo_bpm=90"])
+
+
+def test_unknown_scene_key_says_which_scenes_keys_are_valid():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConfigNotice)
+        with pytest.raises(ConfigError) as e:
+            load_config(HDR, ["scene.name=flatfield", "scene.tempo_bpm=90"])
+    msg = str(e.value)
+    assert msg.startswith("--set scene.tempo_bpm=90: scene.tempo_bpm: unknown key for scene 'flatfield'")
+    assert "its keys: radiance, fov_deg" in msg
+
+
+def test_set_app_name_drops_the_old_applications_keys():
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cfg = load_config(ROOT / "configs" / "flash_no_flash.yaml", ["app.name=hdr"])
+    assert cfg.app.resolve(cfg.capture.protocol)[0].name == "hdr"
+    assert any("app.method" in str(w.message) for w in caught)
+
+
+def test_cli_switches_scene_and_prints_the_notice_on_one_line(capsys):
+    rc, out, err = run_cli(["plan", HDR, "--set", "scene.name=flatfield", "--no-probe", "--json"], capsys)
+    assert rc == 0, err
+    assert json.loads(out)["scene"] == "flatfield"
+    assert err.startswith("mbcapture: note: --set scene.name=flatfield") and err.count("\n") == 1
+
+
+# ----------------------------------------------------------------------------- --out checked before any work
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc")
+def test_out_that_cannot_be_created_fails_before_any_work(capsys, monkeypatch):
+    import mbcapture.capture as capture
+
+    def no_work(*a, **k):
+        raise AssertionError("the capture started before --out was checked")
+
+    monkeypatch.setattr(capture, "prepare", no_work)
+    rc, _, err = run_cli(["run", HDR, "--out", "/proc/nope", "--quiet"], capsys)
+    assert rc == 2 and err.count("\n") == 1
+    assert "--out /proc/nope: cannot create a folder in /proc" in err
+    assert not Path("/proc/nope").exists()
+
+
+def test_out_check_leaves_nothing_behind(tmp_path):
+    from mbcapture.io import check_out_dir
+
+    check_out_dir(tmp_path / "a" / "b" / "c")
+    assert list(tmp_path.iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- --version, configs by name
+def test_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == f"mbcapture {metadata.version('mbcapture')}"
+
+
+def test_shipped_config_by_name_from_any_folder(capsys, monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)  # outside the repository
+    rc, out, err = run_cli(["plan", "metronome_hdr", "--no-probe", "--json"], capsys)
+    assert rc == 0, err
+    assert json.loads(out)["protocol"] == "photon_efficient_hdr"
+    assert load_config("flash_no_flash.yaml").capture.protocol == "flash_no_flash"
+    rc, _, err = run_cli(["plan", "metronome_hrd", "--no-probe"], capsys)
+    assert rc == 2 and "not a shipped config" in err and "did you mean metronome_hdr?" in err
+
+
+def test_mbcapture_set_applies_after_the_command_line_with_a_notice(monkeypatch):
+    monkeypatch.setenv("MBCAPTURE_SET", "render.width=16 'scene.amplitude_deg=45'")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cfg = load_config(HDR, ["render.width=320"])
+    assert cfg.render.width == 16 and cfg.scene.params().amplitude_deg == 45
+    assert any("$MBCAPTURE_SET adds --set render.width=16" in str(w.message) for w in caught)
+    monkeypatch.setenv("MBCAPTURE_SET", "render.sp=4")
+    with warnings.catch_warnings(), pytest.raises(ConfigError, match="did you mean render.spp"):
+        warnings.simplefilter("ignore", ConfigNotice)
+        load_config(HDR)
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc")
+def test_converge_checks_its_out_before_the_ladders(capsys, monkeypatch):
+    import mbcapture.converge as converge
+
+    def no_work(*a, **k):
+        raise AssertionError("the ladders started before --out was checked")
+
+    monkeypatch.setattr(converge, "run_converge", no_work)
+    rc, _, err = run_cli(["converge", HDR, "--quick", "--out", "/proc/nope"], capsys)
+    assert rc == 2 and "cannot create a folder in /proc" in err
