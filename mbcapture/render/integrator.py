@@ -89,56 +89,69 @@ def integrator_class(variant: str) -> type:
                 return []
             return [f"{g}.{c}" for g in self.group_names for c in "RGB"]
 
+        @dr.syntax
         def sample(self, scene, sampler, ray, medium=None, active=True):
+            # A symbolic loop over path vertices: the body (a virtual call into every BSDF of the
+            # scene, next-event estimation towards every requested emitter) is traced once, not
+            # once per depth, which is what tracing and kernel generation cost grows with.
+            import drjit as dr  # noqa: PLC0415  (dr.syntax recompiles this method without the closure)
+            import mitsuba as mi  # noqa: PLC0415
+
+            from mbcapture.render.integrator import mis_power  # noqa: PLC0415
+
             ctx = mi.BSDFContext()
             n_groups = len(self.group_names)
-            result = [mi.Spectrum(0.0) for _ in range(n_groups)]
-            ptrs = [[mi.EmitterPtr(e) for e in ems] for ems in self.group_emitters]
+            emitters = self.group_emitters
+            ptrs = [[mi.EmitterPtr(e) for e in ems] for ems in emitters]
+            max_depth = self.max_depth
 
             ray = mi.Ray3f(ray)
             active = mi.Bool(active)
+            depth = mi.UInt32(0)
             throughput = mi.Spectrum(1.0)
             prev_si = dr.zeros(mi.SurfaceInteraction3f)
             prev_bsdf_pdf = mi.Float(1.0)
             prev_bsdf_delta = mi.Bool(True)
             valid_first = mi.Bool(False)
+            result = tuple(mi.Spectrum(0.0) for _ in range(n_groups))
 
-            for depth in range(self.max_depth):
-                si = scene.ray_intersect(
-                    ray, ray_flags=mi.RayFlags.All, coherent=mi.Bool(depth == 0), active=active
-                )
-                if depth == 0:
-                    valid_first = si.is_valid()
+            while dr.hint(active, max_iterations=max_depth, label="mbcapture per-group path"):
+                si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0), active=active)
+                valid_first = dr.select(depth == 0, si.is_valid(), valid_first)
 
                 # Emission hit by this segment (camera ray or BSDF sample), per group.
                 em_hit = si.emitter(scene, active)
                 ds = mi.DirectionSample3f(scene, si, prev_si)
+                hit_terms = []
                 for g in range(n_groups):
-                    for emitter, ptr in zip(self.group_emitters[g], ptrs[g]):
+                    acc = result[g]
+                    for emitter, ptr in zip(emitters[g], ptrs[g]):
                         hit = active & (em_hit == ptr)
                         em_pdf = emitter.pdf_direction(prev_si, ds, hit & ~prev_bsdf_delta)
                         w = dr.select(prev_bsdf_delta, 1.0, mis_power(prev_bsdf_pdf, em_pdf))
                         value = emitter.eval(si, hit & (prev_bsdf_pdf > 0))
-                        result[g] += dr.select(hit, throughput * value * w, 0.0)
+                        acc = acc + dr.select(hit, throughput * value * w, 0.0)
+                    hit_terms.append(acc)
 
-                if depth + 1 >= self.max_depth:
-                    break
-                active_next = active & si.is_valid()
+                # the last vertex only collects emission
+                active_next = active & si.is_valid() & (depth + 1 < max_depth)
                 bsdf = si.bsdf(ray)
 
                 # Next-event estimation towards every emitter of every requested group.
                 active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+                nee_terms = []
                 for g in range(n_groups):
-                    for emitter in self.group_emitters[g]:
-                        ds_em, em_weight = emitter.sample_direction(
-                            si, sampler.next_2d(active_em), active_em
-                        )
+                    acc = hit_terms[g]
+                    for emitter in emitters[g]:
+                        ds_em, em_weight = emitter.sample_direction(si, sampler.next_2d(active_em), active_em)
                         ok = active_em & (ds_em.pdf != 0.0)
                         ok &= ~scene.ray_test(si.spawn_ray_to(ds_em.p), ok)
                         wo = si.to_local(ds_em.d)
                         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, ok)
                         w = dr.select(ds_em.delta, 1.0, mis_power(ds_em.pdf, bsdf_pdf))
-                        result[g] += dr.select(ok, throughput * bsdf_val * em_weight * w, 0.0)
+                        acc = acc + dr.select(ok, throughput * bsdf_val * em_weight * w, 0.0)
+                    nee_terms.append(acc)
+                result = tuple(nee_terms)
 
                 # BSDF sampling: continue the path.
                 bs, bsdf_weight = bsdf.sample(
@@ -150,13 +163,12 @@ def integrator_class(variant: str) -> type:
                 prev_bsdf_pdf = bs.pdf
                 prev_bsdf_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
                 active = active_next & (dr.max(throughput) > 0.0)
+                depth += 1
 
             total = mi.Spectrum(0.0)
             for g in range(n_groups):
                 total = total + result[g]  # not '+=': Dr.Jit's += is in place
-            if self.spectral:
-                return total, valid_first, []
-            aovs = [result[g][c] for g in range(n_groups) for c in range(3)]
+            aovs = [] if self.spectral else [result[g][c] for g in range(n_groups) for c in range(3)]
             return total, valid_first, aovs
 
         def to_string(self) -> str:
