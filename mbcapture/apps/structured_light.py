@@ -437,6 +437,9 @@ def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
         out_images["phase"] = main["phase"].astype(np.float32)
     if ambient is not None:
         out_images["ambient"] = rate[amb_idx]
+    if "ambient_subtracted" in decoded:
+        out_images["depth_preview_ambient_ignored"] = _depth_preview(decoded["ambient_ignored"]["depth"],
+                                                                     params.depth_min_m, params.depth_max_m)
     png = {"depth": ("depth_preview", None)}
     summary = [f"structured light ({kind}, {chosen}): {int(main['valid'].sum())} pixels decoded"]
 
