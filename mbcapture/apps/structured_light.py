@@ -430,7 +430,7 @@ def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
         metrics["period_ambiguity"] = period_ambiguity(data.scene.camera, proj, pw, periods, W, H, params.depth_min_m,
                                                        params.depth_max_m)
     out_images = {"depth": np.nan_to_num(main["depth"], nan=0.0).astype(np.float32),
-                  "valid": main["valid"].astype(np.float32),
+                  "decoded": main["valid"].astype(np.float32),
                   "modulation": main["modulation"].astype(np.float32),
                   "depth_preview": _depth_preview(main["depth"], params.depth_min_m, params.depth_max_m)}
     if main["phase"] is not None:
