@@ -37,9 +37,10 @@ Comparison at equal exposure (report.json ``comparison``; two_bucket captures)
     shot and read noise), ``flutter`` (the open bucket alone: what the classic flutter shutter records,
     the closed chops drained), ``two_bucket_flutter`` (both buckets, joint). Each gives PSNR and SSIM
     (scikit-image) of the luminance against the truth, over the image and over the region the card
-    sweeps, ``noise_rms`` (deblurred noisy minus deblurred noise-free, radiance), ``noise_amplification``
-    (that over the noise of the box read divided by its exposure, i.e. relative to a static scene shot
-    with the same total time) and ``model_rms`` (deblurred noise-free reads against the truth: the
+    sweeps, ``noise_rms`` (deblurred noisy minus deblurred noise-free, radiance, over the swept region),
+    ``noise_amplification`` (that over the noise of one read holding all the light of the capture's
+    reads, divided by its exposure: for two_bucket the box read, i.e. relative to a static scene shot
+    with the same total time; ``reference_noise_rms``) and ``model_rms`` (deblurred noise-free reads against the truth: the
     blur model's own error).
 
 Ground truth: the scene rendered sharp at the capture's mid-time (``app.truth_spp`` samples).
