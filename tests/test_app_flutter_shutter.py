@@ -74,6 +74,63 @@ def test_least_squares_inverts_the_code_and_the_joint_solution_is_exact_too():
                                                        0.0), f, atol=1e-4)
 
 
+def _samples(code, first=-26, frac=0.0):
+    """(shifts, seconds) of a code at one pixel per chop, chop k at shift first + k + frac."""
+    return first + np.arange(len(code)) + frac, np.asarray(code, float)
+
+
+def test_fourier_deblur_inverts_integer_and_fractional_shifts():
+    """Integer shifts: the padded circular model is the linear convolution, so the sharp rows come back
+    exactly. Fractional shifts: a band-limited row (a few low-frequency cosines) shifted by s - 0.37 px
+    is exactly what the model describes, and comes back too."""
+    f = _rows()
+    k_open, k_closed = _samples(CODE), _samples(1 - CODE)
+    b = np.stack([_blur(f, fs.spread_kernel(*k_open)), _blur(f, fs.spread_kernel(*k_closed))])
+    w = np.ones((2, 1))
+    np.testing.assert_allclose(fs.deblur_fourier(b[:1], [k_open], w[:1], 0.0), f, atol=1e-8)
+    np.testing.assert_allclose(fs.deblur_fourier(b, [k_open, k_closed], w, 0.0), f, atol=1e-8)
+    # band-limited (Gaussians of sigma 2.5 px: nothing left at the Nyquist frequency), shifted by
+    # fractional amounts and zero at both ends of the row: the model is exact
+    x = np.arange(120.0)
+    g = lambda x: np.exp(-0.5 * ((x - 50) / 2.5) ** 2) + 0.6 * np.exp(-0.5 * ((x - 71.3) / 2.5) ** 2)  # noqa: E731
+    # shifts on the 1/256 px grid the spectra are computed on: exact; off it, within the binning's
+    # 1/512 px times the largest slope of g (0.24 / px)
+    for frac, tol in ((-0.375, 1e-9), (-0.37, 0.24 / 512)):
+        k_frac = _samples(CODE, frac=frac)
+        blurred = sum(t * g(x - sh) for sh, t in zip(*k_frac))
+        got = fs.deblur_fourier(blurred[None, None, :, None], [k_frac], np.ones((1, 1)), 0.0)[0, :, 0]
+        np.testing.assert_allclose(got, g(x), atol=tol)
+
+
+def test_fourier_noise_gain_by_monte_carlo():
+    """White noise over whole rows through the per-frequency least squares: the pixel variance is
+    mean_w 1 / sum_r |H_r(w)|^2 (white_noise_gain), within 5 standard errors of the variance estimate."""
+    samples = [_samples(CODE), _samples(1 - CODE)]
+    n = fs.fft_length(samples, 120)
+    rows = 800
+    noise = np.random.default_rng(2).standard_normal((2, rows, n, 1))
+    out = fs.deblur_fourier(noise, samples, np.ones((2, 1)), 0.0)  # rows of the FFT length: no padding
+    var = out[..., 0].var(axis=0, ddof=1).mean()
+    want = fs.white_noise_gain(samples, np.ones(2), 120, 1.0) ** 2
+    # the mean over n pixels of correlated variance estimates: bound by the single-pixel standard error
+    assert abs(var / want - 1) < 5 * np.sqrt(2 / (rows - 1))
+    single = fs.white_noise_gain(samples[:1], np.ones(1), 120, 1.0)
+    box = fs.white_noise_gain([_samples(np.ones(52))], np.ones(1), 120, 1.0)
+    assert box > 3 * single > 3 * fs.white_noise_gain(samples, np.ones(2), 120, 1.0)
+
+
+def test_linear_interpolation_of_one_pixel_chops_has_a_zero_at_nyquist():
+    """Why 'fourier' is the default: a chop spanning exactly one pixel, spread linearly, is the code
+    smoothed by [1/2, 1/2] (gain 0 at Nyquist); band-limited shifts keep the pixel's own sinc (0.64)."""
+    fine = np.linspace(0, 1, 1001)[:-1] + 0.0005  # one chop's displacements, uniform over [0, 1) px
+    first, h = fs.spread_kernel(fine, np.full(fine.size, 1e-3))
+    assert first == 0 and np.allclose(h, [0.5, 0.5], atol=1e-3)
+    assert abs(np.sum(h * np.exp(-1j * np.pi * np.arange(2)))) < 1e-3
+    n = 64
+    hb = fs.kernel_spectrum(fine, np.full(fine.size, 1e-3), n)
+    assert abs(hb[-1]) == pytest.approx(2 / np.pi, rel=1e-3)
+
+
 def _noise_std(kernels, n=120, regularization=0.0):
     """Per-pixel output noise std of the least-squares deblur for unit white noise in every read."""
     m = fs.normal_matrix(kernels, np.ones(len(kernels)), n, regularization)
@@ -167,8 +224,9 @@ def test_planner_strata_resolve_one_chop(width, height, max_motion, resolved):
 def test_two_bucket_flutter_beats_flutter_beats_box_at_equal_exposure():
     from mbcapture import run_capture
 
-    # 64x48 with the card 5x faster: 26 px of blur, half a pixel per chop
-    tiny = ["render.width=64", "render.height=48", "render.spp=1", "scene.speed_m_per_s=11.375", "app.truth_spp=16"]
+    # 64x48 with the card 5x faster: 26 px of blur, half a pixel per chop (strata of at most one chop)
+    tiny = ["render.width=64", "render.height=48", "render.spp=1", "scene.speed_m_per_s=11.375", "app.truth_spp=16",
+            "render.max_motion_px=0.5"]
     res = run_capture(load_config(CONFIG, tiny), progress=False)
     c = res.report["metrics"]["comparison"]
     assert res.report["metrics"]["strata"]["resolved"]

@@ -62,9 +62,11 @@ def structured_light(ctx: FigureContext) -> FigureOutput:
     return FigureOutput(fig, {"film": list(ctx.film), "captures": data}, caption, table)
 
 
-def _spectrum(kernels, n=512):
-    """|H(w)| of the kernels, root-sum-square over kernels (joint least squares sees sum |H_r|^2)."""
-    return np.sqrt(sum(np.abs(np.fft.rfft(h, n)) ** 2 for _, h in kernels))
+def _spectrum(samples, n=512):
+    """|H(w)| of reads' (shifts, seconds), root-sum-square over reads (joint least squares sees sum |H_r|^2)."""
+    from ..apps.flutter_shutter import kernel_spectrum
+
+    return np.sqrt(sum(np.abs(kernel_spectrum(s, w, n)) ** 2 for s, w in samples))
 
 
 @figure("flutter_shutter", "Flutter shutter without light loss: box vs flutter vs two-bucket flutter at equal "
@@ -72,7 +74,7 @@ def _spectrum(kernels, n=512):
 def flutter_shutter(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
-    from ..apps.flutter_shutter import _sum_kernels, read_kernel, spread_kernel
+    from ..apps.flutter_shutter import read_samples, spread_kernel
     from ..scenes import make_scene
 
     res = ctx.capture("flutter_shutter")
@@ -93,8 +95,10 @@ def flutter_shutter(ctx: FigureContext) -> FigureOutput:
     W, H = res.config.render.width, res.config.render.height
     t_mid = float((tl.start_tick + tl.end_tick) / 2 * tl.tick_s)
     scene = make_scene(res.config.scene.name, res.config.scene.params())
-    kernels = [read_kernel(tl, r, scene, t_mid, W, H) for r in tl.reads]
-    box = spread_kernel(*_sum_kernels(kernels))
+    samples = [read_samples(tl, r, scene, t_mid, W, H) for r in tl.reads]
+    box_samples = (np.concatenate([s for s, _ in samples]), np.concatenate([w for _, w in samples]))
+    kernels = [spread_kernel(*sm) for sm in samples]
+    box = spread_kernel(*box_samples)
     ax = fig.add_subplot(grid[1, : len(panels) // 2])
     for (first, h), label in ((box, "box"), (kernels[0], "open (bucket 1)"), (kernels[1], "closed (bucket 2)")):
         ax.step(first + np.arange(len(h)), h * 1e3, where="mid", label=label)
@@ -102,23 +106,26 @@ def flutter_shutter(ctx: FigureContext) -> FigureOutput:
     ax.set_title("exposure kernels", fontsize=9)
     ax = fig.add_subplot(grid[1, len(panels) // 2:])
     freq = np.fft.rfftfreq(512)
-    for ks, label in (([box], "box"), ([kernels[0]], "flutter (open only)"), (kernels, "two-bucket (joint)")):
+    for ks, label in (([box_samples], "box"), ([samples[0]], "flutter (open only)"), (samples, "two-bucket (joint)")):
         ax.semilogy(freq, _spectrum(ks) * 1e3, label=label)
     ax.set_xlabel("cycles per px"), ax.set_ylabel("|H| (ms)"), ax.legend(fontsize=7)
     ax.set_title("kernel spectra: zeros make the box blur non-invertible", fontsize=9)
     fig.tight_layout()
-    table = [["shutter", "light_fraction", "psnr_db", "psnr_db_object", "ssim", "noise_amplification", "noise_rms"]]
+    table = [["shutter", "light_fraction", "psnr_db", "psnr_db_object", "ssim", "noise_amplification",
+              "white_noise_gain", "noise_rms"]]
     for k, v in c.items():
         table.append([k, _fmt(v["light_fraction"]), _fmt(v["psnr_db"]), _fmt(v.get("psnr_db_object")), _fmt(v["ssim"]),
-                      _fmt(v.get("noise_amplification")), _fmt(v.get("noise_rms"))])
+                      _fmt(v.get("noise_amplification")), _fmt(v.get("white_noise_gain")), _fmt(v.get("noise_rms"))])
     s = seq.report["metrics"]["deblurred"]["joint"]
     table.append(["sequential (two box frames, joint)", 1.0, _fmt(s["psnr_db"]), _fmt(s.get("psnr_db_object")),
-                  _fmt(s["ssim"]), _fmt(s.get("noise_amplification")), _fmt(s.get("noise_rms"))])
+                  _fmt(s["ssim"]), _fmt(s.get("noise_amplification")), _fmt(s.get("white_noise_gain")),
+                  _fmt(s.get("noise_rms"))])
     caption = (f"A card crossing the view, {ctx.film[0]}x{ctx.film[1]}, {m['chops']} chops of Raskar et al.'s code over "
                f"{res.config.capture.unit_exposure_s * 1e3:g} ms, deblurred by least squares with the known motion. "
                "Box: one bucket open all the time (its kernel's spectral zeros amplify noise); flutter: the open chops "
                "only, the closed ones drained (half the light); two-bucket: open chops in bucket 1, closed in bucket 2, "
-               "both deblurred jointly (all the light, and the code's spectrum). Noise amplification is relative to "
+               "both deblurred jointly (all the light, and the code's spectrum); least squares per frequency "
+               f"(app.deblur {m['deblur']}). Noise amplification is relative to "
                "the noise of the box read over its exposure. The last table row is the conventional sensor taking the "
                "two buckets' exposures as two frames one after another.")
     return FigureOutput(fig, {"film": list(ctx.film), "interleaved": m, "sequential": seq.report["metrics"]}, caption,
