@@ -26,6 +26,8 @@ def test_raskar_code_and_custom_codes():
             fs.code_bits(bad)
     with pytest.raises(ConfigError, match="app.code"):
         load_config(CONFIG, ["app.code=12"])
+    with pytest.raises(ConfigError, match=r"app.deblur: .*fourier"):
+        load_config(CONFIG, ["app.deblur=magic"])
 
 
 def test_spread_kernel_keeps_weight_and_centroid():

@@ -172,6 +172,8 @@ def test_config_keys_are_validated():
         load_config(CONFIG, ["app.depth_max_m=0.5"])
     with pytest.raises(ConfigError, match="scene.pattern"):
         load_config(CONFIG, ["scene.pattern=checkerboard"])
+    with pytest.raises(ConfigError, match=r"app.unwrap: .*depth_range"):
+        load_config(CONFIG, ["app.unwrap=magic"])
 
 
 @pytest.mark.render

@@ -106,6 +106,13 @@ class FlutterParams(BaseModel):
         code_bits(v)
         return v
 
+    @field_validator("deblur")
+    @classmethod
+    def _deblur(cls, v: str) -> str:
+        if v not in DEBLUR_METHODS:
+            raise ValueError(f"unknown deconvolution {v!r}; expected one of {sorted(DEBLUR_METHODS)}")
+        return v
+
 
 # --------------------------------------------------------------------------------- protocol
 @protocols.register("flutter_shutter", app="flutter_shutter")

@@ -66,7 +66,7 @@ from fractions import Fraction
 from typing import Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from .. import protocols
 from ..errors import ConfigError
@@ -124,6 +124,13 @@ class StructuredLightParams(BaseModel):
                                            "pattern modulation (phase_shift: B; gray_code: the white image's projector "
                                            "light) is at least this fraction of its 99th percentile.")
     depth_tolerance_mm: float = Field(10.0, gt=0.0, description="Metric within_tolerance: |depth error| at most this, mm.")
+
+    @field_validator("unwrap")
+    @classmethod
+    def _unwrap(cls, v: str) -> str:
+        if v not in UNWRAP_METHODS:
+            raise ValueError(f"unknown phase unwrapping {v!r}; expected one of {sorted(UNWRAP_METHODS)}")
+        return v
 
     @model_validator(mode="after")
     def _range(self) -> "StructuredLightParams":
