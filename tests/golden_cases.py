@@ -29,7 +29,13 @@ CAPTURE_CASES = [
     ("flash_matting", "flash_matting.yaml", []),
     ("moving_light", "moving_light.yaml", []),
     ("rgb_illumination", "rgb_illumination.yaml", []),
+    ("structured_light", "structured_light.yaml", []),
+    ("flutter_shutter", "flutter_shutter.yaml", []),
 ]
+
+#: Images of a config's captures that are not pinned, and why: a wrapped phase jumps by 2 pi where a
+#: read one electron apart (another CPU's last-bit render difference) moves it across 0.
+UNPINNED = {"structured_light.yaml": {"phase": "wrapped to [0, 2 pi): a pixel near 0 flips by 2 pi"}}
 
 #: Images that are zero by construction (up to float64 rounding): compared with an absolute
 #: bound, since a relative error of rounding noise means nothing.
@@ -45,7 +51,7 @@ def capture_images(config: str, overrides: list[str], extra: list[str] = ()) -> 
     from mbcapture import load_config, run_capture
 
     res = run_capture(load_config(ROOT / "configs" / config, [*TINY, *overrides, *extra]), progress=False)
-    return result_images(res)
+    return {k: v for k, v in result_images(res).items() if k not in UNPINNED.get(config, {})}
 
 
 def result_images(res) -> dict[str, np.ndarray]:

@@ -142,6 +142,55 @@ class Environment:
     radiance: Radiance
 
 
+@dataclass(frozen=True, eq=False)
+class Projector:
+    """A pinhole projector (Mitsuba's ``projector`` emitter) casting ``image`` into the scene, in ``group``.
+
+    It sits at ``origin`` and looks at ``target`` (``up`` fixes its roll) like
+    :class:`mbcapture.scenes.Camera`, with the horizontal field of view ``fov_deg`` spanning the
+    image's width; its height follows the image's aspect. Measured on Mitsuba 3.9.1 (tests/
+    test_projector.py): texel (row i, column j) lights the points that a camera at the same pose,
+    field of view and resolution sees in pixel (i, j), texel centres at half-integers, so
+    ``Camera(origin, target, up, fov_deg).project(X, width, height)`` is the image position a world
+    point X receives light from. ``image`` (H, W, 3) float is the irradiance, W m^-2 per RGB channel,
+    on a plane perpendicular to the optical axis 1 m from the projector; on such a plane at axial
+    distance z it is ``image / z^2`` (a Lambertian surface of albedo rho reflects rho image / (pi z^2)).
+    Bilinear filtering, clamped at the borders; no light outside the field of view. A delta-position
+    emitter: lit by next-event estimation only, never seen by the camera. RGB variants only.
+    ``part``: the projector moves with that part (its pose relative to the part's frame).
+    """
+
+    name: str
+    group: str
+    origin: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float]
+    fov_deg: float
+    image: np.ndarray
+    part: str | None = None
+
+    def __post_init__(self) -> None:
+        img = np.asarray(self.image, np.float32)
+        if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
+            raise ValueError(f"Projector {self.name!r}: image must be (H, W, 3), got {img.shape}")
+        if not np.all(np.isfinite(img)) or np.any(img < 0):
+            raise ValueError(f"Projector {self.name!r}: image values must be finite and >= 0")
+        if not 0.0 < self.fov_deg < 180.0:
+            raise ValueError(f"Projector {self.name!r}: fov_deg must be in (0, 180), got {self.fov_deg}")
+        object.__setattr__(self, "image", img)
+
+    def to_world(self) -> np.ndarray:
+        """(4, 4) world-from-projector matrix of Mitsuba's ``look_at`` (x left, y up, z forward)."""
+        o, t, u = (np.asarray(v, float) for v in (self.origin, self.target, self.up))
+        d = (t - o) / np.linalg.norm(t - o)
+        left = np.cross(u, d)
+        left /= np.linalg.norm(left)
+        new_up = np.cross(d, left)
+        m = np.eye(4)
+        m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, new_up, d, o
+        return m
+
+
 @dataclass(frozen=True)
 class SceneBuild:
     """Everything :class:`mbcapture.render.Renderer` needs besides the camera.
@@ -152,11 +201,14 @@ class SceneBuild:
         Moving part name -> ``f(t_s: float) -> (4, 4)`` world-from-part matrix.
     environment
         Optional constant environment light.
+    projectors
+        Pinhole projectors (:class:`Projector`), each in its own emitter group or sharing one.
     """
 
     shapes: tuple[Shape, ...]
     parts: Mapping[str, Callable[[float], np.ndarray]] = field(default_factory=dict)
     environment: Environment | None = None
+    projectors: tuple[Projector, ...] = ()
 
     def emitter_groups(self) -> tuple[str, ...]:
         """Groups that own at least one emitter, in first-appearance order."""
@@ -166,6 +218,8 @@ class SceneBuild:
                 seen.setdefault(s.light.group)
         if self.environment is not None:
             seen.setdefault(self.environment.group)
+        for p in self.projectors:
+            seen.setdefault(p.group)
         return tuple(seen)
 
     def check_files(self, scene_name: str = "scene") -> None:

@@ -68,7 +68,14 @@ def _canonical(obj: Any, mi: Any) -> Any:
         return repr(obj)
     if isinstance(obj, mi.ScalarTransform4f):
         return [[repr(float(x)) for x in row] for row in np.asarray(obj.matrix, dtype=np.float64)]
-    return repr(obj)
+    if isinstance(obj, mi.Bitmap):  # e.g. a projector's pattern: by content
+        data = np.ascontiguousarray(np.asarray(obj))
+        return {"bitmap": hashlib.sha256(data.tobytes()).hexdigest(), "shape": list(data.shape), "dtype": data.dtype.str}
+    if isinstance(obj, np.ndarray):
+        return {"array": hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest(), "shape": list(obj.shape)}
+    # anything else would be hashed by its repr, which need not show its content: refuse, so that
+    # two different scenes can never share a cache key
+    raise TypeError(f"render cache key: cannot hash a {type(obj).__name__} in the scene description")
 
 
 class Renderer:
@@ -188,6 +195,9 @@ class Renderer:
 
         self._build = build
         build.check_files(scene.name)
+        if build.projectors and self.spectral:
+            raise ConfigError(f"scene {scene.name!r}: projector emitters are supported in RGB variants only, "
+                              f"not {variant!r}")
         self.cache = cache
         main_dict = self._scene_dict()
         self._scene = self._load(main_dict)
@@ -303,7 +313,27 @@ class Renderer:
         if env is not None:
             d["environment"] = {"type": "constant",
                                 "radiance": self._emission_dict(env.radiance, env.group == flat_group)}
+        for p in self._build.projectors:
+            if p.name in d or p.name in parts:
+                raise ConfigError(f"scene {self.scene_model.name!r}: duplicate name {p.name!r} (projector)")
+            if p.part is not None and p.part not in parts:
+                raise ConfigError(f"projector {p.name!r}: unknown part {p.part!r}")
+            d[p.name] = self._projector_dict(p)
         return d
+
+    def _projector_world(self, p, t_s: float) -> np.ndarray:
+        m = p.to_world()
+        return m if p.part is None else np.asarray(self._build.parts[p.part](t_s), float) @ m
+
+    def _projector_dict(self, p) -> dict[str, Any]:
+        """Mitsuba's ``projector``: its texture value v lights a plane perpendicular to the axis at
+        axial distance z with irradiance pi v scale / z^2 (measured), so scale = 1/pi makes the image
+        the irradiance at 1 m (see :class:`~.build.Projector`)."""
+        mi = self._mi
+        return {"type": "projector", "to_world": mi.ScalarTransform4f(self._projector_world(p, 0.0)),
+                "fov": float(p.fov_deg), "fov_axis": "x", "scale": 1.0 / np.pi,
+                "irradiance": {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(p.image)), "raw": True,
+                               "filter_type": "bilinear", "wrap_mode": "clamp"}}
 
     def _film_dict(self, shape: Spectrum | None = None) -> dict[str, Any]:
         film: dict[str, Any] = {"width": self.width, "height": self.height, "rfilter": {"type": "box"}}
@@ -373,6 +403,10 @@ class Renderer:
                 out[s.light.group].append(by_name[s.name])
         if self._build.environment is not None:
             out[self._build.environment.group].append(scene.environment())
+        if self._build.projectors:
+            by_id = {e.id(): e for e in scene.emitters()}
+            for p in self._build.projectors:
+                out[p.group].append(by_id[p.name])
         return out
 
     # -- state and rendering ------------------------------------------------------------------
@@ -475,6 +509,10 @@ class Renderer:
                 key = f"{part}.to_world"
                 if key in params:
                     params[key] = self._opaque_transform(f(t_s))
+                    moved = True
+            for p in self._build.projectors:
+                if p.part is not None:
+                    params[f"{p.name}.to_world"] = self._opaque_transform(self._projector_world(p, t_s))
                     moved = True
             if moved:
                 params.update()

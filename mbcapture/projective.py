@@ -1,0 +1,70 @@
+"""Pinhole geometry shared by cameras and projectors: pixel rays, column planes, triangulation.
+
+Conventions are those of :class:`mbcapture.scenes.Camera` (Mitsuba's ``perspective`` sensor with
+``fov_axis='x'`` and a ``look_at`` frame): pixel coordinates (x right, y down) with pixel centres at
+half-integers, the horizontal field of view spanning the width. A projector
+(:class:`mbcapture.render.build.Projector`) maps its image onto the scene exactly like a camera
+of the same pose, field of view and resolution sees it, so the same functions serve both.
+Pure numpy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def frame(camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(origin, forward, image right, image up) of a camera, world unit vectors."""
+    o = np.asarray(camera.origin, float)
+    fwd = np.asarray(camera.target, float) - o
+    fwd /= np.linalg.norm(fwd)
+    left = np.cross(np.asarray(camera.up, float), fwd)  # Mitsuba's look_at x axis points to image left
+    left /= np.linalg.norm(left)
+    up = np.cross(fwd, left)
+    return o, fwd, -left, up
+
+
+def tan_half(camera) -> float:
+    return float(np.tan(np.radians(camera.fov_deg) / 2))
+
+
+def pixel_rays(camera, px: np.ndarray, py: np.ndarray, width: int, height: int) -> np.ndarray:
+    """World directions (..., 3) through image positions (px, py) (pixels, x right, y down),
+    scaled so that their component along the optical axis is 1 (a point at depth z is origin + z d)."""
+    o, fwd, right, up = frame(camera)
+    th = tan_half(camera)
+    xc = (np.asarray(px, float) / width - 0.5) * 2 * th
+    yc = (0.5 - np.asarray(py, float) / height) * 2 * th * height / width
+    return fwd + xc[..., None] * right + yc[..., None] * up
+
+
+def column_planes(camera, px: np.ndarray, width: int) -> np.ndarray:
+    """Normals (..., 3) of the planes through the optical centre holding every point that projects
+    to image column ``px`` (pixels); not normalized."""
+    o, fwd, right, up = frame(camera)
+    xc = (np.asarray(px, float) / width - 0.5) * 2 * tan_half(camera)
+    return right[None] * np.ones(np.shape(px) + (1,)) - xc[..., None] * fwd
+
+
+def triangulate_columns(camera, projector, proj_col: np.ndarray, proj_width: int, width: int,
+                        height: int) -> np.ndarray:
+    """Depth along the camera's optical axis (H, W) of the point each camera pixel centre sees, given
+    the projector column ``proj_col`` (H, W; pixels of a projector image ``proj_width`` wide) that lit
+    it: the camera ray meets the projector's column plane. NaN where ``proj_col`` is NaN or the ray
+    runs parallel to the plane; negative depths (behind the camera) are NaN too."""
+    yy, xx = np.mgrid[0:height, 0:width].astype(float) + 0.5
+    d = pixel_rays(camera, xx, yy, width, height)
+    n = column_planes(projector, proj_col, proj_width)
+    c = np.asarray(camera.origin, float)
+    p = np.asarray(projector.origin, float)
+    den = np.einsum("...i,...i->...", d, n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = ((p - c) @ np.moveaxis(n, -1, 0).reshape(3, -1)).reshape(den.shape) / den
+    return np.where(np.isfinite(z) & (z > 0), z, np.nan)
+
+
+def points_from_depth(camera, z: np.ndarray) -> np.ndarray:
+    """World points (H, W, 3) of a depth image (depth along the optical axis at pixel centres)."""
+    h, w = z.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(float) + 0.5
+    return np.asarray(camera.origin, float) + z[..., None] * pixel_rays(camera, xx, yy, w, h)
