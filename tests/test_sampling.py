@@ -146,3 +146,11 @@ def test_turning_one_noise_source_on_leaves_the_others_draws_unchanged():
     fd = np.stack([a.electrons[list(r)].sum(axis=0) for r in reads])
     # DN = rint(fd + noise): the noise of c is twice that of d, up to the rounding of each
     np.testing.assert_allclose(c.reads_dn - fd, 2 * (d.reads_dn - fd), atol=1.5)
+
+
+def test_binomial_with_a_subnormal_probability_is_exact_and_finite():
+    """p = 2e-307 (found by the property test of the sensor): P(X > 0) <= n p is far below the
+    uniforms' 2^-53 grid, so every draw is 0 (scipy's beta functions overflow there)."""
+    u = np.array([1e-9, 0.5, 1 - 2.0**-53])
+    np.testing.assert_array_equal(binomial_quantile(u, np.full(3, 1558.0), 2.17e-307), [0, 0, 0])
+    np.testing.assert_array_equal(binomial_quantile(u, np.full(3, 10.0), 1 - 1e-300), [10, 10, 10])

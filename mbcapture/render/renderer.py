@@ -199,22 +199,21 @@ class Renderer:
             raise ConfigError(f"scene {scene.name!r}: projector emitters are supported in RGB variants only, "
                               f"not {variant!r}")
         self.cache = cache
-        main_dict = self._scene_dict()
-        self._scene = self._load(main_dict)
-        dicts = [main_dict]
-        self._params = mi.traverse(self._scene)
-        self._group_emitters = self._collect_emitters(self._scene)
+        # the scene descriptions now; the Mitsuba scenes when something is rendered (a run whose
+        # renders all come from the cache never loads them)
+        self._dicts: dict[str | None, dict[str, Any]] = {None: self._scene_dict()}
         # spectral: a group whose emitters share one spectral shape f_g gets its own scene, with
         # flat emitters and film curves S_c f_g, so wavelengths are sampled where the group emits
-        self._group_scenes: dict[str, tuple[Any, Any, list[Any]]] = {}
         if self.spectral:
             for g in self.groups:
                 shape = self._group_spectral_shape(g)
                 if shape is not None:
-                    d = self._scene_dict(flat_group=g, film_shape=shape)
-                    dicts.append(d)
-                    sc = self._load(d)
-                    self._group_scenes[g] = (sc, mi.traverse(sc), self._collect_emitters(sc)[g])
+                    self._dicts[g] = self._scene_dict(flat_group=g, film_shape=shape)
+        self._loaded = False
+        self._scene: Any = None
+        self._params: Any = None
+        self._group_emitters: dict[str, list[Any]] = {}
+        self._group_scenes: dict[str, tuple[Any, Any, list[Any]]] = {}
         integrator_class(variant)  # registers the plugin
         self._integrator = mi.load_dict({"type": PLUGIN_NAME, "max_depth": self.max_depth})
         self._time_s: float | None = None
@@ -223,9 +222,23 @@ class Renderer:
         self.last_render_s = 0.0
         #: Whether the last :meth:`render` came from the cache.
         self.last_cached = False
-        self.identity = self._identity(dicts) if cache is not None else None
+        self.identity = self._identity(list(self._dicts.values())) if cache is not None else None
         self._sampler_probe = None
         self._sample_counts: dict[int, int] = {}
+
+    def _ensure_loaded(self) -> None:
+        """Load the Mitsuba scene(s) from their descriptions (once)."""
+        if self._loaded:
+            return
+        mi = self._mi
+        self._scene = self._load(self._dicts[None])
+        self._params = mi.traverse(self._scene)
+        self._group_emitters = self._collect_emitters(self._scene)
+        for g, d in self._dicts.items():
+            if g is not None:
+                sc = self._load(d)
+                self._group_scenes[g] = (sc, mi.traverse(sc), self._collect_emitters(sc)[g])
+        self._loaded = True
 
     @classmethod
     def from_config(cls, scene: SceneModel, cfg: Any, *, cache: RenderCache | None = None, **overrides: Any) -> "Renderer":
@@ -413,6 +426,7 @@ class Renderer:
     @property
     def mitsuba_scene(self) -> Any:
         """The loaded ``mi.Scene`` (at the last :meth:`set_time`), for AOV or reference renders."""
+        self._ensure_loaded()
         return self._scene
 
     @property
@@ -494,6 +508,7 @@ class Renderer:
         """Move every part to scene time ``t_s`` (s); no kernel is recompiled. ``force`` redoes the
         update (and the acceleration-structure rebuild) even at the current time, e.g. to time it."""
         t_s = float(t_s)
+        self._ensure_loaded()
         if (t_s == self._time_s and not force) or not self._build.parts:
             self._time_s = t_s
             return
@@ -546,6 +561,7 @@ class Renderer:
 
     def _render(self, t_s: float, spp: int, seed: int, req: list[str]) -> np.ndarray:
         start = time.perf_counter()
+        self._ensure_loaded()
         out = np.zeros((len(req), self.height, self.width, 3), np.float32)
         lit = [g for g in req if self._group_emitters[g]]
         if lit and self.spectral:
@@ -572,6 +588,7 @@ class Renderer:
     def render_path(self, t_s: float, spp: int, seed: int) -> np.ndarray:
         """The whole scene (all groups on) with Mitsuba's built-in ``path`` integrator,
         float32 (row, col, channel): the reference the group images must sum to."""
+        self._ensure_loaded()
         self.set_time(t_s)
         integ = self._mi.load_dict({"type": "path", "max_depth": self.max_depth,
                                     "rr_depth": max(self.max_depth + 1, 5)})

@@ -253,7 +253,10 @@ def binomial_quantile(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
         return out.reshape(shape)
     if p >= 1.0:
         return n.copy().reshape(shape)
-    sel = np.flatnonzero(n > 0)
+    # P(X != 0) <= n p and P(X != n) <= n (1 - p): below 2^-60 no u in (0, 1) reaches them (u's grid is
+    # 2^-53; also keeps scipy's beta functions away from subnormal p, where they overflow)
+    out[n * (1.0 - p) < 2.0**-60] = n[n * (1.0 - p) < 2.0**-60]
+    sel = np.flatnonzero((n > 0) & (n * p >= 2.0**-60) & (n * (1.0 - p) >= 2.0**-60))
     if sel.size:
         nn, uu = n[sel], u[sel]
         var = nn * p * (1.0 - p)
