@@ -50,6 +50,26 @@ def test_binomial_quantile_edge_probabilities_and_zero_trials():
     np.testing.assert_array_equal(binomial_quantile(u, np.array([5.0, 6.0, 0.0]), 1.0), [5, 6, 0])
 
 
+def test_binomial_quantile_with_a_vanishing_probability_is_zero_and_does_not_crash():
+    """A transfer inefficiency near the smallest normal float64 (hypothesis found 1.1e-308) made
+    scipy's binomial pmf raise OverflowError inside the walk. For n p < 2^-53, P(X >= 1) <= n p is
+    below 1 - u for every float64 u < 1, so every count is exactly 0 (scipy's ppf agrees where it
+    works); just above that bound the walk still runs and still equals scipy."""
+    u = np.array([2.0**-54, 0.25, 0.5, 0.75, 1 - 2.0**-53])
+    for p in (1e-300, 2.2250738585072014e-308, 1.1125369292536007e-308, 5e-324):
+        for n in (1.0, 1e4, 2.0**40):
+            np.testing.assert_array_equal(binomial_quantile(u, np.full(u.size, n), p), 0.0)
+    np.testing.assert_array_equal(binomial_quantile(u, np.full(u.size, 1e4), 1e-300), stats.binom.ppf(u, 1e4, 1e-300))
+    # n p = 2^-50 > 2^-53: the last u lies above F(0) = (1 - 2^-70)^(2^20) = 1 - 2^-50 (to 1e-31), so
+    # its count is 1 (scipy's ppf says 0 there: it loses the tail in 1 - u)
+    n, p = 2.0**20, 2.0**-70
+    np.testing.assert_array_equal(binomial_quantile(u, np.full(u.size, n), p), [0, 0, 0, 0, 1])
+    out = simulate_reads(np.full((4, 2, 3, 3), 500.0), [(3,), (3, 2)], SensorConfig(transfer_inefficiency=1.1125369292536007e-308),
+                         np.random.SeedSequence(0))
+    base = simulate_reads(np.full((4, 2, 3, 3), 500.0), [(3,), (3, 2)], SensorConfig(), np.random.SeedSequence(0))
+    np.testing.assert_array_equal(out.reads_dn, base.reads_dn)  # no electron is lost
+
+
 def test_poisson_pmf_matches_the_direct_formula_and_sums_to_one():
     for lam in (0.2, 3.0, 50.0, 700.0):
         k = np.arange(0, int(lam + 15 * np.sqrt(lam)) + 20, dtype=float)

@@ -239,6 +239,10 @@ def poisson_quantile(u: np.ndarray, mean: np.ndarray) -> np.ndarray:
     return out.reshape(shape)
 
 
+#: A binomial mean n p below this (the gap between 1 and the largest float64 below 1) gives count 0 for every u.
+_CERTAIN_ZERO_MEAN = 2.0**-53
+
+
 def binomial_quantile(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
     """Binomial(n, p) counts by exact inversion: the smallest k with P(X <= k) >= u.
 
@@ -253,7 +257,9 @@ def binomial_quantile(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
         return out.reshape(shape)
     if p >= 1.0:
         return n.copy().reshape(shape)
-    sel = np.flatnonzero(n > 0)
+    # P(X >= 1) = 1 - (1 - p)^n <= n p: below 2^-53 it is less than 1 - u for every float64 u < 1, so
+    # the count is exactly 0 (and scipy's binomial pmf overflows for p near 1e-308)
+    sel = np.flatnonzero((n > 0) & (n * p >= _CERTAIN_ZERO_MEAN))
     if sel.size:
         nn, uu = n[sel], u[sel]
         var = nn * p * (1.0 - p)
