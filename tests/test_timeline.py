@@ -179,3 +179,18 @@ def test_custom_schedule_with_drain_and_flash():
     assert tl.switchable_groups() == {"flash"}
     assert (tl.end_tick - tl.start_tick) * tl.tick_s == Fraction(2, 1000)
     assert exposure_s(tl, tl.reads[0]) == Fraction(8, 10000)
+
+
+def test_storage_time_runs_from_the_first_slot_to_the_read():
+    """Dark current's clock (Timeline.storage_ticks): a drain slot before a bucket's first slot does not
+    count, interleaved buckets are read at the end of the capture, and a bucket that never collects
+    holds nothing. One period of 4 x 1 ms: drain, bucket 1, bucket 2, drain; 3 buckets, bucket 3 unused."""
+    ms = Fraction(1, 1000)
+    slots = (SlotSeconds(DRAIN, ms), SlotSeconds(0, ms), SlotSeconds(1, ms), SlotSeconds(DRAIN, ms))
+    tl = build_timeline([SegmentSeconds(Fraction(0), slots, 3)], [ReadEvent("A", (0,)), ReadEvent("B", (1,))], 3, "custom")
+    # the capture spans 12 ms; bucket 1 first collects at 1 ms, bucket 2 at 2 ms
+    assert [tl.storage_ticks(k) * tl.tick_s for k in range(3)] == [11 * ms, 10 * ms, 0]
+    np.testing.assert_allclose(tl.storage_s(), [11e-3, 10e-3, 0.0], rtol=1e-15, atol=0)
+    seq = protocols.build(cfg(protocol="photon_efficient_hdr", unit_exposure_s=0.001, periods=8, sequential=True,
+                              sensor={"frame_readout_s": 0.5}))
+    assert [seq.storage_ticks(k) * seq.tick_s for k in range(4)] == [ms, 2 * ms, 4 * ms, 8 * ms]  # gaps do not count
