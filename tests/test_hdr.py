@@ -123,3 +123,25 @@ def test_unknown_method_lists_valid_ones():
 def test_cumulative_exposures_must_increase():
     with pytest.raises(ValueError, match="exposures_s"):
         merge_hdr(np.zeros((4, 1, 1, 3)), CUM_T[::-1], CFG, method="ramp_fit", cumulative=True)
+
+
+@pytest.mark.parametrize("cumulative", [True, False])
+def test_all_saturated_lower_bound_is_the_largest_read_rate(cumulative):
+    """Documented value where every read saturated: max_i x_i / t_i over the reads (each clipped read
+    under-reports its rate), clamped at 0. Hand-made DN put the largest rate in the second read
+    (not the first, not the last, not the longest); a pixel below the black level gives 0."""
+    t = CUM_T
+    x_e = np.array([[5000.0, -40.0], [12000.0, -30.0], [15000.0, -20.0], [20000.0, -10.0]])  # (R, P) electrons
+    dn = (x_e * CFG.gain_dn_per_e + CFG.black_level_dn).reshape(4, 1, 2, 1)
+    rates = x_e / t[:, None]  # 5e6, 6e6, 3.75e6, 2.5e6 e-/s in pixel 0
+    assert int(np.argmax(rates[:, 0])) == 1
+    for method in HDR_METHODS:
+        res = merge_hdr(dn, t, CFG, method=method, cumulative=cumulative, saturated=np.ones(dn.shape, bool))
+        np.testing.assert_allclose(res.rate_e_per_s.ravel(), [12000.0 / t[1], 0.0], rtol=1e-12, atol=0)
+        assert not res.valid.any() and np.all(np.isinf(res.sigma_e_per_s)) and np.all(res.n_used == 0)
+    # a pixel with one usable read is merged from it, not bounded
+    sat = np.ones(dn.shape, bool)
+    sat[0] = False
+    res = merge_hdr(dn, t, CFG, method="ramp_fit", cumulative=cumulative, saturated=sat)
+    assert res.valid.all() and res.n_used.ravel().tolist() == [1, 1]
+    np.testing.assert_allclose(res.rate_e_per_s.ravel(), x_e[0] / t[0], rtol=1e-12)
