@@ -61,6 +61,15 @@ def test_conversion_factor_matches_hand_computation():
     np.testing.assert_allclose(k / k[1], ratio, rtol=1e-12)
 
 
+def test_expected_electrons_needs_a_channel_axis_of_three():
+    cfg = SensorConfig()
+    k = electrons_per_radiance_second(cfg)
+    np.testing.assert_allclose(expected_electrons([1.0, 2.0, 3.0], cfg), [k[0], 2 * k[1], 3 * k[2]], rtol=1e-15)  # 1-D is fine
+    for bad in (np.float64(1.0), np.zeros(2), np.zeros((4, 2))):
+        with pytest.raises(ValueError, match=r"radiant exposure must end in a channel axis of 3, got shape"):
+            expected_electrons(bad, cfg)
+
+
 def test_mid_grey_is_well_exposed_at_8ms():
     cfg = SensorConfig()
     e = expected_electrons(np.full((1, 1, 1, 3), 0.3 * 8e-3), cfg)[0, 0, 0]
@@ -70,7 +79,7 @@ def test_mid_grey_is_well_exposed_at_8ms():
 def test_config_rejects_nonsense_naming_the_key():
     with pytest.raises(ValidationError, match="full_well_e"):
         SensorConfig(full_well_e=0)
-    with pytest.raises(ValidationError, match="quantum_efficiency"):
+    with pytest.raises(ValidationError, match=r"quantum_efficiency: expected 3 values \(R, G, B\), got 2"):
         SensorConfig(quantum_efficiency=[0.5, 0.5])
     with pytest.raises(ValidationError, match="quantum_efficiency"):
         SensorConfig(quantum_efficiency=[0.5, 1.5, 0.5])

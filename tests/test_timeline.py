@@ -194,3 +194,38 @@ def test_storage_time_runs_from_the_first_slot_to_the_read():
     seq = protocols.build(cfg(protocol="photon_efficient_hdr", unit_exposure_s=0.001, periods=8, sequential=True,
                               sensor={"frame_readout_s": 0.5}))
     assert [seq.storage_ticks(k) * seq.tick_s for k in range(4)] == [ms, 2 * ms, 4 * ms, 8 * ms]  # gaps do not count
+
+
+def test_collecting_intervals_merge_touching_segments_and_skip_drain_only_ones():
+    """Segments [0, 3) and [3, 5) ms touch: one interval; [6, 7) after a gap: another; a segment that
+    only drains (8..9 ms) collects nothing and is left out (ticks of 1 us here)."""
+    ms = Fraction(1, 1000)
+    segs = [SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 3), SegmentSeconds(3 * ms, (SlotSeconds(1, ms),), 2),
+            SegmentSeconds(6 * ms, (SlotSeconds(0, ms / 2), SlotSeconds(DRAIN, ms / 2)), 1),
+            SegmentSeconds(8 * ms, (SlotSeconds(DRAIN, ms),), 1)]
+    tl = build_timeline(segs, [ReadEvent("A", (0,)), ReadEvent("B", (1,))], 2, "custom")
+    per_ms = int(ms / tl.tick_s)
+    assert tl.collecting_intervals() == [(0, 5 * per_ms), (6 * per_ms, 7 * per_ms)]
+
+
+def test_describe_reads_and_absolute_centroids_by_hand():
+    """photon_efficient_hdr, N = 3 periods of 8 ms / 3 (slots 4:2:1:1 of T/3): bucket 4 (J1) is the
+    last slot, at [7T/3, 8T/3) + k 8T/3; its centroid is the mean of those midpoints,
+    (7.5 T/3) + (8T/3) (N - 1)/2 = 5.1666.. ms, its span [7T/3, 8T); the report names buckets from 1."""
+    T = Fraction(1, 1000)
+    tl = protocols.build(cfg(protocol="photon_efficient_hdr", unit_exposure_s=0.001, periods=3))
+    d = tl.describe_reads()
+    assert [r["buckets"] for r in d] == [[4], [3, 4], [2, 3, 4], [1, 2, 3, 4]]
+    assert tl.centroid_ticks((3,)) * tl.tick_s == Fraction(15, 2) * T / 3 + 8 * T / 3
+    assert tl.centroid_ticks((0,)) * tl.tick_s == 2 * T / 3 + 8 * T / 3  # bucket 1: [0, 4T/3) + k 8T/3
+    assert d[0]["centroid_s"] == pytest.approx(float(Fraction(31, 6) * T), rel=1e-15)
+    assert (d[0]["span_start_s"], d[0]["span_end_s"]) == pytest.approx((float(7 * T / 3), float(8 * T)), rel=1e-15)
+    assert d[0]["span_s"] == pytest.approx(float(8 * T - 7 * T / 3), rel=1e-15)
+    assert d[3]["exposure_s"] == pytest.approx(8e-3, rel=1e-15) and d[3]["span_s"] == pytest.approx(8e-3, rel=1e-15)
+    # the summed buckets' centroid is the exposure-weighted mean of theirs (J4: all of 8T, centre 4T)
+    assert tl.centroid_ticks((0, 1, 2, 3)) * tl.tick_s == 4 * T
+    assert [r["destructive"] for r in d] == [False] * 4
+    unused = build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, T),), 2)], [ReadEvent("A", (0,))], 2, "custom")
+    with pytest.raises(ValueError, match="^these buckets never collect$"):
+        unused.centroid_ticks((1,))
+    assert unused.span_ticks((1,)) == (0, 0)
