@@ -317,14 +317,14 @@ def test_prnu_is_one_fixed_pattern_shared_by_every_read():
     cfg = ideal(prnu=0.2, read_noise_e=0.0, full_well_e=1e9, fd_full_well_e=4e9, adc_bits=24, gain_dn_per_e=1e-2,
                 black_level_dn=0.0)
     e = np.array([4e7, 1e7])  # buckets of 4T and T
-    n = 400
-    exp_e = flat(list(e), n, 3)
-    gain = fixed_pattern((1, n, 3), cfg).prnu_gain
+    h, w = 8, 50
+    exp_e = np.broadcast_to(e[:, None, None, None], (2, h, w, 3)).copy()
+    gain = fixed_pattern((h, w, 3), cfg).prnu_gain  # the map of an (H, W, C) image, one value per pixel
     assert gain.std() > 0.15 and gain.min() > 0.2  # a real pattern, no pixel near zero sensitivity
     reads = [(0,), (1,), (0, 1)]
     for seed in (31, 32):
         out = simulate_reads(exp_e, reads, cfg, np.random.SeedSequence(seed))
-        j = dn_to_electrons(out.reads_dn, cfg)  # (3, 1, n, 3)
+        j = dn_to_electrons(out.reads_dn, cfg)  # (3, h, w, 3)
         quant = 0.5 / cfg.gain_dn_per_e  # rounding to DN, electrons
         for r, read in enumerate(reads):
             m = gain * e[list(read)].sum()
@@ -381,3 +381,27 @@ def test_parasitic_light_alone_adds_its_fraction_of_the_other_buckets_light():
     seq = simulate_reads(flat(list(lam), n), [(0,), (1,), (2,)], cfg, np.random.SeedSequence(34), shared_photodiode=False)
     assert np.all(seq.electrons[1] == 0.0)
     assert abs(seq.electrons[0].mean() - lam[0]) < N_SIGMA * np.sqrt(lam[0] / n)
+
+
+def test_simulate_reads_refuses_bad_input_naming_the_argument():
+    cfg = ideal()
+    ok = np.full((2, 1, 3, 3), 10.0)
+    cases = [
+        (np.full((2, 3, 3), 10.0), [(0,)], {}, r"^expected_bucket_e: expected shape \(K, H, W, C\), got \(2, 3, 3\)$"),
+        (np.where(np.arange(3) == 1, -1.0, 10.0) * np.ones((2, 1, 3, 3)), [(0,)], {},
+         r"^expected_bucket_e: values must be finite and >= 0$"),
+        (np.where(np.arange(3) == 1, np.nan, 10.0) * np.ones((2, 1, 3, 3)), [(0,)], {},
+         r"^expected_bucket_e: values must be finite and >= 0$"),
+        (np.full((5, 1, 3, 3), 10.0), [(0,)], {}, r"^expected_bucket_e: 5 buckets but sensor.bucket_count is 4$"),
+        (ok, [], {}, r"^reads: at least one read is needed$"),
+        (ok, [(0,), ()], {}, r"^reads\[1\]: a read must sum at least one bucket$"),
+        (ok, [(0, 0)], {}, r"^reads\[0\]: bucket listed twice in \(0, 0\)$"),
+        (ok, [(0,), (2,)], {}, r"^reads\[1\]: bucket indices \(2,\) outside 0..1$"),
+        (ok, [(-1,)], {}, r"^reads\[0\]: bucket indices \(-1,\) outside 0..1$"),
+        (ok, [(0,)], {"storage_s": [1.0]}, r"^storage_s: expected 2 non-negative seconds, got"),
+        (ok, [(0,)], {"storage_s": [1.0, -1.0]}, r"^storage_s: expected 2 non-negative seconds, got"),
+    ]
+    for expected, reads, kw, message in cases:
+        with pytest.raises(ValueError, match=message):
+            simulate_reads(expected, reads, cfg, 0, **kw)
+    simulate_reads(ok, [(0,), (1,)], cfg, 0, storage_s=[0.0, 1.0])  # the valid neighbours pass
