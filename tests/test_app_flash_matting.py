@@ -225,3 +225,11 @@ def test_tiny_capture_interleaved_beats_sequential():
     assert 0.05 < truth.mean() < 0.5  # the plant covers part of the frame
     assert mi["alpha_moving"]["sad"] < ms["alpha_moving"]["sad"]
     assert mi["flash_only_rel_mse_moving"] < ms["flash_only_rel_mse_moving"]
+
+
+def test_matte_scores_of_an_empty_region_and_trimap_error_thresholds():
+    assert fm.matte_scores(np.ones((2, 2)), np.zeros((2, 2)), np.zeros((2, 2), bool)) == {"pixels": 0, "sad": 0.0, "mse": None}
+    # truth exactly at the tolerance is not an error (strict inequalities); unknown pixels never are
+    tri = np.array([[1.0, 1.0, 0.0, 0.0, 0.5, 0.5]])
+    truth = np.array([[0.05, 0.0499, 0.95, 0.9501, 0.0, 1.0]])
+    assert fm.trimap_errors(tri, truth, tol=0.05) == {"fg_on_background": 1, "bg_on_foreground": 1}

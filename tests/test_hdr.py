@@ -234,3 +234,19 @@ def test_ramp_fit_is_the_documented_three_pass_gls():
         np.testing.assert_allclose(res.rate_e_per_s.ravel(), want_rate, rtol=1e-10)
         np.testing.assert_allclose(res.sigma_e_per_s.ravel(), want_sigma, rtol=1e-10)
         assert want_rate[2] < 0
+
+
+def test_motion_check_by_hand():
+    """apps.hdr.motion_check: RMS of each normalised read against the truth and the largest pairwise
+    RMS between reads, relative to the mean truth in the moving region (or absolute where that mean
+    is 0); a static scene says so."""
+    from mbcapture.apps.hdr import motion_check
+
+    truth = np.full((2, 2, 1), 2.0)
+    reads = np.stack([truth, truth + 1.0, truth - 1.0])  # off by 0, +1, -1 everywhere
+    mask = np.array([[True, False], [True, True]])
+    got = motion_check(reads, ["J1", "J2", "J3"], truth, mask)
+    assert got == {"moving_pixels": 3, "rel_rms_vs_truth": {"J1": 0.0, "J2": 0.5, "J3": 0.5}, "max_pairwise_rel_rms": 1.0}
+    assert motion_check(reads, ["J1", "J2", "J3"], 0 * truth, mask)["max_pairwise_rel_rms"] == 2.0  # truth 0: absolute
+    assert motion_check(reads, ["J1", "J2", "J3"], truth, ~np.ones((2, 2), bool)) == {
+        "moving_pixels": 0, "note": "static scene: nothing moves"}
