@@ -166,3 +166,21 @@ def test_turning_one_noise_source_on_leaves_the_others_draws_unchanged():
     fd = np.stack([a.electrons[list(r)].sum(axis=0) for r in reads])
     # DN = rint(fd + noise): the noise of c is twice that of d, up to the rounding of each
     np.testing.assert_allclose(c.reads_dn - fd, 2 * (d.reads_dn - fd), atol=1.5)
+
+
+def test_uniform_open_moves_an_exact_zero_inside_the_interval_and_keeps_shapes():
+    """rng.random returns 0 with probability 2^-53, too rare to meet by sampling: a stand-in
+    generator returns it. 0 becomes 2^-54 (so that inverse CDFs never see u = 0); nothing else
+    moves. Binomial draws keep the shape of their input at p = 0 and p = 1 too."""
+    from mbcapture.sensor.sampling import uniform_open
+
+    class Zeros:
+        def random(self, shape):
+            return np.array([[0.0, 0.25], [0.5, 1 - 2.0**-53]]).reshape(shape)
+
+    u = uniform_open(Zeros(), (2, 2))
+    np.testing.assert_array_equal(u, [[2.0**-54, 0.25], [0.5, 1 - 2.0**-53]])
+    assert poisson_quantile(u, 3.0)[0, 0] == 0.0
+    uu, n = np.full((2, 3), 0.5), np.full((2, 3), 7.0)
+    assert binomial_quantile(uu, n, 0.0).shape == (2, 3) and binomial_quantile(uu, n, 1.0).shape == (2, 3)
+    np.testing.assert_array_equal(binomial_quantile(uu, n, 1.0), n)
