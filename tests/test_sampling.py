@@ -184,3 +184,41 @@ def test_uniform_open_moves_an_exact_zero_inside_the_interval_and_keeps_shapes()
     uu, n = np.full((2, 3), 0.5), np.full((2, 3), 7.0)
     assert binomial_quantile(uu, n, 0.0).shape == (2, 3) and binomial_quantile(uu, n, 1.0).shape == (2, 3)
     np.testing.assert_array_equal(binomial_quantile(uu, n, 1.0), n)
+
+
+@pytest.mark.parametrize("offset", [-40, -7, -1, 0, 1, 7, 40])
+def test_invert_discrete_finds_the_quantile_from_any_start(offset):
+    """The inversion is exact whatever its start: walking down from above, up from below, far
+    (40 counts: several re-walks) or near, for Poisson lanes (unbounded) and binomial lanes (bounded
+    by n, starts beyond n clipped). Against scipy's ppf, u including a relative 1e-9 either side of
+    every CDF step. The samplers themselves start within a count or two, so only this exercises
+    the long walks."""
+    from mbcapture.sensor.sampling import invert_discrete
+
+    rng = np.random.default_rng(abs(offset) + 100)
+    for lam in (0.7, 30.0, 5000.0):
+        ks = np.arange(0, int(lam + 10 * np.sqrt(lam)) + 10)
+        u = _u_with_steps(stats.poisson.cdf(ks, lam), rng, 300)
+        want = stats.poisson.ppf(u, lam)
+        lm = np.full(u.size, lam)
+        got = invert_discrete(u, np.maximum(want + offset, 0.0), cdf=lambda k, i: special.pdtr(k, lm[i]),
+                              sf=lambda k, i: special.pdtrc(k, lm[i]), pmf=lambda k, i: poisson_pmf(k, lm[i]),
+                              ratio_up=lambda k, i: lm[i] / (k + 1.0))
+        np.testing.assert_array_equal(got, want, err_msg=f"Poisson {lam}, start offset {offset}")
+    for n, p in ((12, 0.4), (2000, 0.03)):
+        ks = np.arange(0, n + 1)
+        u = _u_with_steps(stats.binom.cdf(ks, n, p), rng, 300)
+        want = stats.binom.ppf(u, n, p)
+        nn = np.full(u.size, float(n))
+        got = invert_discrete(u, np.maximum(want + offset, 0.0), cdf=lambda k, i: special.bdtr(k, n, p),
+                              sf=lambda k, i: special.bdtrc(k, n, p), pmf=lambda k, i: stats.binom.pmf(k, n, p),
+                              ratio_up=lambda k, i: np.maximum(nn[i] - k, 0.0) / (k + 1.0) * p / (1 - p), upper=nn)
+        np.testing.assert_array_equal(got, want, err_msg=f"binomial {n}, {p}, start offset {offset}")
+
+
+def test_noise_streams_from_an_int_or_a_generator_are_reproducible():
+    np.testing.assert_array_equal(NoiseStreams(5).uniform("shot", (4,)), NoiseStreams(5).uniform("shot", (4,)))
+    assert not np.array_equal(NoiseStreams(5).uniform("shot", (4,)), NoiseStreams(6).uniform("shot", (4,)))
+    a = NoiseStreams(np.random.default_rng(8)).normal("read", (4,))
+    np.testing.assert_array_equal(a, NoiseStreams(np.random.default_rng(8)).normal("read", (4,)))
+    assert not np.array_equal(a, NoiseStreams(np.random.default_rng(9)).normal("read", (4,)))
