@@ -75,13 +75,37 @@ def category(name: str, changed: list[str]) -> str:
     return "review"
 
 
-def load(mutants_dir: Path) -> dict[str, dict[str, int | None]]:
-    """module path (``mbcapture/sensor/readout.py``) -> mutant name -> exit code."""
+def _meta(mutants_dir: Path) -> dict[str, dict]:
+    return {str(m.relative_to(mutants_dir))[: -len(".meta")]: json.loads(m.read_text())
+            for m in sorted(mutants_dir.rglob("*.py.meta"))}
+
+
+def _function(mutant: str) -> str:
+    """mutmut's function key of a mutant name (``pkg.mod.x_f__mutmut_3`` -> ``pkg.mod.x_f``)."""
+    return mutant.rsplit("__mutmut_", 1)[0]
+
+
+def load(mutants_dir: Path, baseline: Path | None = None) -> dict[str, dict[str, int | None]]:
+    """module path (``mbcapture/sensor/readout.py``) -> mutant name -> exit code.
+
+    ``baseline``: another run's ``mutants/`` folder; a mutant this run left undecided takes the
+    baseline's verdict when its function's source hash is the same in both runs (an unchanged
+    function with tests that were only added to: killed stays killed). That is how a run of only
+    the earlier survivors gives a complete score."""
+    metas = _meta(mutants_dir)
+    base = _meta(baseline) if baseline else {}
     out = {}
-    for meta in sorted(mutants_dir.rglob("*.py.meta")):
-        codes = json.loads(meta.read_text())["exit_code_by_key"]
+    for module, meta in metas.items():
+        codes = dict(meta["exit_code_by_key"])
+        old = base.get(module)
+        if old:
+            same = {f for f, h in meta.get("hash_by_function_name", {}).items()
+                    if old.get("hash_by_function_name", {}).get(f) == h}
+            for name, code in codes.items():
+                if code is None and name in old["exit_code_by_key"] and _function(name).split(".")[-1] in same:
+                    codes[name] = old["exit_code_by_key"][name]
         if codes:
-            out[str(meta.relative_to(mutants_dir))[: -len(".meta")]] = codes
+            out[module] = codes
     return out
 
 
@@ -105,11 +129,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mutants", type=Path, default=Path("mutants"), help="mutmut's folder (default: mutants)")
     ap.add_argument("--survivors", action="store_true", help="also list the surviving mutants")
     ap.add_argument("--json", type=Path, help="write the table to this file")
+    ap.add_argument("--baseline", type=Path, help="an earlier run's mutants/ folder: its verdicts fill in the mutants "
+                    "this run left undecided whose function is unchanged")
     args = ap.parse_args(argv)
     if not args.mutants.is_dir():
         print(f"--mutants: no folder {args.mutants} (run scripts/mutation.sh first)", file=sys.stderr)
         return 2
-    results = load(args.mutants)
+    results = load(args.mutants, args.baseline)
     rows = table(results)
     cols = ["mutants", "killed", "survived", "no_tests", "timeout", "other", "not_checked"]
     print(f"{'module':44s} " + " ".join(f"{c:>11s}" for c in cols) + "   score %")
