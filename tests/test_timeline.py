@@ -229,3 +229,25 @@ def test_describe_reads_and_absolute_centroids_by_hand():
     with pytest.raises(ValueError, match="^these buckets never collect$"):
         unused.centroid_ticks((1,))
     assert unused.span_ticks((1,)) == (0, 0)
+
+
+def test_exact_common_tick_and_build_checks():
+    """exact() keeps exact inputs; common_tick ignores zero durations, counts a duration of exactly
+    1 s (gcd(1, 2/3) = 1/3) and refuses a schedule with no time; build_timeline refuses zero-length
+    slots and reads of buckets it does not have (1-based in the message), and keeps the protocol name."""
+    assert exact(Fraction(1, 3)) == Fraction(1, 3) and exact(2) == 2
+    assert common_tick([Fraction(0), Fraction(1, 2)]) == Fraction(1, 2)
+    assert common_tick([Fraction(1), Fraction(2, 3)]) == Fraction(1, 3)
+    with pytest.raises(ConfigError, match="^capture: the schedule has no time in it$"):
+        common_tick([Fraction(0)])
+    ms = Fraction(1, 1000)
+    with pytest.raises(ConfigError, match=r"^capture: slot durations must be > 0 s \(got 0.0\)$"):
+        build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms), SlotSeconds(1, Fraction(0))), 1)],
+                       [ReadEvent("A", (0,))], 2, "custom")
+    with pytest.raises(ConfigError, match=r"^capture.schedule.reads: read B names bucket\(s\) \[3\]; the schedule has 2$"):
+        build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 1)], [ReadEvent("A", (0,)), ReadEvent("B", (2,))],
+                       2, "custom")
+    with pytest.raises(ConfigError, match=r"^capture.periods: must be >= 1$"):
+        build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 0)], [ReadEvent("A", (0,))], 1, "custom")
+    tl = build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 1)], [ReadEvent("A", (0,))], 1, "mine")
+    assert tl.protocol == "mine" and not tl.sequential
