@@ -20,6 +20,7 @@ from mbcapture.sensor import (
     fixed_pattern,
     simulate_reads,
 )
+from mbcapture.sensor.sampling import NoiseStreams
 
 N_SIGMA = 5.0
 
@@ -405,3 +406,48 @@ def test_simulate_reads_refuses_bad_input_naming_the_argument():
         with pytest.raises(ValueError, match=message):
             simulate_reads(expected, reads, cfg, 0, **kw)
     simulate_reads(ok, [(0,), (1,)], cfg, 0, storage_s=[0.0, 1.0])  # the valid neighbours pass
+
+
+class _FixedFields(NoiseStreams):
+    """Every uniform 1/2 (each Poisson draw is its median) and every normal +1: a capture with no
+    randomness left, so each read's DN can be written down by hand."""
+
+    def uniform(self, stage, shape):
+        return np.full(shape, 0.5)
+
+    def normal(self, stage, shape):
+        return np.ones(shape)
+
+
+def test_readout_chain_by_hand_with_fixed_noise_fields():
+    """Poisson(100) has median 100, so two buckets expecting 100 e- hold exactly 100 each. With the
+    FD full well at 200 their sum reaches it: flagged (the sum clips *at* the well). DN =
+    rint(gain (FD + DSNU map + R x 1) + black): the DSNU map and the read noise enter with their
+    signs; a 10-bit ADC whose top code the sum reaches exactly is flagged too; a read far below
+    the black level clips to code 0 (not flagged). The noise argument may be a NoiseStreams itself,
+    and the result lists the reads as given."""
+    cfg = SensorConfig(prnu=0.0, dsnu_e=2.0, read_noise_e=3.0, fd_full_well_e=200.0, gain_dn_per_e=4.0,
+                       black_level_dn=10.0, adc_bits=12, dark_current_e_per_s=0.0)
+    fpn = fixed_pattern((1, 4, 3), cfg)
+    assert np.ptp(fpn.dsnu_offset_e) > 1.0  # a per-pixel map, not one offset
+    exp_e = np.full((2, 1, 4, 3), 100.0)
+    out = simulate_reads(exp_e, [[0], (0, 1)], cfg, _FixedFields(0))
+    assert out.reads == ((0,), (0, 1))
+    np.testing.assert_array_equal(out.electrons, 100.0)
+    np.testing.assert_array_equal(out.reads_dn[0], np.rint(4.0 * (100.0 + fpn.dsnu_offset_e + 3.0) + 10.0))
+    np.testing.assert_array_equal(out.reads_dn[1], np.rint(4.0 * (200.0 + fpn.dsnu_offset_e + 3.0) + 10.0))
+    assert not out.saturated[0].any() and out.saturated[1].all()
+    adc = cfg.model_copy(update={"fd_full_well_e": 1e6, "dsnu_e": 0.0, "read_noise_e": 0.0, "adc_bits": 10,
+                                 "gain_dn_per_e": 5.0, "black_level_dn": 23.0})  # 5 x 200 + 23 = 1023, the top code
+    top = simulate_reads(exp_e, [(0,), (0, 1)], adc, _FixedFields(0))
+    np.testing.assert_array_equal(top.reads_dn, [np.full((1, 4, 3), 523.0), np.full((1, 4, 3), 1023.0)])
+    assert not top.saturated[0].any() and top.saturated[1].all()
+    low = cfg.model_copy(update={"dsnu_e": 0.0, "read_noise_e": 500.0, "black_level_dn": 0.0})
+    dark = simulate_reads(np.zeros((1, 1, 4, 3)), [(0,)], low, _Negative(0))
+    np.testing.assert_array_equal(dark.reads_dn, 0.0)
+    assert not dark.saturated.any()
+
+
+class _Negative(_FixedFields):
+    def normal(self, stage, shape):
+        return -np.ones(shape)
