@@ -273,18 +273,12 @@ def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status:
         spectral = cfg.render.variant.endswith("_spectral")
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)  # (C,) e- per render unit s (spectral: film units)
         buckets_e = exposure * k_e
-        # dark current accumulates from a bucket's first gated slot until it is read: at the end
-        # of its own frame for a conventional sensor, at the end of the capture otherwise
-        spans = [timeline.span_ticks([b]) for b in range(timeline.n_buckets)]
-        storage_s = np.array(
-            [float(timeline.seconds((b1 if timeline.sequential else timeline.end_tick) - b0)) for b0, b1 in spans]
-        )
         sensor_out = simulate_reads(
             buckets_e,
             [r.buckets for r in timeline.reads],
             cfg.sensor,
             sensor_seed(cfg, seeds),
-            storage_s=storage_s,
+            storage_s=timeline.storage_s(),  # dark current from each bucket's first slot to its read
             shared_photodiode=not timeline.sequential,
         )
 

@@ -505,8 +505,11 @@ def choose_spp(
                 sel = owner == p
                 a_jk[sel, k] = np.einsum("jg,gh,jh->j", w[sel, k], d @ d.T, w[sel, k])
     root = np.sqrt(np.maximum(a_jk, 0.0))
+    # bucket k alone would take n_jk = sqrt(a_jk) sum_j sqrt(a_jk) / (f E_k), E_k its lit electrons: the
+    # 1 / E_k keeps the buckets' counts comparable, so that the max over k is the count every bucket needs
+    e_k = np.array([electrons[k][lit[k]].sum() for k in range(K)])
     with np.errstate(divide="ignore", invalid="ignore"):
-        shape = np.nan_to_num(root * root.sum(axis=0)[None, :] / np.maximum(root.sum(axis=0) ** 2, 1e-300)).max(axis=1)
+        shape = np.nan_to_num(root * root.sum(axis=0)[None, :] / np.maximum(e_k, 1e-300)[None, :]).max(axis=1)
     alpha = np.maximum(shape / shape.max(), 1e-3) if shape.max() > 0 else np.ones(J)
     # per bucket: median and p95 of the pooled ratios at both pilot counts (strata at alpha_j x the
     # count), the exponent between them, and the count each target needs

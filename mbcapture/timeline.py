@@ -256,6 +256,21 @@ class Timeline:
             raise ValueError("these buckets never collect")
         return Fraction(sum(r[3] for r in rows), 2 * total)
 
+    def storage_ticks(self, bucket: int) -> int:
+        """Ticks ``bucket`` holds charge before it is read, the time its dark current accumulates:
+        from its first gated slot to its read. A conventional sequential frame is read
+        destructively at the end of its own exposure; the buckets of an interleaved capture are all
+        read after the capture's last slot. Longer than the exposure wherever the bucket's slots are
+        interleaved with others (and 0 for a bucket that never collects)."""
+        first, last = self.span_ticks([bucket])
+        if first == last:
+            return 0
+        return (last if self.sequential else self.end_tick) - first
+
+    def storage_s(self) -> np.ndarray:
+        """(K,) seconds each bucket holds charge before its read (:meth:`storage_ticks`), float64."""
+        return np.array([float(self.seconds(self.storage_ticks(k))) for k in range(self.n_buckets)])
+
     def describe_reads(self) -> list[dict]:
         """Per read: exposure, time span and centroid in seconds (for report.json and plan)."""
         out = []

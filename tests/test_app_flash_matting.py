@@ -144,10 +144,13 @@ def test_matte_scores_and_trimap_errors_by_hand():
     assert fm.trimap_errors(tri, np.array([[0.0, 1.0], [0.3, 0.0]])) == {"fg_on_background": 1, "bg_on_foreground": 1}
 
 
-def test_reconstruct_on_synthetic_reads_recovers_the_matte():
+@pytest.mark.parametrize("n_flash", [2, 3])
+def test_reconstruct_on_synthetic_reads_recovers_the_matte(n_flash):
     """Noise-free synthetic reads of a soft-edged disc that the flash lights 10x more than the
-    background: the trimap (eroded by more than the 3-px soft edge) and closed-form matte recover its alpha."""
-    cfg = _cfg("app.trimap_erode_px=3")
+    background: the trimap (eroded by more than the 3-px soft edge) and closed-form matte recover its alpha.
+    At 2:2 and at 3:1 (reads of 3T and T, exposures from the timeline): the flash, no-flash and
+    flash-only images are each read's own radiance, so a read normalised by the other's exposure fails."""
+    cfg = _cfg("app.trimap_erode_px=3", f"app.flash_buckets={n_flash}")
     tl = protocols.build(cfg)
     h, w = 48, 64
     yy, xx = np.mgrid[0:h, 0:w] + 0.5
@@ -155,19 +158,26 @@ def test_reconstruct_on_synthetic_reads_recovers_the_matte():
     fg_col, bg_col = np.array([0.2, 0.6, 0.1]), np.array([0.7, 0.5, 0.4])
     amb = alpha[..., None] * fg_col * 0.3 + (1 - alpha[..., None]) * bg_col * 0.3
     fl = alpha[..., None] * fg_col * 0.6 + (1 - alpha[..., None]) * bg_col * 0.6 / 10.0
-    k_e = np.array([1e6, 1e6, 1e6])
-    t = 2 * T_S
-    reads_e = np.stack([(amb + fl) * k_e * t, amb * k_e * t])
+    k_e = np.array([1e6, 1.5e6, 0.8e6])
+    t_f, t_n = (float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads)
+    assert (t_f, t_n) == pytest.approx((n_flash * T_S, (4 - n_flash) * T_S), rel=1e-12)
+    reads_e = np.stack([(amb + fl) * k_e * t_f, amb * k_e * t_n])
     s = cfg.sensor
     data = CaptureData(
         cfg=cfg, scene=SimpleNamespace(name="synthetic"), timeline=tl, plan=SimpleNamespace(groups=("ambient", "flash")),
-        read_names=["flash", "noflash"], exposure_s=np.array([t, t]),
+        read_names=["flash", "noflash"], exposure_s=np.array([t_f, t_n]),
         reads_dn=reads_e * s.gain_dn_per_e + s.black_level_dn, saturated=np.zeros(reads_e.shape, bool),
         reads_e_expected=reads_e, bucket_exposure=np.zeros((4, h, w, 3)), k_e=k_e,
         moving_mask=np.zeros((h, w), bool), switchable=("flash",), bucket_group_s=None, group_exposure=None,
     )
     out = fm.reconstruct(data, cfg.app.resolve(cfg.capture.protocol)[1])
     np.testing.assert_allclose(out.images["flash_only"], fl, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(out.images["flash"], amb + fl, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(out.images["noflash"], amb, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(out.images["flash_only"], fm.flash_only_image(
+        data.reads_e()[0], t_f, data.reads_e()[1], t_n, k_e))  # the tested function is the one used
+    assert out.metrics["split"] == f"{n_flash}:{4 - n_flash}"
+    assert out.metrics["reads"] == {"flash_exposure_s": t_f, "noflash_exposure_s": t_n}
     assert out.metrics["alpha_truth"] is None
     got = out.images["alpha"][..., 0]
     assert np.abs(got - alpha).sum() < 0.01 * alpha.sum()
@@ -215,3 +225,11 @@ def test_tiny_capture_interleaved_beats_sequential():
     assert 0.05 < truth.mean() < 0.5  # the plant covers part of the frame
     assert mi["alpha_moving"]["sad"] < ms["alpha_moving"]["sad"]
     assert mi["flash_only_rel_mse_moving"] < ms["flash_only_rel_mse_moving"]
+
+
+def test_matte_scores_of_an_empty_region_and_trimap_error_thresholds():
+    assert fm.matte_scores(np.ones((2, 2)), np.zeros((2, 2)), np.zeros((2, 2), bool)) == {"pixels": 0, "sad": 0.0, "mse": None}
+    # truth exactly at the tolerance is not an error (strict inequalities); unknown pixels never are
+    tri = np.array([[1.0, 1.0, 0.0, 0.0, 0.5, 0.5]])
+    truth = np.array([[0.05, 0.0499, 0.95, 0.9501, 0.0, 1.0]])
+    assert fm.trimap_errors(tri, truth, tol=0.05) == {"fg_on_background": 1, "bg_on_foreground": 1}

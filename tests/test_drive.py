@@ -212,3 +212,38 @@ def test_mains_flicker_is_sin_squared_and_bad_drives_are_refused():
         Drive(1.0, ((0.5, 0.0, 0.0),))
     with pytest.raises(ConfigError, match="depth"):
         Drive.mains_flicker(50.0, 1.5)
+
+
+def test_driven_weights_of_switched_groups_over_segments_and_repeated_slots():
+    """Two segments (a gap between them), a bucket gated twice per period, a switchable lamp on in
+    some of its slots only, both groups driven: every weight equals Gauss quadrature over exactly the
+    gate occurrences in which the bucket collects with the group on (a slot's contributions add
+    up across slots, segments and groups are kept apart)."""
+    lamp = frozenset({"lamp"})
+    seg_a = SegmentSeconds(Fraction(0), (SlotSeconds(0, 2 * MS / 10, lamp), SlotSeconds(1, MS / 10),
+                                         SlotSeconds(0, 15 * MS / 100), SlotSeconds(DRAIN, 5 * MS / 100)), 5)
+    seg_b = SegmentSeconds(4 * MS, (SlotSeconds(1, 3 * MS / 10, lamp), SlotSeconds(0, MS / 10, lamp)), 3)
+    tl = build_timeline([seg_a, seg_b], [ReadEvent("A", (0,)), ReadEvent("B", (1,))], 2, "test")
+    drives = {"amb": Drive(1.0, ((0.5, 997.0, 0.3),)), "lamp": Drive(2.0, ((-0.8, 1733.0, 1.1), (0.3, 211.0, 0.0)))}
+    edges = np.array([tl.start_tick, tl.start_tick + (tl.end_tick - tl.start_tick) // 3, tl.end_tick], dtype=np.int64)
+    w = tl.weights_ticks(edges, ["amb", "lamp"], lamp, drives)
+    x, gw = np.polynomial.legendre.leggauss(8)
+    tick = float(tl.tick_s)
+    for k in range(2):
+        for gi, g in enumerate(["amb", "lamp"]):
+            iv = []
+            for seg in tl.segments:
+                off = 0
+                for s in seg.slots:
+                    if s.bucket == k and (g == "amb" or g in s.groups_on):
+                        a = (seg.start_tick + off + np.arange(seg.repeats) * seg.period_ticks) * tick
+                        iv.append(np.stack([a, a + s.ticks * tick], axis=1))
+                    off += s.ticks
+            iv = np.concatenate(iv)
+            ref = []
+            for t0, t1 in zip(edges[:-1] * tick, edges[1:] * tick):
+                a, b = np.maximum(iv[:, 0], t0), np.minimum(iv[:, 1], t1)
+                a, b = a[b > a], b[b > a]
+                mid, half = (a + b) / 2, (b - a) / 2
+                ref.append(float((half * (drives[g](mid[:, None] + half[:, None] * x[None, :]) @ gw)).sum()) / tick)
+            np.testing.assert_allclose(w[:, k, gi], ref, rtol=1e-9, err_msg=f"bucket {k}, group {g}")

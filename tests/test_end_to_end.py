@@ -149,3 +149,28 @@ def test_render_error_estimate_is_calibrated():
     # the mean over 32*24*3*4 samples of a chi-square-like quantity: well within a factor 1.5
     assert 0.67 < ratio < 1.5, ratio
     assert "rel_rms" in run.report["render_error"]
+
+
+@pytest.mark.parametrize("sequential", [False, True])
+def test_dark_frame_capture_holds_dark_current_over_each_buckets_storage_time(sequential):
+    """A capture of no light with a large dark current (no read noise, no DSNU): each read's mean is
+    the dark current x its bucket's storage time, from the bucket's first slot to its read. By hand
+    (interleaved 8:4:2:1, N = 4, T = 1 ms): reads J1..J4 hold buckets 4..1, which start 14T/4,
+    12T/4, 8T/4 and 0 into the 15T capture and are all read at its end: 11.5, 12, 13 and 15 ms.
+    Sequential frames are read at the end of their own exposures: 1, 2, 4, 8 ms (the gaps between
+    frames do not count). 576 samples per read: the 5 sd tolerance is ~12 e- of 3000."""
+    dark = 2e5
+    cfg = load_config(None, ["scene.name=flatfield", "scene.radiance=[0,0,0]", "render.width=16", "render.height=12",
+                             "render.spp=1", "capture.protocol=interleaved_hdr", "capture.periods=4",
+                             "capture.unit_exposure_s=0.001", f"capture.sequential={str(sequential).lower()}",
+                             f"sensor.dark_current_e_per_s={dark}", "sensor.read_noise_e=0", "sensor.dsnu_e=0"])
+    res = run_capture(cfg, progress=False)
+    storage_ms = [1.0, 2.0, 4.0, 8.0] if sequential else [11.5, 12.0, 13.0, 15.0]
+    from mbcapture.sensor import dn_to_electrons
+
+    read_e = dn_to_electrons(res.reads_dn, cfg.sensor).reshape(4, -1)
+    n = read_e.shape[1]
+    q = 1 / (12 * cfg.sensor.gain_dn_per_e**2)
+    for r, ms in enumerate(storage_ms):
+        m = dark * ms * 1e-3
+        assert abs(read_e[r].mean() - m) < 5 * np.sqrt((m + q) / n), (r, read_e[r].mean(), m)

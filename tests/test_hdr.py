@@ -123,3 +123,130 @@ def test_unknown_method_lists_valid_ones():
 def test_cumulative_exposures_must_increase():
     with pytest.raises(ValueError, match="exposures_s"):
         merge_hdr(np.zeros((4, 1, 1, 3)), CUM_T[::-1], CFG, method="ramp_fit", cumulative=True)
+
+
+@pytest.mark.parametrize("cumulative", [True, False])
+def test_all_saturated_lower_bound_is_the_largest_read_rate(cumulative):
+    """Documented value where every read saturated: max_i x_i / t_i over the reads (each clipped read
+    under-reports its rate), clamped at 0. Hand-made DN put the largest rate in the second read
+    (not the first, not the last, not the longest); a pixel below the black level gives 0."""
+    t = CUM_T
+    x_e = np.array([[5000.0, -40.0], [12000.0, -30.0], [15000.0, -20.0], [20000.0, -10.0]])  # (R, P) electrons
+    dn = (x_e * CFG.gain_dn_per_e + CFG.black_level_dn).reshape(4, 1, 2, 1)
+    rates = x_e / t[:, None]  # 5e6, 6e6, 3.75e6, 2.5e6 e-/s in pixel 0
+    assert int(np.argmax(rates[:, 0])) == 1
+    for method in HDR_METHODS:
+        res = merge_hdr(dn, t, CFG, method=method, cumulative=cumulative, saturated=np.ones(dn.shape, bool))
+        np.testing.assert_allclose(res.rate_e_per_s.ravel(), [12000.0 / t[1], 0.0], rtol=1e-12, atol=0)
+        assert not res.valid.any() and np.all(np.isinf(res.sigma_e_per_s)) and np.all(res.n_used == 0)
+    # a pixel with one usable read is merged from it, not bounded
+    sat = np.ones(dn.shape, bool)
+    sat[0] = False
+    res = merge_hdr(dn, t, CFG, method="ramp_fit", cumulative=cumulative, saturated=sat)
+    assert res.valid.all() and res.n_used.ravel().tolist() == [1, 1]
+    np.testing.assert_allclose(res.rate_e_per_s.ravel(), x_e[0] / t[0], rtol=1e-12)
+
+
+def test_debevec_and_inverse_variance_by_hand():
+    """Both merges on hand-made independent reads (t = 1, 2, 4, 8 ms, the last one saturated and so
+    left out), against their documented formulas written out here. Pixel 0: three well-exposed
+    reads. Pixel 1: a read exactly at the black level (hat weight 0, raised to the 1e-6 floor) next
+    to bright ones, where the floor and the hat's scale (1 at mid-range) matter to 1e-6."""
+    t = CUM_T
+    # pixel 2 sits at the black level: its pooled first-pass rate is negative and is used as 0
+    dn = np.array([[1256.0, 256.0, 250.0], [2100.0, 9000.0, 255.0], [4400.0, 12000.0, 258.0], [16383.0, 16383.0, 16383.0]])
+    sat = np.zeros(dn.shape, bool)
+    sat[3] = True
+    x = (dn - CFG.black_level_dn) / CFG.gain_dn_per_e
+    use = ~sat
+    r2 = CFG.read_noise_e**2 + 1.0 / (12.0 * CFG.gain_dn_per_e**2)
+    rate0 = np.maximum(np.where(use, x, 0).sum(0) / np.where(use, t[:, None], 0).sum(0), 0.0)  # pooled first pass
+    var = (rate0[None, :] * t[:, None] + r2) / t[:, None] ** 2  # variance of x_i / t_i
+    # inverse variance: weights 1 / var_i, sigma = 1 / sqrt(sum of weights)
+    w = np.where(use, 1.0 / var, 0.0)
+    want_iv = (w * x / t[:, None]).sum(0) / w.sum(0), 1.0 / np.sqrt(w.sum(0))
+    # Debevec with a linear response: hat weight min(z - z_min, z_max - z) / half the range, floor 1e-6
+    z_min, z_max = CFG.black_level_dn, float(CFG.adc_max_dn)
+    hat = np.minimum(dn - z_min, z_max - dn) / (0.5 * (z_max - z_min))
+    h = np.where(use, np.maximum(hat, 1e-6), 0.0)
+    want_db = (h * x / t[:, None]).sum(0) / h.sum(0), np.sqrt((h**2 * var).sum(0)) / h.sum(0)
+    assert h[0, 1] == 1e-6 and 0.5 < h[1, 1] < 1.0  # the floor is in play in pixel 1
+    for method, (rate, sigma) in (("inverse_variance", want_iv), ("debevec", want_db)):
+        res = merge_hdr(dn[:, None, :, None], t, CFG, method=method, cumulative=False, saturated=sat[:, None, :, None])
+        np.testing.assert_allclose(res.rate_e_per_s.ravel(), rate, rtol=1e-12, err_msg=method)
+        np.testing.assert_allclose(res.sigma_e_per_s.ravel(), sigma, rtol=1e-12, err_msg=method)
+        assert res.n_used.ravel().tolist() == [3, 3, 3]
+
+
+def test_auto_method_validation_and_integer_flags():
+    """``auto`` is ramp_fit for cumulative reads and inverse_variance for independent ones; bad
+    exposures and flags are refused with a message naming the argument; 1-D reads (one pixel) and
+    saturation flags given as 0/1 integers work."""
+    rng = np.random.default_rng(3)
+    dn = rng.uniform(300.0, 3000.0, (4, 2, 3, 3)).cumsum(axis=0)
+    for cumulative, method in ((True, "ramp_fit"), (False, "inverse_variance")):
+        a = merge_hdr(dn, CUM_T, CFG, method="auto", cumulative=cumulative)
+        b = merge_hdr(dn, CUM_T, CFG, method=method, cumulative=cumulative)
+        np.testing.assert_array_equal(a.rate_e_per_s, b.rate_e_per_s)
+        np.testing.assert_array_equal(a.sigma_e_per_s, b.sigma_e_per_s)
+    with pytest.raises(ConfigError, match=r"^hdr\.method: unknown method 'x'; valid methods: auto, debevec, inverse_variance, ramp_fit$"):
+        merge_hdr(dn, CUM_T, CFG, method="x", cumulative=True)
+    with pytest.raises(ValueError, match=r"^exposures_s: expected one exposure per read \(\(4,\)\), got shape \(3,\)$"):
+        merge_hdr(dn, CUM_T[:3], CFG, method="ramp_fit", cumulative=True)
+    for bad in (np.array([1e-3, 2e-3, np.inf, 8e-3]), np.array([0.0, 2e-3, 4e-3, 8e-3])):
+        with pytest.raises(ValueError, match=r"^exposures_s: must be finite and > 0, got"):
+            merge_hdr(dn, bad, CFG, method="ramp_fit", cumulative=False)
+    with pytest.raises(ValueError, match=r"^exposures_s: cumulative reads need strictly increasing exposures"):
+        merge_hdr(dn, np.array([1e-3, 2e-3, 2e-3, 8e-3]), CFG, method="ramp_fit", cumulative=True)
+    with pytest.raises(ValueError, match=r"^saturated: expected shape \(4, 2, 3, 3\), got \(4, 2, 3\)$"):
+        merge_hdr(dn, CUM_T, CFG, method="ramp_fit", cumulative=True, saturated=np.zeros((4, 2, 3), bool))
+    one = merge_hdr(dn[:, 0, 0, 0], CUM_T, CFG, method="ramp_fit", cumulative=True)  # reads of one pixel, shape (R,)
+    assert one.rate_e_per_s.shape == () and one.rate_e_per_s == merge_hdr(
+        dn, CUM_T, CFG, method="ramp_fit", cumulative=True).rate_e_per_s[0, 0, 0]
+    sat = np.zeros(dn.shape, bool)
+    sat[2:, 0] = True
+    flags = merge_hdr(dn, CUM_T, CFG, method="ramp_fit", cumulative=True, saturated=sat)
+    ints = merge_hdr(dn, CUM_T, CFG, method="ramp_fit", cumulative=True, saturated=sat.astype(np.int64))
+    np.testing.assert_array_equal(flags.rate_e_per_s, ints.rate_e_per_s)
+    assert flags.n_used[0].max() == 2 and flags.n_used[1].min() == 4
+
+
+def test_ramp_fit_is_the_documented_three_pass_gls():
+    """ramp_fit written out with explicit covariance matrices: pass 0 ordinary least squares through
+    the origin, then twice GLS with C(lambda) = max(lambda, 0) M + sigma_r^2 I, M = min(t_i, t_j);
+    sigma = 1 / sqrt(t^T C(lambda_2)^-1 t). Pixels: bright, dim, and one below the black level
+    (a negative lambda: its covariance uses lambda = 0); cumulative and independent reads."""
+    r2 = CFG.read_noise_e**2 + 1.0 / (12.0 * CFG.gain_dn_per_e**2)
+    x = np.array([[900.0, 30.0, -8.0], [1800.0, 55.0, -12.0], [3700.0, 120.0, -3.0], [7300.0, 230.0, -15.0]])
+    dn = x * CFG.gain_dn_per_e + CFG.black_level_dn
+    for cumulative in (True, False):
+        m = np.minimum.outer(CUM_T, CUM_T) if cumulative else np.diag(CUM_T)
+        want_rate, want_sigma = [], []
+        for p in range(x.shape[1]):
+            lam = CUM_T @ x[:, p] / (CUM_T @ CUM_T)
+            for _ in range(2):
+                c = max(lam, 0.0) * m + r2 * np.eye(4)
+                lam = CUM_T @ np.linalg.solve(c, x[:, p]) / (CUM_T @ np.linalg.solve(c, CUM_T))
+            c = max(lam, 0.0) * m + r2 * np.eye(4)
+            want_rate.append(lam)
+            want_sigma.append(1.0 / np.sqrt(CUM_T @ np.linalg.solve(c, CUM_T)))
+        res = merge_hdr(dn[:, :, None], CUM_T, CFG, method="ramp_fit", cumulative=cumulative)
+        np.testing.assert_allclose(res.rate_e_per_s.ravel(), want_rate, rtol=1e-10)
+        np.testing.assert_allclose(res.sigma_e_per_s.ravel(), want_sigma, rtol=1e-10)
+        assert want_rate[2] < 0
+
+
+def test_motion_check_by_hand():
+    """apps.hdr.motion_check: RMS of each normalised read against the truth and the largest pairwise
+    RMS between reads, relative to the mean truth in the moving region (or absolute where that mean
+    is 0); a static scene says so."""
+    from mbcapture.apps.hdr import motion_check
+
+    truth = np.full((2, 2, 1), 2.0)
+    reads = np.stack([truth, truth + 1.0, truth - 1.0])  # off by 0, +1, -1 everywhere
+    mask = np.array([[True, False], [True, True]])
+    got = motion_check(reads, ["J1", "J2", "J3"], truth, mask)
+    assert got == {"moving_pixels": 3, "rel_rms_vs_truth": {"J1": 0.0, "J2": 0.5, "J3": 0.5}, "max_pairwise_rel_rms": 1.0}
+    assert motion_check(reads, ["J1", "J2", "J3"], 0 * truth, mask)["max_pairwise_rel_rms"] == 2.0  # truth 0: absolute
+    assert motion_check(reads, ["J1", "J2", "J3"], truth, ~np.ones((2, 2), bool)) == {
+        "moving_pixels": 0, "note": "static scene: nothing moves"}

@@ -227,13 +227,36 @@ def test_dim_scene_gets_fewer_samples_and_the_cap_holds():
 
 
 def test_per_stratum_spp_follows_the_weights():
-    # Neyman allocation: n_j proportional to the stratum's weight (equal sigma everywhere)
-    _, p, _ = _budget_plan(2.0, 3.0, speed=80.0)
-    w = p.weights_s.sum(axis=(1, 2))
-    big = p.spp[w > np.median(w)].mean()
-    small = p.spp[w < np.median(w)].mean() if (w < np.median(w)).any() else big
-    assert big >= small
-    assert np.corrcoef(w, p.spp)[0, 1] > 0.9 or np.ptp(w) < 0.05 * w.mean()
+    """Neyman allocation per stratum. An accelerating point makes strata of very different lengths
+    (the first, slow one ~7x the last), so their weights differ. With one group of per-sample
+    sigma and mean mu everywhere, bucket k asks stratum j for n_jk = w_jk sigma^2 k_e / (f mu)
+    samples (the module's rule: sqrt(a_jk) sum_j sqrt(a_jk) / V_k, a_jk = w_jk^2 sigma^2 k_e^2 per
+    sample, V_k = f k_e mu sum_j w_jk), and the stratum gets max_k n_jk, each half rounded up to the
+    sampler's ladder of counts (steps of at most 19 %). The buckets' totals differ (T, 2T, 4T, 8T), so
+    a rule that dropped V_k would over-sample the strata the short bucket weighs most. The
+    pilot estimates sigma^2 from 2304 samples per pilot time: relative SE sqrt(2/2304) = 3 %, so
+    5 SE = 15 %."""
+    acc_m_per_s2 = 1e4
+    motion = lambda t: np.stack([0.5 * acc_m_per_s2 * np.asarray(t) ** 2, 0 * np.asarray(t), 0 * np.asarray(t)], -1)[:, None, :]  # noqa: E731
+    scene = SceneModel("test", ("ambient", "flash"), frozenset({"flash"}), CAM, build=None, params=None, motion_points=motion)
+    tl = timeline(periods=16)
+    p0 = plan(scene, tl, spp=None)
+    mu, sigma, k_e, f = 2.0, 3.0, 1e5, 0.1
+    r = FakeRenderer(p0.groups, {g: mu for g in p0.groups}, {g: sigma for g in p0.groups})
+    from mbcapture.plan import choose_spp
+
+    p = choose_spp(p0, r, np.full(3, k_e), 1e12, f, 1 << 14, np.random.SeedSequence(5))
+    w_jk = p0.weights_s[:, :, 0]
+    w = w_jk.sum(axis=1)
+    assert p0.passes >= 10 and w.max() > 5 * w.min()  # strata of very different weight
+    n_true = w_jk.max(axis=1) * sigma**2 * k_e / (f * mu)
+    assert n_true.min() > 100  # far above the floor of 2 samples: the rule, not the floor, decides
+    from mbcapture.plan import _ladder
+
+    upper = np.array([2 * _ladder(1.15 * n / 2) for n in n_true])  # each half rounded up to the ladder (<= 19 %)
+    assert np.all(p.spp >= 0.85 * n_true) and np.all(p.spp <= upper), np.c_[p.spp, n_true]
+    # the heaviest stratum gets several times the samples of the lightest
+    assert p.spp[np.argmax(w)] > 3 * p.spp[np.argmin(w)]
 
 
 def test_integrate_per_stratum_spp_is_unbiased_and_its_error_estimate_is_right():

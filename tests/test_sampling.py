@@ -50,6 +50,26 @@ def test_binomial_quantile_edge_probabilities_and_zero_trials():
     np.testing.assert_array_equal(binomial_quantile(u, np.array([5.0, 6.0, 0.0]), 1.0), [5, 6, 0])
 
 
+def test_binomial_quantile_with_a_vanishing_probability_is_zero_and_does_not_crash():
+    """A transfer inefficiency near the smallest normal float64 (hypothesis found 1.1e-308) made
+    scipy's binomial pmf raise OverflowError inside the walk. For n p < 2^-53, P(X >= 1) <= n p is
+    below 1 - u for every float64 u < 1, so every count is exactly 0 (scipy's ppf agrees where it
+    works); just above that bound the walk still runs and still equals scipy."""
+    u = np.array([2.0**-54, 0.25, 0.5, 0.75, 1 - 2.0**-53])
+    for p in (1e-300, 2.2250738585072014e-308, 1.1125369292536007e-308, 5e-324):
+        for n in (1.0, 1e4, 2.0**40):
+            np.testing.assert_array_equal(binomial_quantile(u, np.full(u.size, n), p), 0.0)
+    np.testing.assert_array_equal(binomial_quantile(u, np.full(u.size, 1e4), 1e-300), stats.binom.ppf(u, 1e4, 1e-300))
+    # n p = 2^-50 > 2^-53: the last u lies above F(0) = (1 - 2^-70)^(2^20) = 1 - 2^-50 (to 1e-31), so
+    # its count is 1 (scipy's ppf says 0 there: it loses the tail in 1 - u)
+    n, p = 2.0**20, 2.0**-70
+    np.testing.assert_array_equal(binomial_quantile(u, np.full(u.size, n), p), [0, 0, 0, 0, 1])
+    out = simulate_reads(np.full((4, 2, 3, 3), 500.0), [(3,), (3, 2)], SensorConfig(transfer_inefficiency=1.1125369292536007e-308),
+                         np.random.SeedSequence(0))
+    base = simulate_reads(np.full((4, 2, 3, 3), 500.0), [(3,), (3, 2)], SensorConfig(), np.random.SeedSequence(0))
+    np.testing.assert_array_equal(out.reads_dn, base.reads_dn)  # no electron is lost
+
+
 def test_poisson_pmf_matches_the_direct_formula_and_sums_to_one():
     for lam in (0.2, 3.0, 50.0, 700.0):
         k = np.arange(0, int(lam + 15 * np.sqrt(lam)) + 20, dtype=float)
@@ -154,3 +174,59 @@ def test_binomial_with_a_subnormal_probability_is_exact_and_finite():
     u = np.array([1e-9, 0.5, 1 - 2.0**-53])
     np.testing.assert_array_equal(binomial_quantile(u, np.full(3, 1558.0), 2.17e-307), [0, 0, 0])
     np.testing.assert_array_equal(binomial_quantile(u, np.full(3, 10.0), 1 - 1e-300), [10, 10, 10])
+
+
+def test_uniform_open_moves_an_exact_zero_inside_the_interval_and_keeps_shapes():
+    """rng.random returns 0 with probability 2^-53, too rare to meet by sampling: a stand-in
+    generator returns it. 0 becomes 2^-54 (so that inverse CDFs never see u = 0); nothing else
+    moves. Binomial draws keep the shape of their input at p = 0 and p = 1 too."""
+    from mbcapture.sensor.sampling import uniform_open
+
+    class Zeros:
+        def random(self, shape):
+            return np.array([[0.0, 0.25], [0.5, 1 - 2.0**-53]]).reshape(shape)
+
+    u = uniform_open(Zeros(), (2, 2))
+    np.testing.assert_array_equal(u, [[2.0**-54, 0.25], [0.5, 1 - 2.0**-53]])
+    assert poisson_quantile(u, 3.0)[0, 0] == 0.0
+    uu, n = np.full((2, 3), 0.5), np.full((2, 3), 7.0)
+    assert binomial_quantile(uu, n, 0.0).shape == (2, 3) and binomial_quantile(uu, n, 1.0).shape == (2, 3)
+    np.testing.assert_array_equal(binomial_quantile(uu, n, 1.0), n)
+
+
+@pytest.mark.parametrize("offset", [-40, -7, -1, 0, 1, 7, 40])
+def test_invert_discrete_finds_the_quantile_from_any_start(offset):
+    """The inversion is exact whatever its start: walking down from above, up from below, far
+    (40 counts: several re-walks) or near, for Poisson lanes (unbounded) and binomial lanes (bounded
+    by n, starts beyond n clipped). Against scipy's ppf, u including a relative 1e-9 either side of
+    every CDF step. The samplers themselves start within a count or two, so only this exercises
+    the long walks."""
+    from mbcapture.sensor.sampling import invert_discrete
+
+    rng = np.random.default_rng(abs(offset) + 100)
+    for lam in (0.7, 30.0, 5000.0):
+        ks = np.arange(0, int(lam + 10 * np.sqrt(lam)) + 10)
+        u = _u_with_steps(stats.poisson.cdf(ks, lam), rng, 300)
+        want = stats.poisson.ppf(u, lam)
+        lm = np.full(u.size, lam)
+        got = invert_discrete(u, np.maximum(want + offset, 0.0), cdf=lambda k, i: special.pdtr(k, lm[i]),
+                              sf=lambda k, i: special.pdtrc(k, lm[i]), pmf=lambda k, i: poisson_pmf(k, lm[i]),
+                              ratio_up=lambda k, i: lm[i] / (k + 1.0))
+        np.testing.assert_array_equal(got, want, err_msg=f"Poisson {lam}, start offset {offset}")
+    for n, p in ((12, 0.4), (2000, 0.03)):
+        ks = np.arange(0, n + 1)
+        u = _u_with_steps(stats.binom.cdf(ks, n, p), rng, 300)
+        want = stats.binom.ppf(u, n, p)
+        nn = np.full(u.size, float(n))
+        got = invert_discrete(u, np.maximum(want + offset, 0.0), cdf=lambda k, i: special.bdtr(k, n, p),
+                              sf=lambda k, i: special.bdtrc(k, n, p), pmf=lambda k, i: stats.binom.pmf(k, n, p),
+                              ratio_up=lambda k, i: np.maximum(nn[i] - k, 0.0) / (k + 1.0) * p / (1 - p), upper=nn)
+        np.testing.assert_array_equal(got, want, err_msg=f"binomial {n}, {p}, start offset {offset}")
+
+
+def test_noise_streams_from_an_int_or_a_generator_are_reproducible():
+    np.testing.assert_array_equal(NoiseStreams(5).uniform("shot", (4,)), NoiseStreams(5).uniform("shot", (4,)))
+    assert not np.array_equal(NoiseStreams(5).uniform("shot", (4,)), NoiseStreams(6).uniform("shot", (4,)))
+    a = NoiseStreams(np.random.default_rng(8)).normal("read", (4,))
+    np.testing.assert_array_equal(a, NoiseStreams(np.random.default_rng(8)).normal("read", (4,)))
+    assert not np.array_equal(a, NoiseStreams(np.random.default_rng(9)).normal("read", (4,)))

@@ -20,6 +20,7 @@ from mbcapture.sensor import (
     fixed_pattern,
     simulate_reads,
 )
+from mbcapture.sensor.sampling import NoiseStreams
 
 N_SIGMA = 5.0
 
@@ -61,6 +62,15 @@ def test_conversion_factor_matches_hand_computation():
     np.testing.assert_allclose(k / k[1], ratio, rtol=1e-12)
 
 
+def test_expected_electrons_needs_a_channel_axis_of_three():
+    cfg = SensorConfig()
+    k = electrons_per_radiance_second(cfg)
+    np.testing.assert_allclose(expected_electrons([1.0, 2.0, 3.0], cfg), [k[0], 2 * k[1], 3 * k[2]], rtol=1e-15)  # 1-D is fine
+    for bad in (np.float64(1.0), np.zeros(2), np.zeros((4, 2))):
+        with pytest.raises(ValueError, match=r"radiant exposure must end in a channel axis of 3, got shape"):
+            expected_electrons(bad, cfg)
+
+
 def test_mid_grey_is_well_exposed_at_8ms():
     cfg = SensorConfig()
     e = expected_electrons(np.full((1, 1, 1, 3), 0.3 * 8e-3), cfg)[0, 0, 0]
@@ -70,7 +80,7 @@ def test_mid_grey_is_well_exposed_at_8ms():
 def test_config_rejects_nonsense_naming_the_key():
     with pytest.raises(ValidationError, match="full_well_e"):
         SensorConfig(full_well_e=0)
-    with pytest.raises(ValidationError, match="quantum_efficiency"):
+    with pytest.raises(ValidationError, match=r"quantum_efficiency: expected 3 values \(R, G, B\), got 2"):
         SensorConfig(quantum_efficiency=[0.5, 0.5])
     with pytest.raises(ValidationError, match="quantum_efficiency"):
         SensorConfig(quantum_efficiency=[0.5, 1.5, 0.5])
@@ -243,3 +253,201 @@ def test_photon_transfer_curve_recovers_gain_read_noise_and_full_well():
     assert 0.9 * cfg.full_well_e < sat_e <= cfg.full_well_e
     assert plateau_e == pytest.approx(cfg.full_well_e, rel=0.01)
     assert var[-1] < 0.01 * var.max()
+
+
+# --------------------------------------------------------------------------- each effect on its own
+
+
+def _timeline(protocol: str, sequential: bool, periods: int = 4, unit_s: float = 1e-3):
+    from mbcapture import protocols
+    from mbcapture.config import config_from_dict
+
+    return protocols.build(config_from_dict({"scene": {"name": "flatfield"}, "capture": {
+        "protocol": protocol, "unit_exposure_s": unit_s, "periods": periods, "sequential": sequential}}))
+
+
+# storage time of each bucket, by hand, in units of T (N = 4 periods): from the bucket's first
+# slot to its read. Interleaved 8:4:2:1 (bucket 1 first in each period, the capture spans 15T):
+# bucket k starts after the earlier slots of the first period, 8T/N, (8+4)T/N, (8+4+2)T/N.
+# Photon-efficient 4:2:1:1 over 8T: 4T/N, 6T/N, 7T/N. Sequential: each frame (T, 2T, 4T, 8T for
+# the reads J1..J4, i.e. frames B1..B4) is read at the end of its own exposure.
+STORAGE_T = {
+    ("interleaved_hdr", False): [15.0, 15.0 - 8 / 4, 15.0 - 12 / 4, 15.0 - 14 / 4],
+    ("photon_efficient_hdr", False): [8.0, 8.0 - 4 / 4, 8.0 - 6 / 4, 8.0 - 7 / 4],
+    ("interleaved_hdr", True): [1.0, 2.0, 4.0, 8.0],
+    ("photon_efficient_hdr", True): [1.0, 2.0, 4.0, 8.0],
+}
+
+
+@pytest.mark.parametrize("protocol,sequential", list(STORAGE_T))
+def test_dark_current_accumulates_over_the_storage_time_of_every_bucket(protocol, sequential):
+    """No light, a large dark current: each bucket's mean charge is dark current x the time from
+    its first gated slot to its read (the timeline's storage time, what a capture passes to the
+    sensor), not x its exposure. Interleaved buckets wait for the end of the capture; a sequential
+    frame is read at the end of its own exposure, the readout gaps do not count."""
+    tl = _timeline(protocol, sequential)
+    unit_s = 1e-3
+    want_s = np.array(STORAGE_T[(protocol, sequential)]) * unit_s
+    np.testing.assert_allclose(tl.storage_s(), want_s, rtol=1e-12)
+    exposure_s = np.array([tl.exposure_ticks(k) for k in range(tl.n_buckets)]) * float(tl.tick_s)
+    dark = 2e5  # e-/s: 3000 e- over 15 ms, below the 10 000 e- full well
+    cfg = ideal(dark_current_e_per_s=dark, read_noise_e=0.0)
+    n = 5_000
+    out = simulate_reads(np.zeros((4, 1, n, 1)), [r.buckets for r in tl.reads], cfg, np.random.SeedSequence(30),
+                         storage_s=tl.storage_s(), shared_photodiode=not sequential)
+    mean_e = out.electrons.reshape(4, -1).mean(axis=1)
+    for k in range(4):
+        m = dark * want_s[k]
+        assert abs(mean_e[k] - m) < N_SIGMA * np.sqrt(m / n), (k, mean_e[k], m)
+    # the storage differs from the exposure by far more than the tolerance (else this proves nothing)
+    differs = np.abs(dark * (want_s - exposure_s)) > 10 * N_SIGMA * np.sqrt(dark * want_s / n)
+    assert differs.any() if not sequential else not differs.any()
+    # reads in electrons: the DN of a read is the sum of its buckets' dark charge (gain, black level)
+    read_e = dn_to_electrons(out.reads_dn, cfg).reshape(4, -1).mean(axis=1)
+    for r, read in enumerate(tl.reads):
+        m = dark * want_s[list(read.buckets)].sum()
+        assert abs(read_e[r] - m) < N_SIGMA * np.sqrt((m + 1 / (12 * cfg.gain_dn_per_e**2)) / n)
+
+
+def test_prnu_is_one_fixed_pattern_shared_by_every_read():
+    """Zero read noise, 20 % PRNU and so many electrons that shot noise is 1e-4: in every pixel the
+    ratio of two reads equals the ratio of their exposures (4:1 for buckets of 4T and T; the
+    cumulative read of both, 5:1), and each read divided by its expectation is the sensor's PRNU
+    map, identical in a second capture with another noise seed. Per-pixel tolerance: 5 sd of the
+    shot noise of that pixel's own expected charge."""
+    cfg = ideal(prnu=0.2, read_noise_e=0.0, full_well_e=1e9, fd_full_well_e=4e9, adc_bits=24, gain_dn_per_e=1e-2,
+                black_level_dn=0.0)
+    e = np.array([4e7, 1e7])  # buckets of 4T and T
+    h, w = 8, 50
+    exp_e = np.broadcast_to(e[:, None, None, None], (2, h, w, 3)).copy()
+    gain = fixed_pattern((h, w, 3), cfg).prnu_gain  # the map of an (H, W, C) image, one value per pixel
+    assert gain.std() > 0.15 and gain.min() > 0.2  # a real pattern, no pixel near zero sensitivity
+    reads = [(0,), (1,), (0, 1)]
+    for seed in (31, 32):
+        out = simulate_reads(exp_e, reads, cfg, np.random.SeedSequence(seed))
+        j = dn_to_electrons(out.reads_dn, cfg)  # (3, h, w, 3)
+        quant = 0.5 / cfg.gain_dn_per_e  # rounding to DN, electrons
+        for r, read in enumerate(reads):
+            m = gain * e[list(read)].sum()
+            assert np.all(np.abs(j[r] - m) < N_SIGMA * np.sqrt(m) + quant), r  # read = PRNU map x expectation
+        ratio = j[0] / j[1]
+        sd = 4.0 * np.sqrt(1 / (gain * e[0]) + 1 / (gain * e[1]))  # relative errors add in quadrature
+        assert np.all(np.abs(ratio - 4.0) < N_SIGMA * sd)
+        assert np.all(np.abs(j[2] / j[1] - 5.0) < N_SIGMA * 5.0 * np.sqrt(1 / (gain * e.sum()) + 1 / (gain * e[1])))
+
+
+def test_transfer_inefficiency_alone_loses_its_fraction_once_per_bucket():
+    """Only transfer loss on (no read noise, dark current, PRNU, parasitic light): electrons are
+    only ever lost, never gained (every read <= its buckets' charge); the mean read is (1 - eps)
+    of the charge and, binomial thinning of Poisson charge being Poisson, so is its variance; the
+    loss is drawn once per bucket, so the second cumulative read adds bucket 3's transferred
+    charge to exactly the charge of the first read: J2 - J1 <= B3 in every pixel, and J2 - J1 is
+    thinned Poisson, mean = variance = (1 - eps) lambda_3 (a loss drawn afresh for each read would
+    add 2 eps (1 - eps) lambda_4 = 320 e-^2 to that variance of 480)."""
+    eps = 0.2
+    cfg = ideal(transfer_inefficiency=eps, read_noise_e=0.0, gain_dn_per_e=1.0, black_level_dn=0.0,
+                dark_current_e_per_s=0.0)
+    n = 40_000
+    lam = np.array([0.0, 0.0, 600.0, 1000.0])
+    out = simulate_reads(flat(list(lam), n), [(3,), (3, 2)], cfg, np.random.SeedSequence(33))
+    j = out.reads_dn.reshape(2, -1)  # gain 1, black level 0, integer charge: DN = electrons exactly
+    b = out.electrons.reshape(4, -1)
+    assert np.all(j[0] <= b[3]) and np.all(j[1] <= b[3] + b[2])
+    assert np.all(j[1] - j[0] <= b[2]) and np.all(j[1] - j[0] >= 0)
+    for r, m in enumerate([(1 - eps) * lam[3], (1 - eps) * lam[2:].sum()]):
+        assert abs(j[r].mean() - m) < N_SIGMA * np.sqrt(m / n)
+        assert abs(j[r].var(ddof=1) - m) < N_SIGMA * var_se(m, n, 1.0 / m)
+    d, m = j[1] - j[0], (1 - eps) * lam[2]
+    assert abs(d.mean() - m) < N_SIGMA * np.sqrt(m / n)
+    assert abs(d.var(ddof=1) - m) < N_SIGMA * var_se(m, n, 1.0 / m)
+    lost = b[3] - j[0]  # binomial(B4, eps) given the bucket's charge
+    assert abs(lost.mean() - eps * lam[3]) < N_SIGMA * np.sqrt(eps * lam[3] / n)
+
+
+def test_parasitic_light_alone_adds_its_fraction_of_the_other_buckets_light():
+    """Only parasitic light on: bucket k's mean charge is its own light plus ``parasitic_light``
+    times the light of the other buckets of the same pixel (never less than its own light); the
+    frames of a sequential capture (separate exposures, shared_photodiode=False) do not couple; the
+    ground truth ``reads_e_expected`` stays the input light."""
+    p = 0.05
+    cfg = ideal(parasitic_light=p, read_noise_e=0.0, dark_current_e_per_s=0.0)
+    n = 40_000
+    lam = np.array([1000.0, 0.0, 300.0])
+    want = lam + p * (lam.sum() - lam)  # 1015, 65, 350
+    out = simulate_reads(flat(list(lam), n), [(0,), (1,), (2,)], cfg, np.random.SeedSequence(34))
+    mean_e = out.electrons.reshape(3, -1).mean(axis=1)
+    for k in range(3):
+        assert abs(mean_e[k] - want[k]) < N_SIGMA * np.sqrt(want[k] / n), (k, mean_e[k], want[k])
+    np.testing.assert_array_equal(out.reads_e_expected.reshape(3, -1), np.repeat(lam[:, None], n, axis=1))
+    seq = simulate_reads(flat(list(lam), n), [(0,), (1,), (2,)], cfg, np.random.SeedSequence(34), shared_photodiode=False)
+    assert np.all(seq.electrons[1] == 0.0)
+    assert abs(seq.electrons[0].mean() - lam[0]) < N_SIGMA * np.sqrt(lam[0] / n)
+
+
+def test_simulate_reads_refuses_bad_input_naming_the_argument():
+    cfg = ideal()
+    ok = np.full((2, 1, 3, 3), 10.0)
+    cases = [
+        (np.full((2, 3, 3), 10.0), [(0,)], {}, r"^expected_bucket_e: expected shape \(K, H, W, C\), got \(2, 3, 3\)$"),
+        (np.where(np.arange(3) == 1, -1.0, 10.0) * np.ones((2, 1, 3, 3)), [(0,)], {},
+         r"^expected_bucket_e: values must be finite and >= 0$"),
+        (np.where(np.arange(3) == 1, np.nan, 10.0) * np.ones((2, 1, 3, 3)), [(0,)], {},
+         r"^expected_bucket_e: values must be finite and >= 0$"),
+        (np.full((5, 1, 3, 3), 10.0), [(0,)], {}, r"^expected_bucket_e: 5 buckets but sensor.bucket_count is 4$"),
+        (ok, [], {}, r"^reads: at least one read is needed$"),
+        (ok, [(0,), ()], {}, r"^reads\[1\]: a read must sum at least one bucket$"),
+        (ok, [(0, 0)], {}, r"^reads\[0\]: bucket listed twice in \(0, 0\)$"),
+        (ok, [(0,), (2,)], {}, r"^reads\[1\]: bucket indices \(2,\) outside 0..1$"),
+        (ok, [(-1,)], {}, r"^reads\[0\]: bucket indices \(-1,\) outside 0..1$"),
+        (ok, [(0,)], {"storage_s": [1.0]}, r"^storage_s: expected 2 non-negative seconds, got"),
+        (ok, [(0,)], {"storage_s": [1.0, -1.0]}, r"^storage_s: expected 2 non-negative seconds, got"),
+    ]
+    for expected, reads, kw, message in cases:
+        with pytest.raises(ValueError, match=message):
+            simulate_reads(expected, reads, cfg, 0, **kw)
+    simulate_reads(ok, [(0,), (1,)], cfg, 0, storage_s=[0.0, 1.0])  # the valid neighbours pass
+
+
+class _FixedFields(NoiseStreams):
+    """Every uniform 1/2 (each Poisson draw is its median) and every normal +1: a capture with no
+    randomness left, so each read's DN can be written down by hand."""
+
+    def uniform(self, stage, shape):
+        return np.full(shape, 0.5)
+
+    def normal(self, stage, shape):
+        return np.ones(shape)
+
+
+def test_readout_chain_by_hand_with_fixed_noise_fields():
+    """Poisson(100) has median 100, so two buckets expecting 100 e- hold exactly 100 each. With the
+    FD full well at 200 their sum reaches it: flagged (the sum clips *at* the well). DN =
+    rint(gain (FD + DSNU map + R x 1) + black): the DSNU map and the read noise enter with their
+    signs; a 10-bit ADC whose top code the sum reaches exactly is flagged too; a read far below
+    the black level clips to code 0 (not flagged). The noise argument may be a NoiseStreams itself,
+    and the result lists the reads as given."""
+    cfg = SensorConfig(prnu=0.0, dsnu_e=2.0, read_noise_e=3.0, fd_full_well_e=200.0, gain_dn_per_e=4.0,
+                       black_level_dn=10.0, adc_bits=12, dark_current_e_per_s=0.0)
+    fpn = fixed_pattern((1, 4, 3), cfg)
+    assert np.ptp(fpn.dsnu_offset_e) > 1.0  # a per-pixel map, not one offset
+    exp_e = np.full((2, 1, 4, 3), 100.0)
+    out = simulate_reads(exp_e, [[0], (0, 1)], cfg, _FixedFields(0))
+    assert out.reads == ((0,), (0, 1))
+    np.testing.assert_array_equal(out.electrons, 100.0)
+    np.testing.assert_array_equal(out.reads_dn[0], np.rint(4.0 * (100.0 + fpn.dsnu_offset_e + 3.0) + 10.0))
+    np.testing.assert_array_equal(out.reads_dn[1], np.rint(4.0 * (200.0 + fpn.dsnu_offset_e + 3.0) + 10.0))
+    assert not out.saturated[0].any() and out.saturated[1].all()
+    adc = cfg.model_copy(update={"fd_full_well_e": 1e6, "dsnu_e": 0.0, "read_noise_e": 0.0, "adc_bits": 10,
+                                 "gain_dn_per_e": 5.0, "black_level_dn": 23.0})  # 5 x 200 + 23 = 1023, the top code
+    top = simulate_reads(exp_e, [(0,), (0, 1)], adc, _FixedFields(0))
+    np.testing.assert_array_equal(top.reads_dn, [np.full((1, 4, 3), 523.0), np.full((1, 4, 3), 1023.0)])
+    assert not top.saturated[0].any() and top.saturated[1].all()
+    low = cfg.model_copy(update={"dsnu_e": 0.0, "read_noise_e": 500.0, "black_level_dn": 0.0})
+    dark = simulate_reads(np.zeros((1, 1, 4, 3)), [(0,)], low, _Negative(0))
+    np.testing.assert_array_equal(dark.reads_dn, 0.0)
+    assert not dark.saturated.any()
+
+
+class _Negative(_FixedFields):
+    def normal(self, stage, shape):
+        return -np.ones(shape)

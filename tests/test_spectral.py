@@ -27,6 +27,22 @@ def test_camera_curves_peak_at_quantum_efficiency():
     assert CAMERA in camera_names()
 
 
+def test_camera_curves_keep_the_dataset_shape():
+    """Each channel's QE curve is the camera's relative curve (peak 1 in the dataset) times that
+    channel's quantum_efficiency: the shape is kept point by point (it falls to a few percent at the
+    ends of the range), and the effective-wavelength model has no curves to give."""
+    import colour
+
+    cfg = SensorConfig(spectral_response=CAMERA, quantum_efficiency=[0.3, 0.6, 0.5])
+    wl, qe = channel_quantum_efficiency(cfg)
+    msds = colour.MSDS_CAMERA_SENSITIVITIES[CAMERA]
+    np.testing.assert_array_equal(wl, msds.wavelengths)
+    np.testing.assert_allclose(qe, np.asarray(msds.values).T * np.array([[0.3], [0.6], [0.5]]), rtol=1e-12, atol=0)
+    assert np.all(qe.min(axis=1) < 0.05 * qe.max(axis=1))
+    with pytest.raises(ValueError, match="^spectral_response 'effective_wavelength' has no spectral curves; name a camera$"):
+        channel_quantum_efficiency(SensorConfig())
+
+
 def test_unknown_camera_lists_valid_names():
     with pytest.raises(ConfigError, match=r"sensor\.spectral_response.*unknown camera 'Nikon D9'.*effective_wavelength.*Nikon 5100"):
         config_from_dict({"render": {"variant": "llvm_ad_spectral"}, "sensor": {"spectral_response": "Nikon D9"}})
@@ -45,6 +61,7 @@ def test_render_factor_per_mode():
     cfg = SensorConfig()
     np.testing.assert_array_equal(electrons_per_render_second(cfg, "llvm_ad_rgb"), electrons_per_radiance_second(cfg))
     k = electrons_per_render_second(cfg, "llvm_ad_spectral")
+    assert k.shape == (3,) and k.dtype == np.float64  # one factor per channel R, G, B
     np.testing.assert_allclose(k, np.pi * 0.9 / (4 * 2.8**2) * (5.6e-6) ** 2 * 0.5)
     np.testing.assert_array_equal(k, electrons_per_film_second(cfg))
 

@@ -179,3 +179,75 @@ def test_custom_schedule_with_drain_and_flash():
     assert tl.switchable_groups() == {"flash"}
     assert (tl.end_tick - tl.start_tick) * tl.tick_s == Fraction(2, 1000)
     assert exposure_s(tl, tl.reads[0]) == Fraction(8, 10000)
+
+
+def test_storage_time_runs_from_the_first_slot_to_the_read():
+    """Dark current's clock (Timeline.storage_ticks): a drain slot before a bucket's first slot does not
+    count, interleaved buckets are read at the end of the capture, and a bucket that never collects
+    holds nothing. One period of 4 x 1 ms: drain, bucket 1, bucket 2, drain; 3 buckets, bucket 3 unused."""
+    ms = Fraction(1, 1000)
+    slots = (SlotSeconds(DRAIN, ms), SlotSeconds(0, ms), SlotSeconds(1, ms), SlotSeconds(DRAIN, ms))
+    tl = build_timeline([SegmentSeconds(Fraction(0), slots, 3)], [ReadEvent("A", (0,)), ReadEvent("B", (1,))], 3, "custom")
+    # the capture spans 12 ms; bucket 1 first collects at 1 ms, bucket 2 at 2 ms
+    assert [tl.storage_ticks(k) * tl.tick_s for k in range(3)] == [11 * ms, 10 * ms, 0]
+    np.testing.assert_allclose(tl.storage_s(), [11e-3, 10e-3, 0.0], rtol=1e-15, atol=0)
+    seq = protocols.build(cfg(protocol="photon_efficient_hdr", unit_exposure_s=0.001, periods=8, sequential=True,
+                              sensor={"frame_readout_s": 0.5}))
+    assert [seq.storage_ticks(k) * seq.tick_s for k in range(4)] == [ms, 2 * ms, 4 * ms, 8 * ms]  # gaps do not count
+
+
+def test_collecting_intervals_merge_touching_segments_and_skip_drain_only_ones():
+    """Segments [0, 3) and [3, 5) ms touch: one interval; [6, 7) after a gap: another; a segment that
+    only drains (8..9 ms) collects nothing and is left out (ticks of 1 us here)."""
+    ms = Fraction(1, 1000)
+    segs = [SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 3), SegmentSeconds(3 * ms, (SlotSeconds(1, ms),), 2),
+            SegmentSeconds(6 * ms, (SlotSeconds(0, ms / 2), SlotSeconds(DRAIN, ms / 2)), 1),
+            SegmentSeconds(8 * ms, (SlotSeconds(DRAIN, ms),), 1)]
+    tl = build_timeline(segs, [ReadEvent("A", (0,)), ReadEvent("B", (1,))], 2, "custom")
+    per_ms = int(ms / tl.tick_s)
+    assert tl.collecting_intervals() == [(0, 5 * per_ms), (6 * per_ms, 7 * per_ms)]
+
+
+def test_describe_reads_and_absolute_centroids_by_hand():
+    """photon_efficient_hdr, N = 3 periods of 8 ms / 3 (slots 4:2:1:1 of T/3): bucket 4 (J1) is the
+    last slot, at [7T/3, 8T/3) + k 8T/3; its centroid is the mean of those midpoints,
+    (7.5 T/3) + (8T/3) (N - 1)/2 = 5.1666.. ms, its span [7T/3, 8T); the report names buckets from 1."""
+    T = Fraction(1, 1000)
+    tl = protocols.build(cfg(protocol="photon_efficient_hdr", unit_exposure_s=0.001, periods=3))
+    d = tl.describe_reads()
+    assert [r["buckets"] for r in d] == [[4], [3, 4], [2, 3, 4], [1, 2, 3, 4]]
+    assert tl.centroid_ticks((3,)) * tl.tick_s == Fraction(15, 2) * T / 3 + 8 * T / 3
+    assert tl.centroid_ticks((0,)) * tl.tick_s == 2 * T / 3 + 8 * T / 3  # bucket 1: [0, 4T/3) + k 8T/3
+    assert d[0]["centroid_s"] == pytest.approx(float(Fraction(31, 6) * T), rel=1e-15)
+    assert (d[0]["span_start_s"], d[0]["span_end_s"]) == pytest.approx((float(7 * T / 3), float(8 * T)), rel=1e-15)
+    assert d[0]["span_s"] == pytest.approx(float(8 * T - 7 * T / 3), rel=1e-15)
+    assert d[3]["exposure_s"] == pytest.approx(8e-3, rel=1e-15) and d[3]["span_s"] == pytest.approx(8e-3, rel=1e-15)
+    # the summed buckets' centroid is the exposure-weighted mean of theirs (J4: all of 8T, centre 4T)
+    assert tl.centroid_ticks((0, 1, 2, 3)) * tl.tick_s == 4 * T
+    assert [r["destructive"] for r in d] == [False] * 4
+    unused = build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, T),), 2)], [ReadEvent("A", (0,))], 2, "custom")
+    with pytest.raises(ValueError, match="^these buckets never collect$"):
+        unused.centroid_ticks((1,))
+    assert unused.span_ticks((1,)) == (0, 0)
+
+
+def test_exact_common_tick_and_build_checks():
+    """exact() keeps exact inputs; common_tick ignores zero durations, counts a duration of exactly
+    1 s (gcd(1, 2/3) = 1/3) and refuses a schedule with no time; build_timeline refuses zero-length
+    slots and reads of buckets it does not have (1-based in the message), and keeps the protocol name."""
+    assert exact(Fraction(1, 3)) == Fraction(1, 3) and exact(2) == 2
+    assert common_tick([Fraction(0), Fraction(1, 2)]) == Fraction(1, 2)
+    assert common_tick([Fraction(1), Fraction(2, 3)]) == Fraction(1, 3)
+    with pytest.raises(ConfigError, match="^capture: the schedule has no time in it$"):
+        common_tick([Fraction(0)])
+    ms = Fraction(1, 1000)
+    with pytest.raises(ConfigError, match=r"^capture: slot durations must be > 0 s \(got 0.0\)$"):
+        build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms), SlotSeconds(1, Fraction(0))), 1)],
+                       [ReadEvent("A", (0,))], 2, "custom")
+    with pytest.raises(ConfigError, match=r"^capture.schedule.reads: read B names bucket\(s\) \[3\]; the schedule has 2$"):
+        build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 1)], [ReadEvent("A", (0,)), ReadEvent("B", (2,))],
+                       2, "custom")
+    with pytest.raises(ConfigError, match=r"^capture.periods: must be >= 1$"):
+        build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 0)], [ReadEvent("A", (0,))], 1, "custom")
+    tl = build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 1)], [ReadEvent("A", (0,))], 1, "mine")
+    assert tl.protocol == "mine" and not tl.sequential

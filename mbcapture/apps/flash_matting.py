@@ -141,11 +141,16 @@ def flash_matting_protocol(cfg):
 
 
 # ----------------------------------------------------------------------------- pure functions
+def read_radiance(read_e: np.ndarray, exposure_s: float, k_e: np.ndarray) -> np.ndarray:
+    """A read as radiance (H, W, C) in render units: its electrons / its own exposure / k_e (C,)."""
+    return np.asarray(read_e, np.float64) / exposure_s / np.asarray(k_e, np.float64)
+
+
 def flash_only_image(flash_e: np.ndarray, flash_exposure_s: float, noflash_e: np.ndarray, noflash_exposure_s: float,
                      k_e: np.ndarray) -> np.ndarray:
-    """Flash-only radiance (H, W, C): the reads' rates difference, electrons -> render units."""
-    rate = np.asarray(flash_e, np.float64) / flash_exposure_s - np.asarray(noflash_e, np.float64) / noflash_exposure_s
-    return rate / np.asarray(k_e, np.float64)
+    """Flash-only radiance (H, W, C): the flash read's radiance minus the no-flash read's, each read
+    normalised by its own exposure (2T and 2T in the 2:2 split, 3T and T in the 3:1 split)."""
+    return read_radiance(flash_e, flash_exposure_s, k_e) - read_radiance(noflash_e, noflash_exposure_s, k_e)
 
 
 def reference_level(y: np.ndarray, percentile: float) -> float:
@@ -322,9 +327,9 @@ def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
     i_f, i_n = _read(data, FLASH_READ), _read(data, NOFLASH_READ)
     reads_e = data.reads_e()
     t_f, t_n = float(data.exposure_s[i_f]), float(data.exposure_s[i_n])
-    flash = reads_e[i_f] / t_f / data.k_e
-    noflash = reads_e[i_n] / t_n / data.k_e
-    flash_only = flash - noflash
+    flash = read_radiance(reads_e[i_f], t_f, data.k_e)
+    noflash = read_radiance(reads_e[i_n], t_n, data.k_e)
+    flash_only = flash_only_image(reads_e[i_f], t_f, reads_e[i_n], t_n, data.k_e)
     y = luminance(flash_only)
     ref = reference_level(y, params.trimap_reference_percentile)
     cue = trimap_cue(flash_only, noflash, params.trimap_cue, params.trimap_reference_percentile, params.trimap_ratio_eps)
