@@ -29,6 +29,9 @@ CAPTURE_CASES = [
     ("flash_matting", "flash_matting.yaml", []),
     ("moving_light", "moving_light.yaml", []),
     ("rgb_illumination", "rgb_illumination.yaml", []),
+    ("metronome_shake", "metronome_shake.yaml", []),
+    ("burst", "burst.yaml", []),
+    ("hdr_video", "hdr_video.yaml", ["capture.frames=3"]),
 ]
 
 #: Images that are zero by construction (up to float64 rounding): compared with an absolute
@@ -52,6 +55,11 @@ def result_images(res) -> dict[str, np.ndarray]:
     images = {f"expected_{r.name}": res.reads_expected_e[i] for i, r in enumerate(res.timeline.reads)}
     images |= {f"reads_dn_{r.name}": res.reads_dn[i] for i, r in enumerate(res.timeline.reads)}
     images |= {k: v for k, v in res.images.items() if np.asarray(v).dtype != bool}
+    video = getattr(res, "video", None)
+    if video is not None:  # a video run: every later frame's HDR radiance and the alternating-exposure video's
+        images |= {f"frame{i}_radiance": f.images["radiance"] for i, f in enumerate(video.frames) if i}
+        if video.alternating_radiance is not None:
+            images |= {f"alternating{i}_radiance": a for i, a in enumerate(video.alternating_radiance)}
     return images
 
 
