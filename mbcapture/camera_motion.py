@@ -22,8 +22,9 @@ power spectral density has that shape:
 
 each normalized to unit variance over the band, ``share`` = ``camera.shake.tremor_share``. The
 process is drawn by the spectral representation method: a sum of SHAKE_COMPONENTS sinusoids, one
-per frequency bin (the frequency jittered inside its bin so the trajectory never repeats), of
-amplitude sqrt(2 S(f) df) and a uniform random phase, all fixed by ``camera.shake.seed``. The
+per frequency bin (bins equally spaced in log frequency, so the slow drift gets as many components
+as the tremor; the frequency jittered inside its bin so the trajectory never repeats), of amplitude
+sqrt(2 S(f) df) and a uniform random phase, all fixed by ``camera.shake.seed``. The
 result is a smooth function of time that can be evaluated at any instant (the planner, the
 renderer and every ground truth see the same trajectory), with RMS exactly the configured
 amplitude: ``rotation_deg`` for pitch and yaw, ``roll_deg`` for roll, ``translation_mm`` for each
@@ -66,8 +67,8 @@ if TYPE_CHECKING:
 #: Band of the shake model, Hz.
 SHAKE_F_MIN_HZ = 0.1
 SHAKE_F_MAX_HZ = 30.0
-#: Sinusoids per offset in the spectral representation (bins of ~0.05 Hz).
-SHAKE_COMPONENTS = 600
+#: Sinusoids per offset in the spectral representation (log-spaced bins, 2.4 % wide).
+SHAKE_COMPONENTS = 240
 #: Image motion of the frame (px) over a capture above which the whole frame is its moving region.
 FRAME_MOTION_PX = 0.25
 #: Header of a trajectory file.
@@ -122,13 +123,22 @@ class CameraSection(BaseModel):
 
 # --------------------------------------------------------------------------- trajectories
 def shake_psd(f_hz: np.ndarray, spec: ShakeSpec) -> np.ndarray:
-    """S(f) of the shake model (1/Hz), normalized to unit variance over [SHAKE_F_MIN_HZ, SHAKE_F_MAX_HZ]
-    (numerically, on the grid ``f_hz`` is assumed to sample uniformly)."""
+    """S(f) of the shake model (1/Hz) at ``f_hz``: drift and tremor each normalized to unit variance
+    over [SHAKE_F_MIN_HZ, SHAKE_F_MAX_HZ] (trapezoidal integrals on a fine grid), mixed by
+    ``tremor_share``; 0 outside the band."""
+    grid = np.linspace(SHAKE_F_MIN_HZ, SHAKE_F_MAX_HZ, 20001)
+
+    def drift(f):
+        return 1.0 / (1.0 + (f / spec.drift_corner_hz) ** 2)
+
+    def peak(f):
+        return np.exp(-0.5 * ((f - spec.tremor_hz) / spec.tremor_width_hz) ** 2)
+
     f = np.asarray(f_hz, dtype=np.float64)
-    df = (SHAKE_F_MAX_HZ - SHAKE_F_MIN_HZ) / f.size
-    drift = 1.0 / (1.0 + (f / spec.drift_corner_hz) ** 2)
-    peak = np.exp(-0.5 * ((f - spec.tremor_hz) / spec.tremor_width_hz) ** 2)
-    return (1 - spec.tremor_share) * drift / (drift.sum() * df) + spec.tremor_share * peak / (peak.sum() * df)
+    inside = (f >= SHAKE_F_MIN_HZ) & (f <= SHAKE_F_MAX_HZ)
+    s = ((1 - spec.tremor_share) * drift(f) / np.trapezoid(drift(grid), grid)
+         + spec.tremor_share * peak(f) / np.trapezoid(peak(grid), grid))
+    return np.where(inside, s, 0.0)
 
 
 @dataclass(frozen=True)
@@ -144,11 +154,12 @@ class ShakeTrajectory:
     def from_spec(cls, spec: ShakeSpec) -> "ShakeTrajectory":
         rng = np.random.default_rng(np.random.SeedSequence(spec.seed, spawn_key=(0x5A4E,)))
         n = SHAKE_COMPONENTS
-        df = (SHAKE_F_MAX_HZ - SHAKE_F_MIN_HZ) / n
-        centres = SHAKE_F_MIN_HZ + (np.arange(n) + 0.5) * df
+        edges = np.geomspace(SHAKE_F_MIN_HZ, SHAKE_F_MAX_HZ, n + 1)
+        df = np.diff(edges)
+        centres = np.sqrt(edges[:-1] * edges[1:])
         rms = np.array([math.radians(spec.rotation_deg)] * 2 + [math.radians(spec.roll_deg)]
                        + [spec.translation_mm * 1e-3] * 3)
-        freq = centres[None, :] + (rng.random((6, n)) - 0.5) * df
+        freq = edges[:-1][None, :] + rng.random((6, n)) * df[None, :]
         s = shake_psd(centres, spec)
         unit = np.sqrt(2.0 * s * df)
         unit *= 1.0 / np.sqrt(0.5 * (unit**2).sum())  # RMS exactly 1 (sum of a^2 / 2 = variance)
@@ -156,11 +167,11 @@ class ShakeTrajectory:
         phase = rng.random((6, n)) * 2 * math.pi
         return cls(freq, amp, phase)
 
-    def offsets(self, times_s: np.ndarray) -> np.ndarray:
-        """(T, 6) offsets at scene times ``times_s`` (T,)."""
+    def offsets(self, times_s: np.ndarray, axes: tuple[int, ...] = tuple(range(6))) -> np.ndarray:
+        """(T, 6) offsets at scene times ``times_s`` (T,); only ``axes`` are evaluated (the others are 0)."""
         t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
-        out = np.empty((t.size, 6))
-        for a in range(6):
+        out = np.zeros((t.size, 6))
+        for a in axes:
             if not self.amp[a].any():
                 out[:, a] = 0.0
                 continue

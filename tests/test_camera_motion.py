@@ -26,18 +26,19 @@ def _constant_motion(ry_deg: float = 0.0, rx_deg: float = 0.0, tx_mm: float = 0.
 
 
 def test_shake_has_the_configured_rms_and_a_tremor_peak():
-    """Over 600 s the sampled offsets' RMS is the configured one (the process decorrelates in ~1 s:
-    ~600 x 2 independent samples, so the variance's standard error is ~3 %; tolerance 5 SE on the
-    variance, i.e. ~7 % on the RMS) and the spectrum above 3 Hz peaks at the tremor frequency."""
+    """Over 300 s the sampled offsets' RMS is the configured one. The drift (corner 1 Hz) decorrelates
+    in ~1 / (2 pi) s, so 300 s hold ~900 independent samples and the variance's standard error is
+    ~5 %; tolerance 5 SE on the variance, ~12 % on the RMS. The spectrum above 3 Hz peaks at the
+    tremor frequency."""
     from scipy.signal import welch
 
     spec = cm.ShakeSpec(rotation_deg=0.1, roll_deg=0.03, translation_mm=0.4, tremor_hz=9.0, seed=4)
     traj = cm.ShakeTrajectory.from_spec(spec)
-    t = np.arange(0.0, 600.0, 0.01)
+    t = np.arange(0.0, 300.0, 0.02)
     o = traj.offsets(t)
     expected = np.array([math.radians(0.1)] * 2 + [math.radians(0.03)] + [0.4e-3] * 3)
-    assert np.allclose(o.std(axis=0), expected, rtol=0.075)
-    f, p = welch(o[:, 1], fs=100.0, nperseg=4096)
+    assert np.allclose(o.std(axis=0), expected, rtol=0.12)
+    f, p = welch(o[:, 1], fs=50.0, nperseg=2048)
     assert abs(f[f > 3][np.argmax(p[f > 3])] - 9.0) < 0.6
     # another seed is another hand; the same seed the same trajectory
     assert not np.allclose(cm.ShakeTrajectory.from_spec(spec.model_copy(update={"seed": 5})).offsets(t[:100]), o[:100])
@@ -145,8 +146,8 @@ def test_renderer_moves_the_camera_and_keys_the_cache_by_its_pose(tmp_path):
     ia = ra.render(0.01, 4, 3, ["ambient"])
     ib = rb.render(0.01, 4, 3, ["ambient"])
     assert cache.stats.misses == misses + 2 and not np.array_equal(ia, ib)
-    again = Renderer(shake(1), W, H, cache=cache).render(0.01, 4, 3, ["ambient"])
-    assert cache.stats.misses == misses + 2 and np.array_equal(again, ia)  # the same pose: read back
+    again = ra.render(0.01, 4, 3, ["ambient"])
+    assert cache.stats.misses == misses + 2 and ra.last_cached and np.array_equal(again, ia)  # the same pose: read back
     # a new pose recompiles nothing: the camera's transform is opaque
     import drjit as dr
 

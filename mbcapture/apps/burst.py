@@ -34,7 +34,8 @@ capture being one of the first two:
 Truth: the scene rendered with a still camera (the scene's nominal pose, no shake) at the capture's
 middle time, ``app.reference_spp`` samples per pixel, in radiance (W m^-2 sr^-1). Each result is
 radiance = rate / k_e; to score it, it is registered onto the truth with ECC (euclidean; a result
-sits where its reference frame was, and that offset is not what is compared) and a border of
+sits where its reference frame was, and that offset is not what is compared), resampled bicubically,
+and a border of
 ``ceil(largest shift) + 2`` px is left out. Metrics per result:
 
 ``psnr_db``                 PSNR of the luminance, peak = the truth's 99.9th percentile luminance
@@ -170,13 +171,13 @@ def register_frame(template: np.ndarray, image: np.ndarray, method: str, blur: i
     raise ConfigError(f"app.method: unknown alignment {method!r}; expected one of {sorted(ALIGN_METHODS)}")
 
 
-def warp_onto(image: np.ndarray, warp: np.ndarray) -> np.ndarray:
-    """``image`` (H, W[, C]) resampled onto the template's grid: out(p) = image(warp(p)) (bilinear);
-    NaN where warp(p) falls outside the image."""
+def warp_onto(image: np.ndarray, warp: np.ndarray, cubic: bool = False) -> np.ndarray:
+    """``image`` (H, W[, C]) resampled onto the template's grid: out(p) = image(warp(p)) (bilinear, or
+    bicubic with ``cubic``); NaN where warp(p) falls outside the image."""
     import cv2
 
     H, W = image.shape[:2]
-    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    flags = (cv2.INTER_CUBIC if cubic else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP
     img = np.asarray(image, dtype=np.float32)
     inside = np.ones((H, W), np.float32)
     if np.allclose(warp[2], [0, 0, 1]):
@@ -255,7 +256,7 @@ def score(result: np.ndarray, truth: np.ndarray, blur: int = 5) -> dict:
     corners = np.array([[0, 0], [W, 0], [0, H], [W, H]], float)
     shift = float(np.abs(apply_warp(warp, corners) - corners).max())
     border = int(np.ceil(shift)) + 2
-    on = warp_onto(result, warp)
+    on = warp_onto(result, warp, cubic=True)  # bicubic: bilinear resampling would itself blur ~0.3 px
     sl = (slice(border, H - border), slice(border, W - border))
     if H - 2 * border < 4 or W - 2 * border < 4:
         sl = (slice(None), slice(None))
