@@ -248,15 +248,24 @@ def fit_blur_px(result: np.ndarray, truth: np.ndarray, max_sigma: float = MAX_BL
     return float(best.x) if cost(float(best.x)) < cost(0.0) else 0.0
 
 
-def score(result: np.ndarray, truth: np.ndarray, blur: int = 5) -> dict:
-    """Register ``result`` (H, W, C radiance) onto ``truth`` (ECC, euclidean), leave out a border and
-    return psnr_db, rel_mse, residual_blur_px, the scoring shift and border (the module docstring)."""
+def register_to_truth(result: np.ndarray, truth: np.ndarray, blur: int = 5) -> tuple[np.ndarray, float]:
+    """``result`` (H, W, C) registered onto ``truth`` (ECC, euclidean) and resampled bicubically
+    (bilinear resampling would itself blur ~0.3 px), and the largest coordinate shift of a corner (px)."""
     warp = register_frame(luminance(truth), luminance(result), "ecc_euclidean", blur)
     H, W = truth.shape[:2]
     corners = np.array([[0, 0], [W, 0], [0, H], [W, H]], float)
-    shift = float(np.abs(apply_warp(warp, corners) - corners).max())
-    border = int(np.ceil(shift)) + 2
-    on = warp_onto(result, warp, cubic=True)  # bicubic: bilinear resampling would itself blur ~0.3 px
+    return warp_onto(result, warp, cubic=True), float(np.abs(apply_warp(warp, corners) - corners).max())
+
+
+def border_for(shift_px: float) -> int:
+    """Pixels left out at each edge when scoring a result registered with a shift of ``shift_px``."""
+    return int(np.ceil(shift_px)) + 2
+
+
+def score_registered(on: np.ndarray, truth: np.ndarray, border: int) -> dict:
+    """psnr_db, rel_mse, residual_blur_px of a registered result against ``truth`` without ``border`` px
+    at each edge (the module docstring)."""
+    H, W = truth.shape[:2]
     sl = (slice(border, H - border), slice(border, W - border))
     if H - 2 * border < 4 or W - 2 * border < 4:
         sl = (slice(None), slice(None))
@@ -264,14 +273,19 @@ def score(result: np.ndarray, truth: np.ndarray, blur: int = 5) -> dict:
     ok = np.isfinite(r).all(axis=-1)
     lr, lt = luminance(np.where(ok[..., None], r, 0.0)), luminance(t)
     peak = float(np.percentile(lt, 99.9)) or 1.0
-    lr_f = np.where(ok, lr, lt)
     return {
         "psnr_db": psnr(lr[ok], lt[ok], peak=peak),
         "rel_mse": relative_mse(r[ok], t[ok], eps=REL_MSE_EPS_RADIANCE),
-        "residual_blur_px": fit_blur_px(lr_f, lt),
-        "scoring_shift_px": shift,
-        "scoring_border_px": border,
+        "residual_blur_px": fit_blur_px(np.where(ok, lr, lt), lt),
     }
+
+
+def score(result: np.ndarray, truth: np.ndarray, blur: int = 5, border: int | None = None) -> dict:
+    """Register ``result`` (H, W, C radiance) onto ``truth``, leave out ``border`` px at each edge (default:
+    from its own shift) and return psnr_db, rel_mse, residual_blur_px, the scoring shift and border."""
+    on, shift = register_to_truth(result, truth, blur)
+    border = border_for(shift) if border is None else border
+    return {**score_registered(on, truth, border), "scoring_shift_px": shift, "scoring_border_px": border}
 
 
 # --------------------------------------------------------------------------- glue
@@ -339,7 +353,6 @@ def _burst_result(name: str, rates: np.ndarray, saturated: np.ndarray, timeline,
     span = timeline.seconds(timeline.end_tick - timeline.start_tick)
     out = {
         "capture_span_s": float(span),
-        **score(radiance, truth, params.ecc_blur_px),
         "motion_blur_px": float(frame_blur_px(data.scene, timeline, W, H).mean()),
         "registration_error_px": dict(zip(names, reg.tolist())),
         "registration_error_px_mean": float(np.mean(np.delete(reg, ref))),
@@ -384,12 +397,22 @@ def reconstruct(data: CaptureData, params: BurstParams) -> AppOutput:
         long = capture_timeline(long_tl, data.scene, cfg, data.renderer, spp, seeds[1], data.k_e)
         W, H = cfg.render.width, cfg.render.height
         long_rad = long.rate_e_per_s[0] / data.k_e
-        comparison["long_exposure"] = {"capture_span_s": K * T, **score(long_rad, truth, params.ecc_blur_px),
+        comparison["long_exposure"] = {"capture_span_s": K * T,
                                        "motion_blur_px": float(frame_blur_px(data.scene, long_tl, W, H)[0]),
                                        "saturated_fraction": float(long.saturated.mean())}
         images["long_exposure"] = long_rad
         png["long_exposure"] = ("long_exposure", cfg.output.png_percentile)
         png["other_burst"] = ("other_burst", cfg.output.png_percentile)
+    # every result scored on the same pixels: registered onto the truth, then the largest border of all
+    results = {own: images["average"]}
+    if params.compare:
+        results.update({("back_to_back" if data.sequential else "conventional_burst"): images["other_burst"],
+                        "long_exposure": images["long_exposure"]})
+    registered = {name: register_to_truth(img, truth, params.ecc_blur_px) for name, img in results.items()}
+    border = max(border_for(shift) for _, shift in registered.values())
+    for name, (on, shift) in registered.items():
+        comparison[name].update({**score_registered(on, truth, border), "scoring_shift_px": shift,
+                                 "scoring_border_px": border})
     metrics = {
         "method": params.method,
         "alignment": ALIGN_METHODS[params.method],
