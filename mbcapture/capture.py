@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import protocols, scenes
+from . import camera_motion, protocols, scenes
 from .config import CaptureConfig
 from .errors import ConfigError
 from .apps import AppOutput, CaptureData
@@ -62,6 +62,7 @@ class CaptureResult:
     report: dict = field(default_factory=dict)
     out_dir: Path | None = None
     app_output: AppOutput | None = None
+    video: object = None  # a video run (capture.frames > 1): mbcapture.video.VideoFrames of every frame
 
 
 class _Timer:
@@ -81,16 +82,25 @@ def moving_region(scene: scenes.SceneModel, t0_s: float, t1_s: float, width: int
     """(H, W) bool: pixels the moving parts cover at some time in [t0, t1].
 
     At 64 times the convex hull of the projected motion points (grown by 1.5 px) is
-    rasterized; the union over times is the region swept by the moving parts.
+    rasterized; the union over times is the region swept by the moving parts. With a moving
+    camera the parts are projected through its pose at each time, and once the frame itself moves
+    more than :data:`mbcapture.camera_motion.FRAME_MOTION_PX` during [t0, t1] every pixel moves: the
+    mask is the whole image.
     """
     from matplotlib.path import Path as PolyPath
     from scipy.spatial import ConvexHull, QhullError
+
+    from .camera_motion import FRAME_MOTION_PX, frame_motion_px
 
     mask = np.zeros((height, width), dtype=bool)
     if scene.is_static:
         return mask
     times = np.linspace(t0_s, t1_s, 64)
-    px = scene.camera.project(np.asarray(scene.motion_points(times)), width, height)  # (T, M, 2)
+    if frame_motion_px(scene, times, width, height) > FRAME_MOTION_PX:
+        return np.ones((height, width), dtype=bool)
+    if scene.motion_points is None:
+        return mask
+    px = scene.project(np.asarray(scene.motion_points(times)), times, width, height)  # (T, M, 2)
     yy, xx = np.mgrid[0:height, 0:width]
     centres = np.stack([xx.ravel() + 0.5, yy.ravel() + 0.5], axis=1)
     for pts in px:
@@ -205,8 +215,12 @@ def prepare(cfg: CaptureConfig) -> tuple[scenes.SceneModel, Timeline, Plan, list
     (0: plan jitter, 1: sensor noise, 2: render seeds, 3: the application's reference renders).
     Shared by ``run`` and ``plan``."""
     seeds = np.random.SeedSequence(cfg.seed).spawn(4)
-    scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
+    scene = camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)
     timeline = protocols.build(cfg)
+    if cfg.capture.frames > 1:
+        from .video import frame_period_check
+
+        frame_period_check(cfg, timeline)  # a frame period shorter than capture + readout: before anything renders
     plan = make_plan(timeline, scene, cfg.render, np.random.default_rng(seeds[0]))
     return scene, timeline, plan, seeds
 
@@ -240,13 +254,19 @@ def bucket_group_seconds(timeline: Timeline, switchable: tuple[str, ...]) -> np.
 def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True) -> CaptureResult:
     """Run one capture. With ``out_dir``, write its outputs there (atomically). ``progress``: a
     status line for every stage and a bar for the render passes (stderr)."""
+    if cfg.capture.frames > 1:  # a video: a capture per frame (mbcapture/video.py)
+        from .video import run_video
+
+        return run_video(cfg, out_dir, progress=progress)
     if out_dir is not None:
         check_out_dir(Path(out_dir))
     with StageStatus(progress, stages=5 + (cfg.render.spp is None) + (out_dir is not None)) as status:
         return _run(cfg, out_dir, progress, status)
 
 
-def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status: StageStatus) -> CaptureResult:
+def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status: StageStatus,
+         renderer=None) -> CaptureResult:
+    """One capture; ``renderer``: a Renderer of this capture's scene to reuse (a video's frames), else one is made."""
     from .render import Renderer, ensure_llvm
 
     timer = _Timer()
@@ -258,8 +278,8 @@ def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status:
 
     with timer("render_setup"), status.stage("render setup (kernels, scene)"):
         llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
-        cache = render_cache(cfg.render)
-        renderer = Renderer.from_config(scene, cfg, cache=cache)
+        cache = render_cache(cfg.render) if renderer is None else renderer.cache
+        renderer = Renderer.from_config(scene, cfg, cache=cache) if renderer is None else renderer
     pilot = status.stage("pilot render (spp from render.noise_budget)") if cfg.render.spp is None else nullcontext()
     with timer("pilot"), pilot:
         plan = resolve_spp(plan, renderer, cfg, seeds[2])  # render.spp null: spp from render.noise_budget
@@ -348,7 +368,9 @@ def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status:
     return result
 
 
-def write_outputs(result: CaptureResult, out: Path) -> None:
+def write_outputs(result: CaptureResult, out: Path, extra=None) -> None:
+    """Every output file of ``result`` into ``out``, atomically; ``extra(staging)`` writes more files
+    (a video's) before report.html, which lists them."""
     cfg, tl = result.config, result.timeline
     names = [r.name for r in tl.reads]
     with staged_outputs(out) as st:
@@ -363,5 +385,7 @@ def write_outputs(result: CaptureResult, out: Path) -> None:
             st.write_png(f"{stem}.png", app_out.images[image], percentile)
         result.report["previews"] = write_read_previews(st, result)  # one common DN scale, and each its own
         st.write_yaml("config.yaml", cfg.to_yaml_dict())
+        if extra is not None:
+            extra(st)
         st.write_json("report.json", result.report)
         write_report(st, result)  # report.html and its plots, last: it lists every file

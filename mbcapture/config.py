@@ -24,6 +24,8 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from . import scenes
+from .camera_motion import CameraSection
+from .video import VideoSection
 from .errors import ConfigError, ConfigNotice
 from .sensor.config import SensorConfig
 
@@ -164,6 +166,22 @@ class CaptureSection(_Model):
     )
     start_s: float = Field(0.0, ge=0, description="Scene time at which the capture starts (moves the metronome's phase).")
     schedule: ScheduleSpec | None = Field(None, description="The 'custom' protocol's schedule (required for it, refused otherwise).")
+    frames: int = Field(
+        1, ge=1, le=100_000,
+        description="A video: this many captures, one per frame at capture.frame_rate_hz, each read out before the next "
+        "(1: a single capture; see mbcapture/video.py).",
+    )
+    frame_rate_hz: float | None = Field(
+        None, gt=0, le=1e6,
+        description="Frames per second of a video (capture.frames > 1); the frame period must hold the capture's span "
+        "plus sensor.frame_readout_s.",
+    )
+
+    @model_validator(mode="after")
+    def _video_needs_a_rate(self) -> "CaptureSection":
+        if self.frames > 1 and self.frame_rate_hz is None:
+            raise ValueError("capture.frame_rate_hz is required when capture.frames > 1 (a video)")
+        return self
 
     @model_validator(mode="after")
     def _schedule_only_for_custom(self) -> "CaptureSection":
@@ -217,10 +235,12 @@ class CaptureConfig(_Model):
     scene: SceneSection = Field(default_factory=SceneSection, description="What is in front of the camera: scene.name and its parameters.")
     render: RenderSection = Field(default_factory=RenderSection, description="Film size, samples and the motion tolerance of the render plan.")
     capture: CaptureSection = Field(default_factory=CaptureSection, description="Protocol: gate schedule, exposures, interleaving periods.")
+    camera: CameraSection = Field(default_factory=CameraSection, description="How the camera moves during the capture: camera.shake (hand shake) or camera.trajectory_file; default still.")
     sensor: SensorConfig = Field(default_factory=SensorConfig, description="The multi-bucket pixel: optics, full wells, noise, ADC.")
     hdr: HDRSection = Field(default_factory=HDRSection, description="HDR reconstruction method.")
     app: AppSection = Field(default_factory=AppSection, description="Reconstruction applied to the reads and its parameters.")
     output: OutputSection = Field(default_factory=OutputSection, description="Preview images.")
+    video: VideoSection = Field(default_factory=VideoSection, description="A video run's comparisons and previews (capture.frames > 1).")
 
     @field_validator("render")
     @classmethod

@@ -55,12 +55,12 @@ class Point:
 
 
 def _setup(cfg: CaptureConfig):
-    from . import protocols, scenes
+    from . import camera_motion, protocols, scenes
     from .render import Renderer, ensure_llvm
 
     if cfg.render.variant.startswith("llvm"):
         ensure_llvm()
-    scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
+    scene = camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)
     timeline = protocols.build(cfg)
     renderer = Renderer.from_config(scene, cfg)  # no cache: converge measures rendering time
     return scene, timeline, renderer

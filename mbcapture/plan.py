@@ -186,9 +186,10 @@ class Plan:
 
 
 def _image_path_length(scene: SceneModel, times_s: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Cumulative image-space path length (px) of the fastest moving point at ``times_s``."""
-    pts = np.asarray(scene.motion_points(times_s), dtype=np.float64)  # (T, M, 3)
-    px = scene.camera.project(pts, width, height)  # (T, M, 2)
+    """Cumulative image-space path length (px) of the fastest moving point at ``times_s``; with a
+    moving camera (``camera.shake``) the frame's reference points move too, so the bound covers the
+    projected motion of the whole frame."""
+    px = scene.image_points(times_s, width, height)  # (T, M, 2): moving parts, and the frame if the camera moves
     step = np.linalg.norm(np.diff(px, axis=0), axis=-1).max(axis=1)  # (T-1,)
     return np.concatenate([[0.0], np.cumsum(step)])
 

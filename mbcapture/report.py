@@ -523,6 +523,11 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
     sections.append(f"<h2 id='app'>Application: {_esc(rep['app'])}</h2>"
                     f"<p>Linear images as layers in <a href='{_esc(result.app)}.exr'>{_esc(result.app)}.exr</a>; "
                     "previews:</p><div class='grid'>" + "".join(app_cells) + "</div>")
+    # ---- a video run's frames, previews and comparisons (mbcapture/video.py)
+    if result.video is not None:
+        from .video import video_section_html
+
+        sections.append(video_section_html(result))
     # ---- maps and histograms
     sections.append("<h2 id='maps'>Saturation and SNR</h2><div class='grid' style='grid-template-columns:"
                     f"repeat({len(maps)},minmax(0,400px))'>" + "".join(_figure(f, t) for f, t in maps) + "</div>")
@@ -559,7 +564,8 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
 
     title = f"mbcapture: {rep['app']} of {rep['scene']} ({rep['protocol']})"
     nav = " · ".join(f"<a href='#{a}'>{t}</a>" for a, t in [
-        ("summary", "run"), ("schedule", "schedule"), ("reads", "reads"), ("app", "application"), ("maps", "maps"),
+        ("summary", "run"), ("schedule", "schedule"), ("reads", "reads"), ("app", "application"),
+        *([("video", "video")] if result.video is not None else []), ("maps", "maps"),
         ("histograms", "histograms"), ("metrics", "metrics"), ("render-noise", "rendering noise"),
         ("timings", "timings"), ("files", "files")])
     page = (f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>{_esc(title)}</title>"

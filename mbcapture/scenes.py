@@ -91,6 +91,11 @@ class SceneModel:
         Optional group -> :class:`~mbcapture.drive.Drive`: emitter drive that varies
         continuously in time (mains flicker), integrated exactly into the render weights.
         Groups not named have a constant drive of 1.
+    camera_motion
+        Optional :class:`~mbcapture.camera_motion.CameraMotion` (``camera.shake`` or a trajectory
+        file, set by the capture, not by scene modules): the camera's pose over time about
+        ``camera``. Everything that projects to pixels goes through :meth:`project` and
+        :meth:`image_points`, which follow it.
     """
 
     name: str
@@ -103,10 +108,37 @@ class SceneModel:
     default_film: tuple[int, int] = (640, 512)
     extra: dict = field(default_factory=dict)
     drives: dict = field(default_factory=dict)
+    camera_motion: Any = None
 
     @property
     def is_static(self) -> bool:
-        return self.motion_points is None
+        """Nothing in the image moves: no moving part and a still camera."""
+        return self.motion_points is None and self.camera_motion is None
+
+    def project(self, points: np.ndarray, times_s: np.ndarray, width: int, height: int) -> np.ndarray:
+        """World points (T, M, 3) at scene times (T,) -> pixels (T, M, 2) as the camera saw them
+        then: through :attr:`camera` if it is still, else through its pose at each time."""
+        if self.camera_motion is None:
+            return self.camera.project(points, width, height)
+        from .camera_motion import project_through
+
+        poses = self.camera_motion.world_from_camera(self.camera, times_s)
+        return project_through(poses, points, self.camera.fov_deg, width, height)
+
+    def image_points(self, times_s: np.ndarray, width: int, height: int) -> np.ndarray:
+        """(T, M, 2) pixel positions at ``times_s`` of the points whose image motion bounds the render
+        strata: the moving parts' :attr:`motion_points` and, with a moving camera, the frame's
+        reference points (:func:`mbcapture.camera_motion.reference_points`, fixed in the world)."""
+        t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
+        if self.camera_motion is None:
+            return self.camera.project(np.asarray(self.motion_points(t), dtype=np.float64), width, height)
+        from .camera_motion import reference_points
+
+        ref = reference_points(self.camera, width, height)
+        pts = np.broadcast_to(ref, (t.size, *ref.shape))
+        if self.motion_points is not None:
+            pts = np.concatenate([np.asarray(self.motion_points(t), dtype=np.float64), pts], axis=1)
+        return self.project(pts, t, width, height)
 
 
 def _scene_dirs() -> list[Path]:

@@ -31,6 +31,9 @@ CAPTURE_CASES = [
     ("rgb_illumination", "rgb_illumination.yaml", []),
     ("structured_light", "structured_light.yaml", []),
     ("flutter_shutter", "flutter_shutter.yaml", []),
+    ("metronome_shake", "metronome_shake.yaml", []),
+    ("burst", "burst.yaml", []),
+    ("hdr_video", "hdr_video.yaml", ["capture.frames=3"]),
 ]
 
 #: Images of a config's captures that are not pinned, and why: a wrapped phase jumps by 2 pi where a
@@ -58,6 +61,11 @@ def result_images(res) -> dict[str, np.ndarray]:
     images = {f"expected_{r.name}": res.reads_expected_e[i] for i, r in enumerate(res.timeline.reads)}
     images |= {f"reads_dn_{r.name}": res.reads_dn[i] for i, r in enumerate(res.timeline.reads)}
     images |= {k: v for k, v in res.images.items() if np.asarray(v).dtype != bool}
+    video = getattr(res, "video", None)
+    if video is not None:  # a video run: every later frame's HDR radiance and the alternating-exposure video's
+        images |= {f"frame{i}_radiance": f.images["radiance"] for i, f in enumerate(video.frames) if i}
+        if video.alternating_radiance is not None:
+            images |= {f"alternating{i}_radiance": a for i, a in enumerate(video.alternating_radiance)}
     return images
 
 

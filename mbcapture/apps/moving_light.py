@@ -165,7 +165,7 @@ def shadow_sweep_mask(data: CaptureData, grow_px: float) -> np.ndarray:
         raise ConfigError(f"app.name: moving_light needs a scene with extra['shadow_polygons'] (scene {scene.name!r} has none)")
     H, W = data.reads_dn.shape[1:3]
     times = _sweep_times(data)
-    per_occ = [scene.camera.project(p, W, H) for p in polys_fn(times)]  # each (T, P, 2)
+    per_occ = [scene.project(p, times, W, H) for p in polys_fn(times)]  # each (T, P, 2), through a shaking camera too
     return sweep_region([[occ[t] for occ in per_occ] for t in range(len(times))], W, H, grow_px)
 
 

@@ -277,10 +277,14 @@ def reference_xyz(data: CaptureData, params: Params, white_mask: np.ndarray, whi
 
     from ..render import Renderer
 
+    from ..camera_motion import still
+
     cfg, scene = data.cfg, data.scene
     spectral = cfg.render.variant.endswith("_spectral")
-    renderer = (Renderer.from_config(scene, cfg, film_curves=_cmf_curves(), sensor=None,
-                                     cache=getattr(data.renderer, "cache", None)) if spectral else data.renderer)
+    rest = still(scene)  # the chart at rest through a still camera (camera.shake moves only the capture)
+    renderer = (Renderer.from_config(rest, cfg, film_curves=_cmf_curves(), sensor=None,
+                                     cache=getattr(data.renderer, "cache", None)) if spectral
+                else data.renderer if rest is scene else Renderer.from_config(rest, cfg, cache=getattr(data.renderer, "cache", None)))
     seed = int(np.random.default_rng(data.seed.spawn(1)[0]).integers(0, 2**31 - 1))
     img = renderer.render(float(scene.extra["rest_time_s"]), params.reference_spp, seed, list(LED_GROUPS)).sum(0)
     img = img.astype(np.float64)
@@ -301,7 +305,7 @@ def _strata(scene, t0: float, t1: float, width: int, height: int, max_motion_px:
     if scene.is_static:
         return np.array([(t0 + t1) / 2])
     times = np.linspace(t0, t1, 257)
-    px = scene.camera.project(np.asarray(scene.motion_points(times)), width, height)
+    px = scene.image_points(times, width, height)  # moving parts, and the frame under camera shake
     path = np.linalg.norm(np.diff(px, axis=0), axis=-1).sum(axis=0).max()
     n = int(min(max(np.ceil(path / max_motion_px), 1), max_strata))
     edges = np.linspace(t0, t1, n + 1)

@@ -70,6 +70,15 @@ def render_depth(renderer, t_s: float) -> DepthImage:
         if key not in kernels:
             kernels[key] = (_centre_sensor(renderer), mi.load_dict({"type": "aov", "aovs": "dd.y:depth"}))
         sensor, integrator = kernels[key]
+        model = renderer.scene_model
+        if model.camera_motion is not None:  # the centre sensor follows the handheld camera too
+            params = mi.traverse(sensor)
+            import drjit as dr
+
+            tf = mi.Transform4f(model.camera_motion.world_from_camera(model.camera, [float(t_s)])[0])
+            dr.make_opaque(tf)
+            params["to_world"] = tf
+            params.update()
         return np.asarray(mi.render(renderer.mitsuba_scene, sensor=sensor, integrator=integrator, spp=1, seed=0),
                           dtype=np.float32)[..., -1]
 

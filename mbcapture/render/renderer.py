@@ -474,7 +474,8 @@ class Renderer:
 
     def state_at(self, t_s: float) -> list:
         """The time-dependent part of the scene at ``t_s``: every moving part's and moving light's
-        pose (4x4, as in :meth:`set_time`). Two times with equal states render equal images."""
+        pose (4x4, as in :meth:`set_time`) and, with a moving camera, the camera's pose. Two times
+        with equal states render equal images."""
         parts = self._build.parts
         out = []
         for s in self._build.shapes:
@@ -482,7 +483,14 @@ class Renderer:
                 out.append([s.name, np.asarray(parts[s.part](t_s), float) @ s.to_world])
         for part, f in sorted(parts.items()):
             out.append([part, np.asarray(f(t_s), float)])
+        if self.scene_model.camera_motion is not None:
+            out.append(["camera (sensor.to_world)", self._camera_pose(t_s)])
         return [[name, [[repr(float(x)) for x in row] for row in m]] for name, m in out]
+
+    def _camera_pose(self, t_s: float) -> np.ndarray:
+        """(4, 4) world-from-camera of the moving camera at ``t_s`` (:mod:`mbcapture.camera_motion`)."""
+        sm = self.scene_model
+        return sm.camera_motion.world_from_camera(sm.camera, [float(t_s)])[0]
 
     def cached(self, kind: str, t_s: float, params: dict, make: Callable[[], np.ndarray]) -> np.ndarray:
         """``make()`` (an image of the scene at ``t_s``), read from the cache when this renderer
@@ -505,16 +513,21 @@ class Renderer:
         return img
 
     def set_time(self, t_s: float, force: bool = False) -> None:
-        """Move every part to scene time ``t_s`` (s); no kernel is recompiled. ``force`` redoes the
+        """Move every part (and a moving camera) to scene time ``t_s`` (s); no kernel is recompiled. ``force`` redoes the
         update (and the acceleration-structure rebuild) even at the current time, e.g. to time it."""
         t_s = float(t_s)
         self._ensure_loaded()
-        if (t_s == self._time_s and not force) or not self._build.parts:
+        camera = self.scene_model.camera_motion is not None
+        if (t_s == self._time_s and not force) or not (self._build.parts or camera):
             self._time_s = t_s
             return
         parts = self._build.parts
+        pose = self._camera_pose(t_s) if camera else None
         for params in [self._params, *(p for _, p, _ in self._group_scenes.values())]:
             moved = False
+            if pose is not None:  # the handheld camera (camera.shake): opaque, so no kernel recompiles
+                params["sensor.to_world"] = self._opaque_transform(pose)
+                moved = True
             for s in self._build.shapes:
                 if s.part is not None and s.light is not None:
                     m = np.asarray(parts[s.part](t_s), float) @ s.to_world

@@ -1,0 +1,62 @@
+"""Simulate another capture of the same scene inside an application or a video: a timeline in, reads out.
+
+Applications that compare their capture with other ways of taking the same picture (the burst's
+conventional burst and long exposure, the video's alternating-exposure frames) need the same
+pipeline as :func:`mbcapture.capture.run_capture` without its outputs: plan the strata of the
+timeline by image motion (camera shake included), render them with the run's renderer (render
+cache shared), accumulate bucket electrons and simulate the sensor's reads. The samples per pixel
+are given (usually the run's own, chosen by its noise budget): no second pilot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .integrate import integrate
+from .plan import Plan, make_plan
+from .timeline import Timeline
+
+
+@dataclass(frozen=True)
+class SimulatedCapture:
+    """Arrays are (read, row, column, channel).
+
+    reads_dn          simulated reads, DN
+    saturated         bool
+    rate_e_per_s      each read in electrons per second of its exposure (black level removed, gain undone)
+    expected_e        noise-free, unclipped expected electrons of each read
+    exposure_s        (R,) seconds each read collected
+    plan              the render plan (strata, spp)
+    """
+
+    timeline: Timeline
+    reads_dn: np.ndarray
+    saturated: np.ndarray
+    rate_e_per_s: np.ndarray
+    expected_e: np.ndarray
+    exposure_s: np.ndarray
+    plan: Plan
+
+
+def capture_timeline(timeline: Timeline, scene, cfg, renderer, spp: int, seed: np.random.SeedSequence,
+                     k_e: np.ndarray) -> SimulatedCapture:
+    """Render, accumulate and read out ``timeline`` (the scene ``scene``, camera motion included) with
+    ``spp`` samples per pixel per stratum. ``seed`` is split into the plan's jitter, the render seeds and
+    the sensor noise; ``k_e`` (C,) electrons per render unit and second."""
+    from .sensor import dn_to_electrons, simulate_reads
+
+    s_plan, s_render, s_noise = seed.spawn(3)
+    plan = make_plan(timeline, scene, cfg.render, np.random.default_rng(s_plan))
+    plan = replace(plan, spp=np.full(plan.passes, int(spp), dtype=np.int64), spp_source="given")
+    integrated = integrate(renderer, plan, timeline.n_buckets, s_render)
+    buckets_e = integrated.exposure * k_e
+    spans = [timeline.span_ticks([b]) for b in range(timeline.n_buckets)]
+    storage_s = np.array([float(timeline.seconds((b1 if timeline.sequential else timeline.end_tick) - b0))
+                          for b0, b1 in spans])
+    out = simulate_reads(buckets_e, [r.buckets for r in timeline.reads], cfg.sensor, s_noise, storage_s=storage_s,
+                         shared_photodiode=not timeline.sequential)
+    exposure = np.array([float(timeline.read_exposure_ticks(r) * timeline.tick_s) for r in timeline.reads])
+    rate = dn_to_electrons(out.reads_dn, cfg.sensor) / exposure[:, None, None, None]
+    return SimulatedCapture(timeline, out.reads_dn, out.saturated, rate, out.reads_e_expected, exposure, plan)
