@@ -227,7 +227,8 @@ def _cmd_sweep(args) -> int:
               "(--resume goes on from there)", file=sys.stderr)
         return 130
     s = outcome.summary
-    say(f"{s['ok']} of {s['points']} points ok, {s['failed']} failed; {s['render_groups']} render groups; this run: "
+    say(f"{s['ok']} of {s['points']} points ok, {s['failed']} failed; {s['render_groups']} render group"
+        f"{'' if s['render_groups'] == 1 else 's'}; this run: "
         f"{s['ran']} points, {s['renders_rendered']} renders rendered, {s['renders_reused']} reused from the cache, "
         f"{s['points_sharing_renders']} points on their group's renders; {s['wall_s']:.1f} s")
     for index, row in sorted(outcome.rows.items()):

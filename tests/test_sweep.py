@@ -14,7 +14,7 @@ import yaml
 
 from mbcapture import load_config
 from mbcapture.errors import ConfigError
-from mbcapture.sweep import group_key, load_sweep, plan_sweep, run_sweep
+from mbcapture.sweep import group_key, load_sweep, plan_sweep, render_key, run_sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = sorted((ROOT / "configs" / "sweeps").glob("*.yaml"))
@@ -136,6 +136,12 @@ def test_group_key_changes_exactly_with_what_the_renders_receive():
     assert group_key(load_config("tiny_hdr", [*budget, "sensor.read_noise_e=9"])) == bkey
     assert group_key(load_config("tiny_hdr", [*budget, "sensor.f_number=8"])) != bkey
     assert group_key(load_config("tiny_hdr", [*budget, "sensor.full_well_e=3000"])) != bkey
+    # figure 6's strata at 1 and 2 periods: other weights (another render group), the same images
+    fig6 = ["render.spp=4", "capture.unit_exposure_s=0.004", "render.max_motion_px=0.1", "render.width=160",
+            "render.height=128"]
+    one, two = (load_config("metronome_hdr", [*fig6, f"capture.periods={n}"]) for n in (1, 2))
+    assert group_key(one) != group_key(two) and render_key(one) == render_key(two)
+    assert render_key(load_config("metronome_hdr", [*fig6, "capture.periods=1", "seed=5"])) != render_key(one)
     # spectral mode: the camera's curves shape the film
     spec = ["render.width=16", "render.height=12", "render.spp=4"]
     skey = group_key(load_config("metronome_spectral", spec))

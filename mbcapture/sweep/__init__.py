@@ -26,11 +26,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .execute import ROWS_DIR, run_here, run_on_dask, start_client, usable_cores
-from .groups import SweepPlan, group_key, plan_sweep, render_inputs
+from .groups import SweepPlan, group_key, plan_sweep, render_inputs, render_key
 from .spec import Point, Sweep, SweepSpec, load_sweep, resolve_sweep_path
 
 __all__ = ["Point", "Sweep", "SweepOutcome", "SweepPlan", "SweepSpec", "group_key", "load_sweep", "plan_sweep",
-           "render_inputs", "resolve_sweep_path", "run_sweep"]
+           "render_inputs", "render_key", "resolve_sweep_path", "run_sweep"]
 
 
 @dataclass
@@ -44,6 +44,10 @@ class SweepOutcome:
     summary: dict
     table: Any = None
     results: dict[int, Any] = field(default_factory=dict)
+
+
+def _count(n: int, what: str) -> str:
+    return f"{n} {what}{'' if n == 1 else 's'}"
 
 
 def _read_row(path: Path) -> dict | None:
@@ -96,7 +100,7 @@ def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, sch
     pending = {p.index for p in sweep.points if p.index not in rows}
     ran: dict[int, dict] = {}
     n_groups = sum(1 for g in plan.groups if any(i in pending for i in g.points))
-    say(f"sweep {sweep.name}: {len(sweep.points)} points in {len(plan.groups)} render groups"
+    say(f"sweep {sweep.name}: {len(sweep.points)} points in {_count(len(plan.groups), 'render group')}"
         + (f" (axes that change the renders: {', '.join(plan.axes_changing_renders)})" if plan.axes_changing_renders
            else " (no axis changes the renders)")
         + (f"; {len(resumed)} finished before, {len(pending)} to run" if resume else "")
@@ -142,6 +146,7 @@ def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, sch
     summary = {
         "points": len(sweep.points), "ok": len(done), "failed": len(rows) - len(done),
         "ran": len(ran), "resumed": len(resumed), "render_groups": len(plan.groups),
+        "render_sets": len({g.renders for g in plan.groups}),
         "axes_changing_renders": list(plan.axes_changing_renders),
         "renders_rendered": int(sum(r.get("renders_rendered") or 0 for r in ran.values())),
         "renders_reused": int(sum(r.get("renders_reused") or 0 for r in ran.values())),

@@ -55,8 +55,11 @@ def drjit_threads(cores: int, workers_on_host: int, concurrent: int) -> int:
 
 
 # ------------------------------------------------------------------------------------ worker side
-def _prepare_process(threads: dict[str, int] | None) -> None:
-    """Pick the libLLVM (before Mitsuba is imported) and set this process's Dr.Jit thread count."""
+def _prepare_process(threads: dict[str, int] | None, variant: str) -> None:
+    """For an LLVM variant: pick the libLLVM (before Mitsuba is imported) and set this process's
+    Dr.Jit thread count (``threads``: by host name)."""
+    if not variant.startswith("llvm"):
+        return
     from ..render.llvm import ensure_llvm
 
     ensure_llvm()
@@ -112,9 +115,10 @@ def write_point(result, folder: Path, keep: str) -> None:
         write_outputs(result, folder, raw=keep == "all")
 
 
-def run_point(task: dict, leader: dict | None = None, *, keep_result: bool = False) -> dict:
+def run_point(task: dict, leader: dict | None = None, *after: Any, keep_result: bool = False) -> dict:
     """Run one sweep point in this process. ``task``: from :func:`make_task`; ``leader``: what the
-    first point of its render group returned (its render stage is used instead of rendering).
+    first point of its render group returned (its render stage is used instead of rendering);
+    ``after``: ignored (tasks this one waits for: another group's that renders the same images).
 
     Returns ``{"row": {...}, "rendered": Rendered | None, "result": CaptureResult (keep_result)}``;
     an exception becomes ``row["status"] = "failed"`` with ``row["error"]``."""
@@ -127,8 +131,8 @@ def run_point(task: dict, leader: dict | None = None, *, keep_result: bool = Fal
     result = None
     shared = leader.get("rendered") if leader else None
     try:
-        _prepare_process(task.get("threads"))
         cfg = config_from_dict(task["config"], source=f"sweep point {task['label']}")
+        _prepare_process(task.get("threads"), cfg.render.variant)
         result = run_capture(cfg, progress=False, rendered=shared,
                              on_rendered=(lambda r: kept.update(rendered=r)) if task.get("leader") else None)
         if task.get("out_dir"):
@@ -220,7 +224,7 @@ def start_client(workers: int | None, scheduler: str | None = None):
             return Client(scheduler, timeout="30s")
         except (OSError, TimeoutError, ValueError) as exc:
             raise ConfigError(f"--scheduler {scheduler}: cannot connect ({one_line(exc)})") from None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                            silence_logs=logging.ERROR, memory_limit=0)
     try:
         return Client(cluster)
@@ -244,15 +248,22 @@ def run_on_dask(client, sweep: Sweep, plan: SweepPlan, pending: set[int], out: P
     from dask.distributed import as_completed
 
     todo = groups_to_run(plan, pending)
+    renders_of = {i: g.renders for g in plan.groups for i in g.points}
     hosts = topology(client)
-    leader_threads = {h: drjit_threads(c, w, len(todo)) for h, (c, w) in hosts.items()}
+    concurrent = len({renders_of[m[0]] for m in todo})  # groups rendering different images
+    leader_threads = {h: drjit_threads(c, w, concurrent) for h, (c, w) in hosts.items()}
     follower_threads = {h: drjit_threads(c, w, w) for h, (c, w) in hosts.items()}
     rows = {}
+    first_rendering: dict[str, Any] = {}  # render key -> the row of the first group that renders those images
     for members in todo:
         first = sweep.points[members[0]]
-        lead = client.submit(run_point, make_task(sweep, first, out, leader=True, threads=leader_threads),
+        # a group that renders the same images as an earlier one waits for it and reads them from the cache
+        after = [first_rendering[renders_of[members[0]]]] if renders_of[members[0]] in first_rendering else []
+        lead = client.submit(run_point, make_task(sweep, first, out, leader=True, threads=leader_threads), None, *after,
                              key=f"sweep-{first.label}-{first.id[:12]}", pure=False, priority=10)
-        rows[client.submit(row_of, lead, key=f"row-{first.label}-{first.id[:12]}", pure=False, priority=10)] = members[0]
+        row = client.submit(row_of, lead, key=f"row-{first.label}-{first.id[:12]}", pure=False, priority=10)
+        rows[row] = members[0]
+        first_rendering.setdefault(renders_of[members[0]], row)
         for index in members[1:]:
             p = sweep.points[index]
             rows[client.submit(run_point_row, make_task(sweep, p, out, leader=False, threads=follower_threads), lead,

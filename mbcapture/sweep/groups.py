@@ -44,8 +44,13 @@ def _array(a: np.ndarray | None) -> Any:
     return {"shape": list(a.shape), "dtype": a.dtype.str, "sha256": hashlib.sha256(a.tobytes()).hexdigest()}
 
 
-def render_inputs(cfg: CaptureConfig) -> dict:
-    """Everything the render stage of a capture of ``cfg`` receives, as plain data."""
+def render_inputs(cfg: CaptureConfig, *, accumulation: bool = True) -> dict:
+    """Everything the render stage of a capture of ``cfg`` receives, as plain data.
+
+    ``accumulation=False``: only what decides the renders themselves (strata, render times, which
+    groups each stratum renders, samples, seeds, the renderer), not how they are weighted into the
+    buckets; with ``render.spp`` null the weights and buckets read stay in, because the pilot
+    allocates samples by them."""
     from ..capture import prepare
     from ..sensor import electrons_per_render_second
     from ..sensor.spectral import is_spectral_variant
@@ -77,6 +82,12 @@ def render_inputs(cfg: CaptureConfig) -> dict:
     if cfg.render.spp is None:  # mbcapture.plan.resolve_spp: samples from the sensor's shot noise
         out["pilot"] = {"k_e": _array(np.asarray(electrons_per_render_second(cfg.sensor, cfg.render.variant))),
                         "full_well_e": repr(float(cfg.sensor.full_well_e))}
+    elif not accumulation:  # integrate renders, per stratum, the groups with weight in it
+        out["plan"]["weights_s"] = _array(plan.weights_s.sum(axis=1) > 0)
+        for k in ("buckets_read",):
+            out["plan"].pop(k)
+        out.pop("n_buckets")
+        out.pop("per_group")
     return out
 
 
@@ -85,12 +96,21 @@ def group_key(cfg: CaptureConfig) -> str:
     return digest(render_inputs(cfg))
 
 
+def render_key(cfg: CaptureConfig) -> str:
+    """SHA-256 of :func:`render_inputs` without the accumulation: equal for captures that render
+    the same images (they may weigh them differently into their buckets)."""
+    return digest(render_inputs(cfg, accumulation=False))
+
+
 @dataclass(frozen=True)
 class RenderGroup:
-    """Points (indices into the sweep) that share one render stage; ``key``: their group key."""
+    """Points (indices into the sweep) that share one render stage; ``key``: their group key;
+    ``renders``: their :func:`render_key` (groups with equal ones render the same images, so the
+    later ones find them in the render cache)."""
 
     key: str
     points: tuple[int, ...]
+    renders: str = ""
 
     @property
     def label(self) -> str:
@@ -138,16 +158,18 @@ def plan_sweep(sweep: Sweep) -> SweepPlan:
     from ..errors import MBCaptureError
 
     keys: dict[int, str] = {}
+    renders: dict[str, str] = {}
     failed: dict[int, str] = {}
     for p in sweep.points:
         try:
             keys[p.index] = group_key(p.config)
+            renders.setdefault(keys[p.index], render_key(p.config))
         except (MBCaptureError, ValueError) as exc:
             failed[p.index] = one_line(exc)
     members: dict[str, list[int]] = {}
     for index, key in keys.items():
         members.setdefault(key, []).append(index)
-    groups = tuple(RenderGroup(key, tuple(ix)) for key, ix in members.items())
+    groups = tuple(RenderGroup(key, tuple(ix), renders[key]) for key, ix in members.items())
     return SweepPlan(groups, failed, changing_axes(sweep, keys))
 
 

@@ -204,7 +204,8 @@ def index_html(sweep, summary: dict, df, plots: dict[str, str]) -> str:
         ["sweep file", str(sweep.path)], ["base config", str(sweep.base)],
         ["overrides of every point", " ".join(sweep.overrides) or "none"],
         ["points", f"{s['points']} ({s['ok']} ok, {s['failed']} failed; {s['ran']} run now, {s['resumed']} from an earlier run)"],
-        ["render groups", f"{s['render_groups']} (points whose render stage is the same share it)"],
+        ["render groups", f"{s['render_groups']} (points whose render stage is the same share it), rendering "
+                          f"{s['render_sets']} different sets of images (the others find them in the render cache)"],
         ["axes that change the renders", ", ".join(s["axes_changing_renders"]) or "none"],
         ["renders this run", f"{s['renders_rendered']} rendered, {s['renders_reused']} read from the render cache, "
                              f"{s['points_sharing_renders']} points used their group's render stage"],
@@ -254,7 +255,7 @@ def write_results(out: Path, sweep, plan, rows: dict[int, dict], summary: dict) 
         st.write_json("sweep.json", {
             "sweep": str(sweep.path), "base": str(sweep.base), "overrides": list(sweep.overrides),
             "spec": sweep.spec.model_dump(mode="json"), "summary": summary,
-            "groups": [{"group": g.label, "key": g.key, "points": [sweep.points[i].label for i in g.points]}
+            "groups": [{"group": g.label, "key": g.key, "renders": g.renders, "points": [sweep.points[i].label for i in g.points]}
                        for g in plan.groups],
             "points": [{"point": p.label, "id": p.id, "values": p.values} for p in sweep.points],
         })
