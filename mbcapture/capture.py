@@ -12,7 +12,7 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -20,7 +20,7 @@ from . import camera_motion, protocols, scenes
 from .config import CaptureConfig
 from .errors import ConfigError
 from .apps import AppOutput, CaptureData
-from .integrate import integrate, temporal_error
+from .integrate import Integrated, integrate, temporal_error
 from .io import check_out_dir, staged_outputs
 from .plan import Plan, make_plan, resolve_spp
 from .progress import StageStatus
@@ -251,20 +251,49 @@ def bucket_group_seconds(timeline: Timeline, switchable: tuple[str, ...]) -> np.
     return out
 
 
-def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True) -> CaptureResult:
+@dataclass(frozen=True)
+class Rendered:
+    """The render stage of a capture: its plan (samples chosen) and the integrated bucket exposures.
+
+    A capture whose renders are provably the same (the points of a sweep's render group, see
+    :mod:`mbcapture.sweep.groups`) takes it as ``run_capture(..., rendered=)`` and goes straight to
+    the sensor: no pilot, renders or accumulation. Its own plan must have the same strata, render
+    times, weights and groups (checked)."""
+
+    plan: Plan
+    integrated: Integrated
+
+    def plan_for(self, own: Plan) -> Plan:
+        same = (own.groups == self.plan.groups and np.array_equal(own.times_s, self.plan.times_s)
+                and np.array_equal(own.weights_s, self.plan.weights_s)
+                and (own.spp is None or np.array_equal(own.spp, self.plan.spp)))
+        if not same:
+            raise ValueError("run_capture(rendered=...): the renders were made for another plan "
+                             "(strata, render times, weights, groups or samples differ)")
+        return self.plan
+
+
+def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True,
+                rendered: Rendered | None = None,
+                on_rendered: "Callable[[Rendered], None] | None" = None) -> CaptureResult:
     """Run one capture. With ``out_dir``, write its outputs there (atomically). ``progress``: a
-    status line for every stage and a bar for the render passes (stderr)."""
+    status line for every stage and a bar for the render passes (stderr). ``rendered``: the render
+    stage of another capture with the same renders (see :class:`Rendered`), used instead of
+    rendering; ``on_rendered(Rendered)`` is called once this capture's render stage is done (before
+    the sensor, so it is called even if a later stage fails)."""
     if cfg.capture.frames > 1:  # a video: a capture per frame (mbcapture/video.py)
         from .video import run_video
 
         return run_video(cfg, out_dir, progress=progress)
     if out_dir is not None:
         check_out_dir(Path(out_dir))
-    with StageStatus(progress, stages=5 + (cfg.render.spp is None) + (out_dir is not None)) as status:
-        return _run(cfg, out_dir, progress, status)
+    own_render = rendered is None
+    with StageStatus(progress, stages=4 + own_render * (1 + (cfg.render.spp is None)) + (out_dir is not None)) as status:
+        return _run(cfg, out_dir, progress, status, rendered, on_rendered)
 
 
 def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status: StageStatus,
+         rendered: Rendered | None = None, on_rendered: "Callable[[Rendered], None] | None" = None,
          renderer=None) -> CaptureResult:
     """One capture; ``renderer``: a Renderer of this capture's scene to reuse (a video's frames), else one is made."""
     from .render import Renderer, ensure_llvm
@@ -280,13 +309,19 @@ def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status:
         llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
         cache = render_cache(cfg.render) if renderer is None else renderer.cache
         renderer = Renderer.from_config(scene, cfg, cache=cache) if renderer is None else renderer
-    pilot = status.stage("pilot render (spp from render.noise_budget)") if cfg.render.spp is None else nullcontext()
-    with timer("pilot"), pilot:
-        plan = resolve_spp(plan, renderer, cfg, seeds[2])  # render.spp null: spp from render.noise_budget
-    n_ch = len(renderer.channels)
-    with status.stage(f"render ({plan.passes} passes)"):
-        integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
-                               progress=progress)
+    if rendered is None:
+        pilot = status.stage("pilot render (spp from render.noise_budget)") if cfg.render.spp is None else nullcontext()
+        with timer("pilot"), pilot:
+            plan = resolve_spp(plan, renderer, cfg, seeds[2])  # render.spp null: spp from render.noise_budget
+        with status.stage(f"render ({plan.passes} passes)"):
+            integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
+                                   progress=progress)
+        if on_rendered is not None:
+            on_rendered(Rendered(plan, integrated))
+    else:  # another capture's render stage, with the same renders
+        plan, integrated = rendered.plan_for(plan), rendered.integrated
+        if app.per_group and integrated.group_exposure is None:
+            raise ValueError("run_capture(rendered=...): the application needs per-group exposures")
     exposure = integrated.exposure
 
     with timer("sensor"), status.stage("sensor"):
@@ -368,15 +403,17 @@ def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status:
     return result
 
 
-def write_outputs(result: CaptureResult, out: Path, extra=None) -> None:
+def write_outputs(result: CaptureResult, out: Path, extra=None, *, raw: bool = True) -> None:
     """Every output file of ``result`` into ``out``, atomically; ``extra(staging)`` writes more files
-    (a video's) before report.html, which lists them."""
+    (a video's) before report.html, which lists them; ``raw=False`` leaves out the bucket and read
+    EXRs (buckets.exr, reads_expected.exr, reads.exr)."""
     cfg, tl = result.config, result.timeline
     names = [r.name for r in tl.reads]
     with staged_outputs(out) as st:
-        st.write_exr("buckets.exr", {f"B{k + 1}": result.buckets_e[k] for k in range(tl.n_buckets)})
-        st.write_exr("reads_expected.exr", {n: result.reads_expected_e[i] for i, n in enumerate(names)})
-        st.write_exr("reads.exr", {n: result.reads_dn[i] for i, n in enumerate(names)})
+        if raw:
+            st.write_exr("buckets.exr", {f"B{k + 1}": result.buckets_e[k] for k in range(tl.n_buckets)})
+            st.write_exr("reads_expected.exr", {n: result.reads_expected_e[i] for i, n in enumerate(names)})
+            st.write_exr("reads.exr", {n: result.reads_dn[i] for i, n in enumerate(names)})
         app_out = result.app_output
         st.write_exr(f"{result.app}.exr", app_out.images)
         for file, layers in app_out.extra_exr.items():

@@ -1,4 +1,4 @@
-"""Command line: ``mbcapture run | plan | scenes | apps | figures | converge | cache``.
+"""Command line: ``mbcapture run | plan | sweep | scenes | apps | figures | converge | cache``.
 
 Input errors (config, files, environment) print one line and exit with status 2; notices
 (:class:`~mbcapture.errors.ConfigNotice`) print one line ``mbcapture: note: ...`` and go on.
@@ -67,6 +67,20 @@ def _parser() -> argparse.ArgumentParser:
     figs.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
     sub.add_parser("apps", help="list the applications (reconstructions), their protocols and parameters")
+
+    sweep = sub.add_parser("sweep", help="many captures varying some keys (renders shared), on Dask; a table, plots, index.html")
+    sweep.add_argument("sweep", type=Path,
+                       help="sweep file: a path (configs/sweeps/sensor_noise.yaml) or a shipped sweep's name (sensor_noise)")
+    sweep.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                       help="override a key of the base config for every point (not an axis), e.g. render.width=160")
+    sweep.add_argument("--out", type=Path, default=None, help="output folder (default: out/sweep_<sweep name>)")
+    where = sweep.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, default=None, metavar="N",
+                       help="worker processes of the local Dask cluster (default: one per core)")
+    where.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                       help="run on an existing Dask cluster (tcp://host:port) instead of a local one")
+    sweep.add_argument("--resume", action="store_true", help="skip the points that finished in an earlier run into --out")
+    sweep.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
     cache = sub.add_parser("cache", help="the render cache: where it is and how big, or empty it")
     cache.add_argument("action", choices=["info", "clear"], help="info: folder, entries, size; clear: remove every render")
@@ -196,6 +210,34 @@ def _cmd_converge(args) -> int:
     return 0
 
 
+def _cmd_sweep(args) -> int:
+    from .errors import ConfigError
+    from .sweep import load_sweep, resolve_sweep_path, run_sweep
+
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers: expected a number of processes >= 1, got {args.workers}")
+    sweep = load_sweep(args.sweep, args.overrides)
+    out = args.out or Path("out") / f"sweep_{resolve_sweep_path(args.sweep).stem}"
+    say = (lambda line: None) if args.quiet else print
+    try:
+        outcome = run_sweep(sweep, out, workers=args.workers, scheduler=args.scheduler, resume=args.resume,
+                            progress=not args.quiet, say=say)
+    except KeyboardInterrupt:
+        print(f"mbcapture: interrupted; the points that finished are kept in {out}/rows "
+              "(--resume goes on from there)", file=sys.stderr)
+        return 130
+    s = outcome.summary
+    say(f"{s['ok']} of {s['points']} points ok, {s['failed']} failed; {s['render_groups']} render group"
+        f"{'' if s['render_groups'] == 1 else 's'}; this run: "
+        f"{s['ran']} points, {s['renders_rendered']} renders rendered, {s['renders_reused']} reused from the cache, "
+        f"{s['points_sharing_renders']} points on their group's renders; {s['wall_s']:.1f} s")
+    for index, row in sorted(outcome.rows.items()):
+        if row.get("status") != "ok":
+            say(f"  {sweep.points[index].label} failed: {row.get('error')}")
+    say(f"wrote {out}/index.html, results.parquet, results.csv")
+    return 0
+
+
 def _cmd_scenes(args) -> int:
     from . import scenes
 
@@ -243,7 +285,7 @@ def _cmd_apps(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     handlers = {"run": _cmd_run, "plan": _cmd_plan, "scenes": _cmd_scenes, "apps": _cmd_apps, "figures": _cmd_figures,
-                "converge": _cmd_converge, "cache": _cmd_cache}
+                "converge": _cmd_converge, "cache": _cmd_cache, "sweep": _cmd_sweep}
     # SIGTERM (kill, a batch system's time limit) ends a run like Ctrl-C: staging removed, outputs untouched
     previous = signal.signal(signal.SIGTERM, _terminated) if threading.current_thread() is threading.main_thread() else None
     try:

@@ -73,7 +73,19 @@ def config_markdown() -> str:
         keys = {k: f for k, f in app.params.model_fields.items()}
         out += [*_table(app.params, "app."), ""] if keys else ["No parameters of its own.", ""]
         out.pop()
+    out += _sweep_section()
     return "\n".join(out) + "\n"
+
+
+def _sweep_section() -> list[str]:
+    """The keys of a sweep file (``mbcapture sweep``)."""
+    from .sweep.spec import Axes, RandomAxes, RandomKey, SweepSpec
+
+    return ["", "## Sweep files (`mbcapture sweep`)", "",
+            "A sweep file names a base config and the keys that vary; configs/sweeps/ has commented examples.", "",
+            *_table(SweepSpec, ""), "", "`axes`:", "", *_table(Axes, "axes."), "", "`axes.random`:", "",
+            *_table(RandomAxes, "axes.random."), "", "Each key of `axes.random.keys`:", "",
+            *_table(RandomKey, "axes.random.keys.<key>.")]
 
 
 if __name__ == "__main__":

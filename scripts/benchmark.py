@@ -19,6 +19,13 @@
 6. What meeting the budget costs with each sampler and estimator (--compare-film, default
    160x128): samples chosen, wall time and the measured Monte Carlo / shot-noise ratio, then a
    second capture of the same scene with another protocol (interleaved_hdr) on the warm cache.
+7. A 64-point sensor sweep against one capture (--sweep-film, default 320x256): `mbcapture sweep
+   sensor_noise` (read noise x full well x f-number, one render group) on a local Dask cluster of
+   --sweep-workers processes against `mbcapture run` of its first point, each in its own process with
+   an empty render cache (target: at most 1.5x), and where the sweep's time goes.
+8. 2 workers against 1 on a render-bound sweep (--sweep-film): 4 seeds of the default capture at
+   render.spp 32, each its own render group, `mbcapture sweep --workers 1` and `--workers 2`, each
+   with an empty render cache.
 """
 
 from __future__ import annotations
@@ -108,6 +115,70 @@ def compare(args) -> None:
                   f"{r2['render_cache']['rendered']} rendered)")
 
 
+def _timed_command(args: list[str]) -> float:
+    import subprocess
+    import sys
+
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "mbcapture", *args], check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - t0
+
+
+def sweep_cost(args) -> None:
+    import json
+    import tempfile
+
+    import pandas as pd
+    import yaml
+
+    from mbcapture.sweep import load_sweep
+
+    w, h = (int(x) for x in args.sweep_film.split("x"))
+    film = ["--set", f"render.width={w}", "--set", f"render.height={h}"]
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        first = load_sweep("sensor_noise", [f"render.width={w}", f"render.height={h}"]).points[0]
+        data = first.config.to_yaml_dict()
+        data["render"]["cache"] = str(tmp / "cache_run")
+        (tmp / "first.yaml").write_text(yaml.safe_dump(data))
+        t_run = _timed_command(["run", str(tmp / "first.yaml"), "--quiet", "--out", str(tmp / "run")])
+        t_sweep = _timed_command(["sweep", "sensor_noise", *film, "--set", f"render.cache={tmp / 'cache_sweep'}",
+                                  "--workers", str(args.sweep_workers), "--out", str(tmp / "sweep"), "--quiet"])
+        table = pd.read_parquet(tmp / "sweep" / "results.parquet")
+        summary = json.loads((tmp / "sweep" / "sweep.json").read_text())["summary"]
+        report = json.loads((tmp / "run" / "report.json").read_text())
+    lead = table[~table["render_shared"].astype(bool)]
+    rest = table[table["render_shared"].astype(bool)]
+    print(f"[7] {w}x{h}: `mbcapture run` of the sweep's first point {t_run:.1f} s ({report['plan']['passes']} passes x "
+          f"{report['plan']['spp']} spp, capture {report['timings_s']['total_before_write']:.1f} s of it); "
+          f"`mbcapture sweep sensor_noise` ({len(table)} points, {summary['render_groups']} render group, "
+          f"{args.sweep_workers} workers) {t_sweep:.1f} s: ratio {t_sweep / t_run:.2f} (target <= 1.5)")
+    print(f"    in the sweep: the group's first point {lead['seconds'].sum():.1f} s ({summary['renders_rendered']} renders "
+          f"rendered), the other {len(rest)} points {rest['seconds'].mean():.2f} s each (sensor "
+          f"{rest['timings_s.sensor'].mean():.2f} s, reconstruct {rest['timings_s.reconstruct'].mean():.2f} s), "
+          f"{rest['seconds'].sum():.1f} s in all over the workers; the rest (start, cluster, planning, results) "
+          f"{t_sweep - summary['wall_s']:.1f} s outside the sweep's own {summary['wall_s']:.1f} s")
+
+
+def sweep_workers(args) -> None:
+    import tempfile
+
+    import yaml
+
+    w, h = (int(x) for x in args.sweep_film.split("x"))
+    times = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        spec = {"base": "metronome_hdr", "set": {"render.width": w, "render.height": h, "render.spp": 32},
+                "axes": {"grid": {"seed": [0, 1, 2, 3]}}, "keep": "none"}
+        (tmp / "seeds.yaml").write_text(yaml.safe_dump(spec))
+        for n in (1, 2):
+            times[n] = _timed_command(["sweep", str(tmp / "seeds.yaml"), "--set", f"render.cache={tmp / f'cache{n}'}",
+                                       "--workers", str(n), "--out", str(tmp / f"out{n}"), "--quiet"])
+    print(f"[8] {w}x{h}, 4 seeds at 32 spp (4 render groups): 1 worker {times[1]:.1f} s, 2 workers {times[2]:.1f} s: "
+          f"speed-up {times[1] / times[2]:.2f}x")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--width", type=int, default=160)
@@ -119,9 +190,15 @@ def main() -> None:
     ap.add_argument("--ref-spp", type=int, default=256, help="[4] reference spp")
     ap.add_argument("--budget-film", default="640x512", help="[5] film, WxH")
     ap.add_argument("--compare-film", default="160x128", help="[6] film, WxH")
-    ap.add_argument("--only", default="1,2,3,4,5,6", help="which benchmarks to run, e.g. 4")
+    ap.add_argument("--sweep-film", default="320x256", help="[7], [8] film, WxH")
+    ap.add_argument("--sweep-workers", type=int, default=2, help="[7] local Dask workers")
+    ap.add_argument("--only", default="1,2,3,4,5,6,7,8", help="which benchmarks to run, e.g. 4")
     args = ap.parse_args()
     only = {int(x) for x in args.only.split(",")}
+    if 7 in only:
+        sweep_cost(args)
+    if 8 in only:
+        sweep_workers(args)
     if 5 in only:
         budget_and_cache(args)
     if 6 in only:

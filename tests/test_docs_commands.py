@@ -39,6 +39,12 @@ NOT_RUN = {
         "its --quick ladders are ~40 renders and a 64-spp reference: 18 s even at 16x12",
         "mbcapture converge configs/metronome_hdr.yaml --quick --spp 1,2 --naive-spp 1 --ref-spp 4 "
         "--set capture.periods=2"),
+    # docs/mutation.md: a mutation run is hours of CPU (every mutant runs its tests), and the report
+    # and `mutmut show` read what a run left in mutants/
+    "scripts/mutation.sh": ("a full mutation run: hours on 2 cores", None),
+    "scripts/mutation.sh 'mbcapture.sensor.readout.*'": ("the readout's mutants: tens of minutes", None),
+    ".venv/bin/mutmut show mbcapture.reconstruct.hdr.x__debevec__mutmut_26": ("reads a mutation run's mutants/", None),
+    ".venv/bin/python scripts/mutation_report.py --survivors": ("reads a mutation run's mutants/", None),
 }
 
 

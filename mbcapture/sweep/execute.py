@@ -1,0 +1,279 @@
+"""Running a sweep's points: on Dask (a LocalCluster here, or an existing cluster), or in this process.
+
+Each render group (:mod:`.groups`) becomes a small task graph: its first pending point (the
+leader) runs a whole capture, renders through the render cache and returns its render stage
+(:class:`mbcapture.capture.Rendered`); every other point of the group is a task that depends on
+the leader and runs the capture from the leader's render stage (sensor, reconstruction, metrics).
+Dask moves the leader's arrays to whichever worker runs a follower and frees them when the last
+one is done. Render groups run in parallel on different workers.
+
+Dr.Jit renders with its own thread pool (one thread per core by default), so a worker process per
+core would oversubscribe the machine. Each task sets its process's Dr.Jit thread count: a leader
+gets the cores of its host divided by the number of leaders that can run there at once (one
+render group: all the cores), a follower (numpy, single-threaded) cores / workers. Every worker
+picks its libLLVM (:func:`mbcapture.render.llvm.ensure_llvm`) before Mitsuba is imported.
+
+A point that fails (an exception in its capture, a worker lost) becomes a row with its error;
+the sweep goes on. Finished points are written to ``rows/<point id>.json`` as they arrive, so an
+interrupted sweep loses nothing, and ``--resume`` skips them.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from .groups import SweepPlan, one_line
+from .spec import Point, Sweep
+
+#: Folder names inside the sweep's output folder.
+ROWS_DIR = "rows"
+POINTS_DIR = "points"
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _host_cores() -> tuple[str, int]:
+    return socket.gethostname(), usable_cores()
+
+
+def drjit_threads(cores: int, workers_on_host: int, concurrent: int) -> int:
+    """Dr.Jit threads for a task on a host with ``cores`` and ``workers_on_host`` worker processes
+    when at most ``concurrent`` such tasks run there at once."""
+    return max(1, cores // max(1, min(workers_on_host, concurrent)))
+
+
+# ------------------------------------------------------------------------------------ worker side
+def _prepare_process(threads: dict[str, int] | None, variant: str) -> None:
+    """For an LLVM variant: pick the libLLVM (before Mitsuba is imported) and set this process's
+    Dr.Jit thread count (``threads``: by host name)."""
+    if not variant.startswith("llvm"):
+        return
+    from ..render.llvm import ensure_llvm
+
+    ensure_llvm()
+    n = (threads or {}).get(socket.gethostname())
+    if n:
+        import drjit as dr
+
+        if dr.thread_count() != n:
+            dr.set_thread_count(n)
+
+
+def flatten(data: Any, prefix: str) -> dict[str, Any]:
+    """Scalars (numbers, booleans, strings, None) of nested dicts as ``{'a.b.c': value}``; lists are left out."""
+    out: dict[str, Any] = {}
+    if isinstance(data, dict):
+        for k, v in data.items():
+            out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
+    elif isinstance(data, (bool, int, float, str)) or data is None:
+        out[prefix] = data
+    elif hasattr(data, "item") and getattr(data, "ndim", 1) == 0:  # a numpy scalar
+        out[prefix] = data.item()
+    return out
+
+
+def measurements(report: dict) -> dict[str, Any]:
+    """A row's measured columns from a capture's report.json: every scalar metric, the rendering
+    error, the render plan's size, the render cache's reuse and the timings."""
+    plan = report.get("plan", {})
+    cache = report.get("render_cache", {})
+    return {
+        "capture_span_s": report.get("capture_span_s"),
+        "passes": plan.get("passes"),
+        "spp_total": plan.get("samples_per_pixel_total"),
+        "renders_rendered": cache.get("rendered", 0),
+        "renders_reused": cache.get("hits", 0),
+        **flatten(report.get("metrics", {}), "metrics"),
+        **{k: v for k, v in flatten(report.get("render_error", {}), "render_error").items()
+           if not k.startswith("render_error.method")},
+        **flatten(report.get("timings_s", {}), "timings_s"),
+    }
+
+
+def write_point(result, folder: Path, keep: str) -> None:
+    """A point's own outputs (``keep``: report, images or all), atomically."""
+    from ..capture import write_outputs
+    from ..io import staged_outputs
+
+    if keep == "report":
+        with staged_outputs(folder) as st:
+            st.write_yaml("config.yaml", result.config.to_yaml_dict())
+            st.write_json("report.json", result.report)
+    elif keep in ("images", "all"):
+        write_outputs(result, folder, raw=keep == "all")
+
+
+def run_point(task: dict, leader: dict | None = None, *after: Any, keep_result: bool = False) -> dict:
+    """Run one sweep point in this process. ``task``: from :func:`make_task`; ``leader``: what the
+    first point of its render group returned (its render stage is used instead of rendering);
+    ``after``: ignored (tasks this one waits for: another group's that renders the same images).
+
+    Returns ``{"row": {...}, "rendered": Rendered | None, "result": CaptureResult (keep_result)}``;
+    an exception becomes ``row["status"] = "failed"`` with ``row["error"]``."""
+    from ..capture import run_capture
+    from ..config import config_from_dict
+
+    start = time.perf_counter()
+    row: dict[str, Any] = {"status": "ok", "error": None, "worker": f"{socket.gethostname()}:{os.getpid()}"}
+    kept: dict[str, Any] = {}
+    result = None
+    shared = leader.get("rendered") if leader else None
+    try:
+        cfg = config_from_dict(task["config"], source=f"sweep point {task['label']}")
+        _prepare_process(task.get("threads"), cfg.render.variant)
+        result = run_capture(cfg, progress=False, rendered=shared,
+                             on_rendered=(lambda r: kept.update(rendered=r)) if task.get("leader") else None)
+        if task.get("out_dir"):
+            write_point(result, Path(task["out_dir"]), task["keep"])
+        row.update(measurements(result.report))
+        row["render_shared"] = shared is not None
+    except Exception as exc:  # the point fails, the sweep goes on
+        row.update(status="failed", error=one_line(exc), traceback=traceback.format_exc(limit=8))
+    row["seconds"] = round(time.perf_counter() - start, 4)
+    out = {"row": row, "rendered": kept.get("rendered")}
+    if keep_result:
+        out["result"] = result
+    return out
+
+
+def run_point_row(task: dict, leader: dict | None = None) -> dict:
+    """:func:`run_point`'s row alone (what a follower sends back to the client)."""
+    return run_point(task, leader)["row"]
+
+
+def row_of(outcome: dict) -> dict:
+    return outcome["row"]
+
+
+# ------------------------------------------------------------------------------------ client side
+def make_task(sweep: Sweep, point: Point, out: Path | None, *, leader: bool,
+              threads: dict[str, int] | None) -> dict:
+    """What a worker needs to run ``point``: the resolved config as plain data, where to write."""
+    keep = sweep.spec.keep
+    return {
+        "label": point.label,
+        "id": point.id,
+        "config": point.config.to_yaml_dict(),
+        "out_dir": str(out / POINTS_DIR / point.label) if out is not None and keep != "none" else None,
+        "keep": keep,
+        "leader": leader,
+        "threads": threads,
+    }
+
+
+@dataclass
+class Progress:
+    """Counts of what this invocation ran."""
+
+    ran: int = 0
+    failed: int = 0
+    rows: dict[int, dict] = field(default_factory=dict)
+    results: dict[int, Any] = field(default_factory=dict)
+
+
+def groups_to_run(plan: SweepPlan, pending: set[int]) -> list[list[int]]:
+    """Per render group, its pending points in order (the first is the leader)."""
+    return [[i for i in g.points if i in pending] for g in plan.groups if any(i in pending for i in g.points)]
+
+
+def run_here(sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None, *,
+             on_row: Callable[[int, dict], None], keep_results: bool = False) -> dict[int, Any]:
+    """Run the pending points in this process, group by group (the leader's render stage handed to
+    the others). Returns the CaptureResults by point index when ``keep_results``."""
+    results: dict[int, Any] = {}
+    for members in groups_to_run(plan, pending):
+        leader_out: dict | None = None
+        for n, index in enumerate(members):
+            task = make_task(sweep, sweep.points[index], out, leader=n == 0, threads=None)
+            outcome = run_point(task, leader_out, keep_result=keep_results)
+            if n == 0:
+                leader_out = {"rendered": outcome["rendered"]}
+            if keep_results and outcome.get("result") is not None:
+                results[index] = outcome["result"]
+            on_row(index, outcome["row"])
+    return results
+
+
+def start_client(workers: int | None, scheduler: str | None = None):
+    """A Dask client: of a new LocalCluster of ``workers`` processes with one task thread each (its
+    ``.cluster``), or of the scheduler at ``scheduler`` (tcp://host:port)."""
+    import logging
+
+    from dask.distributed import Client, LocalCluster
+
+    from ..errors import ConfigError
+
+    if scheduler:
+        from urllib.parse import urlsplit
+
+        where = urlsplit(scheduler if "://" in scheduler else f"tcp://{scheduler}")
+        try:  # a refused or unreachable address fails here at once, not after Dask's retries
+            socket.create_connection((where.hostname, where.port or 8786), timeout=10).close()
+            return Client(scheduler, timeout="30s")
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise ConfigError(f"--scheduler {scheduler}: cannot connect ({one_line(exc)})") from None
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                           silence_logs=logging.ERROR, memory_limit=0)
+    try:
+        return Client(cluster)
+    except BaseException:
+        cluster.close()
+        raise
+
+
+def topology(client) -> dict[str, tuple[int, int]]:
+    """host -> (usable cores, worker processes on it), asked of every worker."""
+    per_worker = client.run(_host_cores)
+    hosts: dict[str, list[int]] = {}
+    for host, cores in per_worker.values():
+        hosts.setdefault(host, []).append(cores)
+    return {host: (min(c), len(c)) for host, c in hosts.items()}
+
+
+def run_on_dask(client, sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None, *,
+                on_row: Callable[[int, dict], None]) -> None:
+    """Submit the pending points (leaders first) and hand each finished row to ``on_row`` as it comes."""
+    from dask.distributed import as_completed
+
+    todo = groups_to_run(plan, pending)
+    renders_of = {i: g.renders for g in plan.groups for i in g.points}
+    hosts = topology(client)
+    concurrent = len({renders_of[m[0]] for m in todo})  # groups rendering different images
+    leader_threads = {h: drjit_threads(c, w, concurrent) for h, (c, w) in hosts.items()}
+    follower_threads = {h: drjit_threads(c, w, w) for h, (c, w) in hosts.items()}
+    rows = {}
+    first_rendering: dict[str, Any] = {}  # render key -> the row of the first group that renders those images
+    for members in todo:
+        first = sweep.points[members[0]]
+        # a group that renders the same images as an earlier one waits for it and reads them from the cache
+        after = [first_rendering[renders_of[members[0]]]] if renders_of[members[0]] in first_rendering else []
+        lead = client.submit(run_point, make_task(sweep, first, out, leader=True, threads=leader_threads), None, *after,
+                             key=f"sweep-{first.label}-{first.id[:12]}", pure=False, priority=10)
+        row = client.submit(row_of, lead, key=f"row-{first.label}-{first.id[:12]}", pure=False, priority=10)
+        rows[row] = members[0]
+        first_rendering.setdefault(renders_of[members[0]], row)
+        for index in members[1:]:
+            p = sweep.points[index]
+            rows[client.submit(run_point_row, make_task(sweep, p, out, leader=False, threads=follower_threads), lead,
+                               key=f"sweep-{p.label}-{p.id[:12]}", pure=False)] = index
+        del lead  # the followers hold it; Dask frees the leader's arrays after the last one
+    for future in as_completed(list(rows)):
+        index = rows.pop(future)
+        try:
+            row = future.result()
+        except Exception as exc:  # the worker died, or its task could not run at all
+            row = {"status": "failed", "error": f"the task was lost: {one_line(exc)}"}
+        future.release()
+        on_row(index, row)
