@@ -230,3 +230,26 @@ def test_noise_streams_from_an_int_or_a_generator_are_reproducible():
     a = NoiseStreams(np.random.default_rng(8)).normal("read", (4,))
     np.testing.assert_array_equal(a, NoiseStreams(np.random.default_rng(8)).normal("read", (4,)))
     assert not np.array_equal(a, NoiseStreams(np.random.default_rng(9)).normal("read", (4,)))
+
+
+def test_poisson_memo_returns_the_same_draw_and_only_for_the_same_field_and_means():
+    """A repeat of a draw (same uniform field, same means) comes from the memo, equal to the exact
+    inversion and a fresh array; another field or a mean one ulp away is drawn again."""
+    from mbcapture.sensor.sampling import POISSON_MEMO, poisson_quantile_memo
+
+    POISSON_MEMO.clear()
+    u = NoiseStreams(3).uniform("shot", (2, 5, 7))
+    lam = np.linspace(0.5, 4000.0, u.size).reshape(u.shape)
+    first = poisson_quantile_memo(u, lam)
+    np.testing.assert_array_equal(first, poisson_quantile(u, lam))
+    first[...] = -1  # the caller's array, not the memo's
+    again = poisson_quantile_memo(u, lam)
+    np.testing.assert_array_equal(again, poisson_quantile(u, lam))
+    assert (POISSON_MEMO.hits, POISSON_MEMO.misses) == (1, 1)
+    poisson_quantile_memo(NoiseStreams(4).uniform("shot", u.shape), lam)
+    poisson_quantile_memo(u, np.nextafter(lam, np.inf))
+    assert (POISSON_MEMO.hits, POISSON_MEMO.misses) == (1, 3)
+    for i in range(POISSON_MEMO.entries + 1):  # the oldest entries make room
+        poisson_quantile_memo(u, lam + i + 1)
+    poisson_quantile_memo(u, lam)
+    assert POISSON_MEMO.misses == 3 + POISSON_MEMO.entries + 2

@@ -42,7 +42,7 @@ from typing import Sequence
 import numpy as np
 
 from .config import SensorConfig
-from .sampling import NoiseStreams, binomial_quantile, poisson_quantile
+from .sampling import NoiseStreams, binomial_quantile, poisson_quantile_memo
 
 __all__ = ["FixedPattern", "SensorReads", "dn_to_electrons", "fixed_pattern", "simulate_reads"]
 
@@ -175,7 +175,8 @@ def simulate_reads(
         mean_e = mean_e + (cfg.dark_current_e_per_s * storage)[:, None, None, None]
 
     streams = noise if isinstance(noise, NoiseStreams) else NoiseStreams(noise)
-    electrons = poisson_quantile(streams.uniform("shot", mean_e.shape), mean_e)
+    # remembered: a sweep's points that differ only after this draw (read noise, full wells, ADC) reuse it
+    electrons = poisson_quantile_memo(streams.uniform("shot", mean_e.shape), mean_e)
     bucket_saturated = electrons >= cfg.full_well_e
     np.minimum(electrons, cfg.full_well_e, out=electrons)
 

@@ -31,12 +31,16 @@ sees the same photons in every point.
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 from typing import Callable
 
 import numpy as np
 from scipy import special, stats
 
-__all__ = ["NoiseStreams", "binomial_quantile", "invert_discrete", "poisson_pmf", "poisson_quantile", "uniform_open"]
+__all__ = ["NoiseStreams", "binomial_quantile", "invert_discrete", "poisson_pmf", "poisson_quantile",
+           "poisson_quantile_memo", "uniform_open"]
 
 #: Above this mean a Poisson count is no longer an exact float64 integer: the draw is the rounded
 #: Cornish-Fisher quantile (relative skewness 1/sqrt(mean) < 3e-8, below float64 use downstream).
@@ -273,3 +277,66 @@ def binomial_quantile(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
             upper=nn,
         )
     return out.reshape(shape)
+
+
+class _DrawMemo:
+    """The last few Poisson draws of this process, keyed by a digest of their uniform field and
+    means (BLAKE2b of the bytes: ~10 ms for a 640x512 capture's four buckets, against ~1.3 s for
+    the inversion). A draw is a deterministic function of the two, so a repeat is the same
+    counts. Thread-safe; entries beyond ``entries`` or ``max_bytes`` are dropped oldest first."""
+
+    def __init__(self, entries: int = 4, max_bytes: int = 1 << 30):
+        self.entries, self.max_bytes = entries, max_bytes
+        self._draws: OrderedDict[bytes, np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+        self.hits = self.misses = 0
+
+    @staticmethod
+    def key(u: np.ndarray, lam: np.ndarray) -> bytes:
+        h = hashlib.blake2b(digest_size=20)
+        for a in (u, lam):
+            a = np.ascontiguousarray(a, dtype=np.float64)
+            h.update(repr(a.shape).encode())
+            h.update(memoryview(a).cast("B"))
+        return h.digest()
+
+    def get(self, key: bytes) -> np.ndarray | None:
+        with self._lock:
+            out = self._draws.get(key)
+            if out is None:
+                self.misses += 1
+                return None
+            self._draws.move_to_end(key)
+            self.hits += 1
+            return out.copy()
+
+    def put(self, key: bytes, draw: np.ndarray) -> None:
+        if draw.nbytes > self.max_bytes:
+            return
+        with self._lock:
+            self._draws[key] = draw.copy()
+            while len(self._draws) > self.entries or sum(d.nbytes for d in self._draws.values()) > self.max_bytes:
+                self._draws.popitem(last=False)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._draws.clear()
+            self.hits = self.misses = 0
+
+
+#: The process's memo of :func:`poisson_quantile_memo`.
+POISSON_MEMO = _DrawMemo()
+
+
+def poisson_quantile_memo(u: np.ndarray, lam: np.ndarray | float) -> np.ndarray:
+    """:func:`poisson_quantile`, remembered: the points of a sweep over read noise, full wells or
+    the ADC draw the same photons from the same seed and means, and take them from the memo
+    instead of inverting again (a new array each call: the caller may change it)."""
+    u = np.asarray(u, dtype=np.float64)
+    lam = np.broadcast_to(np.asarray(lam, dtype=np.float64), u.shape)
+    key = POISSON_MEMO.key(u, lam)
+    out = POISSON_MEMO.get(key)
+    if out is None:
+        out = poisson_quantile(u, lam)
+        POISSON_MEMO.put(key, out)
+    return out
