@@ -151,6 +151,8 @@ def render_error(
     median, p95 = budget_quantiles(ratio)
     factor = max(median / noise_budget, p95 / noise_budget_p95)
     budget = {"median_target": noise_budget, "p95_target": noise_budget_p95, "met": bool(factor <= 1.0)}
+    if plan is not None:
+        budget["spp_source"] = plan.spp_source
     if plan is not None and plan.spp is not None and factor > 1.0:
         budget["spp_that_would_meet"] = int(2 * np.ceil(float(plan.spp.max()) * factor / 2))
     return {

@@ -98,9 +98,13 @@ def noise_verdict(render_error: dict) -> str:
              f"in the 95th percentile (budget {budget['median_target']:g} / {budget['p95_target']:g})")
     if budget["met"]:
         return f"Sensor noise dominates: {level}, adding {extra:.1f} % to the median sample's noise."
-    fix = f"render.spp >= {budget['spp_that_would_meet']} or " if "spp_that_would_meet" in budget else ""
-    return (f"Rendering noise is visible in the simulated images: {level}, adding {extra:.0f} % to the median "
-            f"sample's noise; {fix}render.spp: null (the noise budget) would meet it.")
+    head = (f"Rendering noise is visible in the simulated images: {level}, adding {extra:.0f} % to the median "
+            "sample's noise; ")
+    spp = f"render.spp >= {budget['spp_that_would_meet']}" if "spp_that_would_meet" in budget else None
+    if budget.get("spp_source") == "noise_budget":  # the pilot's estimate missed: more samples, not the budget again
+        return head + (f"the noise budget's pilot under-estimated it; {spp} would meet it." if spp else
+                       "the noise budget's pilot under-estimated it.")
+    return head + (f"{spp} or " if spp else "") + "render.spp: null (the noise budget) would meet it."
 
 
 # ----------------------------------------------------------------------------- plots

@@ -123,6 +123,11 @@ def test_noise_verdict_follows_the_budget():
     over = {"to_shot_noise_variance_median": 3.0, "to_shot_noise_variance_p95": 30.0,
             "budget": {"median_target": 0.1, "p95_target": 1.0, "met": False, "spp_that_would_meet": 480}}
     assert noise_verdict(over).startswith("Rendering noise is visible") and "render.spp >= 480" in noise_verdict(over)
+    assert "render.spp: null" in noise_verdict(over)
+    # the budget chose the samples and missed: it does not suggest the budget again
+    missed = {**over, "budget": {**over["budget"], "spp_source": "noise_budget"}}
+    assert "pilot under-estimated" in noise_verdict(missed) and "render.spp >= 480" in noise_verdict(missed)
+    assert "render.spp: null" not in noise_verdict(missed)
     assert "spp = 1" in noise_verdict({"note": "render.spp = 1: no half-sample error estimate"})
 
 
