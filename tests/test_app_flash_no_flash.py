@@ -288,3 +288,81 @@ def test_tiny_render_interleaved_beats_sequential():
     assert i["motion_blur_agreement"]["letter_s"]["rel_rms"] < 0.05
     assert s["motion_blur_agreement"]["letter_s"]["rel_rms"] > 5 * i["motion_blur_agreement"]["letter_s"]["rel_rms"]
     assert s["flash_only"]["ghost_rel_mse_moving"] > 10 * i["flash_only"]["ghost_rel_mse_moving"]
+
+
+def test_mask_threshold_opening_disc_and_feathered_border():
+    """Shadow = luminance strictly below the threshold; the 3x3 opening keeps a 3x3 shadow and
+    drops a 2x3 one; dilation is by a Euclidean disc of dilate_px; feathering treats the image
+    as continued by its edge pixels."""
+    from scipy import ndimage
+
+    fo = np.ones((24, 24, 3))
+    fo[3:6, 3:6] = 0.2         # a 3x3 shadow: kept by the 3x3 opening
+    fo[3:5, 12:15] = 0.2       # 2x3: removed
+    fo[14:19, 3:8] = 0.5       # exactly at the threshold: not a shadow
+    fo[14:19, 12:17] = 0.4999  # just below: a shadow
+    no_spec = np.zeros((24, 24), bool)
+    m0, shadow0, spec0 = flash_mask(fo, no_spec, 0.5, dilate_px=0, feather_px=0.0)
+    expect = np.zeros((24, 24), bool)
+    expect[3:6, 3:6] = True
+    expect[14:19, 12:17] = True
+    np.testing.assert_array_equal(shadow0, expect)
+    np.testing.assert_array_equal(m0, expect.astype(float))
+    assert spec0.dtype == bool and not spec0.any()
+    spec = np.zeros((24, 24), bool)
+    spec[9, 20] = True
+    _, shadow2, spec2 = flash_mask(fo, spec, 0.5, dilate_px=2, feather_px=0.0)
+    np.testing.assert_array_equal(shadow2, ndimage.distance_transform_edt(~expect) <= 2)
+    np.testing.assert_array_equal(spec2, ndimage.distance_transform_edt(~spec) <= 2)
+    # a shadow band along the left edge, feathered: as if the band went on beyond the border
+    fo_b = np.ones((12, 16, 3))
+    fo_b[:, :4] = 0.0
+    band = np.zeros((12, 16))
+    band[:, :4] = 1.0
+    m_soft, _, _ = flash_mask(fo_b, np.zeros((12, 16), bool), 0.5, dilate_px=0, feather_px=3.0)
+    wide = np.pad(band, 20, mode="edge")
+    np.testing.assert_allclose(m_soft, ndimage.gaussian_filter(wide, 3.0)[20:-20, 20:-20], atol=1e-9)
+
+
+def test_letter_s_mask_is_the_region_its_points_sweep_over_the_capture():
+    """The region swept by the motion points the scene names as the letter S, between the
+    timeline's first and last tick; None without those points or without motion."""
+    import dataclasses
+    from fractions import Fraction
+
+    from mbcapture.apps.flash_no_flash import _letter_s_mask
+    from mbcapture.capture import moving_region
+    from mbcapture.scenes import Camera, SceneModel
+    from mbcapture.timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
+
+    def points(t):  # (T, 5, 3): 0-1 a pair moving right at 2 m/s, 2-4 a triangle ("the S") moving down at 2 m/s
+        t = np.asarray(t, float)[:, None]
+        pair = np.stack([np.hstack([-0.6 + 2 * t, 0.3 + 0 * t, 2 + 0 * t]),
+                         np.hstack([-0.5 + 2 * t, 0.4 + 0 * t, 2 + 0 * t])], axis=1)
+        tri = np.stack([np.hstack([0.3 + 0 * t, 0.5 - 2 * t, 2 + 0 * t]),
+                        np.hstack([0.5 + 0 * t, 0.5 - 2 * t, 2 + 0 * t]),
+                        np.hstack([0.4 + 0 * t, 0.3 - 2 * t, 2 + 0 * t])], axis=1)
+        return np.concatenate([pair, tri], axis=1)
+
+    cam = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 90.0)
+    scene = SceneModel("synthetic", ("ambient",), frozenset(), cam, None, None, motion_points=points,
+                       extra={"letter_s_points": (2, 3, 4)})
+    ms = Fraction(1, 1000)
+    tl = build_timeline([SegmentSeconds(50 * ms, (SlotSeconds(0, 20 * ms), SlotSeconds(1, 20 * ms)), 2)],
+                        [ReadEvent("F", (0,)), ReadEvent("A", (1,))], 2, "two")
+    assert float(tl.seconds(tl.start_tick)) == pytest.approx(0.05) and float(tl.seconds(tl.end_tick)) == pytest.approx(0.13)
+    W, H = 40, 30
+    data = SimpleNamespace(scene=scene, timeline=tl, moving_mask=np.zeros((H, W), bool))
+    got = _letter_s_mask(data)
+    only_s = dataclasses.replace(scene, motion_points=lambda t: points(t)[:, 2:])
+    np.testing.assert_array_equal(got, moving_region(only_s, 0.05, 0.13, W, H))
+    everything = moving_region(scene, 0.05, 0.13, W, H)
+    assert got.sum() > 20 and (got & ~everything).sum() < 5 and (everything & ~got).sum() > 20
+    # the triangle moves 0.16 m down at 2 m away: ~3.2 px of 40; over a longer window it sweeps further
+    assert not np.array_equal(got, moving_region(only_s, 0.0, 0.13, W, H))
+    assert not np.array_equal(got, moving_region(only_s, 0.05, 0.2, W, H))
+    assert _letter_s_mask(SimpleNamespace(scene=None, timeline=tl, moving_mask=data.moving_mask)) is None
+    plain = dataclasses.replace(scene, extra={})
+    assert _letter_s_mask(SimpleNamespace(scene=plain, timeline=tl, moving_mask=data.moving_mask)) is None
+    still = dataclasses.replace(scene, motion_points=None)
+    assert _letter_s_mask(SimpleNamespace(scene=still, timeline=tl, moving_mask=data.moving_mask)) is None
