@@ -298,6 +298,7 @@ def test_sweep_region_unions_occluders_and_grows_by_a_disk():
     np.testing.assert_array_equal(m, a | b)
     for grow in (1.0, 2.0, 2.5):  # every pixel within grow_px (Euclidean) of the region
         grown = sweep_region(frames, 24, 14, grow_px=grow)
+        assert grown.dtype == bool
         np.testing.assert_array_equal(grown, distance_transform_edt(~m) <= grow)
 
 
