@@ -186,3 +186,137 @@ def test_demosaic_edge_makes_colour_error_that_registered_channels_do_not():
     out = rgb.demosaic(rgb.mosaic(img, "RGGB"), "RGGB", "bilinear", peak=1.0)
     chroma = np.abs(out - out.mean(-1, keepdims=True)).max()
     assert chroma > 0.1
+
+
+# -- exact small cases ---------------------------------------------------------------------------
+def test_interior_masks_boundary_and_patches_smaller_than_a_pixel():
+    # fraction 1 of (1.5, 1.5)-(4.5, 4.5): the centres 1.5 and 4.5 lie on the border and count
+    m = rgb.interior_masks(np.array([[1.5, 1.5, 4.5, 4.5]]), 8, 6, 1.0)[0]
+    expect = np.zeros((6, 8), bool)
+    expect[1:5, 1:5] = True
+    np.testing.assert_array_equal(m, expect)
+    # patches too small to hold a pixel centre get their nearest pixel, clamped to the image
+    tiny = np.array([[2.1, 3.1, 2.3, 3.3], [-5.0, -5.0, -4.8, -4.8], [50.0, 40.0, 50.2, 40.2]])
+    t = rgb.interior_masks(tiny, 8, 6, 0.5)
+    for mask, (y, x) in zip(t, [(3, 2), (0, 0), (5, 7)]):
+        assert mask.sum() == 1 and mask[y, x]
+
+
+def test_patch_boxes_are_the_projected_patch_squares():
+    from types import SimpleNamespace
+
+    cam = scenes.Camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 40.0)
+    sc = SimpleNamespace(camera=cam, extra={"patches": [("a", (0.1, 0.05, 0.0), 0.04), ("b", (-0.2, -0.1, 0.0), 0.02)]})
+    boxes = rgb.patch_boxes_px(sc, 64, 48)
+    for (_, (cx, cy, cz), h), box in zip(sc.extra["patches"], boxes):
+        corners = np.array([[cx + sx * h, cy + sy * h, cz] for sx in (-1, 1) for sy in (-1, 1)])
+        px = cam.project(corners, 64, 48)
+        np.testing.assert_allclose(box, [px[:, 0].min(), px[:, 1].min(), px[:, 0].max(), px[:, 1].max()], rtol=1e-12)
+        assert box[2] - box[0] == pytest.approx(box[3] - box[1], rel=1e-9)  # square patch, square pixels
+
+
+def test_led_signals_of_a_two_row_image():
+    mono = np.arange(4 * 2 * 3, dtype=float).reshape(4, 2, 3) + 10.0
+    t = np.array([0.5, 1.0, 2.0, 4.0])
+    s = rgb.led_signals(mono, t)
+    assert s.shape == (2, 3, 3)
+    for k in range(3):
+        np.testing.assert_allclose(s[..., k], mono[k] / t[k] - mono[3] / t[3])
+
+
+def test_analytic_matrix_refuses_a_white_without_signal_and_scales_a_weak_one():
+    response = np.diag([2.0, 5.0, 3.0])
+    led_xyz = np.array([[0.4, 0.3, 0.2], [0.2, 0.7, 0.1], [0.01, 0.1, 0.9]])
+    with pytest.raises(ValueError, match="analytic colour matrix: the white patch has no signal"):
+        rgb.analytic_matrix(response, led_xyz, np.zeros(3), 1.0)
+    white = 1e-3 * response @ np.ones(3)  # a faint white: Y of the mapped white is still white_y
+    m = rgb.analytic_matrix(response, led_xyz, white, 0.9)
+    assert float(white @ m[:, 1]) == pytest.approx(0.9)
+
+
+def test_xyz_to_lab_uses_the_given_white():
+    import colour
+
+    a = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["A"]
+    white_xyz = colour.xy_to_XYZ(a)
+    np.testing.assert_allclose(rgb.xyz_to_lab(white_xyz, a), [100.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(rgb.xyz_to_lab(np.array([-0.1, 0.5, 0.2]), a), rgb.xyz_to_lab(np.array([0.0, 0.5, 0.2]), a))
+
+
+def test_mosaic_defaults_and_dtype():
+    img = np.random.default_rng(3).uniform(0, 1, (6, 8, 3)).astype(np.float32)
+    raw = rgb.mosaic(img)
+    assert raw.dtype == np.float32
+    np.testing.assert_array_equal(raw, rgb.mosaic(img, "RGGB"))
+    assert raw[0, 0] == img[0, 0, 0] and raw[0, 1] == img[0, 1, 1] and raw[1, 1] == img[1, 1, 2]
+
+
+def test_demosaic_quantizes_to_16_bits_of_its_peak():
+    """Values on the 16-bit grid of the peak come back exactly; above the peak they clip to it;
+    black stays black; the default peak is the largest value; bilinear is the neighbour mean."""
+    q = np.random.default_rng(4).integers(1000, 60000, size=3)
+    peak = 2.5
+    img = np.broadcast_to(q / 65535.0 * peak, (16, 16, 3)).copy()
+    for method in ("bilinear", "edge_aware"):
+        out = rgb.demosaic(rgb.mosaic(img, "RGGB"), "RGGB", method, peak=peak)
+        np.testing.assert_allclose(out[4:-4, 4:-4], img[4:-4, 4:-4], rtol=1e-12)  # 1 count = 1.5e-5
+    raw = rgb.mosaic(img, "RGGB")
+    np.testing.assert_array_equal(rgb.demosaic(raw), rgb.demosaic(raw, "RGGB", "edge_aware", peak=raw.max()))
+    over = rgb.demosaic(np.full((8, 8), 3.0 * peak), "RGGB", "bilinear", peak=peak)
+    np.testing.assert_allclose(over, peak, rtol=1e-12)
+    dark = np.zeros((8, 8))
+    dark[4, 4] = 7.0
+    d = rgb.demosaic(dark, "RGGB", "bilinear")  # default peak 7: the 16-bit grid spans 0..7
+    assert d[0, 0].tolist() == [0.0, 0.0, 0.0] and d[4, 4, 0] == pytest.approx(7.0, rel=1e-12)
+    # a red pixel (0, 0) of RGGB, bilinear: its green is the mean of its four green neighbours
+    raw = np.random.default_rng(5).integers(0, 65536, size=(12, 12)).astype(float)
+    b = rgb.demosaic(raw, "RGGB", "bilinear", peak=65535.0)
+    g4 = (raw[4, 5] + raw[4, 7] + raw[3, 6] + raw[5, 6]) / 4
+    assert b[4, 6, 1] == pytest.approx(g4, abs=1.0)
+    assert abs(rgb.demosaic(raw, "RGGB", "edge_aware", peak=65535.0)[4:8, 4:8] - b[4:8, 4:8]).max() > 100
+
+
+def _box(lo, hi, v=1.0):
+    """A spectrum of value v on [lo, hi] nm, sampled only there (1 nm): zero outside by definition."""
+    from mbcapture.render.build import Spectrum
+
+    wl = np.arange(lo, hi + 1.0)
+    return Spectrum(tuple(wl), tuple(np.full(wl.size, v)))
+
+
+def test_led_matrices_integrate_spectra_that_are_zero_outside_their_samples():
+    """Box LEDs and box sensitivities, each sampled only over its support (non-zero at its ends):
+    on the 1 nm grid a product of boxes integrates to (overlap in nm + 1) x the values."""
+    import colour
+    from types import SimpleNamespace
+
+    leds = {"led_r": _box(600, 620), "led_g": _box(520, 540), "led_b": _box(440, 460)}
+    sc = SimpleNamespace(extra={"led_spectra": leds})
+    curves_wl = np.arange(400.0, 701.0)
+    ch0 = np.full(curves_wl.size, 0.5)                               # 0.5 on 400..700
+    ch1 = np.where((curves_wl >= 530) & (curves_wl <= 610), 2.0, 0.0)  # 2 on 530..610
+    ch2 = np.ones(curves_wl.size)                                    # 1 on 400..700
+    response, led_xyz = rgb.led_matrices(sc, curves_wl, np.stack([ch0, ch1, ch2]), per_led_channel=False)
+    np.testing.assert_allclose(response, [[21 * 0.5, 21 * 0.5, 21 * 0.5],
+                                          [11 * 2.0, 11 * 2.0, 0.0],
+                                          [21.0, 21.0, 21.0]], rtol=1e-12)
+    cmfs = colour.MSDS_CMFS[rgb.CMFS_NAME].copy().align(colour.SpectralShape(360, 830, 1)).values
+    for k, (lo, hi) in enumerate([(600, 620), (520, 540), (440, 460)]):
+        np.testing.assert_allclose(led_xyz[:, k], cmfs[lo - 360: hi - 360 + 1].sum(axis=0), rtol=1e-12)
+    diag, led_xyz2 = rgb.led_matrices(sc, curves_wl, np.stack([ch0, ch1, ch2]), per_led_channel=True)
+    np.testing.assert_allclose(diag, np.diag(np.diag(response)), rtol=1e-15)
+    np.testing.assert_array_equal(led_xyz2, led_xyz)
+
+
+def test_true_colours_perfect_white_has_y_1_and_is_the_white_point(chart):
+    from types import SimpleNamespace
+
+    from mbcapture.render.build import Spectrum
+
+    wl = tuple(np.arange(360.0, 831.0, 10.0))
+    flat = {"white": Spectrum(wl, (1.0,) * len(wl)), "grey": Spectrum(wl, (0.5,) * len(wl))}
+    sc = SimpleNamespace(extra={"led_spectra": chart.extra["led_spectra"], "reflectances": flat})
+    names, xyz, white_xy = rgb.true_colours(sc)
+    assert names == ["white", "grey"]
+    assert xyz[0, 1] == pytest.approx(1.0, rel=1e-9) and xyz[1] == pytest.approx(0.5 * xyz[0], rel=1e-9)
+    np.testing.assert_allclose(white_xy, xyz[0, :2] / xyz[0].sum(), rtol=1e-9)
