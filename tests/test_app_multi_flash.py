@@ -450,13 +450,13 @@ def test_depth_edge_methods_pass_their_parameters():
     bad = np.zeros((H, W), bool)
     bad[R0:R1 + 1, C1] = True
     p = mf.MultiFlashParams(method="raskar2004", step_threshold=0.5, step_span_px=1, smooth_px=0.8,
-                            min_signal_fraction=0.2)
+                            min_signal_fraction=0.5)
     got = mf.depth_edges(images, epipoles, bad, p)
     ref = mf.raskar_depth_edges(images, epipoles, step_threshold=0.5, step_span_px=1, smooth_px=0.8,
-                                min_signal_fraction=0.2, bad=bad)
+                                min_signal_fraction=0.5, bad=bad)
     for a, b in ((got.edges, ref.edges), (got.valid, ref.valid), (got.ratios, ref.ratios)):
         np.testing.assert_array_equal(a, b)
-    assert not got.valid[R0:R1 + 1, C1].any()
+    assert not got.valid[R0:R1 + 1, C1].any() and (~got.valid).mean() > 0.03  # dim albedos fall below half the white
     for low, high in ((0.3, 0.6), (0.5, 0.2)):  # canny: a high threshold below the low one is raised to it
         c = mf.depth_edges(images, epipoles, bad, mf.MultiFlashParams(method="canny_max_composite",
                                                                       canny_low=low, canny_high=high))
