@@ -417,6 +417,11 @@ def test_components_do_not_depend_on_the_units_of_radiance():
     np.testing.assert_array_equal(ck.mask, c1.mask)
     flat = components(ambient, np.full((H, W, 3), 5.0), np.zeros((H, W), bool), p)
     np.testing.assert_allclose(flat.f_detail, 1.0, rtol=1e-12)
+    # a flat coloured scene comes out of both filters as it went in, in its own units
+    colour_ = np.broadcast_to([0.2, 0.4, 0.6], (H, W, 3))
+    c_flat = components(colour_, 3.0 * colour_, np.zeros((H, W), bool), p)
+    np.testing.assert_allclose(c_flat.a_base, colour_, rtol=1e-12)
+    np.testing.assert_allclose(c_flat.a_nr, colour_, rtol=1e-12)
 
 
 def test_white_level_rel_rms_blur_agreement_and_display_psnr():

@@ -260,8 +260,6 @@ def test_demosaic_quantizes_to_16_bits_of_its_peak():
     for method in ("bilinear", "edge_aware"):
         out = rgb.demosaic(rgb.mosaic(img, "RGGB"), "RGGB", method, peak=peak)
         np.testing.assert_allclose(out[4:-4, 4:-4], img[4:-4, 4:-4], rtol=1e-12)  # 1 count = 1.5e-5
-    raw = rgb.mosaic(img, "RGGB")
-    np.testing.assert_array_equal(rgb.demosaic(raw), rgb.demosaic(raw, "RGGB", "edge_aware", peak=raw.max()))
     over = rgb.demosaic(np.full((8, 8), 3.0 * peak), "RGGB", "bilinear", peak=peak)
     np.testing.assert_allclose(over, peak, rtol=1e-12)
     dark = np.zeros((8, 8))
@@ -274,6 +272,7 @@ def test_demosaic_quantizes_to_16_bits_of_its_peak():
     g4 = (raw[4, 5] + raw[4, 7] + raw[3, 6] + raw[5, 6]) / 4
     assert b[4, 6, 1] == pytest.approx(g4, abs=1.0)
     assert abs(rgb.demosaic(raw, "RGGB", "edge_aware", peak=65535.0)[4:8, 4:8] - b[4:8, 4:8]).max() > 100
+    np.testing.assert_array_equal(rgb.demosaic(raw), rgb.demosaic(raw, "RGGB", "edge_aware", peak=raw.max()))  # defaults
 
 
 def _box(lo, hi, v=1.0):
@@ -290,18 +289,18 @@ def test_led_matrices_integrate_spectra_that_are_zero_outside_their_samples():
     import colour
     from types import SimpleNamespace
 
-    leds = {"led_r": _box(600, 620), "led_g": _box(520, 540), "led_b": _box(440, 460)}
+    leds = {"led_r": _box(690, 710), "led_g": _box(520, 540), "led_b": _box(440, 460)}
     sc = SimpleNamespace(extra={"led_spectra": leds})
-    curves_wl = np.arange(400.0, 701.0)
-    ch0 = np.full(curves_wl.size, 0.5)                               # 0.5 on 400..700
+    curves_wl = np.arange(450.0, 701.0)  # the red and blue LEDs stick out of the sensitivities' range
+    ch0 = np.full(curves_wl.size, 0.5)                               # 0.5 on 450..700
     ch1 = np.where((curves_wl >= 530) & (curves_wl <= 610), 2.0, 0.0)  # 2 on 530..610
-    ch2 = np.ones(curves_wl.size)                                    # 1 on 400..700
+    ch2 = np.ones(curves_wl.size)                                    # 1 on 450..700
     response, led_xyz = rgb.led_matrices(sc, curves_wl, np.stack([ch0, ch1, ch2]), per_led_channel=False)
-    np.testing.assert_allclose(response, [[21 * 0.5, 21 * 0.5, 21 * 0.5],
-                                          [11 * 2.0, 11 * 2.0, 0.0],
-                                          [21.0, 21.0, 21.0]], rtol=1e-12)
+    np.testing.assert_allclose(response, [[11 * 0.5, 21 * 0.5, 11 * 0.5],
+                                          [0.0, 11 * 2.0, 0.0],
+                                          [11.0, 21.0, 11.0]], rtol=1e-12)
     cmfs = colour.MSDS_CMFS[rgb.CMFS_NAME].copy().align(colour.SpectralShape(360, 830, 1)).values
-    for k, (lo, hi) in enumerate([(600, 620), (520, 540), (440, 460)]):
+    for k, (lo, hi) in enumerate([(690, 710), (520, 540), (440, 460)]):
         np.testing.assert_allclose(led_xyz[:, k], cmfs[lo - 360: hi - 360 + 1].sum(axis=0), rtol=1e-12)
     diag, led_xyz2 = rgb.led_matrices(sc, curves_wl, np.stack([ch0, ch1, ch2]), per_led_channel=True)
     np.testing.assert_allclose(diag, np.diag(np.diag(response)), rtol=1e-15)
