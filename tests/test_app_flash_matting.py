@@ -272,8 +272,15 @@ def test_make_trimap_exact_thresholds_structuring_discs_and_defaults():
     assert (e1 == 1.0).sum() == 10 * 10 and e1[5, 5] == 1.0
     e2 = fm.make_trimap(sq, 0.8, 0.2, open_px=0, erode_px=2)
     assert (e2 == 1.0).sum() == 8 * 8
-    np.testing.assert_array_equal(fm.make_trimap(sq, 0.8, 0.2), fm.make_trimap(sq, 0.8, 0.2, open_px=1, erode_px=2))
-    assert not np.array_equal(fm.make_trimap(sq, 0.8, 0.2), fm.make_trimap(sq, 0.8, 0.2, 2, 3))
+    # defaults on a smooth random cue, where every other radius changes some pixels
+    from scipy import ndimage
+
+    blob = ndimage.gaussian_filter(np.random.default_rng(14).uniform(0, 1, (40, 40)), 3)
+    blob = (blob - blob.min()) / (blob.max() - blob.min())
+    default = fm.make_trimap(blob, 0.6, 0.4)
+    np.testing.assert_array_equal(default, fm.make_trimap(blob, 0.6, 0.4, open_px=1, erode_px=2))
+    for other in ((2, 2), (1, 3), (0, 2)):
+        assert not np.array_equal(default, fm.make_trimap(blob, 0.6, 0.4, *other))
 
 
 def test_estimate_alpha_hands_the_method_clipped_inputs_and_keeps_definite_pixels(monkeypatch):
@@ -325,6 +332,7 @@ def _matting_data():
     group_exposure[:, 0] = 0.004 * 0.5  # the ambient group, any value
     bucket_group_s = np.zeros((4, 2))
     bucket_group_s[:, 1] = flash_s  # switchable ("other", "flash"): the flash is the second
+    bucket_group_s[:, 0] = [0.002, 0.0, 0.001, 0.0]  # another switchable group, on for part of the flash read
     tl = SimpleNamespace(reads=[ReadEvent("noflash", (2, 3)), ReadEvent("flash", (0, 1))])
     plan = SimpleNamespace(groups=groups, weights_s=np.stack([np.array([[0.0, 0.002], [0.0, 0.0005], [0.0, 0.0], [0.0, 0.0]]),
                                                               np.array([[0.0, 0.001], [0.0, 0.0005], [0.0, 0.0], [0.0, 0.0]])]),
@@ -378,3 +386,15 @@ def test_alpha_truth_weights_each_stratum_by_the_flash_reads_flash_time(monkeypa
     d_noseed = dataclasses.replace(d, seed=None)
     fm.alpha_truth(d_noseed, fm.FlashMattingParams())
     assert got["seed"].entropy == 1  # the config's seed
+
+
+def test_trimap_errors_and_read_names():
+    tri = np.array([[1.0, 1.0, 0.0, 0.5], [0.0, 0.5, 1.0, 0.0]])
+    truth = np.array([[0.0, 1.0, 1.0, 0.0], [0.97, 0.0, 0.04, 0.0]])
+    # labelled fg with truth < 0.05: (0, 0) and (1, 2); labelled bg with truth > 0.95: (0, 2) and (1, 0)
+    assert fm.trimap_errors(tri, truth) == {"fg_on_background": 2, "bg_on_foreground": 2}
+    assert fm.trimap_errors(tri, truth, tol=0.02) == {"fg_on_background": 1, "bg_on_foreground": 1}
+    data = SimpleNamespace(read_names=["noflash", "flash"])
+    assert fm._read(data, "flash") == 1 and fm._read(data, "noflash") == 0
+    with pytest.raises(ConfigError, match="app.name: flash_matting needs reads named 'flash' and 'noflash'"):
+        fm._read(SimpleNamespace(read_names=["J1", "J2"]), "flash")
