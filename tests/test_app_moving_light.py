@@ -326,3 +326,37 @@ def test_measured_gains_use_only_the_read_buckets():
     g = drive_gains_measured(group_exposure, w_s, 0, reads, exposure, 0.8)
     np.testing.assert_allclose(g, drive_gains_exact(w_s, 0, reads, exposure, 0.8), rtol=1e-12)
     np.testing.assert_allclose(g, [1.0 / (0.5 * 0.8), 2.5 / (1.25 * 0.8)], rtol=1e-12)
+
+
+def test_shadow_sweep_mask_covers_both_capture_modes_over_their_joint_span():
+    """The sweep region is traced over the span of the capture and of its twin (interleaved <->
+    sequential), so both modes are scored on the same pixels; image size from the reads."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from mbcapture.apps.moving_light import SWEEP_TIME_SAMPLES, _sweep_times, shadow_sweep_mask
+    from mbcapture.capture import prepare
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "moving_light.yaml"
+    W, H, grow = 40, 24, 1.5
+    datas, spans = [], []
+    for seq in (False, True):
+        cfg = load_config(path, [f"capture.sequential={str(seq).lower()}", f"render.width={W}", f"render.height={H}"])
+        scene, tl, _, _ = prepare(cfg)
+        datas.append(SimpleNamespace(cfg=cfg, scene=scene, timeline=tl, reads_dn=np.zeros((len(tl.reads), H, W, 3))))
+        spans += [float(tl.seconds(tl.start_tick)), float(tl.seconds(tl.end_tick))]
+    times = _sweep_times(datas[0])
+    np.testing.assert_allclose(times, np.linspace(min(spans), max(spans), SWEEP_TIME_SAMPLES), rtol=1e-12)
+    np.testing.assert_allclose(_sweep_times(datas[1]), times, rtol=1e-12)
+    assert max(spans) - min(spans) > spans[1] - spans[0]  # the sequential capture lasts longer
+    masks = [shadow_sweep_mask(d, grow) for d in datas]
+    np.testing.assert_array_equal(masks[0], masks[1])
+    scene = datas[0].scene
+    per_occ = [scene.project(p, times, W, H) for p in scene.extra["shadow_polygons"](times)]
+    expect = sweep_region([[occ[t] for occ in per_occ] for t in range(len(times))], W, H, grow)
+    assert masks[0].shape == (H, W) and 0 < expect.sum() < H * W
+    np.testing.assert_array_equal(masks[0], expect)
+    bare = SimpleNamespace(cfg=datas[0].cfg, scene=SimpleNamespace(name="plain", extra={}), timeline=datas[0].timeline,
+                           reads_dn=datas[0].reads_dn)
+    with pytest.raises(ConfigError, match="app.name: moving_light needs a scene with extra\\['shadow_polygons'\\]"):
+        shadow_sweep_mask(bare, grow)
