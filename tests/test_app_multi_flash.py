@@ -502,3 +502,61 @@ def test_canny_edges_follow_the_documented_recipe():
         np.testing.assert_array_equal(mf.canny_edges(7.0 * img, low=low, high=high), ref)
     np.testing.assert_array_equal(mf.canny_edges(img), _canny_reference(img, 0.1, 0.25))  # the defaults
     assert not mf.canny_edges(np.zeros((8, 8, 3))).any()
+
+
+def test_layout_finds_flash_and_ambient_reads():
+    from types import SimpleNamespace
+
+    def data_for(*sets):
+        tl = protocols.build(load_config(CONFIG, list(sets)))
+        return SimpleNamespace(timeline=tl, read_names=[r.name for r in tl.reads])
+
+    five = data_for("sensor.bucket_count=5")
+    assert mf._layout(five, mf.MultiFlashParams()) == ([0, 1, 2, 3], list(mf.FLASH_GROUPS), 4)
+    assert mf._layout(five, mf.MultiFlashParams(ambient="subtract"))[2] == 4
+    assert mf._layout(five, mf.MultiFlashParams(ambient="none"))[2] is None
+    four = data_for("sensor.bucket_count=4")
+    assert mf._layout(four, mf.MultiFlashParams()) == ([0, 1, 2, 3], list(mf.FLASH_GROUPS), None)
+    with pytest.raises(ConfigError, match="app.ambient: 'subtract' needs an ambient-only read"):
+        mf._layout(four, mf.MultiFlashParams(ambient="subtract"))
+    one = SimpleNamespace(timeline=SimpleNamespace(segments=five.timeline.segments, reads=five.timeline.reads[:1] +
+                                                   five.timeline.reads[4:]), read_names=["top", "ambient"])
+    with pytest.raises(ConfigError, match="capture.protocol: multi_flash needs reads lit by at least two"):
+        mf._layout(one, mf.MultiFlashParams())
+
+
+def test_mid_time_is_the_middle_of_the_timeline():
+    from fractions import Fraction
+    from types import SimpleNamespace
+
+    tl = SimpleNamespace(start_tick=3, end_tick=10, tick_s=Fraction(1, 1000))
+    assert mf._mid_time_s(tl) == 0.0065
+    real = protocols.build(load_config(CONFIG, ["capture.sequential=true"]))
+    assert mf._mid_time_s(real) == pytest.approx((float(real.seconds(real.start_tick)) + float(real.seconds(real.end_tick))) / 2)
+
+
+def test_edges_overlay_colours():
+    """Base luminance dimmed to 0..0.25 of its 99th percentile; matched detections green, unmatched
+    red, missed true edges blue; without a truth, detections white."""
+    base = np.zeros((6, 8, 3))
+    base[:, 4:] = 2.0                        # half the image at luminance 2 (the 99th percentile)
+    det = np.zeros((6, 8), bool)
+    truth = np.zeros((6, 8), bool)
+    det[1, 1] = truth[1, 2] = True           # 1 px apart: matched
+    det[4, 6] = True                         # nothing true near: unmatched
+    truth[5, 0] = True                       # nothing detected near: missed
+    out = mf.edges_overlay(base, det, truth, 1.0)
+    np.testing.assert_allclose(out[0, 0], 0.0)
+    np.testing.assert_allclose(out[0, 7], 0.25)
+    assert out[1, 1].tolist() == [0.1, 1.0, 0.1]
+    assert out[4, 6].tolist() == [1.0, 0.1, 0.1]
+    assert out[5, 0].tolist() == [0.1, 0.3, 1.0]
+    np.testing.assert_allclose(out[1, 2], 0.0)  # a true edge with a detection near: not marked
+    plain = mf.edges_overlay(base, det, None, 1.0)
+    assert plain[1, 1].tolist() == plain[4, 6].tolist() == [1.0, 1.0, 1.0]
+    np.testing.assert_allclose(plain[5, 0], 0.0)
+    # nothing detected: every true edge is missed; nothing true: every detection unmatched
+    assert mf.edges_overlay(base, np.zeros_like(det), truth, 1.0)[1, 2].tolist() == [0.1, 0.3, 1.0]
+    assert mf.edges_overlay(base, det, np.zeros_like(truth), 1.0)[1, 1].tolist() == [1.0, 0.1, 0.1]
+    black = mf.edges_overlay(np.zeros((6, 8, 3)), det, None, 1.0)  # a black base: white is 1, nothing divides by 0
+    assert np.isfinite(black).all() and black[0, 0].tolist() == [0.0, 0.0, 0.0]
