@@ -319,3 +319,46 @@ def test_true_colours_perfect_white_has_y_1_and_is_the_white_point(chart):
     assert names == ["white", "grey"]
     assert xyz[0, 1] == pytest.approx(1.0, rel=1e-9) and xyz[1] == pytest.approx(0.5 * xyz[0], rel=1e-9)
     np.testing.assert_allclose(white_xy, xyz[0, :2] / xyz[0].sum(), rtol=1e-9)
+
+
+def test_strata_split_the_window_so_no_point_moves_more_than_the_limit():
+    """A point crossing 10 px of image during [t0, t1] at constant speed: ceil(10 / limit) equal
+    strata (capped at max_strata); a static scene is one stratum at the middle."""
+    import dataclasses
+
+    from mbcapture.scenes import Camera, SceneModel
+
+    cam = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 90.0)  # 1 m at 1 m depth = 20 px of 40
+    def dot(t):  # (T, 1, 3): a point 1 m ahead moving sideways at 2.5 m/s
+        t = np.asarray(t, float)
+        return np.stack([-2.5 * t, 0 * t, 1 + 0 * t], -1)[:, None, :]
+
+    moving = SceneModel("dot", ("ambient",), frozenset(), cam, None, None, motion_points=dot)
+    mids = rgb._strata(moving, 0.1, 0.3, 40, 30, 3.0, 64)  # x from -0.25 to -0.75 m: 10 px
+    np.testing.assert_allclose(mids, 0.1 + (np.arange(4) + 0.5) * 0.05)  # ceil(10 / 3) = 4 strata
+    assert len(rgb._strata(moving, 0.1, 0.3, 40, 30, 2.0, 64)) == 5
+    assert len(rgb._strata(moving, 0.1, 0.3, 40, 30, 0.5, 7)) == 7
+    assert len(rgb._strata(moving, 0.1, 0.3, 40, 30, 100.0, 64)) == 1
+    still = dataclasses.replace(moving, motion_points=None)
+    np.testing.assert_array_equal(rgb._strata(still, 0.1, 0.3, 40, 30, 3.0, 64), [0.2])
+
+
+def test_bayer_window_is_the_interleaved_span():
+    from types import SimpleNamespace
+
+    data = SimpleNamespace(cfg=SimpleNamespace(capture=SimpleNamespace(start_s=0.25, unit_exposure_s=0.004)))
+    assert rgb.bayer_window(data) == (0.25, 0.25 + 0.016)
+
+
+def test_cmf_curves_and_srgb_preview():
+    import colour
+
+    wl, curves = rgb._cmf_curves()
+    np.testing.assert_array_equal(wl, np.arange(360.0, 831.0, 5.0))
+    assert curves.shape == (3, wl.size) and curves.flags["C_CONTIGUOUS"]
+    assert curves[1, wl.tolist().index(555.0)] == pytest.approx(1.0, abs=1e-4)  # y-bar peaks at 555 nm
+    assert curves[2, wl.tolist().index(445.0)] == pytest.approx(1.78, abs=0.01)  # z-bar near its peak
+    # the illuminant's own white maps to equal linear sRGB (chromatic adaptation to D65), at its Y
+    a = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["A"]
+    rgb_white = rgb.xyz_to_linear_srgb(0.6 * colour.xy_to_XYZ(a), a)
+    np.testing.assert_allclose(rgb_white, [0.6, 0.6, 0.6], atol=2e-3)
