@@ -523,6 +523,9 @@ def test_layout_finds_flash_and_ambient_reads():
                                                    five.timeline.reads[4:]), read_names=["top", "ambient"])
     with pytest.raises(ConfigError, match="capture.protocol: multi_flash needs reads lit by at least two"):
         mf._layout(one, mf.MultiFlashParams())
+    two = SimpleNamespace(timeline=SimpleNamespace(segments=five.timeline.segments, reads=five.timeline.reads[:2] +
+                                                   five.timeline.reads[4:]), read_names=["top", "bottom", "ambient"])
+    assert mf._layout(two, mf.MultiFlashParams()) == ([0, 1], ["flash_top", "flash_bottom"], 2)
 
 
 def test_mid_time_is_the_middle_of_the_timeline():
@@ -560,3 +563,16 @@ def test_edges_overlay_colours():
     assert mf.edges_overlay(base, det, np.zeros_like(truth), 1.0)[1, 1].tolist() == [1.0, 0.1, 0.1]
     black = mf.edges_overlay(np.zeros((6, 8, 3)), det, None, 1.0)  # a black base: white is 1, nothing divides by 0
     assert np.isfinite(black).all() and black[0, 0].tolist() == [0.0, 0.0, 0.0]
+    # white is the 99th percentile, not the maximum: a hot pixel and values above white clip, below 0 too
+    lum = np.zeros((10, 20))
+    lum[:, 10:] = 2.0
+    lum[0, 0] = 50.0   # 0.5 % of the pixels
+    lum[5, 0] = 1.0    # half of white
+    lum[6, 0] = -1.0
+    out = mf.edges_overlay(np.repeat(lum[..., None], 3, -1), np.zeros((10, 20), bool), None, 1.0)
+    np.testing.assert_allclose(out[..., 0][[0, 5, 6, 0], [0, 0, 0, 19]], [0.25, 0.125, 0.0, 0.25])
+    # a detection (or true edge) in the image's corner with nothing on the other map: unmatched (missed)
+    corner = np.zeros((6, 8), bool)
+    corner[0, 0] = True
+    assert mf.edges_overlay(base, corner, np.zeros_like(corner), 1.0)[0, 0].tolist() == [1.0, 0.1, 0.1]
+    assert mf.edges_overlay(base, np.zeros_like(corner), corner, 1.0)[0, 0].tolist() == [0.1, 0.3, 1.0]

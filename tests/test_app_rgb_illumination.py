@@ -329,12 +329,12 @@ def test_strata_split_the_window_so_no_point_moves_more_than_the_limit():
     from mbcapture.scenes import Camera, SceneModel
 
     cam = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 90.0)  # 1 m at 1 m depth = 20 px of 40
-    def dot(t):  # (T, 1, 3): a point 1 m ahead moving sideways at 2.5 m/s
+    def dot(t):  # (T, 2, 3): points 1 m ahead moving sideways at 2.5 m/s and up at 1 m/s
         t = np.asarray(t, float)
-        return np.stack([-2.5 * t, 0 * t, 1 + 0 * t], -1)[:, None, :]
+        return np.stack([np.stack([-2.5 * t, 0 * t, 1 + 0 * t], -1), np.stack([0 * t, t, 1 + 0 * t], -1)], axis=1)
 
     moving = SceneModel("dot", ("ambient",), frozenset(), cam, None, None, motion_points=dot)
-    mids = rgb._strata(moving, 0.1, 0.3, 40, 30, 3.0, 64)  # x from -0.25 to -0.75 m: 10 px
+    mids = rgb._strata(moving, 0.1, 0.3, 40, 30, 3.0, 64)  # x from -0.25 to -0.75 m: 10 px (the other point: 4 px)
     np.testing.assert_allclose(mids, 0.1 + (np.arange(4) + 0.5) * 0.05)  # ceil(10 / 3) = 4 strata
     assert len(rgb._strata(moving, 0.1, 0.3, 40, 30, 2.0, 64)) == 5
     assert len(rgb._strata(moving, 0.1, 0.3, 40, 30, 0.5, 7)) == 7
@@ -362,3 +362,9 @@ def test_cmf_curves_and_srgb_preview():
     a = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["A"]
     rgb_white = rgb.xyz_to_linear_srgb(0.6 * colour.xy_to_XYZ(a), a)
     np.testing.assert_allclose(rgb_white, [0.6, 0.6, 0.6], atol=2e-3)
+    # a colour: Bradford adaptation from the illuminant's white to D65, then the sRGB matrix, no encoding
+    xyz = np.array([0.3, 0.2, 0.1])
+    d65 = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
+    adapted = colour.adaptation.chromatic_adaptation_VonKries(xyz, colour.xy_to_XYZ(a), colour.xy_to_XYZ(d65), "Bradford")
+    srgb = colour.RGB_COLOURSPACES["sRGB"]
+    np.testing.assert_allclose(rgb.xyz_to_linear_srgb(xyz, a), srgb.matrix_XYZ_to_RGB @ adapted, rtol=1e-6)
