@@ -329,13 +329,15 @@ def test_strata_split_the_window_so_no_point_moves_more_than_the_limit():
     from mbcapture.scenes import Camera, SceneModel
 
     cam = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 90.0)  # 1 m at 1 m depth = 20 px of 40
-    def dot(t):  # (T, 2, 3): points 1 m ahead moving sideways at 2.5 m/s and up at 1 m/s
+    def dot(t):  # (T, 2, 3): points 1 m ahead moving sideways at 2.5 and 1.5 m/s (10 and 6 px in the window)
         t = np.asarray(t, float)
-        return np.stack([np.stack([-2.5 * t, 0 * t, 1 + 0 * t], -1), np.stack([0 * t, t, 1 + 0 * t], -1)], axis=1)
+        return np.stack([np.stack([-2.5 * t, 0 * t, 1 + 0 * t], -1), np.stack([-1.5 * t, 0.1 + 0 * t, 1 + 0 * t], -1)],
+                        axis=1)
 
     moving = SceneModel("dot", ("ambient",), frozenset(), cam, None, None, motion_points=dot)
-    mids = rgb._strata(moving, 0.1, 0.3, 40, 30, 3.0, 64)  # x from -0.25 to -0.75 m: 10 px (the other point: 4 px)
+    mids = rgb._strata(moving, 0.1, 0.3, 40, 30, 3.0, 64)  # x from -0.25 to -0.75 m: 10 px (the other point: 6 px)
     np.testing.assert_allclose(mids, 0.1 + (np.arange(4) + 0.5) * 0.05)  # ceil(10 / 3) = 4 strata
+    assert len(rgb._strata(moving, 0.1, 0.3, 40, 30, 2.5, 64)) == 4  # the longest path, not a sum or norm over points
     assert len(rgb._strata(moving, 0.1, 0.3, 40, 30, 2.0, 64)) == 5
     assert len(rgb._strata(moving, 0.1, 0.3, 40, 30, 0.5, 7)) == 7
     assert len(rgb._strata(moving, 0.1, 0.3, 40, 30, 100.0, 64)) == 1
