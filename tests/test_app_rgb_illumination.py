@@ -370,3 +370,28 @@ def test_cmf_curves_and_srgb_preview():
     adapted = colour.adaptation.chromatic_adaptation_VonKries(xyz, colour.xy_to_XYZ(a), colour.xy_to_XYZ(d65), "Bradford")
     srgb = colour.RGB_COLOURSPACES["sRGB"]
     np.testing.assert_allclose(rgb.xyz_to_linear_srgb(xyz, a), srgb.matrix_XYZ_to_RGB @ adapted, rtol=1e-6)
+
+
+def test_true_colours_with_leds_sampled_on_different_grids():
+    """Each LED spectrum given only over its own band: the illuminant is still the sum of all
+    three (each zero outside its samples), the same as with all three on one full grid. The sum
+    used to be taken on the first LED's grid only, which dropped the other two LEDs' light."""
+    import colour
+    from types import SimpleNamespace
+
+    from mbcapture.render.build import Spectrum
+
+    def led(peak, lo, hi):
+        sd = colour.sd_single_led(peak, shape=colour.SpectralShape(lo, hi, 2), half_spectral_width=20)
+        return Spectrum.from_sd(sd)
+
+    wl = np.arange(360.0, 831.0, 10.0)
+    refl = {"white": Spectrum(tuple(wl), (1.0,) * wl.size),
+            "red": Spectrum(tuple(wl), tuple(np.where(wl > 580, 0.8, 0.05)))}
+    own = {"led_r": led(630, 560, 700), "led_g": led(530, 460, 620), "led_b": led(450, 380, 520)}
+    full = {"led_r": led(630, 360, 830), "led_g": led(530, 360, 830), "led_b": led(450, 360, 830)}
+    _, xyz_own, white_own = rgb.true_colours(SimpleNamespace(extra={"led_spectra": own, "reflectances": refl}))
+    _, xyz_full, white_full = rgb.true_colours(SimpleNamespace(extra={"led_spectra": full, "reflectances": refl}))
+    np.testing.assert_allclose(xyz_own, xyz_full, atol=1e-6)
+    np.testing.assert_allclose(white_own, white_full, atol=1e-6)
+    assert white_full[0] < 0.3  # a bluish white: all three LEDs (the red one alone would be at x > 0.6)
