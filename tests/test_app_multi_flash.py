@@ -576,3 +576,47 @@ def test_edges_overlay_colours():
     corner[0, 0] = True
     assert mf.edges_overlay(base, corner, np.zeros_like(corner), 1.0)[0, 0].tolist() == [1.0, 0.1, 0.1]
     assert mf.edges_overlay(base, np.zeros_like(corner), corner, 1.0)[0, 0].tolist() == [0.1, 0.3, 1.0]
+
+
+def test_scores_split_edges_and_shadow_free_error_by_the_moving_region():
+    """The report's depth-edge scores over the whole image and, when something moves, inside and
+    outside the moving region; the shadow-free image's relative MSE against the truth (whole and
+    moving region, eps in radiance units) and its residual shadows."""
+    from types import SimpleNamespace
+
+    from mbcapture.metrics import relative_mse
+
+    eps = 1e-3  # the relative MSE's eps for radiance, (render units)^2
+
+    images, _, truth_edges, _ = _square_scene(seed=6)
+    det = truth_edges.copy()
+    det[0, :6] = True                  # false detections in the top-left corner
+    det[R0, C0:C1 + 1] = False         # a missed true edge (the top row of the square)
+    moving = np.zeros((H, W), bool)
+    moving[:H // 2] = True
+    shadow_free = mf.max_composite(images) * np.linspace(0.8, 1.2, W)[None, :, None]
+    truth = {"t_s": 0.5, "times_s": [0.5], "flash": images, "shadow_free": mf.max_composite(images),
+             "edges": truth_edges, "spp": 16}
+    p = mf.MultiFlashParams(tolerance_px=1.5, min_signal_fraction=0.4)
+    s = mf._scores(SimpleNamespace(moving_mask=moving), p, det, shadow_free, truth)
+    assert s["moving_px"] == moving.sum()
+    assert s["depth_edges"] == {"all": mf.edge_scores(det, truth_edges, 1.5),
+                                "moving_region": mf.edge_scores(det, truth_edges, 1.5, moving),
+                                "static_region": mf.edge_scores(det, truth_edges, 1.5, ~moving)}
+    assert s["depth_edges"]["moving_region"] != s["depth_edges"]["static_region"]
+    sm = mf.shadow_metrics(shadow_free, images, shadow_ratio=p.shadow_ratio, min_signal_fraction=0.4)
+    assert 0 < sm["shadowed_px"] < mf.shadow_metrics(shadow_free, images)["shadowed_px"]  # fewer pixels count as lit
+    assert s["shadow_free"] == {
+        "rel_mse": pytest.approx(relative_mse(shadow_free, truth["shadow_free"], eps=eps)),
+        "rel_mse_moving": pytest.approx(relative_mse(shadow_free, truth["shadow_free"], mask=moving[..., None], eps=eps)),
+        **sm}
+    assert s["shadow_free"]["rel_mse"] != pytest.approx(s["shadow_free"]["rel_mse_moving"])
+    t = s["truth"]
+    assert (t["time_s"], t["edge_times_s"], t["mode"], t["depth_jump"], t["tolerance_px"], t["shadow_free_spp"]) == \
+        (0.5, [0.5], p.truth_time, p.truth_depth_jump, 1.5, 16)
+    # shadows at 5 % of the direct light are not below 4 % of it
+    low = mf._scores(SimpleNamespace(moving_mask=moving), mf.MultiFlashParams(shadow_ratio=0.04), det, shadow_free, truth)
+    assert low["shadow_free"]["shadowed_px"] == 0
+    still = mf._scores(SimpleNamespace(moving_mask=np.zeros((H, W), bool)), p, det, shadow_free, truth)
+    assert set(still["depth_edges"]) == {"all"} and "rel_mse_moving" not in still["shadow_free"]
+    assert still["moving_px"] == 0

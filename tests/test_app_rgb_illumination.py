@@ -395,3 +395,30 @@ def test_true_colours_with_leds_sampled_on_different_grids():
     np.testing.assert_allclose(xyz_own, xyz_full, atol=1e-6)
     np.testing.assert_allclose(white_own, white_full, atol=1e-6)
     assert white_full[0] < 0.3  # a bluish white: all three LEDs (the red one alone would be at x > 0.6)
+
+
+def test_scores_aggregate_delta_e_over_the_image_and_the_patch_interiors():
+    """Per-pixel CIEDE2000 against the reference, summarized over the image and over the patch
+    interiors; and each patch's mean colour against its true colour."""
+    import colour
+
+    white_xy = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
+    rng = np.random.default_rng(15)
+    ref = np.broadcast_to([0.3, 0.32, 0.35], (12, 16, 3)).copy()
+    xyz = ref * rng.uniform(0.9, 1.1, (12, 16, 1))   # lightness errors everywhere
+    xyz[0, 0] = [0.6, 0.3, 0.05]                     # one very wrong pixel, outside the patches
+    masks = np.zeros((2, 12, 16), bool)
+    masks[0, 2:5, 2:6] = True
+    masks[1, 7:10, 9:14] = True
+    true_xyz = np.array([[0.3, 0.32, 0.35], [0.2, 0.2, 0.2]])
+    scores, de = rgb._scores(xyz, ref, masks, true_xyz, white_xy)
+    np.testing.assert_allclose(de, rgb.delta_e2000(xyz, ref, white_xy))
+    inside = de[masks.any(axis=0)]
+    patch = rgb.delta_e2000(rgb.patch_means(xyz, masks), true_xyz, white_xy)
+    expect = {"delta_e2000_mean": de.mean(), "delta_e2000_max": de.max(), "delta_e2000_p99": np.percentile(de, 99),
+              "delta_e2000_patch_interior_mean": inside.mean(), "delta_e2000_patch_interior_max": inside.max(),
+              "delta_e2000_patch_colour_vs_true_mean": patch.mean(), "delta_e2000_patch_colour_vs_true_max": patch.max()}
+    assert scores == pytest.approx(expect, rel=1e-12)
+    assert scores["delta_e2000_max"] == pytest.approx(float(de[0, 0]))  # the wrong pixel
+    assert scores["delta_e2000_patch_interior_max"] < scores["delta_e2000_max"] / 5
+    assert scores["delta_e2000_patch_colour_vs_true_max"] > 5  # the second patch is not grey 0.2
