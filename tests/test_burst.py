@@ -180,7 +180,15 @@ def test_score_registered_leaves_out_the_border_and_unfilled_pixels():
     # a blurred result inside the border: the blur is measured there
     blurred = truth.copy()
     blurred[2:22, 2:30] = np.repeat(gaussian_filter(truth[..., 0], 1.2, mode="nearest")[2:22, 2:30, None], 3, -1)
+    blurred[10, 10] = np.nan  # an unfilled pixel takes the truth's value in the blur fit
     assert burst.score_registered(blurred, truth, 2)["residual_blur_px"] == pytest.approx(1.2, abs=0.1)
-    # an image too small to leave out its border is scored whole
-    small = burst.score_registered(1.1 * truth[:6, :6], truth[:6, :6], 2)
-    assert small["rel_mse"] == pytest.approx(np.mean((0.1 * truth[:6, :6]) ** 2 / (truth[:6, :6] ** 2 + 1e-4)), rel=1e-9)
+    # an image that would keep fewer than 4 rows or columns without its border is scored whole
+    base = np.repeat(_texture(32, 32, seed=5)[..., None], 3, -1)
+    gain = 1.0 + np.random.default_rng(5).uniform(0, 0.2, base.shape)  # a different error per pixel
+    for h, w in ((6, 32), (32, 6), (7, 32), (8, 32), (32, 8), (9, 32), (32, 9)):
+        t = base[:h, :w]
+        whole = h - 4 < 4 or w - 4 < 4
+        sl = (slice(None), slice(None)) if whole else (slice(2, h - 2), slice(2, w - 2))
+        d, tt = (gain[:h, :w] - 1) * t, t
+        expect = np.mean(d[sl] ** 2 / (tt[sl] ** 2 + 1e-4))
+        assert burst.score_registered(gain[:h, :w] * t, t, 2)["rel_mse"] == pytest.approx(expect, rel=1e-9), (h, w)
