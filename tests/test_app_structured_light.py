@@ -255,3 +255,28 @@ def test_reconstruct_recovers_a_plane_without_mitsuba(over):
     else:
         np.testing.assert_allclose(out.images["depth"][decoded], z[decoded], atol=2e-5)
         assert out.metrics["ambient_in_reads"]["pattern_reads_spread"] < 1e-9
+
+
+def test_depth_scores_phase_median_and_edge_cases():
+    """Phase error against the truth's column (2 pi periods u / projector width, wrapped), the
+    median depth error, the tolerance's edge, a valid pixel without a depth, nothing or one lit."""
+    truth = {"z_m": np.full((2, 4), 1.0), "u_px": np.array([[100.0, 200.0, 300.0, 400.0]] * 2)}
+    z = np.array([[1.001, 1.003, 1.0078125, 1.0], [1.0, 1.0, 1.0, np.nan]])  # 7.8125 mm is exact in binary
+    valid = np.ones((2, 4), bool)  # the NaN depth is "valid" by mistake: it is never within tolerance
+    lit = np.ones((2, 4), bool)
+    lit[1, :3] = False
+    true_phase = 2 * np.pi * 4 * truth["u_px"] / 512
+    phase = true_phase + np.array([[0.1, -0.2, 0.1 + 2 * np.pi, -0.2], [0.0, 0.0, 0.0, 0.3]])
+    s = sl.depth_scores(z, valid, truth["u_px"] + 0.25, phase, truth, lit, 7.8125, 4, 512)
+    assert s["pixels"] == 5 and s["coverage"] == 1.0
+    assert s["within_tolerance"] == pytest.approx(4 / 5)  # 1, 3, 7.8125 (the edge, included) and 0 mm; not NaN
+    assert s["phase_rmse_rad"] == pytest.approx(np.sqrt((0.01 + 0.04 + 0.01 + 0.04 + 0.09) / 5), rel=1e-9)
+    assert s["column_rmse_px"] == pytest.approx(0.25)
+    z2 = np.where(np.isfinite(z), z, 1.0)
+    s2 = sl.depth_scores(z2, valid, truth["u_px"], None, truth, lit, 10.0, 4, 512)
+    assert s2["depth_median_abs_mm"] == pytest.approx(1.0) and "phase_rmse_rad" not in s2  # |1, 3, 7.8, 0, 0| mm
+    assert "phase_rmse_rad" not in sl.depth_scores(z2, valid, truth["u_px"], phase, truth, lit, 10.0, None, 512)
+    assert sl.depth_scores(z2, valid, truth["u_px"], phase, truth, np.zeros((2, 4), bool), 10.0, 4, 512) == {"pixels": 0}
+    one = np.zeros((2, 4), bool)
+    one[0, 1] = True
+    assert sl.depth_scores(z2, valid, truth["u_px"], phase, truth, one, 10.0, 4, 512)["pixels"] == 1
