@@ -280,3 +280,45 @@ def test_depth_scores_phase_median_and_edge_cases():
     one = np.zeros((2, 4), bool)
     one[0, 1] = True
     assert sl.depth_scores(z2, valid, truth["u_px"], phase, truth, one, 10.0, 4, 512)["pixels"] == 1
+
+
+def _ramp(periods=4, pw=512, h=6, w=40):
+    """Projector columns rising 10 -> 490 across the image, their wrapped phase, and a linear
+    triangulation z = 1 + u / 1000 m."""
+    u = np.broadcast_to(np.linspace(10.0, 490.0, w), (h, w)).copy()
+    phase = np.mod(2 * np.pi * periods * u / pw, 2 * np.pi)
+    return u, phase, (lambda c: 1.0 + np.asarray(c) / 1000.0)
+
+
+def test_unwrap_none_reads_the_first_period_and_keeps_the_depth_range_inclusive():
+    u, phase, tri = _ramp(periods=1)
+    valid = np.ones(u.shape, bool)
+    valid[0, 5] = False
+    col = phase / (2 * np.pi) * 512 / 1  # the decoded column, as the function computes it
+    z_lo, z_hi = float(tri(col[0, 3])), float(tri(col[0, 30]))  # two pixels exactly on the range's ends
+    uu, zz, ok = sl.unwrap_none(phase, valid, tri, 1, 512, z_lo, z_hi)
+    expect_ok = valid & (u >= u[0, 3]) & (u <= u[0, 30])
+    np.testing.assert_array_equal(ok, expect_ok)
+    np.testing.assert_allclose(uu[ok], u[ok], rtol=1e-12)
+    np.testing.assert_allclose(zz[ok], tri(u[ok]), rtol=1e-12)
+    assert np.isnan(uu[~ok]).all() and np.isnan(zz[~ok]).all()
+    # with 4 periods, the first period only: u = phase W / (2 pi P) lies in [0, 128)
+    _, phase4, _ = _ramp(periods=4)
+    u4, _, ok4 = sl.unwrap_none(phase4, np.ones(u.shape, bool), tri, 4, 512, 0.0, 10.0)
+    assert ok4.all() and u4.max() < 128 and u4.min() >= 0
+    np.testing.assert_allclose(u4, np.mod(u, 128), rtol=1e-9, atol=1e-9)
+
+
+def test_unwrap_spatial_recovers_a_smooth_ramp_within_the_depth_range():
+    u, phase, tri = _ramp(periods=4)
+    valid = np.ones(u.shape, bool)
+    valid[2, 17] = False
+    uu, zz, ok = sl.unwrap_spatial(phase, valid, tri, 4, 512, float(tri(u.min())) - 1e-9, float(tri(u.max())) + 1e-9)
+    np.testing.assert_array_equal(ok, valid)
+    np.testing.assert_allclose(uu[ok], u[ok], rtol=1e-9)
+    np.testing.assert_allclose(zz[ok], tri(u[ok]), rtol=1e-12)
+    assert np.isnan(uu[2, 17]) and np.isnan(zz[2, 17])
+    # a range that holds only the left half: the same offset (most pixels in range), the rest not ok
+    mid = float(tri((u[0, 19] + u[0, 20]) / 2))
+    _, _, half = sl.unwrap_spatial(phase, valid, tri, 4, 512, float(tri(u.min())) - 1e-9, mid)
+    np.testing.assert_array_equal(half, valid & (u <= u[0, 19]))
