@@ -322,3 +322,27 @@ def test_unwrap_spatial_recovers_a_smooth_ramp_within_the_depth_range():
     mid = float(tri((u[0, 19] + u[0, 20]) / 2))
     _, _, half = sl.unwrap_spatial(phase, valid, tri, 4, 512, float(tri(u.min())) - 1e-9, mid)
     np.testing.assert_array_equal(half, valid & (u <= u[0, 19]))
+
+
+def test_valid_fraction_against_the_99th_percentile_of_the_good_pixels():
+    """A pixel is valid when it is not bad, finite, > 0 and at least the fraction of the 99th
+    percentile over such pixels. A NaN pixel is invalid and does not enter the percentile (it used
+    to make the percentile NaN, and with it every pixel invalid)."""
+    sig = np.ones((20, 10))
+    sig[0, 0] = 1000.0      # 0.5 % hot pixels do not move the 99th percentile
+    sig[1, :] = 0.25        # exactly the fraction: valid
+    sig[2, :] = 0.2         # below: not valid
+    sig[3, 0] = np.nan
+    sig[3, 1] = 0.0
+    bad = np.zeros((20, 10), bool)
+    bad[4, :] = True
+    sig[4, :] = 1e6         # bad pixels neither count nor set the reference
+    v = sl._valid_fraction(4.0 * sig, 0.25, bad)
+    expect = np.ones((20, 10), bool)
+    expect[2, :] = expect[4, :] = False
+    expect[3, :2] = False
+    np.testing.assert_array_equal(v, expect)
+    np.testing.assert_array_equal(sl._valid_fraction(sig, 0.25, np.zeros((20, 10), bool))[2], False)  # no bad pixel
+    zero = sl._valid_fraction(sig, 0.0, bad)  # fraction 0: still not black, NaN or bad
+    assert not zero[3, :2].any() and not zero[4].any() and zero[2].all()
+    assert not sl._valid_fraction(sig, 0.25, np.ones((20, 10), bool)).any()  # all bad
