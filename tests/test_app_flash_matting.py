@@ -233,3 +233,168 @@ def test_matte_scores_of_an_empty_region_and_trimap_error_thresholds():
     tri = np.array([[1.0, 1.0, 0.0, 0.0, 0.5, 0.5]])
     truth = np.array([[0.05, 0.0499, 0.95, 0.9501, 0.0, 1.0]])
     assert fm.trimap_errors(tri, truth, tol=0.05) == {"fg_on_background": 1, "bg_on_foreground": 1}
+
+
+# ----------------------------------------------------------------------------- exact small cases
+def test_reference_level_and_trimap_cue_by_hand():
+    assert fm.reference_level(np.zeros(0), 99.0) == 1.0      # nothing to measure
+    assert fm.reference_level(np.zeros((3, 3)), 99.0) == 1.0  # black: 1 render unit
+    assert fm.reference_level(np.arange(101.0), 50.0) == 50.0
+    rng = np.random.default_rng(11)
+    n = rng.uniform(0.0, 3.0, (6, 7))
+    n[0, :3] = -0.2  # a negative no-flash value (noise): counts as 0 in the denominator
+    f = rng.uniform(0.0, 5.0, (6, 7))
+    grey = lambda y: np.repeat(y[..., None], 3, -1)  # noqa: E731 (luminance of a grey pixel is its value)
+    y = f / (np.maximum(n, 0.0) + 0.05 * np.percentile(n, 99))
+    np.testing.assert_allclose(fm.trimap_cue(grey(f), grey(n)), y / np.percentile(y, 99), rtol=1e-12)
+    y2 = f / (np.maximum(n, 0.0) + 0.2 * np.percentile(n, 80))
+    np.testing.assert_allclose(fm.trimap_cue(grey(f), grey(n), "flash_ratio", 80.0, 0.2), y2 / np.percentile(y2, 80),
+                               rtol=1e-12)
+    np.testing.assert_allclose(fm.trimap_cue(grey(f), grey(n), "flash_only"), f / np.percentile(f, 99), rtol=1e-12)
+
+
+def test_make_trimap_exact_thresholds_structuring_discs_and_defaults():
+    cue = np.array([[0.8, 0.2, 0.5]])
+    np.testing.assert_array_equal(fm.make_trimap(cue, 0.8, 0.2, 0, 0), [[1.0, 0.0, 0.5]])  # at a threshold: definite
+    np.testing.assert_array_equal(fm.make_trimap(cue, 0.8, 0.0, 0, 0), [[1.0, 0.5, 0.5]])  # bg_fraction 0 is allowed
+    with pytest.raises(ValueError, match="make_trimap: need 0 <= bg_fraction < fg_fraction"):
+        fm.make_trimap(cue, 0.5, 0.5)
+    # a plus of 5 pixels survives opening by the radius-1 disc (a plus itself), a 2 x 2 block does not
+    c = np.zeros((12, 12))
+    c[3, 2:5] = c[2:5, 3] = 1.0
+    c[8:10, 8:10] = 1.0
+    t = fm.make_trimap(c, 0.8, 0.2, open_px=1, erode_px=0)
+    assert (t[c == 1.0][:5] == 1.0).all() and t[3, 3] == 1.0 and not (t[8:10, 8:10] == 1.0).any()
+    # erosion by radius 1 (a plus) vs radius 2; defaults open 1, erode 2
+    sq = np.zeros((20, 20))
+    sq[4:16, 4:16] = 1.0
+    e1 = fm.make_trimap(sq, 0.8, 0.2, open_px=0, erode_px=1)
+    assert (e1 == 1.0).sum() == 10 * 10 and e1[5, 5] == 1.0
+    e2 = fm.make_trimap(sq, 0.8, 0.2, open_px=0, erode_px=2)
+    assert (e2 == 1.0).sum() == 8 * 8
+    # defaults on a smooth random cue, where every other radius changes some pixels
+    from scipy import ndimage
+
+    blob = ndimage.gaussian_filter(np.random.default_rng(14).uniform(0, 1, (40, 40)), 3)
+    blob = (blob - blob.min()) / (blob.max() - blob.min())
+    default = fm.make_trimap(blob, 0.6, 0.4)
+    np.testing.assert_array_equal(default, fm.make_trimap(blob, 0.6, 0.4, open_px=1, erode_px=2))
+    for other in ((2, 2), (1, 3), (0, 2)):
+        assert not np.array_equal(default, fm.make_trimap(blob, 0.6, 0.4, *other))
+
+
+def test_estimate_alpha_hands_the_method_clipped_inputs_and_keeps_definite_pixels(monkeypatch):
+    """What every matting method gets (image and ramp clipped to [0, 1], the trimap as given) and
+    what comes back (clipped, definite pixels forced); degenerate trimaps skip the method."""
+    calls = []
+
+    def spy(image, trimap, ramp):
+        calls.append((image.copy(), trimap.copy(), ramp.copy()))
+        return np.full(trimap.shape, 1.7) * (np.arange(trimap.shape[1]) % 2) - 0.3  # -0.3 and 1.4, alternating
+
+    monkeypatch.setitem(fm.MATTING_METHODS, "spy", spy)
+    rng = np.random.default_rng(12)
+    image = rng.uniform(-0.5, 1.5, (4, 6, 3))
+    tri = np.full((4, 6), 0.5)
+    tri[0], tri[3] = 1.0, 0.0
+    ramp = rng.uniform(-0.5, 1.5, (4, 6))
+    alpha = fm.estimate_alpha(image, tri, "spy", ramp)
+    (img_in, tri_in, ramp_in), = calls
+    np.testing.assert_array_equal(img_in, np.clip(image, 0, 1))
+    np.testing.assert_array_equal(tri_in, tri)
+    np.testing.assert_array_equal(ramp_in, np.clip(ramp, 0, 1))
+    expect = np.where(np.arange(6) % 2, 1.0, 0.0)[None].repeat(4, 0)
+    expect[0], expect[3] = 1.0, 0.0
+    np.testing.assert_array_equal(alpha, expect)
+    # no background (or nothing unknown): the method is not called; unknown pixels get the clipped ramp
+    calls.clear()
+    no_bg = np.where(tri == 0.0, 0.5, tri)
+    a = fm.estimate_alpha(image, no_bg, "spy", ramp)
+    np.testing.assert_array_equal(a[1:], np.clip(ramp, 0, 1)[1:])
+    assert (a[0] == 1.0).all()
+    all_definite = np.where(tri == 0.5, 0.0, tri)
+    np.testing.assert_array_equal(fm.estimate_alpha(image, all_definite, "spy", ramp), all_definite)
+    assert not calls
+    # without a method named, closed_form; a trimap with nothing to propagate does not need it to run
+    np.testing.assert_array_equal(fm.estimate_alpha(image, all_definite), all_definite)
+
+
+def _matting_data():
+    """CaptureData of a flash read (buckets 0, 1) and a no-flash read (buckets 2, 3) with the flash
+    on for 3 ms in bucket 0 and 1 ms in bucket 1; a static flash-lit radiance L."""
+    from mbcapture.timeline import ReadEvent
+
+    L = np.random.default_rng(13).uniform(0.1, 2.0, (3, 4, 3))
+    flash_s = np.array([0.003, 0.001, 0.0, 0.0])
+    groups = ("ambient", "flash")
+    group_exposure = np.zeros((4, 2, 3, 4, 3))
+    group_exposure[:, 1] = flash_s[:, None, None, None] * L
+    group_exposure[:, 0] = 0.004 * 0.5  # the ambient group, any value
+    bucket_group_s = np.zeros((4, 2))
+    bucket_group_s[:, 1] = flash_s  # switchable ("other", "flash"): the flash is the second
+    bucket_group_s[:, 0] = [0.002, 0.0, 0.001, 0.0]  # another switchable group, on for part of the flash read
+    tl = SimpleNamespace(reads=[ReadEvent("noflash", (2, 3)), ReadEvent("flash", (0, 1))])
+    plan = SimpleNamespace(groups=groups, weights_s=np.stack([np.array([[0.0, 0.002], [0.0, 0.0005], [0.0, 0.0], [0.0, 0.0]]),
+                                                              np.array([[0.0, 0.001], [0.0, 0.0005], [0.0, 0.0], [0.0, 0.0]])]),
+                           times_s=np.array([0.001, 0.003]))
+    data = CaptureData(cfg=None, scene=None, timeline=tl, plan=plan, read_names=["noflash", "flash"],
+                       exposure_s=np.array([0.004, 0.004]), reads_dn=np.zeros(0), saturated=np.zeros(0),
+                       reads_e_expected=np.zeros(0), bucket_exposure=np.zeros(0), k_e=np.ones(3),
+                       moving_mask=np.zeros((3, 4), bool), switchable=("other", "flash"),
+                       bucket_group_s=bucket_group_s, group_exposure=group_exposure)
+    return data, L
+
+
+def test_flash_only_truth_is_the_flash_reads_flash_radiance():
+    data, L = _matting_data()
+    p = fm.FlashMattingParams()
+    got = fm.flash_only_truth(data, p)
+    assert got.shape == (3, 4, 3)
+    np.testing.assert_allclose(got, L, rtol=1e-12)
+    import dataclasses
+
+    assert fm.flash_only_truth(dataclasses.replace(data, group_exposure=None), p) is None
+    no_flash_rendered = dataclasses.replace(data, plan=SimpleNamespace(groups=("ambient",), weights_s=None))
+    assert fm.flash_only_truth(no_flash_rendered, p) is None
+
+
+def test_alpha_truth_weights_each_stratum_by_the_flash_reads_flash_time(monkeypatch):
+    """The reference matte is the foreground's coverage averaged over the strata with the seconds
+    the flash read collected while the flash was on (the plan's weights of its buckets)."""
+    import mbcapture.render.coverage as cov
+
+    data, _ = _matting_data()
+    got = {}
+
+    def fake_coverage(scene, times_s, weights_s, width, height, spp, seed, variant, cache):
+        got.update(scene=scene, times_s=times_s, weights_s=weights_s, size=(width, height), spp=spp, seed=seed,
+                   variant=variant, cache=cache)
+        return "coverage"
+
+    monkeypatch.setattr(cov, "coverage_alpha", fake_coverage)
+    seed = np.random.SeedSequence(5)
+    cfg = SimpleNamespace(seed=1, render=SimpleNamespace(width=4, height=3, variant="scalar_rgb"))
+    import dataclasses
+
+    d = dataclasses.replace(data, cfg=cfg, scene="the scene", renderer=SimpleNamespace(cache="the cache"), seed=seed)
+    assert fm.alpha_truth(d, fm.FlashMattingParams(truth_spp=7)) == "coverage"
+    np.testing.assert_allclose(got["weights_s"], [0.0025, 0.0015], rtol=1e-15)
+    np.testing.assert_array_equal(got["times_s"], [0.001, 0.003])
+    assert got["size"] == (4, 3) and got["spp"] == 7 and got["seed"] is seed and got["variant"] == "scalar_rgb"
+    assert got["scene"] == "the scene" and got["cache"] == "the cache"
+    assert fm.alpha_truth(dataclasses.replace(d, renderer=None), fm.FlashMattingParams()) is None
+    d_noseed = dataclasses.replace(d, seed=None)
+    fm.alpha_truth(d_noseed, fm.FlashMattingParams())
+    assert got["seed"].entropy == 1  # the config's seed
+
+
+def test_trimap_errors_and_read_names():
+    tri = np.array([[1.0, 1.0, 0.0, 0.5], [0.0, 0.5, 1.0, 0.0]])
+    truth = np.array([[0.0, 1.0, 1.0, 0.0], [0.97, 0.0, 0.04, 0.0]])
+    # labelled fg with truth < 0.05: (0, 0) and (1, 2); labelled bg with truth > 0.95: (0, 2) and (1, 0)
+    assert fm.trimap_errors(tri, truth) == {"fg_on_background": 2, "bg_on_foreground": 2}
+    assert fm.trimap_errors(tri, truth, tol=0.02) == {"fg_on_background": 1, "bg_on_foreground": 1}
+    data = SimpleNamespace(read_names=["noflash", "flash"])
+    assert fm._read(data, "flash") == 1 and fm._read(data, "noflash") == 0
+    with pytest.raises(ConfigError, match="app.name: flash_matting needs reads named 'flash' and 'noflash'"):
+        fm._read(SimpleNamespace(read_names=["J1", "J2"]), "flash")

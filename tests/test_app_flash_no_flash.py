@@ -24,6 +24,9 @@ from mbcapture.apps.flash_no_flash import (
     flash_mask,
     joint_bilateral,
     reconstruct,
+    rel_rms,
+    white_level,
+    blur_agreement,
 )
 from mbcapture.capture import bucket_group_seconds
 from mbcapture.config import config_from_dict
@@ -288,3 +291,174 @@ def test_tiny_render_interleaved_beats_sequential():
     assert i["motion_blur_agreement"]["letter_s"]["rel_rms"] < 0.05
     assert s["motion_blur_agreement"]["letter_s"]["rel_rms"] > 5 * i["motion_blur_agreement"]["letter_s"]["rel_rms"]
     assert s["flash_only"]["ghost_rel_mse_moving"] > 10 * i["flash_only"]["ghost_rel_mse_moving"]
+
+
+def test_mask_threshold_opening_disc_and_feathered_border():
+    """Shadow = luminance strictly below the threshold; the 3x3 opening keeps a 3x3 shadow and
+    drops a 2x3 one; dilation is by a Euclidean disc of dilate_px; feathering treats the image
+    as continued by its edge pixels."""
+    from scipy import ndimage
+
+    fo = np.ones((24, 24, 3))
+    fo[3:6, 3:6] = 0.2         # a 3x3 shadow: kept by the 3x3 opening
+    fo[3:5, 12:15] = 0.2       # 2x3: removed
+    fo[14:19, 3:8] = 0.5       # exactly at the threshold: not a shadow
+    fo[14:19, 12:17] = 0.4999  # just below: a shadow
+    no_spec = np.zeros((24, 24), bool)
+    m0, shadow0, spec0 = flash_mask(fo, no_spec, 0.5, dilate_px=0, feather_px=0.0)
+    expect = np.zeros((24, 24), bool)
+    expect[3:6, 3:6] = True
+    expect[14:19, 12:17] = True
+    np.testing.assert_array_equal(shadow0, expect)
+    np.testing.assert_array_equal(m0, expect.astype(float))
+    assert spec0.dtype == bool and not spec0.any()
+    spec = np.zeros((24, 24), bool)
+    spec[9, 20] = True
+    _, shadow2, spec2 = flash_mask(fo, spec, 0.5, dilate_px=2, feather_px=0.0)
+    np.testing.assert_array_equal(shadow2, ndimage.distance_transform_edt(~expect) <= 2)
+    np.testing.assert_array_equal(spec2, ndimage.distance_transform_edt(~spec) <= 2)
+    # a shadow band along the left edge, feathered: as if the band went on beyond the border
+    fo_b = np.ones((12, 16, 3))
+    fo_b[:, :4] = 0.0
+    band = np.zeros((12, 16))
+    band[:, :4] = 1.0
+    m_soft, _, _ = flash_mask(fo_b, np.zeros((12, 16), bool), 0.5, dilate_px=0, feather_px=3.0)
+    wide = np.pad(band, 20, mode="edge")
+    np.testing.assert_allclose(m_soft, ndimage.gaussian_filter(wide, 3.0)[20:-20, 20:-20], atol=1e-9)
+
+
+def test_letter_s_mask_is_the_region_its_points_sweep_over_the_capture():
+    """The region swept by the motion points the scene names as the letter S, between the
+    timeline's first and last tick; None without those points or without motion."""
+    import dataclasses
+    from fractions import Fraction
+
+    from mbcapture.apps.flash_no_flash import _letter_s_mask
+    from mbcapture.capture import moving_region
+    from mbcapture.scenes import Camera, SceneModel
+    from mbcapture.timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
+
+    def points(t):  # (T, 5, 3): 0-1 a pair moving right at 2 m/s, 2-4 a triangle ("the S") moving down at 2 m/s
+        t = np.asarray(t, float)[:, None]
+        pair = np.stack([np.hstack([-0.6 + 2 * t, 0.3 + 0 * t, 2 + 0 * t]),
+                         np.hstack([-0.5 + 2 * t, 0.4 + 0 * t, 2 + 0 * t])], axis=1)
+        tri = np.stack([np.hstack([0.3 + 0 * t, 0.5 - 2 * t, 2 + 0 * t]),
+                        np.hstack([0.5 + 0 * t, 0.5 - 2 * t, 2 + 0 * t]),
+                        np.hstack([0.4 + 0 * t, 0.3 - 2 * t, 2 + 0 * t])], axis=1)
+        return np.concatenate([pair, tri], axis=1)
+
+    cam = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 90.0)
+    scene = SceneModel("synthetic", ("ambient",), frozenset(), cam, None, None, motion_points=points,
+                       extra={"letter_s_points": (2, 3, 4)})
+    ms = Fraction(1, 1000)
+    tl = build_timeline([SegmentSeconds(50 * ms, (SlotSeconds(0, 20 * ms), SlotSeconds(1, 20 * ms)), 2)],
+                        [ReadEvent("F", (0,)), ReadEvent("A", (1,))], 2, "two")
+    assert float(tl.seconds(tl.start_tick)) == pytest.approx(0.05) and float(tl.seconds(tl.end_tick)) == pytest.approx(0.13)
+    W, H = 40, 30
+    data = SimpleNamespace(scene=scene, timeline=tl, moving_mask=np.zeros((H, W), bool))
+    got = _letter_s_mask(data)
+    only_s = dataclasses.replace(scene, motion_points=lambda t: points(t)[:, 2:])
+    np.testing.assert_array_equal(got, moving_region(only_s, 0.05, 0.13, W, H))
+    everything = moving_region(scene, 0.05, 0.13, W, H)
+    assert got.sum() > 20 and (got & ~everything).sum() < 5 and (everything & ~got).sum() > 20
+    # the triangle moves 0.16 m down at 2 m away: ~3.2 px of 40; over a longer window it sweeps further
+    assert not np.array_equal(got, moving_region(only_s, 0.0, 0.13, W, H))
+    assert not np.array_equal(got, moving_region(only_s, 0.05, 0.2, W, H))
+    assert _letter_s_mask(SimpleNamespace(scene=None, timeline=tl, moving_mask=data.moving_mask)) is None
+    plain = dataclasses.replace(scene, extra={})
+    assert _letter_s_mask(SimpleNamespace(scene=plain, timeline=tl, moving_mask=data.moving_mask)) is None
+    still = dataclasses.replace(scene, motion_points=None)
+    assert _letter_s_mask(SimpleNamespace(scene=still, timeline=tl, moving_mask=data.moving_mask)) is None
+
+
+def test_joint_bilateral_on_an_image_narrower_than_its_radius_repeats_the_edge():
+    """When the window is wider than the image (min(H, W) <= r) the border is the edge pixel
+    repeated, not a mirror."""
+    rng = np.random.default_rng(5)
+    img = rng.uniform(0, 1, (7, 3, 2))  # r = ceil(2.5 * 1.2) = 3 = W
+    out = joint_bilateral(img, img, 1.2, 0.3)
+    H, W = img.shape[:2]
+    r = 3
+    expect = np.zeros_like(img)
+    for y in range(H):
+        for x in range(W):
+            num, den = 0.0, 0.0
+            for dy in range(-r, r + 1):
+                for dx in range(-r, r + 1):
+                    if dy * dy + dx * dx > r * r:
+                        continue
+                    q = img[min(max(y + dy, 0), H - 1), min(max(x + dx, 0), W - 1)]
+                    w = np.exp(-(dy * dy + dx * dx) / (2 * 1.2**2) - np.sum((q - img[y, x]) ** 2) / (2 * 0.3**2))
+                    num, den = num + w * q, den + w
+            expect[y, x] = num / den
+    np.testing.assert_allclose(out, expect, rtol=1e-12)
+
+
+def test_components_do_not_depend_on_the_units_of_radiance():
+    """Filters, detail layer and mask work in fractions of each image's white: scaling both
+    images by k scales the filtered ambient images by k and leaves the detail layer and the mask
+    unchanged; the detail layer of a flat flash image is exactly 1; the shadow is where the flash
+    adds nothing to the ambient light."""
+    rng = np.random.default_rng(6)
+    H, W = 20, 24
+    ambient = rng.uniform(0.2, 0.4, (H, W, 3))
+    flash = ambient + 0.8  # the flash adds 0.8 everywhere ...
+    flash[6:12, 8:16] = ambient[6:12, 8:16]  # ... except in its shadow
+    p = FlashNoFlashParams(mask_dilate_px=0, mask_feather_px=0.0)
+    c1 = components(ambient, flash, np.zeros((H, W), bool), p)
+    expect_shadow = np.zeros((H, W), bool)
+    expect_shadow[6:12, 8:16] = True
+    np.testing.assert_array_equal(c1.shadow, expect_shadow)
+    k = 37.0
+    ck = components(k * ambient, k * flash, np.zeros((H, W), bool), p)
+    np.testing.assert_allclose(ck.a_nr, k * c1.a_nr, rtol=1e-10)
+    np.testing.assert_allclose(ck.a_base, k * c1.a_base, rtol=1e-10)
+    np.testing.assert_allclose(ck.f_detail, c1.f_detail, rtol=1e-10)
+    np.testing.assert_array_equal(ck.mask, c1.mask)
+    flat = components(ambient, np.full((H, W, 3), 5.0), np.zeros((H, W), bool), p)
+    np.testing.assert_allclose(flat.f_detail, 1.0, rtol=1e-12)
+    # a flat coloured scene comes out of both filters as it went in, in its own units
+    colour_ = np.broadcast_to([0.2, 0.4, 0.6], (H, W, 3))
+    c_flat = components(colour_, 3.0 * colour_, np.zeros((H, W), bool), p)
+    np.testing.assert_allclose(c_flat.a_base, colour_, rtol=1e-12)
+    np.testing.assert_allclose(c_flat.a_nr, colour_, rtol=1e-12)
+
+
+def test_white_level_rel_rms_blur_agreement_and_display_psnr():
+    img = np.zeros((10, 10, 3))
+    img[:, :5] = 0.5  # half the pixels at luminance 0.5
+    assert white_level(img, 90.0) == pytest.approx(0.5)
+    assert white_level(np.zeros((4, 4, 3)), 99.0) == 1.0  # black: white is 1 render unit
+    mask = np.zeros((10, 10), bool)
+    mask[2:4, 2:4] = True
+    # over a black reference the RMS is absolute
+    assert rel_rms(np.full_like(img, 0.3), np.zeros_like(img), mask) == pytest.approx(0.3)
+    assert blur_agreement(img + 0.1, img, mask) == {"pixels": 4, "rel_rms": pytest.approx(0.2)}
+    assert blur_agreement(img + 0.1, img, np.zeros((10, 10), bool)) == {"pixels": 0}
+    # the mask selects the pixels scored; values below 0 display as black
+    x = img.copy()
+    x[8, 8] += 0.4  # outside the mask
+    x[2, 2] += 0.1
+    assert display_psnr(x, img, 1.0, mask) == pytest.approx(10 * np.log10(1 / (0.1**2 / 4)))  # one of 4 pixels off by 0.1
+    assert display_psnr(img - 0.5, np.zeros_like(img), 1.0) == np.inf
+    assert display_psnr(np.zeros_like(img), img - 0.5, 1.0) == np.inf
+
+
+def test_read_roles_from_the_switchable_groups_each_read_saw():
+    from mbcapture.apps.flash_no_flash import _read_roles
+    from mbcapture.timeline import ReadEvent
+
+    # buckets 0-1 make the no-flash read, bucket 2 the flash read; bucket 0 saw nothing switchable,
+    # bucket 2 saw flash2 only (seconds per switchable group, columns flash, flash2)
+    data = SimpleNamespace(read_names=["A", "F"], switchable=("flash", "flash2"),
+                           bucket_group_s=np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.01]]),
+                           timeline=SimpleNamespace(reads=[ReadEvent("A", (0, 1)), ReadEvent("F", (2,))]))
+    assert _read_roles(data) == (1, 0, ["flash2"])
+    data.timeline = SimpleNamespace(reads=[ReadEvent("A", (2,)), ReadEvent("F", (0, 1))])
+    data.bucket_group_s = np.array([[0.0, 0.02], [0.0, 0.0], [0.0, 0.0]])
+    assert _read_roles(data) == (1, 0, ["flash2"])
+    with pytest.raises(ConfigError, match="capture.protocol: flash_no_flash needs exactly two reads"):
+        _read_roles(SimpleNamespace(read_names=["A", "F"], bucket_group_s=None))
+    data.bucket_group_s = np.array([[0.0, 0.02], [0.0, 0.0], [0.01, 0.0]])  # both reads lit
+    with pytest.raises(ConfigError, match="capture.protocol: flash_no_flash needs one read lit"):
+        _read_roles(data)

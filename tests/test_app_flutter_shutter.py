@@ -282,3 +282,21 @@ def test_reconstruct_deblurs_a_known_row_without_mitsuba():
         # 20 steps of 0.65 us merged per sample: the image moves 0.003 px within one, far below 1 %
         np.testing.assert_allclose(out.images["deblurred"], sharp(0.0), atol=0.01 * peak)
     assert out.metrics["kernels_px"]["open"]["seconds"] == pytest.approx(0.013)
+
+
+def test_read_weights_are_inverse_noise_variances_in_radiance_units():
+    """w = k_e^2 / (mean electrons + read noise^2) per read and channel: the inverse variance of a
+    radiance estimate e / k_e with Poisson and read noise, averaged over the region (the whole
+    image when the region is empty)."""
+    rng = np.random.default_rng(3)
+    e = rng.uniform(100.0, 900.0, (3, 5, 6, 2))  # (R, H, W, C) expected electrons
+    k_e = np.array([2.0, 3.0])
+    region = np.zeros((5, 6), bool)
+    region[1:3, 2:5] = True
+    w = fs.read_weights(e, k_e, 4.0, region)
+    assert w.shape == (3, 2)
+    for r in range(3):
+        for c in range(2):
+            assert w[r, c] == pytest.approx(k_e[c] ** 2 / (e[r][region][:, c].mean() + 16.0), rel=1e-12)
+    whole = fs.read_weights(e, k_e, 4.0, np.zeros((5, 6), bool))
+    np.testing.assert_allclose(whole, k_e[None] ** 2 / (e.mean(axis=(1, 2)) + 16.0), rtol=1e-12)

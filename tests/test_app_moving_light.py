@@ -204,3 +204,159 @@ def test_still_lamp_is_one_pass_and_the_flicker_is_still_integrated():
     gains = drive_gains_exact(plan.weights_s, plan.groups.index("ambient"), [r.buckets for r in tl.reads],
                               np.array([float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads]), 1.0)
     assert gains.max() - gains.min() > 0.5  # four frames at four flicker phases, from one render
+
+
+def _flicker_data(with_renders: bool):
+    """A sequential capture of 1, 2, 4 ms frames (3 ms gaps) of a steady lamp and an ambient group
+    driven by 2 + 1.5 cos(2 pi 100 t + 0.3), as CaptureData without Mitsuba."""
+    from types import SimpleNamespace
+
+    from mbcapture.apps import CaptureData
+
+    ms = Fraction(1, 1000)
+    exp = [1 * ms, 2 * ms, 4 * ms]
+    tl = sequential_frames(exp, 3 * ms)
+    drive = Drive(c0=2.0, terms=((1.5, 100.0, 0.3),))
+    groups = ("lamp", "ambient")
+    w_s = tl.weights_ticks(np.array([tl.start_tick, tl.end_tick]), list(groups), frozenset(),
+                           {"ambient": drive}) * float(tl.tick_s)
+    exposure = np.array([float(e) for e in exp])
+    L = np.random.default_rng(2).uniform(0.1, 2.0, size=(4, 5, 3))  # a static radiance per group
+    group_exposure = w_s.sum(axis=0)[:, :, None, None, None] * L[None, None] if with_renders else None
+    scene = SimpleNamespace(name="synthetic", drives={"ambient": drive, "unrendered": Drive(c0=1.0)})
+    plan = SimpleNamespace(groups=groups, weights_s=w_s)
+    data = CaptureData(cfg=None, scene=scene, timeline=tl, plan=plan, read_names=["J1", "J2", "J3"],
+                       exposure_s=exposure, reads_dn=np.zeros(0), saturated=np.zeros(0),
+                       reads_e_expected=np.zeros(0), bucket_exposure=np.zeros(0), k_e=np.ones(3),
+                       moving_mask=np.zeros((4, 5), bool), group_exposure=group_exposure)
+    starts = np.array([0.0, 0.004, 0.009])
+    w = 2 * np.pi * 100
+    mean = 2.0 + 1.5 * (np.sin(w * (starts + exposure) + 0.3) - np.sin(w * starts + 0.3)) / (w * exposure)
+    return data, mean / 2.0
+
+
+def test_flicker_metrics_reports_each_reads_mean_drive_over_its_time_average():
+    """flicker_metrics on a known drive: per read the mean drive over its frame / c0 (by hand),
+    its spread and largest departure from 1, the same measured from static renders, and the
+    drive's coefficients as given."""
+    from mbcapture.apps.moving_light import flicker_metrics
+
+    data, gains = _flicker_data(with_renders=True)
+    assert gains.max() - gains.min() > 0.1  # three frames at clearly different flicker phases
+    fl = flicker_metrics(data, "ambient")
+    assert set(fl) == {"group", "drive", "gain_vs_time_average", "gain_spread", "max_abs_gain_error",
+                       "gain_measured_from_renders"}
+    assert fl["group"] == "ambient"
+    assert fl["drive"] == {"c0": 2.0, "terms": [{"amplitude": 1.5, "frequency_hz": 100.0, "phase_rad": 0.3}]}
+    assert list(fl["gain_vs_time_average"]) == ["J1", "J2", "J3"]
+    np.testing.assert_allclose(list(fl["gain_vs_time_average"].values()), gains, rtol=1e-12)
+    assert fl["gain_spread"] == pytest.approx(gains.max() - gains.min(), rel=1e-12)
+    assert fl["max_abs_gain_error"] == pytest.approx(np.abs(gains - 1).max(), rel=1e-12)
+    assert list(fl["gain_measured_from_renders"]) == ["J1", "J2", "J3"]
+    np.testing.assert_allclose(list(fl["gain_measured_from_renders"].values()), gains, rtol=1e-12)
+    # without per-group renders only the exact gains are reported
+    data_nr, _ = _flicker_data(with_renders=False)
+    assert "gain_measured_from_renders" not in flicker_metrics(data_nr, "ambient")
+    # a driven group that no read renders: named, with a note and nothing else
+    assert flicker_metrics(data, "unrendered") == {"group": "unrendered",
+                                                   "note": "group not rendered (no weight in any read)"}
+
+
+def test_rasterize_slanted_edges_image_borders_and_several_polygons():
+    """Pixel centres on a slanted hull edge count as inside, the image's first row and column are
+    reached, and every polygon adds its own pixels (a degenerate or off-image one skips only itself;
+    a later polygon's bounding box does not clear an earlier one's pixels)."""
+    tri = np.array([[0, 0], [8, 0], [0, 8]], float)  # centres (x+.5, y+.5) with x + y + 1 <= 8 (the hypotenuse included)
+    yy, xx = np.mgrid[0:10, 0:12]
+    expect_tri = xx + yy <= 7
+    m = rasterize_convex([tri], 12, 10)
+    np.testing.assert_array_equal(m, expect_tri)
+    assert m.sum() == 36 and m[0, 0]
+    line = np.array([[0, 0], [5, 5], [9, 9]], float)
+    off_image = square(20, 20, 3)
+    np.testing.assert_array_equal(rasterize_convex([line, off_image, tri], 12, 10), expect_tri)
+    # a triangle over y <= x whose bounding box covers square(0, 0, 4)'s corner (2..3, 2..3) but not all of it
+    tri2 = np.array([[2, 2], [10, 2], [10, 10]], float)
+    expect_tri2 = (xx >= 2) & (xx <= 9) & (yy >= 2) & (yy <= xx)
+    np.testing.assert_array_equal(rasterize_convex([tri2], 12, 10), expect_tri2)
+    both = rasterize_convex([square(0, 0, 4), tri2], 12, 10)
+    np.testing.assert_array_equal(both, ((xx < 4) & (yy < 4)) | expect_tri2)
+    assert both[3, 2]  # in the square, inside tri2's box, outside tri2
+
+
+def test_sweep_region_unions_occluders_and_grows_by_a_disk():
+    from scipy.ndimage import distance_transform_edt
+
+    empty = sweep_region([], 6, 4)
+    assert empty.shape == (4, 6) and empty.dtype == bool and not empty.any()
+    # two occluders: one moves right, the other moves down; the region is the union of both sweeps
+    frames = [[square(2 + t, 2, 4), square(14, 1 + t, 4)] for t in range(3)]
+    a = sweep_region([[f[0]] for f in frames], 24, 14)
+    b = sweep_region([[f[1]] for f in frames], 24, 14)
+    assert a.sum() == 2 * 2 * 4 and b.sum() == 2 * 2 * 4 and not (a & b).any()
+    m = sweep_region(frames, 24, 14)
+    np.testing.assert_array_equal(m, a | b)
+    for grow in (1.0, 2.0, 2.5):  # every pixel within grow_px (Euclidean) of the region
+        grown = sweep_region(frames, 24, 14, grow_px=grow)
+        assert grown.dtype == bool
+        np.testing.assert_array_equal(grown, distance_transform_edt(~m) <= grow)
+
+
+def test_consistency_mean_and_black_truth():
+    """The mean of the per-read departures is reported; over a black truth the departures are
+    absolute (relative to 1 render unit) and read_spread_rel divides by its floor, 0.01."""
+    truth = np.zeros((4, 5, 3))
+    normalized = np.stack([truth + 0.2, truth - 0.1, truth])
+    mask = np.ones((4, 5), bool)
+    c = consistency(normalized, ["J1", "J2", "J3"], truth, mask)
+    assert c["rel_rms_vs_truth"] == pytest.approx({"J1": 0.2, "J2": 0.1, "J3": 0.0})
+    assert c["pairwise_rel_rms"] == pytest.approx({"J1-J2": 0.3, "J1-J3": 0.2, "J2-J3": 0.1})
+    assert c["mean_rel_rms_vs_truth"] == pytest.approx(0.1)
+    np.testing.assert_allclose(read_spread_rel(normalized, truth), 0.2 / 0.01)
+
+
+def test_measured_gains_use_only_the_read_buckets():
+    """The drive-weighted mean radiance comes from the buckets some read uses: a bucket no read
+    uses (here with a radiance 10x the others) changes nothing."""
+    w_s = np.array([[[1.0], [2.0], [0.5], [1.0]]])  # (J=1, K=4, G=1) seconds x drive
+    level = np.array([1.0, 2.0, 0.5, 10.0]) * 3.0  # buckets 0-2 see radiance 3, bucket 3 radiance 30
+    group_exposure = np.broadcast_to(level[:, None, None, None, None], (4, 1, 2, 2, 3)).copy()
+    reads = [(0,), (1, 2)]
+    exposure = np.array([0.5, 1.25])
+    g = drive_gains_measured(group_exposure, w_s, 0, reads, exposure, 0.8)
+    np.testing.assert_allclose(g, drive_gains_exact(w_s, 0, reads, exposure, 0.8), rtol=1e-12)
+    np.testing.assert_allclose(g, [1.0 / (0.5 * 0.8), 2.5 / (1.25 * 0.8)], rtol=1e-12)
+
+
+def test_shadow_sweep_mask_covers_both_capture_modes_over_their_joint_span():
+    """The sweep region is traced over the span of the capture and of its twin (interleaved <->
+    sequential), so both modes are scored on the same pixels; image size from the reads."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from mbcapture.apps.moving_light import SWEEP_TIME_SAMPLES, _sweep_times, shadow_sweep_mask
+    from mbcapture.capture import prepare
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "moving_light.yaml"
+    W, H, grow = 40, 24, 1.5
+    datas, spans = [], []
+    for seq in (False, True):
+        cfg = load_config(path, [f"capture.sequential={str(seq).lower()}", f"render.width={W}", f"render.height={H}"])
+        scene, tl, _, _ = prepare(cfg)
+        datas.append(SimpleNamespace(cfg=cfg, scene=scene, timeline=tl, reads_dn=np.zeros((len(tl.reads), H, W, 3))))
+        spans += [float(tl.seconds(tl.start_tick)), float(tl.seconds(tl.end_tick))]
+    times = _sweep_times(datas[0])
+    np.testing.assert_allclose(times, np.linspace(min(spans), max(spans), SWEEP_TIME_SAMPLES), rtol=1e-12)
+    np.testing.assert_allclose(_sweep_times(datas[1]), times, rtol=1e-12)
+    assert max(spans) - min(spans) > spans[1] - spans[0]  # the sequential capture lasts longer
+    masks = [shadow_sweep_mask(d, grow) for d in datas]
+    np.testing.assert_array_equal(masks[0], masks[1])
+    scene = datas[0].scene
+    per_occ = [scene.project(p, times, W, H) for p in scene.extra["shadow_polygons"](times)]
+    expect = sweep_region([[occ[t] for occ in per_occ] for t in range(len(times))], W, H, grow)
+    assert masks[0].shape == (H, W) and 0 < expect.sum() < H * W
+    np.testing.assert_array_equal(masks[0], expect)
+    bare = SimpleNamespace(cfg=datas[0].cfg, scene=SimpleNamespace(name="plain", extra={}), timeline=datas[0].timeline,
+                           reads_dn=datas[0].reads_dn)
+    with pytest.raises(ConfigError, match="app.name: moving_light needs a scene with extra\\['shadow_polygons'\\]"):
+        shadow_sweep_mask(bare, grow)

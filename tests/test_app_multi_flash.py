@@ -275,3 +275,349 @@ def test_step_span_catches_a_two_pixel_shadow_onset():
     assert not one[2:5].any() and one[8]         # each 1-px drop of the onset is below 0.6; the 1-px shadow is found
     # span 2: the onset's last fully lit pixel; the 1-px shadow is seen one pixel early (7 -> 9 skips it)
     assert np.flatnonzero(two).tolist() == [2, 7]
+
+
+# ---------------------------------------------------------------- exact small cases
+def _two_flash(ratio_profile, axis, light_xy):
+    """Flash 0 lit uniformly (1.0), flash 1 with ``ratio_profile`` along ``axis`` (0: rows, 1:
+    columns) of a 12 x 14 image; both lit from infinitely far in the direction ``light_xy``."""
+    h, w = 12, 14
+    r = np.asarray(ratio_profile, float)
+    prof = r[:, None] * np.ones((1, w)) if axis == 0 else r[None, :] * np.ones((h, 1))
+    images = np.stack([np.ones((h, w, 3)), prof[..., None] * np.ones(3)])
+    return images, [mf.Epipole(False, light_xy)] * 2
+
+
+def test_epipole_away_is_the_exact_unit_direction_from_the_epipole():
+    e = mf.Epipole(True, (2.5, 1.5), 1)  # on pixel (x=2, y=1)'s centre
+    a = e.away(4, 6)
+    yy, xx = np.mgrid[0:4, 0:6]
+    v = np.stack([xx + 0.5 - 2.5, yy + 0.5 - 1.5], -1)
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    expect = np.where(n > 0, v / np.where(n > 0, n, 1), 0.0)
+    np.testing.assert_allclose(a, expect, atol=1e-15)
+    assert (a[1, 2] == 0).all() and a[1, 3].tolist() == [1.0, 0.0] and a[2, 2].tolist() == [0.0, 1.0]
+    np.testing.assert_allclose(mf.Epipole(True, (2.5, 1.5), -1).away(4, 6), -expect, atol=1e-15)
+    inf = mf.Epipole(False, (3.0, 4.0)).away(2, 3)  # towards the light (3, 4): away is -(0.6, 0.8) everywhere
+    assert inf.shape == (2, 3, 2)
+    np.testing.assert_allclose(inf, np.broadcast_to([-0.6, -0.8], (2, 3, 2)), atol=1e-15)
+
+
+def test_epipole_at_unit_distance_and_barely_out_of_the_lens_plane():
+    cam = scenes.Camera(origin=(0.0, 0.0, 0.0), target=(0.0, 0.0, 1.0), up=(0.0, 1.0, 0.0), fov_deg=60.0)
+    e = mf.epipole(cam, (0.0, 0.0, 1.0), 32, 24)  # 1 m straight ahead: the image centre
+    assert e.finite is True and e.sign == 1 and e.xy == pytest.approx((16.0, 12.0))
+    side = mf.epipole(cam, (10.0, 0.0, 5e-9), 32, 24)  # z / dist = 5e-10: in the lens plane
+    assert side.finite is False and side.xy == pytest.approx((-1.0, 0.0))  # +x world is left in the image
+    with pytest.raises(ConfigError, match="scene: a flash at the lens centre"):
+        mf.epipole(cam, (0.0, 0.0, 0.0), 32, 24)
+
+
+def test_raskar_takes_the_local_maximum_of_the_drop_along_the_epipolar_line():
+    """A shadow whose onset spreads over three rows (light above, traversal downwards): the edge is
+    the row where the drop over step_span_px is largest, not the rows after it."""
+    prof = [1.0] * 7 + [0.85, 0.45, 0.15, 0.1, 0.1]
+    images, eps = _two_flash(prof, 0, (0.0, -1.0))
+    det = mf.raskar_depth_edges(images, eps, step_threshold=0.2, step_span_px=1)
+    expect = np.zeros((12, 14), bool)
+    expect[7] = True  # drops 0.15, 0.40, 0.30, 0.05 at rows 6..9: the maximum at row 7
+    np.testing.assert_array_equal(det.edges, expect)
+    np.testing.assert_array_equal(det.per_flash[0], np.zeros((12, 14), bool))
+
+
+@pytest.mark.parametrize("axis, light_xy, flip", [(1, (-1.0, 0.0), False), (1, (1.0, 0.0), True),
+                                                  (0, (0.0, -1.0), False), (0, (0.0, 1.0), True)])
+def test_raskar_at_the_image_border(axis, light_xy, flip):
+    """A shadow starting at the last pixel along the traversal: with step_span_px=1 the pixel
+    before it is an edge (its sample point is the image's last pixel, inside); with
+    step_span_px=2 no pixel is (the largest drop would need a sample beyond the border)."""
+    n = 12 if axis == 0 else 14
+    prof = np.ones(n)
+    prof[-1] = 0.1
+    if flip:
+        prof = prof[::-1]
+    images, eps = _two_flash(prof, axis, light_xy)
+    one = mf.raskar_depth_edges(images, eps, step_threshold=0.3, step_span_px=1).edges
+    expect = np.zeros((12, 14), bool)
+    idx = 1 if flip else n - 2
+    if axis == 0:
+        expect[idx] = True
+    else:
+        expect[:, idx] = True
+    np.testing.assert_array_equal(one, expect)
+    assert not mf.raskar_depth_edges(images, eps, step_threshold=0.3, step_span_px=2).edges.any()
+
+
+def test_raskar_threshold_is_strict_and_defaults_to_0_3():
+    prof = np.ones(14)
+    prof[7:] = 0.5  # a drop of exactly 0.5 (luminance scales exactly by a power of two)
+    images, eps = _two_flash(prof, 1, (-1.0, 0.0))
+    assert not mf.raskar_depth_edges(images, eps, step_threshold=0.5, step_span_px=1).edges.any()
+    assert mf.raskar_depth_edges(images, eps, step_threshold=0.49, step_span_px=1).edges[:, 6].all()
+    prof[7:] = 0.65  # a drop of 0.35: above the default 0.3
+    images, eps = _two_flash(prof, 1, (-1.0, 0.0))
+    assert mf.raskar_depth_edges(images, eps, step_span_px=1).edges[:, 6].all()
+    with pytest.raises(ValueError, match="one epipole per flash"):
+        mf.raskar_depth_edges(images[:, :, :, 0], eps)  # (F, H, W): no channel axis
+
+
+def test_raskar_smoothing_is_a_gaussian_of_each_flash_image():
+    """smooth_px filters each flash image (edges continued outward) before the ratios: the same as
+    smoothing the images first (luminance is linear)."""
+    from scipy.ndimage import gaussian_filter
+
+    images, epipoles, _, _ = _square_scene(seed=4)
+    for s in (0.7, 1.5):
+        got = mf.raskar_depth_edges(images, epipoles, smooth_px=s)
+        pre = np.stack([np.stack([gaussian_filter(im[..., c], s, mode="nearest") for c in range(3)], -1)
+                        for im in images])
+        ref = mf.raskar_depth_edges(pre, epipoles)
+        np.testing.assert_allclose(got.ratios, ref.ratios, atol=1e-12)
+        np.testing.assert_array_equal(got.edges, ref.edges)
+        assert not np.allclose(got.ratios, mf.raskar_depth_edges(images, epipoles).ratios)
+
+
+def test_signal_valid_against_the_99th_percentile():
+    lum = np.ones((20, 10))
+    lum[0, :1] = 1000.0          # 0.5 % hot pixels do not move the 99th percentile
+    lum[5, :] = 0.25             # exactly min_signal_fraction x white: not valid
+    lum[6, :] = 0.26
+    v = mf._signal_valid(4.0 * lum, 0.25, None)  # in other units: the same
+    assert v[6].all() and not v[5].any() and v.sum() == 200 - 10
+    bad = np.zeros((20, 10), bool)
+    bad[0, 5] = True
+    v2 = mf._signal_valid(4.0 * lum, 0.25, bad)
+    assert not v2[0, 5] and not v2[5].any() and v2.sum() == 200 - 11
+    black = np.zeros((20, 10))
+    black[0, 0] = 5.0            # a black image with one bright pixel: its white is 0, nothing is valid
+    assert not mf._signal_valid(black, 0.03, None).any()
+    assert mf._signal_valid(np.zeros((0, 0)), 0.03, None).shape == (0, 0)
+
+
+def test_depth_discontinuities_match_a_pixel_by_pixel_definition():
+    rng = np.random.default_rng(7)
+    z = rng.choice([2.0, 2.5, 4.0, 4.5, np.inf], size=(9, 11))
+    for rel in (0.1, 0.2, 0.25):
+        expect = np.zeros(z.shape, bool)
+        for y in range(9):
+            for x in range(11):
+                for qy, qx in ((y - 1, x), (y + 1, x), (y, x - 1), (y, x + 1)):
+                    if 0 <= qy < 9 and 0 <= qx < 11 and np.isfinite(z[y, x]) and z[qy, qx] - z[y, x] > rel * z[y, x]:
+                        expect[y, x] = True
+        np.testing.assert_array_equal(mf.depth_discontinuities(z, rel), expect)
+    # exactly rel_jump of the near depth is not a jump
+    assert not mf.depth_discontinuities(np.array([[2.0, 2.5]]), 0.25).any()
+
+
+def test_edge_scores_edge_cases():
+    truth = np.zeros((8, 8), bool)
+    det = np.zeros((8, 8), bool)
+    det[0, 0] = True
+    s = mf.edge_scores(det, truth, 1.0)  # nothing true: every detection is wrong, recall undefined
+    assert s == {"precision": 0.0, "recall": None, "f1": None, "detected_px": 1, "true_px": 0}
+    s = mf.edge_scores(truth, det, 1.0)  # nothing detected: recall 0, precision undefined
+    assert s == {"precision": None, "recall": 0.0, "f1": None, "detected_px": 0, "true_px": 1}
+    far = np.zeros((8, 8), bool)
+    far[7, 7] = True
+    assert mf.edge_scores(det, far, 1.0)["f1"] == 0.0  # precision = recall = 0
+    # precision 1/4 < recall 1/2
+    truth = np.zeros((8, 8), bool)
+    truth[0, 0] = truth[7, 7] = True
+    det = np.zeros((8, 8), bool)
+    det[0, 0] = det[0, 7] = det[7, 0] = det[4, 4] = True
+    s = mf.edge_scores(det, truth, 0.5)
+    assert (s["precision"], s["recall"]) == (0.25, 0.5)
+    assert s["f1"] == pytest.approx(2 * 0.25 * 0.5 / 0.75)
+    mask = np.zeros((8, 8), bool)
+    mask[:4] = True
+    s = mf.edge_scores(det, truth, 0.5, mask=mask)
+    assert (s["detected_px"], s["true_px"], s["precision"], s["recall"]) == (2, 1, 0.5, 1.0)
+
+
+def test_shadow_metrics_strict_thresholds():
+    rng = np.random.default_rng(8)
+    lit = rng.uniform(0.5, 1.0, (6, 7, 3))
+    half = np.stack([lit, 0.5 * lit])  # the second flash exactly half as bright: not shadowed (< 0.5 is)
+    assert mf.shadow_metrics(lit, half) == {"shadowed_px": 0}
+    quarter = np.stack([lit, 0.25 * lit])
+    m = mf.shadow_metrics(0.5 * lit, quarter)  # a shadow-free image at exactly half the truth: not "residual"
+    assert m["shadowed_px"] == 42 and m["residual_shadow_fraction"] == 0.0
+    assert m["residual_shadow_mean"] == pytest.approx(0.5)
+
+
+def test_depth_edge_methods_pass_their_parameters():
+    images, epipoles, _, _ = _square_scene(seed=5)
+    bad = np.zeros((H, W), bool)
+    bad[R0:R1 + 1, C1] = True
+    p = mf.MultiFlashParams(method="raskar2004", step_threshold=0.5, step_span_px=1, smooth_px=0.8,
+                            min_signal_fraction=0.5)
+    got = mf.depth_edges(images, epipoles, bad, p)
+    ref = mf.raskar_depth_edges(images, epipoles, step_threshold=0.5, step_span_px=1, smooth_px=0.8,
+                                min_signal_fraction=0.5, bad=bad)
+    for a, b in ((got.edges, ref.edges), (got.valid, ref.valid), (got.ratios, ref.ratios)):
+        np.testing.assert_array_equal(a, b)
+    assert not got.valid[R0:R1 + 1, C1].any() and (~got.valid).mean() > 0.03  # dim albedos fall below half the white
+    for low, high in ((0.3, 0.6), (0.5, 0.2)):  # canny: a high threshold below the low one is raised to it
+        c = mf.depth_edges(images, epipoles, bad, mf.MultiFlashParams(method="canny_max_composite",
+                                                                      canny_low=low, canny_high=high))
+        e = mf.canny_edges(mf.max_composite(images), low=low, high=max(low, high))
+        np.testing.assert_array_equal(c.edges, e)
+        assert c.per_flash.shape == (1, H, W) and (c.per_flash[0] == e).all()
+        np.testing.assert_array_equal(c.valid, ~bad)
+
+
+def _canny_reference(image, low, high):
+    """The documented recipe with independent tools: luminance over its 99th percentile, clipped
+    to [0, 1], gamma 1/2.2, 8 bit; thresholds = fractions of the largest |d/dx| + |d/dy| of the
+    3x3 Sobel (scipy, OpenCV's mirrored border); Canny with the L1 gradient norm."""
+    import cv2
+    from scipy import ndimage
+
+    from mbcapture.metrics import luminance
+
+    lum = luminance(image)
+    u8 = np.round(np.clip(lum / np.percentile(lum, 99), 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
+    f = u8.astype(float)
+    gmax = np.max(np.abs(ndimage.sobel(f, axis=1, mode="mirror")) + np.abs(ndimage.sobel(f, axis=0, mode="mirror")))
+    return cv2.Canny(u8, low * gmax, high * gmax, L2gradient=False) > 0
+
+
+def test_canny_edges_follow_the_documented_recipe():
+    """Smooth random shading with a few hot pixels (above the 99th percentile) and negative
+    values (an over-subtracted ambient): the edge map of the recipe, for several thresholds
+    and at any scale of the input."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(9)
+    base = ndimage.gaussian_filter(rng.uniform(0, 1, (48, 64)), 2.0)
+    base = (base - base.min()) / (base.max() - base.min())
+    base[np.arange(48) % 16 == 5] *= 0.35  # a few horizontal dark lines: strong y gradients
+    img = np.stack([base, base ** 2, np.sqrt(base)], -1) * 3.0
+    img[3, 7] = img[40, 50] = 30.0  # hot pixels
+    img[20:23, 30:33] = -0.5        # negative pixels
+    for low, high in ((0.1, 0.25), (0.05, 0.15), (0.2, 0.4), (0.3, 0.3)):
+        ref = _canny_reference(img, low, high)
+        assert ref.any() and not ref.all()
+        np.testing.assert_array_equal(mf.canny_edges(img, low=low, high=high), ref)
+        np.testing.assert_array_equal(mf.canny_edges(7.0 * img, low=low, high=high), ref)
+    np.testing.assert_array_equal(mf.canny_edges(img), _canny_reference(img, 0.1, 0.25))  # the defaults
+    assert not mf.canny_edges(np.zeros((8, 8, 3))).any()
+
+
+def test_layout_finds_flash_and_ambient_reads():
+    from types import SimpleNamespace
+
+    def data_for(*sets):
+        tl = protocols.build(load_config(CONFIG, list(sets)))
+        return SimpleNamespace(timeline=tl, read_names=[r.name for r in tl.reads])
+
+    five = data_for("sensor.bucket_count=5")
+    assert mf._layout(five, mf.MultiFlashParams()) == ([0, 1, 2, 3], list(mf.FLASH_GROUPS), 4)
+    assert mf._layout(five, mf.MultiFlashParams(ambient="subtract"))[2] == 4
+    assert mf._layout(five, mf.MultiFlashParams(ambient="none"))[2] is None
+    four = data_for("sensor.bucket_count=4")
+    assert mf._layout(four, mf.MultiFlashParams()) == ([0, 1, 2, 3], list(mf.FLASH_GROUPS), None)
+    with pytest.raises(ConfigError, match="app.ambient: 'subtract' needs an ambient-only read"):
+        mf._layout(four, mf.MultiFlashParams(ambient="subtract"))
+    one = SimpleNamespace(timeline=SimpleNamespace(segments=five.timeline.segments, reads=five.timeline.reads[:1] +
+                                                   five.timeline.reads[4:]), read_names=["top", "ambient"])
+    with pytest.raises(ConfigError, match="capture.protocol: multi_flash needs reads lit by at least two"):
+        mf._layout(one, mf.MultiFlashParams())
+    two = SimpleNamespace(timeline=SimpleNamespace(segments=five.timeline.segments, reads=five.timeline.reads[:2] +
+                                                   five.timeline.reads[4:]), read_names=["top", "bottom", "ambient"])
+    assert mf._layout(two, mf.MultiFlashParams()) == ([0, 1], ["flash_top", "flash_bottom"], 2)
+
+
+def test_mid_time_is_the_middle_of_the_timeline():
+    from fractions import Fraction
+    from types import SimpleNamespace
+
+    tl = SimpleNamespace(start_tick=3, end_tick=10, tick_s=Fraction(1, 1000))
+    assert mf._mid_time_s(tl) == 0.0065
+    real = protocols.build(load_config(CONFIG, ["capture.sequential=true"]))
+    assert mf._mid_time_s(real) == pytest.approx((float(real.seconds(real.start_tick)) + float(real.seconds(real.end_tick))) / 2)
+
+
+def test_edges_overlay_colours():
+    """Base luminance dimmed to 0..0.25 of its 99th percentile; matched detections green, unmatched
+    red, missed true edges blue; without a truth, detections white."""
+    base = np.zeros((6, 8, 3))
+    base[:, 4:] = 2.0                        # half the image at luminance 2 (the 99th percentile)
+    det = np.zeros((6, 8), bool)
+    truth = np.zeros((6, 8), bool)
+    det[1, 1] = truth[1, 2] = True           # 1 px apart: matched
+    det[4, 6] = True                         # nothing true near: unmatched
+    truth[5, 0] = True                       # nothing detected near: missed
+    out = mf.edges_overlay(base, det, truth, 1.0)
+    np.testing.assert_allclose(out[0, 0], 0.0)
+    np.testing.assert_allclose(out[0, 7], 0.25)
+    assert out[1, 1].tolist() == [0.1, 1.0, 0.1]
+    assert out[4, 6].tolist() == [1.0, 0.1, 0.1]
+    assert out[5, 0].tolist() == [0.1, 0.3, 1.0]
+    np.testing.assert_allclose(out[1, 2], 0.0)  # a true edge with a detection near: not marked
+    plain = mf.edges_overlay(base, det, None, 1.0)
+    assert plain[1, 1].tolist() == plain[4, 6].tolist() == [1.0, 1.0, 1.0]
+    np.testing.assert_allclose(plain[5, 0], 0.0)
+    # nothing detected: every true edge is missed; nothing true: every detection unmatched
+    assert mf.edges_overlay(base, np.zeros_like(det), truth, 1.0)[1, 2].tolist() == [0.1, 0.3, 1.0]
+    assert mf.edges_overlay(base, det, np.zeros_like(truth), 1.0)[1, 1].tolist() == [1.0, 0.1, 0.1]
+    black = mf.edges_overlay(np.zeros((6, 8, 3)), det, None, 1.0)  # a black base: white is 1, nothing divides by 0
+    assert np.isfinite(black).all() and black[0, 0].tolist() == [0.0, 0.0, 0.0]
+    # white is the 99th percentile, not the maximum: a hot pixel and values above white clip, below 0 too
+    lum = np.zeros((10, 20))
+    lum[:, 10:] = 2.0
+    lum[0, 0] = 50.0   # 0.5 % of the pixels
+    lum[5, 0] = 1.0    # half of white
+    lum[6, 0] = -1.0
+    out = mf.edges_overlay(np.repeat(lum[..., None], 3, -1), np.zeros((10, 20), bool), None, 1.0)
+    np.testing.assert_allclose(out[..., 0][[0, 5, 6, 0], [0, 0, 0, 19]], [0.25, 0.125, 0.0, 0.25])
+    # a detection (or true edge) in the image's corner with nothing on the other map: unmatched (missed)
+    corner = np.zeros((6, 8), bool)
+    corner[0, 0] = True
+    assert mf.edges_overlay(base, corner, np.zeros_like(corner), 1.0)[0, 0].tolist() == [1.0, 0.1, 0.1]
+    assert mf.edges_overlay(base, np.zeros_like(corner), corner, 1.0)[0, 0].tolist() == [0.1, 0.3, 1.0]
+
+
+def test_scores_split_edges_and_shadow_free_error_by_the_moving_region():
+    """The report's depth-edge scores over the whole image and, when something moves, inside and
+    outside the moving region; the shadow-free image's relative MSE against the truth (whole and
+    moving region, eps in radiance units) and its residual shadows."""
+    from types import SimpleNamespace
+
+    from mbcapture.metrics import relative_mse
+
+    eps = 1e-3  # the relative MSE's eps for radiance, (render units)^2
+
+    images, _, truth_edges, _ = _square_scene(seed=6)
+    det = truth_edges.copy()
+    det[0, :6] = True                  # false detections in the top-left corner
+    det[R0, C0:C1 + 1] = False         # a missed true edge (the top row of the square)
+    moving = np.zeros((H, W), bool)
+    moving[:, :17] = True              # through the square: edges on both sides
+    shadow_free = mf.max_composite(images) * np.linspace(0.8, 1.2, W)[None, :, None]
+    truth = {"t_s": 0.5, "times_s": [0.5], "flash": images, "shadow_free": mf.max_composite(images),
+             "edges": truth_edges, "spp": 16}
+    p = mf.MultiFlashParams(tolerance_px=1.5, min_signal_fraction=0.4)
+    s = mf._scores(SimpleNamespace(moving_mask=moving), p, det, shadow_free, truth)
+    assert s["moving_px"] == moving.sum()
+    assert s["depth_edges"] == {"all": mf.edge_scores(det, truth_edges, 1.5),
+                                "moving_region": mf.edge_scores(det, truth_edges, 1.5, moving),
+                                "static_region": mf.edge_scores(det, truth_edges, 1.5, ~moving)}
+    de = s["depth_edges"]
+    assert de["moving_region"] != de["static_region"] and de["all"] not in (de["moving_region"], de["static_region"])
+    sm = mf.shadow_metrics(shadow_free, images, shadow_ratio=p.shadow_ratio, min_signal_fraction=0.4)
+    assert 0 < sm["shadowed_px"] < mf.shadow_metrics(shadow_free, images)["shadowed_px"]  # fewer pixels count as lit
+    assert s["shadow_free"] == {
+        "rel_mse": pytest.approx(relative_mse(shadow_free, truth["shadow_free"], eps=eps)),
+        "rel_mse_moving": pytest.approx(relative_mse(shadow_free, truth["shadow_free"], mask=moving[..., None], eps=eps)),
+        **sm}
+    assert s["shadow_free"]["rel_mse"] != pytest.approx(s["shadow_free"]["rel_mse_moving"])
+    t = s["truth"]
+    assert (t["time_s"], t["edge_times_s"], t["mode"], t["depth_jump"], t["tolerance_px"], t["shadow_free_spp"]) == \
+        (0.5, [0.5], p.truth_time, p.truth_depth_jump, 1.5, 16)
+    # shadows at 5 % of the direct light are not below 4 % of it
+    low = mf._scores(SimpleNamespace(moving_mask=moving), mf.MultiFlashParams(shadow_ratio=0.04), det, shadow_free, truth)
+    assert low["shadow_free"]["shadowed_px"] == 0
+    still = mf._scores(SimpleNamespace(moving_mask=np.zeros((H, W), bool)), p, det, shadow_free, truth)
+    assert set(still["depth_edges"]) == {"all"} and "rel_mse_moving" not in still["shadow_free"]
+    assert still["moving_px"] == 0

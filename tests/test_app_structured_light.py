@@ -255,3 +255,94 @@ def test_reconstruct_recovers_a_plane_without_mitsuba(over):
     else:
         np.testing.assert_allclose(out.images["depth"][decoded], z[decoded], atol=2e-5)
         assert out.metrics["ambient_in_reads"]["pattern_reads_spread"] < 1e-9
+
+
+def test_depth_scores_phase_median_and_edge_cases():
+    """Phase error against the truth's column (2 pi periods u / projector width, wrapped), the
+    median depth error, the tolerance's edge, a valid pixel without a depth, nothing or one lit."""
+    truth = {"z_m": np.full((2, 4), 1.0), "u_px": np.array([[100.0, 200.0, 300.0, 400.0]] * 2)}
+    z = np.array([[1.001, 1.003, 1.0078125, 1.0], [1.0, 1.0, 1.0, np.nan]])  # 7.8125 mm is exact in binary
+    valid = np.ones((2, 4), bool)  # the NaN depth is "valid" by mistake: it is never within tolerance
+    lit = np.ones((2, 4), bool)
+    lit[1, :3] = False
+    true_phase = 2 * np.pi * 4 * truth["u_px"] / 512
+    phase = true_phase + np.array([[0.1, -0.2, 0.1 + 2 * np.pi, -0.2], [0.0, 0.0, 0.0, 0.3]])
+    s = sl.depth_scores(z, valid, truth["u_px"] + 0.25, phase, truth, lit, 7.8125, 4, 512)
+    assert s["pixels"] == 5 and s["coverage"] == 1.0
+    assert s["within_tolerance"] == pytest.approx(4 / 5)  # 1, 3, 7.8125 (the edge, included) and 0 mm; not NaN
+    assert s["phase_rmse_rad"] == pytest.approx(np.sqrt((0.01 + 0.04 + 0.01 + 0.04 + 0.09) / 5), rel=1e-9)
+    assert s["column_rmse_px"] == pytest.approx(0.25)
+    z2 = np.where(np.isfinite(z), z, 1.0)
+    s2 = sl.depth_scores(z2, valid, truth["u_px"], None, truth, lit, 10.0, 4, 512)
+    assert s2["depth_median_abs_mm"] == pytest.approx(1.0) and "phase_rmse_rad" not in s2  # |1, 3, 7.8, 0, 0| mm
+    assert "phase_rmse_rad" not in sl.depth_scores(z2, valid, truth["u_px"], phase, truth, lit, 10.0, None, 512)
+    assert sl.depth_scores(z2, valid, truth["u_px"], phase, truth, np.zeros((2, 4), bool), 10.0, 4, 512) == {"pixels": 0}
+    one = np.zeros((2, 4), bool)
+    one[0, 1] = True
+    assert sl.depth_scores(z2, valid, truth["u_px"], phase, truth, one, 10.0, 4, 512)["pixels"] == 1
+
+
+def _ramp(periods=4, pw=512, h=6, w=40):
+    """Projector columns rising 10 -> 490 across the image, their wrapped phase, and a linear
+    triangulation z = 1 + u / 1000 m."""
+    u = np.broadcast_to(np.linspace(10.0, 490.0, w), (h, w)).copy()
+    phase = np.mod(2 * np.pi * periods * u / pw, 2 * np.pi)
+    return u, phase, (lambda c: 1.0 + np.asarray(c) / 1000.0)
+
+
+def test_unwrap_none_reads_the_first_period_and_keeps_the_depth_range_inclusive():
+    u, phase, tri = _ramp(periods=1)
+    valid = np.ones(u.shape, bool)
+    valid[0, 5] = False
+    col = phase / (2 * np.pi) * 512 / 1  # the decoded column, as the function computes it
+    z_lo, z_hi = float(tri(col[0, 3])), float(tri(col[0, 30]))  # two pixels exactly on the range's ends
+    uu, zz, ok = sl.unwrap_none(phase, valid, tri, 1, 512, z_lo, z_hi)
+    expect_ok = valid & (u >= u[0, 3]) & (u <= u[0, 30])
+    np.testing.assert_array_equal(ok, expect_ok)
+    np.testing.assert_allclose(uu[ok], u[ok], rtol=1e-12)
+    np.testing.assert_allclose(zz[ok], tri(u[ok]), rtol=1e-12)
+    assert np.isnan(uu[~ok]).all() and np.isnan(zz[~ok]).all()
+    # with 4 periods, the first period only: u = phase W / (2 pi P) lies in [0, 128)
+    _, phase4, _ = _ramp(periods=4)
+    u4, _, ok4 = sl.unwrap_none(phase4, np.ones(u.shape, bool), tri, 4, 512, 0.0, 10.0)
+    assert ok4.all() and u4.max() < 128 and u4.min() >= 0
+    np.testing.assert_allclose(u4, np.mod(u, 128), rtol=1e-9, atol=1e-9)
+
+
+def test_unwrap_spatial_recovers_a_smooth_ramp_within_the_depth_range():
+    u, phase, tri = _ramp(periods=4)
+    valid = np.ones(u.shape, bool)
+    valid[2, 17] = False
+    uu, zz, ok = sl.unwrap_spatial(phase, valid, tri, 4, 512, float(tri(u.min())) - 1e-9, float(tri(u.max())) + 1e-9)
+    np.testing.assert_array_equal(ok, valid)
+    np.testing.assert_allclose(uu[ok], u[ok], rtol=1e-9)
+    np.testing.assert_allclose(zz[ok], tri(u[ok]), rtol=1e-12)
+    assert np.isnan(uu[2, 17]) and np.isnan(zz[2, 17])
+    # a range that holds only the left half: the same offset (most pixels in range), the rest not ok
+    mid = float(tri((u[0, 19] + u[0, 20]) / 2))
+    _, _, half = sl.unwrap_spatial(phase, valid, tri, 4, 512, float(tri(u.min())) - 1e-9, mid)
+    np.testing.assert_array_equal(half, valid & (u <= u[0, 19]))
+
+
+def test_valid_fraction_against_the_99th_percentile_of_the_good_pixels():
+    """A pixel is valid when it is not bad, finite, > 0 and at least the fraction of the 99th
+    percentile over such pixels. A NaN pixel is invalid and does not enter the percentile (it used
+    to make the percentile NaN, and with it every pixel invalid)."""
+    sig = np.ones((20, 10))
+    sig[0, 0] = 1000.0      # 0.5 % hot pixels do not move the 99th percentile
+    sig[1, :] = 0.25        # exactly the fraction: valid
+    sig[2, :] = 0.2         # below: not valid
+    sig[3, 0] = np.nan
+    sig[3, 1] = 0.0
+    bad = np.zeros((20, 10), bool)
+    bad[4, :] = True
+    sig[4, :] = 1e6         # bad pixels neither count nor set the reference
+    v = sl._valid_fraction(4.0 * sig, 0.25, bad)
+    expect = np.ones((20, 10), bool)
+    expect[2, :] = expect[4, :] = False
+    expect[3, :2] = False
+    np.testing.assert_array_equal(v, expect)
+    np.testing.assert_array_equal(sl._valid_fraction(sig, 0.25, np.zeros((20, 10), bool))[2], False)  # no bad pixel
+    zero = sl._valid_fraction(sig, 0.0, bad)  # fraction 0: still not black, NaN or bad
+    assert not zero[3, :2].any() and not zero[4].any() and zero[2].all()
+    assert not sl._valid_fraction(sig, 0.25, np.ones((20, 10), bool)).any()  # all bad

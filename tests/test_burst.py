@@ -129,3 +129,66 @@ def test_back_to_back_frames_move_less_between_them_than_a_conventional_burst():
     pos = burst.mean_positions(scene, tl, 160, 128)
     assert np.abs(pos - pos[0]).max() < 1e-9
     assert burst.frame_blur_px(scene, tl, 160, 128).max() == 0.0
+
+
+def test_warp_onto_samples_at_the_warped_position_and_marks_what_falls_outside():
+    """out(p) = image(warp(p)): on x^2 a half-pixel shift gives the bilinear average x^2 + x + 0.5,
+    or with OpenCV's bicubic kernel (a = -0.75) x^2 + x + 0.125; pixels whose sample lies partly
+    outside the image are NaN; a homography with warp[2] != (0, 0, 1) goes through the
+    perspective path and, for the same transform, gives the same image."""
+    h, w = 6, 10
+    x = np.arange(w, dtype=float)
+    img = np.broadcast_to((x / 4) ** 2, (h, w)).copy()  # small values: float32 keeps ~1e-7
+    shift = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    lin = burst.warp_onto(img, shift)
+    xs = x[:-1] / 4
+    np.testing.assert_allclose(lin[:, :-1], np.broadcast_to(xs**2 + xs / 4 + 0.5 / 16, (h, w - 1)), rtol=1e-6)
+    assert np.isnan(lin[:, -1]).all() and lin.dtype == np.float64
+    cub = burst.warp_onto(img, shift, cubic=True)
+    np.testing.assert_allclose(cub[:, 1:-2], np.broadcast_to(xs[1:-1] ** 2 + xs[1:-1] / 4 + 0.125 / 16, (h, w - 3)),
+                               rtol=1e-5)
+    assert np.isnan(cub[:, -1]).all()
+    np.testing.assert_allclose(burst.warp_onto(img, 2.0 * shift), lin, rtol=1e-6)  # the same transform, projective
+    # (H, W, C) in, (H, W, C) out; an integer shift down by 2 rows: the last two rows are outside
+    rgb = np.stack([img, 2 * img, 3 * img], -1)
+    down = burst.warp_onto(rgb, np.array([[1.0, 0, 0], [0, 1.0, 2.0], [0, 0, 1.0]]))
+    assert down.shape == (h, w, 3)
+    np.testing.assert_allclose(down[:-2], rgb[2:], rtol=1e-6)
+    assert np.isnan(down[-2:]).all()
+
+
+def test_score_registered_leaves_out_the_border_and_unfilled_pixels():
+    truth = np.repeat(_texture(24, 32, seed=4)[..., None], 3, -1)
+    on = 1.1 * truth
+    on[:2] = 50.0          # the border (2 px) is not scored
+    on[10, 10] = np.nan    # nor are pixels the registration left unfilled
+    s = burst.score_registered(on, truth, 2)
+    inner = (slice(2, 22), slice(2, 30))
+    ok = np.ones((20, 28), bool)
+    ok[8, 8] = False
+    t = truth[inner][ok]
+    lt = t.mean(-1)  # luminance of a grey pixel
+    from mbcapture.metrics import luminance
+
+    lt_all = luminance(truth[inner])
+    peak = np.percentile(lt_all, 99.9)
+    assert s["psnr_db"] == pytest.approx(10 * np.log10(peak**2 / np.mean((0.1 * lt) ** 2)), rel=1e-9)
+    assert s["rel_mse"] == pytest.approx(np.mean((0.1 * t) ** 2 / (t**2 + 1e-4)), rel=1e-9)
+    assert s["residual_blur_px"] == 0.0  # a gain is not a blur
+    exact = burst.score_registered(truth, truth, 2)
+    assert exact["psnr_db"] == np.inf and exact["rel_mse"] == 0.0 and exact["residual_blur_px"] == 0.0
+    # a blurred result inside the border: the blur is measured there
+    blurred = truth.copy()
+    blurred[2:22, 2:30] = np.repeat(gaussian_filter(truth[..., 0], 1.2, mode="nearest")[2:22, 2:30, None], 3, -1)
+    blurred[10, 10] = np.nan  # an unfilled pixel takes the truth's value in the blur fit
+    assert burst.score_registered(blurred, truth, 2)["residual_blur_px"] == pytest.approx(1.2, abs=0.1)
+    # an image that would keep fewer than 4 rows or columns without its border is scored whole
+    base = np.repeat(_texture(32, 32, seed=5)[..., None], 3, -1)
+    gain = 1.0 + np.random.default_rng(5).uniform(0, 0.2, base.shape)  # a different error per pixel
+    for h, w in ((6, 32), (32, 6), (7, 32), (8, 32), (32, 8), (9, 32), (32, 9)):
+        t = base[:h, :w]
+        whole = h - 4 < 4 or w - 4 < 4
+        sl = (slice(None), slice(None)) if whole else (slice(2, h - 2), slice(2, w - 2))
+        d, tt = (gain[:h, :w] - 1) * t, t
+        expect = np.mean(d[sl] ** 2 / (tt[sl] ** 2 + 1e-4))
+        assert burst.score_registered(gain[:h, :w] * t, t, 2)["rel_mse"] == pytest.approx(expect, rel=1e-9), (h, w)

@@ -241,8 +241,10 @@ def true_colours(scene) -> tuple[list[str], np.ndarray, np.ndarray]:
 
 
 def _led_sum(scene) -> tuple[np.ndarray, np.ndarray]:
+    """The three LEDs' summed spectrum on the union of their wavelength grids (each is zero outside
+    its own samples, as Mitsuba treats it)."""
     specs = [scene.extra["led_spectra"][g] for g in LED_GROUPS]
-    wl = np.asarray(specs[0].wavelengths_nm)
+    wl = np.unique(np.concatenate([np.asarray(s.wavelengths_nm) for s in specs]))
     return wl, sum(np.interp(wl, *s.arrays, left=0.0, right=0.0) for s in specs)
 
 

@@ -247,8 +247,11 @@ UNWRAP_METHODS: dict[str, Callable] = {"depth_range": unwrap_depth_range, "spati
 
 
 def _valid_fraction(signal: np.ndarray, fraction: float, bad: np.ndarray) -> np.ndarray:
-    ref = float(np.percentile(signal[~bad], 99)) if (~bad).any() else 0.0
-    return (~bad) & (signal >= fraction * ref) & (signal > 0) & np.isfinite(signal)
+    """Good pixels (not ``bad``, finite, > 0) whose signal is at least ``fraction`` of the 99th
+    percentile over the good pixels (a NaN would otherwise make the percentile, and every pixel, NaN)."""
+    good = ~bad & np.isfinite(signal)
+    ref = float(np.percentile(signal[good], 99)) if good.any() else 0.0
+    return good & (signal >= fraction * ref) & (signal > 0)
 
 
 def decode_phase_shift(images, ambient, info, bad, tri, p: StructuredLightParams) -> dict:
