@@ -152,7 +152,7 @@ def test_goldens_catch_a_changed_noise_model(golden, monkeypatch, change):
     import mbcapture.sensor.readout as readout
 
     if change == "numpy_poisson":  # the same law, drawn by numpy's rejection sampler
-        monkeypatch.setattr(readout, "poisson_quantile",
+        monkeypatch.setattr(readout, "poisson_quantile_memo",
                             lambda u, lam: np.random.default_rng(0).poisson(lam).astype(np.float64))
     else:
         base = golden_cases.sensor_config()
