@@ -29,10 +29,10 @@ degrees of freedom; :func:`budget_quantiles` corrects the median for the chi-squ
 divided by the pilot's expected electrons, this gives each bucket's ratios at the two counts. With
 randomized quasi-Monte Carlo samplers (``render.sampler``) variance falls faster than 1/spp, so
 the exponent between the two counts is measured (clipped to [1, 2]) and each target's quantile is
-extrapolated to the count that meets it, but not below the smaller pilot count (2 x 4), where it
-was measured. Strata share that count in proportion to their Neyman
+extrapolated to the count that meets it. Strata share that count in proportion to their Neyman
 shape (sqrt of each stratum's summed variance: a stratum that weighs more in the buckets gets
-more samples); every stratum uses its nearest pilot. Counts are rounded up to what the sampler
+more samples), but none gets fewer than the smaller pilot count (2 x 4), where the ratio was
+measured rather than extrapolated; every stratum uses its nearest pilot. Counts are rounded up to what the sampler
 takes for each half (ldsampler: powers of 4) within [2, ``render.max_spp``]. A dim scene gets
 fewer samples: the variance scales with the square of the light, the shot noise with the light.
 
@@ -527,15 +527,15 @@ def choose_spp(
         for i, target in enumerate((noise_budget, p95_target)):
             lo, hi_q = q[n_lo][i], q[n_hi][i]
             expo = float(np.clip(np.log(max(lo, 1e-300) / max(hi_q, 1e-300)) / np.log(n_hi / n_lo), *EXPONENT_RANGE))
-            # never below the pilot's smaller count: there the ratio was measured, below it only extrapolated
-            # (multijitter converges faster than spp^-2 on smooth scenes, so the clipped exponent under-predicts
-            # the noise of fewer samples: flutter_shutter 640x512 was given 2 + 2 spp and measured 0.175 > 0.1)
-            need.append(max(n_hi * (hi_q / target) ** (1.0 / expo) if hi_q > 0 else 0.0, float(n_lo)))
+            need.append(n_hi * (hi_q / target) ** (1.0 / expo) if hi_q > 0 else 0.0)
         per_bucket.append({"median_at": {n_lo: round(q[n_lo][0], 4), n_hi: round(q[n_hi][0], 4)},
                            "p95_at": {n_lo: round(q[n_lo][1], 4), n_hi: round(q[n_hi][1], 4)},
                            "spp_for_median": round(need[0], 1), "spp_for_p95": round(need[1], 1)})
         scale = max(scale, *need)
-    n = scale * alpha
+    # no stratum below the pilot's smaller count: there the ratio was measured, below it only extrapolated
+    # (multijitter converges faster than spp^-2 on smooth scenes, so the clipped exponent under-predicts the
+    # noise of fewer samples: flutter_shutter 640x512 was given 2 + 2 spp and measured 0.175 > 0.1)
+    n = np.maximum(scale * alpha, float(n_lo)) if scale > 0 else scale * alpha
     count = getattr(renderer, "sample_count", lambda m: m)  # what the sampler takes
     half = np.array([count(_ladder(x / 2)) for x in n])
     cap = max(max_spp // 2, 1)

@@ -226,6 +226,17 @@ def test_dim_scene_gets_fewer_samples_and_the_cap_holds():
     assert capped.spp.max() == 64 and any("max_spp" in n for n in capped.notes)
 
 
+def test_no_stratum_gets_fewer_samples_than_the_pilot_measured():
+    """A scene so clean that the rule asks for ~1 sample: every stratum still gets the pilot's
+    smaller count (2 x 4), where the ratio was measured (below it the convergence exponent is only
+    extrapolated, and quasi-Monte Carlo samples converge differently at 1-2 samples)."""
+    from mbcapture.plan import PILOT_SPP
+
+    _, clean, _ = _budget_plan(2.0, 0.05)
+    assert np.all(clean.spp == 2 * PILOT_SPP[0]), clean.spp
+    assert clean.pilot["uncapped_spp_max"] == pytest.approx(2 * PILOT_SPP[0])
+
+
 def test_per_stratum_spp_follows_the_weights():
     """Neyman allocation per stratum. An accelerating point makes strata of very different lengths
     (the first, slow one ~7x the last), so their weights differ. With one group of per-sample
