@@ -264,6 +264,9 @@ class Rendered:
 
     plan: Plan
     integrated: Integrated
+    #: (H, W) bool, the moving region of the capture's span (:func:`moving_region`): it depends on the
+    #: scene, the span and the film only, so the captures sharing these renders share it too
+    moving: np.ndarray | None = None
 
     def plan_for(self, own: Plan) -> Plan:
         same = (own.groups == self.plan.groups and np.array_equal(own.times_s, self.plan.times_s)
@@ -306,6 +309,7 @@ def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status:
         scene, timeline, plan, seeds = prepare(cfg)
         app, app_params = cfg.app.resolve(cfg.capture.protocol)
     W, H = cfg.render.width, cfg.render.height
+    t0_s, t1_s = timeline.seconds(timeline.start_tick), timeline.seconds(timeline.end_tick)
 
     with timer("render_setup"), status.stage("render setup (kernels, scene)"):
         llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
@@ -318,10 +322,12 @@ def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status:
         with status.stage(f"render ({plan.passes} passes)"):
             integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
                                    progress=progress)
+        moving = None
         if on_rendered is not None:
-            on_rendered(Rendered(plan, integrated))
+            moving = moving_region(scene, float(t0_s), float(t1_s), W, H)
+            on_rendered(Rendered(plan, integrated, moving))
     else:  # another capture's render stage, with the same renders
-        plan, integrated = rendered.plan_for(plan), rendered.integrated
+        plan, integrated, moving = rendered.plan_for(plan), rendered.integrated, rendered.moving
         if app.per_group and integrated.group_exposure is None:
             raise ValueError("run_capture(rendered=...): the application needs per-group exposures")
     exposure = integrated.exposure
@@ -340,8 +346,7 @@ def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status:
         )
 
     with timer("reconstruct"), status.stage(f"reconstruct ({app.name})"):
-        t0_s, t1_s = timeline.seconds(timeline.start_tick), timeline.seconds(timeline.end_tick)
-        mask = moving_region(scene, float(t0_s), float(t1_s), W, H)
+        mask = moving_region(scene, float(t0_s), float(t1_s), W, H) if moving is None else moving
         switchable = tuple(g for g in scene.groups if g in scene.switchable)
         data = CaptureData(
             cfg=cfg,
