@@ -37,8 +37,16 @@ N_SIGMA = 5.0
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "flash_no_flash.yaml"
 
 
-def brute_joint_bilateral(img, guide, ss, sr, truncate=2.5):
-    """The filter's definition, one pixel at a time (mirrored borders)."""
+def _mirror(q, n):
+    return -q if q < 0 else (2 * (n - 1) - q if q >= n else q)
+
+
+def _edge(q, n):
+    return min(max(q, 0), n - 1)
+
+
+def brute_joint_bilateral(img, guide, ss, sr, truncate=2.5, border=_mirror):
+    """The filter's definition, one pixel at a time (mirrored borders, or ``border=_edge``)."""
     H, W = img.shape[:2]
     r = int(np.ceil(truncate * ss))
     out = np.zeros_like(img, dtype=float)
@@ -49,9 +57,7 @@ def brute_joint_bilateral(img, guide, ss, sr, truncate=2.5):
                 for dx in range(-r, r + 1):
                     if dy * dy + dx * dx > r * r:
                         continue
-                    qy, qx = y + dy, x + dx
-                    qy = -qy if qy < 0 else (2 * (H - 1) - qy if qy >= H else qy)
-                    qx = -qx if qx < 0 else (2 * (W - 1) - qx if qx >= W else qx)
+                    qy, qx = border(y + dy, H), border(x + dx, W)
                     w = np.exp(-(dy * dy + dx * dx) / (2 * ss**2) - np.sum((guide[qy, qx] - guide[y, x]) ** 2) / (2 * sr**2))
                     num = num + w * img[qy, qx]
                     den += w
@@ -377,20 +383,7 @@ def test_joint_bilateral_on_an_image_narrower_than_its_radius_repeats_the_edge()
     rng = np.random.default_rng(5)
     img = rng.uniform(0, 1, (7, 3, 2))  # r = ceil(2.5 * 1.2) = 3 = W
     out = joint_bilateral(img, img, 1.2, 0.3)
-    H, W = img.shape[:2]
-    r = 3
-    expect = np.zeros_like(img)
-    for y in range(H):
-        for x in range(W):
-            num, den = 0.0, 0.0
-            for dy in range(-r, r + 1):
-                for dx in range(-r, r + 1):
-                    if dy * dy + dx * dx > r * r:
-                        continue
-                    q = img[min(max(y + dy, 0), H - 1), min(max(x + dx, 0), W - 1)]
-                    w = np.exp(-(dy * dy + dx * dx) / (2 * 1.2**2) - np.sum((q - img[y, x]) ** 2) / (2 * 0.3**2))
-                    num, den = num + w * q, den + w
-            expect[y, x] = num / den
+    expect = brute_joint_bilateral(img, img, 1.2, 0.3, border=_edge)
     np.testing.assert_allclose(out, expect, rtol=1e-12)
 
 
