@@ -167,8 +167,6 @@ def render_error(
 
 def render_summary(report: dict) -> list[str]:
     """The lines a run prints about its rendering: noise against the budget, and the cache."""
-    from .report import noise_verdict
-
     out = [noise_verdict(report.get("render_error", {}))]
     cache = report.get("render_cache", {})
     if cache.get("folder"):
@@ -266,7 +264,7 @@ class Rendered:
     integrated: Integrated
     #: (H, W) bool, the moving region of the capture's span (:func:`moving_region`): it depends on the
     #: scene, the span and the film only, so the captures sharing these renders share it too
-    moving: np.ndarray | None = None
+    moving: np.ndarray
 
     def plan_for(self, own: Plan) -> Plan:
         same = (own.groups == self.plan.groups and np.array_equal(own.times_s, self.plan.times_s)
@@ -322,9 +320,8 @@ def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status:
         with status.stage(f"render ({plan.passes} passes)"):
             integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
                                    progress=progress)
-        moving = None
+        moving = moving_region(scene, float(t0_s), float(t1_s), W, H)
         if on_rendered is not None:
-            moving = moving_region(scene, float(t0_s), float(t1_s), W, H)
             on_rendered(Rendered(plan, integrated, moving))
     else:  # another capture's render stage, with the same renders
         plan, integrated, moving = rendered.plan_for(plan), rendered.integrated, rendered.moving
@@ -346,7 +343,7 @@ def _run(cfg: CaptureConfig, out_dir: str | Path | None, progress: bool, status:
         )
 
     with timer("reconstruct"), status.stage(f"reconstruct ({app.name})"):
-        mask = moving_region(scene, float(t0_s), float(t1_s), W, H) if moving is None else moving
+        mask = moving
         switchable = tuple(g for g in scene.groups if g in scene.switchable)
         data = CaptureData(
             cfg=cfg,

@@ -7,6 +7,9 @@ broadcastable to it) selecting the samples that count. They return a Python floa
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Mapping
+from typing import Any
+
 import numpy as np
 
 __all__ = [
@@ -14,6 +17,7 @@ __all__ = [
     "PU21_L_MIN_CD_M2",
     "PU21_PARAMETERS",
     "RELMSE_EPS",
+    "flat_items",
     "psnr",
     "pu21_encode",
     "pu21_psnr",
@@ -21,6 +25,17 @@ __all__ = [
     "luminance",
     "relative_mse",
 ]
+
+def flat_items(data: Mapping, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """The leaves of nested dicts (a report's metrics) as ``("a.b.c", value)`` pairs, in order;
+    every value that is not a dict is a leaf, lists included."""
+    for k, v in data.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        if isinstance(v, Mapping):
+            yield from flat_items(v, key)
+        else:
+            yield key, v
+
 
 #: Rec. 709 luminance weights of linear RGB.
 REC709_LUMA = np.array([0.2126, 0.7152, 0.0722])

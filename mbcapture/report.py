@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .metrics import luminance
+from .metrics import flat_items, luminance
 
 if TYPE_CHECKING:
     from .capture import CaptureResult
@@ -387,17 +387,6 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def _flatten(d: dict, prefix: str = "") -> list[tuple[str, object]]:
-    rows = []
-    for k, v in d.items():
-        key = f"{prefix}.{k}" if prefix else str(k)
-        if isinstance(v, dict):
-            rows.extend(_flatten(v, key))
-        else:
-            rows.append((key, v))
-    return rows
-
-
 def _table(rows: list[list], header: list[str] | None = None) -> str:
     out = ["<table>"]
     if header:
@@ -540,7 +529,7 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
         "read's full well (its buckets' full wells summed, or the floating diffusion's, whichever is lower); red: "
         "the ADC's top code. Pixels piled at a line are clipped there.", plot=True))
     # ---- metrics
-    metric_rows = [[k, v] for k, v in _flatten(rep["metrics"])]
+    metric_rows = [[k, v] for k, v in flat_items(rep["metrics"])]
     sections.append("<h2 id='metrics'>Metrics</h2>" + _table(metric_rows, ["metric", "value"])
                     + "<p class='muted'>Their meaning: <code>mbcapture apps</code> and docs/report.md.</p>")
     # ---- rendering noise

@@ -232,11 +232,12 @@ def test_noise_streams_from_an_int_or_a_generator_are_reproducible():
     assert not np.array_equal(a, NoiseStreams(np.random.default_rng(9)).normal("read", (4,)))
 
 
-def test_poisson_memo_returns_the_same_draw_and_only_for_the_same_field_and_means():
+def test_poisson_memo_returns_the_same_draw_and_only_for_the_same_field_and_means(monkeypatch):
     """A repeat of a draw (same uniform field, same means) comes from the memo, equal to the exact
     inversion and a fresh array; another field or a mean one ulp away is drawn again."""
     from mbcapture.sensor.sampling import POISSON_MEMO, poisson_quantile_memo
 
+    monkeypatch.setattr(POISSON_MEMO, "entries", 4)  # on, as in a sweep's workers
     POISSON_MEMO.clear()
     u = NoiseStreams(3).uniform("shot", (2, 5, 7))
     lam = np.linspace(0.5, 4000.0, u.size).reshape(u.shape)

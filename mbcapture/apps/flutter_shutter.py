@@ -356,9 +356,7 @@ def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
     weights = read_weights(data.reads_e_expected, k_e, sensor.read_noise_e, region)
     b = data.reads_e() / k_e
     b0 = data.reads_e_expected / k_e
-    if params.deblur not in DEBLUR_METHODS:
-        raise ConfigError(f"app.deblur: unknown method {params.deblur!r}; expected one of {sorted(DEBLUR_METHODS)}")
-    deblur = DEBLUR_METHODS[params.deblur]
+    deblur = DEBLUR_METHODS[params.deblur]  # the name was checked when the config loaded
 
     def both(idx, reads=b, reads0=b0, samp=samples, w=weights):
         s_ = [samp[i] for i in idx]

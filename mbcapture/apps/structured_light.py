@@ -259,8 +259,6 @@ def decode_phase_shift(images, ambient, info, bad, tri, p: StructuredLightParams
     imgs = images - ambient[None] if ambient is not None else images
     phase, mod, mean = wrapped_phase(imgs, info["phase_shifts_rad"])
     valid = _valid_fraction(mod, p.min_modulation_fraction, bad)
-    if p.unwrap not in UNWRAP_METHODS:
-        raise ConfigError(f"app.unwrap: unknown phase unwrapping {p.unwrap!r}; expected one of {sorted(UNWRAP_METHODS)}")
     w = info["projector_size_px"][0]
     u, z, ok = UNWRAP_METHODS[p.unwrap](phase, valid, tri, info["fringe_periods"], w, p.depth_min_m, p.depth_max_m)
     return {"phase": phase, "modulation": mod, "column": u, "depth": z, "valid": ok}

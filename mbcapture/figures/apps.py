@@ -8,19 +8,14 @@ from __future__ import annotations
 import numpy as np
 
 from ..io import tonemap
+from ..metrics import flat_items
 from . import FigureContext, FigureOutput, figure
 
 
-def _flat_metrics(metrics: dict, prefix: str = "") -> dict[str, float]:
+def _flat_metrics(metrics: dict) -> dict[str, float]:
     """Numeric leaves of a metrics dict, with dotted keys."""
-    out: dict[str, float] = {}
-    for k, v in metrics.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out |= _flat_metrics(v, key + ".")
-        elif isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool):
-            out[key] = float(v)
-    return out
+    return {k: float(v) for k, v in flat_items(metrics)
+            if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)}
 
 
 def app_comparison(ctx: FigureContext, config: str, title: str, *overrides: str) -> FigureOutput:

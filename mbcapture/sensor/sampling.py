@@ -283,9 +283,11 @@ class _DrawMemo:
     """The last few Poisson draws of this process, keyed by a digest of their uniform field and
     means (SHA-256 of the bytes, which CPUs with SHA extensions hash at ~2 GB/s: ~35 ms for a
     640x512 capture's four buckets, against ~1.3 s for the inversion). A draw is a deterministic function of the two, so a repeat is the same
-    counts. Thread-safe; entries beyond ``entries`` or ``max_bytes`` are dropped oldest first."""
+    counts. Thread-safe; entries beyond ``entries`` or ``max_bytes`` are dropped oldest first.
+    Off (``entries`` 0) unless a process that repeats draws turns it on (:meth:`keep`): a single
+    capture never draws twice, and would only pay the digest and hold the copies."""
 
-    def __init__(self, entries: int = 4, max_bytes: int = 1 << 30):
+    def __init__(self, entries: int = 0, max_bytes: int = 1 << 30):
         self.entries, self.max_bytes = entries, max_bytes
         self._draws: OrderedDict[bytes, np.ndarray] = OrderedDict()
         self._lock = threading.Lock()
@@ -318,13 +320,19 @@ class _DrawMemo:
             while len(self._draws) > self.entries or sum(d.nbytes for d in self._draws.values()) > self.max_bytes:
                 self._draws.popitem(last=False)
 
+    def keep(self, entries: int) -> None:
+        """Remember (at least) the last ``entries`` draws from now on."""
+        with self._lock:
+            self.entries = max(self.entries, entries)
+
     def clear(self) -> None:
         with self._lock:
             self._draws.clear()
             self.hits = self.misses = 0
 
 
-#: The process's memo of :func:`poisson_quantile_memo`.
+#: The process's memo of :func:`poisson_quantile_memo` (off until :meth:`_DrawMemo.keep`; a sweep's
+#: workers turn it on).
 POISSON_MEMO = _DrawMemo()
 
 
@@ -332,6 +340,8 @@ def poisson_quantile_memo(u: np.ndarray, lam: np.ndarray | float) -> np.ndarray:
     """:func:`poisson_quantile`, remembered: the points of a sweep over read noise, full wells or
     the ADC draw the same photons from the same seed and means, and take them from the memo
     instead of inverting again (a new array each call: the caller may change it)."""
+    if POISSON_MEMO.entries == 0:
+        return poisson_quantile(u, lam)
     u = np.asarray(u, dtype=np.float64)
     lam = np.broadcast_to(np.asarray(lam, dtype=np.float64), u.shape)
     key = POISSON_MEMO.key(u, lam)

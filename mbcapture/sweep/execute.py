@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from ..metrics import flat_items
 from .groups import SweepPlan, one_line
 from .spec import Point, Sweep
 
@@ -74,13 +75,11 @@ def _prepare_process(threads: dict[str, int] | None, variant: str) -> None:
 def flatten(data: Any, prefix: str) -> dict[str, Any]:
     """Scalars (numbers, booleans, strings, None) of nested dicts as ``{'a.b.c': value}``; lists are left out."""
     out: dict[str, Any] = {}
-    if isinstance(data, dict):
-        for k, v in data.items():
-            out.update(flatten(v, f"{prefix}.{k}" if prefix else str(k)))
-    elif isinstance(data, (bool, int, float, str)) or data is None:
-        out[prefix] = data
-    elif hasattr(data, "item") and getattr(data, "ndim", 1) == 0:  # a numpy scalar
-        out[prefix] = data.item()
+    for key, v in flat_items(data, prefix):
+        if isinstance(v, (bool, int, float, str)) or v is None:
+            out[key] = v
+        elif hasattr(v, "item") and getattr(v, "ndim", 1) == 0:  # a numpy scalar
+            out[key] = v.item()
     return out
 
 
@@ -124,7 +123,9 @@ def run_point(task: dict, leader: dict | None = None, *after: Any, keep_result: 
     an exception becomes ``row["status"] = "failed"`` with ``row["error"]``."""
     from ..capture import run_capture
     from ..config import config_from_dict
+    from ..sensor.sampling import POISSON_MEMO
 
+    POISSON_MEMO.keep(4)  # the points of a render group draw the same photons unless light or seed differ
     start = time.perf_counter()
     row: dict[str, Any] = {"status": "ok", "error": None, "worker": f"{socket.gethostname()}:{os.getpid()}"}
     kept: dict[str, Any] = {}
