@@ -451,3 +451,31 @@ def test_readout_chain_by_hand_with_fixed_noise_fields():
 class _Negative(_FixedFields):
     def normal(self, stage, shape):
         return -np.ones(shape)
+
+
+def test_the_sensor_stage_hook_sees_each_input_and_can_simulate_another():
+    """The seam of the stage goldens: inside sensor_stage_hook every simulate_reads call hands its input
+    to the hook, whose simulate(e) is the same sensor (noise fields, reads, storage) on another input;
+    outside it nothing changes."""
+    from mbcapture.sensor import sensor_stage_hook
+
+    cfg = SensorConfig(transfer_inefficiency=1e-3)
+    e = np.full((4, 3, 5, 3), 800.0)
+    reads = [(3,), (3, 2), (3, 2, 1), (3, 2, 1, 0)]
+    kw = dict(storage_s=np.full(4, 1e-3))
+    plain = simulate_reads(e, reads, cfg, np.random.SeedSequence(5), **kw)
+    seen = []
+
+    def hook(x, simulate):
+        seen.append(x.copy())
+        assert np.array_equal(simulate(x).reads_dn, simulate(x).reads_dn)  # the same fields on every call
+        return simulate(2 * x)
+
+    with sensor_stage_hook(hook):
+        out = simulate_reads(e, reads, cfg, np.random.SeedSequence(5), **kw)
+    assert len(seen) == 1 and np.array_equal(seen[0], e)
+    doubled = simulate_reads(2 * e, reads, cfg, np.random.SeedSequence(5), **kw)
+    assert np.array_equal(out.reads_dn, doubled.reads_dn) and not np.array_equal(out.reads_dn, plain.reads_dn)
+    assert np.array_equal(simulate_reads(e, reads, cfg, np.random.SeedSequence(5), **kw).reads_dn, plain.reads_dn)
+    with sensor_stage_hook(lambda x, simulate: simulate(x[:, :2])), pytest.raises(ValueError, match="sensor stage input"):
+        simulate_reads(e, reads, cfg, np.random.SeedSequence(5), **kw)

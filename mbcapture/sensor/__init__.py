@@ -11,7 +11,7 @@ from .photons import (
     electrons_per_render_second,
     expected_electrons,
 )
-from .readout import FixedPattern, SensorReads, dn_to_electrons, fixed_pattern, simulate_reads
+from .readout import FixedPattern, SensorReads, dn_to_electrons, fixed_pattern, sensor_stage_hook, simulate_reads
 
 __all__ = [
     "FixedPattern",
@@ -23,5 +23,6 @@ __all__ = [
     "electrons_per_render_second",
     "expected_electrons",
     "fixed_pattern",
+    "sensor_stage_hook",
     "simulate_reads",
 ]

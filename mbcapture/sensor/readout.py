@@ -36,15 +36,17 @@ read has its own independent read noise.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
 from .config import SensorConfig
 from .sampling import NoiseStreams, binomial_quantile, poisson_quantile_memo
 
-__all__ = ["FixedPattern", "SensorReads", "dn_to_electrons", "fixed_pattern", "simulate_reads"]
+__all__ = ["FixedPattern", "SensorReads", "dn_to_electrons", "fixed_pattern", "sensor_stage_hook", "simulate_reads"]
 
 
 @dataclass(frozen=True)
@@ -161,20 +163,59 @@ def simulate_reads(
             f"expected_bucket_e: {k_buckets} buckets but sensor.bucket_count is {cfg.bucket_count}"
         )
     read_sets = _validate_reads(reads, k_buckets)
+    storage = None if storage_s is None else np.asarray(storage_s, dtype=np.float64)
+    if storage is not None:
+        if storage.shape != (k_buckets,) or np.any(storage < 0):
+            raise ValueError(f"storage_s: expected {k_buckets} non-negative seconds, got {storage!r}")
 
+    streams = noise if isinstance(noise, NoiseStreams) else NoiseStreams(noise)
+
+    def simulate(e: np.ndarray) -> SensorReads:
+        """This call's sensor (its noise fields, storage times and reads) on the input ``e``."""
+        e = np.asarray(e, dtype=np.float64)
+        if e.shape != expected.shape or not np.all(np.isfinite(e)) or np.any(e < 0):
+            raise ValueError(f"sensor stage input: expected finite electrons >= 0 of shape {expected.shape}")
+        return _simulate(e, read_sets, cfg, streams, storage, shared_photodiode)
+
+    hook = _STAGE_HOOK.get()
+    return simulate(expected) if hook is None else hook(expected, simulate)
+
+
+#: The sensor-stage seam (:func:`sensor_stage_hook`); None outside such a context.
+_STAGE_HOOK: ContextVar[Callable[[np.ndarray, Callable[[np.ndarray], SensorReads]], SensorReads] | None] = \
+    ContextVar("mbcapture_sensor_stage_hook", default=None)
+
+
+@contextmanager
+def sensor_stage_hook(hook: Callable[[np.ndarray, Callable[[np.ndarray], SensorReads]], SensorReads]) -> Iterator[None]:
+    """Within this context, every :func:`simulate_reads` call (every sensor stage of a capture, an
+    application's comparison captures included) calls ``hook(expected_e, simulate)`` and returns
+    what it returns; ``simulate(e)`` is that call's sensor applied to the input ``e``, with the
+    same noise fields, storage times and reads (callable more than once, always the same answer
+    for the same ``e``).
+
+    This is the seam of the stage goldens (tests/golden_cases.py): they record each stage's
+    input, and replay the golden's stored input so that every count downstream is pinned on
+    its own stored input, whatever the renderer's last bits on this CPU."""
+    token = _STAGE_HOOK.set(hook)
+    try:
+        yield
+    finally:
+        _STAGE_HOOK.reset(token)
+
+
+def _simulate(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cfg: SensorConfig, streams: NoiseStreams,
+              storage: np.ndarray | None, shared_photodiode: bool) -> SensorReads:
+    """:func:`simulate_reads` on validated arguments."""
     fpn = fixed_pattern(expected.shape[1:], cfg)
     photo_e = expected * fpn.prnu_gain
     if shared_photodiode and cfg.parasitic_light > 0.0:
         others_e = photo_e.sum(axis=0, keepdims=True) - photo_e
         photo_e = photo_e + cfg.parasitic_light * others_e
     mean_e = photo_e
-    if storage_s is not None:
-        storage = np.asarray(storage_s, dtype=np.float64)
-        if storage.shape != (k_buckets,) or np.any(storage < 0):
-            raise ValueError(f"storage_s: expected {k_buckets} non-negative seconds, got {storage!r}")
+    if storage is not None:
         mean_e = mean_e + (cfg.dark_current_e_per_s * storage)[:, None, None, None]
 
-    streams = noise if isinstance(noise, NoiseStreams) else NoiseStreams(noise)
     # remembered: a sweep's points that differ only after this draw (read noise, full wells, ADC) reuse it
     electrons = poisson_quantile_memo(streams.uniform("shot", mean_e.shape), mean_e)
     bucket_saturated = electrons >= cfg.full_well_e
