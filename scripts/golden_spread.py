@@ -8,7 +8,14 @@ width and instruction set, numpy's SIMD loops, OpenBLAS's kernels, numba, OpenCV
 image the largest difference over all pairs of targets is kept (relative L2, samples that
 differ, samples finite in one only, largest absolute difference); the golden tests allow
 SAFETY times that (tests/golden_cases.py). Targets the host cannot run are left out.
-Takes about a minute per target on 2 cores. Run it after ``pytest --regen-golden``.
+Capture cases run as the golden tests run them: each sensor stage on the golden's stored input,
+so the reconstruction's spread is measured on the same reads everywhere; each stage's end-to-end
+reads (``sensor{i}_dn_fresh``: the sensor on that target's own renders) are measured too, for the
+record (the tests compare those as counts, golden_cases.count_differences).
+
+The file keeps the hosts the spreads were measured on: a run on another machine with the same
+goldens adds its host and keeps the larger difference of each image. Takes about a minute per
+target on 2 cores. Run it after ``pytest --regen-golden``.
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from golden_cases import SPREAD_FILE, all_cases, compare  # noqa: E402
+from conftest import GOLDEN_DIR, machine_description  # noqa: E402
 
 from mbcapture.portability import emulation_env, runnable_targets  # noqa: E402
 
@@ -36,9 +44,9 @@ from mbcapture.portability import emulation_env, runnable_targets  # noqa: E402
 def dump(out: Path, cases: list[str]) -> None:
     """Child process: compute the cases and save each as <out>/<case>.npz (float32, as stored)."""
     out.mkdir(parents=True, exist_ok=True)
-    every = all_cases()
+    every = all_cases(GOLDEN_DIR)
     for name in cases:
-        images = {k: np.asarray(v, np.float32) for k, v in every[name]().items()}
+        images = {k: np.asarray(v, np.float64 if k.endswith("_in") else np.float32) for k, v in every[name]().items()}
         np.savez(out / f"{name}.npz", **images)
         print(f"  {name}", flush=True)
 
@@ -87,7 +95,7 @@ def main() -> None:
             names = sorted(per_target[targets[0]])
             spread[case] = {}
             for name in names:
-                worst = {"rel_l2": 0.0, "flips": 0, "nonfinite": 0, "max_abs": 0.0}
+                worst = {"rel_l2": 0.0, "flips": 0, "nonfinite": 0, "nonfinite_kind": 0, "max_abs": 0.0}
                 for a, b in itertools.combinations(targets, 2):
                     d = compare(per_target[a][name], per_target[b][name])
                     worst = {k: max(worst[k], d[k]) for k in worst}
@@ -99,11 +107,14 @@ def main() -> None:
         if path.exists():
             with np.load(path) as data:
                 made[case] = json.loads(str(data["__meta__"]))["made"] if "__meta__" in data.files else None
+    host = machine_description()
     doc = {
-        "about": "largest difference of each golden image between the CPU targets below "
-                 "(scripts/golden_spread.py); tests/golden_cases.py turns it into a tolerance",
+        "about": "largest difference of each golden image between the CPU targets below, on every host "
+                 "listed (scripts/golden_spread.py); tests/golden_cases.py turns it into a tolerance",
         "measured": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "targets": {t: described[t] for t in targets},
+        "hosts": [{"cpu": host["cpu"], "native_target": described.get("native"), "targets": targets,
+                   "measured": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}],
         "golden_made": made,
         "cases": spread,
     }
@@ -111,6 +122,13 @@ def main() -> None:
     if set(cases) != set(all_cases()):  # a partial run updates its cases only
         doc["cases"] = {**old.get("cases", {}), **spread}
         doc["golden_made"] = {**old.get("golden_made", {}), **made}
+    if old.get("golden_made") == doc["golden_made"]:  # the same goldens measured on another host: keep both
+        for case, images in old.get("cases", {}).items():
+            for name, m in images.items():
+                cur = doc["cases"].setdefault(case, {}).setdefault(name, m)
+                doc["cases"][case][name] = {k: max(cur.get(k, 0), m.get(k, 0)) for k in set(cur) | set(m)}
+        doc["hosts"] = [h for h in old.get("hosts", []) if h.get("cpu") != host["cpu"]] + doc["hosts"]
+        doc["targets"] = {**old.get("targets", {}), **doc["targets"]}
     tmp_out = args.out.with_suffix(".json.tmp")
     tmp_out.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
     os.replace(tmp_out, args.out)

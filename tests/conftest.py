@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from golden_cases import SPREAD_FILE, compare, tolerance, within
+from golden_cases import SPREAD_FILE, compare, count_differences, stored_inputs, tolerance, within
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
 FAILURE_DIR = Path(__file__).resolve().parents[1] / "out" / "golden-failures"
@@ -99,7 +99,11 @@ def read_golden(path: Path) -> tuple[dict[str, np.ndarray], dict]:
 
 class Golden:
     """Compare named images with ``tests/golden/<case>.npz`` within tolerances derived from the
-    differences measured between CPU targets (see tests/golden_cases.py)."""
+    differences measured between CPU targets (see tests/golden_cases.py).
+
+    :meth:`check` only compares (the tests that show the checker catches a change use it, so
+    ``--regen-golden`` can never store a perturbed image); :meth:`pin` is what the golden tests
+    call: it compares, or with ``--regen-golden`` rewrites the golden and fails for review."""
 
     def __init__(self, regen: bool):
         self.regen = regen
@@ -110,15 +114,35 @@ class Golden:
             self._spread = json.loads(SPREAD_FILE.read_text()) if SPREAD_FILE.exists() else {"cases": {}}
         return self._spread["cases"].get(case, {}).get(name)
 
-    def check(self, case: str, images: dict[str, np.ndarray]) -> None:
+    @staticmethod
+    def as_stored(images: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Images as a golden keeps them: sensor-stage inputs (``*_in``) in float64, the stage
+        goldens replay them exactly; everything else in float32."""
+        return {k: np.asarray(v, dtype=np.float64 if k.endswith("_in") else np.float32) for k, v in images.items()}
+
+    def stored_inputs(self, case: str) -> list[np.ndarray] | None:
+        """The sensor-stage inputs of ``case``'s golden, to replay (None when regenerating or missing)."""
         path = GOLDEN_DIR / f"{case}.npz"
-        images = {k: np.asarray(v, dtype=np.float32) for k, v in images.items()}
-        if self.regen:
-            GOLDEN_DIR.mkdir(exist_ok=True)
-            meta = np.array(json.dumps(machine_description()))
-            np.savez_compressed(path, **images, **{META_KEY: meta})
-            pytest.fail(f"--regen-golden: rewrote {path.name}; review the change, run scripts/golden_spread.py "
-                        "to measure its cross-target differences, and run the tests again without the flag")
+        if self.regen or not path.exists():
+            return None
+        return stored_inputs(read_golden(path)[0])
+
+    def pin(self, case: str, images: dict[str, np.ndarray]) -> None:
+        """A golden test: with ``--regen-golden`` rewrite the case's golden (and fail for review),
+        else :meth:`check`."""
+        if not self.regen:
+            return self.check(case, images)
+        path = GOLDEN_DIR / f"{case}.npz"
+        GOLDEN_DIR.mkdir(exist_ok=True)
+        meta = np.array(json.dumps(machine_description()))
+        np.savez_compressed(path, **self.as_stored(images), **{META_KEY: meta})
+        pytest.fail(f"--regen-golden: rewrote {path.name}; review the change, run scripts/golden_spread.py "
+                    "to measure its cross-target differences, and run the tests again without the flag")
+
+    def check(self, case: str, images: dict[str, np.ndarray]) -> None:
+        """Compare ``images`` with the golden of ``case``; never writes a golden."""
+        path = GOLDEN_DIR / f"{case}.npz"
+        images = self.as_stored(images)
         if not path.exists():
             pytest.fail(f"{path} is missing: run pytest --regen-golden to create it, then review it")
         expected, meta = read_golden(path)
@@ -133,6 +157,23 @@ class Golden:
             if why:
                 failures.append(f"{name}: {why}")
                 self._write_failure(case, name, exp, got)
+        self._fail(case, meta, failures)
+
+    def check_counts(self, case: str, run) -> None:
+        """The end-to-end reads of a capture case (``golden_cases.CaseRun``: the sensor on this
+        machine's own renders) against the golden's reads, as counts (:func:`golden_cases.count_differences`)."""
+        if self.regen:
+            return
+        expected, meta = read_golden(GOLDEN_DIR / f"{case}.npz")
+        failures = []
+        for i, (fresh_in, fresh_dn, reads) in enumerate(zip(run.fresh_in, run.fresh_dn, run.reads)):
+            why = count_differences(fresh_dn, expected[f"sensor{i}_dn"], fresh_in, expected[f"sensor{i}_in"], reads,
+                                    run.gain_dn_per_e)
+            failures += [f"sensor{i}_dn end to end, {w}" for w in why]
+        self._fail(case, meta, failures)
+
+    @staticmethod
+    def _fail(case: str, meta: dict, failures: list[str]) -> None:
         made = f"golden made on {meta.get('cpu')}, {meta.get('llvm_target')} x{meta.get('vector_width')}" if meta else ""
         assert not failures, f"{case} differs from its golden images ({made}; evidence in {FAILURE_DIR / case}): " + \
             "; ".join(failures)

@@ -10,6 +10,7 @@ exposure ramp.
 from __future__ import annotations
 
 from pathlib import Path
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -48,25 +49,90 @@ HDR_METHODS = ("ramp_fit", "inverse_variance", "debevec")
 CUMULATIVE_READS = [(3,), (3, 2), (3, 2, 1), (3, 2, 1, 0)]
 
 
-def capture_images(config: str, overrides: list[str], extra: list[str] = ()) -> dict[str, np.ndarray]:
-    """Every image a capture case pins: each read's expected electrons and DN, and the
-    application's non-boolean images."""
+@dataclass
+class CaseRun:
+    """One run of a capture case, every sensor stage seen through its seam
+    (:func:`mbcapture.sensor.sensor_stage_hook`).
+
+    ``images``      what the golden pins: each stage's input ``sensor{i}_in`` (float64 expected
+                    electrons, render + accumulate), its reads ``sensor{i}_dn`` simulated on the
+                    *stored* input when one was given, and the application's images computed from
+                    those reads;
+    ``fresh_in``    each stage's input as rendered on this machine;
+    ``fresh_dn``    the reads the sensor gives on ``fresh_in`` (the end-to-end result);
+    ``reads``       the buckets each read of each stage sums;
+    ``gain_dn_per_e`` the capture's conversion gain.
+    """
+
+    images: dict[str, np.ndarray]
+    fresh_in: list[np.ndarray]
+    fresh_dn: list[np.ndarray]
+    reads: list[tuple[tuple[int, ...], ...]]
+    gain_dn_per_e: float
+    result: object = None
+
+
+class StageRecorder:
+    """The hook of :func:`mbcapture.sensor.sensor_stage_hook` for a golden run: records every sensor
+    stage's input and end-to-end reads, and, given the golden's stored inputs, simulates the sensor
+    on those instead, so that each count downstream is pinned on its own stored input."""
+
+    def __init__(self, stored: list[np.ndarray] | None):
+        self.stored = stored
+        self.fresh_in: list[np.ndarray] = []
+        self.fresh_dn: list[np.ndarray] = []
+        self.used_dn: list[np.ndarray] = []
+        self.reads: list[tuple[tuple[int, ...], ...]] = []
+
+    def __call__(self, expected_e: np.ndarray, simulate):
+        i = len(self.fresh_in)
+        fresh = simulate(expected_e)
+        self.fresh_in.append(np.array(expected_e, np.float64))
+        self.fresh_dn.append(fresh.reads_dn)
+        self.reads.append(fresh.reads)
+        out = fresh
+        if self.stored is not None:
+            if i >= len(self.stored) or self.stored[i].shape != expected_e.shape:
+                raise AssertionError(f"sensor stage {i}: the golden stored {len(self.stored)} stage inputs "
+                                     f"({[x.shape for x in self.stored]}), this run has input {expected_e.shape}")
+            out = simulate(self.stored[i])
+        self.used_dn.append(out.reads_dn)
+        return out
+
+
+def run_capture_case(config: str, overrides: list[str], extra: list[str] = (),
+                     stored: list[np.ndarray] | None = None) -> CaseRun:
+    """Run a capture case; ``stored``: the golden's sensor-stage inputs to replay (None: none)."""
     from mbcapture import load_config, run_capture
+    from mbcapture.sensor import sensor_stage_hook
 
-    res = run_capture(load_config(ROOT / "configs" / config, [*TINY, *overrides, *extra]), progress=False)
-    return {k: v for k, v in result_images(res).items() if k not in UNPINNED.get(config, {})}
+    cfg = load_config(ROOT / "configs" / config, [*TINY, *overrides, *extra])
+    recorder = StageRecorder(stored)
+    with sensor_stage_hook(recorder):
+        res = run_capture(cfg, progress=False)
+    if stored is not None and len(recorder.fresh_in) != len(stored):
+        raise AssertionError(f"{len(recorder.fresh_in)} sensor stages ran, the golden stored {len(stored)}")
+    images = {f"sensor{i}_in": x for i, x in enumerate(recorder.fresh_in)}
+    images |= {f"sensor{i}_dn": x for i, x in enumerate(recorder.used_dn)}
+    images |= {k: v for k, v in app_images(res).items() if k not in UNPINNED.get(config, {})}
+    return CaseRun(images, recorder.fresh_in, recorder.fresh_dn, recorder.reads, cfg.sensor.gain_dn_per_e, res)
 
 
-def result_images(res) -> dict[str, np.ndarray]:
-    images = {f"expected_{r.name}": res.reads_expected_e[i] for i, r in enumerate(res.timeline.reads)}
-    images |= {f"reads_dn_{r.name}": res.reads_dn[i] for i, r in enumerate(res.timeline.reads)}
-    images |= {k: v for k, v in res.images.items() if np.asarray(v).dtype != bool}
+def app_images(res) -> dict[str, np.ndarray]:
+    """The application's non-boolean images of a capture (and of every frame of a video)."""
+    images = {k: v for k, v in res.images.items() if np.asarray(v).dtype != bool}
     video = getattr(res, "video", None)
     if video is not None:  # a video run: every later frame's HDR radiance and the alternating-exposure video's
         images |= {f"frame{i}_radiance": f.images["radiance"] for i, f in enumerate(video.frames) if i}
         if video.alternating_radiance is not None:
             images |= {f"alternating{i}_radiance": a for i, a in enumerate(video.alternating_radiance)}
     return images
+
+
+def stored_inputs(images: dict[str, np.ndarray]) -> list[np.ndarray]:
+    """The sensor-stage inputs of a golden, in stage order."""
+    n = sum(1 for k in images if k.startswith("sensor") and k.endswith("_in"))
+    return [np.asarray(images[f"sensor{i}_in"], np.float64) for i in range(n)]
 
 
 def synthetic_exposure(shape=(4, 12, 16, 3)) -> np.ndarray:
@@ -104,10 +170,21 @@ def hdr_images(method: str) -> dict[str, np.ndarray]:
     return {"rate": res.rate_e_per_s, "sigma": res.sigma_e_per_s, "valid": res.valid}
 
 
-def all_cases() -> dict[str, Callable[[], dict[str, np.ndarray]]]:
-    """Every golden case by name (capture cases need Mitsuba)."""
+def all_cases(golden_dir: Path | None = None) -> dict[str, Callable[[], dict[str, np.ndarray]]]:
+    """Every golden case by name (capture cases need Mitsuba). With ``golden_dir``, capture cases
+    replay the sensor-stage inputs stored there (as the golden tests do) and add each stage's
+    end-to-end reads as ``sensor{i}_dn_fresh``."""
+
+    def capture(config, overrides, name):
+        stored = None
+        if golden_dir is not None and (golden_dir / f"{name}.npz").exists():
+            with np.load(golden_dir / f"{name}.npz") as data:
+                stored = stored_inputs({k: data[k] for k in data.files})
+        run = run_capture_case(config, overrides, stored=stored)
+        return run.images | {f"sensor{i}_dn_fresh": x for i, x in enumerate(run.fresh_dn)}
+
     cases: dict[str, Callable[[], dict[str, np.ndarray]]] = {
-        name: (lambda c=config, o=overrides: capture_images(c, o)) for name, config, overrides in CAPTURE_CASES
+        name: (lambda c=config, o=overrides, n=name: capture(c, o, n)) for name, config, overrides in CAPTURE_CASES
     }
     cases["sensor_reads"] = sensor_images
     for m in HDR_METHODS:
@@ -133,23 +210,42 @@ FLOOR_FLIPS = 2
 ZERO_ABS = 1e-12
 
 
+#: Allowed end-to-end one-count flips: the (1 - COUNT_FLIP_P)-quantile of a Poisson law of mean
+#: SAFETY x the expected number of flips (:func:`expected_flips`). At 1e-6 a run on any machine fails
+#: by chance once in a million images.
+COUNT_FLIP_P = 1e-6
+
+
+def is_sensor_reads(name: str) -> bool:
+    """``sensor{i}_dn``: the reads of a sensor stage simulated on the golden's own stored input."""
+    return name.startswith("sensor") and name.endswith("_dn") and name[6:-3].isdigit()
+
+
 def is_discrete(image: np.ndarray) -> bool:
     """Thresholded images take at most a few distinct values (0/1 masks, 0/0.5/1 trimaps)."""
     finite = image[np.isfinite(image)]
     return finite.size > 0 and np.unique(finite).size <= 4
 
 
+def _nonfinite_class(x: np.ndarray) -> np.ndarray:
+    """0 finite, 1 NaN, 2 +inf, 3 -inf."""
+    return np.where(np.isfinite(x), 0, np.where(np.isnan(x), 1, np.where(x > 0, 2, 3)))
+
+
 def compare(obtained: np.ndarray, expected: np.ndarray) -> dict:
-    """Differences of two images, both as stored (float32):
+    """Differences of two images, both as stored (float32, or float64 for a golden stored so):
 
     ``rel_l2``      ||a - b|| / ||b|| over the samples finite in both (0 for two zero images);
     ``flips``       samples that differ at all (the measure for thresholded images);
     ``nonfinite``   samples finite in one image and not in the other (e.g. sigma = inf where
                     every read saturated);
+    ``nonfinite_kind`` samples non-finite in both but of another kind (inf in one, NaN in the
+                    other): never allowed;
     ``max_abs``     largest |a - b| over the samples finite in both.
     """
-    a = np.asarray(obtained, np.float32).astype(np.float64)
-    b = np.asarray(expected, np.float32).astype(np.float64)
+    dtype = np.float64 if np.asarray(expected).dtype == np.float64 else np.float32
+    a = np.asarray(obtained, dtype).astype(np.float64)
+    b = np.asarray(expected, dtype).astype(np.float64)
     if a.shape != b.shape:
         raise ValueError(f"shape {a.shape} != {b.shape}")
     fa, fb = np.isfinite(a), np.isfinite(b)
@@ -157,11 +253,12 @@ def compare(obtained: np.ndarray, expected: np.ndarray) -> dict:
     d = a[both] - b[both]
     norm = float(np.linalg.norm(b[both]))
     diff = float(np.linalg.norm(d))
-    same_nonfinite = (~fa & ~fb) & ((a == b) | (np.isnan(a) & np.isnan(b)))
+    ca, cb = _nonfinite_class(a), _nonfinite_class(b)
     return {
         "rel_l2": diff / norm if norm > 0 else diff,
-        "flips": int(np.count_nonzero(d != 0) + np.count_nonzero(~both & ~same_nonfinite)),
+        "flips": int(np.count_nonzero(d != 0) + np.count_nonzero(ca != cb)),
         "nonfinite": int(np.count_nonzero(fa != fb)),
+        "nonfinite_kind": int(np.count_nonzero(~fa & ~fb & (ca != cb))),
         "max_abs": float(np.abs(d).max()) if d.size else 0.0,
     }
 
@@ -170,11 +267,15 @@ def tolerance(case: str, name: str, golden: np.ndarray, measured: dict | None) -
     """What ``compare(obtained, golden)`` may reach for image ``name`` of ``case``.
 
     ``measured``: the largest differences found between CPU targets (cross_target.json), or
-    None when the image was not measured (then only the floors apply).
+    None when the image was not measured (then only the floors apply). The reads of a sensor
+    stage run on its stored input are exact: the same expected electrons and noise fields give
+    the same counts on every machine.
     """
     m = measured or {"rel_l2": 0.0, "flips": 0, "nonfinite": 0, "max_abs": 0.0}
     if (case, name) in ZERO_BY_CONSTRUCTION:
         return {"kind": "zero", "max_abs": ZERO_ABS}
+    if is_sensor_reads(name):
+        return {"kind": "exact", "flips": 0, "nonfinite": 0}
     nonfinite = max(int(np.ceil(SAFETY * m["nonfinite"])), FLOOR_FLIPS if np.any(~np.isfinite(golden)) else 0)
     if is_discrete(golden):
         return {"kind": "discrete", "flips": max(int(np.ceil(SAFETY * m["flips"])), FLOOR_FLIPS), "nonfinite": nonfinite}
@@ -184,10 +285,75 @@ def tolerance(case: str, name: str, golden: np.ndarray, measured: dict | None) -
 def within(diff: dict, tol: dict, obtained: np.ndarray) -> str | None:
     """None if ``diff`` (from :func:`compare`) is within ``tol``, else why not."""
     if tol["kind"] == "zero":
-        worst = float(np.nanmax(np.abs(np.asarray(obtained, np.float64)))) if np.size(obtained) else 0.0
+        x = np.abs(np.asarray(obtained, np.float64))
+        if not np.all(np.isfinite(x)):
+            return f"{np.count_nonzero(~np.isfinite(x))} non-finite samples (zero by construction)"
+        worst = float(x.max()) if x.size else 0.0
         return None if worst <= tol["max_abs"] else f"max |value| {worst:.3g} > {tol['max_abs']:g} (zero by construction)"
+    if diff["nonfinite_kind"]:
+        return f"{diff['nonfinite_kind']} non-finite samples changed kind (inf <-> NaN)"
     if diff["nonfinite"] > tol["nonfinite"]:
         return f"{diff['nonfinite']} samples finite in one image only > {tol['nonfinite']}"
-    if tol["kind"] == "discrete":
+    if tol["kind"] in ("discrete", "exact"):
         return None if diff["flips"] <= tol["flips"] else f"{diff['flips']} samples differ > {tol['flips']}"
     return None if diff["rel_l2"] <= tol["rel_l2"] else f"relative L2 error {diff['rel_l2']:.3g} > {tol['rel_l2']:.3g}"
+
+
+def expected_flips(fresh_in: np.ndarray, golden_in: np.ndarray, reads) -> np.ndarray:
+    """(R,) expected number of samples of each read whose count moves between two runs of the sensor
+    on inputs ``fresh_in`` and ``golden_in`` (K, H, W, C) with the same noise fields.
+
+    A bucket's count is the Poisson inversion n(lambda) = F^-1(u; lambda) of a fixed uniform u, so
+    E_u[n(lambda)] = lambda: moving lambda by delta moves the count by delta on average, and for
+    |delta| < 1 by 0 or 1, i.e. by one with probability |delta| (the sum over n of the shifts
+    p(n; lambda) |delta| of the CDF steps). A read changes where one of its buckets does (the
+    transfer-loss binomial follows the bucket's count; the read noise and ADC use the same fields):
+    at most the sum of min(1, |delta|) over its buckets, summed over samples."""
+    delta = np.abs(np.asarray(fresh_in, np.float64) - np.asarray(golden_in, np.float64))
+    per_bucket = np.minimum(delta, 1.0).reshape(delta.shape[0], -1).sum(axis=1)
+    return np.array([per_bucket[list(r)].sum() for r in reads])
+
+
+def largest_count_change_e(fresh_in: np.ndarray, golden_in: np.ndarray, reads) -> np.ndarray:
+    """(R, H, W, C) the most electrons by which a read's count can move between the two inputs:
+    per bucket ceil(|delta| (1 + 3 / sqrt(lambda))), the count being lambda + sqrt(lambda) z with
+    dn/dlambda = 1 + z / (2 sqrt(lambda)) and |z| <= 6; 0 where the inputs are equal."""
+    fresh_in, golden_in = np.asarray(fresh_in, np.float64), np.asarray(golden_in, np.float64)
+    lam = np.maximum(np.minimum(fresh_in, golden_in), 1.0)
+    per_bucket = np.ceil(np.abs(fresh_in - golden_in) * (1.0 + 3.0 / np.sqrt(lam)))
+    return np.stack([per_bucket[list(r)].sum(axis=0) for r in reads])
+
+
+def allowed_flips(mean_flips: float) -> int:
+    """Samples a read may show changed: the (1 - COUNT_FLIP_P) Poisson quantile of SAFETY x the mean."""
+    from scipy.stats import poisson
+
+    return int(poisson.ppf(1.0 - COUNT_FLIP_P, SAFETY * mean_flips)) if mean_flips > 0 else 0
+
+
+def count_differences(fresh_dn: np.ndarray, golden_dn: np.ndarray, fresh_in: np.ndarray, golden_in: np.ndarray,
+                      reads, gain_dn_per_e: float) -> list[str]:
+    """Compare end-to-end reads as counts: each read may differ from its golden in at most
+    :func:`allowed_flips` samples, each by no more than the DN its inputs' difference can make
+    (:func:`largest_count_change_e` times the gain, rounded up: one count where the inputs differ by
+    less than an electron), and a sample whose inputs are equal not at all. Returns why not, one
+    line per read ([] when within)."""
+    mean = expected_flips(fresh_in, golden_in, reads)
+    most_dn = np.ceil(gain_dn_per_e * largest_count_change_e(fresh_in, golden_in, reads))
+    out = []
+    for r in range(len(reads)):
+        d = np.asarray(fresh_dn[r], np.float64) - np.asarray(golden_dn[r], np.float64)
+        if not np.all(np.isfinite(d)):
+            out.append(f"read {r}: non-finite DN")
+            continue
+        big = np.abs(d) > most_dn[r]
+        flips = int(np.count_nonzero(d))
+        allowed = allowed_flips(float(mean[r]))
+        if big.any():
+            i = tuple(np.argwhere(big)[0])
+            out.append(f"read {r}: {int(big.sum())} samples differ by more than their inputs allow, e.g. {d[i]:g} DN "
+                       f"at {i} where at most {most_dn[r][i]:g} DN (one count: {gain_dn_per_e:g} DN)")
+        elif flips > allowed:
+            out.append(f"read {r}: {flips} samples differ > {allowed} allowed "
+                       f"(expected {mean[r]:.3g} from the inputs' differences)")
+    return out
