@@ -134,7 +134,7 @@ def _cmd_plan(args) -> int:
     cfg = load_config(args.config, args.overrides)
     scene, timeline, plan, seeds = prepare(cfg)
     if not args.no_probe and plan.passes:
-        from .plan import probe_cost, resolve_spp
+        from .budget import probe_cost, resolve_spp
         from .render import Renderer
 
         from .capture import render_cache

@@ -25,7 +25,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from . import scenes
 from .camera_motion import CameraSection
-from .video import VideoSection
 from .errors import ConfigError, ConfigNotice
 from .sensor.config import SensorConfig
 
@@ -223,6 +222,27 @@ class AppSection(BaseModel):
 class OutputSection(_Model):
     png_percentile: float = Field(
         99.5, gt=0, le=100, description="Tone mapping of PNG previews: this luminance percentile maps to white before the sRGB curve."
+    )
+
+
+class VideoSection(BaseModel):
+    """``video``: the comparisons and previews of a video run (``capture.frames`` > 1)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    compare_alternating: bool = Field(
+        True, description="Also simulate the alternating short/long-exposure HDR video of a conventional sensor "
+        "(Kang et al. 2003) at the same frame rate and score both (HDR applications only).",
+    )
+    flow: Literal["dis_medium", "dis_fast", "dis_ultrafast", "farneback"] = Field(
+        "dis_medium", description="Optical flow that warps the alternating video's neighbours onto each frame: OpenCV's "
+        "DIS optical flow at a preset, or Farneback's.",
+    )
+    aliasing_rates_hz: list[float] = Field(
+        [3.0], description="Frame rates whose temporal aliasing of the scene's motion is reported beside the run's own "
+        "(the paper's prototype: 3 frames/s).",
+    )
+    playback_fps: float | None = Field(
+        None, gt=0, le=120, description="Frames per second of video.mp4 and video.gif; null: capture.frame_rate_hz."
     )
 
 

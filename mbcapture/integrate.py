@@ -83,7 +83,7 @@ def integrate(
     are paired to measure the temporal error (see :class:`Integrated`).
     """
     if plan.spp is None:
-        raise ValueError("plan.spp is not chosen yet: call mbcapture.plan.resolve_spp first")
+        raise ValueError("plan.spp is not chosen yet: call mbcapture.budget.resolve_spp first")
     stage = timer if timer is not None else (lambda name: nullcontext())
     H, W, C = renderer.height, renderer.width, len(renderer.channels)
     G = len(plan.groups)

@@ -19,13 +19,15 @@ destructively.
 from __future__ import annotations
 
 from fractions import Fraction
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-from .config import CaptureConfig
 from .errors import ConfigError
 from .timeline import DRAIN, ReadEvent, SegmentSeconds, SlotSeconds, Timeline, build_timeline, exact
 
-Builder = Callable[[CaptureConfig], tuple[list[SlotSeconds], list[ReadEvent], int]]
+if TYPE_CHECKING:  # protocols sit below config: a config validates its protocol name against this registry
+    from .config import CaptureConfig
+
+Builder = Callable[["CaptureConfig"], tuple[list[SlotSeconds], list[ReadEvent], int]]
 _REGISTRY: dict[str, Builder] = {}
 _APP: dict[str, str] = {}
 

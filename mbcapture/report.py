@@ -10,21 +10,22 @@ ADC range marked, the metrics, the verdict on rendering noise against shot noise
 Every image it shows is a PNG in the same folder, written through the run's staging folder
 (:class:`mbcapture.io.Staging`), so the page and its images appear together or not at all.
 Plots are matplotlib (Agg, ``matplotlib.figure.Figure`` without pyplot, no timestamps); the
-timeline is drawn by :func:`mbcapture.figures.paper.draw_timeline`, the same code as the paper's
+timeline is drawn by :func:`mbcapture.plots.draw_timeline`, the same code as the paper's
 timing figures. The HTML is assembled by hand: it is a few tables and images, which no templating
 library would make shorter.
 """
 
 from __future__ import annotations
 
-import html
 import io
-import json
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .budget import noise_verdict
+from .htmlparts import esc, figure, fmt, table
 from .metrics import flat_items, luminance
+from .plots import BUCKET_COLOURS, draw_timeline
 
 if TYPE_CHECKING:
     from .capture import CaptureResult
@@ -36,8 +37,6 @@ if TYPE_CHECKING:
 COMMON_SCALE_PERCENTILE = 99.9
 #: A schedule with more slots than this is drawn whole in outline, and its first periods in detail.
 MAX_DETAIL_SLOTS = 480
-#: render_error.to_shot_noise_variance_mean at or below which rendering noise is negligible (the
-#: default render.noise_budget: it adds ~5 % to the noise's standard deviation).
 
 FILE_NOTES = {
     "buckets.exr": "noise-free expected electrons per bucket (B1.R, ...)",
@@ -84,29 +83,6 @@ def write_read_previews(st: "Staging", result: "CaptureResult") -> dict:
     }
 
 
-# ----------------------------------------------------------------------------- verdict
-def noise_verdict(render_error: dict) -> str:
-    """One sentence: does the rendering's Monte Carlo noise matter next to the photon shot noise?
-    Judged on the budget (``render_error.budget``: the median and 95th percentile of the per-sample
-    Monte Carlo / shot-noise variance ratio against render.noise_budget and render.noise_budget_p95)."""
-    med, p95 = render_error.get("to_shot_noise_variance_median"), render_error.get("to_shot_noise_variance_p95")
-    budget = render_error.get("budget")
-    if med is None or budget is None:
-        return f"Not estimated: {render_error.get('note', 'no half-sample estimate')}."
-    extra = 100 * (np.sqrt(1 + med) - 1)  # added to the median sample's noise standard deviation
-    level = (f"rendering noise variance is {med:.3g} x the shot-noise variance in the median sample and {p95:.3g} x "
-             f"in the 95th percentile (budget {budget['median_target']:g} / {budget['p95_target']:g})")
-    if budget["met"]:
-        return f"Sensor noise dominates: {level}, adding {extra:.1f} % to the median sample's noise."
-    head = (f"Rendering noise is visible in the simulated images: {level}, adding {extra:.0f} % to the median "
-            "sample's noise; ")
-    spp = f"render.spp >= {budget['spp_that_would_meet']}" if "spp_that_would_meet" in budget else None
-    if budget.get("spp_source") == "noise_budget":  # the pilot's estimate missed: more samples, not the budget again
-        return head + (f"the noise budget's pilot under-estimated it; {spp} would meet it." if spp else
-                       "the noise budget's pilot under-estimated it.")
-    return head + (f"{spp} or " if spp else "") + "render.spp: null (the noise budget) would meet it."
-
-
 # ----------------------------------------------------------------------------- plots
 def _png(fig) -> bytes:
     buf = io.BytesIO()
@@ -135,7 +111,6 @@ def timeline_png(tl: "Timeline") -> bytes:
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
-    from .figures.paper import BUCKET_COLOURS, draw_timeline
 
     groups = sorted(tl.switchable_groups())
     n_slots = sum(seg.repeats * len(seg.slots) for seg in tl.segments)
@@ -370,54 +345,17 @@ code{background:#f2f2f2;padding:0 .2em}.muted{color:#666;font-size:.85em}
 """
 
 
-def _esc(x) -> str:
-    return html.escape(str(x))
-
-
-def _fmt(v) -> str:
-    if v is None:
-        return "—"
-    if isinstance(v, bool):
-        return str(v).lower()
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    if isinstance(v, (list, tuple)):
-        return json.dumps(v, default=lambda o: f"{o:.4g}" if isinstance(o, float) else str(o)) if len(str(v)) < 60 else \
-            "[" + ", ".join(_fmt(x) for x in v) + "]"
-    return str(v)
-
-
-def _table(rows: list[list], header: list[str] | None = None) -> str:
-    out = ["<table>"]
-    if header:
-        out.append("<tr>" + "".join(f"<th>{_esc(h)}</th>" for h in header) + "</tr>")
-    for row in rows:
-        cells = []
-        for c in row:
-            num = isinstance(c, (int, float)) and not isinstance(c, bool)
-            cells.append(f"<td class='num'>{_esc(_fmt(c))}</td>" if num else f"<td>{_esc(_fmt(c))}</td>")
-        out.append("<tr>" + "".join(cells) + "</tr>")
-    out.append("</table>")
-    return "".join(out)
-
-
 def _scale_html(scale: dict, label: str) -> str:
     """The colour scale of a :func:`colour_map` map, as HTML."""
     if "levels" in scale:
         sw = "".join(f"<span class='sw' style='background:{c}'></span>{k} " for k, c in enumerate(scale["levels"]))
-        return f"<div class='scale'>{_esc(label)}: {sw}<span class='sw' style='background:#d9d9d9'></span>none</div>"
+        return f"<div class='scale'>{esc(label)}: {sw}<span class='sw' style='background:#d9d9d9'></span>none</div>"
     grad = ",".join(scale["stops"])
     lo, hi = scale["min"], scale["max"]
     mid = np.sqrt(lo * hi) if scale["log"] else (lo + hi) / 2
-    return (f"<div class='scale'>{_esc(label)}{' (log scale)' if scale['log'] else ''}<div class='bar' "
-            f"style='background:linear-gradient(to right,{grad})'></div><div class='ticks'><span>{_fmt(lo)}</span>"
-            f"<span>{_fmt(mid)}</span><span>{_fmt(hi)}</span></div></div>")
-
-
-def _figure(src: str, caption: str, plot: bool = False) -> str:
-    cls = " class='plot'" if plot else ""
-    return (f"<figure{cls}><a href='{_esc(src)}'><img src='{_esc(src)}' alt='{_esc(src)}'></a>"
-            f"<figcaption>{caption}</figcaption></figure>")
+    return (f"<div class='scale'>{esc(label)}{' (log scale)' if scale['log'] else ''}<div class='bar' "
+            f"style='background:linear-gradient(to right,{grad})'></div><div class='ticks'><span>{fmt(lo)}</span>"
+            f"<span>{fmt(mid)}</span><span>{fmt(hi)}</span></div></div>")
 
 
 def _preview_scale(percentile: float | None) -> str:
@@ -442,7 +380,7 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
     maps = [("map_saturation.png", f"<b>Saturation</b>: how many of the {len(names)} reads saturated (a bucket's or the "
                                    "floating diffusion's full well, or the ADC's top code) at each pixel."
                                    + _scale_html(sat_scale, "reads saturated")),
-            ("map_snr.png", f"<b>SNR</b> of the {_esc(snr_text)}." + _scale_html(snr_scale, "SNR"))]
+            ("map_snr.png", f"<b>SNR</b> of the {esc(snr_text)}." + _scale_html(snr_scale, "SNR"))]
     if "valid" in result.images:
         rgb, valid_scale = colour_map(result.images["valid"].min(axis=-1).astype(float), levels=1)
         st.write_bytes("map_valid.png", _png8(rgb))
@@ -456,7 +394,7 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
     s = cfg.sensor
     plan = rep["plan"]
     summary_rows = [
-        ["scene", f"{rep['scene']}: " + ", ".join(f"{k}={_fmt(v)}" for k, v in scene_params.items())],
+        ["scene", f"{rep['scene']}: " + ", ".join(f"{k}={fmt(v)}" for k, v in scene_params.items())],
         ["protocol", f"{rep['protocol']}" + (" (sequential: the same shots one after another on a conventional sensor)"
                                               if rep["sequential"] else "")],
         ["application", rep["app"]],
@@ -478,15 +416,15 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
                   r["centroid_s"] * 1e3, f"{100 * sat[i]:.2f} %"] for i, r in enumerate(rep["reads"])]
     sections.append(
         "<h2 id='summary'>The run</h2>"
-        + "".join(f"<p class='lead'>{_esc(line)}</p>" for line in app_out.summary)
-        + _table(summary_rows)
+        + "".join(f"<p class='lead'>{esc(line)}</p>" for line in app_out.summary)
+        + table(summary_rows)
         + "<h3>Reads</h3>"
-        + _table(read_rows, ["read", "buckets summed", "exposure (ms)", "span (ms from start)", "span (ms)",
+        + table(read_rows, ["read", "buckets summed", "exposure (ms)", "span (ms from start)", "span (ms)",
                              "centroid (ms)", "saturated samples"])
         + "<p class='muted'>Exposure: the time the read's buckets collected. Span: from the first to the last moment "
           "any of them collected. Centroid: the mean time of the collected light (the paper's equations 1-5).</p>")
     # ---- timeline
-    sections.append("<h2 id='schedule'>Gate schedule</h2>" + _figure(
+    sections.append("<h2 id='schedule'>Gate schedule</h2>" + figure(
         "report_timeline.png", "Which bucket collects the photodiode's charge in each slot, which switchable "
         "emitter groups (flash, LEDs) are on, and each read's span and centroid.", plot=True))
     # ---- reads
@@ -495,12 +433,12 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
     cells = []
     for i, n in enumerate(names):
         exp_ms = rep["reads"][i]["exposure_s"] * 1e3
-        cells.append(_figure(f"read_{n}_common_scale.png",
-                             f"<b>{_esc(n)}</b>, {exp_ms:.4g} ms: common scale, white = {_fmt(common_white)} DN"))
+        cells.append(figure(f"read_{n}_common_scale.png",
+                             f"<b>{esc(n)}</b>, {exp_ms:.4g} ms: common scale, white = {fmt(common_white)} DN"))
     for i, n in enumerate(names):
         exp_ms = rep["reads"][i]["exposure_s"] * 1e3
-        cells.append(_figure(f"read_{n}_own_scale.png",
-                             f"<b>{_esc(n)}</b>, {exp_ms:.4g} ms: own scale, white = {_fmt(own.get(n))} DN"))
+        cells.append(figure(f"read_{n}_own_scale.png",
+                             f"<b>{esc(n)}</b>, {exp_ms:.4g} ms: own scale, white = {fmt(own.get(n))} DN"))
     sections.append(
         "<h2 id='reads'>Reads</h2><p>Top row: every read on one DN scale (black level removed; white = the "
         f"{COMMON_SCALE_PERCENTILE:g}th percentile luminance of the brightest read), so exposure ratios are visible. "
@@ -511,10 +449,10 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
     app_cells = []
     for stem, (image, pct) in app_out.png.items():
         text = app_out.captions.get(stem, "")
-        app_cells.append(_figure(f"{stem}.png", f"<b>{_esc(stem)}</b> ({_esc(_preview_scale(pct))})"
-                                 + (f": {_esc(text)}" if text else "")))
-    sections.append(f"<h2 id='app'>Application: {_esc(rep['app'])}</h2>"
-                    f"<p>Linear images as layers in <a href='{_esc(result.app)}.exr'>{_esc(result.app)}.exr</a>; "
+        app_cells.append(figure(f"{stem}.png", f"<b>{esc(stem)}</b> ({esc(_preview_scale(pct))})"
+                                 + (f": {esc(text)}" if text else "")))
+    sections.append(f"<h2 id='app'>Application: {esc(rep['app'])}</h2>"
+                    f"<p>Linear images as layers in <a href='{esc(result.app)}.exr'>{esc(result.app)}.exr</a>; "
                     "previews:</p><div class='grid'>" + "".join(app_cells) + "</div>")
     # ---- a video run's frames, previews and comparisons (mbcapture/video.py)
     if result.video is not None:
@@ -523,23 +461,23 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
         sections.append(video_section_html(result))
     # ---- maps and histograms
     sections.append("<h2 id='maps'>Saturation and SNR</h2><div class='grid' style='grid-template-columns:"
-                    f"repeat({len(maps)},minmax(0,400px))'>" + "".join(_figure(f, t) for f, t in maps) + "</div>")
-    sections.append("<h2 id='histograms'>Histograms</h2>" + _figure(
+                    f"repeat({len(maps)},minmax(0,400px))'>" + "".join(figure(f, t) for f, t in maps) + "</div>")
+    sections.append("<h2 id='histograms'>Histograms</h2>" + figure(
         "report_histograms.png", "Each read in DN, per channel (pixels per bin, log scale). Dotted: black level; dashed: the "
         "read's full well (its buckets' full wells summed, or the floating diffusion's, whichever is lower); red: "
         "the ADC's top code. Pixels piled at a line are clipped there.", plot=True))
     # ---- metrics
     metric_rows = [[k, v] for k, v in flat_items(rep["metrics"])]
-    sections.append("<h2 id='metrics'>Metrics</h2>" + _table(metric_rows, ["metric", "value"])
+    sections.append("<h2 id='metrics'>Metrics</h2>" + table(metric_rows, ["metric", "value"])
                     + "<p class='muted'>Their meaning: <code>mbcapture apps</code> and docs/report.md.</p>")
     # ---- rendering noise
     err = rep.get("render_error", {})
     sections.append("<h2 id='render-noise'>Rendering noise against shot noise</h2>"
-                    f"<p class='verdict'>{_esc(err.get('verdict') or noise_verdict(err))}</p>"
-                    + _table([[k, v] for k, v in err.items() if k != "verdict"], ["render_error", "value"]))
+                    f"<p class='verdict'>{esc(err.get('verdict') or noise_verdict(err))}</p>"
+                    + table([[k, v] for k, v in err.items() if k != "verdict"], ["render_error", "value"]))
     # ---- timings
     timings = rep.get("timings_s", {})
-    sections.append("<h2 id='timings'>Timings</h2>" + _table([[k, v] for k, v in timings.items()],
+    sections.append("<h2 id='timings'>Timings</h2>" + table([[k, v] for k, v in timings.items()],
                                                              ["stage", "seconds"])
                     + "<p class='muted'>Seconds per stage of this run; writing the outputs is not included.</p>")
     # ---- files
@@ -551,7 +489,7 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
         notes[f"read_{n}_own_scale.png"] = f"read {n}, sRGB, its own maximum white"
     for stem, (image, pct) in app_out.png.items():
         notes.setdefault(f"{stem}.png", f"preview of {image} ({_preview_scale(pct)})")
-    file_rows = "".join(f"<tr><td><a href='{_esc(f)}'>{_esc(f)}</a></td><td>{_esc(notes.get(f, ''))}</td></tr>"
+    file_rows = "".join(f"<tr><td><a href='{esc(f)}'>{esc(f)}</a></td><td>{esc(notes.get(f, ''))}</td></tr>"
                         for f in files)
     sections.append(f"<h2 id='files'>Files</h2><table><tr><th>file</th><th>content</th></tr>{file_rows}</table>")
 
@@ -561,7 +499,7 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
         *([("video", "video")] if result.video is not None else []), ("maps", "maps"),
         ("histograms", "histograms"), ("metrics", "metrics"), ("render-noise", "rendering noise"),
         ("timings", "timings"), ("files", "files")])
-    page = (f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>{_esc(title)}</title>"
+    page = (f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>{esc(title)}</title>"
             f"<meta name='viewport' content='width=device-width, initial-scale=1'><style>{CSS}</style></head><body>"
-            f"<h1>{_esc(title)}</h1><p class='muted'>{nav}</p>" + "".join(sections) + "</body></html>\n")
+            f"<h1>{esc(title)}</h1><p class='muted'>{nav}</p>" + "".join(sections) + "</body></html>\n")
     st.write_bytes("report.html", page.encode("utf-8"))

@@ -1,4 +1,14 @@
-"""Simulate another capture of the same scene inside an application or a video: a timeline in, reads out.
+"""The sensor stage of every capture, and whole comparison captures of the same scene.
+
+:func:`sense` is the one sensor stage: the main capture (:func:`mbcapture.pipeline.capture_in_memory`),
+a video's frames, a sweep's points and an application's comparison captures all read their
+buckets through it, with one storage-time rule (:meth:`mbcapture.timeline.Timeline.storage_ticks`:
+a bucket is reset as its first slot opens and read after the capture's last slot, or at the end
+of its own exposure when a conventional sensor reads it destructively; a bucket that never collects
+holds no dark charge).
+
+:func:`capture_timeline` simulates another capture of the same scene inside an application or a
+video: a timeline in, reads out.
 
 Applications that compare their capture with other ways of taking the same picture (the burst's
 conventional burst and long exposure, the video's alternating-exposure frames) need the same
@@ -16,7 +26,17 @@ import numpy as np
 
 from .integrate import integrate
 from .plan import Plan, make_plan
+from .sensor import SensorConfig, SensorReads, dn_to_electrons, simulate_reads
 from .timeline import Timeline
+
+
+def sense(timeline: Timeline, buckets_e: np.ndarray, sensor: SensorConfig, seed: np.random.SeedSequence) -> SensorReads:
+    """The sensor stage: ``buckets_e`` (K, H, W, C) noise-free expected electrons of the buckets of
+    ``timeline`` into its reads, with dark current over each bucket's storage time
+    (:meth:`~mbcapture.timeline.Timeline.storage_s`) and, on a multi-bucket sensor, the buckets
+    sharing one photodiode (parasitic light); a sequential timeline's frames are separate exposures."""
+    return simulate_reads(buckets_e, [r.buckets for r in timeline.reads], sensor, seed,
+                          storage_s=timeline.storage_s(), shared_photodiode=not timeline.sequential)
 
 
 @dataclass(frozen=True)
@@ -45,18 +65,12 @@ def capture_timeline(timeline: Timeline, scene, cfg, renderer, spp: int, seed: n
     """Render, accumulate and read out ``timeline`` (the scene ``scene``, camera motion included) with
     ``spp`` samples per pixel per stratum. ``seed`` is split into the plan's jitter, the render seeds and
     the sensor noise; ``k_e`` (C,) electrons per render unit and second."""
-    from .sensor import dn_to_electrons, simulate_reads
-
     s_plan, s_render, s_noise = seed.spawn(3)
     plan = make_plan(timeline, scene, cfg.render, np.random.default_rng(s_plan))
     plan = replace(plan, spp=np.full(plan.passes, int(spp), dtype=np.int64), spp_source="given")
     integrated = integrate(renderer, plan, timeline.n_buckets, s_render)
     buckets_e = integrated.exposure * k_e
-    spans = [timeline.span_ticks([b]) for b in range(timeline.n_buckets)]
-    storage_s = np.array([float(timeline.seconds((b1 if timeline.sequential else timeline.end_tick) - b0))
-                          for b0, b1 in spans])
-    out = simulate_reads(buckets_e, [r.buckets for r in timeline.reads], cfg.sensor, s_noise, storage_s=storage_s,
-                         shared_photodiode=not timeline.sequential)
+    out = sense(timeline, buckets_e, cfg.sensor, s_noise)
     exposure = np.array([float(timeline.read_exposure_ticks(r) * timeline.tick_s) for r in timeline.reads])
     rate = dn_to_electrons(out.reads_dn, cfg.sensor) / exposure[:, None, None, None]
     return SimulatedCapture(timeline, out.reads_dn, out.saturated, rate, out.reads_e_expected, exposure, plan)

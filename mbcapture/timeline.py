@@ -258,10 +258,16 @@ class Timeline:
 
     def storage_ticks(self, bucket: int) -> int:
         """Ticks ``bucket`` holds charge before it is read, the time its dark current accumulates:
-        from its first gated slot to its read. A conventional sequential frame is read
-        destructively at the end of its own exposure; the buckets of an interleaved capture are all
-        read after the capture's last slot. Longer than the exposure wherever the bucket's slots are
-        interleaved with others (and 0 for a bucket that never collects)."""
+        from its reset to its read. The rule, the same for every capture (the sensor stage
+        :func:`mbcapture.simulate.sense` is the only reader of it):
+
+        * a bucket is reset as its first slot opens (the gate sequencer clears a storage node just
+          before it first collects);
+        * a conventional sequential frame is read destructively at the end of its own exposure;
+          the buckets of an interleaved capture are all read after the capture's last slot;
+        * a bucket that never collects is reset just before its read and holds no dark charge: 0.
+
+        Longer than the exposure wherever the bucket's slots are interleaved with others."""
         first, last = self.span_ticks([bucket])
         if first == last:
             return 0

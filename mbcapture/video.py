@@ -55,55 +55,28 @@ import csv
 import io
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
-from .errors import ConfigError
+from tqdm import tqdm
+
+from . import camera_motion, protocols, scenes
+from .apps.hdr import REL_MSE_EPS_RADIANCE
+from .htmlparts import esc, figure, fmt, table
+from .io import tonemap
+from .metrics import luminance, relative_mse
+from .pipeline import capture_in_memory, frame_period_check, render_cache
+from .progress import StageStatus
+from .reconstruct.hdr import merge_hdr
+from .render import Renderer, ensure_llvm
+from .sensor import dn_to_electrons
+from .simulate import capture_timeline
+from .timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline, exact
 
 #: Sampling periods of the slowest compared rate the aliasing analysis spans at least.
 ALIASING_PERIODS = 24
 #: Zero padding factor of the aliasing FFT.
 FFT_PAD = 16
-
-
-class VideoSection(BaseModel):
-    """``video``: the comparisons and previews of a video run (``capture.frames`` > 1)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    compare_alternating: bool = Field(
-        True, description="Also simulate the alternating short/long-exposure HDR video of a conventional sensor "
-        "(Kang et al. 2003) at the same frame rate and score both (HDR applications only).",
-    )
-    flow: Literal["dis_medium", "dis_fast", "dis_ultrafast", "farneback"] = Field(
-        "dis_medium", description="Optical flow that warps the alternating video's neighbours onto each frame: OpenCV's "
-        "DIS optical flow at a preset, or Farneback's.",
-    )
-    aliasing_rates_hz: list[float] = Field(
-        [3.0], description="Frame rates whose temporal aliasing of the scene's motion is reported beside the run's own "
-        "(the paper's prototype: 3 frames/s).",
-    )
-    playback_fps: float | None = Field(
-        None, gt=0, le=120, description="Frames per second of video.mp4 and video.gif; null: capture.frame_rate_hz."
-    )
-
-
-def frame_period_check(cfg, timeline) -> float:
-    """The frame period (s); ConfigError when it is shorter than the capture's span plus its readout."""
-    c = cfg.capture
-    if c.frame_rate_hz is None:
-        raise ConfigError("capture.frame_rate_hz: a video (capture.frames > 1) needs a frame rate")
-    period = 1.0 / c.frame_rate_hz
-    span = float(timeline.seconds(timeline.end_tick - timeline.start_tick))
-    readout = cfg.sensor.frame_readout_s
-    if period < span + readout - 1e-12:
-        raise ConfigError(
-            f"capture.frame_rate_hz: {c.frame_rate_hz:g} frames/s gives a frame period of {period * 1e3:.4g} ms, shorter "
-            f"than the capture ({span * 1e3:.4g} ms) plus its readout (sensor.frame_readout_s, {readout * 1e3:.4g} ms); "
-            f"at most {1.0 / (span + readout):.4g} frames/s"
-        )
-    return period
 
 
 def frame_config(cfg, i: int, spp: int | None = None):
@@ -151,7 +124,6 @@ def warp_by_flow(image: np.ndarray, flow: np.ndarray, nearest: bool = False) -> 
 
 
 def log_luminance(rate: np.ndarray) -> np.ndarray:
-    from .metrics import luminance
 
     lum = luminance(rate)
     return np.log(np.maximum(lum, 1e-3 * max(float(np.percentile(lum, 99)), 1e-30)))
@@ -161,8 +133,6 @@ def alternating_merge(dn: list[np.ndarray], saturated: list[np.ndarray], exposur
                       i: int) -> np.ndarray:
     """Rate (electrons/s, (H, W, C)) of output frame ``i`` of an alternating-exposure video: frame i's
     read merged with its neighbours' reads warped onto it by optical flow (module docstring)."""
-    from .reconstruct.hdr import merge_hdr
-    from .sensor import dn_to_electrons
 
     n = len(dn)
     rate = [dn_to_electrons(d, sensor) / t for d, t in zip(dn, exposure_s)]
@@ -181,7 +151,6 @@ def alternating_merge(dn: list[np.ndarray], saturated: list[np.ndarray], exposur
 def temporal_consistency(output: np.ndarray, truth: np.ndarray) -> float | None:
     """sqrt(mean over consecutive pairs and pixels of ((L_i - L_i-1) - (T_i - T_i-1))^2) / mean T, on the
     luminance of ``output`` and ``truth`` (F, H, W, C); None for fewer than 2 frames."""
-    from .metrics import luminance
 
     if output.shape[0] < 2:
         return None
@@ -226,7 +195,6 @@ def aliasing(scene, rates_hz: list[float], t0_s: float, centroid_s: float, durat
 def measured_track(truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(F,) horizontal centroid (px) of each truth frame's departure from the frames' median
     luminance inside ``mask`` (H, W): where the moving part is in each frame."""
-    from .metrics import luminance
 
     lum = luminance(truth)
     dev = np.abs(lum - np.median(lum, axis=0)[None]) * mask[None]
@@ -251,19 +219,10 @@ def _hdr_like(result) -> bool:
     return {"radiance", "truth"} <= set(result.images)
 
 
-def run_video(cfg, out_dir: str | Path | None = None, *, progress: bool = True):
+def run_video(cfg, *, progress: bool = True):
     """Run a video (``capture.frames`` > 1); returns frame 0's CaptureResult with ``video`` (a
-    :class:`VideoFrames`) and report.json's ``video`` section; writes the outputs with ``out_dir``."""
-    from tqdm import tqdm
-
-    from . import camera_motion, protocols, scenes
-    from .capture import _run, render_cache
-    from .io import check_out_dir
-    from .progress import StageStatus
-    from .render import Renderer, ensure_llvm
-
-    if out_dir is not None:
-        check_out_dir(Path(out_dir))
+    :class:`VideoFrames`) and report.json's ``video`` section. Nothing is written: run_capture
+    writes the outputs, with :func:`write_video_files`."""
     timeline = protocols.build(cfg)
     period = frame_period_check(cfg, timeline)
     n = cfg.capture.frames
@@ -278,7 +237,7 @@ def run_video(cfg, out_dir: str | Path | None = None, *, progress: bool = True):
         for i in range(n):
             fcfg = frame_config(cfg, i, spp)
             with StageStatus(False) as status:
-                res = _run(fcfg, None, False, status, renderer=renderer)
+                res = capture_in_memory(fcfg, status, renderer=renderer)
             if spp is None and cfg.render.spp is None:
                 spp = int(res.plan.spp.max())
             frames.append(res)
@@ -293,18 +252,10 @@ def run_video(cfg, out_dir: str | Path | None = None, *, progress: bool = True):
                                                                       for f in frames), 4)
     first.video = video
     first.app_output.summary[:0] = _summary_lines(report)
-    if out_dir is not None:
-        from .capture import write_outputs
-
-        write_outputs(first, Path(out_dir), extra=lambda st: write_video_files(st, first))
-        first.out_dir = Path(out_dir)
     return first
 
 
 def _video_report(cfg, frames, video: VideoFrames, period: float, scene, renderer, progress: bool) -> dict:
-    from .apps.hdr import REL_MSE_EPS_RADIANCE
-    from .metrics import relative_mse
-    from .timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline, exact
 
     n = len(frames)
     W, H = cfg.render.width, cfg.render.height
@@ -334,7 +285,6 @@ def _video_report(cfg, frames, video: VideoFrames, period: float, scene, rendere
         exps = [r["exposure_s"] for r in frames[0].report["reads"]]
         short, long = min(exps), max(exps)
         k_e = np.asarray(list(frames[0].report["electrons_per_render_unit_second"].values()))
-        from .simulate import capture_timeline
 
         dns, sats, ex = [], [], []
         for i, f in enumerate(frames):
@@ -377,7 +327,6 @@ def _video_report(cfg, frames, video: VideoFrames, period: float, scene, rendere
         }
     rep["aliasing"] = al
     if video.truth is not None:
-        from .metrics import luminance
 
         video.white = float(np.percentile(luminance(video.truth), cfg.output.png_percentile)) or 1.0
     return rep
@@ -416,7 +365,6 @@ def _summary_lines(rep: dict) -> list[str]:
 # --------------------------------------------------------------------------- files
 def _tonemapped(frames: np.ndarray, white: float) -> np.ndarray:
     """(F, H, W, 3) uint8 sRGB with one white level for every frame; H and W padded to even sizes (H.264)."""
-    from .io import tonemap
 
     out = np.stack([tonemap(f / white, None) for f in frames])
     pad_h, pad_w = out.shape[1] % 2, out.shape[2] % 2
@@ -481,7 +429,6 @@ def write_video_files(st, result) -> None:
 
 def video_section_html(result) -> str:
     """The report.html section of a video run."""
-    from .report import _esc, _figure, _table
 
     rep = result.report["video"]
     rows = [["frames", rep["frames"]], ["frame rate (frames/s)", rep["frame_rate_hz"]],
@@ -491,7 +438,7 @@ def video_section_html(result) -> str:
         if key in rep:
             s = rep[key]
             rows += [[f"{key}: ghosting relMSE in the moving region, mean / max",
-                      f"{_fmt(s['ghosting_rel_mse_moving_mean'])} / {_fmt(s['ghosting_rel_mse_moving_max'])}"],
+                      f"{fmt(s['ghosting_rel_mse_moving_mean'])} / {fmt(s['ghosting_rel_mse_moving_max'])}"],
                      [f"{key}: temporal consistency", s["temporal_consistency"]]]
     for r in rep.get("aliasing", {}).get("rates", {}).values():
         rows.append([f"{r['frame_rate_hz']:g} frames/s: apparent motion frequency (Hz)",
@@ -499,13 +446,9 @@ def video_section_html(result) -> str:
                      + (" aliased" if r["aliased"] else "")])
     figs = ""
     if result.video.radiance is not None:
-        figs = ("<div class='grid'>" + _figure("video.gif", "<b>video.gif</b>: the HDR video, one white level for "
+        figs = ("<div class='grid'>" + figure("video.gif", "<b>video.gif</b>: the HDR video, one white level for "
                                                "every frame (<a href='video.mp4'>video.mp4</a>)")
-                + _figure("compare.gif", "<b>compare.gif</b>: truth | multi-bucket | alternating exposures") + "</div>")
+                + figure("compare.gif", "<b>compare.gif</b>: truth | multi-bucket | alternating exposures") + "</div>")
     return ("<h2 id='video'>Video</h2><p>Frame 0 is shown in the other sections; every frame's layers are in "
             "frame_&lt;i&gt;.exr and its metrics in <a href='frames.csv'>frames.csv</a>.</p>" + figs
-            + _table(rows, ["", "value"]) + f"<p class='muted'>{_esc('report.json video: every number')}</p>")
-
-
-def _fmt(v) -> str:
-    return "—" if v is None else f"{v:.4g}"
+            + table(rows, ["", "value"]) + f"<p class='muted'>{esc('report.json video: every number')}</p>")

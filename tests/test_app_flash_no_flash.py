@@ -340,7 +340,7 @@ def test_letter_s_mask_is_the_region_its_points_sweep_over_the_capture():
     from fractions import Fraction
 
     from mbcapture.apps.flash_no_flash import _letter_s_mask
-    from mbcapture.capture import moving_region
+    from mbcapture.camera_motion import moving_region
     from mbcapture.scenes import Camera, SceneModel
     from mbcapture.timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
 

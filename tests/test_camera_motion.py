@@ -11,7 +11,8 @@ import pytest
 
 from mbcapture import camera_motion as cm
 from mbcapture import load_config, protocols, scenes
-from mbcapture.capture import moving_region, prepare
+from mbcapture.camera_motion import moving_region
+from mbcapture.capture import prepare
 from mbcapture.errors import ConfigError
 from mbcapture.plan import make_plan
 

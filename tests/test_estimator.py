@@ -62,7 +62,7 @@ def test_difference_estimator_leaves_static_pixels_free_of_per_stratum_noise():
     pixel has its own rendering noise; with the difference estimator a pixel whose paths never meet
     the moving needle is the base render in every stratum, so all frames agree exactly (up to the
     float64 rounding of the weights), while the moving region still differs between frames."""
-    from mbcapture.capture import moving_region
+    from mbcapture.camera_motion import moving_region
     from mbcapture.integrate import integrate
 
     cfg, scene, tl, p, r = _metronome("render.spp=8")

@@ -152,7 +152,7 @@ def test_naive_plan_renders_every_slot_of_every_period():
 
 
 def test_explicit_spp_wins_and_null_spp_waits_for_the_pilot():
-    from mbcapture.plan import resolve_spp
+    from mbcapture.budget import resolve_spp
 
     p = plan(point_scene(None), timeline(), spp=8)
     assert p.spp.tolist() == [8] and p.spp_source == "render.spp"
@@ -167,7 +167,7 @@ def _budget_plan(mu, sigma, k_e=np.array([1e5, 1e5, 1e5]), budget=0.1, max_spp=1
     tl = timeline(periods=16)
     p = plan(point_scene(speed), tl, spp=None)
     r = FakeRenderer(p.groups, {g: mu for g in p.groups}, {g: sigma for g in p.groups}, *size, sigma_map=sigma_map)
-    from mbcapture.plan import choose_spp
+    from mbcapture.budget import choose_spp
 
     return p, choose_spp(p, r, k_e, 1e12, budget, max_spp, np.random.SeedSequence(5), noise_budget_p95=budget_p95), r
 
@@ -230,7 +230,7 @@ def test_no_stratum_gets_fewer_samples_than_the_pilot_measured():
     """A scene so clean that the rule asks for ~1 sample: every stratum still gets the pilot's
     smaller count (2 x 4), where the ratio was measured (below it the convergence exponent is only
     extrapolated, and quasi-Monte Carlo samples converge differently at 1-2 samples)."""
-    from mbcapture.plan import PILOT_SPP
+    from mbcapture.budget import PILOT_SPP
 
     _, clean, _ = _budget_plan(2.0, 0.05)
     assert np.all(clean.spp == 2 * PILOT_SPP[0]), clean.spp
@@ -254,7 +254,7 @@ def test_per_stratum_spp_follows_the_weights():
     p0 = plan(scene, tl, spp=None)
     mu, sigma, k_e, f = 2.0, 3.0, 1e5, 0.1
     r = FakeRenderer(p0.groups, {g: mu for g in p0.groups}, {g: sigma for g in p0.groups})
-    from mbcapture.plan import choose_spp
+    from mbcapture.budget import choose_spp
 
     p = choose_spp(p0, r, np.full(3, k_e), 1e12, f, 1 << 14, np.random.SeedSequence(5))
     w_jk = p0.weights_s[:, :, 0]
@@ -262,7 +262,7 @@ def test_per_stratum_spp_follows_the_weights():
     assert p0.passes >= 10 and w.max() > 5 * w.min()  # strata of very different weight
     n_true = w_jk.max(axis=1) * sigma**2 * k_e / (f * mu)
     assert n_true.min() > 100  # far above the floor of 2 samples: the rule, not the floor, decides
-    from mbcapture.plan import _ladder
+    from mbcapture.budget import _ladder
 
     upper = np.array([2 * _ladder(1.15 * n / 2) for n in n_true])  # each half rounded up to the ladder (<= 19 %)
     assert np.all(p.spp >= 0.85 * n_true) and np.all(p.spp <= upper), np.c_[p.spp, n_true]

@@ -114,7 +114,7 @@ def test_status_line_moves_during_a_silent_stage():
 
 
 def test_noise_verdict_follows_the_budget():
-    from mbcapture.report import noise_verdict
+    from mbcapture.budget import noise_verdict
 
     within = {"to_shot_noise_variance_median": 0.05, "to_shot_noise_variance_p95": 0.5,
               "budget": {"median_target": 0.1, "p95_target": 1.0, "met": True}}
@@ -133,15 +133,15 @@ def test_noise_verdict_follows_the_budget():
 
 def test_long_schedule_is_drawn_in_outline_plus_its_first_periods(monkeypatch):
     """10^6 periods: the timeline draws a bounded number of slots, not one patch per slot."""
-    import mbcapture.figures.paper as paper
+    import mbcapture.report as report
     from mbcapture import protocols
     from mbcapture.config import load_config
     from mbcapture.report import MAX_DETAIL_SLOTS, timeline_png
 
     tl = protocols.build(load_config(None, ["scene.name=flatfield", "capture.periods=1000000"]))
     drawn = []
-    real = paper.draw_timeline
-    monkeypatch.setattr(paper, "draw_timeline", lambda *a, **k: drawn.append(real(*a, **k)) or drawn[-1])
+    real = report.draw_timeline
+    monkeypatch.setattr(report, "draw_timeline", lambda *a, **k: drawn.append(real(*a, **k)) or drawn[-1])
     png = timeline_png(tl)
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     assert 0 < sum(drawn) <= MAX_DETAIL_SLOTS

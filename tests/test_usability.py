@@ -90,12 +90,12 @@ def test_cli_switches_scene_and_prints_the_notice_on_one_line(capsys):
 # ----------------------------------------------------------------------------- --out checked before any work
 @pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc")
 def test_out_that_cannot_be_created_fails_before_any_work(capsys, monkeypatch):
-    import mbcapture.capture as capture
+    import mbcapture.pipeline as pipeline
 
     def no_work(*a, **k):
         raise AssertionError("the capture started before --out was checked")
 
-    monkeypatch.setattr(capture, "prepare", no_work)
+    monkeypatch.setattr(pipeline, "prepare", no_work)
     rc, _, err = run_cli(["run", HDR, "--out", "/proc/nope", "--quiet"], capsys)
     assert rc == 2 and err.count("\n") == 1
     assert "--out /proc/nope: cannot create a folder in /proc" in err

@@ -14,7 +14,7 @@ from mbcapture.errors import ConfigError
 
 def test_a_frame_period_shorter_than_capture_plus_readout_is_refused():
     ok = load_config("hdr_video", ["render.width=16", "render.height=12"])
-    assert video.frame_period_check(ok, __import__("mbcapture").protocols.build(ok)) == pytest.approx(1 / 30)
+    assert __import__("mbcapture.pipeline").pipeline.frame_period_check(ok, __import__("mbcapture").protocols.build(ok)) == pytest.approx(1 / 30)
     # 8 ms of capture + 10 ms of readout do not fit in 1/60 s
     with pytest.raises(ConfigError, match=r"capture.frame_rate_hz: 60 frames/s .* at most 55.56 frames/s"):
         prepare(load_config("hdr_video", ["capture.frame_rate_hz=60", "render.width=16", "render.height=12"]))

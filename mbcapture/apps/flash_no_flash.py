@@ -276,7 +276,7 @@ def _letter_s_mask(data: CaptureData) -> np.ndarray | None:
     idx = getattr(data.scene, "extra", {}).get("letter_s_points") if data.scene is not None else None
     if idx is None or data.scene.is_static:
         return None
-    from ..capture import moving_region
+    from ..camera_motion import moving_region
 
     tl = data.timeline
     sub = dataclasses.replace(data.scene, motion_points=lambda t: data.scene.motion_points(t)[:, list(idx)])

@@ -16,50 +16,11 @@ from .. import protocols
 from ..config import config_from_dict
 from ..errors import MBCaptureError
 from ..io import tonemap
+from ..plots import BUCKET_COLOURS, draw_timeline
 from . import CONFIG_DIR, FigureContext, FigureOutput, figure
-
-BUCKET_COLOURS = ["#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"]
-
 
 def _timeline(capture: dict, sensor: dict | None = None):
     return protocols.build(config_from_dict({"capture": capture, "sensor": sensor or {}}, "figure"))
-
-
-def draw_timeline(ax, tl, y: float, unit_s: float, label: str, height: float = 0.6, *, colour=None,
-                  until_tick: int | None = None, background: str = "#dddddd") -> int:
-    """Coloured slots on a horizontal bar at ``y`` over a ``background`` bar (idle time), x in units of
-    ``unit_s`` from the capture's start. ``colour(slot)``: the slot's colour or None to leave it out
-    (default: one colour per bucket, drained slots left out). ``until_tick``: draw only the slots
-    that start before it (a long schedule's first periods). Returns the number of slots drawn.
-    Also used by :mod:`mbcapture.report` for the run's own schedule."""
-    colour = colour or (lambda s: BUCKET_COLOURS[s.bucket % len(BUCKET_COLOURS)] if s.bucket >= 0 else None)
-    t0 = tl.start_tick
-    stop = tl.end_tick if until_tick is None else min(until_tick, tl.end_tick)
-    drawn = 0
-    for seg in tl.segments:
-        tick = seg.start_tick
-        for _ in range(seg.repeats):
-            if tick >= stop:
-                break
-            for s in seg.slots:
-                c = colour(s) if tick < stop else None
-                if c is not None:
-                    x = float((tick - t0) * tl.tick_s) / unit_s
-                    w = float(s.ticks * tl.tick_s) / unit_s
-                    ax.add_patch(_rect(x, y - height / 2, w, height, c))
-                    drawn += 1
-                tick += s.ticks
-    end = float((stop - t0) * tl.tick_s) / unit_s
-    ax.add_patch(_rect(0, y - height / 2, end, height, background, zorder=0))
-    if label:
-        ax.text(-0.02 * end, y, label, ha="right", va="center", fontsize=9)
-    return drawn
-
-
-def _rect(x, y, w, h, colour, zorder=1):
-    from matplotlib.patches import Rectangle
-
-    return Rectangle((x, y), w, h, facecolor=colour, edgecolor="none", zorder=zorder)
 
 
 def _bucket_legend(ax, n: int) -> None:

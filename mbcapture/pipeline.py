@@ -1,0 +1,303 @@
+"""One capture in memory: prepare, render, accumulate, the sensor stage, reconstruct.
+
+    config -> scene + timeline -> plan (strata, weights) -> render + accumulate
+           -> sensor (noise, full wells, reads) -> application (HDR, ...) -> metrics
+
+:func:`capture_in_memory` is the one orchestrator of a capture; :func:`mbcapture.capture.run_capture`
+adds its outputs, a video (:mod:`mbcapture.video`) calls it once per frame, and a sweep's points
+share a render stage through :class:`Rendered`. Nothing here writes a file.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from . import camera_motion, protocols, scenes
+from .apps import AppOutput, CaptureData
+from .budget import noise_verdict, render_error, resolve_spp
+from .config import CaptureConfig
+from .errors import ConfigError
+from .integrate import Integrated, integrate, temporal_error
+from .plan import Plan, make_plan
+from .progress import StageStatus
+from .render import Renderer, ensure_llvm
+from .render.cache import open_cache
+from .render.llvm import llvm_target
+from .sensor import electrons_per_render_second
+from .simulate import sense
+from .timeline import Timeline
+
+if TYPE_CHECKING:
+    from .render.cache import RenderCache
+
+
+@dataclass
+class CaptureResult:
+    """Everything a capture produced, as arrays (axes: read/bucket, row, column, channel).
+
+    bucket_exposure       (K, H, W, C) noise-free radiant exposure per bucket, W m^-2 sr^-1 s
+    buckets_e             (K, H, W, C) noise-free expected electrons per bucket
+    reads_expected_e      (R, H, W, C) noise-free, unclipped expected electrons of each read
+    reads_dn              (R, H, W, C) simulated reads, DN
+    saturated             (R, H, W, C) bool
+    moving_mask           (H, W) pixels the moving parts cross during the capture
+    render_var_exposure   (K, H, W, C) estimated Monte Carlo variance of bucket_exposure (None if spp = 1)
+    app                   name of the application that reconstructed the reads
+    images                its images by name (hdr: radiance, sigma, valid, truth, moving; see docs)
+    """
+
+    config: CaptureConfig
+    timeline: Timeline
+    plan: Plan
+    bucket_exposure: np.ndarray
+    buckets_e: np.ndarray
+    reads_expected_e: np.ndarray
+    reads_dn: np.ndarray
+    saturated: np.ndarray
+    moving_mask: np.ndarray
+    app: str
+    images: dict[str, np.ndarray]
+    render_var_exposure: np.ndarray | None = None
+    report: dict = field(default_factory=dict)
+    out_dir: Path | None = None  # where run_capture wrote it
+    app_output: AppOutput | None = None
+    video: object = None  # a video run (capture.frames > 1): mbcapture.video.VideoFrames of every frame
+
+
+class _Timer:
+    def __init__(self):
+        self.stages: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
+
+
+def _versions() -> dict:
+    out = {"python": platform.python_version()}
+    for pkg in ("mbcapture", "mitsuba", "drjit", "numpy", "scipy", "pydantic", "OpenEXR"):
+        try:
+            out[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
+def _llvm_target_label() -> str:
+    """'znver4, vector width 16': the CPU target Dr.Jit compiled this run's kernels for."""
+    t = llvm_target()
+    return f"{t['cpu']}, vector width {t['vector_width']}"
+
+
+def render_cache(render) -> "RenderCache | None":
+    """The render cache ``render.cache`` names (None when 'off'); ConfigError if its folder cannot be made."""
+    cache = open_cache(render.cache, render.cache_max_gb)
+    if cache is not None:
+        try:
+            cache.root.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"render.cache: cannot create the cache folder {cache.root} ({exc.strerror})") from None
+    return cache
+
+
+def sensor_seed(cfg: CaptureConfig, seeds: list[np.random.SeedSequence]) -> np.random.SeedSequence:
+    """The sensor's temporal-noise seed: ``sensor.noise_seed`` when set, else the run seed's stage 1."""
+    return seeds[1] if cfg.sensor.noise_seed is None else np.random.SeedSequence(cfg.sensor.noise_seed)
+
+
+def frame_period_check(cfg, timeline) -> float:
+    """The frame period (s); ConfigError when it is shorter than the capture's span plus its readout."""
+    c = cfg.capture
+    if c.frame_rate_hz is None:
+        raise ConfigError("capture.frame_rate_hz: a video (capture.frames > 1) needs a frame rate")
+    period = 1.0 / c.frame_rate_hz
+    span = float(timeline.seconds(timeline.end_tick - timeline.start_tick))
+    readout = cfg.sensor.frame_readout_s
+    if period < span + readout - 1e-12:
+        raise ConfigError(
+            f"capture.frame_rate_hz: {c.frame_rate_hz:g} frames/s gives a frame period of {period * 1e3:.4g} ms, shorter "
+            f"than the capture ({span * 1e3:.4g} ms) plus its readout (sensor.frame_readout_s, {readout * 1e3:.4g} ms); "
+            f"at most {1.0 / (span + readout):.4g} frames/s"
+        )
+    return period
+
+
+def prepare(cfg: CaptureConfig) -> tuple[scenes.SceneModel, Timeline, Plan, list[np.random.SeedSequence]]:
+    """Scene, timeline and render plan of a capture, and the run's seeds split per stage
+    (0: plan jitter, 1: sensor noise, 2: render seeds, 3: the application's reference renders).
+    Shared by ``run`` and ``plan``."""
+    seeds = np.random.SeedSequence(cfg.seed).spawn(4)
+    scene = camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)
+    timeline = protocols.build(cfg)
+    if cfg.capture.frames > 1:
+        frame_period_check(cfg, timeline)  # a frame period shorter than capture + readout: before anything renders
+    plan = make_plan(timeline, scene, cfg.render, np.random.default_rng(seeds[0]))
+    return scene, timeline, plan, seeds
+
+
+def describe(cfg: CaptureConfig, timeline: Timeline, plan: Plan) -> dict:
+    """What is captured and how it is rendered: the head of report.json and of ``mbcapture plan``."""
+    return {
+        "scene": cfg.scene.name,
+        "protocol": timeline.protocol,
+        "sequential": timeline.sequential,
+        "sensor_type": "conventional (one bucket, destructive read per frame)"
+        if timeline.sequential
+        else f"{cfg.sensor.bucket_count}-bucket",
+        "film": [cfg.render.width, cfg.render.height],
+        "seed": cfg.seed,
+        "capture_span_s": float(timeline.seconds(timeline.end_tick - timeline.start_tick)),
+        "reads": timeline.describe_reads(),
+        "plan": plan.summary(timeline),
+    }
+
+
+def bucket_group_seconds(timeline: Timeline, switchable: tuple[str, ...]) -> np.ndarray:
+    """(K, S): seconds bucket k collected while switchable group ``switchable[s]`` was on."""
+    out = np.zeros((timeline.n_buckets, len(switchable)))
+    for k in range(timeline.n_buckets):
+        for s, g in enumerate(switchable):
+            out[k, s] = float(timeline.gated_ticks([timeline.end_tick], k, g)[0] * timeline.tick_s)
+    return out
+
+
+@dataclass(frozen=True)
+class Rendered:
+    """The render stage of a capture: its plan (samples chosen) and the integrated bucket exposures.
+
+    A capture whose renders are provably the same (the points of a sweep's render group, see
+    :mod:`mbcapture.sweep.groups`) takes it as ``run_capture(..., rendered=)`` and goes straight to
+    the sensor: no pilot, renders or accumulation. Its own plan must have the same strata, render
+    times, weights and groups (checked)."""
+
+    plan: Plan
+    integrated: Integrated
+    #: (H, W) bool, the moving region of the capture's span (:func:`mbcapture.camera_motion.moving_region`): it depends on the
+    #: scene, the span and the film only, so the captures sharing these renders share it too
+    moving: np.ndarray
+
+    def plan_for(self, own: Plan) -> Plan:
+        same = (own.groups == self.plan.groups and np.array_equal(own.times_s, self.plan.times_s)
+                and np.array_equal(own.weights_s, self.plan.weights_s)
+                and (own.spp is None or np.array_equal(own.spp, self.plan.spp)))
+        if not same:
+            raise ValueError("run_capture(rendered=...): the renders were made for another plan "
+                             "(strata, render times, weights, groups or samples differ)")
+        return self.plan
+
+
+def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool = False,
+                      rendered: Rendered | None = None, on_rendered: "Callable[[Rendered], None] | None" = None,
+                      renderer: Renderer | None = None) -> CaptureResult:
+    """One capture, in the order of the data flow, nothing written: plan, render (or take
+    ``rendered``), accumulate, the sensor stage (:func:`mbcapture.simulate.sense`), reconstruct.
+    ``status``: the stage lines; ``progress``: a bar for the render passes; ``renderer``: a Renderer
+    of this capture's scene to reuse (a video's frames), else one is made; ``on_rendered``: called
+    with the render stage once it is done."""
+    timer = _Timer()
+    t_start = time.perf_counter()
+    with timer("plan"), status.stage("plan"):
+        scene, timeline, plan, seeds = prepare(cfg)
+        app, app_params = cfg.app.resolve(cfg.capture.protocol)
+    W, H = cfg.render.width, cfg.render.height
+    t0_s, t1_s = timeline.seconds(timeline.start_tick), timeline.seconds(timeline.end_tick)
+
+    with timer("render_setup"), status.stage("render setup (kernels, scene)"):
+        llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
+        cache = render_cache(cfg.render) if renderer is None else renderer.cache
+        renderer = Renderer.from_config(scene, cfg, cache=cache) if renderer is None else renderer
+    if rendered is None:
+        pilot = status.stage("pilot render (spp from render.noise_budget)") if cfg.render.spp is None else nullcontext()
+        with timer("pilot"), pilot:
+            plan = resolve_spp(plan, renderer, cfg, seeds[2])  # render.spp null: spp from render.noise_budget
+        with status.stage(f"render ({plan.passes} passes)"):
+            integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
+                                   progress=progress)
+        moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
+        if on_rendered is not None:
+            on_rendered(Rendered(plan, integrated, moving))
+    else:  # another capture's render stage, with the same renders
+        plan, integrated, moving = rendered.plan_for(plan), rendered.integrated, rendered.moving
+        if app.per_group and integrated.group_exposure is None:
+            raise ValueError("run_capture(rendered=...): the application needs per-group exposures")
+    exposure = integrated.exposure
+
+    with timer("sensor"), status.stage("sensor"):
+        spectral = cfg.render.variant.endswith("_spectral")
+        k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)  # (C,) e- per render unit s (spectral: film units)
+        buckets_e = exposure * k_e
+        sensor_out = sense(timeline, buckets_e, cfg.sensor, sensor_seed(cfg, seeds))
+
+    with timer("reconstruct"), status.stage(f"reconstruct ({app.name})"):
+        mask = moving
+        switchable = tuple(g for g in scene.groups if g in scene.switchable)
+        data = CaptureData(
+            cfg=cfg,
+            scene=scene,
+            timeline=timeline,
+            plan=plan,
+            read_names=[r.name for r in timeline.reads],
+            exposure_s=np.array([float(timeline.read_exposure_ticks(r) * timeline.tick_s) for r in timeline.reads]),
+            reads_dn=sensor_out.reads_dn,
+            saturated=sensor_out.saturated,
+            reads_e_expected=sensor_out.reads_e_expected,
+            bucket_exposure=exposure,
+            k_e=k_e,
+            moving_mask=mask,
+            switchable=switchable,
+            bucket_group_s=bucket_group_seconds(timeline, switchable),
+            group_exposure=integrated.group_exposure,
+            renderer=renderer,
+            seed=seeds[3],
+        )
+        out = app.reconstruct(data, app_params)
+
+    report = {
+        **describe(cfg, timeline, plan),
+        "app": app.name,
+        "render_units": "camera-weighted film value, e- m^-2 sr^-1 s^-1 before optics" if spectral else "W m^-2 sr^-1",
+        "electrons_per_render_unit_second": dict(zip(renderer.channels, k_e.tolist())),  # per film channel
+        "metrics": out.metrics,
+        "render_error": {
+            **render_error(integrated.mc_var, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e,
+                           plan=plan, noise_budget=cfg.render.noise_budget, noise_budget_p95=cfg.render.noise_budget_p95),
+            **temporal_error(integrated, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
+        },
+        "render_cache": {"folder": str(cache.root), **cache.stats.as_dict()} if cache is not None else {"folder": None},
+        "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant,
+                     "llvm_target": _llvm_target_label() if llvm else None},
+    }
+    report["render_error"]["verdict"] = noise_verdict(report["render_error"])
+    result = CaptureResult(
+        config=cfg,
+        timeline=timeline,
+        plan=plan,
+        bucket_exposure=exposure,
+        buckets_e=buckets_e,
+        reads_expected_e=sensor_out.reads_e_expected,
+        reads_dn=sensor_out.reads_dn,
+        saturated=sensor_out.saturated,
+        moving_mask=mask,
+        app=app.name,
+        images=out.images,
+        render_var_exposure=integrated.mc_var,
+        report=report,
+        app_output=out,
+    )
+    report["timings_s"] = {k: round(v, 4) for k, v in timer.stages.items()}
+    report["timings_s"]["total_before_write"] = round(time.perf_counter() - t_start, 4)
+    return result
+
+
