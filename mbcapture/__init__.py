@@ -8,6 +8,8 @@ Public API::
 Mitsuba is imported only when a capture renders (inside :mod:`mbcapture.render`).
 """
 
+from . import capture
+from .config import load_config
 from .errors import ConfigError, EnvironmentProblem, MBCaptureError
 
 __all__ = ["load_config", "run_capture", "CaptureResult", "ConfigError", "EnvironmentProblem", "MBCaptureError"]
@@ -16,11 +18,9 @@ __version__ = "0.1.0"
 
 def __getattr__(name):  # lazy: `import mbcapture` stays light
     if name == "load_config":
-        from .config import load_config
 
         return load_config
     if name in ("run_capture", "CaptureResult"):
-        from . import capture
 
         return getattr(capture, name)
     raise AttributeError(name)

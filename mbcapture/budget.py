@@ -80,7 +80,6 @@ def _cost_model(pairs: list[tuple[float, float]], first_s: float, accumulate_s: 
 
 
 def _timed_accumulate(weights_s: np.ndarray, radiance: np.ndarray, K: int) -> float:
-
     out = np.zeros((K, *radiance.shape[1:]), dtype=np.float64)
     t0 = time.perf_counter()
     accumulate(weights_s, radiance, out)

@@ -14,7 +14,16 @@ import threading
 import warnings
 from pathlib import Path
 
-from .errors import ConfigNotice, MBCaptureError
+from . import application as apps
+from . import converge, figures, protocols, scenes
+from .budget import probe_cost, resolve_spp
+from .capture import describe, prepare, render_cache, render_summary, run_capture
+from .config import load_config
+from .errors import ConfigError, ConfigNotice, MBCaptureError
+from .io import check_out_dir
+from .render import Renderer
+from .render.cache import RenderCache, default_cache_dir
+from .sweep import load_sweep, resolve_sweep_path, run_sweep
 
 EXIT_INPUT = 2
 
@@ -90,8 +99,6 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _cmd_cache(args) -> int:
-    from .render.cache import RenderCache, default_cache_dir
-
     cache = RenderCache(args.dir or default_cache_dir(), max_bytes=0)
     if args.action == "clear":
         print(f"removed {cache.clear() if cache.root.is_dir() else 0} renders from {cache.root}")
@@ -112,9 +119,6 @@ def _version() -> str:
 
 
 def _cmd_run(args) -> int:
-    from .capture import render_summary, run_capture
-    from .config import load_config
-
     cfg = load_config(args.config, args.overrides)
     out = args.out or Path("out") / args.config.stem
     result = run_capture(cfg, out, progress=not args.quiet)
@@ -128,16 +132,10 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_plan(args) -> int:
-    from .capture import describe, prepare
-    from .config import load_config
-
     cfg = load_config(args.config, args.overrides)
     scene, timeline, plan, seeds = prepare(cfg)
     if not args.no_probe and plan.passes:
-        from .budget import probe_cost, resolve_spp
-        from .render import Renderer
 
-        from .capture import render_cache
 
         renderer = Renderer.from_config(scene, cfg, cache=render_cache(cfg.render))
         plan = resolve_spp(plan, renderer, cfg, seeds[2])  # the run's own pilot (render.spp null)
@@ -174,10 +172,6 @@ def _cmd_plan(args) -> int:
 
 
 def _cmd_converge(args) -> int:
-    from . import converge
-    from .config import load_config
-    from .errors import ConfigError
-
     cfg = load_config(args.config, args.overrides)
 
     def ladder(text, default, key):
@@ -196,7 +190,6 @@ def _cmd_converge(args) -> int:
                    "--naive-spp")
     ref_spp = args.ref_spp or (64 if args.quick else 256)
     out = args.out or Path("out") / f"converge_{args.config.stem}"
-    from .io import check_out_dir
 
     check_out_dir(out)  # before the ladders run, not after
     result = converge.run_converge(cfg, motion, naive, ref_spp=ref_spp, ref_motion_div=4.0 if args.quick else 8.0,
@@ -211,9 +204,6 @@ def _cmd_converge(args) -> int:
 
 
 def _cmd_sweep(args) -> int:
-    from .errors import ConfigError
-    from .sweep import load_sweep, resolve_sweep_path, run_sweep
-
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers: expected a number of processes >= 1, got {args.workers}")
     sweep = load_sweep(args.sweep, args.overrides)
@@ -239,8 +229,6 @@ def _cmd_sweep(args) -> int:
 
 
 def _cmd_scenes(args) -> int:
-    from . import scenes
-
     for name in scenes.available():
         mod = scenes.load_module(name)
         print(f"{name}: {mod.DESCRIPTION}")
@@ -254,8 +242,6 @@ def _print_keys(prefix: str, model) -> None:
 
 
 def _cmd_figures(args) -> int:
-    from . import figures
-
     if args.list:
         for name in figures.names():
             spec = figures.spec(name)
@@ -270,8 +256,6 @@ def _cmd_figures(args) -> int:
 
 
 def _cmd_apps(args) -> int:
-    from . import apps, protocols
-
     by_app: dict[str, list[str]] = {}
     for p in protocols.names():
         by_app.setdefault(protocols.default_app(p), []).append(p)

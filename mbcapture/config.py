@@ -21,12 +21,21 @@ from pathlib import Path
 from typing import Any, Callable, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
-from . import scenes
+from . import application as apps
+from . import protocols, scenes
 from .camera_motion import CameraSection
 from .errors import ConfigError, ConfigNotice
 from .sensor.config import SensorConfig
+from .sensor.spectral import EFFECTIVE_WAVELENGTH, is_spectral_variant
 
 #: The shipped configs, which ``load_config`` (and ``mbcapture run``) also finds by name.
 SHIPPED_CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
@@ -209,7 +218,6 @@ class AppSection(BaseModel):
     def resolve(self, protocol: str, origin: "Callable[[tuple], str] | None" = None) -> tuple[Any, Any]:
         """(App, its validated params) for a capture with ``protocol``; ConfigError names ``app.<key>``
         (an unknown key lists this application's keys)."""
-        from . import apps, protocols
 
         app = apps.get(self.name or protocols.default_app(protocol))
         try:
@@ -271,8 +279,6 @@ class CaptureConfig(_Model):
 
     @model_validator(mode="after")
     def _spectral_response_needs_spectral_variant(self) -> "CaptureConfig":
-        from .sensor.spectral import EFFECTIVE_WAVELENGTH, is_spectral_variant
-
         spectral = is_spectral_variant(self.render.variant)
         if self.sensor.spectral_response != EFFECTIVE_WAVELENGTH and not spectral:
             raise ValueError(
@@ -413,7 +419,6 @@ def _selected_name(data: dict, section: str) -> str | None:
     name = (data.get(section) or {}).get("name")
     if name is not None or section == "scene":
         return name or SceneSection.model_fields["name"].default
-    from . import protocols
 
     capture = data.get("capture") if isinstance(data.get("capture"), dict) else {}
     try:

@@ -33,9 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
+from . import camera_motion, protocols, scenes
 from .config import CaptureConfig
 from .integrate import integrate
+from .io import staged_outputs
 from .plan import make_plan
+from .render import Renderer, ensure_llvm
 
 DEFAULT_MOTION_LADDER = (1, 2, 4, 8, 16, 32, 64)
 DEFAULT_NAIVE_LADDER = (1, 2, 4, 8)
@@ -55,9 +58,6 @@ class Point:
 
 
 def _setup(cfg: CaptureConfig):
-    from . import camera_motion, protocols, scenes
-    from .render import Renderer, ensure_llvm
-
     if cfg.render.variant.startswith("llvm"):
         ensure_llvm()
     scene = camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)
@@ -201,7 +201,6 @@ def write_outputs(result: dict, out_dir: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io import staged_outputs
 
     pts = result["points"]
     table = io.StringIO()

@@ -11,8 +11,10 @@ import json
 
 from pydantic import BaseModel
 
-from . import scenes
-from .config import AppSection, CaptureConfig, ScheduleSpec
+from . import application as apps
+from . import protocols, scenes
+from .config import AppSection, CaptureConfig, ReadSpec, ScheduleSpec, SlotSpec
+from .sweep.spec import Axes, RandomAxes, RandomKey, SweepSpec
 
 
 def _default(field) -> str:
@@ -52,14 +54,12 @@ def config_markdown() -> str:
                 out += [ann.__doc__.strip(), ""]
             out += _table(ann, f"{section}.")
     out += ["", "## `capture.schedule` (protocol `custom`)", "", *_table(ScheduleSpec, "capture.schedule.")]
-    from .config import ReadSpec, SlotSpec
 
     out += ["", "Each slot:", "", *_table(SlotSpec, "slots[]."), "", "Each read:", "", *_table(ReadSpec, "reads[].")]
     out += ["", "## `scene`", "", "`scene.name` picks the scene; the other `scene.*` keys are the scene's own:"]
     for name in scenes.available():
         mod = scenes.load_module(name)
         out += ["", f"### scene `{name}`", "", mod.DESCRIPTION, "", *_table(mod.Params, "scene.")]
-    from . import apps, protocols
 
     out += ["", "## `app`", "", inspect.cleandoc(AppSection.__doc__), "", *_table(AppSection, "app.")]
     for name in apps.names():
@@ -79,7 +79,6 @@ def config_markdown() -> str:
 
 def _sweep_section() -> list[str]:
     """The keys of a sweep file (``mbcapture sweep``)."""
-    from .sweep.spec import Axes, RandomAxes, RandomKey, SweepSpec
 
     return ["", "## Sweep files (`mbcapture sweep`)", "",
             "A sweep file names a base config and the keys that vary; configs/sweeps/ has commented examples.", "",

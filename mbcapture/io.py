@@ -24,6 +24,7 @@ import numpy as np
 import yaml
 
 from .errors import MBCaptureError
+from .metrics import luminance
 
 CHANNELS_RGB = ("R", "G", "B")
 
@@ -239,7 +240,6 @@ def tonemap(rgb_linear: np.ndarray, percentile: float | None = 99.5) -> np.ndarr
     (colour-science)."""
     import colour
 
-    from .metrics import luminance
 
     rgb = np.nan_to_num(np.asarray(rgb_linear, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     if rgb.ndim == 2:

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from . import camera_motion, protocols, scenes
-from .apps import AppOutput, CaptureData
+from .application import AppOutput, CaptureData
 from .budget import noise_verdict, render_error, resolve_spp
 from .config import CaptureConfig
 from .errors import ConfigError

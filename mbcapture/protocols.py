@@ -21,8 +21,17 @@ from __future__ import annotations
 from fractions import Fraction
 from typing import TYPE_CHECKING, Callable
 
+from . import application as apps
 from .errors import ConfigError
-from .timeline import DRAIN, ReadEvent, SegmentSeconds, SlotSeconds, Timeline, build_timeline, exact
+from .timeline import (
+    DRAIN,
+    ReadEvent,
+    SegmentSeconds,
+    SlotSeconds,
+    Timeline,
+    build_timeline,
+    exact,
+)
 
 if TYPE_CHECKING:  # protocols sit below config: a config validates its protocol name against this registry
     from .config import CaptureConfig
@@ -45,8 +54,6 @@ def register(name: str, app: str = "hdr") -> Callable[[Builder], Builder]:
 
 
 def _load() -> None:
-    from . import apps
-
     apps.load_all()  # application modules register their own protocols
 
 

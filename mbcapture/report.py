@@ -26,6 +26,7 @@ from .budget import noise_verdict
 from .htmlparts import esc, figure, fmt, table
 from .metrics import flat_items, luminance
 from .plots import BUCKET_COLOURS, draw_timeline
+from .video import video_section_html
 
 if TYPE_CHECKING:
     from .capture import CaptureResult
@@ -456,7 +457,6 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
                     "previews:</p><div class='grid'>" + "".join(app_cells) + "</div>")
     # ---- a video run's frames, previews and comparisons (mbcapture/video.py)
     if result.video is not None:
-        from .video import video_section_html
 
         sections.append(video_section_html(result))
     # ---- maps and histograms

@@ -29,6 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .camera_motion import project_through, reference_points
 from .errors import ConfigError
 
 #: Folder holding ``<name>/scene.py``; ``MBCAPTURE_SCENE_PATH`` (os.pathsep separated) adds more.
@@ -120,7 +121,6 @@ class SceneModel:
         then: through :attr:`camera` if it is still, else through its pose at each time."""
         if self.camera_motion is None:
             return self.camera.project(points, width, height)
-        from .camera_motion import project_through
 
         poses = self.camera_motion.world_from_camera(self.camera, times_s)
         return project_through(poses, points, self.camera.fov_deg, width, height)
@@ -132,7 +132,6 @@ class SceneModel:
         t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
         if self.camera_motion is None:
             return self.camera.project(np.asarray(self.motion_points(t), dtype=np.float64), width, height)
-        from .camera_motion import reference_points
 
         ref = reference_points(self.camera, width, height)
         pts = np.broadcast_to(ref, (t.size, *ref.shape))

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from .drive import periodic_oscillation_ticks
 from .errors import ConfigError
 
 if TYPE_CHECKING:
@@ -93,7 +94,6 @@ class Segment:
         slots selected by ``mask``, for each t: the finished occurrences of each slot in closed
         form (:func:`mbcapture.drive.periodic_oscillation_ticks`, O(1) in periods), plus the one
         that t cuts."""
-        from .drive import periodic_oscillation_ticks
 
         period = self.period_ticks
         out = np.zeros(len(t), dtype=np.float64)

@@ -57,7 +57,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
 from tqdm import tqdm
 
 from . import camera_motion, protocols, scenes
@@ -124,7 +123,6 @@ def warp_by_flow(image: np.ndarray, flow: np.ndarray, nearest: bool = False) -> 
 
 
 def log_luminance(rate: np.ndarray) -> np.ndarray:
-
     lum = luminance(rate)
     return np.log(np.maximum(lum, 1e-3 * max(float(np.percentile(lum, 99)), 1e-30)))
 
@@ -256,7 +254,6 @@ def run_video(cfg, *, progress: bool = True):
 
 
 def _video_report(cfg, frames, video: VideoFrames, period: float, scene, renderer, progress: bool) -> dict:
-
     n = len(frames)
     W, H = cfg.render.width, cfg.render.height
     per_frame = []

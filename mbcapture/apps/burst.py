@@ -61,8 +61,11 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .. import protocols
+from ..camera_motion import frame_motion_px, reference_points, still
 from ..errors import ConfigError
 from ..metrics import luminance, psnr, relative_mse
+from ..render import Renderer
+from ..simulate import capture_timeline
 from ..timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline, exact
 from . import AppOutput, CaptureData, register
 from .hdr import REL_MSE_EPS_RADIANCE
@@ -292,7 +295,6 @@ def score(result: np.ndarray, truth: np.ndarray, blur: int = 5, border: int | No
 def mean_positions(scene, timeline, width: int, height: int) -> np.ndarray:
     """(R, GRID^2, 2) each read's mean image position (over its exposure's collecting time) of the
     camera's GRID x GRID reference points at its target distance (from the camera trajectory)."""
-    from ..camera_motion import reference_points
 
     pts = reference_points(scene.camera, width, height)[1::3]  # the target-distance ones
     out = []
@@ -306,7 +308,6 @@ def mean_positions(scene, timeline, width: int, height: int) -> np.ndarray:
 
 def frame_blur_px(scene, timeline, width: int, height: int) -> np.ndarray:
     """(R,) how far the frame moved during each read's own exposure (px)."""
-    from ..camera_motion import frame_motion_px
 
     out = []
     for r in timeline.reads:
@@ -327,8 +328,6 @@ def reference_index(params: BurstParams, k: int) -> int:
 
 def still_truth(data: CaptureData, params: BurstParams) -> tuple[np.ndarray, float]:
     """(H, W, C) radiance through a still camera at the capture's middle time, and that time."""
-    from ..camera_motion import still
-    from ..render import Renderer
 
     tl = data.timeline
     t_mid = float(tl.seconds((tl.start_tick + tl.end_tick) // 2))
@@ -366,8 +365,6 @@ def _burst_result(name: str, rates: np.ndarray, saturated: np.ndarray, timeline,
 @register("burst", params=BurstParams,
           description="back-to-back burst aligned and averaged; vs a conventional burst and one long exposure")
 def reconstruct(data: CaptureData, params: BurstParams) -> AppOutput:
-    from ..simulate import capture_timeline
-
     cfg = data.cfg
     if data.exposure_s.size < 2 or not np.allclose(data.exposure_s, data.exposure_s[0]):
         raise ConfigError(f"app.name: 'burst' aligns equal exposures (capture.protocol 'burst'), got exposures "

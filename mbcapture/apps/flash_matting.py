@@ -49,6 +49,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from .. import protocols
 from ..errors import ConfigError
 from ..metrics import luminance, relative_mse
+from ..render.coverage import coverage_alpha
 from ..timeline import ReadEvent, SlotSeconds, exact
 from . import AppOutput, CaptureData, register
 from .hdr import REL_MSE_EPS_RADIANCE
@@ -283,7 +284,6 @@ def alpha_truth(data: CaptureData, params: FlashMattingParams) -> np.ndarray | N
     """Coverage of the scene's foreground as the flash read saw it (None without a renderer)."""
     if data.renderer is None:
         return None
-    from ..render.coverage import coverage_alpha
 
     g = data.group_index(params.flash_group)
     buckets = list(data.timeline.reads[_read(data, FLASH_READ)].buckets)

@@ -40,6 +40,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .. import protocols
+from ..camera_motion import moving_region
 from ..errors import ConfigError
 from ..metrics import luminance, psnr, relative_mse
 from ..timeline import ReadEvent, SlotSeconds, exact
@@ -276,7 +277,6 @@ def _letter_s_mask(data: CaptureData) -> np.ndarray | None:
     idx = getattr(data.scene, "extra", {}).get("letter_s_points") if data.scene is not None else None
     if idx is None or data.scene.is_static:
         return None
-    from ..camera_motion import moving_region
 
     tl = data.timeline
     sub = dataclasses.replace(data.scene, motion_points=lambda t: data.scene.motion_points(t)[:, list(idx)])

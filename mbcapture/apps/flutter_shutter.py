@@ -65,6 +65,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from .. import protocols
 from ..errors import ConfigError
 from ..metrics import luminance, psnr
+from ..sensor import dn_to_electrons, simulate_reads
 from ..timeline import DRAIN, ReadEvent, SlotSeconds, exact
 from . import AppOutput, CaptureData, register
 
@@ -370,7 +371,6 @@ def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
     main = results[main_key][0]
 
     # the box baseline: every chop in one bucket = the sum of the reads' noise-free electrons, its own noise
-    from ..sensor import dn_to_electrons, simulate_reads
 
     box_e = data.reads_e_expected.sum(axis=0)
     box_seed = np.random.SeedSequence(data.seed.entropy, spawn_key=(*data.seed.spawn_key, 0xB0C5)) \

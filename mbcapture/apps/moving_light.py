@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from .. import protocols
 from ..errors import ConfigError
 from . import AppOutput, CaptureData, register
 from . import hdr as hdr_app
@@ -148,7 +149,6 @@ def drive_gains_measured(group_exposure: np.ndarray, weights_s: np.ndarray, grou
 # --------------------------------------------------------------------------- glue
 def _sweep_times(data: CaptureData) -> np.ndarray:
     """Scene times spanning both this capture and its twin (interleaved <-> sequential)."""
-    from .. import protocols
 
     cfg = data.cfg
     twin_cfg = cfg.model_copy(update={"capture": cfg.capture.model_copy(update={"sequential": not cfg.capture.sequential})})

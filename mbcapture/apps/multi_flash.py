@@ -72,6 +72,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from .. import protocols
 from ..errors import ConfigError
 from ..metrics import luminance, relative_mse
+from ..render.aov import render_depth
 from ..timeline import ReadEvent, SlotSeconds, Timeline, exact
 from . import AppOutput, CaptureData, register
 
@@ -473,7 +474,6 @@ def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
 
 def _truth(data: CaptureData, params: MultiFlashParams, groups: list[str], with_ambient: bool) -> dict:
     """Noise-free references rendered at the capture's mid-time (depth edges: per truth_time)."""
-    from ..render.aov import render_depth
 
     renderer, tl = data.renderer, data.timeline
     t_mid = _mid_time_s(tl)

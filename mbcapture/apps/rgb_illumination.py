@@ -46,7 +46,15 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .. import protocols
+from ..camera_motion import still
 from ..errors import ConfigError
+from ..render import Renderer
+from ..sensor import dn_to_electrons, electrons_per_render_second, simulate_reads
+from ..sensor.spectral import (
+    channel_quantum_efficiency,
+    film_sensitivity,
+    is_monochrome,
+)
 from ..timeline import ReadEvent, SlotSeconds, exact
 from . import AppOutput, CaptureData, register
 
@@ -277,9 +285,7 @@ def reference_xyz(data: CaptureData, params: Params, white_mask: np.ndarray, whi
     """The chart at rest under the three LEDs, noise-free, XYZ scaled so the white patch has Y = white_y."""
     import colour
 
-    from ..render import Renderer
 
-    from ..camera_motion import still
 
     cfg, scene = data.cfg, data.scene
     spectral = cfg.render.variant.endswith("_spectral")
@@ -317,9 +323,6 @@ def _strata(scene, t0: float, t1: float, width: int, height: int, max_motion_px:
 def bayer_capture(data: CaptureData, params: Params) -> dict:
     """Simulate the ordinary Bayer frame; returns its demosaiced electron rates (H, W, 3), its
     channel curves and the number of render passes."""
-    from ..render import Renderer
-    from ..sensor import dn_to_electrons, electrons_per_render_second, simulate_reads
-    from ..sensor.spectral import channel_quantum_efficiency, film_sensitivity
 
     cfg, scene = data.cfg, data.scene
     spectral = cfg.render.variant.endswith("_spectral")
@@ -376,8 +379,6 @@ def _scores(xyz: np.ndarray, ref: np.ndarray, masks: np.ndarray, true_xyz: np.nd
 @register("rgb_illumination", params=Params,
           description="colour from R, G, B LEDs in three buckets, ambient subtracted; CIEDE2000 vs a static reference")
 def reconstruct(data: CaptureData, params: Params) -> AppOutput:
-    from ..sensor.spectral import is_monochrome
-
     cfg, scene = data.cfg, data.scene
     missing = [g for g in LED_GROUPS if g not in scene.groups] + [k for k in ("patches", "reflectances", "led_spectra")
                                                                    if k not in scene.extra]
@@ -402,7 +403,6 @@ def reconstruct(data: CaptureData, params: Params) -> AppOutput:
                           f"(got {cfg.render.variant!r}); use 'chart_fit'")
     response = led_xyz = None
     if spectral:
-        from ..sensor.spectral import film_sensitivity
 
         wl, curves = film_sensitivity(cfg.sensor)
         mono_curve = curves[:1] if monochrome else curves.sum(axis=0, keepdims=True)

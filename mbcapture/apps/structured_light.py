@@ -68,10 +68,11 @@ from typing import Callable, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from .. import protocols
+from .. import protocols, scenes
 from ..errors import ConfigError
 from ..metrics import luminance
-from ..projective import frame, points_from_depth, triangulate_columns
+from ..projective import frame, pixel_rays, points_from_depth, triangulate_columns
+from ..render.aov import NEAR_CLIP_M, pixel_cosines, render_depth
 from ..timeline import ReadEvent, SlotSeconds, exact
 from . import AppOutput, CaptureData, register
 
@@ -91,7 +92,6 @@ def scene_info(scene) -> dict:
 @protocols.register("structured_light", app="structured_light")
 def structured_light_protocol(cfg):
     """Buckets 1..N: the scene's pattern groups, T/N_p each per period; bucket N+1 (if any): ambient."""
-    from .. import scenes
 
     groups = list(scene_info(scenes.make_scene(cfg.scene.name, cfg.scene.params()))["groups"])
     n, have = len(groups), cfg.sensor.bucket_count
@@ -181,7 +181,6 @@ def period_ambiguity(camera, projector, proj_width: int, periods: int, width: in
                      z_min: float, z_max: float) -> float:
     """Largest disparity range (projector texels) over the camera's pixels for depths in [z_min, z_max],
     as a fraction of one fringe period: below 1, depth_range unwrapping is unique everywhere."""
-    from ..projective import pixel_rays
 
     yy, xx = np.mgrid[0:height, 0:width].astype(float) + 0.5
     d = pixel_rays(camera, xx, yy, width, height)
@@ -323,7 +322,6 @@ def ambient_in_reads(data: CaptureData) -> dict | None:
 def projector_depth(renderer, projector, width: int, height: int, t_s: float) -> np.ndarray:
     """(height, width) depth along the projector's axis of what each of its texel centres lights
     (a shadow map; inf where nothing), rendered with Mitsuba's aov integrator from its pose."""
-    from ..render.aov import NEAR_CLIP_M, pixel_cosines
 
     mi = renderer.mitsuba
     renderer.set_time(t_s)
@@ -361,8 +359,6 @@ def lit_by_projector(points: np.ndarray, projector, shadow_map: np.ndarray, proj
 
 
 def _truth(data: CaptureData, info: dict) -> dict:
-    from ..render.aov import render_depth
-
     tl = data.timeline
     t_mid = float(Fraction(tl.start_tick + tl.end_tick, 2) * tl.tick_s)
     cam = data.scene.camera

@@ -22,7 +22,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from ..capture import run_capture
+from ..config import load_config
 from ..errors import ConfigError
+from ..io import check_out_dir, staged_outputs
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG_DIR = ROOT / "configs"
@@ -107,13 +110,10 @@ class FigureContext:
         return out
 
     def config(self, name: str, overrides: tuple[str, ...] = ()):
-        from ..config import load_config
-
         return load_config(CONFIG_DIR / f"{name}.yaml", [*self.size_overrides(), *overrides])
 
     def capture(self, name: str, *overrides: str):
         """Run (once per run of ``mbcapture figures``) ``configs/<name>.yaml`` at the figure size."""
-        from ..capture import run_capture
 
         key = (name, overrides)
         if key not in self._cache:
@@ -166,7 +166,6 @@ def _index_html(entries: list[dict], quick: bool) -> str:
 def make_figures(out_dir: Path, *, quick: bool = False, only: list[str] | None = None, seed: int = 0,
                  progress: bool = True) -> list[dict]:
     """Write the figures (all, or ``only``) and ``index.html`` into ``out_dir``; returns the index entries."""
-    from ..io import check_out_dir, staged_outputs
 
     _load()
     unknown = sorted(set(only or []) - set(_REGISTRY))

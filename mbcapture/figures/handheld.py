@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import camera_motion, scenes
+from .. import camera_motion as cm
+from ..capture import prepare
 from ..io import tonemap
+from ..video import needle_track
 from . import FigureContext, FigureOutput, figure
 
 
@@ -17,8 +21,6 @@ def camera_shake(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
     from scipy.signal import welch
 
-    from .. import camera_motion as cm
-    from ..capture import prepare
 
     cfg = ctx.config("metronome_shake")
     spec = cfg.camera.shake
@@ -96,7 +98,6 @@ def burst(ctx: FigureContext) -> FigureOutput:
 def hdr_video(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
-    from ..video import needle_track
 
     res = ctx.capture("hdr_video", "capture.frames=8" if ctx.quick else "capture.frames=6")
     v, rep = res.video, res.report["video"]
@@ -126,7 +127,6 @@ def hdr_video(ctx: FigureContext) -> FigureOutput:
     ax = fig.add_subplot(gs[len(rows), :])
     al = rep["aliasing"]
     if "rates" in al:
-        from .. import camera_motion, scenes
 
         cfg = res.config
         sc = camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)

@@ -17,7 +17,11 @@ from ..config import config_from_dict
 from ..errors import MBCaptureError
 from ..io import tonemap
 from ..plots import BUCKET_COLOURS, draw_timeline
+from ..sensor import SensorConfig, dn_to_electrons, simulate_reads
+from ..snr import radiance_range, snr_curves
+from ..sweep import load_sweep, run_sweep
 from . import CONFIG_DIR, FigureContext, FigureOutput, figure
+
 
 def _timeline(capture: dict, sensor: dict | None = None):
     return protocols.build(config_from_dict({"capture": capture, "sensor": sensor or {}}, "figure"))
@@ -253,7 +257,6 @@ def fig05_centroids(ctx: FigureContext) -> FigureOutput:
 def fig06_interleaving(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
-    from ..sweep import load_sweep, run_sweep
 
     # The photon-efficient slice of the shipped sweep configs/sweeps/interleaving.yaml (periods x
     # protocol): T = 4 ms, a 32 ms capture in which the needle tip sweeps several pixels; strata of
@@ -338,7 +341,6 @@ def fig09_gates(ctx: FigureContext) -> FigureOutput:
 def fig11_snr_table(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
-    from ..sensor import SensorConfig, dn_to_electrons, simulate_reads
 
     S, R = 100.0, 8.0
     n = 20_000 if ctx.quick else 200_000
@@ -379,8 +381,6 @@ def fig11_snr_table(ctx: FigureContext) -> FigureOutput:
 def hdr_snr_vs_radiance(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
-    from ..sensor import SensorConfig
-    from ..snr import radiance_range, snr_curves
 
     cfg = SensorConfig(prnu=0.0, dsnu_e=0.0)
     T = 1e-3

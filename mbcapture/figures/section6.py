@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..apps.flutter_shutter import kernel_spectrum, read_samples, spread_kernel
 from ..io import tonemap
+from ..scenes import make_scene
 from . import FigureContext, FigureOutput, figure
 
 GRAY = ("scene.pattern=gray_code", "sensor.bucket_count=10")
@@ -64,7 +66,6 @@ def structured_light(ctx: FigureContext) -> FigureOutput:
 
 def _spectrum(samples, n=512):
     """|H(w)| of reads' (shifts, seconds), root-sum-square over reads (joint least squares sees sum |H_r|^2)."""
-    from ..apps.flutter_shutter import kernel_spectrum
 
     return np.sqrt(sum(np.abs(kernel_spectrum(s, w, n)) ** 2 for s, w in samples))
 
@@ -74,8 +75,6 @@ def _spectrum(samples, n=512):
 def flutter_shutter(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
-    from ..apps.flutter_shutter import read_samples, spread_kernel
-    from ..scenes import make_scene
 
     res = ctx.capture("flutter_shutter")
     seq = ctx.capture("flutter_shutter", "capture.sequential=true")

@@ -19,6 +19,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..scenes import SceneModel
 from .build import Environment, SceneBuild
+from .renderer import Renderer
 
 #: The one emitter group of a coverage scene (the environment).
 COVERAGE_GROUP = "coverage"
@@ -74,7 +75,6 @@ def coverage_alpha(
     capture's renders saw them. ``cache``: a :class:`~mbcapture.render.cache.RenderCache` for the
     coverage renders (None: not kept).
     """
-    from .renderer import Renderer
 
     t = np.asarray(times_s, dtype=np.float64)
     w = np.asarray(weights_s, dtype=np.float64)

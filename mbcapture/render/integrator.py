@@ -97,8 +97,6 @@ def integrator_class(variant: str) -> type:
             import drjit as dr  # noqa: PLC0415  (dr.syntax recompiles this method without the closure)
             import mitsuba as mi  # noqa: PLC0415
 
-            from mbcapture.render.integrator import mis_power  # noqa: PLC0415
-
             ctx = mi.BSDFContext()
             n_groups = len(self.group_names)
             emitters = self.group_emitters

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..scenes import SceneModel
+from ..sensor.spectral import film_sensitivity
 from .build import (
     MOVABLE_EMITTER_KINDS,
     Material,
@@ -28,7 +29,7 @@ from .build import (
 )
 from .cache import RenderCache, digest
 from .integrator import PLUGIN_NAME, integrator_class
-from .llvm import apply_target_from_env, ensure_llvm
+from .llvm import apply_target_from_env, ensure_llvm, llvm_target
 
 if TYPE_CHECKING:
     from ..sensor.config import SensorConfig
@@ -164,7 +165,6 @@ class Renderer:
                 raise ConfigError(f"film_curves: expected wavelengths (n,) and curves (3, n), got {wl.shape}, {curves.shape}")
             self._sensitivity = (wl, curves)
         elif self.spectral:
-            from ..sensor.spectral import film_sensitivity
 
             if sensor is None:
                 raise ConfigError(f"render.variant {variant!r}: a spectral render needs the sensor config")
@@ -440,7 +440,6 @@ class Renderer:
         and the CPU target the kernels are compiled for."""
         from importlib import metadata
 
-        from .llvm import llvm_target
 
         here = Path(__file__).resolve().parent
         code = {name: file_digest(here / name) for name in _PIXEL_CODE}

@@ -11,7 +11,14 @@ from .photons import (
     electrons_per_render_second,
     expected_electrons,
 )
-from .readout import FixedPattern, SensorReads, dn_to_electrons, fixed_pattern, sensor_stage_hook, simulate_reads
+from .readout import (
+    FixedPattern,
+    SensorReads,
+    dn_to_electrons,
+    fixed_pattern,
+    sensor_stage_hook,
+    simulate_reads,
+)
 
 __all__ = [
     "FixedPattern",

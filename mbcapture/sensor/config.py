@@ -17,6 +17,8 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from .spectral import check_spectral_response
+
 __all__ = ["SensorConfig"]
 
 
@@ -153,8 +155,6 @@ class SensorConfig(BaseModel):
     @field_validator("spectral_response")
     @classmethod
     def _check_spectral_response(cls, v: str) -> str:
-        from .spectral import check_spectral_response
-
         return check_spectral_response(v)
 
     @model_validator(mode="after")

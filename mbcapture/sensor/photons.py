@@ -32,6 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from .config import SensorConfig
+from .spectral import is_spectral_variant
 
 __all__ = [
     "PLANCK_J_S",
@@ -78,7 +79,6 @@ def electrons_per_render_second(cfg: SensorConfig, variant: str) -> np.ndarray:
     """The factor from the renderer's output to electrons per second, for Mitsuba ``variant``:
     :func:`electrons_per_film_second` for spectral variants, :func:`electrons_per_radiance_second`
     otherwise. Shape (3,), float64."""
-    from .spectral import is_spectral_variant
 
     return electrons_per_film_second(cfg) if is_spectral_variant(variant) else electrons_per_radiance_second(cfg)
 

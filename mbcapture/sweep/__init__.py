@@ -25,8 +25,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from ..io import check_out_dir, staged_outputs
+from ..render.cache import open_cache
 from .execute import ROWS_DIR, run_here, run_on_dask, start_client, usable_cores
 from .groups import SweepPlan, group_key, plan_sweep, render_inputs, render_key
+from .results import write_results
 from .spec import Point, Sweep, SweepSpec, load_sweep, resolve_sweep_path
 
 __all__ = ["Point", "Sweep", "SweepOutcome", "SweepPlan", "SweepSpec", "group_key", "load_sweep", "plan_sweep",
@@ -59,8 +62,6 @@ def _read_row(path: Path) -> dict | None:
 
 
 def _write_row(out: Path, point: Point, row: dict) -> None:
-    from ..io import staged_outputs
-
     with staged_outputs(out / ROWS_DIR) as st:
         st.write_json(f"{point.id}.json", {"point": point.label, "values": point.values, **row})
 
@@ -77,8 +78,6 @@ def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, sch
     ok are not run again. ``say``: where to print a line about the plan."""
     from tqdm import tqdm
 
-    from ..io import check_out_dir
-    from ..render.cache import open_cache
 
     say = say or (lambda line: None)
     if out is not None:
@@ -156,7 +155,6 @@ def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, sch
     }
     outcome = SweepOutcome(sweep, plan, rows, summary, results=results)
     if out is not None:
-        from .results import write_results
 
         outcome.table = write_results(out, sweep, plan, rows, summary)
     return outcome

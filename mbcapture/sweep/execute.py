@@ -28,7 +28,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from ..capture import run_capture, write_outputs
+from ..config import config_from_dict
+from ..errors import ConfigError
+from ..io import staged_outputs
 from ..metrics import flat_items
+from ..render.llvm import ensure_llvm
+from ..sensor.sampling import POISSON_MEMO
 from .groups import SweepPlan, one_line
 from .spec import Point, Sweep
 
@@ -61,7 +67,6 @@ def _prepare_process(threads: dict[str, int] | None, variant: str) -> None:
     Dr.Jit thread count (``threads``: by host name)."""
     if not variant.startswith("llvm"):
         return
-    from ..render.llvm import ensure_llvm
 
     ensure_llvm()
     n = (threads or {}).get(socket.gethostname())
@@ -103,8 +108,6 @@ def measurements(report: dict) -> dict[str, Any]:
 
 def write_point(result, folder: Path, keep: str) -> None:
     """A point's own outputs (``keep``: report, images or all), atomically."""
-    from ..capture import write_outputs
-    from ..io import staged_outputs
 
     if keep == "report":
         with staged_outputs(folder) as st:
@@ -121,9 +124,6 @@ def run_point(task: dict, leader: dict | None = None, *after: Any, keep_result: 
 
     Returns ``{"row": {...}, "rendered": Rendered | None, "result": CaptureResult (keep_result)}``;
     an exception becomes ``row["status"] = "failed"`` with ``row["error"]``."""
-    from ..capture import run_capture
-    from ..config import config_from_dict
-    from ..sensor.sampling import POISSON_MEMO
 
     POISSON_MEMO.keep(4)  # the points of a render group draw the same photons unless light or seed differ
     start = time.perf_counter()
@@ -214,7 +214,6 @@ def start_client(workers: int | None, scheduler: str | None = None):
 
     from dask.distributed import Client, LocalCluster
 
-    from ..errors import ConfigError
 
     if scheduler:
         from urllib.parse import urlsplit

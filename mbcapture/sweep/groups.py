@@ -27,14 +27,18 @@ another accumulation) still come from the render cache.
 from __future__ import annotations
 
 import hashlib
-from pathlib import Path
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..capture import prepare
 from ..config import CaptureConfig
+from ..errors import MBCaptureError
 from ..render.cache import digest
+from ..sensor import electrons_per_render_second
+from ..sensor.spectral import film_sensitivity, is_spectral_variant
 from .spec import Sweep
 
 
@@ -59,9 +63,6 @@ def render_inputs(cfg: CaptureConfig, *, accumulation: bool = True) -> dict:
     groups each stratum renders, samples, seeds, the renderer), not how they are weighted into the
     buckets; with ``render.spp`` null the weights and buckets read stay in, because the pilot
     allocates samples by them."""
-    from ..capture import prepare
-    from ..sensor import electrons_per_render_second
-    from ..sensor.spectral import is_spectral_variant
 
     scene, timeline, plan, _ = prepare(cfg)
     app, _ = cfg.app.resolve(cfg.capture.protocol)
@@ -85,7 +86,6 @@ def render_inputs(cfg: CaptureConfig, *, accumulation: bool = True) -> dict:
         "per_group": app.per_group,
     }
     if is_spectral_variant(cfg.render.variant):
-        from ..sensor.spectral import film_sensitivity
 
         wl, curves = film_sensitivity(cfg.sensor)
         out["film_curves"] = [_array(np.asarray(wl, np.float64)), _array(np.asarray(curves, np.float64))]
@@ -165,7 +165,6 @@ def changing_axes(sweep: Sweep, keys: dict[int, str]) -> tuple[str, ...]:
 def plan_sweep(sweep: Sweep) -> SweepPlan:
     """Group the sweep's points by :func:`group_key`. A point whose capture cannot be planned (e.g.
     a protocol that needs more buckets than its sensor has) is recorded as failed, not fatal."""
-    from ..errors import MBCaptureError
 
     keys: dict[int, str] = {}
     renders: dict[str, str] = {}
@@ -185,7 +184,6 @@ def plan_sweep(sweep: Sweep) -> SweepPlan:
 
 def one_line(exc: BaseException) -> str:
     """An exception as one line: the message of an input error, else 'Type: message'."""
-    from ..errors import MBCaptureError
 
     text = " ".join(str(exc).split())
     return text if isinstance(exc, MBCaptureError) else f"{type(exc).__name__}: {text}"

@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from ..io import staged_outputs
+
 #: Columns that say which point a row is, in this order, before the axes.
 ID_COLUMNS = ("point", "point_id", "render_group", "status", "error")
 #: Columns plotted against the axes: the application's metrics and the rendering noise against the sensor's.
@@ -240,7 +242,6 @@ def write_results(out: Path, sweep, plan, rows: dict[int, dict], summary: dict) 
     import matplotlib
 
     matplotlib.use("Agg")
-    from ..io import staged_outputs
 
     df = table(sweep, plan, rows)
     plots: dict[str, str] = {}

@@ -40,9 +40,23 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
-from ..config import SHIPPED_CONFIG_DIR, CaptureConfig, _format_validation, load_config, resolve_config_path
+from ..config import (
+    SHIPPED_CONFIG_DIR,
+    CaptureConfig,
+    _format_validation,
+    load_config,
+    parse_override,
+    resolve_config_path,
+)
 from ..errors import ConfigError, ConfigNotice
 from ..render.cache import digest
 
@@ -316,7 +330,6 @@ def load_sweep(path: str | Path, overrides: list[str] | tuple[str, ...] = (), *,
     ``overrides``: ``--set KEY=VALUE`` applied to the base for every point (an axis key is refused).
     ``axes``: replace the values of some grid axes (e.g. fewer for a quick look; each must be a grid
     axis of the file)."""
-    from ..config import parse_override
 
     path = resolve_sweep_path(path)
     spec = _read_spec(path)

@@ -1,0 +1,144 @@
+"""The applications' registry and data contract: what a reconstruction receives
+(:class:`CaptureData`) and returns (:class:`AppOutput`), and the registry that maps an
+application's name to it (:func:`register`, :func:`get`, :func:`names`).
+
+It sits low in the house (docs/architecture.md): a config validates ``app.name`` against it and
+protocols name the application that reads them, while the applications themselves
+(:mod:`mbcapture.apps`) sit above the render plan and the sensor stage they use. Every module of
+that package is imported on first use (:func:`load_all`), so a new application is one file that
+calls :func:`register` (and, usually, :func:`mbcapture.protocols.register` for its schedule).
+Reconstructions are pure numpy on ``CaptureData``, so that they can be tested on small synthetic
+inputs with known answers, without Mitsuba.
+"""
+
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from .errors import ConfigError
+from .sensor import dn_to_electrons
+
+
+class NoParams(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+@dataclass
+class CaptureData:
+    """What a reconstruction gets. Arrays are (read | bucket, row, column, channel).
+
+    exposure_s          (R,) seconds each read integrated (its buckets' gated time)
+    reads_dn            (R, H, W, C) simulated reads, DN; ``saturated`` (R, H, W, C) bool
+    reads_e_expected    (R, H, W, C) noise-free, unclipped electrons of each read
+    bucket_exposure     (K, H, W, C) noise-free radiant exposure, W m^-2 sr^-1 s (render units x s)
+    group_exposure      (K, G, H, W, C) the same per rendered group (``plan.groups``), or None
+                        when the application did not ask for it
+    bucket_group_s      (K, S) seconds bucket k collected while switchable group
+                        ``switchable[s]`` was on (from the timeline, exact)
+    k_e                 (C,) electrons per render unit per second
+    moving_mask         (H, W) pixels the moving parts cross during the capture
+    renderer            the capture's Renderer (for reference renders), None in synthetic tests
+    """
+
+    cfg: Any
+    scene: Any
+    timeline: Any
+    plan: Any
+    read_names: list[str]
+    exposure_s: np.ndarray
+    reads_dn: np.ndarray
+    saturated: np.ndarray
+    reads_e_expected: np.ndarray
+    bucket_exposure: np.ndarray
+    k_e: np.ndarray
+    moving_mask: np.ndarray
+    switchable: tuple[str, ...] = ()
+    bucket_group_s: np.ndarray | None = None
+    group_exposure: np.ndarray | None = None
+    renderer: Any = None
+    seed: np.random.SeedSequence | None = None
+
+    @property
+    def sequential(self) -> bool:
+        return bool(self.timeline is not None and self.timeline.sequential)
+
+    def reads_e(self) -> np.ndarray:
+        """Reads in electrons (black level removed, gain undone), float64."""
+
+        return dn_to_electrons(self.reads_dn, self.cfg.sensor)
+
+    def group_index(self, name: str) -> int:
+        return list(self.plan.groups).index(name)
+
+
+@dataclass
+class AppOutput:
+    """images: name -> (H, W, C) float linear, written as the layers of ``<app>.exr``.
+    png: file stem -> (image name, tone-map percentile; None = linear, 1.0 is white): previews.
+    extra_exr: file name -> layers, written as they are. metrics go to report.json.
+    summary: lines the CLI prints after a run.
+    captions: png stem -> what the preview shows and how it is scaled (what each colour of a mask
+    means); shown under it in report.html."""
+
+    images: dict[str, np.ndarray]
+    metrics: dict
+    png: dict[str, tuple[str, float | None]] = field(default_factory=dict)
+    extra_exr: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    summary: list[str] = field(default_factory=list)
+    captions: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class App:
+    name: str
+    reconstruct: Callable[[CaptureData, Any], AppOutput]
+    params: type[BaseModel] = NoParams
+    per_group: bool = False
+    description: str = ""
+
+
+_REGISTRY: dict[str, App] = {}
+#: The folder of the application modules (the package mbcapture.apps).
+APPS_DIR = Path(__file__).resolve().parent / "apps"
+_loaded = False
+
+
+def register(name: str, *, params: type[BaseModel] = NoParams, per_group: bool = False, description: str = ""):
+    """Decorator: ``fn(data: CaptureData, params) -> AppOutput`` is application ``name``.
+    ``per_group``: the reconstruction or its metrics need ``CaptureData.group_exposure``."""
+
+    def deco(fn):
+        _REGISTRY[name] = App(name, fn, params, per_group, description or (fn.__doc__ or "").strip().split("\n")[0])
+        return fn
+
+    return deco
+
+
+def load_all() -> None:
+    """Import every module of this package (each registers its application and protocols)."""
+    global _loaded
+    if _loaded:
+        return
+    _loaded = True
+    for mod in pkgutil.iter_modules([str(APPS_DIR)]):
+        importlib.import_module(f"mbcapture.apps.{mod.name}")
+
+
+def names() -> list[str]:
+    load_all()
+    return sorted(_REGISTRY)
+
+
+def get(name: str) -> App:
+    load_all()
+    if name not in _REGISTRY:
+        raise ConfigError(f"app.name: unknown application {name!r}; expected one of {names()}")
+    return _REGISTRY[name]

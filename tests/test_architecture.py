@@ -1,0 +1,146 @@
+"""The house (docs/architecture.md): layers whose imports point down, no import circle, no project
+import inside a function, one sensor stage with one storage-time rule."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "mbcapture"
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def test_imports_follow_the_layers_contract():
+    """import-linter's layers contract of pyproject.toml: every import, function-local ones too,
+    points down the layers."""
+    exe = Path(sys.executable).with_name("lint-imports")
+    proc = subprocess.run([str(exe), "--no-cache"], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
+    assert "1 kept, 0 broken" in proc.stdout
+
+
+def _strongly_connected(edges: dict[str, set[str]]) -> list[list[str]]:
+    """Tarjan's strongly connected components with more than one module."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+    counter = [0]
+    sys.setrecursionlimit(max(10000, sys.getrecursionlimit()))
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in edges.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(edges):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_circle_anywhere_in_the_package():
+    """Between any modules, packages' insides included (the layers contract only sees across layers)."""
+    import grimp
+
+    graph = grimp.build_graph("mbcapture", exclude_type_checking_imports=True, cache_dir=None)
+    edges = {m: set(graph.find_modules_directly_imported_by(m)) for m in graph.modules}
+    assert _strongly_connected(edges) == []
+    # the check itself finds a circle
+    assert _strongly_connected({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def _function_local_project_imports(path: Path, root: Path = ROOT) -> list[str]:
+    tree = ast.parse(path.read_text())
+    found = []
+    for fn in ast.walk(tree):
+        if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for node in ast.walk(fn):
+                project = (isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("mbcapture"))) \
+                    or (isinstance(node, ast.Import) and any(a.name.startswith("mbcapture") for a in node.names))
+                if project:
+                    found.append(f"{path.relative_to(root)}:{node.lineno} in {fn.name}: {ast.unparse(node)}")
+    return found
+
+
+def test_no_project_import_inside_a_function():
+    """Project modules are imported at the top of a module; only heavy third-party libraries
+    (Mitsuba, matplotlib, OpenCV, Dask, colour, ...) load inside the functions that need them."""
+    found = [hit for p in sorted(PACKAGE.rglob("*.py")) for hit in _function_local_project_imports(p)]
+    assert found == []
+
+
+def test_the_local_import_check_finds_one(tmp_path):
+    (tmp_path / "m.py").write_text("import numpy\n\ndef f():\n    from .x import y\n    import mbcapture.io\n    import os\n")
+    hits = _function_local_project_imports(tmp_path / "m.py", root=tmp_path)
+    assert [h.split(": ", 1)[1] for h in hits] == ["from .x import y", "import mbcapture.io"]
+
+
+@pytest.mark.render
+def test_main_and_comparison_captures_share_one_sensor_stage_and_storage_rule():
+    """The main capture (pipeline) and a comparison capture of the same timeline (simulate.capture_timeline,
+    which bursts and videos use) give each bucket the same dark charge: dark current over its storage time
+    (Timeline.storage_s: from its first slot to the read after the capture's last slot), and none for a
+    bucket that never collects (bucket 2 here). Dark current 1e5 e-/s (~1200 e-, below the full well): each bucket's mean over 8x6x3
+    samples has a standard error of sqrt(mean / 144); the means must agree within 6 of them."""
+    from mbcapture import load_config, run_capture
+    from mbcapture.pipeline import prepare
+    from mbcapture.render import Renderer
+    from mbcapture.sensor import electrons_per_render_second, sensor_stage_hook
+    from mbcapture.simulate import capture_timeline
+
+    cfg = load_config(None, [
+        "scene.name=flatfield", "render.width=8", "render.height=6", "render.spp=2", "capture.protocol=custom",
+        "capture.schedule.slots=[{bucket: 1, duration_s: 0.001}, {bucket: 3, duration_s: 0.002}]",
+        "capture.schedule.reads=[{buckets: [1]}, {buckets: [3]}]", "capture.periods=4", "app.name=hdr",
+        "sensor.dark_current_e_per_s=1e5", "sensor.read_noise_e=0", "sensor.dsnu_e=0",
+    ])
+    dark: list[np.ndarray] = []
+
+    def hook(expected_e, simulate):
+        dark.append(simulate(np.zeros_like(expected_e)).electrons)  # the same sensor with no light: dark charge only
+        return simulate(expected_e)
+
+    with sensor_stage_hook(hook):
+        res = run_capture(cfg, progress=False)
+        scene = prepare(cfg)[0]
+        capture_timeline(res.timeline, scene, cfg, Renderer.from_config(scene, cfg), 2, np.random.SeedSequence(9),
+                         electrons_per_render_second(cfg.sensor, cfg.render.variant))
+    storage_s = res.timeline.storage_s()
+    assert res.timeline.n_buckets == 3 and storage_s[1] == 0.0 and storage_s[0] > 0 and storage_s[2] > 0
+    main, comparison = dark
+    assert main.shape == comparison.shape == (3, 6, 8, 3)
+    n = main[0].size
+    for k in range(3):
+        expected = 1e5 * storage_s[k]
+        for got in (main[k].mean(), comparison[k].mean()):
+            assert abs(got - expected) <= 6 * np.sqrt(max(expected, 1.0) / n), (k, got, expected)
+    assert np.all(main[1] == 0) and np.all(comparison[1] == 0)
