@@ -60,6 +60,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from .errors import ConfigError
+from .projective import frame
 
 if TYPE_CHECKING:
     from .scenes import Camera, SceneModel
@@ -224,14 +225,9 @@ class FileTrajectory:
 # --------------------------------------------------------------------------- poses
 def look_at_matrix(camera: "Camera") -> np.ndarray:
     """(4, 4) world-from-camera of Mitsuba's ``look_at`` (columns: left, up, view direction, origin)."""
-    o = np.asarray(camera.origin, float)
-    d = np.asarray(camera.target, float) - o
-    d /= np.linalg.norm(d)
-    left = np.cross(np.asarray(camera.up, float), d)
-    left /= np.linalg.norm(left)
-    up = np.cross(d, left)
+    o, d, right, up = frame(camera)
     m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, up, d, o
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = -right, up, d, o
     return m
 
 

@@ -31,7 +31,7 @@ from pydantic import (
 )
 
 from . import application as apps
-from . import protocols, scenes
+from . import camera_motion, protocols, scenes
 from .camera_motion import CameraSection
 from .errors import ConfigError, ConfigNotice
 from .sensor.config import SensorConfig
@@ -299,6 +299,12 @@ class CaptureConfig(_Model):
         app, params = self.app.resolve(self.capture.protocol)
         data["app"] = {"name": app.name, **params.model_dump(mode="json")}
         return data
+
+
+def scene_of(cfg: CaptureConfig) -> scenes.SceneModel:
+    """The scene a config captures: ``scene.name`` with its parameters, seen through ``camera``
+    (shake or a trajectory, :func:`mbcapture.camera_motion.apply`)."""
+    return camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)
 
 
 def _model_at(model: type[BaseModel], path: tuple) -> type[BaseModel] | None:

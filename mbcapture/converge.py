@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import camera_motion, protocols, scenes
-from .config import CaptureConfig
+from . import protocols
+from .config import CaptureConfig, scene_of
 from .integrate import integrate
 from .io import staged_outputs
 from .plan import make_plan
@@ -60,7 +60,7 @@ class Point:
 def _setup(cfg: CaptureConfig):
     if cfg.render.variant.startswith("llvm"):
         ensure_llvm()
-    scene = camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)
+    scene = scene_of(cfg)
     timeline = protocols.build(cfg)
     renderer = Renderer.from_config(scene, cfg)  # no cache: converge measures rendering time
     return scene, timeline, renderer

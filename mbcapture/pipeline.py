@@ -23,7 +23,7 @@ import numpy as np
 from . import camera_motion, protocols, scenes
 from .application import AppOutput, CaptureData
 from .budget import noise_verdict, render_error, resolve_spp
-from .config import CaptureConfig
+from .config import CaptureConfig, scene_of
 from .errors import ConfigError
 from .integrate import Integrated, integrate, temporal_error
 from .plan import Plan, make_plan
@@ -139,7 +139,7 @@ def prepare(cfg: CaptureConfig) -> tuple[scenes.SceneModel, Timeline, Plan, list
     (0: plan jitter, 1: sensor noise, 2: render seeds, 3: the application's reference renders).
     Shared by ``run`` and ``plan``."""
     seeds = np.random.SeedSequence(cfg.seed).spawn(4)
-    scene = camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)
+    scene = scene_of(cfg)
     timeline = protocols.build(cfg)
     if cfg.capture.frames > 1:
         frame_period_check(cfg, timeline)  # a frame period shorter than capture + readout: before anything renders

@@ -14,7 +14,10 @@ import numpy as np
 
 
 def frame(camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(origin, forward, image right, image up) of a camera, world unit vectors."""
+    """(origin, forward, image right, image up) of a camera, world unit vectors: Mitsuba's
+    ``look_at`` frame (its camera x axis, up x forward, points to image left). The one place the
+    frame is built: projection (:meth:`mbcapture.scenes.Camera.project`), camera poses
+    (:func:`mbcapture.camera_motion.look_at_matrix`) and rays all use it."""
     o = np.asarray(camera.origin, float)
     fwd = np.asarray(camera.target, float) - o
     fwd /= np.linalg.norm(fwd)

@@ -31,6 +31,7 @@ import numpy as np
 
 from .camera_motion import project_through, reference_points
 from .errors import ConfigError
+from .projective import frame
 
 #: Folder holding ``<name>/scene.py``; ``MBCAPTURE_SCENE_PATH`` (os.pathsep separated) adds more.
 BUILTIN_SCENE_DIR = Path(__file__).resolve().parents[1] / "scenes"
@@ -51,18 +52,12 @@ class Camera:
         Matches Mitsuba's ``perspective`` sensor with ``fov_axis='x'`` and a
         ``look_at`` transform, pixel centres at half-integers.
         """
-        o = np.asarray(self.origin, float)
-        fwd = np.asarray(self.target, float) - o
-        fwd /= np.linalg.norm(fwd)
-        right = np.cross(np.asarray(self.up, float), fwd)  # Mitsuba look_at: left = up x dir
-        right /= np.linalg.norm(right)
-        up = np.cross(fwd, right)
+        o, fwd, right, up = frame(self)
         d = np.asarray(points, float) - o
         z = d @ fwd
         if np.any(z <= 0):
             raise ValueError("a motion point lies behind the camera")
-        # Mitsuba's look_at builds a left-handed frame: +x of the camera is 'left' in the image.
-        x_cam = -(d @ right) / z
+        x_cam = (d @ right) / z
         y_cam = (d @ up) / z
         tan_half = np.tan(np.radians(self.fov_deg) / 2)
         px = (x_cam / tan_half * 0.5 + 0.5) * width

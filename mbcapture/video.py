@@ -59,8 +59,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import camera_motion, protocols, scenes
+from . import protocols
 from .apps.hdr import REL_MSE_EPS_RADIANCE
+from .config import scene_of
 from .htmlparts import esc, figure, fmt, table
 from .io import tonemap
 from .metrics import luminance, relative_mse
@@ -226,7 +227,7 @@ def run_video(cfg, *, progress: bool = True):
     n = cfg.capture.frames
     if cfg.render.variant.startswith("llvm"):
         ensure_llvm()
-    scene = camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)
+    scene = scene_of(cfg)
     cache = render_cache(cfg.render)
     renderer = Renderer.from_config(scene, cfg, cache=cache)
     frames = []

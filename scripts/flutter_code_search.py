@@ -19,7 +19,8 @@ import argparse
 
 import numpy as np
 
-from mbcapture.apps.flutter_shutter import RASKAR_2006, white_noise_gain
+from mbcapture.apps.flutter_shutter import RASKAR_2006
+from mbcapture.reconstruct.deblur import white_noise_gain
 
 
 def noise(code: np.ndarray, joint: bool, n: int) -> float:

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from mbcapture import load_config, protocols
-from mbcapture.apps import CaptureData, flash_matting as fm
+from mbcapture.apps import CaptureData
+from mbcapture.apps import flash_matting as fm
 from mbcapture.errors import ConfigError
+from mbcapture.reconstruct import matting as mt
 
 T_S = 0.002
 
@@ -73,9 +75,9 @@ def test_flash_ratio_cue_cancels_albedo_and_keeps_distance():
     e_amb = 0.5
     fo = (albedo * e_flash)[None, :, None].repeat(3, -1)
     nf = (albedo * e_amb)[None, :, None].repeat(3, -1)
-    cue = fm.trimap_cue(fo, nf, "flash_ratio", percentile=100.0, ratio_eps=1e-9)
+    cue = mt.trimap_cue(fo, nf, "flash_ratio", percentile=100.0, ratio_eps=1e-9)
     np.testing.assert_allclose(cue[0], [1.0, 1.0, 1.0 / 9.0], rtol=1e-6)
-    lum = fm.trimap_cue(fo, nf, "flash_only", percentile=100.0)
+    lum = mt.trimap_cue(fo, nf, "flash_only", percentile=100.0)
     np.testing.assert_allclose(lum[0], albedo * e_flash / 0.8, rtol=1e-12)
 
 
@@ -86,7 +88,7 @@ def test_trimap_thresholds_opening_and_erosion():
     cue = np.where(r <= 10, 1.0, 0.0)
     cue[2, 2] = 1.0  # a one-pixel speck of noise in the background
     cue[(r > 10) & (r <= 11)] = 0.5  # a mixed ring: neither candidate
-    tri = fm.make_trimap(cue, fg_fraction=0.8, bg_fraction=0.2, open_px=1, erode_px=2)
+    tri = mt.make_trimap(cue, fg_fraction=0.8, bg_fraction=0.2, open_px=1, erode_px=2)
     assert set(np.unique(tri)) == {0.0, 0.5, 1.0}
     assert tri[20, 20] == 1.0 and tri[20, 40] == 0.0
     # the speck is opened away from the foreground; the hole it leaves in the background candidate
@@ -97,10 +99,10 @@ def test_trimap_thresholds_opening_and_erosion():
     far_from_speck = np.hypot(yy - 2, xx - 2) > 4
     assert np.all(r[(tri == 0.0)] > 11 + 1) and np.all(tri[(r > 11 + 3) & far_from_speck] == 0.0)  # bg: r > 11
     # no erosion, no opening: exactly the thresholds
-    raw = fm.make_trimap(cue, 0.8, 0.2, open_px=0, erode_px=0)
+    raw = mt.make_trimap(cue, 0.8, 0.2, open_px=0, erode_px=0)
     np.testing.assert_array_equal(raw, np.where(cue >= 0.8, 1.0, np.where(cue <= 0.2, 0.0, 0.5)))
     with pytest.raises(ValueError):
-        fm.make_trimap(cue, 0.2, 0.8)
+        mt.make_trimap(cue, 0.2, 0.8)
 
 
 def _composite(h=40, w=48):
@@ -117,7 +119,7 @@ def _composite(h=40, w=48):
 @pytest.mark.parametrize("method, max_err, mean_err", [("closed_form", 1e-3, 1e-4), ("knn", 0.2, 0.08)])
 def test_matting_recovers_a_known_alpha(method, max_err, mean_err):
     image, tri, alpha = _composite()
-    got = fm.estimate_alpha(image, tri, method)
+    got = mt.estimate_alpha(image, tri, method)
     err = np.abs(got - alpha)[tri == 0.5]
     assert err.max() < max_err and err.mean() < mean_err  # knn is approximate (nearest neighbours in feature space)
     assert np.all(got[tri == 1.0] == 1.0) and np.all(got[tri == 0.0] == 0.0)
@@ -126,11 +128,11 @@ def test_matting_recovers_a_known_alpha(method, max_err, mean_err):
 def test_matting_methods_registry_and_degenerate_trimaps():
     image, tri, alpha = _composite(8, 12)
     with pytest.raises(ConfigError, match="app.matting"):
-        fm.estimate_alpha(image, tri, "magic")
+        mt.estimate_alpha(image, tri, "magic")
     ramp = np.linspace(-0.5, 1.5, tri.size).reshape(tri.shape)
-    np.testing.assert_allclose(fm.estimate_alpha(image, tri, "threshold", ramp)[tri == 0.5], np.clip(ramp, 0, 1)[tri == 0.5])
+    np.testing.assert_allclose(mt.estimate_alpha(image, tri, "threshold", ramp)[tri == 0.5], np.clip(ramp, 0, 1)[tri == 0.5])
     only_unknown_and_bg = np.where(tri == 1.0, 0.5, tri)  # no foreground: nothing to propagate
-    got = fm.estimate_alpha(image, only_unknown_and_bg, "closed_form", ramp)
+    got = mt.estimate_alpha(image, only_unknown_and_bg, "closed_form", ramp)
     np.testing.assert_allclose(got[only_unknown_and_bg == 0.5], np.clip(ramp, 0, 1)[only_unknown_and_bg == 0.5])
 
 
@@ -237,50 +239,50 @@ def test_matte_scores_of_an_empty_region_and_trimap_error_thresholds():
 
 # ----------------------------------------------------------------------------- exact small cases
 def test_reference_level_and_trimap_cue_by_hand():
-    assert fm.reference_level(np.zeros(0), 99.0) == 1.0      # nothing to measure
-    assert fm.reference_level(np.zeros((3, 3)), 99.0) == 1.0  # black: 1 render unit
-    assert fm.reference_level(np.arange(101.0), 50.0) == 50.0
+    assert mt.reference_level(np.zeros(0), 99.0) == 1.0      # nothing to measure
+    assert mt.reference_level(np.zeros((3, 3)), 99.0) == 1.0  # black: 1 render unit
+    assert mt.reference_level(np.arange(101.0), 50.0) == 50.0
     rng = np.random.default_rng(11)
     n = rng.uniform(0.0, 3.0, (6, 7))
     n[0, :3] = -0.2  # a negative no-flash value (noise): counts as 0 in the denominator
     f = rng.uniform(0.0, 5.0, (6, 7))
     grey = lambda y: np.repeat(y[..., None], 3, -1)  # noqa: E731 (luminance of a grey pixel is its value)
     y = f / (np.maximum(n, 0.0) + 0.05 * np.percentile(n, 99))
-    np.testing.assert_allclose(fm.trimap_cue(grey(f), grey(n)), y / np.percentile(y, 99), rtol=1e-12)
+    np.testing.assert_allclose(mt.trimap_cue(grey(f), grey(n)), y / np.percentile(y, 99), rtol=1e-12)
     y2 = f / (np.maximum(n, 0.0) + 0.2 * np.percentile(n, 80))
-    np.testing.assert_allclose(fm.trimap_cue(grey(f), grey(n), "flash_ratio", 80.0, 0.2), y2 / np.percentile(y2, 80),
+    np.testing.assert_allclose(mt.trimap_cue(grey(f), grey(n), "flash_ratio", 80.0, 0.2), y2 / np.percentile(y2, 80),
                                rtol=1e-12)
-    np.testing.assert_allclose(fm.trimap_cue(grey(f), grey(n), "flash_only"), f / np.percentile(f, 99), rtol=1e-12)
+    np.testing.assert_allclose(mt.trimap_cue(grey(f), grey(n), "flash_only"), f / np.percentile(f, 99), rtol=1e-12)
 
 
 def test_make_trimap_exact_thresholds_structuring_discs_and_defaults():
     cue = np.array([[0.8, 0.2, 0.5]])
-    np.testing.assert_array_equal(fm.make_trimap(cue, 0.8, 0.2, 0, 0), [[1.0, 0.0, 0.5]])  # at a threshold: definite
-    np.testing.assert_array_equal(fm.make_trimap(cue, 0.8, 0.0, 0, 0), [[1.0, 0.5, 0.5]])  # bg_fraction 0 is allowed
+    np.testing.assert_array_equal(mt.make_trimap(cue, 0.8, 0.2, 0, 0), [[1.0, 0.0, 0.5]])  # at a threshold: definite
+    np.testing.assert_array_equal(mt.make_trimap(cue, 0.8, 0.0, 0, 0), [[1.0, 0.5, 0.5]])  # bg_fraction 0 is allowed
     with pytest.raises(ValueError, match="make_trimap: need 0 <= bg_fraction < fg_fraction"):
-        fm.make_trimap(cue, 0.5, 0.5)
+        mt.make_trimap(cue, 0.5, 0.5)
     # a plus of 5 pixels survives opening by the radius-1 disc (a plus itself), a 2 x 2 block does not
     c = np.zeros((12, 12))
     c[3, 2:5] = c[2:5, 3] = 1.0
     c[8:10, 8:10] = 1.0
-    t = fm.make_trimap(c, 0.8, 0.2, open_px=1, erode_px=0)
+    t = mt.make_trimap(c, 0.8, 0.2, open_px=1, erode_px=0)
     assert (t[c == 1.0][:5] == 1.0).all() and t[3, 3] == 1.0 and not (t[8:10, 8:10] == 1.0).any()
     # erosion by radius 1 (a plus) vs radius 2; defaults open 1, erode 2
     sq = np.zeros((20, 20))
     sq[4:16, 4:16] = 1.0
-    e1 = fm.make_trimap(sq, 0.8, 0.2, open_px=0, erode_px=1)
+    e1 = mt.make_trimap(sq, 0.8, 0.2, open_px=0, erode_px=1)
     assert (e1 == 1.0).sum() == 10 * 10 and e1[5, 5] == 1.0
-    e2 = fm.make_trimap(sq, 0.8, 0.2, open_px=0, erode_px=2)
+    e2 = mt.make_trimap(sq, 0.8, 0.2, open_px=0, erode_px=2)
     assert (e2 == 1.0).sum() == 8 * 8
     # defaults on a smooth random cue, where every other radius changes some pixels
     from scipy import ndimage
 
     blob = ndimage.gaussian_filter(np.random.default_rng(14).uniform(0, 1, (40, 40)), 3)
     blob = (blob - blob.min()) / (blob.max() - blob.min())
-    default = fm.make_trimap(blob, 0.6, 0.4)
-    np.testing.assert_array_equal(default, fm.make_trimap(blob, 0.6, 0.4, open_px=1, erode_px=2))
+    default = mt.make_trimap(blob, 0.6, 0.4)
+    np.testing.assert_array_equal(default, mt.make_trimap(blob, 0.6, 0.4, open_px=1, erode_px=2))
     for other in ((2, 2), (1, 3), (0, 2)):
-        assert not np.array_equal(default, fm.make_trimap(blob, 0.6, 0.4, *other))
+        assert not np.array_equal(default, mt.make_trimap(blob, 0.6, 0.4, *other))
 
 
 def test_estimate_alpha_hands_the_method_clipped_inputs_and_keeps_definite_pixels(monkeypatch):
@@ -292,13 +294,13 @@ def test_estimate_alpha_hands_the_method_clipped_inputs_and_keeps_definite_pixel
         calls.append((image.copy(), trimap.copy(), ramp.copy()))
         return np.full(trimap.shape, 1.7) * (np.arange(trimap.shape[1]) % 2) - 0.3  # -0.3 and 1.4, alternating
 
-    monkeypatch.setitem(fm.MATTING_METHODS, "spy", spy)
+    monkeypatch.setitem(mt.MATTING_METHODS, "spy", spy)
     rng = np.random.default_rng(12)
     image = rng.uniform(-0.5, 1.5, (4, 6, 3))
     tri = np.full((4, 6), 0.5)
     tri[0], tri[3] = 1.0, 0.0
     ramp = rng.uniform(-0.5, 1.5, (4, 6))
-    alpha = fm.estimate_alpha(image, tri, "spy", ramp)
+    alpha = mt.estimate_alpha(image, tri, "spy", ramp)
     (img_in, tri_in, ramp_in), = calls
     np.testing.assert_array_equal(img_in, np.clip(image, 0, 1))
     np.testing.assert_array_equal(tri_in, tri)
@@ -309,14 +311,14 @@ def test_estimate_alpha_hands_the_method_clipped_inputs_and_keeps_definite_pixel
     # no background (or nothing unknown): the method is not called; unknown pixels get the clipped ramp
     calls.clear()
     no_bg = np.where(tri == 0.0, 0.5, tri)
-    a = fm.estimate_alpha(image, no_bg, "spy", ramp)
+    a = mt.estimate_alpha(image, no_bg, "spy", ramp)
     np.testing.assert_array_equal(a[1:], np.clip(ramp, 0, 1)[1:])
     assert (a[0] == 1.0).all()
     all_definite = np.where(tri == 0.5, 0.0, tri)
-    np.testing.assert_array_equal(fm.estimate_alpha(image, all_definite, "spy", ramp), all_definite)
+    np.testing.assert_array_equal(mt.estimate_alpha(image, all_definite, "spy", ramp), all_definite)
     assert not calls
     # without a method named, closed_form; a trimap with nothing to propagate does not need it to run
-    np.testing.assert_array_equal(fm.estimate_alpha(image, all_definite), all_definite)
+    np.testing.assert_array_equal(mt.estimate_alpha(image, all_definite), all_definite)
 
 
 def _matting_data():
@@ -361,8 +363,6 @@ def test_flash_only_truth_is_the_flash_reads_flash_radiance():
 def test_alpha_truth_weights_each_stratum_by_the_flash_reads_flash_time(monkeypatch):
     """The reference matte is the foreground's coverage averaged over the strata with the seconds
     the flash read collected while the flash was on (the plan's weights of its buckets)."""
-    import mbcapture.render.coverage as cov
-
     data, _ = _matting_data()
     got = {}
 
@@ -371,7 +371,7 @@ def test_alpha_truth_weights_each_stratum_by_the_flash_reads_flash_time(monkeypa
                    variant=variant, cache=cache)
         return "coverage"
 
-    monkeypatch.setattr(cov, "coverage_alpha", fake_coverage)
+    monkeypatch.setattr(fm, "coverage_alpha", fake_coverage)  # the name the application calls
     seed = np.random.SeedSequence(5)
     cfg = SimpleNamespace(seed=1, render=SimpleNamespace(width=4, height=3, variant="scalar_rgb"))
     import dataclasses

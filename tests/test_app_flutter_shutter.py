@@ -12,6 +12,7 @@ from mbcapture.apps import CaptureData
 from mbcapture.apps import flutter_shutter as fs
 from mbcapture.errors import ConfigError
 from mbcapture.plan import make_plan
+from mbcapture.reconstruct import deblur as db
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "flutter_shutter.yaml"
@@ -33,10 +34,10 @@ def test_raskar_code_and_custom_codes():
 def test_spread_kernel_keeps_weight_and_centroid():
     rng = np.random.default_rng(0)
     s, w = rng.uniform(-7.3, 9.1, 500), rng.uniform(0, 1, 500)
-    first, h = fs.spread_kernel(s, w)
+    first, h = db.spread_kernel(s, w)
     x = first + np.arange(len(h))
     assert h.sum() == pytest.approx(w.sum()) and (x * h).sum() == pytest.approx((s * w).sum())
-    first, h = fs.spread_kernel(np.array([2.25]), np.array([1.0]))
+    first, h = db.spread_kernel(np.array([2.25]), np.array([1.0]))
     assert first == 2 and h.tolist() == [0.75, 0.25]
 
 
@@ -47,7 +48,7 @@ def _rows(n_rows=40, n=120, support=(30, 80), seed=0):
 
 
 def _blur(f, kernel):
-    a = fs.blur_matrix(*kernel, f.shape[1])
+    a = db.blur_matrix(*kernel, f.shape[1])
     return np.einsum("xy,ry->rx", a, f[..., 0])[..., None]
 
 
@@ -55,11 +56,11 @@ def test_blur_matrix_is_the_convolution():
     f = _rows(n_rows=1)[0, :, 0]
     k = (-3, np.array([0.2, 0.0, 0.5, 1.0, 0.3]))
     want = np.convolve(f, k[1])[np.arange(len(f)) - k[0]]
-    np.testing.assert_allclose(fs.blur_matrix(*k, len(f)) @ f, want, atol=1e-12)
-    assert fs.support([k], len(f)) == (3, len(f) - 1)  # f[x] reaches x - 3 .. x + 1
-    np.testing.assert_allclose(fs.blur_matrix(*k, len(f), (3, 119)) @ f[3:119], want, atol=1e-12)  # f is 0 outside
+    np.testing.assert_allclose(db.blur_matrix(*k, len(f)) @ f, want, atol=1e-12)
+    assert db.support([k], len(f)) == (3, len(f) - 1)  # f[x] reaches x - 3 .. x + 1
+    np.testing.assert_allclose(db.blur_matrix(*k, len(f), (3, 119)) @ f[3:119], want, atol=1e-12)  # f is 0 outside
     with pytest.raises(ConfigError, match="wider than"):
-        fs.support([(-60, np.ones(121))], 120)
+        db.support([(-60, np.ones(121))], 120)
 
 
 def test_least_squares_inverts_the_code_and_the_joint_solution_is_exact_too():
@@ -69,10 +70,10 @@ def test_least_squares_inverts_the_code_and_the_joint_solution_is_exact_too():
     k_closed = (-26, (1 - CODE) * chop)
     b = np.stack([_blur(f, k_open), _blur(f, k_closed)])
     w = np.ones((2, 1))
-    np.testing.assert_allclose(fs.deblur_least_squares(b[:1], [k_open], w[:1], 0.0), f, atol=1e-6)
-    np.testing.assert_allclose(fs.deblur_least_squares(b, [k_open, k_closed], w, 0.0), f, atol=1e-6)
+    np.testing.assert_allclose(db.deblur_least_squares(b[:1], [k_open], w[:1], 0.0), f, atol=1e-6)
+    np.testing.assert_allclose(db.deblur_least_squares(b, [k_open, k_closed], w, 0.0), f, atol=1e-6)
     # the box of the same length is exact too without noise, but far worse conditioned (next test)
-    np.testing.assert_allclose(fs.deblur_least_squares(_blur(f, (-26, np.ones(52)))[None], [(-26, np.ones(52))], w[:1],
+    np.testing.assert_allclose(db.deblur_least_squares(_blur(f, (-26, np.ones(52)))[None], [(-26, np.ones(52))], w[:1],
                                                        0.0), f, atol=1e-4)
 
 
@@ -87,10 +88,10 @@ def test_fourier_deblur_inverts_integer_and_fractional_shifts():
     is exactly what the model describes, and comes back too."""
     f = _rows()
     k_open, k_closed = _samples(CODE), _samples(1 - CODE)
-    b = np.stack([_blur(f, fs.spread_kernel(*k_open)), _blur(f, fs.spread_kernel(*k_closed))])
+    b = np.stack([_blur(f, db.spread_kernel(*k_open)), _blur(f, db.spread_kernel(*k_closed))])
     w = np.ones((2, 1))
-    np.testing.assert_allclose(fs.deblur_fourier(b[:1], [k_open], w[:1], 0.0), f, atol=1e-8)
-    np.testing.assert_allclose(fs.deblur_fourier(b, [k_open, k_closed], w, 0.0), f, atol=1e-8)
+    np.testing.assert_allclose(db.deblur_fourier(b[:1], [k_open], w[:1], 0.0), f, atol=1e-8)
+    np.testing.assert_allclose(db.deblur_fourier(b, [k_open, k_closed], w, 0.0), f, atol=1e-8)
     # band-limited (Gaussians of sigma 2.5 px: nothing left at the Nyquist frequency), shifted by
     # fractional amounts and zero at both ends of the row: the model is exact
     x = np.arange(120.0)
@@ -100,7 +101,7 @@ def test_fourier_deblur_inverts_integer_and_fractional_shifts():
     for frac, tol in ((-0.375, 1e-9), (-0.37, 0.24 / 512)):
         k_frac = _samples(CODE, frac=frac)
         blurred = sum(t * g(x - sh) for sh, t in zip(*k_frac))
-        got = fs.deblur_fourier(blurred[None, None, :, None], [k_frac], np.ones((1, 1)), 0.0)[0, :, 0]
+        got = db.deblur_fourier(blurred[None, None, :, None], [k_frac], np.ones((1, 1)), 0.0)[0, :, 0]
         np.testing.assert_allclose(got, g(x), atol=tol)
 
 
@@ -108,34 +109,34 @@ def test_fourier_noise_gain_by_monte_carlo():
     """White noise over whole rows through the per-frequency least squares: the pixel variance is
     mean_w 1 / sum_r |H_r(w)|^2 (white_noise_gain), within 5 standard errors of the variance estimate."""
     samples = [_samples(CODE), _samples(1 - CODE)]
-    n = fs.fft_length(samples, 120)
+    n = db.fft_length(samples, 120)
     rows = 800
     noise = np.random.default_rng(2).standard_normal((2, rows, n, 1))
-    out = fs.deblur_fourier(noise, samples, np.ones((2, 1)), 0.0)  # rows of the FFT length: no padding
+    out = db.deblur_fourier(noise, samples, np.ones((2, 1)), 0.0)  # rows of the FFT length: no padding
     var = out[..., 0].var(axis=0, ddof=1).mean()
-    want = fs.white_noise_gain(samples, np.ones(2), 120, 1.0) ** 2
+    want = db.white_noise_gain(samples, np.ones(2), 120, 1.0) ** 2
     # the mean over n pixels of correlated variance estimates: bound by the single-pixel standard error
     assert abs(var / want - 1) < 5 * np.sqrt(2 / (rows - 1))
-    single = fs.white_noise_gain(samples[:1], np.ones(1), 120, 1.0)
-    box = fs.white_noise_gain([_samples(np.ones(52))], np.ones(1), 120, 1.0)
-    assert box > 3 * single > 3 * fs.white_noise_gain(samples, np.ones(2), 120, 1.0)
+    single = db.white_noise_gain(samples[:1], np.ones(1), 120, 1.0)
+    box = db.white_noise_gain([_samples(np.ones(52))], np.ones(1), 120, 1.0)
+    assert box > 3 * single > 3 * db.white_noise_gain(samples, np.ones(2), 120, 1.0)
 
 
 def test_linear_interpolation_of_one_pixel_chops_has_a_zero_at_nyquist():
     """Why 'fourier' is the default: a chop spanning exactly one pixel, spread linearly, is the code
     smoothed by [1/2, 1/2] (gain 0 at Nyquist); band-limited shifts keep the pixel's own sinc (0.64)."""
     fine = np.linspace(0, 1, 1001)[:-1] + 0.0005  # one chop's displacements, uniform over [0, 1) px
-    first, h = fs.spread_kernel(fine, np.full(fine.size, 1e-3))
+    first, h = db.spread_kernel(fine, np.full(fine.size, 1e-3))
     assert first == 0 and np.allclose(h, [0.5, 0.5], atol=1e-3)
     assert abs(np.sum(h * np.exp(-1j * np.pi * np.arange(2)))) < 1e-3
     n = 64
-    hb = fs.kernel_spectrum(fine, np.full(fine.size, 1e-3), n)
+    hb = db.kernel_spectrum(fine, np.full(fine.size, 1e-3), n)
     assert abs(hb[-1]) == pytest.approx(2 / np.pi, rel=1e-3)
 
 
 def _noise_std(kernels, n=120, regularization=0.0):
     """Per-pixel output noise std of the least-squares deblur for unit white noise in every read."""
-    m = fs.normal_matrix(kernels, np.ones(len(kernels)), n, regularization)
+    m = db.normal_matrix(kernels, np.ones(len(kernels)), n, regularization)
     return np.sqrt(np.diag(np.linalg.inv(m)))
 
 
@@ -158,8 +159,8 @@ def test_measured_deblur_noise_matches_the_normal_matrix():
     kernels = [(-26, CODE * 1.0), (-26, (1 - CODE) * 1.0)]
     rng = np.random.default_rng(1)
     noise = rng.standard_normal((2, n_rows, n, 1))
-    f = fs.deblur_least_squares(noise, kernels, np.ones((2, 1)), 0.0)
-    lo, hi = fs.support(kernels, n)
+    f = db.deblur_least_squares(noise, kernels, np.ones((2, 1)), 0.0)
+    lo, hi = db.support(kernels, n)
     assert (f[:, :lo] == 0).all() and (f[:, hi:] == 0).all()
     var = f[:, lo:hi, 0].var(axis=0, ddof=1)
     want = _noise_std(kernels, n) ** 2
@@ -175,11 +176,11 @@ def test_read_kernels_follow_the_code_at_one_pixel_per_chop():
     tl = protocols.build(cfg)
     sc = scenes.make_scene(cfg.scene.name, cfg.scene.params())
     t_mid = float(tl.seconds((tl.start_tick + tl.end_tick) // 2))
-    (f_o, h_o), (f_c, h_c) = (fs.read_kernel(tl, r, sc, t_mid, 640, 512) for r in tl.reads)
+    (f_o, h_o), (f_c, h_c) = (db.read_kernel(tl, r, sc, t_mid, 640, 512) for r in tl.reads)
     chop = 0.026 / 52
     assert h_o.sum() == pytest.approx(26 * chop, rel=1e-9) and h_c.sum() == pytest.approx(26 * chop, rel=1e-9)
     shifts, weights = fs._sum_kernels([(f_o, h_o), (f_c, h_c)])
-    fb, hb = fs.spread_kernel(shifts, weights)
+    fb, hb = db.spread_kernel(shifts, weights)
     assert hb.sum() == pytest.approx(52 * chop) and np.count_nonzero(hb > 0.01 * chop) == 53  # a box of 52 px,
     assert np.all(hb[hb > 0.9 * chop] == pytest.approx(chop, rel=1e-3))  # half a pixel at each end
     # the open kernel, resampled per chop: chop k lies at shift k - 26 + 1/2 (its centre), so pixel
@@ -265,7 +266,7 @@ def test_reconstruct_deblurs_a_known_row_without_mitsuba():
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
     e = []
     for r in tl.reads:  # time integral at the same 40 000 steps' displacements, but of the continuous image
-        shifts, secs = fs.read_samples(tl, r, sc, t_mid, w, h)
+        shifts, secs = db.read_samples(tl, r, sc, t_mid, w, h)
         idx = np.arange(0, len(secs), 20)
         e.append(sum(t * sharp(s) for s, t in zip(shifts[idx], np.add.reduceat(secs, idx))) * k_e)
     e = np.stack(e)

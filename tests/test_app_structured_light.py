@@ -10,6 +10,7 @@ from mbcapture import load_config, protocols, scenes
 from mbcapture import projective as pj
 from mbcapture.apps import structured_light as sl
 from mbcapture.errors import ConfigError
+from mbcapture.reconstruct import phase as ph
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "structured_light.yaml"
@@ -41,13 +42,13 @@ def test_phase_shifting_recovers_phase_and_cancels_equal_ambient():
         d = 2 * np.pi * np.arange(n) / n
         imgs = albedo * 0.5 * (1 + np.cos(phi[None] - d[:, None, None]))
         amb = rng.uniform(0, 3, (H, W))  # spatially varying, equal in every pattern image
-        got, mod, mean = sl.wrapped_phase(imgs + amb, d)
+        got, mod, mean = ph.wrapped_phase(imgs + amb, d)
         np.testing.assert_allclose(np.angle(np.exp(1j * (got - phi))), 0, atol=1e-9)
         np.testing.assert_allclose(mod, albedo / 2, rtol=1e-9)
         np.testing.assert_allclose(mean, albedo / 2 + amb, rtol=1e-9)
     # ambient that differs between the images (flicker between sequential frames) is phase error
     imgs = 0.5 * (1 + np.cos(phi[None] - d[:, None, None]))
-    got, _, _ = sl.wrapped_phase(imgs + np.arange(7)[:, None, None] * 0.05, d)
+    got, _, _ = ph.wrapped_phase(imgs + np.arange(7)[:, None, None] * 0.05, d)
     assert np.abs(np.angle(np.exp(1j * (got - phi)))).max() > 0.05
 
 
@@ -55,7 +56,7 @@ def test_gray_code_round_trip_and_ambient_threshold():
     n = np.arange(1024)
     g = MOD.gray_code(n)
     assert (np.unpackbits((g[1:] ^ g[:-1]).astype(">u2").view(np.uint8)).reshape(-1, 16).sum(1) == 1).all()
-    np.testing.assert_array_equal(sl.gray_to_binary(g), n)
+    np.testing.assert_array_equal(ph.gray_to_binary(g), n)
     # decode 6-bit stripes under an ambient light that is brighter than the projector in the right half
     m = 6
     stripe = np.tile(np.arange(2**m), (4, 1))
@@ -65,8 +66,8 @@ def test_gray_code_round_trip_and_ambient_threshold():
     amb[:, 32:] = 1.5
     white = proj + amb
     images = proj * bits + amb[None]
-    np.testing.assert_array_equal(sl.decode_gray(white, images, amb), stripe)
-    wrong = sl.decode_gray(white, images, None)  # threshold white / 2: every 0 bit reads 1 where amb > proj
+    np.testing.assert_array_equal(ph.decode_gray(white, images, amb), stripe)
+    wrong = ph.decode_gray(white, images, None)  # threshold white / 2: every 0 bit reads 1 where amb > proj
     np.testing.assert_array_equal(wrong[:, :32], stripe[:, :32])
     assert (wrong[:, 32:] != stripe[:, 32:]).mean() > 0.9
 
@@ -94,28 +95,28 @@ def test_unwrapping_finds_the_fringe_period(method):
     def tri(c):
         return pj.triangulate_columns(sc.camera, info["projector"], c, pw, W, H)
 
-    col, depth, ok = sl.UNWRAP_METHODS[method](phase, np.ones((H, W), bool), tri, 4, pw, 0.7, 1.6)
+    col, depth, ok = ph.UNWRAP_METHODS[method](phase, np.ones((H, W), bool), tri, 4, pw, 0.7, 1.6)
     assert ok.all()
     np.testing.assert_allclose(col, u, atol=1e-6)
     np.testing.assert_allclose(depth, z, rtol=1e-9)
     # 'none' takes the first period: wrong wherever the plane lies in another one
-    col0, _, ok0 = sl.unwrap_none(phase, np.ones((H, W), bool), tri, 4, pw, 0.0, 100.0)
+    col0, _, ok0 = ph.unwrap_none(phase, np.ones((H, W), bool), tri, 4, pw, 0.0, 100.0)
     assert np.nanmax(np.abs(col0 - u)) > pw / 4 - 1
 
 
 def test_depth_range_unwrapping_is_unique_for_the_shipped_geometry_and_rejects_out_of_range():
     sc, info = _geometry()
     pw = info["projector_size_px"][0]
-    amb = sl.period_ambiguity(sc.camera, info["projector"], pw, 4, 160, 128, 0.7, 1.6)
+    amb = ph.period_ambiguity(sc.camera, info["projector"], pw, 4, 160, 128, 0.7, 1.6)
     assert 0.5 < amb < 1.0  # unique everywhere, with margin; 8 periods would not be
-    assert sl.period_ambiguity(sc.camera, info["projector"], pw, 8, 160, 128, 0.7, 1.6) > 1.0
+    assert ph.period_ambiguity(sc.camera, info["projector"], pw, 8, 160, 128, 0.7, 1.6) > 1.0
     z = _plane_depth(z0=1.9, slope=0.0)  # beyond depth_max: no candidate lies in range
     u = _projector_columns(sc, info, z)
 
     def tri(c):
         return pj.triangulate_columns(sc.camera, info["projector"], c, pw, W, H)
 
-    _, _, ok = sl.unwrap_depth_range(np.mod(2 * np.pi * 4 * u / pw, 2 * np.pi), np.ones((H, W), bool), tri, 4, pw,
+    _, _, ok = ph.unwrap_depth_range(np.mod(2 * np.pi * 4 * u / pw, 2 * np.pi), np.ones((H, W), bool), tri, 4, pw,
                                      0.7, 1.6)
     assert not ok.any()
 
@@ -296,7 +297,7 @@ def test_unwrap_none_reads_the_first_period_and_keeps_the_depth_range_inclusive(
     valid[0, 5] = False
     col = phase / (2 * np.pi) * 512 / 1  # the decoded column, as the function computes it
     z_lo, z_hi = float(tri(col[0, 3])), float(tri(col[0, 30]))  # two pixels exactly on the range's ends
-    uu, zz, ok = sl.unwrap_none(phase, valid, tri, 1, 512, z_lo, z_hi)
+    uu, zz, ok = ph.unwrap_none(phase, valid, tri, 1, 512, z_lo, z_hi)
     expect_ok = valid & (u >= u[0, 3]) & (u <= u[0, 30])
     np.testing.assert_array_equal(ok, expect_ok)
     np.testing.assert_allclose(uu[ok], u[ok], rtol=1e-12)
@@ -304,7 +305,7 @@ def test_unwrap_none_reads_the_first_period_and_keeps_the_depth_range_inclusive(
     assert np.isnan(uu[~ok]).all() and np.isnan(zz[~ok]).all()
     # with 4 periods, the first period only: u = phase W / (2 pi P) lies in [0, 128)
     _, phase4, _ = _ramp(periods=4)
-    u4, _, ok4 = sl.unwrap_none(phase4, np.ones(u.shape, bool), tri, 4, 512, 0.0, 10.0)
+    u4, _, ok4 = ph.unwrap_none(phase4, np.ones(u.shape, bool), tri, 4, 512, 0.0, 10.0)
     assert ok4.all() and u4.max() < 128 and u4.min() >= 0
     np.testing.assert_allclose(u4, np.mod(u, 128), rtol=1e-9, atol=1e-9)
 
@@ -313,14 +314,14 @@ def test_unwrap_spatial_recovers_a_smooth_ramp_within_the_depth_range():
     u, phase, tri = _ramp(periods=4)
     valid = np.ones(u.shape, bool)
     valid[2, 17] = False
-    uu, zz, ok = sl.unwrap_spatial(phase, valid, tri, 4, 512, float(tri(u.min())) - 1e-9, float(tri(u.max())) + 1e-9)
+    uu, zz, ok = ph.unwrap_spatial(phase, valid, tri, 4, 512, float(tri(u.min())) - 1e-9, float(tri(u.max())) + 1e-9)
     np.testing.assert_array_equal(ok, valid)
     np.testing.assert_allclose(uu[ok], u[ok], rtol=1e-9)
     np.testing.assert_allclose(zz[ok], tri(u[ok]), rtol=1e-12)
     assert np.isnan(uu[2, 17]) and np.isnan(zz[2, 17])
     # a range that holds only the left half: the same offset (most pixels in range), the rest not ok
     mid = float(tri((u[0, 19] + u[0, 20]) / 2))
-    _, _, half = sl.unwrap_spatial(phase, valid, tri, 4, 512, float(tri(u.min())) - 1e-9, mid)
+    _, _, half = ph.unwrap_spatial(phase, valid, tri, 4, 512, float(tri(u.min())) - 1e-9, mid)
     np.testing.assert_array_equal(half, valid & (u <= u[0, 19]))
 
 

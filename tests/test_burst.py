@@ -10,6 +10,7 @@ from scipy.ndimage import gaussian_filter
 from mbcapture import load_config, protocols
 from mbcapture.apps import burst
 from mbcapture.errors import ConfigError
+from mbcapture.reconstruct import register as rg
 
 
 def _texture(h=48, w=64, seed=0):
@@ -38,10 +39,10 @@ def test_registration_recovers_known_shifts(method, tol_px):
     # true mean positions of a 3x3 grid of points in each frame: the reference's points moved by the shift
     grid = np.array([[x, y] for x in (12.0, 32.0, 52.0) for y in (10.0, 24.0, 38.0)])
     true = np.stack([grid + np.array(s) for s in shifts])
-    warps = np.stack([np.eye(3)] + [burst.register_frame(frames[0], frames[k], method) for k in range(1, 4)])
-    err = burst.registration_errors(warps, true, 0)
+    warps = np.stack([np.eye(3)] + [rg.register_frame(frames[0], frames[k], method) for k in range(1, 4)])
+    err = rg.registration_errors(warps, true, 0)
     assert err[0] == 0 and np.all(err[1:] < tol_px), err
-    none = burst.registration_errors(np.stack([np.eye(3)] * 4), true, 0)
+    none = rg.registration_errors(np.stack([np.eye(3)] * 4), true, 0)
     assert np.allclose(none, [np.hypot(*s) for s in shifts])  # no alignment: the error is the shift
 
 
@@ -55,14 +56,14 @@ def test_aligned_average_of_k_frames_has_1_over_sqrt_k_of_the_noise():
     base = clean[0]
     frames = clean + rng.normal(0, sigma, clean.shape)
     sat = np.zeros(frames.shape, bool)
-    out = burst.align_and_average(frames, sat, "phase_correlation", reference=0)
+    out = rg.align_and_average(frames, sat, "phase_correlation", reference=0)
     assert out.coverage[8:-8, 8:-8].min() == 4
     resid = (out.average - base)[8:-8, 8:-8]
     n = resid.size
     assert resid.std() == pytest.approx(sigma / 2, abs=5 * (sigma / 2) / np.sqrt(2 * n) + 0.002)
     # a saturated sample of frame 2 (content moved by (2, -1)) is left out where it lands on the reference
     sat[1, 30, 40, :] = True
-    out2 = burst.align_and_average(frames, sat, "phase_correlation", reference=0)
+    out2 = rg.align_and_average(frames, sat, "phase_correlation", reference=0)
     assert out2.coverage[31, 38] == 3 and (out2.coverage[8:-8, 8:-8] < 4).sum() <= 4
 
 
@@ -71,7 +72,7 @@ def test_blur_fit_recovers_a_known_gaussian_blur():
     rng = np.random.default_rng(4)
     for sigma in (0.0, 0.8, 1.7):
         blurred = gaussian_filter(truth, sigma) if sigma else truth
-        got = burst.fit_blur_px(blurred + rng.normal(0, 0.005, truth.shape), truth)
+        got = rg.fit_blur_px(blurred + rng.normal(0, 0.005, truth.shape), truth)
         assert got == pytest.approx(sigma, abs=0.08)
 
 
@@ -141,18 +142,18 @@ def test_warp_onto_samples_at_the_warped_position_and_marks_what_falls_outside()
     x = np.arange(w, dtype=float)
     img = np.broadcast_to((x / 4) ** 2, (h, w)).copy()  # small values: float32 keeps ~1e-7
     shift = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    lin = burst.warp_onto(img, shift)
+    lin = rg.warp_onto(img, shift)
     xs = x[:-1] / 4
     np.testing.assert_allclose(lin[:, :-1], np.broadcast_to(xs**2 + xs / 4 + 0.5 / 16, (h, w - 1)), rtol=1e-6)
     assert np.isnan(lin[:, -1]).all() and lin.dtype == np.float64
-    cub = burst.warp_onto(img, shift, cubic=True)
+    cub = rg.warp_onto(img, shift, cubic=True)
     np.testing.assert_allclose(cub[:, 1:-2], np.broadcast_to(xs[1:-1] ** 2 + xs[1:-1] / 4 + 0.125 / 16, (h, w - 3)),
                                rtol=1e-5)
     assert np.isnan(cub[:, -1]).all()
-    np.testing.assert_allclose(burst.warp_onto(img, 2.0 * shift), lin, rtol=1e-6)  # the same transform, projective
+    np.testing.assert_allclose(rg.warp_onto(img, 2.0 * shift), lin, rtol=1e-6)  # the same transform, projective
     # (H, W, C) in, (H, W, C) out; an integer shift down by 2 rows: the last two rows are outside
     rgb = np.stack([img, 2 * img, 3 * img], -1)
-    down = burst.warp_onto(rgb, np.array([[1.0, 0, 0], [0, 1.0, 2.0], [0, 0, 1.0]]))
+    down = rg.warp_onto(rgb, np.array([[1.0, 0, 0], [0, 1.0, 2.0], [0, 0, 1.0]]))
     assert down.shape == (h, w, 3)
     np.testing.assert_allclose(down[:-2], rgb[2:], rtol=1e-6)
     assert np.isnan(down[-2:]).all()

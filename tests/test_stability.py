@@ -35,7 +35,7 @@ from mbcapture import protocols
 from mbcapture.config import config_from_dict, load_config
 from mbcapture.errors import ConfigError
 from mbcapture.integrate import accumulate
-from mbcapture.motion import OVERDAMPED_RATIO, STIFF_RATIO, Pendulum, nonlinear_period_s
+from mbcapture.pendulum import OVERDAMPED_RATIO, STIFF_RATIO, Pendulum, nonlinear_period_s
 from mbcapture.reconstruct.hdr import merge_hdr, quantization_read_variance_e2
 from mbcapture.sensor import SensorConfig, dn_to_electrons, simulate_reads
 from mbcapture.sensor.sampling import POISSON_EXACT_MAX
@@ -698,7 +698,8 @@ def test_multi_flash_ratio_images_where_the_max_is_zero():
 @pytest.mark.parametrize("noise_e", [0.0, 30.0])
 def test_matte_where_the_flash_adds_nothing(noise_e):
     """flash_matting with identical flash and no-flash light: no foreground is found, alpha = 0."""
-    from mbcapture.apps.flash_matting import FlashMattingParams, estimate_alpha, flash_only_image, make_trimap, trimap_cue
+    from mbcapture.apps.flash_matting import FlashMattingParams, flash_only_image
+    from mbcapture.reconstruct.matting import estimate_alpha, make_trimap, trimap_cue
 
     rng = np.random.default_rng(33)
     p = FlashMattingParams()

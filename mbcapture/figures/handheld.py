@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import camera_motion, scenes
 from .. import camera_motion as cm
 from ..capture import prepare
+from ..config import scene_of
 from ..io import tonemap
 from ..video import needle_track
 from . import FigureContext, FigureOutput, figure
@@ -129,7 +129,7 @@ def hdr_video(ctx: FigureContext) -> FigureOutput:
     if "rates" in al:
 
         cfg = res.config
-        sc = camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)
+        sc = scene_of(cfg)
         t0 = max(res.report["reads"], key=lambda r: r["exposure_s"])["centroid_s"]  # the longest read's centroid
         dense = t0 + np.arange(0.0, 3.0, 2e-3)
         W, H = cfg.render.width, cfg.render.height

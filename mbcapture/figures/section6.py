@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..apps.flutter_shutter import kernel_spectrum, read_samples, spread_kernel
 from ..io import tonemap
+from ..reconstruct.deblur import kernel_spectrum, read_samples, spread_kernel
 from ..scenes import make_scene
 from . import FigureContext, FigureOutput, figure
 

@@ -26,7 +26,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mbcapture.motion import Pendulum
+from mbcapture.pendulum import Pendulum
 from mbcapture.render.build import (
     Light,
     Material,
