@@ -41,6 +41,11 @@ stamp=.venv/.mbcapture-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   say "installing mbcapture and its dependencies into .venv"
   .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
+  # opencv-contrib-python-headless replaces opencv-python-headless (both install the cv2 package): an
+  # environment made before the switch drops the plain wheel first, or the two would overwrite each other
+  if .venv/bin/python -m pip show -q opencv-python-headless >/dev/null 2>&1; then
+    .venv/bin/python -m pip uninstall -q -y opencv-python-headless opencv-contrib-python-headless >/dev/null
+  fi
   .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]'
   touch "$stamp"
 fi

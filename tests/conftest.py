@@ -79,7 +79,7 @@ def machine_description() -> dict:
     except (OSError, subprocess.SubprocessError):
         commit = None
     versions = {}
-    for pkg in ("mitsuba", "drjit", "numpy", "scipy", "opencv-python-headless", "pymatting"):
+    for pkg in ("mitsuba", "drjit", "numpy", "scipy", "opencv-contrib-python-headless", "pymatting"):
         try:
             versions[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
