@@ -17,6 +17,7 @@ import socket
 import tempfile
 import threading
 from contextlib import contextmanager
+from io import BytesIO
 from pathlib import Path
 from typing import Iterator, Mapping
 
@@ -260,3 +261,45 @@ def write_png(path: Path, rgb_linear: np.ndarray, percentile: float | None = 99.
     from PIL import Image
 
     Image.fromarray(tonemap(rgb_linear, percentile), mode="RGB").save(path, format="PNG")
+
+
+# --------------------------------------------------------------------------- videos
+
+
+# --------------------------------------------------------------------------- files
+def tonemapped_frames(frames: np.ndarray, white: float) -> np.ndarray:
+    """(F, H, W, 3) uint8 sRGB with one white level for every frame; H and W padded to even sizes (H.264)."""
+
+    out = np.stack([tonemap(f / white, None) for f in frames])
+    pad_h, pad_w = out.shape[1] % 2, out.shape[2] % 2
+    if pad_h or pad_w:
+        out = np.pad(out, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+    return out
+
+
+def encode_mp4(frames_u8: np.ndarray, fps: float) -> bytes:
+    """H.264 MP4 bytes of (F, H, W, 3) uint8 frames (imageio's ffmpeg plugin; yuv420p, even sizes)."""
+    import os
+    import tempfile
+
+    import imageio.v2 as iio
+
+    fd, tmp = tempfile.mkstemp(suffix=".mp4")
+    os.close(fd)
+    try:
+        with iio.get_writer(tmp, format="FFMPEG", fps=fps, codec="libx264", quality=8, macro_block_size=1,
+                            pixelformat="yuv420p", ffmpeg_log_level="error") as w:
+            for f in frames_u8:
+                w.append_data(f)
+        return Path(tmp).read_bytes()
+    finally:
+        os.unlink(tmp)
+
+
+def encode_gif(frames_u8: np.ndarray, fps: float) -> bytes:
+    """Animated GIF bytes (looping) of (F, H, W, 3) uint8 frames (imageio with Pillow)."""
+    import imageio.v3 as iio
+
+    buf = BytesIO()
+    iio.imwrite(buf, frames_u8, extension=".gif", duration=1000.0 / fps, loop=0)
+    return buf.getvalue()

@@ -1,9 +1,17 @@
-"""Drawing shared by the paper's figures (:mod:`mbcapture.figures`) and every run's report.html
-(:mod:`mbcapture.report`): a gate schedule as coloured slots on a time axis. matplotlib is
+"""All matplotlib drawing of a run's report.html (:mod:`mbcapture.report`) and the paper's figures
+(:mod:`mbcapture.figures`): a gate schedule as coloured slots on a time axis, the run's schedule
+with each read's span and centroid, histograms of the reads, colour maps. Figures are
+``matplotlib.figure.Figure`` without pyplot, written as PNG without timestamps. matplotlib is
 imported where a drawing needs it, so importing this module costs nothing.
 """
 
 from __future__ import annotations
+
+import io
+
+import numpy as np
+
+from .timeline import Timeline
 
 #: One colour per bucket (bucket k: ``BUCKET_COLOURS[k % 6]``), in figures and reports alike.
 BUCKET_COLOURS = ["#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"]
@@ -44,3 +52,215 @@ def _rect(x, y, w, h, colour, zorder=1):
     from matplotlib.patches import Rectangle
 
     return Rectangle((x, y), w, h, facecolor=colour, edgecolor="none", zorder=zorder)
+
+
+#: A schedule with more slots than this is drawn whole in outline, and its first periods in detail.
+MAX_DETAIL_SLOTS = 480
+
+
+# ----------------------------------------------------------------------------- plots
+def png_bytes(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
+    return buf.getvalue()
+
+
+def set_margins(fig, *, left_in: float, right_in: float, bottom_in: float, top_in: float, hspace_in: float,
+             wspace: float = 0.2) -> None:
+    """Fixed margins in inches (tight_layout draws the figure twice: 3x slower for these plots)."""
+    w, h = fig.get_size_inches()
+    rows = fig.axes[0].get_subplotspec().get_gridspec().nrows if fig.axes else 1
+    cell = (h - bottom_in - top_in - hspace_in * (rows - 1)) / rows
+    fig.subplots_adjust(left=left_in / w, right=1 - right_in / w, bottom=bottom_in / h, top=1 - top_in / h,
+                        hspace=hspace_in / max(cell, 0.1), wspace=wspace)
+
+
+def time_unit(seconds: float) -> tuple[float, str]:
+    return (1e-3, "ms") if seconds >= 1e-3 else (1e-6, "µs")
+
+
+def timeline_png(tl: Timeline) -> bytes:
+    """The gate schedule of a run: buckets (frames for a sequential capture) and switchable groups
+    per slot, and each read's span with its centroid; a schedule of more than ``MAX_DETAIL_SLOTS``
+    slots in outline (one block per segment) plus its first periods in detail."""
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch
+
+
+    groups = sorted(tl.switchable_groups())
+    n_slots = sum(seg.repeats * len(seg.slots) for seg in tl.segments)
+    detail = n_slots <= MAX_DETAIL_SLOTS
+    span_s = float((tl.end_tick - tl.start_tick) * tl.tick_s)
+    unit, uname = time_unit(span_s)
+    reads = tl.describe_reads()
+    rows = 1 + len(groups) + len(reads)
+    panels = 1 if detail else 2
+    fig = Figure(figsize=(10, 1.2 + 0.42 * rows * panels + 0.6 * (panels - 1)))
+    axes = fig.subplots(panels, 1, squeeze=False)[:, 0]
+    group_colour = "#222222"
+
+    def schedule_rows(ax, until_tick=None, outline=False) -> None:
+        y = rows - 1
+        if outline:  # too many slots to draw: each segment as one block
+            draw_timeline(ax, tl, y, unit, "", colour=lambda s: None)
+            for seg in tl.segments:
+                x0 = float((seg.start_tick - tl.start_tick) * tl.tick_s) / unit
+                w = float((seg.end_tick - seg.start_tick) * tl.tick_s) / unit
+                ax.add_patch(_hatched(x0, y, w))
+                ax.text(x0 + w / 2, y, f"{seg.repeats} periods of {len(seg.slots)} slots", ha="center", va="center",
+                        fontsize=7)
+                for gi, g in enumerate(groups):
+                    if any(g in s.groups_on for s in seg.slots):
+                        ax.add_patch(_hatched(x0, y - 1 - gi, w))
+        else:
+            draw_timeline(ax, tl, y, unit, "", until_tick=until_tick)
+            for gi, g in enumerate(groups):
+                draw_timeline(ax, tl, y - 1 - gi, unit, "", height=0.35, until_tick=until_tick, background="#f2f2f2",
+                              colour=lambda s, g=g: group_colour if g in s.groups_on else None)
+        labels = {y: "frames" if tl.sequential else "buckets"}
+        labels.update({y - 1 - gi: f"{g} on" for gi, g in enumerate(groups)})
+        ax.set_yticks(list(labels), list(labels.values()), fontsize=8)
+
+    ax = axes[0]
+    schedule_rows(ax, outline=not detail)
+    for i, r in enumerate(reads):  # spans and centroids
+        y = len(reads) - 1 - i
+        ax.plot([r["span_start_s"] / unit, r["span_end_s"] / unit], [y, y], color="#555555", lw=2)
+        ax.plot([r["centroid_s"] / unit], [y], marker="|", ms=12, mew=2, color="#d62728")
+        ax.text(r["span_end_s"] / unit, y, f"  {r['exposure_s'] * 1e3:.4g} ms", va="center", fontsize=7)
+    ax.set_yticks([*ax.get_yticks(), *range(len(reads))],
+                  [*[t.get_text() for t in ax.get_yticklabels()],
+                   *[f"{r['name']} = {summed_label(r['buckets'], tl.sequential)}" for r in reversed(reads)]], fontsize=8)
+    ax.set_xlim(-0.01 * span_s / unit, 1.12 * span_s / unit)
+    ax.set_ylim(-0.7, rows - 0.3)
+    ax.set_xlabel(f"time from the start of the capture ({uname})")
+    ax.set_title(f"{tl.protocol}{' (sequential, conventional sensor)' if tl.sequential else ''}: gate schedule; "
+                 "reads: span (grey) and centroid (red)", fontsize=9)
+    if not detail:  # the first periods in detail
+        seg = tl.segments[0]
+        periods = max(1, min(seg.repeats, MAX_DETAIL_SLOTS // max(len(seg.slots), 1), 2))
+        until = seg.start_tick + periods * seg.period_ticks
+        shown_s = float((until - tl.start_tick) * tl.tick_s)
+        unit_d, uname_d = time_unit(shown_s)
+        ax = axes[1]
+        y_top = rows - 1
+        draw_timeline(ax, tl, y_top, unit_d, "", until_tick=until)
+        for gi, g in enumerate(groups):
+            draw_timeline(ax, tl, y_top - 1 - gi, unit_d, "", height=0.35, until_tick=until, background="#f2f2f2",
+                          colour=lambda s, g=g: group_colour if g in s.groups_on else None)
+        ax.set_yticks([y_top - k for k in range(1 + len(groups))],
+                      ["frames" if tl.sequential else "buckets", *[f"{g} on" for g in groups]], fontsize=8)
+        ax.set_xlim(0, shown_s / unit_d)
+        ax.set_ylim(y_top - len(groups) - 0.7, y_top + 0.7)
+        ax.set_xlabel(f"time ({uname_d})")
+        ax.set_title(f"the first {periods} of {seg.repeats} periods", fontsize=9)
+    used = sorted({s.bucket for seg in tl.segments for s in seg.slots if s.bucket >= 0})
+    handles = [Patch(color=BUCKET_COLOURS[b % len(BUCKET_COLOURS)], label=f"{'frame' if tl.sequential else 'bucket'} {b + 1}")
+               for b in used]
+    handles.append(Patch(color="#dddddd", label="no bucket collects (drain, readout)"))
+    if groups:
+        handles.append(Patch(color=group_colour, label="switchable group on"))
+    ncol = min(len(handles), 8)
+    fig.legend(handles=handles, loc="lower center", ncol=ncol, fontsize=7, frameon=False)
+    set_margins(fig, left_in=1.45, right_in=0.15, bottom_in=0.7 + 0.2 * -(-len(handles) // ncol), top_in=0.3,
+             hspace_in=0.75)
+    return png_bytes(fig)
+
+
+def summed_label(buckets: list[int], sequential: bool) -> str:
+    """'B1+B2' (1-based buckets summed by a read), or 'frame 3' for a conventional sensor's frame."""
+    return f"frame {buckets[0]}" if sequential else "+".join(f"B{b}" for b in buckets)
+
+
+def _hatched(x: float, y: float, w: float):
+    from matplotlib.patches import Rectangle
+
+    return Rectangle((x, y - 0.3), w, 0.6, facecolor="#c6dbef", edgecolor="#6b8fb3", hatch="///", zorder=1)
+
+
+def histograms_png(reads: np.ndarray, names: list[str], exposure_s: list[float], limits: list[dict],
+                   adc_max: float) -> bytes:
+    """Histogram of each read (R, H, W, C) in DN (per channel, log counts) with black level, charge
+    limit and the ADC range marked; ``limits``: per read ``black_level_dn`` and ``charge_limit_dn``
+    (:func:`mbcapture.report.read_limits_dn`)."""
+    from matplotlib.figure import Figure
+
+    adc_max = float(adc_max)
+    n = len(names)
+    cols = min(n, 4)
+    nrows = -(-n // cols)
+    fig = Figure(figsize=(2.6 * cols + 0.4, 2.1 * nrows + 0.5))
+    axes = fig.subplots(nrows, cols, squeeze=False).ravel()
+    edges = np.linspace(0.0, adc_max + 1.0, 129)
+    ch_colours = ["#d62728", "#2ca02c", "#1f77b4"] if reads.shape[-1] == 3 else ["#444444"] * reads.shape[-1]
+    top = np.log10(max(reads[0, ..., 0].size, 10))
+    decades = np.arange(0, int(np.ceil(top)) + 1)
+    for i, name in enumerate(names):
+        ax = axes[i]
+        for c in range(reads.shape[-1]):  # log10(1 + count) on a linear axis: a log axis costs 4x in tick layout
+            counts, _ = np.histogram(reads[i, ..., c], bins=edges)
+            y = np.log10(1.0 + counts)
+            ax.plot(edges, np.append(y, y[-1]), drawstyle="steps-post", color=ch_colours[c], lw=1)
+        lim = limits[i]
+        ax.axvline(lim["black_level_dn"], color="#777777", ls=":", lw=1, label="black level")
+        ax.axvline(lim["charge_limit_dn"], color="#ff7f0e", ls="--", lw=1.2,
+                   label="full well of the read (buckets or FD)")
+        ax.axvspan(0, adc_max, color="#1f77b4", alpha=0.05, label="ADC range")
+        ax.axvline(adc_max, color="#d62728", lw=1.2, label="ADC top code")
+        ax.set_xlim(-0.02 * adc_max, 1.03 * adc_max)
+        ax.set_ylim(0, top * 1.05)
+        ax.set_yticks(decades, [str(10 ** d) if d < 3 else f"1e{d}" for d in decades])
+        ax.set_xticks([0, adc_max / 2, adc_max], ["0", f"{adc_max / 2:.0f}", f"{adc_max:.0f}"])
+        ax.set_title(f"{name}: {exposure_s[i] * 1e3:.4g} ms", fontsize=9)
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel("DN", fontsize=8)
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    axes[0].set_ylabel("1 + pixels, per channel", fontsize=8)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=7, frameon=False)
+    set_margins(fig, left_in=0.75, right_in=0.15, bottom_in=0.75, top_in=0.3, hspace_in=0.75, wspace=0.28)
+    return png_bytes(fig)
+
+
+MISSING_GREY = (217, 217, 217)
+
+
+def colour_map(values: np.ndarray, *, log: bool = False, levels: int | None = None) -> tuple[np.ndarray, dict]:
+    """A (H, W) map as (H, W, 3) uint8 viridis (NaN: light grey) and its colour scale for the page:
+    ``levels``: integers 0..levels, one colour each; otherwise linear (or ``log``) from the finite
+    minimum to the maximum. The scale is drawn in HTML (:func:`_scale_html`), so a map costs no plot."""
+    from matplotlib import colormaps
+
+    cmap = colormaps["viridis"]
+    finite = values[np.isfinite(values)]
+    if levels is not None:
+        t = np.clip(np.nan_to_num(values, nan=0.0), 0, levels) / max(levels, 1)
+        scale = {"levels": [_hex(cmap(k / max(levels, 1))) for k in range(levels + 1)]}
+    else:
+        if log:
+            finite = finite[finite > 0]
+        lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+        if log and lo > 0:
+            v = np.log10(np.where(values > 0, values, np.nan))
+            a, b = np.log10(lo), np.log10(hi)
+        else:
+            v, a, b, log = values, lo, hi, False
+        t = np.clip((np.nan_to_num(v, nan=a) - a) / ((b - a) or 1.0), 0, 1)
+        scale = {"min": lo, "max": hi, "log": log}
+    rgb = (cmap(t)[..., :3] * 255).round().astype(np.uint8)
+    rgb[~np.isfinite(values)] = MISSING_GREY
+    scale["stops"] = [_hex(cmap(x)) for x in np.linspace(0, 1, 11)]
+    return rgb, scale
+
+
+def _hex(rgba) -> str:
+    return "#" + "".join(f"{int(round(c * 255)):02x}" for c in rgba[:3])
+
+
+def png8(rgb: np.ndarray) -> bytes:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(rgb, mode="RGB").save(buf, format="PNG")
+    return buf.getvalue()

@@ -54,7 +54,6 @@ from __future__ import annotations
 import csv
 import io
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
@@ -62,8 +61,7 @@ from tqdm import tqdm
 from . import protocols
 from .apps.hdr import REL_MSE_EPS_RADIANCE
 from .config import scene_of
-from .htmlparts import esc, figure, fmt, table
-from .io import tonemap
+from .io import encode_gif, encode_mp4, tonemapped_frames
 from .metrics import luminance, relative_mse
 from .pipeline import capture_in_memory, frame_period_check, render_cache
 from .progress import StageStatus
@@ -360,45 +358,6 @@ def _summary_lines(rep: dict) -> list[str]:
     return out
 
 
-# --------------------------------------------------------------------------- files
-def _tonemapped(frames: np.ndarray, white: float) -> np.ndarray:
-    """(F, H, W, 3) uint8 sRGB with one white level for every frame; H and W padded to even sizes (H.264)."""
-
-    out = np.stack([tonemap(f / white, None) for f in frames])
-    pad_h, pad_w = out.shape[1] % 2, out.shape[2] % 2
-    if pad_h or pad_w:
-        out = np.pad(out, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
-    return out
-
-
-def encode_mp4(frames_u8: np.ndarray, fps: float) -> bytes:
-    """H.264 MP4 bytes of (F, H, W, 3) uint8 frames (imageio's ffmpeg plugin; yuv420p, even sizes)."""
-    import os
-    import tempfile
-
-    import imageio.v2 as iio
-
-    fd, tmp = tempfile.mkstemp(suffix=".mp4")
-    os.close(fd)
-    try:
-        with iio.get_writer(tmp, format="FFMPEG", fps=fps, codec="libx264", quality=8, macro_block_size=1,
-                            pixelformat="yuv420p", ffmpeg_log_level="error") as w:
-            for f in frames_u8:
-                w.append_data(f)
-        return Path(tmp).read_bytes()
-    finally:
-        os.unlink(tmp)
-
-
-def encode_gif(frames_u8: np.ndarray, fps: float) -> bytes:
-    """Animated GIF bytes (looping) of (F, H, W, 3) uint8 frames (imageio with Pillow)."""
-    import imageio.v3 as iio
-
-    buf = io.BytesIO()
-    iio.imwrite(buf, frames_u8, extension=".gif", duration=1000.0 / fps, loop=0)
-    return buf.getvalue()
-
-
 def write_video_files(st, result) -> None:
     """frame_<i>.exr, video.mp4, video.gif, compare.gif (truth | multi-bucket | alternating) and
     frames.csv into the staging folder ``st``."""
@@ -409,12 +368,12 @@ def write_video_files(st, result) -> None:
         st.write_exr(f"frame_{i:04d}.exr", f.app_output.images)
     rep = result.report["video"]
     if video.radiance is not None:
-        frames_u8 = _tonemapped(video.radiance, video.white)
+        frames_u8 = tonemapped_frames(video.radiance, video.white)
         st.write_bytes("video.mp4", encode_mp4(frames_u8, fps))
         st.write_bytes("video.gif", encode_gif(frames_u8, fps))
-        panels = [_tonemapped(video.truth, video.white), frames_u8]
+        panels = [tonemapped_frames(video.truth, video.white), frames_u8]
         if video.alternating_radiance is not None:
-            panels.append(_tonemapped(video.alternating_radiance, video.white))
+            panels.append(tonemapped_frames(video.alternating_radiance, video.white))
         st.write_bytes("compare.gif", encode_gif(np.concatenate(panels, axis=2), fps))
     buf = io.StringIO()
     keys = list(dict.fromkeys(k for row in rep["per_frame"] for k in row))
@@ -425,28 +384,3 @@ def write_video_files(st, result) -> None:
     st.write_bytes("frames.csv", buf.getvalue().encode("utf-8"))
 
 
-def video_section_html(result) -> str:
-    """The report.html section of a video run."""
-
-    rep = result.report["video"]
-    rows = [["frames", rep["frames"]], ["frame rate (frames/s)", rep["frame_rate_hz"]],
-            ["frame period (ms)", rep["frame_period_s"] * 1e3], ["capture + readout (ms)",
-                                                                 (rep["capture_span_s"] + rep["readout_s"]) * 1e3]]
-    for key in ("multi_bucket", "alternating_exposure"):
-        if key in rep:
-            s = rep[key]
-            rows += [[f"{key}: ghosting relMSE in the moving region, mean / max",
-                      f"{fmt(s['ghosting_rel_mse_moving_mean'])} / {fmt(s['ghosting_rel_mse_moving_max'])}"],
-                     [f"{key}: temporal consistency", s["temporal_consistency"]]]
-    for r in rep.get("aliasing", {}).get("rates", {}).values():
-        rows.append([f"{r['frame_rate_hz']:g} frames/s: apparent motion frequency (Hz)",
-                     f"{r['apparent_frequency_hz']:.3g} (true {rep['aliasing']['true_frequency_hz']:.3g})"
-                     + (" aliased" if r["aliased"] else "")])
-    figs = ""
-    if result.video.radiance is not None:
-        figs = ("<div class='grid'>" + figure("video.gif", "<b>video.gif</b>: the HDR video, one white level for "
-                                               "every frame (<a href='video.mp4'>video.mp4</a>)")
-                + figure("compare.gif", "<b>compare.gif</b>: truth | multi-bucket | alternating exposures") + "</div>")
-    return ("<h2 id='video'>Video</h2><p>Frame 0 is shown in the other sections; every frame's layers are in "
-            "frame_&lt;i&gt;.exr and its metrics in <a href='frames.csv'>frames.csv</a>.</p>" + figs
-            + table(rows, ["", "value"]) + f"<p class='muted'>{esc('report.json video: every number')}</p>")

@@ -133,15 +133,15 @@ def test_noise_verdict_follows_the_budget():
 
 def test_long_schedule_is_drawn_in_outline_plus_its_first_periods(monkeypatch):
     """10^6 periods: the timeline draws a bounded number of slots, not one patch per slot."""
-    import mbcapture.report as report
+    import mbcapture.plots as plots
     from mbcapture import protocols
     from mbcapture.config import load_config
-    from mbcapture.report import MAX_DETAIL_SLOTS, timeline_png
+    from mbcapture.plots import MAX_DETAIL_SLOTS, timeline_png
 
     tl = protocols.build(load_config(None, ["scene.name=flatfield", "capture.periods=1000000"]))
     drawn = []
-    real = report.draw_timeline
-    monkeypatch.setattr(report, "draw_timeline", lambda *a, **k: drawn.append(real(*a, **k)) or drawn[-1])
+    real = plots.draw_timeline
+    monkeypatch.setattr(plots, "draw_timeline", lambda *a, **k: drawn.append(real(*a, **k)) or drawn[-1])
     png = timeline_png(tl)
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     assert 0 < sum(drawn) <= MAX_DETAIL_SLOTS
@@ -149,7 +149,7 @@ def test_long_schedule_is_drawn_in_outline_plus_its_first_periods(monkeypatch):
 
 
 def test_colour_map_and_its_scale():
-    from mbcapture.report import MISSING_GREY, colour_map
+    from mbcapture.plots import MISSING_GREY, colour_map
 
     v = np.array([[0.0, 1.0], [2.0, np.nan]])
     rgb, scale = colour_map(v, levels=2)
