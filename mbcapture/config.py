@@ -60,7 +60,7 @@ class SceneSection(BaseModel):
         try:
             return module.Params(**(self.model_extra or {}))
         except ValidationError as exc:
-            raise ConfigError(_format_validation(exc, prefix="scene", origin=origin, model=module.Params,
+            raise ConfigError(format_validation(exc, prefix="scene", origin=origin, model=module.Params,
                                                  owner=f"scene {self.name!r}")) from None
 
 
@@ -223,7 +223,7 @@ class AppSection(BaseModel):
         try:
             return app, app.params(**(self.model_extra or {}))
         except ValidationError as exc:
-            raise ConfigError(_format_validation(exc, prefix="app", origin=origin, model=app.params,
+            raise ConfigError(format_validation(exc, prefix="app", origin=origin, model=app.params,
                                                  owner=f"application {app.name!r}")) from None
 
 
@@ -335,7 +335,7 @@ def _suggest(key: str, section: tuple, model: type[BaseModel] | None) -> str:
     return ""
 
 
-def _format_validation(exc: ValidationError, prefix: str = "", origin: Callable[[tuple], str] | None = None,
+def format_validation(exc: ValidationError, prefix: str = "", origin: Callable[[tuple], str] | None = None,
                        model: type[BaseModel] | None = None, owner: str | None = None) -> str:
     """One line for all of ``exc``'s errors: ``[origin: ]key: message`` joined by '; '.
 
@@ -480,7 +480,7 @@ def config_from_dict(data: dict, source: str = "config", origin: Callable[[tuple
     try:
         cfg = CaptureConfig.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_format_validation(exc, origin=origin)) from None
+        raise ConfigError(format_validation(exc, origin=origin)) from None
     cfg.scene.params(origin)  # validate the scene's and the application's own keys now, not halfway through a run
     cfg.app.resolve(cfg.capture.protocol, origin)
     return cfg

@@ -12,7 +12,7 @@ video: a timeline in, reads out.
 
 Applications that compare their capture with other ways of taking the same picture (the burst's
 conventional burst and long exposure, the video's alternating-exposure frames) need the same
-pipeline as :func:`mbcapture.capture.run_capture` without its outputs: plan the strata of the
+pipeline as :func:`mbcapture.pipeline.capture_in_memory`: plan the strata of the
 timeline by image motion (camera shake included), render them with the run's renderer (render
 cache shared), accumulate bucket electrons and simulate the sensor's reads. The samples per pixel
 are given (usually the run's own, chosen by its noise budget): no second pilot.

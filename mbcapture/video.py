@@ -7,7 +7,7 @@ Frame i is the configured capture (any protocol and application) started at
 ``capture.start_s + i / capture.frame_rate_hz``; after it, the sensor needs ``sensor.frame_readout_s``
 to read out, so a frame period shorter than the capture's span plus the readout is refused (a
 ConfigError naming ``capture.frame_rate_hz``). Every frame goes through the single-capture pipeline
-(:func:`mbcapture.capture.run_capture`) with the run's renderer and render cache: renders that
+(:func:`mbcapture.pipeline.capture_in_memory`) with the run's renderer and render cache: renders that
 frames share (a static scene, a pilot) are rendered once; frames at different times are different
 renders. Frame i's config is the run's with ``capture.frames: 1``, its own ``capture.start_s`` and its
 own ``sensor.noise_seed`` (a child of the run's), so one frame can be re-run alone; with
@@ -203,7 +203,7 @@ def measured_track(truth: np.ndarray, mask: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- run
 @dataclass
 class VideoFrames:
-    """What a video run adds to its first frame's :class:`~mbcapture.capture.CaptureResult`."""
+    """What a video run adds to its first frame's :class:`~mbcapture.pipeline.CaptureResult`."""
 
     frames: list = field(default_factory=list)  # CaptureResult per frame
     alternating_radiance: np.ndarray | None = None  # (F, H, W, C)

@@ -144,3 +144,30 @@ def test_main_and_comparison_captures_share_one_sensor_stage_and_storage_rule():
         for got in (main[k].mean(), comparison[k].mean()):
             assert abs(got - expected) <= 6 * np.sqrt(max(expected, 1.0) / n), (k, got, expected)
     assert np.all(main[1] == 0) and np.all(comparison[1] == 0)
+
+
+def test_docs_architecture_names_every_module_of_the_contract():
+    """docs/architecture.md is the record of the layout: every module or package of the layers
+    contract has a row in its table, and every top-level module of the package is in the contract."""
+    import tomllib
+
+    layers = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"][0]["layers"]
+    in_contract = {m.strip().removeprefix("mbcapture.") for layer in layers for m in layer.split("|")}
+    top_level = {p.stem for p in PACKAGE.glob("*.py") if p.stem != "__init__"} | \
+        {p.parent.name for p in PACKAGE.glob("*/__init__.py")}
+    assert top_level - in_contract == set(), "modules outside the layers contract"
+    doc = (ROOT / "docs" / "architecture.md").read_text()
+    rows = {cell.strip("` /") for line in doc.splitlines() if line.startswith("| `")
+            for cell in line.split("|")[1].split(",")}
+    assert in_contract - {"__main__"} - rows == set(), "modules without a row in docs/architecture.md"
+
+
+def test_no_private_name_is_imported_across_modules():
+    """A name another module needs is public: no ``from mbcapture.x import _name``."""
+    found = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("mbcapture")):
+                found += [f"{path.relative_to(ROOT)}:{node.lineno}: {a.name}" for a in node.names
+                          if a.name.startswith("_") and not a.name.startswith("__")]
+    assert found == []

@@ -2,7 +2,7 @@
 
 Each render group (:mod:`.groups`) becomes a small task graph: its first pending point (the
 leader) runs a whole capture, renders through the render cache and returns its render stage
-(:class:`mbcapture.capture.Rendered`); every other point of the group is a task that depends on
+(:class:`mbcapture.pipeline.Rendered`); every other point of the group is a task that depends on
 the leader and runs the capture from the leader's render stage (sensor, reconstruction, metrics).
 Dask moves the leader's arrays to whichever worker runs a follower and frees them when the last
 one is done. Render groups run in parallel on different workers.

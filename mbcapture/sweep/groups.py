@@ -1,6 +1,6 @@
 """Render groups: the points of a sweep whose render stage is provably the same.
 
-A capture's render stage (:class:`mbcapture.capture.Rendered`: the pilot, the strata's renders and
+A capture's render stage (:class:`mbcapture.pipeline.Rendered`: the pilot, the strata's renders and
 their accumulation into bucket exposures) is a function of what the code hands it, and this module
 computes exactly those arguments from each point's config, with the functions the capture itself
 calls, instead of a list of "render keys" that could drift:
@@ -8,7 +8,7 @@ calls, instead of a list of "render keys" that could drift:
 * the renderer: the scene and its parameters, the film, variant, path depth and sampler (the
   ``render`` section), and in spectral mode the film's curves (``sensor.spectral_response`` and
   ``quantum_efficiency`` through :func:`mbcapture.sensor.spectral.film_sensitivity`);
-* the plan (:func:`mbcapture.capture.prepare`): strata, render times, weights, the groups rendered
+* the plan (:func:`mbcapture.pipeline.prepare`): strata, render times, weights, the groups rendered
   in each stratum, the buckets read, samples per pixel, estimator; so ``capture.*`` keys, and the
   ``sensor.*`` keys a protocol reads (``bucket_count``, ``frame_readout_s`` of a sequential capture),
   count exactly where they change the plan;
@@ -89,7 +89,7 @@ def render_inputs(cfg: CaptureConfig, *, accumulation: bool = True) -> dict:
 
         wl, curves = film_sensitivity(cfg.sensor)
         out["film_curves"] = [_array(np.asarray(wl, np.float64)), _array(np.asarray(curves, np.float64))]
-    if cfg.render.spp is None:  # mbcapture.plan.resolve_spp: samples from the sensor's shot noise
+    if cfg.render.spp is None:  # mbcapture.budget.resolve_spp: samples from the sensor's shot noise
         out["pilot"] = {"k_e": _array(np.asarray(electrons_per_render_second(cfg.sensor, cfg.render.variant))),
                         "full_well_e": repr(float(cfg.sensor.full_well_e))}
     elif not accumulation:  # integrate renders, per stratum, the groups with weight in it

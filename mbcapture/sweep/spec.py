@@ -52,7 +52,7 @@ from pydantic import (
 from ..config import (
     SHIPPED_CONFIG_DIR,
     CaptureConfig,
-    _format_validation,
+    format_validation,
     load_config,
     parse_override,
     resolve_config_path,
@@ -302,7 +302,7 @@ def _read_spec(path: Path) -> SweepSpec:
     try:
         return SweepSpec.model_validate(data)
     except ValidationError as exc:
-        raise ConfigError(_format_validation(exc, origin=lambda p: str(path), model=SweepSpec)) from None
+        raise ConfigError(format_validation(exc, origin=lambda p: str(path), model=SweepSpec)) from None
 
 
 def _base_path(spec: SweepSpec, path: Path) -> Path:
