@@ -254,3 +254,26 @@ def test_poisson_memo_returns_the_same_draw_and_only_for_the_same_field_and_mean
         poisson_quantile_memo(u, lam + i + 1)
     poisson_quantile_memo(u, lam)
     assert POISSON_MEMO.misses == 3 + POISSON_MEMO.entries + 2
+
+
+@pytest.mark.parametrize("law", ["poisson", "binomial"])
+def test_inverting_in_chunks_gives_the_same_counts(monkeypatch, law):
+    """The inversion is per lane: chunks of 7 lanes (CHUNK_LANES) give the counts of one pass, bit for
+    bit, on means from 0 to beyond the exact range, both tails, and u at its extremes."""
+    import mbcapture.sensor.sampling as sampling
+
+    rng = np.random.default_rng(11)
+    mean = np.concatenate([[0.0, 1e-9, 0.3, 5.0, 1e3, 2.0**51], rng.uniform(0, 50, 200), 10 ** rng.uniform(-2, 7, 198)])
+    u = np.concatenate([[1e-300, 0.5, 1 - 2**-53, 1e-17, 0.999999, 0.3], rng.random(398)])
+    shape = (4, 101)  # not a multiple of the chunk
+    mean, u = mean.reshape(shape), u.reshape(shape)
+    if law == "poisson":
+        whole = sampling.poisson_quantile(u, mean)
+        monkeypatch.setattr(sampling, "CHUNK_LANES", 7)
+        chunked = sampling.poisson_quantile(u, mean)
+    else:
+        n = np.floor(np.minimum(mean, 1e6))
+        whole = sampling.binomial_quantile(u, n, 0.013)
+        monkeypatch.setattr(sampling, "CHUNK_LANES", 7)
+        chunked = sampling.binomial_quantile(u, n, 0.013)
+    assert chunked.shape == shape and np.array_equal(chunked, whole)

@@ -215,6 +215,23 @@ def poisson_pmf(k: np.ndarray, mean: np.ndarray) -> np.ndarray:
 _HALF_LOG_2PI = 0.5 * np.log(2.0 * np.pi)
 
 
+#: Lanes inverted at a time. The inversion is per lane (each count depends on its own u and mean
+#: only), so inverting in chunks gives the same counts while its dozen temporaries stay near
+#: 12 x 8 MB whatever the film: the sensor stage's memory no longer grows with them.
+CHUNK_LANES = 1 << 20
+
+
+def _chunked(fn: Callable[..., np.ndarray], u: np.ndarray, *per_lane: np.ndarray) -> np.ndarray:
+    """``fn(u, *per_lane)`` over 1-D lanes, CHUNK_LANES at a time."""
+    if u.size <= CHUNK_LANES:
+        return fn(u, *per_lane)
+    out = np.empty(u.size)
+    for a in range(0, u.size, CHUNK_LANES):
+        b = min(a + CHUNK_LANES, u.size)
+        out[a:b] = fn(u[a:b], *(x[a:b] for x in per_lane))
+    return out
+
+
 def poisson_quantile(u: np.ndarray, mean: np.ndarray) -> np.ndarray:
     """Poisson counts by exact inversion: the smallest k with P(X <= k; mean) >= u.
 
@@ -222,8 +239,11 @@ def poisson_quantile(u: np.ndarray, mean: np.ndarray) -> np.ndarray:
     broadcast shape. Means above :data:`POISSON_EXACT_MAX` get the rounded Cornish-Fisher quantile.
     """
     u, lam = np.broadcast_arrays(np.asarray(u, np.float64), np.asarray(mean, np.float64))
-    shape = u.shape
-    u, lam = u.ravel(), lam.ravel()
+    return _chunked(_poisson_lanes, u.ravel(), lam.ravel()).reshape(u.shape)
+
+
+def _poisson_lanes(u: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """:func:`poisson_quantile` on 1-D lanes."""
     out = np.zeros(u.size)
     z = special.ndtri(u)
     big = lam > POISSON_EXACT_MAX
@@ -240,7 +260,7 @@ def poisson_quantile(u: np.ndarray, mean: np.ndarray) -> np.ndarray:
             pmf=lambda k, i: poisson_pmf(k, lm[i]),
             ratio_up=lambda k, i: lm[i] / (k + 1.0),
         )
-    return out.reshape(shape)
+    return out
 
 
 def binomial_quantile(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
@@ -250,13 +270,16 @@ def binomial_quantile(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
     integer counts of the broadcast shape.
     """
     u, n = np.broadcast_arrays(np.asarray(u, np.float64), np.asarray(n, np.float64))
-    shape = u.shape
-    u, n = u.ravel(), n.ravel()
-    out = np.zeros(u.size)
     if p <= 0.0:
-        return out.reshape(shape)
+        return np.zeros(u.shape)
     if p >= 1.0:
-        return n.copy().reshape(shape)
+        return n.copy()
+    return _chunked(lambda uu, nn: _binomial_lanes(uu, nn, p), u.ravel(), n.ravel()).reshape(u.shape)
+
+
+def _binomial_lanes(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
+    """:func:`binomial_quantile` on 1-D lanes, 0 < p < 1."""
+    out = np.zeros(u.size)
     # P(X != 0) <= n p and P(X != n) <= n (1 - p): below 2^-60 no u in (0, 1) reaches them (u's grid is
     # 2^-53; also keeps scipy's beta functions away from subnormal p, where they overflow)
     out[n * (1.0 - p) < 2.0**-60] = n[n * (1.0 - p) < 2.0**-60]
@@ -276,7 +299,7 @@ def binomial_quantile(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
             ratio_up=lambda k, i: np.maximum(nn[i] - k, 0.0) / (k + 1.0) * odds,
             upper=nn,
         )
-    return out.reshape(shape)
+    return out
 
 
 class _DrawMemo:
