@@ -103,6 +103,14 @@ class App:
     params: type[BaseModel] = NoParams
     per_group: bool = False
     description: str = ""
+    #: At most this many float channels in the application's EXRs (3 per RGB image), this many PNG
+    #: previews, and this much memory (MB) its own libraries add: the run's resource plan
+    #: (mbcapture.resources); tests/test_docs_and_configs.py holds them to every shipped config.
+    output_channels: int = 36
+    previews: int = 8
+    libraries_mb: float = 0.0
+    #: The application's peak working set over a plain capture's (its own comparison captures).
+    memory_scale: float = 1.0
 
 
 _REGISTRY: dict[str, App] = {}
@@ -111,12 +119,16 @@ APPS_DIR = Path(__file__).resolve().parent / "apps"
 _loaded = False
 
 
-def register(name: str, *, params: type[BaseModel] = NoParams, per_group: bool = False, description: str = ""):
+def register(name: str, *, params: type[BaseModel] = NoParams, per_group: bool = False, description: str = "",
+             output_channels: int = 36, previews: int = 8, libraries_mb: float = 0.0, memory_scale: float = 1.0):
     """Decorator: ``fn(data: CaptureData, params) -> AppOutput`` is application ``name``.
-    ``per_group``: the reconstruction or its metrics need ``CaptureData.group_exposure``."""
+    ``per_group``: the reconstruction or its metrics need ``CaptureData.group_exposure``.
+    ``output_channels``, ``previews``, ``libraries_mb``, ``memory_scale``: what its outputs, libraries
+    and working set take (see :class:`App`)."""
 
     def deco(fn):
-        _REGISTRY[name] = App(name, fn, params, per_group, description or (fn.__doc__ or "").strip().split("\n")[0])
+        _REGISTRY[name] = App(name, fn, params, per_group, description or (fn.__doc__ or "").strip().split("\n")[0],
+                              output_channels, previews, libraries_mb, memory_scale)
         return fn
 
     return deco

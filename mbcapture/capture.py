@@ -7,9 +7,11 @@ previews, report.json and report.html.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Callable
 
+from . import resources
 from .budget import noise_verdict
 from .config import CaptureConfig
 from .io import check_out_dir, staged_outputs
@@ -36,6 +38,16 @@ def render_summary(report: dict) -> list[str]:
     return out
 
 
+def check_resources(cfg: CaptureConfig, out_dir: Path | None) -> resources.Resources:
+    """Plan the run's memory and disk and stop it, before any work, when it cannot fit
+    (:func:`mbcapture.resources.check`: one line, exit 2)."""
+    _, timeline, plan, _ = prepare(cfg)
+    need = resources.estimate(cfg, timeline, plan, cfg.app.resolve(cfg.capture.protocol)[0])
+    cache = render_cache(cfg.render)
+    resources.check(need, cfg, out_dir, None if cache is None else cache.root)
+    return need
+
+
 def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True,
                 rendered: Rendered | None = None,
                 on_rendered: "Callable[[Rendered], None] | None" = None) -> CaptureResult:
@@ -46,6 +58,9 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     the sensor, so it is called even if a later stage fails)."""
     if out_dir is not None:
         check_out_dir(Path(out_dir))
+    need = check_resources(cfg, None if out_dir is None else Path(out_dir))
+    if progress:
+        print(f"mbcapture: this run {need.line()}", file=sys.stderr)
     if cfg.capture.frames > 1:  # a video: a capture per frame (mbcapture/video.py)
         result = run_video(cfg, progress=progress)
         if out_dir is not None:

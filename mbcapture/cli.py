@@ -15,7 +15,7 @@ import warnings
 from pathlib import Path
 
 from . import application as apps
-from . import converge, figures, protocols, scenes
+from . import converge, figures, protocols, resources, scenes
 from .budget import probe_cost, resolve_spp
 from .capture import describe, prepare, render_cache, render_summary, run_capture
 from .config import load_config
@@ -166,6 +166,10 @@ def _cmd_plan(args) -> int:
               f"({s['renders']} renders x {c['c0_s'] * 1e3:.1f} ms + {c['c1_s_per_spp'] * 1e3:.2f} ms per spp; "
               f"kernel compilation ~{c['compile_s']:.1f} s)")
     print(f"image motion during the capture: {s['image_motion_px_total']:.2f} px (at most {s['max_motion_px']} px per stratum)")
+    r, (free, source) = info["resources"], resources.free_memory()
+    print(f"resources: peak memory about {r['peak_memory_gb']:.3g} GB ({free / 2**30:.3g} GB free: {source}), outputs "
+          f"about {r['outputs_mb']:.3g} MB" + (f", new render-cache entries about {r['render_cache_mb']:.3g} MB"
+                                               if r["render_cache_mb"] else ""))
     for n in s["notes"]:
         print(f"note: {n}")
     return 0

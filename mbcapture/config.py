@@ -123,6 +123,10 @@ class RenderSection(_Model):
         "(in spectral mode the sensor's spectral response and QE shape the film and do count). `mbcapture cache "
         "info | clear`.",
     )
+    max_memory_gb: float | None = Field(
+        None, gt=0, description="Refuse, before any work, a run whose planned peak memory exceeds this many GB "
+        "(mbcapture plan prints the plan); null: only the machine's free memory limits it.",
+    )
     cache_max_gb: float = Field(
         20.0, gt=0, description="Size cap of the render cache in GB (10^9 bytes); beyond it the least recently used renders are removed."
     )

@@ -13,6 +13,11 @@ class EnvironmentProblem(MBCaptureError):
     """The machine lacks something (e.g. a usable libLLVM); the message names the fix."""
 
 
+class ResourceProblem(MBCaptureError):
+    """A run does not fit the machine (memory, disk); the message says what it needs, what is free
+    and what to change. Raised before any work."""
+
+
 class ConfigNotice(UserWarning):
     """Not an error: the config was changed in a way the user should know of (e.g. ``--set
     scene.name=...`` dropped the old scene's keys). The CLI prints it as ``mbcapture: note: ...``."""

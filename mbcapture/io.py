@@ -9,6 +9,7 @@ the next run into the same folder removes it (:func:`remove_stale_staging`).
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -175,8 +176,31 @@ def staged_outputs(out: Path) -> Iterator[Staging]:
         with _signals_deferred():
             for name in staging.names:
                 os.replace(root / name, out / name)
+    except (OSError, RuntimeError) as exc:
+        reason = _write_failure(exc)
+        if reason is None:
+            raise
+        raise OutputError(f"--out {out}: writing the outputs failed ({reason}); nothing was replaced, the previous "
+                          "output is kept") from None
     finally:
         shutil.rmtree(root, ignore_errors=True)
+
+
+#: errno values of a write that the disk, not the program, refused.
+_DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS}
+
+
+def _write_failure(exc: BaseException) -> str | None:
+    """Why a write failed, when the file system refused it (disk full, quota, read-only, I/O
+    error); None for anything else (a bug is not turned into a one-line message). OpenEXR reports
+    such failures as a RuntimeError naming the system's message."""
+    if isinstance(exc, OSError) and exc.errno in _DISK_ERRNOS:
+        return exc.strerror or str(exc)
+    if isinstance(exc, RuntimeError):
+        for e in _DISK_ERRNOS:
+            if os.strerror(e) in str(exc):
+                return os.strerror(e)
+    return None
 
 
 def _json_default(obj):

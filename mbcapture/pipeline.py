@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from . import camera_motion, protocols, scenes
+from . import camera_motion, protocols, resources, scenes
 from .application import AppOutput, CaptureData
 from .budget import noise_verdict, render_error, resolve_spp
 from .config import CaptureConfig, scene_of
@@ -161,6 +161,7 @@ def describe(cfg: CaptureConfig, timeline: Timeline, plan: Plan) -> dict:
         "capture_span_s": float(timeline.seconds(timeline.end_tick - timeline.start_tick)),
         "reads": timeline.describe_reads(),
         "plan": plan.summary(timeline),
+        "resources": resources.estimate(cfg, timeline, plan, cfg.app.resolve(cfg.capture.protocol)[0]).summary(),
     }
 
 

@@ -51,6 +51,13 @@ def test_shipped_config_runs_at_tiny_size(path, tmp_path):
         assert (np.isfinite(img) | invalid).all(), name
     for image, _ in result.app_output.png.values():  # every preview names an image that exists
         assert image in result.images
+    # the application's declared outputs bound what it writes (the run's resource plan counts on them)
+    from mbcapture import application
+
+    app = application.get(result.app)
+    layers = [*result.app_output.images.values(), *(v for d in result.app_output.extra_exr.values() for v in d.values())]
+    channels = sum(np.asarray(v).shape[-1] if np.asarray(v).ndim == 3 else 1 for v in layers)
+    assert channels <= app.output_channels and len(result.app_output.png) <= app.previews, (channels, app)
     # every application's run has a report.html that opens offline, shows each preview with what it is,
     # and a report.json whose every key docs/report.md explains
     refs = check_report_folder(tmp_path)

@@ -223,7 +223,7 @@ def _burst_result(name: str, rates: np.ndarray, saturated: np.ndarray, timeline,
     return out, images
 
 
-@register("burst", params=BurstParams,
+@register("burst", output_channels=18, previews=6, libraries_mb=200, memory_scale=1.19, params=BurstParams,
           description="back-to-back burst aligned and averaged; vs a conventional burst and one long exposure")
 def reconstruct(data: CaptureData, params: BurstParams) -> AppOutput:
     cfg = data.cfg

@@ -226,7 +226,7 @@ CAPTIONS = {
 }
 
 
-@register("flash_matting", params=FlashMattingParams, per_group=True,
+@register("flash_matting", output_channels=33, previews=8, libraries_mb=180, params=FlashMattingParams, per_group=True,
           description="flash-only image, trimap and alpha matte (app.matting) scored against the rendered coverage")
 def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
     if params.flash_group not in data.switchable:

@@ -201,7 +201,7 @@ CAPTIONS = {
 }
 
 
-@register("flutter_shutter", params=FlutterParams,
+@register("flutter_shutter", output_channels=21, previews=5, memory_scale=2.5, params=FlutterParams,
           description="flutter shutter: coded-exposure deblurring, single code or joint over both buckets, vs box")
 def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
     cfg, tl = data.cfg, data.timeline

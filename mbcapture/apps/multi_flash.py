@@ -416,7 +416,7 @@ CAPTIONS = {
 }
 
 
-@register("multi_flash", params=MultiFlashParams,
+@register("multi_flash", output_channels=28, previews=3, params=MultiFlashParams,
           description="multi-flash: shadow-free max composite and depth edges from ratio images (Raskar 2004)")
 def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
     cfg = data.cfg

@@ -376,7 +376,7 @@ def _scores(xyz: np.ndarray, ref: np.ndarray, masks: np.ndarray, true_xyz: np.nd
     }, de
 
 
-@register("rgb_illumination", params=Params,
+@register("rgb_illumination", output_channels=30, previews=5, libraries_mb=315, params=Params,
           description="colour from R, G, B LEDs in three buckets, ambient subtracted; CIEDE2000 vs a static reference")
 def reconstruct(data: CaptureData, params: Params) -> AppOutput:
     cfg, scene = data.cfg, data.scene

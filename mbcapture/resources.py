@@ -1,0 +1,196 @@
+"""What a capture needs of the machine, planned before any work: peak memory, the disk its outputs
+take, and what its renders add to the render cache; and the check that stops a run which cannot
+fit, with one line saying what it needs, what is free and what to change.
+
+The model counts the arrays the pipeline holds, per sample of the film (row x column x channel):
+
+* memory: a fixed part (the interpreter, numpy/scipy, Mitsuba and Dr.Jit's LLVM backend with its
+  kernels: ``BASE_MEMORY_MB``, plus what an application's own libraries add,
+  ``App.libraries_mb``), and the working set: ``FLOAT64_PER_BUCKET_SAMPLE`` float64 values per
+  sample of each bucket (the exposures, their two halves and the per-group exposures held from
+  the render stage, the sensor stage's noise fields and counts; the Poisson and binomial
+  inversions work in chunks of bounded size), times ``App.memory_scale`` for an application that
+  simulates comparison captures of its own. A video holds every frame's results.
+* outputs: the float32 EXRs (buckets, expected and simulated reads, the application's
+  ``App.output_channels``) and the PNG previews, each at the compression ZIP and PNG reach on such
+  images (``EXR_RATIO_*``, ``PNG_RATIO``).
+* render cache: one float32 (group, row, column, RGB) array per render (two halves per stratum,
+  and the pilot's), when the cache is on.
+
+The constants were fitted to the peak resident memory and the bytes written of the shipped
+configs at 320x256 and 640x512 (``python scripts/resources.py`` measures them again and prints the
+model's error per config; docs/resources.md has the table): within 20 % of the measured memory and
+outputs at 640x512.
+"""
+
+from __future__ import annotations
+
+import resource
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from .application import App
+from .config import CaptureConfig
+from .errors import ResourceProblem
+from .plan import Plan
+from .timeline import Timeline
+
+MB = 1 << 20
+GB = 1 << 30
+
+#: Resident memory before the first array: Python, numpy/scipy, Mitsuba, Dr.Jit's LLVM and kernels.
+BASE_MEMORY_MB = 285.0
+#: Peak float64 values per sample of each bucket (fitted: the reads add nothing measurable).
+FLOAT64_PER_BUCKET_SAMPLE = 15.8
+#: Compressed / raw size of float32 EXR layers (ZIP): noise-free floats to about 3/4, integer DN to under half.
+EXR_RATIO_EXPECTED = 0.75
+EXR_RATIO_DN = 0.45
+EXR_RATIO_APP = 0.65
+#: Compressed / raw size of an 8-bit RGB PNG preview of a rendered scene.
+PNG_RATIO = 0.5
+#: report.html, report.json, config.yaml and the two report plots, whatever the film.
+REPORT_BYTES = 120_000
+#: The render pilot (render.spp null): PILOT_TIMES strata x two sample counts x two renders.
+PILOT_RENDERS = 12
+#: A run is refused when its estimate exceeds what is free by more than the estimate's error.
+MARGIN = 1.2
+
+
+@dataclass(frozen=True)
+class Resources:
+    """Bytes a capture needs: peak resident memory, its outputs in --out, new render-cache entries."""
+
+    memory_bytes: int
+    output_bytes: int
+    cache_bytes: int
+
+    def summary(self) -> dict:
+        return {"peak_memory_gb": round(self.memory_bytes / GB, 3), "outputs_mb": round(self.output_bytes / MB, 2),
+                "render_cache_mb": round(self.cache_bytes / MB, 2)}
+
+    def line(self) -> str:
+        return (f"needs about {_size(self.memory_bytes)} of memory, {_size(self.output_bytes)} for its outputs"
+                + (f" and {_size(self.cache_bytes)} of new render-cache entries" if self.cache_bytes else ""))
+
+
+def _size(n: float) -> str:
+    return f"{n / GB:.3g} GB" if n >= GB else f"{n / MB:.3g} MB"
+
+
+def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> Resources:
+    """The resources of the capture ``cfg`` with its ``timeline``, render ``plan`` and application."""
+    px = cfg.render.width * cfg.render.height
+    samples = px * 3
+    K, R = timeline.n_buckets, len(timeline.reads)
+    frames = cfg.capture.frames
+    per_frame = 8.0 * samples * FLOAT64_PER_BUCKET_SAMPLE * K * app.memory_scale
+    held = 8.0 * samples * (2 * K + 2 * R) + 4.0 * px * app.output_channels  # a finished frame's arrays
+    memory = (BASE_MEMORY_MB + app.libraries_mb) * MB + per_frame + (frames - 1) * held
+
+    exr = 4.0 * px * (3 * (K + R) * EXR_RATIO_EXPECTED + 3 * R * EXR_RATIO_DN
+                      + frames * app.output_channels * EXR_RATIO_APP)
+    pngs = app.previews + 2 * R + 3  # the application's, each read on two scales, three maps
+    outputs = exr + 3.0 * px * PNG_RATIO * pngs + REPORT_BYTES
+
+    cache = 0.0
+    if cfg.render.cache != "off":
+        renders = frames * (2 * plan.passes + (PILOT_RENDERS if cfg.render.spp is None else 0))
+        cache = min(renders * 4.0 * px * 3 * max(len(plan.groups), 1), cfg.render.cache_max_gb * GB)
+    return Resources(int(memory), int(outputs), int(cache))
+
+
+# ----------------------------------------------------------------------------- what is free
+def _meminfo_kb(field: str) -> int | None:
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def _status_kb(field: str) -> int:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+def _cgroup_headroom() -> int | None:
+    """Bytes the cgroup (v2) still allows this process tree, or None without a limit."""
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+    except (OSError, ValueError):
+        return None
+    return None if limit == "max" else int(limit) - used
+
+
+def free_memory() -> tuple[int, str]:
+    """(bytes, where from) this process can still hold resident, counting what it holds now: the
+    smallest of the kernel's MemAvailable, the cgroup's limit and the address-space limit (ulimit -v)."""
+    rss = _status_kb("VmRSS") * 1024
+    options: list[tuple[int, str]] = []
+    avail = _meminfo_kb("MemAvailable")
+    if avail is not None:
+        options.append((avail * 1024 + rss, "available memory"))
+    cg = _cgroup_headroom()
+    if cg is not None:
+        options.append((cg + rss, "the cgroup's memory limit"))
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        options.append((soft - _status_kb("VmSize") * 1024 + rss, "the address-space limit (ulimit -v)"))
+    if not options:
+        return (1 << 62, "unknown")
+    return min(options)
+
+
+def free_disk(path: Path) -> int:
+    """Free bytes on the file system of ``path`` (or of its nearest existing parent)."""
+    p = Path(path).absolute()
+    while not p.exists():
+        p = p.parent
+    return shutil.disk_usage(p).free
+
+
+def check(need: Resources, cfg: CaptureConfig, out_dir: Path | None, cache_root: Path | None) -> None:
+    """ResourceProblem (one line, exit 2) when the run cannot fit: its memory (with MARGIN, the
+    estimate's error) above what is free or above ``render.max_memory_gb``; its outputs above the
+    free disk of ``out_dir``; its new render-cache entries above the free disk of ``cache_root``."""
+    film = f"film {cfg.render.width}x{cfg.render.height}"
+    cap = cfg.render.max_memory_gb
+    if cap is not None and need.memory_bytes > cap * GB:
+        raise ResourceProblem(f"render.max_memory_gb: this run needs about {_size(need.memory_bytes)} of memory "
+                              f"({film}), above the cap of {cap:g} GB; use a smaller film (render.width, "
+                              "render.height) or raise the cap")
+    free, source = free_memory()
+    if need.memory_bytes * MARGIN > free:
+        raise ResourceProblem(f"render.width/height: this run needs about {_size(need.memory_bytes)} of memory "
+                              f"({film}) but {_size(free)} is free ({source}); use a smaller film")
+    if out_dir is not None:
+        disk = free_disk(out_dir)
+        if need.output_bytes * MARGIN > disk:
+            raise ResourceProblem(f"--out {out_dir}: the outputs need about {_size(need.output_bytes)} but "
+                                  f"{_size(disk)} is free on that disk; free some space, choose another --out "
+                                  "or a smaller film")
+    if cache_root is not None and need.cache_bytes:
+        disk = free_disk(cache_root)
+        if need.cache_bytes * MARGIN > disk:
+            raise ResourceProblem(f"render.cache: the renders need about {_size(need.cache_bytes)} in {cache_root} "
+                                  f"but {_size(disk)} is free there; set render.cache: off, another folder, or "
+                                  "free some space")
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident memory so far (Linux ru_maxrss is in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+__all__ = ["Resources", "check", "estimate", "free_disk", "free_memory", "peak_rss_bytes"]

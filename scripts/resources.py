@@ -1,0 +1,77 @@
+"""Measure what runs use of the machine against what `mbcapture plan` says they need.
+
+    python scripts/resources.py [--configs metronome_hdr,flash_matting] [--sizes 320x256,640x512] [--spp 4]
+
+For each config and film size: the planned peak memory and output size (mbcapture.resources), and
+a real `mbcapture run` in a child process (render cache off, fixed spp): its peak resident memory
+(the child's ru_maxrss) and the bytes it wrote to --out. Prints the ratio measured / planned for
+each, and the per-pixel slope of the memory between the first two sizes (what the constants of
+mbcapture/resources.py were fitted to; docs/resources.md has the table).
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mbcapture import load_config, resources  # noqa: E402
+from mbcapture.pipeline import prepare  # noqa: E402
+
+
+def planned(config: Path, w: int, h: int, spp: int) -> resources.Resources:
+    cfg = load_config(config, [f"render.width={w}", f"render.height={h}", f"render.spp={spp}", "render.cache=off"])
+    _, timeline, plan, _ = prepare(cfg)
+    return resources.estimate(cfg, timeline, plan, cfg.app.resolve(cfg.capture.protocol)[0])
+
+
+def measured(config: Path, w: int, h: int, spp: int) -> tuple[float, float]:
+    """(peak RSS bytes, bytes written) of one run in a child process."""
+    child = ("import resource, sys; from mbcapture import load_config, run_capture; "
+             "cfg = load_config(sys.argv[1], sys.argv[3:]); run_capture(cfg, sys.argv[2], progress=False); "
+             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)")
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "out"
+        proc = subprocess.run([sys.executable, "-c", child, str(config), str(out), f"render.width={w}",
+                               f"render.height={h}", f"render.spp={spp}", "render.cache=off"],
+                              capture_output=True, text=True, cwd=ROOT)
+        if proc.returncode != 0:
+            raise SystemExit(f"{config.name} {w}x{h} failed:\n{proc.stderr[-2000:]}")
+        written = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+        shutil.rmtree(out, ignore_errors=True)
+    return float(proc.stdout.strip().splitlines()[-1]), float(written)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--configs", default="metronome_hdr,flash_no_flash,flash_matting,multi_flash,structured_light,"
+                                         "moving_light,rgb_illumination,flutter_shutter,burst")
+    ap.add_argument("--sizes", default="320x256,640x512")
+    ap.add_argument("--spp", type=int, default=4)
+    args = ap.parse_args()
+    sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
+    print(f"{'config':20s} {'film':>9s} {'memory MB':>10s} {'planned':>8s} {'ratio':>6s} {'outputs MB':>11s} "
+          f"{'planned':>8s} {'ratio':>6s} {'slope B/px':>10s}")
+    for name in args.configs.split(","):
+        config = ROOT / "configs" / f"{name}.yaml"
+        rows = []
+        for w, h in sizes:
+            need = planned(config, w, h, args.spp)
+            rss, written = measured(config, w, h, args.spp)
+            rows.append((w * h, rss))
+            slope = (rss - rows[0][1]) / (w * h - rows[0][0]) if len(rows) > 1 else float("nan")
+            print(f"{name:20s} {f'{w}x{h}':>9s} {rss / 2**20:10.0f} {need.memory_bytes / 2**20:8.0f} "
+                  f"{rss / need.memory_bytes:6.2f} {written / 2**20:11.2f} {need.output_bytes / 2**20:8.2f} "
+                  f"{written / need.output_bytes:6.2f} {slope:10.0f}", flush=True)
+    print(f"(this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB)")
+
+
+if __name__ == "__main__":
+    main()
