@@ -189,8 +189,10 @@ def check(need: Resources, cfg: CaptureConfig, out_dir: Path | None, cache_root:
 
 
 def peak_rss_bytes() -> int:
-    """This process's peak resident memory so far (Linux ru_maxrss is in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    """This process's peak resident memory so far: VmHWM of /proc/self/status (getrusage's ru_maxrss
+    is no measure of it in a child process: Linux carries the high-water mark of the memory a
+    process was started from across exec, the parent's own where it forks by vfork)."""
+    return _status_kb("VmHWM") * 1024
 
 
 __all__ = ["Resources", "check", "estimate", "free_disk", "free_memory", "peak_rss_bytes"]

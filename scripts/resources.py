@@ -4,15 +4,14 @@
 
 For each config and film size: the planned peak memory and output size (mbcapture.resources), and
 a real `mbcapture run` in a child process (render cache off, fixed spp): its peak resident memory
-(the child's ru_maxrss) and the bytes it wrote to --out. Prints the ratio measured / planned for
-each, and the per-pixel slope of the memory between the first two sizes (what the constants of
+(the child's VmHWM: getrusage's ru_maxrss carries the parent's across exec) and the bytes it wrote
+to --out. Prints the ratio measured / planned for each, and the per-pixel slope of the memory between the first two sizes (what the constants of
 mbcapture/resources.py were fitted to; docs/resources.md has the table).
 """
 
 from __future__ import annotations
 
 import argparse
-import resource
 import shutil
 import subprocess
 import sys
@@ -36,7 +35,7 @@ def measured(config: Path, w: int, h: int, spp: int) -> tuple[float, float]:
     """(peak RSS bytes, bytes written) of one run in a child process."""
     child = ("import resource, sys; from mbcapture import load_config, run_capture; "
              "cfg = load_config(sys.argv[1], sys.argv[3:]); run_capture(cfg, sys.argv[2], progress=False); "
-             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)")
+             "from mbcapture.resources import peak_rss_bytes; print(peak_rss_bytes())")
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out"
         proc = subprocess.run([sys.executable, "-c", child, str(config), str(out), f"render.width={w}",
@@ -70,7 +69,7 @@ def main() -> None:
             print(f"{name:20s} {f'{w}x{h}':>9s} {rss / 2**20:10.0f} {need.memory_bytes / 2**20:8.0f} "
                   f"{rss / need.memory_bytes:6.2f} {written / 2**20:11.2f} {need.output_bytes / 2**20:8.2f} "
                   f"{written / need.output_bytes:6.2f} {slope:10.0f}", flush=True)
-    print(f"(this process: {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB)")
+    print(f"(this process: {resources.peak_rss_bytes() / 2**20:.0f} MiB)")
 
 
 if __name__ == "__main__":

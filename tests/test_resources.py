@@ -4,7 +4,6 @@ cannot fit stopped with one line, and a write the disk refuses ending with one l
 from __future__ import annotations
 
 import errno
-import resource
 import subprocess
 import sys
 from pathlib import Path
@@ -57,7 +56,7 @@ def test_the_plan_is_within_20_percent_of_a_real_run():
     over = ["render.width=320", "render.height=256", "render.spp=4", "render.cache=off"]
     child = ("import resource, sys; from mbcapture import load_config, run_capture; "
              "run_capture(load_config(sys.argv[1], sys.argv[3:]), sys.argv[2], progress=False); "
-             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)")
+             "from mbcapture.resources import peak_rss_bytes; print(peak_rss_bytes())")
     out = ROOT / "out" / "test-resources-run"
     proc = subprocess.run([sys.executable, "-c", child, str(HDR), str(out), *over], capture_output=True, text=True,
                           cwd=ROOT, timeout=600)
