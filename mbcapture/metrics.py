@@ -136,3 +136,18 @@ def pu21_psnr(
     xs, ys = _selected(x_cd_m2, y_cd_m2, mask)
     peak = float(pu21_encode(np.array(PU21_L_MAX_CD_M2), variant))
     return psnr(pu21_encode(xs, variant), pu21_encode(ys, variant), peak=peak)
+
+
+def row_column_pixel_variances(image: np.ndarray) -> tuple[float, float, float]:
+    """EMVA 1288 Release 4.0's split of an image's spatial variance into row, column and pixel
+    components, for (H, W) ``image`` = a_i + b_j + e_ij (row, column and pixel parts): the row means
+    vary as s_r^2 + s_p^2 / W, the column means as s_c^2 + s_p^2 / H and the image as
+    s_r^2 + s_c^2 + s_p^2; solved for (s_r^2, s_c^2, s_p^2). For a fixed-pattern map, take the mean
+    of many frames (their temporal noise then adds its variance / frames to the components)."""
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim != 2 or min(img.shape) < 2:
+        raise ValueError(f"image: expected (H, W) with H, W >= 2, got {img.shape}")
+    H, W = img.shape
+    v_rows, v_cols, v_all = img.mean(axis=1).var(ddof=1), img.mean(axis=0).var(ddof=1), img.var(ddof=1)
+    pixel = (v_all - v_rows - v_cols) / (1.0 - 1.0 / W - 1.0 / H)
+    return float(v_rows - pixel / W), float(v_cols - pixel / H), float(pixel)

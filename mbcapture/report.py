@@ -191,6 +191,10 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
                    f"{s.full_well_e:g} e- per bucket, floating diffusion {s.fd_full_well_e:g} e-, read noise "
                    f"{s.read_noise_e:g} e-, gain {s.gain_dn_per_e:g} DN/e-, {s.adc_bits}-bit ADC, black level "
                    f"{s.black_level_dn:g} DN"],
+        ["fixed pattern and row noise", f"PRNU {100 * s.prnu:g} % per pixel, {100 * s.prnu_row:g} % per row, "
+                                        f"{100 * s.prnu_col:g} % per column; DSNU {s.dsnu_e:g} e- per pixel, "
+                                        f"{s.dsnu_row_e:g} e- per row, {s.dsnu_col_e:g} e- per column; temporal row "
+                                        f"noise {s.read_noise_row_e:g} e- (sensor.fpn_seed {s.fpn_seed})"],
         ["film", f"{rep['film'][0]} x {rep['film'][1]} px, variant {cfg.render.variant}"],
         ["capture span", f"{rep['capture_span_s'] * 1e3:.6g} ms, {cfg.capture.periods} periods"],
         ["rendering", f"{plan['passes']} passes (time strata) x {result.plan.spp_label()} spp "

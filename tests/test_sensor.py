@@ -479,3 +479,66 @@ def test_the_sensor_stage_hook_sees_each_input_and_can_simulate_another():
     assert np.array_equal(simulate_reads(e, reads, cfg, np.random.SeedSequence(5), **kw).reads_dn, plain.reads_dn)
     with sensor_stage_hook(lambda x, simulate: simulate(x[:, :2])), pytest.raises(ValueError, match="sensor stage input"):
         simulate_reads(e, reads, cfg, np.random.SeedSequence(5), **kw)
+
+
+def test_row_and_column_fixed_pattern_and_row_noise_are_recovered_by_the_emva_split():
+    """A dark series and a flat series of F frames (one read each): the mean image's row / column /
+    pixel variance split recovers the configured DSNU and PRNU components, and the frames' row means
+    the temporal row noise, each within 5 standard errors of its estimate (a variance from n
+    independent values: relative standard error sqrt(2 / (n - 1)))."""
+    from mbcapture.metrics import row_column_pixel_variances
+    from mbcapture.sensor import dn_to_electrons
+
+    H, W, F = 384, 320, 24
+    cfg = SensorConfig(prnu=0.01, prnu_row=0.004, prnu_col=0.006, dsnu_e=1.0, dsnu_row_e=0.6, dsnu_col_e=0.8,
+                       read_noise_e=2.0, read_noise_row_e=0.5, dark_current_e_per_s=0.0, fpn_seed=3)
+    reads = [(k,) for k in range(F)]
+    q_e2 = (1.0 / cfg.gain_dn_per_e) ** 2 / 12.0  # the ADC's rounding, in electrons^2
+    t_pix = cfg.read_noise_e**2 + q_e2  # temporal variance per pixel and frame besides the row noise
+
+    def series(level_e: float, seed: int) -> np.ndarray:
+        out = simulate_reads(np.full((F, H, W, 1), level_e), reads, cfg, np.random.SeedSequence(seed),
+                             shared_photodiode=False)
+        return dn_to_electrons(out.reads_dn[..., 0], cfg)  # (F, H, W) electrons
+
+    def within(got, want, sd, what):
+        assert abs(got - want) <= 5 * sd, f"{what}: {got:.4g} vs {want:.4g} +- {sd:.2g}"
+
+    dark = series(0.0, 1)
+    rows, cols, pix = row_column_pixel_variances(dark.mean(axis=0))
+    want_rows = cfg.dsnu_row_e**2 + cfg.read_noise_row_e**2 / F
+    want_cols, want_pix = cfg.dsnu_col_e**2, cfg.dsnu_e**2 + t_pix / F
+    within(rows, want_rows, np.sqrt(2 / (H - 1)) * (want_rows + want_pix / W), "DSNU rows")
+    within(cols, want_cols, np.sqrt(2 / (W - 1)) * (want_cols + want_pix / H), "DSNU columns")
+    within(pix, want_pix, np.sqrt(2 / (H * W)) * want_pix * 1.5, "DSNU pixels")
+    # temporal row noise: each frame's row means about the mean image vary as s_row^2 + t_pix / W
+    resid_rows = (dark - dark.mean(axis=0)).mean(axis=2) * np.sqrt(F / (F - 1))
+    n = resid_rows.size
+    want_t = cfg.read_noise_row_e**2 + t_pix / W
+    within(resid_rows.var(), want_t, np.sqrt(2 / (n - 1)) * want_t, "temporal row noise")
+
+    level = 5000.0
+    flat = series(level, 2)
+    gain = (flat.mean(axis=0) - dark.mean(axis=0)) / level  # relative sensitivity: the DSNU cancels
+    rows, cols, pix = row_column_pixel_variances(gain)
+    t_rel = (level + 2 * t_pix) / F / level**2  # shot + both series' temporal noise, relative
+    want_rows = cfg.prnu_row**2 + 2 * cfg.read_noise_row_e**2 / F / level**2
+    want_cols, want_pix = cfg.prnu_col**2, cfg.prnu**2 + t_rel
+    within(rows, want_rows, np.sqrt(2 / (H - 1)) * (want_rows + want_pix / W), "PRNU rows")
+    within(cols, want_cols, np.sqrt(2 / (W - 1)) * (want_cols + want_pix / H), "PRNU columns")
+    within(pix, want_pix, np.sqrt(2 / (H * W)) * want_pix * 1.5, "PRNU pixels")
+
+
+def test_without_row_and_column_components_the_fixed_pattern_is_as_before():
+    """The components default to 0, and the pixel maps of a given fpn_seed do not change when they are on."""
+    from mbcapture.sensor import fixed_pattern
+
+    base = fixed_pattern((8, 9, 3), SensorConfig(fpn_seed=4))
+    rng = np.random.default_rng(np.random.SeedSequence(4))
+    assert np.array_equal(base.prnu_gain, np.maximum(1.0 + 0.01 * rng.standard_normal((8, 9, 3)), 0.0))
+    assert np.array_equal(base.dsnu_offset_e, 1.0 * rng.standard_normal((8, 9, 3)))
+    lines = fixed_pattern((8, 9, 3), SensorConfig(fpn_seed=4, dsnu_col_e=0.5, prnu_row=0.01))
+    d = lines.dsnu_offset_e - base.dsnu_offset_e  # a column offset: the same down each column, in every channel
+    assert np.allclose(d, d[:1, :, :1]) and d[0, :, 0].std() > 0.1
+    g = lines.prnu_gain - base.prnu_gain
+    assert np.allclose(g, g[:, :1, :1]) and g[:, 0, 0].std() > 0.002

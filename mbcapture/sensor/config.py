@@ -113,6 +113,31 @@ class SensorConfig(BaseModel):
         description="Dark-signal non-uniformity: std of a per-pixel fixed offset in electrons, added to "
         "every read (assumption). Fixed pattern: identical in every read.",
     )
+    prnu_row: float = Field(
+        0.0, ge=0, lt=1,
+        description="PRNU's row component (EMVA 1288 R4.0): std of a relative sensitivity shared by every pixel "
+        "of a row (row drivers), multiplying the pixel one; fraction. 0: none. Fixed pattern.",
+    )
+    prnu_col: float = Field(
+        0.0, ge=0, lt=1,
+        description="PRNU's column component: std of a relative gain shared by every pixel of a column (column "
+        "amplifiers); fraction. 0: none. Fixed pattern.",
+    )
+    dsnu_row_e: float = Field(
+        0.0, ge=0,
+        description="DSNU's row component: std of an offset in electrons shared by every pixel of a row, added to "
+        "every read. 0: none. Fixed pattern.",
+    )
+    dsnu_col_e: float = Field(
+        0.0, ge=0,
+        description="DSNU's column component: std of an offset in electrons shared by every pixel of a column "
+        "(column amplifiers, ADCs), added to every read. 0: none. Fixed pattern.",
+    )
+    read_noise_row_e: float = Field(
+        0.0, ge=0,
+        description="Temporal row noise: std in electrons of an offset drawn anew for each row at each read "
+        "(shared by the row's pixels: horizontal banding), besides read_noise_e. 0: none.",
+    )
     transfer_inefficiency: float = Field(
         0.0, ge=0, lt=1,
         description="Fraction of each electron that fails to move from its bucket to the floating diffusion "

@@ -24,8 +24,9 @@ Order of the physics (one capture):
    keeps it there for later reads).
 7. A read sums its buckets' transferred charge on the FD, noiselessly (the paper's
    in-pixel addition, section 4.1). The sum clips at ``fd_full_well_e`` (flagged).
-8. Readout chain, ONCE PER READ: DSNU offset, Gaussian read noise ``read_noise_e`` (the
-   paper's R, figure 11b; a normal field of its own), conversion gain, black level, rounding to integer codes, ADC
+8. Readout chain, ONCE PER READ: DSNU offset (pixel, row and column components), Gaussian read
+   noise ``read_noise_e`` (the paper's R, figure 11b; a normal field of its own) and, optionally,
+   temporal row noise ``read_noise_row_e`` (one offset per row and read), conversion gain, black level, rounding to integer codes, ADC
    clipping to [0, 2^bits - 1] (the top code is flagged saturated; the bottom one is not,
    as it only happens for black levels below the read noise).
 
@@ -88,15 +89,25 @@ class SensorReads:
 
 
 def fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig) -> FixedPattern:
-    """The PRNU / DSNU maps of the sensor identified by ``cfg.fpn_seed``, for (H, W, C) images.
+    """The PRNU / DSNU maps of the sensor identified by ``cfg.fpn_seed``, for (H, W, C) images: a
+    pixel component (``prnu``, ``dsnu_e``) plus row and column components (``prnu_row``,
+    ``prnu_col``, ``dsnu_row_e``, ``dsnu_col_e``), whose variances add.
 
     Drawn from their own generator so that they do not depend on (nor consume) the
     capture's random stream: the same sensor gives the same maps in every capture.
     """
     rng = np.random.default_rng(np.random.SeedSequence(cfg.fpn_seed))
-    prnu_gain = np.maximum(1.0 + cfg.prnu * rng.standard_normal(shape), 0.0)
+    prnu_pixel = cfg.prnu * rng.standard_normal(shape)
     dsnu_offset_e = cfg.dsnu_e * rng.standard_normal(shape)
-    return FixedPattern(prnu_gain=prnu_gain, dsnu_offset_e=dsnu_offset_e)
+    # row and column components (EMVA 1288 R4.0 reports DSNU and PRNU split so), from a generator of
+    # their own so that the pixel maps stay those of the same fpn_seed; shared by a row's (a
+    # column's) pixels and channels: one row driver, one column amplifier. Variances add.
+    lines = np.random.default_rng(np.random.SeedSequence(cfg.fpn_seed, spawn_key=(1,)))
+    H, W = shape[:2]
+    prnu_lines = cfg.prnu_row * lines.standard_normal((H, 1, 1)) + cfg.prnu_col * lines.standard_normal((1, W, 1))
+    dsnu_lines = cfg.dsnu_row_e * lines.standard_normal((H, 1, 1)) + cfg.dsnu_col_e * lines.standard_normal((1, W, 1))
+    prnu_gain = np.maximum(1.0 + prnu_pixel + prnu_lines, 0.0)
+    return FixedPattern(prnu_gain=prnu_gain, dsnu_offset_e=dsnu_offset_e + dsnu_lines)
 
 
 def _validate_reads(reads: Sequence[Sequence[int]], bucket_count: int) -> tuple[tuple[int, ...], ...]:
@@ -234,12 +245,17 @@ def _simulate(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cfg:
     saturated = np.empty(shape, dtype=bool)
     adc_max = float(cfg.adc_max_dn)
     read_noise = streams.normal("read", shape)
+    # temporal row noise: one offset per row and read, shared by the row's pixels and channels
+    row_noise = cfg.read_noise_row_e * streams.normal("row", (n_reads, shape[1], 1, 1)) \
+        if cfg.read_noise_row_e > 0.0 else None
     for r, buckets in enumerate(read_sets):
         idx = list(buckets)
         fd_e = transferred[idx].sum(axis=0)
         sat = bucket_saturated[idx].any(axis=0) | (fd_e >= cfg.fd_full_well_e)
         np.minimum(fd_e, cfg.fd_full_well_e, out=fd_e)
         signal_e = fd_e + fpn.dsnu_offset_e + cfg.read_noise_e * read_noise[r]
+        if row_noise is not None:
+            signal_e += row_noise[r]
         dn = np.rint(cfg.gain_dn_per_e * signal_e + cfg.black_level_dn)
         sat |= dn >= adc_max
         reads_dn[r] = np.clip(dn, 0.0, adc_max)

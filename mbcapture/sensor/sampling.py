@@ -49,6 +49,9 @@ POISSON_EXACT_MAX = 2.0**50
 #: Stages with their own child seed, in spawn order (the order never changes: adding a stage
 #: appends to it, so existing stages keep their draws).
 STAGES = ("shot", "transfer", "read")
+#: Streams added later, each derived from a stage's seed (stage, child key) without spawning: the
+#: streams above stay what they were for the same seed.
+DERIVED = {"row": ("read", 1)}
 
 
 def uniform_open(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
@@ -74,8 +77,12 @@ class NoiseStreams:
         self._seeds = dict(zip(STAGES, seed.spawn(len(STAGES))))
 
     def _rng(self, stage: str) -> np.random.Generator:
+        if stage in DERIVED:  # a child of another stage's seed, made without spawning from it
+            base, key = DERIVED[stage]
+            s = self._seeds[base]
+            return np.random.default_rng(np.random.SeedSequence(s.entropy, spawn_key=(*s.spawn_key, key)))
         if stage not in self._seeds:
-            raise ValueError(f"noise stage {stage!r}: expected one of {list(self._seeds)}")
+            raise ValueError(f"noise stage {stage!r}: expected one of {[*self._seeds, *DERIVED]}")
         return np.random.default_rng(self._seeds[stage])
 
     def uniform(self, stage: str, shape: tuple[int, ...]) -> np.ndarray:
