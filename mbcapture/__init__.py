@@ -18,9 +18,7 @@ __version__ = "0.1.0"
 
 def __getattr__(name):  # lazy: `import mbcapture` stays light
     if name == "load_config":
-
         return load_config
     if name in ("run_capture", "CaptureResult"):
-
         return getattr(capture, name)
     raise AttributeError(name)

@@ -135,8 +135,6 @@ def _cmd_plan(args) -> int:
     cfg = load_config(args.config, args.overrides)
     scene, timeline, plan, seeds = prepare(cfg)
     if not args.no_probe and plan.passes:
-
-
         renderer = Renderer.from_config(scene, cfg, cache=render_cache(cfg.render))
         plan = resolve_spp(plan, renderer, cfg, seeds[2])  # the run's own pilot (render.spp null)
         if plan.cost is None:

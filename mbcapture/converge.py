@@ -201,7 +201,6 @@ def write_outputs(result: dict, out_dir: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-
     pts = result["points"]
     table = io.StringIO()
     w = csv.DictWriter(table, fieldnames=list(pts[0]))

@@ -265,7 +265,6 @@ def tonemap(rgb_linear: np.ndarray, percentile: float | None = 99.5) -> np.ndarr
     (colour-science)."""
     import colour
 
-
     rgb = np.nan_to_num(np.asarray(rgb_linear, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     if rgb.ndim == 2:
         rgb = rgb[..., None]

@@ -86,7 +86,6 @@ def timeline_png(tl: Timeline) -> bytes:
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
-
     groups = sorted(tl.switchable_groups())
     n_slots = sum(seg.repeats * len(seg.slots) for seg in tl.segments)
     detail = n_slots <= MAX_DETAIL_SLOTS

@@ -249,7 +249,6 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
                     "previews:</p><div class='grid'>" + "".join(app_cells) + "</div>")
     # ---- a video run's frames, previews and comparisons (mbcapture/video.py)
     if result.video is not None:
-
         sections.append(video_section_html(result))
     # ---- maps and histograms
     sections.append("<h2 id='maps'>Saturation and SNR</h2><div class='grid' style='grid-template-columns:"

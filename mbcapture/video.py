@@ -323,7 +323,6 @@ def _video_report(cfg, frames, video: VideoFrames, period: float, scene, rendere
         }
     rep["aliasing"] = al
     if video.truth is not None:
-
         video.white = float(np.percentile(luminance(video.truth), cfg.output.png_percentile)) or 1.0
     return rep
 

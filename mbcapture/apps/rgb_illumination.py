@@ -285,8 +285,6 @@ def reference_xyz(data: CaptureData, params: Params, white_mask: np.ndarray, whi
     """The chart at rest under the three LEDs, noise-free, XYZ scaled so the white patch has Y = white_y."""
     import colour
 
-
-
     cfg, scene = data.cfg, data.scene
     spectral = cfg.render.variant.endswith("_spectral")
     rest = still(scene)  # the chart at rest through a still camera (camera.shake moves only the capture)
@@ -403,7 +401,6 @@ def reconstruct(data: CaptureData, params: Params) -> AppOutput:
                           f"(got {cfg.render.variant!r}); use 'chart_fit'")
     response = led_xyz = None
     if spectral:
-
         wl, curves = film_sensitivity(cfg.sensor)
         mono_curve = curves[:1] if monochrome else curves.sum(axis=0, keepdims=True)
         response, led_xyz = led_matrices(scene, wl, np.repeat(mono_curve, 3, axis=0), per_led_channel=True)

@@ -21,7 +21,6 @@ def camera_shake(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
     from scipy.signal import welch
 
-
     cfg = ctx.config("metronome_shake")
     spec = cfg.camera.shake
     traj = cm.ShakeTrajectory.from_spec(spec)
@@ -98,7 +97,6 @@ def burst(ctx: FigureContext) -> FigureOutput:
 def hdr_video(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
-
     res = ctx.capture("hdr_video", "capture.frames=8" if ctx.quick else "capture.frames=6")
     v, rep = res.video, res.report["video"]
     n = len(v.frames)
@@ -127,7 +125,6 @@ def hdr_video(ctx: FigureContext) -> FigureOutput:
     ax = fig.add_subplot(gs[len(rows), :])
     al = rep["aliasing"]
     if "rates" in al:
-
         cfg = res.config
         sc = scene_of(cfg)
         t0 = max(res.report["reads"], key=lambda r: r["exposure_s"])["centroid_s"]  # the longest read's centroid

@@ -257,7 +257,6 @@ def fig05_centroids(ctx: FigureContext) -> FigureOutput:
 def fig06_interleaving(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
-
     # The photon-efficient slice of the shipped sweep configs/sweeps/interleaving.yaml (periods x
     # protocol): T = 4 ms, a 32 ms capture in which the needle tip sweeps several pixels; strata of
     # at most 0.1 px (4 spp: the metric compares noise-free reads of the same renders) resolve the
@@ -341,7 +340,6 @@ def fig09_gates(ctx: FigureContext) -> FigureOutput:
 def fig11_snr_table(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
-
     S, R = 100.0, 8.0
     n = 20_000 if ctx.quick else 200_000
     cfg = SensorConfig(read_noise_e=R, prnu=0.0, dsnu_e=0.0, dark_current_e_per_s=0.0, full_well_e=1e6,
@@ -380,7 +378,6 @@ def fig11_snr_table(ctx: FigureContext) -> FigureOutput:
         renders=False)
 def hdr_snr_vs_radiance(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
-
 
     cfg = SensorConfig(prnu=0.0, dsnu_e=0.0)
     T = 1e-3

@@ -75,7 +75,6 @@ def _spectrum(samples, n=512):
 def flutter_shutter(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
-
     res = ctx.capture("flutter_shutter")
     seq = ctx.capture("flutter_shutter", "capture.sequential=true")
     img, m = res.app_output.images, res.report["metrics"]

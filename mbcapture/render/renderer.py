@@ -165,7 +165,6 @@ class Renderer:
                 raise ConfigError(f"film_curves: expected wavelengths (n,) and curves (3, n), got {wl.shape}, {curves.shape}")
             self._sensitivity = (wl, curves)
         elif self.spectral:
-
             if sensor is None:
                 raise ConfigError(f"render.variant {variant!r}: a spectral render needs the sensor config")
             try:
@@ -439,7 +438,6 @@ class Renderer:
         description(s) with file contents, integrator, variant, the pixel code, library versions,
         and the CPU target the kernels are compiled for."""
         from importlib import metadata
-
 
         here = Path(__file__).resolve().parent
         code = {name: file_digest(here / name) for name in _PIXEL_CODE}

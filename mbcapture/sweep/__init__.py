@@ -78,7 +78,6 @@ def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, sch
     ok are not run again. ``say``: where to print a line about the plan."""
     from tqdm import tqdm
 
-
     say = say or (lambda line: None)
     if out is not None:
         check_out_dir(out)
@@ -155,6 +154,5 @@ def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, sch
     }
     outcome = SweepOutcome(sweep, plan, rows, summary, results=results)
     if out is not None:
-
         outcome.table = write_results(out, sweep, plan, rows, summary)
     return outcome

@@ -214,7 +214,6 @@ def start_client(workers: int | None, scheduler: str | None = None):
 
     from dask.distributed import Client, LocalCluster
 
-
     if scheduler:
         from urllib.parse import urlsplit
 

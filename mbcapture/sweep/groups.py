@@ -86,7 +86,6 @@ def render_inputs(cfg: CaptureConfig, *, accumulation: bool = True) -> dict:
         "per_group": app.per_group,
     }
     if is_spectral_variant(cfg.render.variant):
-
         wl, curves = film_sensitivity(cfg.sensor)
         out["film_curves"] = [_array(np.asarray(wl, np.float64)), _array(np.asarray(curves, np.float64))]
     if cfg.render.spp is None:  # mbcapture.budget.resolve_spp: samples from the sensor's shot noise
