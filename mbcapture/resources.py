@@ -101,9 +101,10 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> Re
 
 
 # ----------------------------------------------------------------------------- what is free
-def _meminfo_kb(field: str) -> int | None:
+def _proc_kb(path: str, field: str) -> int | None:
+    """The value in kB of ``field`` in a /proc file of 'Name:   123 kB' lines, or None."""
     try:
-        with open("/proc/meminfo") as f:
+        with open(path) as f:
             for line in f:
                 if line.startswith(field + ":"):
                     return int(line.split()[1])
@@ -113,14 +114,8 @@ def _meminfo_kb(field: str) -> int | None:
 
 
 def _status_kb(field: str) -> int:
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith(field + ":"):
-                    return int(line.split()[1])
-    except OSError:
-        pass
-    return 0
+    """``field`` of this process's /proc/self/status, kB (0 where unknown)."""
+    return _proc_kb("/proc/self/status", field) or 0
 
 
 def _cgroup_headroom() -> int | None:
@@ -138,7 +133,7 @@ def free_memory() -> tuple[int, str]:
     smallest of the kernel's MemAvailable, the cgroup's limit and the address-space limit (ulimit -v)."""
     rss = _status_kb("VmRSS") * 1024
     options: list[tuple[int, str]] = []
-    avail = _meminfo_kb("MemAvailable")
+    avail = _proc_kb("/proc/meminfo", "MemAvailable")
     if avail is not None:
         options.append((avail * 1024 + rss, "available memory"))
     cg = _cgroup_headroom()
