@@ -15,11 +15,6 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "mbcapture"
 
 
-def _module_name(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-
-
 def test_imports_follow_the_layers_contract():
     """import-linter's layers contract of pyproject.toml: every import, function-local ones too,
     points down the layers."""
@@ -30,41 +25,20 @@ def test_imports_follow_the_layers_contract():
 
 
 def _strongly_connected(edges: dict[str, set[str]]) -> list[list[str]]:
-    """Tarjan's strongly connected components with more than one module."""
-    index: dict[str, int] = {}
-    low: dict[str, int] = {}
-    stack: list[str] = []
-    on: set[str] = set()
-    out: list[list[str]] = []
-    counter = [0]
-    sys.setrecursionlimit(max(10000, sys.getrecursionlimit()))
+    """Strongly connected components of more than one module (scipy's csgraph)."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
 
-    def visit(v: str) -> None:
-        index[v] = low[v] = counter[0]
-        counter[0] += 1
-        stack.append(v)
-        on.add(v)
-        for w in edges.get(v, ()):
-            if w not in index:
-                visit(w)
-                low[v] = min(low[v], low[w])
-            elif w in on:
-                low[v] = min(low[v], index[w])
-        if low[v] == index[v]:
-            comp = []
-            while True:
-                w = stack.pop()
-                on.discard(w)
-                comp.append(w)
-                if w == v:
-                    break
-            if len(comp) > 1:
-                out.append(sorted(comp))
-
-    for v in sorted(edges):
-        if v not in index:
-            visit(v)
-    return out
+    names = sorted(set(edges) | {t for ts in edges.values() for t in ts})
+    at = {n: i for i, n in enumerate(names)}
+    pairs = [(at[a], at[b]) for a, ts in edges.items() for b in ts]
+    rows, cols = zip(*pairs) if pairs else ((), ())
+    graph = csr_matrix((np.ones(len(pairs)), (rows, cols)), shape=(len(names), len(names)))
+    _, label = connected_components(graph, directed=True, connection="strong")
+    groups: dict[int, list[str]] = {}
+    for name, lab in zip(names, label):
+        groups.setdefault(int(lab), []).append(name)
+    return sorted(g for g in groups.values() if len(g) > 1)
 
 
 def test_no_import_circle_anywhere_in_the_package():
