@@ -37,8 +37,8 @@ CAPTURE_CASES = [
     ("hdr_video", "hdr_video.yaml", ["capture.frames=3"]),
 ]
 
-#: Images of a config's captures that are not pinned, and why: a wrapped phase jumps by 2 pi where a
-#: read one electron apart (another CPU's last-bit render difference) moves it across 0.
+#: Images of a config's captures that are not pinned, and why: a wrapped phase jumps by 2 pi where it
+#: lies within rounding of 0 (the reads are the golden's, but the trigonometry rounds per CPU).
 UNPINNED = {"structured_light.yaml": {"phase": "wrapped to [0, 2 pi): a pixel near 0 flips by 2 pi"}}
 
 #: Images that are zero by construction (up to float64 rounding): compared with an absolute
