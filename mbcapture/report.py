@@ -195,7 +195,8 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
                                         f"{100 * s.prnu_col:g} % per column; DSNU {s.dsnu_e:g} e- per pixel, "
                                         f"{s.dsnu_row_e:g} e- per row, {s.dsnu_col_e:g} e- per column; temporal row "
                                         f"noise {s.read_noise_row_e:g} e- (sensor.fpn_seed {s.fpn_seed})"],
-        ["film", f"{rep['film'][0]} x {rep['film'][1]} px, variant {cfg.render.variant}"],
+        ["film", f"{rep['film'][0]} x {rep['film'][1]} px, variant {cfg.render.variant}"
+                 + (", natural vignetting (cos^4 of the field angle)" if cfg.camera.vignetting == "cos4" else "")],
         ["capture span", f"{rep['capture_span_s'] * 1e3:.6g} ms, {cfg.capture.periods} periods"],
         ["rendering", f"{plan['passes']} passes (time strata) x {result.plan.spp_label()} spp "
                       f"({plan['spp_source']}); image motion {plan['image_motion_px_total']} px in all, at most "

@@ -180,3 +180,36 @@ def _fresh_kernels_for_a_new_pose() -> int:
     proc = subprocess.run([sys.executable, "-c", _NEW_POSE_PROBE], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return int(proc.stdout.strip().splitlines()[-1])
+
+
+def test_natural_vignetting_is_cos4_of_the_field_angle():
+    """By hand: the field angle of a pixel centre from the horizontal field of view; 1 on the axis,
+    symmetric, cos^4 in the corners."""
+    from mbcapture.projective import natural_vignetting
+
+    cam = _still_chart().camera
+    W, H = 40, 30
+    v = natural_vignetting(cam, W, H)
+    assert v.shape == (H, W) and np.allclose(v, v[::-1]) and np.allclose(v, v[:, ::-1])
+    t = math.tan(math.radians(cam.fov_deg) / 2)
+    x, y = 1 - 1 / W, (1 - 1 / H) * H / W  # the corner pixel's centre, normalized
+    assert v[0, 0] == pytest.approx(math.cos(math.atan(math.hypot(x, y) * t)) ** 4, rel=1e-12)
+    assert v.max() == pytest.approx(1.0, abs=5e-3) and v.min() == v[0, 0]
+
+
+@pytest.mark.render
+def test_vignetting_darkens_every_render_by_the_analytic_falloff():
+    """A flat field through the renderer with camera.vignetting cos4 is the pinhole's image times
+    cos^4 of each pixel's field angle, to float32 precision; exposures and truths use the same
+    renderer, so they agree."""
+    from mbcapture.projective import natural_vignetting
+    from mbcapture.render import Renderer
+
+    scene = scenes.make_scene("flatfield", scenes.load_module("flatfield").Params())
+    W, H = 32, 24
+    flat = Renderer(scene, W, H).render(0.0, 4, 1)
+    dim = Renderer(scene, W, H, vignetting="cos4").render(0.0, 4, 1)
+    want = natural_vignetting(scene.camera, W, H)[None, :, :, None]
+    assert np.allclose(dim, flat * want, rtol=2e-7, atol=0) and dim.min() < 0.9 * flat.max()
+    with pytest.raises(ConfigError, match="camera.vignetting"):
+        Renderer(scene, W, H, vignetting="cos3")

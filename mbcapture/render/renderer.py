@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 
 from ..errors import ConfigError
+from ..projective import natural_vignetting
 from ..scenes import SceneModel
 from ..sensor.spectral import film_sensitivity
 from .build import (
@@ -141,7 +142,11 @@ class Renderer:
                  variant: str = "llvm_ad_rgb", max_depth: int = 4,
                  sensor: "SensorConfig | None" = None,
                  film_curves: tuple[np.ndarray, np.ndarray] | None = None,
-                 cache: RenderCache | None = None, sampler: str = "multijitter") -> None:
+                 cache: RenderCache | None = None, sampler: str = "multijitter", vignetting: str = "none") -> None:
+        if vignetting not in ("none", "cos4"):
+            raise ConfigError(f"camera.vignetting: expected 'none' or 'cos4', got {vignetting!r}")
+        self._falloff = None if vignetting == "none" else \
+            natural_vignetting(scene.camera, width, height).astype(np.float32)[None, :, :, None]
         if not isinstance(scene.build, SceneBuild):
             raise ConfigError(f"scene {scene.name!r}: build payload is not a SceneBuild")
         if width < 1 or height < 1:
@@ -245,7 +250,7 @@ class Renderer:
         ``overrides`` of any keyword of :class:`Renderer` (e.g. ``film_curves``, ``sensor``)."""
         r = cfg.render
         kw: dict[str, Any] = {"variant": r.variant, "max_depth": r.max_depth, "sampler": r.sampler,
-                              "sensor": cfg.sensor, "cache": cache}
+                              "sensor": cfg.sensor, "cache": cache, "vignetting": cfg.camera.vignetting}
         kw.update(overrides)
         return cls(scene, r.width, r.height, **kw)
 
@@ -567,7 +572,10 @@ class Renderer:
             raise ConfigError(f"render spp must be >= 1, got {spp}")
         spp = self.sample_count(spp)  # what the sampler really takes
         params = {"spp": int(spp), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
-        return self.cached("radiance", t_s, params, lambda: self._render(t_s, int(spp), int(seed), req))
+        img = self.cached("radiance", t_s, params, lambda: self._render(t_s, int(spp), int(seed), req))
+        # the lens's relative illumination, on every render alike (exposures, truths, the pilot), after the
+        # cache: a render is cached as the pinhole sees it
+        return img if self._falloff is None else img * self._falloff
 
     def _render(self, t_s: float, spp: int, seed: int, req: list[str]) -> np.ndarray:
         start = time.perf_counter()

@@ -1,13 +1,15 @@
-"""Figures of the sensor model beyond the paper: fixed-pattern noise split into pixel, row and
-column components (EMVA 1288 Release 4.0), and temporal row noise."""
+"""Figures of the camera beyond the paper: fixed-pattern noise split into pixel, row and column
+components (EMVA 1288 Release 4.0) with temporal row noise, and the lens's natural vignetting."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..config import load_config, scene_of
 from ..metrics import row_column_pixel_variances
+from ..projective import natural_vignetting
 from ..sensor import SensorConfig, dn_to_electrons, simulate_reads
-from . import FigureContext, FigureOutput, figure
+from . import CONFIG_DIR, FigureContext, FigureOutput, figure
 
 
 @figure("sensor_row_column_noise", "A dark frame with row and column fixed pattern and row noise", "beyond the paper",
@@ -55,3 +57,32 @@ def sensor_row_column_noise(ctx: FigureContext) -> FigureOutput:
     table = [["component", "configured_e2", "recovered_e2"], *[[n, want[n], got[n]] for n in names]]
     return FigureOutput(fig, {"frames": frames, "width": W, "height": H, "configured_e2": want, "recovered_e2": got},
                         caption, table)
+
+
+@figure("camera_vignetting", "Natural vignetting of the metronome's camera (camera.vignetting: cos4)", "beyond the paper",
+        renders=False)
+def camera_vignetting(ctx: FigureContext) -> FigureOutput:
+    import matplotlib.pyplot as plt
+
+    W, H = ctx.film
+    camera = scene_of(load_config(CONFIG_DIR / "metronome_hdr.yaml")).camera
+    v = natural_vignetting(camera, W, H)
+    t = np.tan(np.radians(camera.fov_deg) / 2)
+    x = 2.0 * (np.arange(W) + 0.5) / W - 1.0  # the middle row: field angle from the horizontal position only
+    theta = np.degrees(np.arctan(np.abs(x) * t))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.4))
+    im = axes[0].imshow(v, cmap="gray", vmin=0, vmax=1)
+    axes[0].set_title(f"relative illumination, {W}x{H}, {camera.fov_deg:g} degree view", fontsize=9)
+    axes[0].set_xticks([]), axes[0].set_yticks([])
+    fig.colorbar(im, ax=axes[0], fraction=0.046)
+    axes[1].plot(theta[W // 2:], v[H // 2, W // 2:], lw=2, label="middle row of the map")
+    axes[1].plot(theta[W // 2:], np.cos(np.radians(theta[W // 2:])) ** 4, "k:", label="cos^4(field angle)")
+    axes[1].set_xlabel("field angle (degrees)", fontsize=8)
+    axes[1].set_ylabel("relative illumination", fontsize=8)
+    axes[1].legend(fontsize=7)
+    fig.tight_layout()
+    caption = (f"cos^4 natural vignetting of a thin lens over the metronome's {camera.fov_deg:g} degree horizontal view: "
+               f"{v[H // 2, 0]:.2f} at the left and right edges, {v.min():.2f} in the corners. Every render of a capture "
+               "with camera.vignetting: cos4 is multiplied by this map, truths included.")
+    return FigureOutput(fig, {"fov_deg": camera.fov_deg, "edge": float(v[H // 2, 0]), "corner": float(v.min())}, caption,
+                        [["field_angle_deg", "relative_illumination"], *[[a, b] for a, b in zip(theta[W // 2:], v[H // 2, W // 2:])]])
