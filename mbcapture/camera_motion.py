@@ -119,6 +119,12 @@ class CameraSection(BaseModel):
         "as bright in the corners as in the centre (a pinhole).",
     )
 
+    diffraction: bool = Field(
+        False, description="Blur every render by the diffraction of a circular aperture at sensor.f_number, per channel "
+        "at sensor.wavelength_nm (its OTF, on top of the pixel aperture the render already is; mbcapture.optics). "
+        "false: a diffraction-free lens.",
+    )
+
     @model_validator(mode="after")
     def _one_source(self) -> "CameraSection":
         if self.shake is not None and self.trajectory_file is not None:

@@ -72,15 +72,3 @@ def points_from_depth(camera, z: np.ndarray) -> np.ndarray:
     yy, xx = np.mgrid[0:h, 0:w].astype(float) + 0.5
     return np.asarray(camera.origin, float) + z[..., None] * pixel_rays(camera, xx, yy, w, h)
 
-
-def natural_vignetting(camera, width: int, height: int) -> np.ndarray:
-    """(H, W) relative illumination of a thin lens's image plane, cos^4 of the field angle at each
-    pixel centre (cos^2 from the oblique ray's longer path, cos from the tilted pupil, cos from the
-    tilted pixel): 1 on the optical axis. The field angle theta of pixel (x, y) has
-    tan(theta) = |(x_n, y_n)| tan(fov / 2), x_n = 2 (x + 1/2) / W - 1 and y_n scaled by H / W (the
-    camera's fov is horizontal)."""
-    th = tan_half(camera)
-    xn = 2.0 * (np.arange(width) + 0.5) / width - 1.0
-    yn = (2.0 * (np.arange(height) + 0.5) / height - 1.0) * height / width
-    tan2 = (xn[None, :] ** 2 + yn[:, None] ** 2) * th * th
-    return 1.0 / (1.0 + tan2) ** 2

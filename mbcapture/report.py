@@ -24,6 +24,7 @@ import numpy as np
 from .budget import noise_verdict
 from .htmlparts import esc, figure, fmt, table
 from .metrics import flat_items, luminance
+from .optics import diffraction_otf
 from .plots import colour_map, histograms_png, png8, summed_label, timeline_png
 
 if TYPE_CHECKING:
@@ -196,7 +197,11 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
                                         f"{s.dsnu_row_e:g} e- per row, {s.dsnu_col_e:g} e- per column; temporal row "
                                         f"noise {s.read_noise_row_e:g} e- (sensor.fpn_seed {s.fpn_seed})"],
         ["film", f"{rep['film'][0]} x {rep['film'][1]} px, variant {cfg.render.variant}"
-                 + (", natural vignetting (cos^4 of the field angle)" if cfg.camera.vignetting == "cos4" else "")],
+                 + (", natural vignetting (cos^4 of the field angle)" if cfg.camera.vignetting == "cos4" else "")
+                 + (f", diffraction at f/{cfg.sensor.f_number:g} (MTF at Nyquist "
+                    + ", ".join(f"{m:.2f}" for m in diffraction_otf(500.0 / cfg.sensor.pixel_pitch_um,
+                                                                     np.asarray(cfg.sensor.wavelength_nm), cfg.sensor.f_number))
+                    + " for R, G, B)" if cfg.camera.diffraction else "")],
         ["capture span", f"{rep['capture_span_s'] * 1e3:.6g} ms, {cfg.capture.periods} periods"],
         ["rendering", f"{plan['passes']} passes (time strata) x {result.plan.spp_label()} spp "
                       f"({plan['spp_source']}); image motion {plan['image_motion_px_total']} px in all, at most "

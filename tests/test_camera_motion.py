@@ -10,11 +10,10 @@ import numpy as np
 import pytest
 
 from mbcapture import camera_motion as cm
-from mbcapture import load_config, protocols, scenes
+from mbcapture import load_config, scenes
 from mbcapture.camera_motion import moving_region
 from mbcapture.capture import prepare
 from mbcapture.errors import ConfigError
-from mbcapture.plan import make_plan
 
 
 def _still_chart(**params):
@@ -185,7 +184,7 @@ def _fresh_kernels_for_a_new_pose() -> int:
 def test_natural_vignetting_is_cos4_of_the_field_angle():
     """By hand: the field angle of a pixel centre from the horizontal field of view; 1 on the axis,
     symmetric, cos^4 in the corners."""
-    from mbcapture.projective import natural_vignetting
+    from mbcapture.optics import natural_vignetting
 
     cam = _still_chart().camera
     W, H = 40, 30
@@ -202,7 +201,7 @@ def test_vignetting_darkens_every_render_by_the_analytic_falloff():
     """A flat field through the renderer with camera.vignetting cos4 is the pinhole's image times
     cos^4 of each pixel's field angle, to float32 precision; exposures and truths use the same
     renderer, so they agree."""
-    from mbcapture.projective import natural_vignetting
+    from mbcapture.optics import natural_vignetting
     from mbcapture.render import Renderer
 
     scene = scenes.make_scene("flatfield", scenes.load_module("flatfield").Params())

@@ -7,7 +7,7 @@ import numpy as np
 
 from ..config import load_config, scene_of
 from ..metrics import row_column_pixel_variances
-from ..projective import natural_vignetting
+from ..optics import diffraction_otf, natural_vignetting
 from ..sensor import SensorConfig, dn_to_electrons, simulate_reads
 from . import CONFIG_DIR, FigureContext, FigureOutput, figure
 
@@ -86,3 +86,32 @@ def camera_vignetting(ctx: FigureContext) -> FigureOutput:
                "with camera.vignetting: cos4 is multiplied by this map, truths included.")
     return FigureOutput(fig, {"fov_deg": camera.fov_deg, "edge": float(v[H // 2, 0]), "corner": float(v.min())}, caption,
                         [["field_angle_deg", "relative_illumination"], *[[a, b] for a, b in zip(theta[W // 2:], v[H // 2, W // 2:])]])
+
+
+@figure("camera_mtf", "MTF of the default pixel with diffraction at f/2.8 and f/8 (camera.diffraction)", "beyond the paper",
+        renders=False)
+def camera_mtf(ctx: FigureContext) -> FigureOutput:
+    import matplotlib.pyplot as plt
+
+    sensor = SensorConfig()
+    pitch_mm = sensor.pixel_pitch_um * 1e-3
+    f = np.linspace(0.0, 1.0 / pitch_mm, 400)  # to twice Nyquist, cycles per mm
+    box = np.abs(np.sinc(f * pitch_mm))  # the pixel aperture (the render's box filter)
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    rows = [["f_number", "channel", "mtf_at_nyquist"]]
+    colours = ["#d62728", "#2ca02c", "#1f77b4"]
+    for n, style in ((sensor.f_number, "-"), (8.0, "--")):
+        for c, lam in enumerate(sensor.wavelength_nm):
+            mtf = box * diffraction_otf(f, lam, n)
+            ax.plot(f, mtf, style, color=colours[c], lw=1, label=f"f/{n:g}, {lam:g} nm")
+            rows.append([n, f"{lam:g} nm", float(np.interp(0.5 / pitch_mm, f, mtf))])
+    ax.plot(f, box, "k:", lw=1, label="pixel aperture alone")
+    ax.axvline(0.5 / pitch_mm, color="#777777", lw=0.8)
+    ax.set_xlabel("spatial frequency (cycles per mm); grey: Nyquist", fontsize=8)
+    ax.set_ylabel("MTF", fontsize=8)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    caption = (f"System MTF of a {sensor.pixel_pitch_um:g} um pixel (the render's box filter, sinc) times the diffraction "
+               "OTF of a circular aperture per channel, at the default f-number and at f/8. camera.diffraction applies the "
+               "OTF to every render.")
+    return FigureOutput(fig, {"pixel_pitch_um": sensor.pixel_pitch_um, "rows": rows}, caption, rows)

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 
 from ..errors import ConfigError
-from ..projective import natural_vignetting
+from ..optics import apply_diffraction, natural_vignetting
 from ..scenes import SceneModel
 from ..sensor.spectral import film_sensitivity
 from .build import (
@@ -142,11 +142,15 @@ class Renderer:
                  variant: str = "llvm_ad_rgb", max_depth: int = 4,
                  sensor: "SensorConfig | None" = None,
                  film_curves: tuple[np.ndarray, np.ndarray] | None = None,
-                 cache: RenderCache | None = None, sampler: str = "multijitter", vignetting: str = "none") -> None:
+                 cache: RenderCache | None = None, sampler: str = "multijitter", vignetting: str = "none",
+                 diffraction: bool = False) -> None:
         if vignetting not in ("none", "cos4"):
             raise ConfigError(f"camera.vignetting: expected 'none' or 'cos4', got {vignetting!r}")
         self._falloff = None if vignetting == "none" else \
             natural_vignetting(scene.camera, width, height).astype(np.float32)[None, :, :, None]
+        if diffraction and sensor is None:
+            raise ConfigError("camera.diffraction: needs the sensor (f-number, pixel pitch, wavelengths)")
+        self._diffraction = sensor if diffraction else None  # the sensor's f-number, pitch and wavelengths
         if not isinstance(scene.build, SceneBuild):
             raise ConfigError(f"scene {scene.name!r}: build payload is not a SceneBuild")
         if width < 1 or height < 1:
@@ -250,7 +254,8 @@ class Renderer:
         ``overrides`` of any keyword of :class:`Renderer` (e.g. ``film_curves``, ``sensor``)."""
         r = cfg.render
         kw: dict[str, Any] = {"variant": r.variant, "max_depth": r.max_depth, "sampler": r.sampler,
-                              "sensor": cfg.sensor, "cache": cache, "vignetting": cfg.camera.vignetting}
+                              "sensor": cfg.sensor, "cache": cache, "vignetting": cfg.camera.vignetting,
+                              "diffraction": cfg.camera.diffraction}
         kw.update(overrides)
         return cls(scene, r.width, r.height, **kw)
 
@@ -573,9 +578,14 @@ class Renderer:
         spp = self.sample_count(spp)  # what the sampler really takes
         params = {"spp": int(spp), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
         img = self.cached("radiance", t_s, params, lambda: self._render(t_s, int(spp), int(seed), req))
-        # the lens's relative illumination, on every render alike (exposures, truths, the pilot), after the
-        # cache: a render is cached as the pinhole sees it
-        return img if self._falloff is None else img * self._falloff
+        # the lens (mbcapture.optics): relative illumination, then diffraction, on every render alike
+        # (exposures, truths, the pilot), after the cache: a render is cached as the pinhole sees it
+        if self._falloff is not None:
+            img = img * self._falloff
+        if self._diffraction is not None:
+            s = self._diffraction
+            img = apply_diffraction(img, s.pixel_pitch_um, s.f_number, s.wavelength_nm).astype(np.float32)
+        return img
 
     def _render(self, t_s: float, spp: int, seed: int, req: list[str]) -> np.ndarray:
         start = time.perf_counter()
