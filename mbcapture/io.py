@@ -286,13 +286,9 @@ def write_png(path: Path, rgb_linear: np.ndarray, percentile: float | None = 99.
     Image.fromarray(tonemap(rgb_linear, percentile), mode="RGB").save(path, format="PNG")
 
 
-# --------------------------------------------------------------------------- videos
-
-
-# --------------------------------------------------------------------------- files
+# ----------------------------------------------------------------------------- videos
 def tonemapped_frames(frames: np.ndarray, white: float) -> np.ndarray:
     """(F, H, W, 3) uint8 sRGB with one white level for every frame; H and W padded to even sizes (H.264)."""
-
     out = np.stack([tonemap(f / white, None) for f in frames])
     pad_h, pad_w = out.shape[1] % 2, out.shape[2] % 2
     if pad_h or pad_w:
@@ -302,9 +298,6 @@ def tonemapped_frames(frames: np.ndarray, white: float) -> np.ndarray:
 
 def encode_mp4(frames_u8: np.ndarray, fps: float) -> bytes:
     """H.264 MP4 bytes of (F, H, W, 3) uint8 frames (imageio's ffmpeg plugin; yuv420p, even sizes)."""
-    import os
-    import tempfile
-
     import imageio.v2 as iio
 
     fd, tmp = tempfile.mkstemp(suffix=".mp4")

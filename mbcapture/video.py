@@ -357,6 +357,7 @@ def _summary_lines(rep: dict) -> list[str]:
     return out
 
 
+# --------------------------------------------------------------------------- files
 def write_video_files(st, result) -> None:
     """frame_<i>.exr, video.mp4, video.gif, compare.gif (truth | multi-bucket | alternating) and
     frames.csv into the staging folder ``st``."""

@@ -26,6 +26,7 @@ images are written to out/golden-failures/<case>/. After an intended change:
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -88,8 +89,6 @@ def test_hdr_merge_matches_golden(golden, method):
 def test_this_process_compiles_for_the_target_it_was_given():
     """Dr.Jit's kernels and numpy's loops are those of MBCAPTURE_LLVM_TARGET when it is set (the
     second-target child), else of this host: the emulation proves it took effect."""
-    import json
-
     from mbcapture.render import ensure_llvm
     from mbcapture.render.llvm import TARGET_ENV_VAR, apply_target_from_env, llvm_target, parse_target
 
@@ -117,8 +116,6 @@ def test_every_golden_image_has_a_measured_cross_target_spread():
     """Tolerances come from measurements: a golden image nobody measured across CPUs would only
     get the floors. Regenerated goldens need scripts/golden_spread.py run again, and the file names
     the hosts the spreads were measured on."""
-    import json
-
     spread = json.loads(SPREAD_FILE.read_text())
     assert len(spread["targets"]) >= 3, "measure at least three CPU targets"
     assert spread["hosts"] and all(h.get("cpu") and h.get("targets") for h in spread["hosts"])
@@ -137,8 +134,6 @@ def test_every_golden_image_has_a_measured_cross_target_spread():
 def test_goldens_hold_on_a_second_cpu_target(tmp_path, golden):
     """The same golden tests, in a child process compiled and dispatched for another CPU. The child
     shows which target it compiled for, and its images are compared with this process's own."""
-    import json
-
     target = second_target()
     if target is None:
         pytest.skip("no second x86-64 target this host can run")

@@ -26,9 +26,9 @@ Order of the physics (one capture):
    in-pixel addition, section 4.1). The sum clips at ``fd_full_well_e`` (flagged).
 8. Readout chain, ONCE PER READ: DSNU offset (pixel, row and column components), Gaussian read
    noise ``read_noise_e`` (the paper's R, figure 11b; a normal field of its own) and, optionally,
-   temporal row noise ``read_noise_row_e`` (one offset per row and read), conversion gain, black level, rounding to integer codes, ADC
-   clipping to [0, 2^bits - 1] (the top code is flagged saturated; the bottom one is not,
-   as it only happens for black levels below the read noise).
+   temporal row noise ``read_noise_row_e`` (one offset per row and read), conversion gain, black
+   level, rounding to integer codes, ADC clipping to [0, 2^bits - 1] (the top code is flagged
+   saturated; the bottom one is not, as it only happens for black levels below the read noise).
 
 Non-destructive cumulative reads (J1 = B4, J2 = B4 + B3, ...) therefore share the same
 photons and are correlated, Cov(J_i, J_j) = lambda * min(t_i, t_j) for i != j, while each
