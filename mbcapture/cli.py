@@ -1,4 +1,4 @@
-"""Command line: ``mbcapture run | plan | sweep | scenes | apps | figures | converge | cache``.
+"""Command line: ``mbcapture run | plan | characterize | sweep | scenes | apps | figures | converge | cache``.
 
 Input errors (config, files, environment) print one line and exit with status 2; notices
 (:class:`~mbcapture.errors.ConfigNotice`) print one line ``mbcapture: note: ...`` and go on.
@@ -15,7 +15,7 @@ import warnings
 from pathlib import Path
 
 from . import application as apps
-from . import converge, figures, protocols, resources, scenes
+from . import characterize, converge, figures, protocols, resources, scenes
 from .budget import probe_cost, resolve_spp
 from .capture import describe, prepare, render_cache, render_summary, run_capture
 from .config import load_config
@@ -65,6 +65,17 @@ def _parser() -> argparse.ArgumentParser:
     conv.add_argument("--spp", type=str, default=None, help="planner ladder, comma-separated (default 1,2,4,8,16,32,64)")
     conv.add_argument("--naive-spp", type=str, default=None, help="naive ladder, spp per slot (default 1,2,4,8)")
     conv.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 256; --quick 64)")
+
+    char = sub.add_parser("characterize", help="measure the configured sensor as EMVA 1288 Release 4.0 does; a "
+                                               "datasheet (report.html, characterization.json)")
+    _add_config_args(char)
+    char.add_argument("--out", type=Path, default=None, help="output folder (default: out/characterize_<config name>)")
+    char.add_argument("--size", type=_size, default=(128, 128), metavar="WxH",
+                      help="film of the flat-field frames (default 128x128)")
+    char.add_argument("--steps", type=int, default=50, help="exposure steps from dark to 1.25x saturation (default 50)")
+    char.add_argument("--dark-steps", type=int, default=10, help="exposure steps of the dark-current series (default 10)")
+    char.add_argument("--frames", type=int, default=16, help="frames averaged for DSNU and PRNU (default 16)")
+    char.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
     sub.add_parser("scenes", help="list the scenes and their parameters")
     figs = sub.add_parser("figures", help="regenerate the paper's figures (PNG, PDF, data, index.html)")
@@ -116,6 +127,24 @@ def _version() -> str:
         return metadata.version("mbcapture")
     except metadata.PackageNotFoundError:  # run from a source tree that was never installed
         return "unknown (not installed)"
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 128x128, got {text!r}") from None
+    return w, h
+
+
+def _cmd_characterize(args) -> int:
+    cfg = load_config(args.config, args.overrides)
+    out = args.out or Path("out") / f"characterize_{args.config.stem}"
+    check_out_dir(out)
+    settings = characterize.Settings(width=args.size[0], height=args.size[1], steps=args.steps,
+                                     dark_steps=args.dark_steps, frames=args.frames)
+    characterize.characterize(cfg, out, source=str(args.config), settings=settings, progress=not args.quiet)
+    return 0
 
 
 def _cmd_run(args) -> int:
@@ -271,7 +300,8 @@ def _cmd_apps(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     handlers = {"run": _cmd_run, "plan": _cmd_plan, "scenes": _cmd_scenes, "apps": _cmd_apps, "figures": _cmd_figures,
-                "converge": _cmd_converge, "cache": _cmd_cache, "sweep": _cmd_sweep}
+                "converge": _cmd_converge, "cache": _cmd_cache, "sweep": _cmd_sweep,
+                "characterize": _cmd_characterize}
     # SIGTERM (kill, a batch system's time limit) ends a run like Ctrl-C: staging removed, outputs untouched
     previous = signal.signal(signal.SIGTERM, _terminated) if threading.current_thread() is threading.main_thread() else None
     try:

@@ -235,6 +235,12 @@ class OutputSection(_Model):
     png_percentile: float = Field(
         99.5, gt=0, le=100, description="Tone mapping of PNG previews: this luminance percentile maps to white before the sRGB curve."
     )
+    dng: bool = Field(
+        False, description="Also write each read as a DNG raw file, read_<name>.dng: its ADC codes (16-bit, a linear "
+        "DNG with R, G, B per pixel as the sensor has no colour filter array), black and white levels, and the colour "
+        "matrix and as-shot neutral of the sensor's per-channel response, so raw developers (rawpy/LibRaw, "
+        "darktable, Lightroom) open and colour it. Needs sensor.adc_bits <= 16 and an RGB render.variant.",
+    )
 
 
 class VideoSection(BaseModel):
@@ -296,6 +302,16 @@ class CaptureConfig(_Model):
             )
         return self
 
+    @model_validator(mode="after")
+    def _dng_needs_16_bit_rgb(self) -> "CaptureConfig":
+        if self.output.dng and self.sensor.adc_bits > 16:
+            raise ValueError(f"output.dng: DNG samples are 16-bit here; needs sensor.adc_bits <= 16, got "
+                             f"{self.sensor.adc_bits}")
+        if self.output.dng and is_spectral_variant(self.render.variant):
+            raise ValueError(f"output.dng: the colour matrix is the RGB render's (raw = per-channel gain x linear "
+                             f"sRGB); not available for render.variant {self.render.variant!r}")
+        return self
+
     def to_yaml_dict(self) -> dict:
         """The resolved config as plain data (scene parameters filled in with their defaults)."""
         data = self.model_dump(mode="json")
@@ -352,7 +368,7 @@ def format_validation(exc: ValidationError, prefix: str = "", origin: Callable[[
         path = tuple(p for p in err["loc"] if not (isinstance(p, str) and p.startswith("function-")))
         full = ((prefix,) if prefix else ()) + path
         loc = ".".join(map(str, full))
-        msg = err["msg"]
+        msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             section = _model_at(model or CaptureConfig, path[:-1])
             if owner and section is not None and len(path) == 1:

@@ -11,6 +11,7 @@ import io
 
 import numpy as np
 
+from .emva import spectrogram
 from .timeline import Timeline
 
 #: One colour per bucket (bucket k: ``BUCKET_COLOURS[k % 6]``), in figures and reports alike.
@@ -263,3 +264,81 @@ def png8(rgb: np.ndarray) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(rgb, mode="RGB").save(buf, format="PNG")
     return buf.getvalue()
+
+
+# ----------------------------------------------------------------------------- EMVA 1288 datasheet
+CHANNEL_COLOURS = ("#d62728", "#2ca02c", "#1f77b4")
+
+
+def datasheet_pngs(curves, mode: str) -> dict[str, tuple[bytes, str]]:
+    """The plots of an EMVA 1288 datasheet (:mod:`mbcapture.characterize`) for one read mode, as
+    {name: (PNG bytes, caption)}: photon transfer, SNR, linearity and the spectrograms of the averaged
+    dark and 50 % frames. ``curves``: a :class:`mbcapture.characterize.ReadCurves`."""
+    from matplotlib.figure import Figure
+
+    out: dict[str, tuple[bytes, str]] = {}
+    y = curves.light.mean - curves.dark.mean  # (steps, C)
+    s2 = curves.light.variance - curves.dark.variance
+    names = ("R", "G", "B")
+
+    fig = Figure(figsize=(5.2, 3.6))
+    ax = fig.add_subplot()
+    for c, name in enumerate(names):
+        K = curves.figures[name]["system_gain_dn_per_e"].value
+        ax.plot(y[:, c], s2[:, c], "o", ms=3, color=CHANNEL_COLOURS[c], label=f"{name}: K = {K:.4g} DN/e-")
+        ax.plot(y[:, c], K * y[:, c], "-", lw=0.8, color=CHANNEL_COLOURS[c])
+    ax.set(xlabel="μ_y − μ_y.dark (DN)", ylabel="σ²_y − σ²_y.dark (DN²)", title=f"photon transfer ({mode} read)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out["photon_transfer"] = (png_bytes(fig), "photon transfer: temporal variance against mean, with the gain K fitted "
+                                              "up to 70 % of saturation; the variance drops at saturation")
+
+    fig = Figure(figsize=(5.2, 3.6))
+    ax = fig.add_subplot()
+    for c, name in enumerate(names):
+        f = curves.figures[name]
+        snr = y[:, c] / np.sqrt(np.maximum(curves.light.variance[:, c], 1e-12))
+        ax.loglog(curves.mu_p[:, c], np.maximum(snr, 1e-3), "o", ms=3, color=CHANNEL_COLOURS[c], label=name)
+        mu_e = f["quantum_efficiency"].value * curves.mu_p[:, c]
+        noise_e2 = (f["temporal_dark_noise_dn"].value / f["system_gain_dn_per_e"].value) ** 2
+        ax.loglog(curves.mu_p[:, c], mu_e / np.sqrt(noise_e2 + mu_e), "-", lw=0.8, color=CHANNEL_COLOURS[c])
+    ax.set(xlabel="photons per pixel μ_p", ylabel="SNR", title=f"signal-to-noise ratio ({mode} read)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out["snr"] = (png_bytes(fig), "SNR against photons: measured (dots) and the linear model of the measured η, σ_d, K "
+                                  "(lines)")
+
+    fig = Figure(figsize=(5.2, 5.0))
+    ax, dev = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [2, 1]})
+    for c, name in enumerate(names):
+        R = curves.figures[name]["responsivity_dn_per_photon"].value
+        ax.plot(curves.mu_p[:, c], y[:, c], "o", ms=3, color=CHANNEL_COLOURS[c], label=f"{name}: R = {R:.4g} DN/p")
+        ok = (y[:, c] > 0.05 * y[:, c].max()) & (y[:, c] < 0.95 * y[:, c].max())
+        dev.plot(curves.mu_p[ok, c], (y[ok, c] - R * curves.mu_p[ok, c]) / (R * curves.mu_p[ok, c]) * 100, "o-", ms=3,
+                 color=CHANNEL_COLOURS[c])
+    ax.set(ylabel="μ_y − μ_y.dark (DN)", title=f"linearity ({mode} read)")
+    ax.legend(fontsize=8)
+    dev.set(xlabel="photons per pixel μ_p", ylabel="deviation (%)")
+    fig.tight_layout()
+    out["linearity"] = (png_bytes(fig), "linearity: mean against photons and its relative deviation from the fitted line "
+                                        "between 5 % and 95 % of saturation")
+
+    fig = Figure(figsize=(7.5, 5.0))
+    axes = fig.subplots(2, 2)
+    for c, name in enumerate(names):
+        dark = curves.dark_frame[..., c]
+        light = curves.light_frame[..., c] - dark
+        for col, axis in enumerate((1, 0)):
+            f, amp = spectrogram(dark, axis)
+            axes[0, col].semilogy(f[1:], amp[1:], lw=0.8, color=CHANNEL_COLOURS[c], label=name)
+            f, amp = spectrogram(light / light.mean() * 100, axis)
+            axes[1, col].semilogy(f[1:], amp[1:], lw=0.8, color=CHANNEL_COLOURS[c], label=name)
+    for col, which in enumerate(("horizontal", "vertical")):
+        axes[0, col].set(title=f"DSNU, {which}", ylabel="amplitude (DN)")
+        axes[1, col].set(title=f"PRNU, {which}", ylabel="amplitude (%)", xlabel="frequency (cycles/pixel)")
+    axes[0, 0].legend(fontsize=8)
+    fig.tight_layout()
+    out["spectrograms"] = (png_bytes(fig), "spectrograms of the averaged dark frame (DSNU) and of the 50 % frame less "
+                                           "the dark one (PRNU): row and column patterns show as peaks or a raised "
+                                           "floor at low frequency, white pixel noise is flat")
+    return out

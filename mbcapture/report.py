@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .budget import noise_verdict
-from .htmlparts import esc, figure, fmt, table
+from .htmlparts import CSS, esc, figure, fmt, table
 from .metrics import flat_items, luminance
 from .optics import diffraction_otf
 from .plots import colour_map, histograms_png, png8, summed_label, timeline_png
@@ -117,20 +117,6 @@ def snr_map(result: "CaptureResult") -> tuple[np.ndarray, str]:
 
 
 # ----------------------------------------------------------------------------- html
-CSS = """
-body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0 auto;max-width:1280px;padding:0 1.2em 3em;
-color:#222;line-height:1.4}
-h1{font-size:1.5em;margin:.8em 0 .2em}h2{font-size:1.2em;border-bottom:1px solid #ddd;padding-bottom:.2em;margin-top:1.6em}
-table{border-collapse:collapse;font-size:.9em;margin:.5em 0}td,th{border:1px solid #ddd;padding:.25em .6em;text-align:left;
-vertical-align:top}th{background:#f5f5f5}td.num{text-align:right;font-variant-numeric:tabular-nums}
-.grid{display:grid;grid-template-columns:repeat(auto-fill,minmax(230px,1fr));gap:1em}
-figure{margin:0}figure img{width:100%;image-rendering:pixelated;border:1px solid #ccc;background:#000}
-figure.plot img{image-rendering:auto;background:#fff;border:none;width:auto;max-width:100%}figcaption{font-size:.82em;color:#444}
-.lead{font-size:1.05em}.verdict{padding:.6em 1em;border-left:4px solid #888;background:#f7f7f7}
-code{background:#f2f2f2;padding:0 .2em}.muted{color:#666;font-size:.85em}
-.scale{font-size:.8em;margin:.3em 0}.bar{height:.8em;border:1px solid #aaa}.ticks{display:flex;justify-content:space-between}
-.sw{display:inline-block;width:1em;height:.8em;border:1px solid #aaa;margin:0 .2em 0 .5em;vertical-align:middle}
-"""
 
 
 def _scale_html(scale: dict, label: str) -> str:
@@ -284,6 +270,7 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
     for n in names:
         notes[f"read_{n}_common_scale.png"] = f"read {n}, sRGB, on the scale common to all reads"
         notes[f"read_{n}_own_scale.png"] = f"read {n}, sRGB, its own maximum white"
+        notes[f"read_{n}.dng"] = f"read {n} as a DNG raw file (output.dng): ADC codes, black and white levels, colour matrix"
     for stem, (image, pct) in app_out.png.items():
         notes.setdefault(f"{stem}.png", f"preview of {image} ({_preview_scale(pct)})")
     file_rows = "".join(f"<tr><td><a href='{esc(f)}'>{esc(f)}</a></td><td>{esc(notes.get(f, ''))}</td></tr>"

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from .presets import load_preset
 from .spectral import check_spectral_response
 
 __all__ = ["SensorConfig"]
@@ -33,6 +34,14 @@ class SensorConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
+    preset: str | None = Field(
+        None,
+        description="Fill the sensor keys from a preset; keys set beside it win. A shipped preset's name "
+        "(wan2012_quad_bucket: the paper's sensor; two_bucket; global_shutter_cmos: a conventional one-bucket "
+        "sensor; each value's source is commented in mbcapture/sensor/presets/NAME.yaml), or a path (relative to "
+        "the working directory) to a YAML file of sensor keys or to a datasheet written by mbcapture characterize "
+        "(characterization.json). null: the keys below as set.",
+    )
     bucket_count: int = Field(
         4, ge=1, le=64,
         description="Number of charge-storage buckets per pixel (paper: the quad-bucket sensor of [Wan 12] has 4).",
@@ -160,6 +169,15 @@ class SensorConfig(BaseModel):
         "from the top-level seed. The renders depend on the top-level seed only, so changing noise_seed draws new "
         "noise on the same (cached) renders.",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fill_from_preset(cls, data):
+        if isinstance(data, dict) and data.get("preset") is not None:
+            if not isinstance(data["preset"], str):
+                raise ValueError(f"preset: expected a preset name or a file path, got {data['preset']!r}")
+            data = {**load_preset(data["preset"]), **data}
+        return data
 
     @field_validator("quantum_efficiency")
     @classmethod
