@@ -25,7 +25,9 @@ from .pipeline import (  # noqa: F401  (the names a capture's callers have alway
     render_cache,
 )
 from .progress import StageStatus
+from .raw import write_dng
 from .report import write_read_previews, write_report
+from .sensor import electrons_per_render_second
 from .video import run_video, write_video_files
 
 
@@ -94,6 +96,11 @@ def write_outputs(result: CaptureResult, out: Path, extra=None, *, raw: bool = T
             st.write_exr(file, layers)
         for stem, (image, percentile) in app_out.png.items():
             st.write_png(f"{stem}.png", app_out.images[image], percentile)
+        if cfg.output.dng:
+            gain = electrons_per_render_second(cfg.sensor, cfg.render.variant) * cfg.sensor.gain_dn_per_e
+            for i, n in enumerate(names):
+                write_dng(st.path(f"read_{n}.dng"), result.reads_dn[i], black_level=cfg.sensor.black_level_dn,
+                          white_level=cfg.sensor.adc_max_dn, channel_gain=gain)
         result.report["previews"] = write_read_previews(st, result)  # one common DN scale, and each its own
         st.write_yaml("config.yaml", cfg.to_yaml_dict())
         if extra is not None:

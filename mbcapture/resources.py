@@ -91,7 +91,8 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> Re
     exr = 4.0 * px * (3 * (K + R) * EXR_RATIO_EXPECTED + 3 * R * EXR_RATIO_DN
                       + frames * app.output_channels * EXR_RATIO_APP)
     pngs = app.previews + 2 * R + 3  # the application's, each read on two scales, three maps
-    outputs = exr + 3.0 * px * PNG_RATIO * pngs + REPORT_BYTES
+    dng = 2.0 * 3 * px * R if cfg.output.dng else 0.0  # uncompressed 16-bit R, G, B per read
+    outputs = exr + 3.0 * px * PNG_RATIO * pngs + dng + REPORT_BYTES
 
     cache = 0.0
     if cfg.render.cache != "off":

@@ -1,0 +1,96 @@
+"""DNG raw files of the simulated reads (``output.dng``), for the raw tools photographers already use
+(LibRaw/rawpy, dcraw, Lightroom, darktable, RawTherapee).
+
+A DNG is a TIFF with the DNG tags; tifffile (well kept, already a dependency of scikit-image and
+imageio) writes TIFF with any extra tags, so the DNG tags are written through it rather than with a
+DNG-only package (PiDNG adds a compiled extension for the lossless JPEG this module does not need).
+What is written, per read:
+
+* the integer ADC codes, uncompressed 16-bit: a CFA mosaic (one sample per photosite,
+  PhotometricInterpretation CFA, with CFARepeatPatternDim / CFAPattern) or, for a sensor whose
+  every pixel sees R, G and B (mbcapture's sensor without a colour filter array), three samples per
+  pixel as a linear DNG (PhotometricInterpretation LinearRaw);
+* BlackLevel (the sensor's black level) and WhiteLevel (the ADC's top code), in DN;
+* ColorMatrix1 (CIE XYZ to the camera's raw RGB under D65, CalibrationIlluminant1 = D65) and
+  AsShotNeutral (the raw RGB of a D65 white), from the camera's response per channel: in an RGB
+  render the raw value of channel c is g_c times the scene's linear-sRGB value c, with g_c the
+  sensor's DN per unit radiance, so XYZ -> raw is diag(g / max g) times XYZ -> linear sRGB. A raw
+  developer that applies them gives back the scene's sRGB colours.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+#: XYZ (D65) -> linear sRGB (IEC 61966-2-1), the matrix every sRGB pipeline uses.
+XYZ_TO_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314],
+                        [-0.9692660, 1.8760108, 0.0415560],
+                        [0.0556434, -0.2040259, 1.0572252]])
+#: CFA layouts by name: the colour (0 R, 1 G, 2 B) of each photosite of the 2x2 tile, row by row.
+CFA_PATTERNS = {"RGGB": (0, 1, 1, 2), "BGGR": (2, 1, 1, 0), "GRBG": (1, 0, 2, 1), "GBRG": (1, 2, 0, 1)}
+
+# DNG / TIFF-EP tag numbers (DNG specification 1.4)
+_CFA_REPEAT_PATTERN_DIM, _CFA_PATTERN = 33421, 33422
+_DNG_VERSION, _DNG_BACKWARD_VERSION, _UNIQUE_CAMERA_MODEL = 50706, 50707, 50708
+_CFA_PLANE_COLOR, _CFA_LAYOUT = 50710, 50711
+_BLACK_LEVEL, _WHITE_LEVEL = 50714, 50717
+_COLOR_MATRIX_1, _AS_SHOT_NEUTRAL, _CALIBRATION_ILLUMINANT_1 = 50721, 50728, 50778
+_PHOTOMETRIC_CFA, _PHOTOMETRIC_LINEAR_RAW = 32803, 34892
+_D65 = 21
+_DENOMINATOR = 1_000_000
+
+
+def _srational(values) -> tuple[int, ...]:
+    return tuple(v for x in values for v in (int(round(float(x) * _DENOMINATOR)), _DENOMINATOR))
+
+
+def colour_tags(channel_gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ColorMatrix1 3x3, AsShotNeutral (3,)) of a camera whose raw channel c is ``channel_gain[c]``
+    times the scene's linear sRGB channel c."""
+    g = np.asarray(channel_gain, dtype=np.float64)
+    if g.shape != (3,) or np.any(g <= 0) or not np.all(np.isfinite(g)):
+        raise ValueError(f"channel_gain: expected 3 positive numbers, got {channel_gain!r}")
+    neutral = g / g.max()
+    return neutral[:, None] * XYZ_TO_SRGB, neutral
+
+
+def write_dng(path: str | Path, codes: np.ndarray, *, black_level: float, white_level: int,
+              channel_gain: np.ndarray, cfa: str | None = None, model: str = "mbcapture simulated sensor") -> None:
+    """Write one read as a DNG. ``codes``: integer ADC codes, (H, W) for a ``cfa`` mosaic (one of
+    :data:`CFA_PATTERNS`) or (H, W, 3) without one; ``black_level`` and ``white_level`` in DN;
+    ``channel_gain``: raw DN per unit of the scene's linear sRGB, per channel (:func:`colour_tags`)."""
+    import tifffile
+
+    data = np.asarray(codes)
+    if not np.all(np.isfinite(data)) or np.any(data < 0) or np.any(data > 65535) or np.any(data != np.round(data)):
+        raise ValueError("codes: expected integer ADC codes in 0 .. 65535")
+    if not 0 < white_level <= 65535:
+        raise ValueError(f"white_level: expected 1 .. 65535 (16-bit samples), got {white_level}")
+    matrix, neutral = colour_tags(channel_gain)
+    tags = [
+        (_DNG_VERSION, "B", 4, (1, 4, 0, 0), True),
+        (_DNG_BACKWARD_VERSION, "B", 4, (1, 1, 0, 0), True),
+        (_UNIQUE_CAMERA_MODEL, "s", 0, model, True),
+        (_WHITE_LEVEL, "I", 1, (int(white_level),), True),
+        (_COLOR_MATRIX_1, "2i", 9, _srational(matrix.ravel()), True),
+        (_AS_SHOT_NEUTRAL, "2I", 3, _srational(neutral), True),
+        (_CALIBRATION_ILLUMINANT_1, "H", 1, (_D65,), True),
+    ]
+    if cfa is None:
+        if data.ndim != 3 or data.shape[-1] != 3:
+            raise ValueError(f"codes: expected (H, W, 3) without a CFA, got {data.shape}")
+        photometric = _PHOTOMETRIC_LINEAR_RAW
+        tags.append((_BLACK_LEVEL, "2I", 3, _srational([black_level] * 3), True))
+    else:
+        if cfa not in CFA_PATTERNS:
+            raise ValueError(f"cfa: expected one of {sorted(CFA_PATTERNS)}, got {cfa!r}")
+        if data.ndim != 2:
+            raise ValueError(f"codes: expected an (H, W) mosaic with a CFA, got {data.shape}")
+        photometric = _PHOTOMETRIC_CFA
+        tags += [(_CFA_REPEAT_PATTERN_DIM, "H", 2, (2, 2), True), (_CFA_PATTERN, "B", 4, CFA_PATTERNS[cfa], True),
+                 (_CFA_PLANE_COLOR, "B", 3, (0, 1, 2), True), (_CFA_LAYOUT, "H", 1, (1,), True),
+                 (_BLACK_LEVEL, "2I", 1, _srational([black_level]), True)]
+    tifffile.imwrite(path, data.astype(np.uint16), photometric=photometric, planarconfig="contig", subfiletype=0,
+                     extratags=tags, metadata=None, software="mbcapture")
