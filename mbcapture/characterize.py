@@ -47,7 +47,7 @@ from .sensor.photons import (
     electrons_per_radiance_second,
 )
 from .sensor.presets import DATASHEET_SCHEMA
-from .sensor.spectral import is_spectral_variant
+from .sensor.spectral import channel_quantum_efficiency, is_spectral_variant
 
 CHANNELS = ("R", "G", "B")
 #: The light series reaches saturation at this exposure time (the dark current is negligible there).
@@ -108,15 +108,30 @@ def charge_limit_e(cfg: CaptureConfig, buckets: int) -> float:
     return min(buckets * s.full_well_e, s.fd_full_well_e, adc_e)
 
 
+def monochromatic(cfg: CaptureConfig) -> CaptureConfig:
+    """The config a characterization measures: the standard's light is monochromatic, one wavelength
+    per channel (``sensor.wavelength_nm``). A sensor with spectral curves (``sensor.spectral_response``
+    a camera, a spectral ``render.variant``) is measured at those wavelengths: its curves' quantum
+    efficiency there, in the RGB render's one-wavelength-per-channel model, which for monochromatic
+    light is exact."""
+    if not is_spectral_variant(cfg.render.variant) and cfg.sensor.spectral_response == "effective_wavelength":
+        return cfg
+    wl, qe = channel_quantum_efficiency(cfg.sensor)
+    at = [float(np.interp(w, wl, qe[c], left=0.0, right=0.0)) for c, w in enumerate(cfg.sensor.wavelength_nm)]
+    if min(at) <= 0.0:
+        raise ConfigError(f"characterize: sensor.spectral_response {cfg.sensor.spectral_response!r} has no response at "
+                          f"sensor.wavelength_nm {cfg.sensor.wavelength_nm} in every channel; set wavelengths inside "
+                          f"its curves ({wl.min():g}-{wl.max():g} nm)")
+    sensor = cfg.sensor.model_copy(update={"spectral_response": "effective_wavelength", "quantum_efficiency": at})
+    variant = cfg.render.variant.replace("_spectral", "_rgb")
+    return cfg.model_copy(update={"sensor": sensor, "render": cfg.render.model_copy(update={"variant": variant})})
+
+
 def render_flat_field(cfg: CaptureConfig, settings: Settings) -> tuple[np.ndarray, np.ndarray]:
     """The flat field the sensor sees: (H, W, C) radiance (W m^-2 sr^-1) rendered by Mitsuba, and the
     electrons per second per pixel it gives, (C,), chosen so that one bucket saturates at
     ``SATURATION_TIME_S`` in every channel."""
     variant = cfg.render.variant
-    if is_spectral_variant(variant) or cfg.sensor.spectral_response != "effective_wavelength":
-        raise ConfigError("characterize: measures each channel at its sensor.wavelength_nm (the standard's "
-                          "monochromatic light): set render.variant to an *_rgb variant and "
-                          "sensor.spectral_response to effective_wavelength")
     k = electrons_per_radiance_second(cfg.sensor)
     rate = charge_limit_e(cfg, 1) / SATURATION_TIME_S
     radiance = rate / k
@@ -184,6 +199,7 @@ def measure(cfg: CaptureConfig, settings: Settings | None = None, *, progress: b
 
     settings = settings or Settings()
     settings.check()
+    cfg = monochromatic(cfg)
     radiance, rate = render_flat_field(cfg, settings)
     sensor = _Sensor(cfg, (settings.height, settings.width), rate)
     modes = read_modes(cfg.sensor.bucket_count)
@@ -225,7 +241,7 @@ def configured_figures(cfg: CaptureConfig, buckets: int) -> dict[str, list[float
     """What the config says each figure should be, per channel: the reader's comparison (and the
     tests'). The standard's saturation capacity (the variance maximum) has no configured value: it
     sits below the charge limit by the spread of the pixels' saturation (PRNU) and the series' step."""
-    s = cfg.sensor
+    s = monochromatic(cfg).sensor
     qe = [s.fill_factor * q for q in s.quantum_efficiency]
     line = lambda p, r, c: math.sqrt(p**2 + r**2 + c**2)  # noqa: E731
     return {
@@ -254,6 +270,7 @@ def datasheet(cfg: CaptureConfig, curves: dict[str, ReadCurves], settings: Setti
         "standard": "EMVA 1288 Release 4.0 Linear (figures computed by mbcapture.emva)",
         "config": source,
         "sensor": {"pixel_pitch_um": s.pixel_pitch_um, "bucket_count": s.bucket_count, "adc_bits": s.adc_bits,
+                   "spectral_response": s.spectral_response,
                    "wavelength_nm": list(s.wavelength_nm), "black_level_dn": s.black_level_dn,
                    "f_number": s.f_number, "lens_transmittance": s.lens_transmittance},
         "setup": {"film": [settings.width, settings.height], "steps": settings.steps,

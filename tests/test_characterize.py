@@ -186,3 +186,24 @@ def test_the_command_writes_a_datasheet_a_browser_shows(tmp_path):
     assert "system gain K" in html and "characterization.json" in html
     bad = subprocess.run([*cmd[:7], "--size", "8x8"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "--size must be at least 16x16" in bad.stderr
+
+
+def test_a_spectral_sensor_is_measured_at_its_wavelengths():
+    """The standard's light is monochromatic: a sensor with camera curves has, in each channel, the
+    quantum efficiency of its curve at sensor.wavelength_nm (times the fill factor)."""
+    import numpy as np
+
+    from mbcapture.sensor.spectral import channel_quantum_efficiency
+
+    settings = ch.Settings(width=48, height=48, steps=30, dark_steps=4, frames=4)
+    cfg = load_config(ROOT / "configs" / "metronome_spectral.yaml")
+    sheet = ch.datasheet(cfg, ch.measure(cfg, settings, progress=False), settings, "test")
+    wl, qe = channel_quantum_efficiency(cfg.sensor)
+    for c, name in enumerate(ch.CHANNELS):
+        want = cfg.sensor.fill_factor * np.interp(cfg.sensor.wavelength_nm[c], wl, qe[c])
+        f = sheet["reads"]["bucket"]["channels"][name]["quantum_efficiency"]
+        assert abs(f["value"] - want) <= Z * math.hypot(f["uncertainty"], want * cfg.sensor.prnu / 48), (name, f, want)
+    assert sheet["sensor"]["spectral_response"] == cfg.sensor.spectral_response
+    with pytest.raises(ConfigError, match="no response at"):
+        ch.measure(load_config(ROOT / "configs" / "metronome_spectral.yaml", ["sensor.wavelength_nm=[1900,540,460]"]),
+                   settings, progress=False)
