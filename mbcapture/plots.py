@@ -270,6 +270,14 @@ def png8(rgb: np.ndarray) -> bytes:
 CHANNEL_COLOURS = ("#d62728", "#2ca02c", "#1f77b4")
 
 
+def _labelled_png(fig, ax, **labels) -> bytes:
+    """PNG bytes of a one-axes figure once its axes are labelled (``ax.set(**labels)``) and it has a legend."""
+    ax.set(**labels)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return png_bytes(fig)
+
+
 def datasheet_pngs(curves, mode: str) -> dict[str, tuple[bytes, str]]:
     """The plots of an EMVA 1288 datasheet (:mod:`mbcapture.characterize`) for one read mode, as
     {name: (PNG bytes, caption)}: photon transfer, SNR, linearity and the spectrograms of the averaged
@@ -287,10 +295,8 @@ def datasheet_pngs(curves, mode: str) -> dict[str, tuple[bytes, str]]:
         K = curves.figures[name]["system_gain_dn_per_e"].value
         ax.plot(y[:, c], s2[:, c], "o", ms=3, color=CHANNEL_COLOURS[c], label=f"{name}: K = {K:.4g} DN/e-")
         ax.plot(y[:, c], K * y[:, c], "-", lw=0.8, color=CHANNEL_COLOURS[c])
-    ax.set(xlabel="μ_y − μ_y.dark (DN)", ylabel="σ²_y − σ²_y.dark (DN²)", title=f"photon transfer ({mode} read)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    out["photon_transfer"] = (png_bytes(fig), "photon transfer: temporal variance against mean, with the gain K fitted "
+    out["photon_transfer"] = (_labelled_png(fig, ax, xlabel="μ_y − μ_y.dark (DN)", ylabel="σ²_y − σ²_y.dark (DN²)",
+                                            title=f"photon transfer ({mode} read)"), "photon transfer: temporal variance against mean, with the gain K fitted "
                                               "up to 70 % of saturation; the variance drops at saturation")
 
     fig = Figure(figsize=(5.2, 3.6))
@@ -302,10 +308,8 @@ def datasheet_pngs(curves, mode: str) -> dict[str, tuple[bytes, str]]:
         mu_e = f["quantum_efficiency"].value * curves.mu_p[:, c]
         noise_e2 = (f["temporal_dark_noise_dn"].value / f["system_gain_dn_per_e"].value) ** 2
         ax.loglog(curves.mu_p[:, c], mu_e / np.sqrt(noise_e2 + mu_e), "-", lw=0.8, color=CHANNEL_COLOURS[c])
-    ax.set(xlabel="photons per pixel μ_p", ylabel="SNR", title=f"signal-to-noise ratio ({mode} read)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    out["snr"] = (png_bytes(fig), "SNR against photons: measured (dots) and the linear model of the measured η, σ_d, K "
+    out["snr"] = (_labelled_png(fig, ax, xlabel="photons per pixel μ_p", ylabel="SNR",
+                                title=f"signal-to-noise ratio ({mode} read)"), "SNR against photons: measured (dots) and the linear model of the measured η, σ_d, K "
                                   "(lines)")
 
     fig = Figure(figsize=(5.2, 5.0))
