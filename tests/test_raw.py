@@ -49,9 +49,8 @@ def test_the_colour_matrix_maps_a_d65_white_to_the_as_shot_neutral():
 @pytest.fixture(scope="module")
 def chart_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("dng") / "run"
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      ["scene.name=colour_chart", "render.width=160", "render.height=128", "render.spp=4",
-                       "render.cache=off", "output.dng=true"])
+    cfg = load_config(None, ["scene.name=colour_chart", "render.width=160", "render.height=128", "render.spp=4",
+                             "render.cache=off", "output.dng=true"])
     run_capture(cfg, out, progress=False)
     return out
 
