@@ -41,11 +41,7 @@ from .plots import datasheet_pngs
 from .render import Renderer
 from .scenes import load_module, make_scene
 from .sensor import simulate_reads
-from .sensor.photons import (
-    PLANCK_J_S,
-    SPEED_OF_LIGHT_M_PER_S,
-    electrons_per_radiance_second,
-)
+from .sensor.photons import electrons_per_radiance_second
 from .sensor.presets import DATASHEET_SCHEMA
 from .sensor.spectral import channel_quantum_efficiency, is_spectral_variant
 
@@ -145,11 +141,12 @@ def render_flat_field(cfg: CaptureConfig, settings: Settings) -> tuple[np.ndarra
 
 
 def photons_per_pixel(cfg: CaptureConfig, radiance: np.ndarray, t_s: np.ndarray) -> np.ndarray:
-    """mu_p: photons on one pixel's area, (steps, C), for per-channel radiance (C,) over t_s (steps,)."""
+    """mu_p: photons on one pixel's area, (steps, C), for per-channel radiance (C,) over t_s (steps,):
+    the sensor model's electrons per radiance-second (the camera equation times the photon count,
+    :func:`~mbcapture.sensor.electrons_per_radiance_second`) without its fill factor and QE."""
     s = cfg.sensor
-    irradiance = math.pi * s.lens_transmittance / (4 * s.f_number**2) * np.asarray(radiance)  # W m^-2
-    photon_j = PLANCK_J_S * SPEED_OF_LIGHT_M_PER_S / (np.asarray(s.wavelength_nm) * 1e-9)
-    return np.asarray(t_s)[:, None] * (irradiance * s.pixel_area_m2 / photon_j)[None, :]
+    photons = electrons_per_radiance_second(s) / (s.fill_factor * np.asarray(s.quantum_efficiency, np.float64))
+    return np.asarray(t_s)[:, None] * (photons * np.asarray(radiance))[None, :]
 
 
 class _Sensor:
@@ -158,7 +155,6 @@ class _Sensor:
     def __init__(self, cfg: CaptureConfig, shape: tuple[int, int], rate_e_per_s: np.ndarray):
         self.cfg, self.shape, self.rate = cfg, shape, np.asarray(rate_e_per_s, np.float64)
         self.seed = cfg.sensor.noise_seed if cfg.sensor.noise_seed is not None else cfg.seed
-        self.count = 0
 
     def frame(self, buckets: tuple[int, ...], t_s: float, lit: bool, key: tuple[int, ...]) -> np.ndarray:
         """(H, W, C) DN: the read of ``buckets`` after an exposure of t_s split equally over them."""
@@ -167,11 +163,11 @@ class _Sensor:
         expected = np.broadcast_to(share, (n, *self.shape, 3)).copy()
         noise = np.random.SeedSequence(self.seed, spawn_key=(0xE3A, *key))
         reads = simulate_reads(expected, [tuple(range(n))], self.cfg.sensor, noise, storage_s=[t_s] * n)
-        self.count += 1
         return reads.reads_dn[0]
 
 
-def _pairs(sensor: _Sensor, buckets, times, lit: bool, key: tuple[int, ...], bar) -> emva.PairStats | list:
+def _pairs(sensor: _Sensor, buckets, times, lit: bool, key: tuple[int, ...], bar) -> tuple[np.ndarray, np.ndarray]:
+    """Frames A and B at each exposure time, stacked: two (steps, H, W, C) arrays."""
     a, b = [], []
     for i, t in enumerate(times):
         a.append(sensor.frame(buckets, float(t), lit, (*key, i, 0)))
@@ -187,10 +183,6 @@ def _per_channel(a: np.ndarray, b: np.ndarray) -> list[emva.PairStats]:
 def _stack(stats: list[emva.PairStats]) -> emva.PairStats:
     return emva.PairStats(mean=np.stack([s.mean for s in stats], -1), variance=np.stack([s.variance for s in stats], -1),
                           pixels=stats[0].pixels)
-
-
-def _channel(stats: emva.PairStats, c: int) -> emva.PairStats:
-    return emva.PairStats(mean=stats.mean[:, c], variance=stats.variance[:, c], pixels=stats.pixels)
 
 
 def measure(cfg: CaptureConfig, settings: Settings | None = None, *, progress: bool = True) -> dict[str, ReadCurves]:
@@ -225,10 +217,10 @@ def measure(cfg: CaptureConfig, settings: Settings | None = None, *, progress: b
             curves = ReadCurves(t_s=t, mu_p=photons_per_pixel(cfg, radiance.mean(axis=(0, 1)), t), light=_stack(light),
                                 dark=_stack(dark), dark_t_s=t_dark, dark_series=_stack(dark_series),
                                 dark_frame=dark_avg, light_frame=light_avg)
+            i_half = int(np.argmin(np.abs(t - t_half)))
             for c, name in enumerate(CHANNELS):
                 figs = emva.sensitivity(curves.mu_p[:, c], light[c], dark[c], t)
                 figs.update(emva.dark_current(t_dark, dark_series[c], figs["system_gain_dn_per_e"]))
-                i_half = int(np.argmin(np.abs(t - t_half)))
                 figs.update(emva.nonuniformity(dark_avg[..., c], light_avg[..., c], settings.frames,
                                                float(dark[c].variance[i_half]), float(light[c].variance[i_half]),
                                                figs["system_gain_dn_per_e"]))

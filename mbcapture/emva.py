@@ -135,7 +135,7 @@ def sensitivity(mu_p: np.ndarray, light: PairStats, dark: PairStats, t_s: np.nda
 
     # temporal dark noise at t = 0 (the dark frames' variance grows with dark-current shot noise)
     if np.unique(t_s).size > 2:
-        slope, s2_dark0, cov_d = weighted_line(t_s, dark.variance, _var_of_variance(dark.variance, n))
+        _, s2_dark0, cov_d = weighted_line(t_s, dark.variance, _var_of_variance(dark.variance, n))
         s_s2_dark0 = float(np.sqrt(cov_d[0, 0]))
     else:
         s2_dark0, s_s2_dark0 = float(dark.variance[0]), float(np.sqrt(_var_of_variance(dark.variance[0], n)))
@@ -205,7 +205,7 @@ def dark_current(t_s: np.ndarray, dark: PairStats, system_gain: Figure) -> dict[
     slope, _, cov = weighted_line(t_s, dark.mean, dark.variance / (2 * n))
     K, sK = system_gain.value, system_gain.uncertainty or 0.0
     mu_i = slope / K
-    s_mu_i = abs(mu_i) * np.hypot(np.sqrt(cov[1, 1]) / max(abs(slope), 1e-300), sK / K) if slope else np.sqrt(cov[1, 1]) / K
+    s_mu_i = np.hypot(np.sqrt(cov[1, 1]) / K, mu_i * sK / K)
     vslope, _, vcov = weighted_line(t_s, dark.variance, _var_of_variance(dark.variance, n))
     sec = "Release 4.0 Linear: dark current"
     return {

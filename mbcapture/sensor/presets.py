@@ -56,11 +56,11 @@ def load_preset(ref: str) -> dict:
     return data
 
 
-def _figure(channels: dict, name: str, source: str) -> list[float]:
+def _figure(channels: dict, name: str, source: str, read: str = "bucket") -> list[float]:
     try:
         return [float(channels[c][name]["value"]) for c in ("R", "G", "B")]
     except (KeyError, TypeError, ValueError):
-        raise ValueError(f"preset: {source}: reads.bucket.channels.<R|G|B>.{name}.value missing or not a number") from None
+        raise ValueError(f"preset: {source}: reads.{read}.channels.<R|G|B>.{name}.value missing or not a number") from None
 
 
 def sensor_keys_from_datasheet(sheet: dict, source: str = "datasheet") -> dict:
@@ -87,25 +87,20 @@ def sensor_keys_from_datasheet(sheet: dict, source: str = "datasheet") -> dict:
     def rms(name: str) -> float:
         return math.sqrt(sum(v * v for v in _figure(bucket, name, source)) / 3)
 
-    full_well = mean("charge_limit_e")
-    count = int(info.get("bucket_count", 1))
-    fd = (float(sum(_figure(reads["sum"]["channels"], "charge_limit_e", source)) / 3)
-          if "sum" in reads else max(count, 1) * full_well)
     try:
-        keys = _keys(info, bucket, count, full_well, fd, mean, rms, source)
+        count = int(info.get("bucket_count", 1))
+        setup = {"bucket_count": count, "pixel_pitch_um": float(info["pixel_pitch_um"]), "adc_bits": int(info["adc_bits"]),
+                 "black_level_dn": float(info["black_level_dn"]),
+                 "wavelength_nm": [float(w) for w in info["wavelength_nm"]]}
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"preset: {source}: sensor.{exc.args[0] if isinstance(exc, KeyError) else exc} missing or "
-                         "malformed") from None
-    return keys
-
-
-def _keys(info, bucket, count, full_well, fd, mean, rms, source) -> dict:
+        what = exc.args[0] if isinstance(exc, KeyError) else "bucket_count, pixel_pitch_um, adc_bits, black_level_dn or wavelength_nm"
+        raise ValueError(f"preset: {source}: sensor.{what} missing or malformed") from None
+    full_well = mean("charge_limit_e")
+    summed = reads.get("sum")
+    fd = (float(sum(_figure(summed.get("channels"), "charge_limit_e", source, "sum")) / 3)
+          if isinstance(summed, dict) else max(count, 1) * full_well)
     return {
-        "bucket_count": count,
-        "pixel_pitch_um": float(info["pixel_pitch_um"]),
-        "adc_bits": int(info["adc_bits"]),
-        "black_level_dn": float(info["black_level_dn"]),
-        "wavelength_nm": [float(w) for w in info["wavelength_nm"]],
+        **setup,
         "fill_factor": 1.0,
         "quantum_efficiency": [min(max(q, 1e-6), 1.0) for q in _figure(bucket, "quantum_efficiency", source)],
         "gain_dn_per_e": mean("system_gain_dn_per_e"),
