@@ -14,6 +14,7 @@ shipped ones in ``configs/``, by its name (``metronome_hdr``).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
 import math
 import warnings
@@ -34,6 +35,7 @@ from . import application as apps
 from . import camera_motion, protocols, scenes
 from .camera_motion import CameraSection
 from .errors import ConfigError, ConfigNotice
+from .optics import fov_deg_for
 from .sensor.config import SensorConfig
 from .sensor.spectral import EFFECTIVE_WAVELENGTH, is_spectral_variant
 
@@ -273,7 +275,7 @@ class CaptureConfig(_Model):
     scene: SceneSection = Field(default_factory=SceneSection, description="What is in front of the camera: scene.name and its parameters.")
     render: RenderSection = Field(default_factory=RenderSection, description="Film size, samples and the motion tolerance of the render plan.")
     capture: CaptureSection = Field(default_factory=CaptureSection, description="Protocol: gate schedule, exposures, interleaving periods.")
-    camera: CameraSection = Field(default_factory=CameraSection, description="How the camera moves during the capture: camera.shake (hand shake) or camera.trajectory_file; default still.")
+    camera: CameraSection = Field(default_factory=CameraSection, description="The camera: how it moves during the capture (camera.shake or camera.trajectory_file; default still) and its lens (camera.lens, focus, focal length, vignetting, diffraction).")
     sensor: SensorConfig = Field(default_factory=SensorConfig, description="The multi-bucket pixel: optics, full wells, noise, ADC.")
     hdr: HDRSection = Field(default_factory=HDRSection, description="HDR reconstruction method.")
     app: AppSection = Field(default_factory=AppSection, description="Reconstruction applied to the reads and its parameters.")
@@ -323,8 +325,13 @@ class CaptureConfig(_Model):
 
 def scene_of(cfg: CaptureConfig) -> scenes.SceneModel:
     """The scene a config captures: ``scene.name`` with its parameters, seen through ``camera``
-    (shake or a trajectory, :func:`mbcapture.camera_motion.apply`)."""
-    return camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera)
+    (shake or a trajectory, :func:`mbcapture.camera_motion.apply`; ``camera.focal_length_mm`` sets
+    its field of view)."""
+    scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
+    if cfg.camera.focal_length_mm is not None:
+        fov = fov_deg_for(cfg.camera.focal_length_mm, cfg.render.width, cfg.sensor.pixel_pitch_um)
+        scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, fov_deg=fov))
+    return camera_motion.apply(scene, cfg.camera)
 
 
 def _model_at(model: type[BaseModel], path: tuple) -> type[BaseModel] | None:

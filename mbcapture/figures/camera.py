@@ -1,5 +1,6 @@
 """Figures of the camera beyond the paper: fixed-pattern noise split into pixel, row and column
-components (EMVA 1288 Release 4.0) with temporal row noise, and the lens's natural vignetting."""
+components (EMVA 1288 Release 4.0) with temporal row noise, and the lens: natural vignetting,
+diffraction MTF, depth of field through focus."""
 
 from __future__ import annotations
 
@@ -7,7 +8,15 @@ import numpy as np
 
 from ..config import load_config, scene_of
 from ..metrics import row_column_pixel_variances
-from ..optics import diffraction_otf, natural_vignetting
+from ..optics import (
+    blur_radius_px,
+    diffraction_otf,
+    focal_length_m,
+    focus_distance_m,
+    natural_vignetting,
+    thin_lens_aperture_m,
+)
+from ..render import Renderer
 from ..sensor import SensorConfig, dn_to_electrons, simulate_reads
 from . import CONFIG_DIR, FigureContext, FigureOutput, figure
 
@@ -115,3 +124,46 @@ def camera_mtf(ctx: FigureContext) -> FigureOutput:
                "OTF of a circular aperture per channel, at the default f-number and at f/8. camera.diffraction applies the "
                "OTF to every render.")
     return FigureOutput(fig, {"pixel_pitch_um": sensor.pixel_pitch_um, "rows": rows}, caption, rows)
+
+
+@figure("camera_depth_of_field", "Through focus: the metronome through a thin lens focused near, on the needle and far "
+        "(camera.lens: thin)", "beyond the paper")
+def camera_depth_of_field(ctx: FigureContext) -> FigureOutput:
+    import matplotlib.pyplot as plt
+
+    # a large pixel (20 um: a 12.8 mm wide sensor at 640 px) and f/1.4 make the depth of field shallow
+    # enough to see; the shipped configs' 5.6 um at f/2.8 blur the scene by under a pixel
+    lens = ("camera.lens=thin", "sensor.pixel_pitch_um=20", "sensor.f_number=1.4")
+    cfg = ctx.config("metronome_hdr", lens)
+    scene = scene_of(cfg)
+    W, H = ctx.film
+    spp = 16 if ctx.quick else 64
+    target = focus_distance_m(scene.camera)
+    aperture = thin_lens_aperture_m(scene.camera, W, cfg.sensor.pixel_pitch_um, cfg.sensor.f_number)
+    focus = {"near (0.7 m)": 0.7, f"on the needle ({target:.2f} m)": target, "far (1.6 m)": 1.6}
+    images = []
+    for s_f in focus.values():
+        focused = ctx.config("metronome_hdr", (*lens, f"camera.focus_distance_m={s_f}"))
+        images.append(Renderer.from_config(scene, focused).render(0.0, spp, ctx.seed).sum(axis=0))
+    white = float(np.percentile(images[1].mean(axis=-1), 99.5))
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.4), gridspec_kw={"height_ratios": [1, 1.1]})
+    rows = [["focus_m", "blur_radius_px_at_0.7m", "blur_radius_px_at_needle", "blur_radius_px_at_1.6m"]]
+    crop = (slice(int(0.30 * H), int(0.80 * H)), slice(int(0.30 * W), int(0.70 * W)))  # the metronome and the ball
+    for (top, bottom), (label, s_f), img in zip(axes.T, focus.items(), images):
+        shown = np.clip(img / white, 0, 1) ** (1 / 2.2)
+        top.imshow(shown)
+        bottom.imshow(shown[crop], interpolation="nearest")
+        radii = [blur_radius_px(scene.camera, W, aperture, s_f, z) for z in (0.7, target, 1.6)]
+        rows.append([s_f, *radii])
+        top.set_title(f"focused {label}", fontsize=9)
+        bottom.set_title(f"crop; blur radius {radii[1]:.1f} px at the needle, {radii[2]:.1f} px at 1.6 m", fontsize=8)
+        for ax in (top, bottom):
+            ax.set_xticks([]), ax.set_yticks([])
+    fig.tight_layout()
+    caption = (f"The metronome through a thin lens (Mitsuba's thinlens sensor) of f = "
+               f"{focal_length_m(scene.camera, W, cfg.sensor.pixel_pitch_um) * 1e3:.1f} mm at f/{cfg.sensor.f_number:g} "
+               f"(aperture radius {aperture * 1e3:.2f} mm) on {cfg.sensor.pixel_pitch_um:g} um pixels, focused at three "
+               "distances. A point at depth z spreads over a disk of radius r |1/s_f - 1/z| in angle "
+               "(optics.blur_radius_px; the table gives it in pixels), the law tests/test_optics.py checks on a rendered edge.")
+    return FigureOutput(fig, {"focal_length_m": focal_length_m(scene.camera, W, cfg.sensor.pixel_pitch_um),
+                              "aperture_radius_m": aperture, "rows": rows}, caption, rows)

@@ -15,7 +15,12 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 
 from ..errors import ConfigError
-from ..optics import apply_diffraction, natural_vignetting
+from ..optics import (
+    apply_diffraction,
+    focus_distance_m,
+    natural_vignetting,
+    thin_lens_aperture_m,
+)
 from ..scenes import SceneModel
 from ..sensor.spectral import film_sensitivity
 from .build import (
@@ -143,7 +148,11 @@ class Renderer:
                  sensor: "SensorConfig | None" = None,
                  film_curves: tuple[np.ndarray, np.ndarray] | None = None,
                  cache: RenderCache | None = None, sampler: str = "multijitter", vignetting: str = "none",
-                 diffraction: bool = False) -> None:
+                 diffraction: bool = False, thin_lens: tuple[float, float] | None = None) -> None:
+        if thin_lens is not None and not (thin_lens[0] > 0 and thin_lens[1] > 0):
+            raise ConfigError(f"thin lens: aperture radius and focus distance must be positive, got {thin_lens}")
+        #: (aperture radius m, focus distance m) of Mitsuba's thinlens sensor; None: a pinhole
+        self.thin_lens = None if thin_lens is None else (float(thin_lens[0]), float(thin_lens[1]))
         if vignetting not in ("none", "cos4"):
             raise ConfigError(f"camera.vignetting: expected 'none' or 'cos4', got {vignetting!r}")
         self._falloff = None if vignetting == "none" else \
@@ -253,9 +262,13 @@ class Renderer:
         """The renderer a capture config asks for (film, variant, depth, sampler, sensor), with
         ``overrides`` of any keyword of :class:`Renderer` (e.g. ``film_curves``, ``sensor``)."""
         r = cfg.render
+        lens = None
+        if cfg.camera.lens == "thin":
+            focus = cfg.camera.focus_distance_m or focus_distance_m(scene.camera)
+            lens = (thin_lens_aperture_m(scene.camera, r.width, cfg.sensor.pixel_pitch_um, cfg.sensor.f_number), focus)
         kw: dict[str, Any] = {"variant": r.variant, "max_depth": r.max_depth, "sampler": r.sampler,
                               "sensor": cfg.sensor, "cache": cache, "vignetting": cfg.camera.vignetting,
-                              "diffraction": cfg.camera.diffraction}
+                              "diffraction": cfg.camera.diffraction, "thin_lens": lens}
         kw.update(overrides)
         return cls(scene, r.width, r.height, **kw)
 
@@ -300,7 +313,8 @@ class Renderer:
         d: dict[str, Any] = {
             "type": "scene",
             "sensor": {
-                "type": "perspective",
+                **({"type": "perspective"} if self.thin_lens is None else
+                   {"type": "thinlens", "aperture_radius": self.thin_lens[0], "focus_distance": self.thin_lens[1]}),
                 "fov": float(cam.fov_deg),
                 "fov_axis": "x",
                 "near_clip": 1e-3,
