@@ -35,6 +35,9 @@ CAPTURE_CASES = [
     ("metronome_shake", "metronome_shake.yaml", []),
     ("burst", "burst.yaml", []),
     ("hdr_video", "hdr_video.yaml", ["capture.frames=3"]),
+    # the thin lens (camera.lens: thin) at f/1.4: at 32x24 its blur radius is under a tenth of a pixel, but its renders
+    # draw lens samples a pinhole does not; its blur law is tested in tests/test_optics.py
+    ("thin_lens", "metronome_hdr.yaml", ["camera.lens=thin", "sensor.f_number=1.4"]),
 ]
 
 #: Images of a config's captures that are not pinned, and why: a wrapped phase jumps by 2 pi where it
