@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict
 
 from .errors import ConfigError
 from .sensor import dn_to_electrons
+from .sensor.cfa import BAYER_PATTERNS, channel_map, demosaic
 
 
 class NoParams(BaseModel):
@@ -46,6 +47,10 @@ class CaptureData:
     k_e                 (C,) electrons per render unit per second
     moving_mask         (H, W) pixels the moving parts cross during the capture
     renderer            the capture's Renderer (for reference renders), None in synthetic tests
+    mosaic_dn           (R, H, W) a colour-filter-array sensor's photosite codes, and
+    mosaic_saturated    (R, H, W) their flags (sensor.cfa); None without one. ``reads_dn`` are then
+                        the demosaiced reads: an application that reconstructs before demosaicing
+                        reads the mosaic and demosaics its result (:meth:`demosaic`)
     """
 
     cfg: Any
@@ -65,6 +70,8 @@ class CaptureData:
     group_exposure: np.ndarray | None = None
     renderer: Any = None
     seed: np.random.SeedSequence | None = None
+    mosaic_dn: np.ndarray | None = None
+    mosaic_saturated: np.ndarray | None = None
 
     @property
     def sequential(self) -> bool:
@@ -74,6 +81,19 @@ class CaptureData:
         """Reads in electrons (black level removed, gain undone), float64."""
 
         return dn_to_electrons(self.reads_dn, self.cfg.sensor)
+
+    @property
+    def bayer(self) -> bool:
+        """True on a Bayer sensor (``sensor.cfa`` one of the Bayer phases) whose mosaic came with the reads."""
+        return self.mosaic_dn is not None and self.cfg.sensor.cfa in BAYER_PATTERNS
+
+    def demosaic(self, mosaic: np.ndarray) -> np.ndarray:
+        """(..., H, W) values of this sensor's photosites -> (..., H, W, 3), with ``sensor.demosaic``."""
+        return demosaic(mosaic, self.cfg.sensor.cfa, self.cfg.sensor.demosaic)
+
+    def photosite_channels(self) -> np.ndarray:
+        """(H, W) the channel each photosite of this Bayer sensor sees."""
+        return channel_map(self.cfg.sensor.cfa, *self.mosaic_dn.shape[-2:])
 
     def group_index(self, name: str) -> int:
         return list(self.plan.groups).index(name)

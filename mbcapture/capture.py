@@ -98,9 +98,11 @@ def write_outputs(result: CaptureResult, out: Path, extra=None, *, raw: bool = T
             st.write_png(f"{stem}.png", app_out.images[image], percentile)
         if cfg.output.dng:
             gain = electrons_per_render_second(cfg.sensor, cfg.render.variant) * cfg.sensor.gain_dn_per_e
+            cfa = None if cfg.sensor.cfa == "none" else cfg.sensor.cfa
+            codes = result.reads_dn if result.mosaic_dn is None else result.mosaic_dn  # a CFA sensor: its photosites
             for i, n in enumerate(names):
-                write_dng(st.path(f"read_{n}.dng"), result.reads_dn[i], black_level=cfg.sensor.black_level_dn,
-                          white_level=cfg.sensor.adc_max_dn, channel_gain=gain)
+                write_dng(st.path(f"read_{n}.dng"), codes[i], black_level=cfg.sensor.black_level_dn,
+                          white_level=cfg.sensor.adc_max_dn, channel_gain=gain, cfa=cfa)
         result.report["previews"] = write_read_previews(st, result)  # one common DN scale, and each its own
         st.write_yaml("config.yaml", cfg.to_yaml_dict())
         if extra is not None:

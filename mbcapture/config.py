@@ -238,10 +238,11 @@ class OutputSection(_Model):
         99.5, gt=0, le=100, description="Tone mapping of PNG previews: this luminance percentile maps to white before the sRGB curve."
     )
     dng: bool = Field(
-        False, description="Also write each read as a DNG raw file, read_<name>.dng: its ADC codes (16-bit, a linear "
-        "DNG with R, G, B per pixel as the sensor has no colour filter array), black and white levels, and the colour "
-        "matrix and as-shot neutral of the sensor's per-channel response, so raw developers (rawpy/LibRaw, "
-        "darktable, Lightroom) open and colour it. Needs sensor.adc_bits <= 16 and an RGB render.variant.",
+        False, description="Also write each read as a DNG raw file, read_<name>.dng: its ADC codes (16-bit; the "
+        "photosites' mosaic with its CFA pattern on a Bayer sensor (sensor.cfa), one sample per pixel on a mono "
+        "one, else a linear DNG with R, G, B per pixel), black and white levels, and the colour matrix and as-shot "
+        "neutral of the sensor's per-channel response, so raw developers (rawpy/LibRaw, darktable, Lightroom) open "
+        "and colour it. Needs sensor.adc_bits <= 16, and an RGB render.variant unless the sensor is mono.",
     )
 
 
@@ -309,7 +310,7 @@ class CaptureConfig(_Model):
         if self.output.dng and self.sensor.adc_bits > 16:
             raise ValueError(f"output.dng: DNG samples are 16-bit here; needs sensor.adc_bits <= 16, got "
                              f"{self.sensor.adc_bits}")
-        if self.output.dng and is_spectral_variant(self.render.variant):
+        if self.output.dng and is_spectral_variant(self.render.variant) and self.sensor.cfa != "mono":
             raise ValueError(f"output.dng: the colour matrix is the RGB render's (raw = per-channel gain x linear "
                              f"sRGB); not available for render.variant {self.render.variant!r}")
         return self

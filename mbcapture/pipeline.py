@@ -50,6 +50,8 @@ class CaptureResult:
     saturated             (R, H, W, C) bool
     moving_mask           (H, W) pixels the moving parts cross during the capture
     render_var_exposure   (K, H, W, C) estimated Monte Carlo variance of bucket_exposure (None if spp = 1)
+    mosaic_dn             (R, H, W) a colour-filter-array sensor's photosite codes (sensor.cfa), else None;
+                          reads_dn are then the demosaiced reads
     app                   name of the application that reconstructed the reads
     images                its images by name (hdr: radiance, sigma, valid, truth, moving; see docs)
     """
@@ -66,6 +68,7 @@ class CaptureResult:
     app: str
     images: dict[str, np.ndarray]
     render_var_exposure: np.ndarray | None = None
+    mosaic_dn: np.ndarray | None = None
     report: dict = field(default_factory=dict)
     out_dir: Path | None = None  # where run_capture wrote it
     app_output: AppOutput | None = None
@@ -262,6 +265,8 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
             group_exposure=integrated.group_exposure,
             renderer=renderer,
             seed=seeds[3],
+            mosaic_dn=sensor_out.mosaic_dn,
+            mosaic_saturated=sensor_out.mosaic_saturated,
         )
         out = app.reconstruct(data, app_params)
 
@@ -294,6 +299,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         app=app.name,
         images=out.images,
         render_var_exposure=integrated.mc_var,
+        mosaic_dn=sensor_out.mosaic_dn,
         report=report,
         app_output=out,
     )

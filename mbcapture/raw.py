@@ -9,13 +9,15 @@ What is written, per read:
 * the integer ADC codes, uncompressed 16-bit: a CFA mosaic (one sample per photosite,
   PhotometricInterpretation CFA, with CFARepeatPatternDim / CFAPattern) or, for a sensor whose
   every pixel sees R, G and B (mbcapture's sensor without a colour filter array), three samples per
-  pixel as a linear DNG (PhotometricInterpretation LinearRaw);
+  pixel as a linear DNG (PhotometricInterpretation LinearRaw); a monochrome sensor's one sample
+  per pixel as a one-sample LinearRaw DNG;
 * BlackLevel (the sensor's black level) and WhiteLevel (the ADC's top code), in DN;
 * ColorMatrix1 (CIE XYZ to the camera's raw RGB under D65, CalibrationIlluminant1 = D65) and
   AsShotNeutral (the raw RGB of a D65 white), from the camera's response per channel: in an RGB
   render the raw value of channel c is g_c times the scene's linear-sRGB value c, with g_c the
   sensor's DN per unit radiance, so XYZ -> raw is diag(g / max g) times XYZ -> linear sRGB. A raw
-  developer that applies them gives back the scene's sRGB colours.
+  developer that applies them gives back the scene's sRGB colours. A monochrome DNG's one plane is
+  given XYZ's Y (a 1x3 matrix) and a neutral of 1.
 """
 
 from __future__ import annotations
@@ -24,12 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .sensor.cfa import BAYER_PATTERNS
+
 #: XYZ (D65) -> linear sRGB (IEC 61966-2-1), the matrix every sRGB pipeline uses.
 XYZ_TO_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314],
                         [-0.9692660, 1.8760108, 0.0415560],
                         [0.0556434, -0.2040259, 1.0572252]])
 #: CFA layouts by name: the colour (0 R, 1 G, 2 B) of each photosite of the 2x2 tile, row by row.
-CFA_PATTERNS = {"RGGB": (0, 1, 1, 2), "BGGR": (2, 1, 1, 0), "GRBG": (1, 0, 2, 1), "GBRG": (1, 2, 0, 1)}
+CFA_PATTERNS = BAYER_PATTERNS
 
 # DNG / TIFF-EP tag numbers (DNG specification 1.4)
 _CFA_REPEAT_PATTERN_DIM, _CFA_PATTERN = 33421, 33422
@@ -37,7 +41,7 @@ _DNG_VERSION, _DNG_BACKWARD_VERSION, _UNIQUE_CAMERA_MODEL = 50706, 50707, 50708
 _CFA_PLANE_COLOR, _CFA_LAYOUT = 50710, 50711
 _BLACK_LEVEL, _WHITE_LEVEL = 50714, 50717
 _COLOR_MATRIX_1, _AS_SHOT_NEUTRAL, _CALIBRATION_ILLUMINANT_1 = 50721, 50728, 50778
-_PHOTOMETRIC_CFA, _PHOTOMETRIC_LINEAR_RAW = 32803, 34892
+_PHOTOMETRIC_CFA, _PHOTOMETRIC_LINEAR_RAW, _PHOTOMETRIC_BLACK_IS_ZERO = 32803, 34892, 1
 _D65 = 21
 _DENOMINATOR = 1_000_000
 
@@ -59,7 +63,8 @@ def colour_tags(channel_gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def write_dng(path: str | Path, codes: np.ndarray, *, black_level: float, white_level: int,
               channel_gain: np.ndarray, cfa: str | None = None, model: str = "mbcapture simulated sensor") -> None:
     """Write one read as a DNG. ``codes``: integer ADC codes, (H, W) for a ``cfa`` mosaic (one of
-    :data:`CFA_PATTERNS`) or (H, W, 3) without one; ``black_level`` and ``white_level`` in DN;
+    :data:`CFA_PATTERNS`) or a ``cfa='mono'`` sensor, or (H, W, 3) without one; ``black_level`` and
+    ``white_level`` in DN;
     ``channel_gain``: raw DN per unit of the scene's linear sRGB, per channel (:func:`colour_tags`)."""
     import tifffile
 
@@ -74,11 +79,21 @@ def write_dng(path: str | Path, codes: np.ndarray, *, black_level: float, white_
         (_DNG_BACKWARD_VERSION, "B", 4, (1, 1, 0, 0), True),
         (_UNIQUE_CAMERA_MODEL, "s", 0, model, True),
         (_WHITE_LEVEL, "I", 1, (int(white_level),), True),
-        (_COLOR_MATRIX_1, "2i", 9, _srational(matrix.ravel()), True),
-        (_AS_SHOT_NEUTRAL, "2I", 3, _srational(neutral), True),
-        (_CALIBRATION_ILLUMINANT_1, "H", 1, (_D65,), True),
     ]
-    if cfa is None:
+    if cfa != "mono":
+        tags += [(_COLOR_MATRIX_1, "2i", 9, _srational(matrix.ravel()), True),
+                 (_AS_SHOT_NEUTRAL, "2I", 3, _srational(neutral), True),
+                 (_CALIBRATION_ILLUMINANT_1, "H", 1, (_D65,), True)]
+    else:  # one colour plane: XYZ -> its value is Y (a 1x3 matrix), its neutral 1
+        tags += [(_COLOR_MATRIX_1, "2i", 3, _srational([0.0, 1.0, 0.0]), True),
+                 (_AS_SHOT_NEUTRAL, "2I", 1, _srational([1.0]), True),
+                 (_CALIBRATION_ILLUMINANT_1, "H", 1, (_D65,), True)]
+    if cfa == "mono":
+        if data.ndim != 2:
+            raise ValueError(f"codes: expected an (H, W) image of a monochrome sensor, got {data.shape}")
+        photometric = _PHOTOMETRIC_BLACK_IS_ZERO  # written so, then made LinearRaw (below)
+        tags.append((_BLACK_LEVEL, "2I", 1, _srational([black_level]), True))
+    elif cfa is None:
         if data.ndim != 3 or data.shape[-1] != 3:
             raise ValueError(f"codes: expected (H, W, 3) without a CFA, got {data.shape}")
         photometric = _PHOTOMETRIC_LINEAR_RAW
@@ -94,3 +109,8 @@ def write_dng(path: str | Path, codes: np.ndarray, *, black_level: float, white_
                  (_BLACK_LEVEL, "2I", 1, _srational([black_level]), True)]
     tifffile.imwrite(path, data.astype(np.uint16), photometric=photometric, planarconfig="contig", subfiletype=0,
                      extratags=tags, metadata=None, software="mbcapture")
+    if cfa == "mono":
+        # a monochrome DNG is LinearRaw with one sample (what LibRaw and Adobe's dng_validate read), which
+        # tifffile will not write directly (it expects three samples for LinearRaw): rewrite the tag in place
+        with tifffile.TiffFile(path, mode="r+b") as tif:
+            tif.pages[0].tags["PhotometricInterpretation"].overwrite(_PHOTOMETRIC_LINEAR_RAW)

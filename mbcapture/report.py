@@ -50,6 +50,10 @@ FILE_NOTES = {
 
 
 # ----------------------------------------------------------------------------- read previews
+#: The report's line for a sensor without a Bayer mosaic (sensor.cfa).
+CFA_LINES = {"none": "none: R, G and B at every pixel (three stacked photosites)",
+             "mono": "monochrome: one spectral response, the sum of the bands' (the reads' R, G, B are equal)"}
+
 def read_scales(reads_dn: np.ndarray, black_level_dn: float) -> tuple[float, list[float]]:
     """White levels (DN above black) of the read previews: the common one (the
     ``COMMON_SCALE_PERCENTILE`` of the brightest read's luminance) and each read's own maximum."""
@@ -182,6 +186,13 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
                                         f"{100 * s.prnu_col:g} % per column; DSNU {s.dsnu_e:g} e- per pixel, "
                                         f"{s.dsnu_row_e:g} e- per row, {s.dsnu_col_e:g} e- per column; temporal row "
                                         f"noise {s.read_noise_row_e:g} e- (sensor.fpn_seed {s.fpn_seed})"],
+        ["colour filter array", CFA_LINES.get(s.cfa, f"Bayer {s.cfa}: one channel per photosite, each read demosaiced "
+                                                     f"({s.demosaic}, colour-demosaicing); raw files keep the mosaic")],
+        ["lens", "pinhole (everything in focus)" if cfg.camera.lens == "pinhole" else
+                 f"thin lens at f/{s.f_number:g}, focal length "
+                 + (f"{cfg.camera.focal_length_mm:g} mm" if cfg.camera.focal_length_mm else "from the field of view")
+                 + ", focused at " + (f"{cfg.camera.focus_distance_m:g} m" if cfg.camera.focus_distance_m
+                                      else "the scene's subject")],
         ["film", f"{rep['film'][0]} x {rep['film'][1]} px, variant {cfg.render.variant}"
                  + (", natural vignetting (cos^4 of the field angle)" if cfg.camera.vignetting == "cos4" else "")
                  + (f", diffraction at f/{cfg.sensor.f_number:g} (MTF at Nyquist "

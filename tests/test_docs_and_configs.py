@@ -75,3 +75,28 @@ def test_cli_output_piped_into_head_ends_quietly():
                           capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
     assert proc.returncode == 0 and len(proc.stdout) == 20
     assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr
+
+
+#: One shipped config per application, on a Bayer sensor (and two on a monochrome one).
+CFA_RUNS = [("burst", "RGGB"), ("flash_matting", "GRBG"), ("flash_no_flash", "RGGB"), ("flutter_shutter", "BGGR"),
+            ("metronome_hdr", "RGGB"), ("multi_flash", "GBRG"), ("rgb_illumination", "RGGB"),
+            ("structured_light", "RGGB"), ("metronome_hdr", "mono"), ("rgb_illumination", "mono")]
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("config,cfa", CFA_RUNS, ids=[f"{c}-{p}" for c, p in CFA_RUNS])
+def test_every_application_runs_on_a_cfa_sensor(config, cfa, tmp_path):
+    """Each application reconstructs from a mosaic (sensor.cfa) and writes the mosaic as its raw files."""
+    over = ["render.width=16", "render.height=12", "render.spp=2", "render.max_motion_px=4", f"sensor.cfa={cfa}"]
+    spectral = load_config(ROOT / "configs" / f"{config}.yaml").render.variant.endswith("_spectral")
+    dng = cfa == "mono" or not spectral  # a colour DNG's matrix is the RGB render's
+    cfg = load_config(ROOT / "configs" / f"{config}.yaml", [*over, f"output.dng={str(dng).lower()}"])
+    result = run_capture(cfg, tmp_path, progress=False)
+    assert result.mosaic_dn.shape == (len(result.timeline.reads), 12, 16)
+    np.testing.assert_array_equal(result.mosaic_dn, np.round(result.mosaic_dn))
+    if cfa == "mono":  # one response: every channel of every read is the same
+        np.testing.assert_array_equal(result.reads_dn[..., 0], result.reads_dn[..., 1])
+    invalid = result.images["valid"] == 0 if "valid" in result.images else False
+    for name, img in result.images.items():
+        assert img.shape[:2] == (12, 16) and (np.isfinite(img) | invalid).all(), name
+    assert len(list(tmp_path.glob("read_*.dng"))) == (len(result.timeline.reads) if dng else 0)

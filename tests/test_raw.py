@@ -129,3 +129,17 @@ def test_rawpy_default_develop_looks_like_the_runs_preview(chart_run):
     p = xy(blocks(colour.cctf_decoding(preview, function="sRGB"))[keep])
     dist = np.linalg.norm(d - p, axis=1)
     assert np.median(dist) < 0.005 and dist.max() < 0.02, (np.median(dist), dist.max())
+
+
+def test_a_mono_sensor_writes_a_one_sample_dng_that_rawpy_reads_back():
+    import tempfile
+
+    codes = np.random.default_rng(2).integers(0, 4096, (24, 36))
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "m.dng"
+        write_dng(path, codes, black_level=64, white_level=4095, channel_gain=np.ones(3), cfa="mono")
+        with rawpy.imread(str(path)) as raw:
+            assert np.array_equal(np.asarray(raw.raw_image).reshape(24, 36, -1)[..., 0], codes)
+            assert raw.white_level == 4095 and raw.black_level_per_channel[0] == 64
+        with pytest.raises(ValueError, match="monochrome"):
+            write_dng(path, np.zeros((4, 4, 3)), black_level=0, white_level=4095, channel_gain=np.ones(3), cfa="mono")

@@ -1,5 +1,8 @@
 """HDR: merge the reads of an HDR protocol into radiance with its uncertainty (``hdr.method``).
 
+On a Bayer sensor (``sensor.cfa``) the merge runs on each photosite's reads and the merged radiance
+is demosaiced (:func:`merge_mosaic` says why).
+
 Reference: the noise-free, unclipped radiance seen by the longest read. HDR extends that read's
 dynamic range with the shorter ones; wherever they saw something else (motion), it shows as
 error, and the motion check measures how far apart the exposure-normalized reads are.
@@ -11,6 +14,7 @@ import numpy as np
 
 from ..metrics import REC709_LUMA, pu21_psnr, relative_mse
 from ..reconstruct.hdr import merge_hdr, resolve_method
+from ..sensor.cfa import spread_to_footprint
 from . import AppOutput, CaptureData, register
 
 #: lm/W at 555 nm: radiance (W m^-2 sr^-1) -> luminance (cd m^-2) for PU21, treating the RGB
@@ -49,6 +53,28 @@ def motion_check(normalized: np.ndarray, names: list[str], truth: np.ndarray, ma
     return {"moving_pixels": int(mask.sum()), "rel_rms_vs_truth": per_read, "max_pairwise_rel_rms": pair}
 
 
+def merge_mosaic(data: CaptureData, method: str, cumulative: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A Bayer sensor: merge each photosite's reads (with its own saturation flags), then demosaic the
+    radiance. Returns radiance, sigma, valid (H, W, 3).
+
+    Why merge first: saturation belongs to a photosite. Demosaicing the reads first mixes a clipped
+    photosite into its neighbours, so every pixel within the demosaicing's reach of it must drop that
+    read (the sensor stage flags them), and the merge falls back to shorter, noisier reads around
+    every highlight. Merging each photosite first keeps its best reads, and demosaicing then works on
+    unclipped linear radiance. Measured (``python scripts/cfa_hdr_order.py``: metronome_hdr, 320x256,
+    16 spp, RGGB): relMSE 0.100 merging first against 0.181 demosaicing first with menon2007, 0.148
+    against 0.218 with malvar2004, equal with bilinear (0.156); PU21-PSNR equal within 0.13 dB.
+    ``sigma`` is the merged photosites' sigma interpolated by the same demosaicing, not the
+    demosaiced value's own (averaging lowers it, Malvar's negative weights raise it)."""
+    hdr = merge_hdr(data.mosaic_dn, data.exposure_s, data.cfg.sensor, method=method, cumulative=cumulative,
+                    saturated=data.mosaic_saturated)
+    k = data.k_e[data.photosite_channels()]
+    radiance = data.demosaic(hdr.rate_e_per_s / k)
+    sigma = data.demosaic(np.where(hdr.valid, hdr.sigma_e_per_s / k, 0.0))
+    valid = ~spread_to_footprint(~hdr.valid, data.cfg.sensor.demosaic)
+    return radiance, np.where(valid, sigma, np.inf), valid
+
+
 #: What each preview shows (report.html).
 CAPTIONS = {
     "hdr": "the HDR radiance merged from the reads (hdr.method); where every read saturated, a lower bound",
@@ -61,10 +87,12 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
     cfg, tl = data.cfg, data.timeline
     cumulative = not data.sequential and any(len(r.buckets) > 1 for r in tl.reads)
     method = resolve_method(cfg.hdr.method, cumulative)
-    hdr = merge_hdr(data.reads_dn, data.exposure_s, cfg.sensor, method=method, cumulative=cumulative,
-                    saturated=data.saturated)
-    radiance = hdr.rate_e_per_s / data.k_e
-    sigma = hdr.sigma_e_per_s / data.k_e
+    if data.bayer:
+        radiance, sigma, valid = merge_mosaic(data, method, cumulative)
+    else:
+        hdr = merge_hdr(data.reads_dn, data.exposure_s, cfg.sensor, method=method, cumulative=cumulative,
+                        saturated=data.saturated)
+        radiance, sigma, valid = hdr.rate_e_per_s / data.k_e, hdr.sigma_e_per_s / data.k_e, hdr.valid
     normalized = normalized_reads(data)
     ref = int(np.argmax(data.exposure_s))
     truth = normalized[ref]
@@ -77,7 +105,7 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
         "reference": f"noise-free radiance seen by the longest read, {data.read_names[ref]}",
         "hdr_rel_mse": relative_mse(radiance, truth, eps=REL_MSE_EPS_RADIANCE),
         "hdr_pu21_psnr_db": pu21_psnr(luminance_cd_m2(radiance), luminance_cd_m2(truth)) if photometric else None,
-        "hdr_valid_fraction": float(hdr.valid.mean()),
+        "hdr_valid_fraction": float(valid.mean()),
         "motion_check": motion_check(normalized, data.read_names, truth, mask),
     }
     if mask.any():
@@ -98,7 +126,7 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
         images={
             "radiance": radiance,
             "sigma": sigma,
-            "valid": hdr.valid.astype(np.float32),
+            "valid": valid.astype(np.float32),
             "truth": truth,
             "moving": np.repeat(mask[..., None], n_ch, -1).astype(np.float32),
         },

@@ -22,6 +22,7 @@ from ..optics import (
     thin_lens_aperture_m,
 )
 from ..scenes import SceneModel
+from ..sensor.photons import mono_weights
 from ..sensor.spectral import film_sensitivity
 from .build import (
     MOVABLE_EMITTER_KINDS,
@@ -148,7 +149,8 @@ class Renderer:
                  sensor: "SensorConfig | None" = None,
                  film_curves: tuple[np.ndarray, np.ndarray] | None = None,
                  cache: RenderCache | None = None, sampler: str = "multijitter", vignetting: str = "none",
-                 diffraction: bool = False, thin_lens: tuple[float, float] | None = None) -> None:
+                 diffraction: bool = False, thin_lens: tuple[float, float] | None = None,
+                 mono: np.ndarray | None = None) -> None:
         if thin_lens is not None and not (thin_lens[0] > 0 and thin_lens[1] > 0):
             raise ConfigError(f"thin lens: aperture radius and focus distance must be positive, got {thin_lens}")
         #: (aperture radius m, focus distance m) of Mitsuba's thinlens sensor; None: a pinhole
@@ -160,6 +162,8 @@ class Renderer:
         if diffraction and sensor is None:
             raise ConfigError("camera.diffraction: needs the sensor (f-number, pixel pitch, wavelengths)")
         self._diffraction = sensor if diffraction else None  # the sensor's f-number, pitch and wavelengths
+        # a monochrome sensor's mixture of the channels (mbcapture.sensor.mono_weights), or None
+        self._mono = None if mono is None else np.asarray(mono, np.float64).reshape(3)
         if not isinstance(scene.build, SceneBuild):
             raise ConfigError(f"scene {scene.name!r}: build payload is not a SceneBuild")
         if width < 1 or height < 1:
@@ -268,7 +272,8 @@ class Renderer:
             lens = (thin_lens_aperture_m(scene.camera, r.width, cfg.sensor.pixel_pitch_um, cfg.sensor.f_number), focus)
         kw: dict[str, Any] = {"variant": r.variant, "max_depth": r.max_depth, "sampler": r.sampler,
                               "sensor": cfg.sensor, "cache": cache, "vignetting": cfg.camera.vignetting,
-                              "diffraction": cfg.camera.diffraction, "thin_lens": lens}
+                              "diffraction": cfg.camera.diffraction, "thin_lens": lens,
+                              "mono": mono_weights(cfg.sensor, r.variant)}
         kw.update(overrides)
         return cls(scene, r.width, r.height, **kw)
 
@@ -599,6 +604,8 @@ class Renderer:
         if self._diffraction is not None:
             s = self._diffraction
             img = apply_diffraction(img, s.pixel_pitch_um, s.f_number, s.wavelength_nm).astype(np.float32)
+        if self._mono is not None:  # a monochrome sensor: its one response, in every channel
+            img = np.repeat((img @ self._mono.astype(np.float32))[..., None], 3, axis=-1)
         return img
 
     def _render(self, t_s: float, spp: int, seed: int, req: list[str]) -> np.ndarray:

@@ -1,6 +1,7 @@
 """Multi-bucket sensor model, pure numpy, ordered as the physics.
 
-:mod:`.config` the parameters, :mod:`.photons` radiance to expected electrons,
+:mod:`.config` the parameters, :mod:`.photons` radiance to expected electrons, :mod:`.cfa` the
+colour filter array and demosaicing,
 :mod:`.readout` shot noise, full wells, floating-diffusion sums, read noise and ADC.
 """
 
@@ -10,6 +11,7 @@ from .photons import (
     electrons_per_radiance_second,
     electrons_per_render_second,
     expected_electrons,
+    mono_weights,
 )
 from .readout import (
     FixedPattern,
@@ -30,6 +32,7 @@ __all__ = [
     "electrons_per_render_second",
     "expected_electrons",
     "fixed_pattern",
+    "mono_weights",
     "sensor_stage_hook",
     "simulate_reads",
 ]

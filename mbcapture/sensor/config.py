@@ -15,6 +15,8 @@ QE 0.5, 8 ms and lambda/(h c) = 2.72e18 J^-1 at 540 nm gives ~4600 e-, i.e. 46 %
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from .presets import load_preset
@@ -146,6 +148,23 @@ class SensorConfig(BaseModel):
         0.0, ge=0,
         description="Temporal row noise: std in electrons of an offset drawn anew for each row at each read "
         "(shared by the row's pixels: horizontal banding), besides read_noise_e. 0: none.",
+    )
+    cfa: Literal["none", "RGGB", "BGGR", "GRBG", "GBRG", "mono"] = Field(
+        "none",
+        description="Colour filter array. none: every pixel sees R, G and B (three stacked photosites; the paper's "
+        "channel-by-channel model). RGGB, BGGR, GRBG, GBRG: a Bayer mosaic named by its 2x2 tile row by row; each "
+        "photosite collects one channel, with its own shot noise, full well and read noise, and every read is "
+        "demosaiced (sensor.demosaic) before the application; raw files keep the mosaic. mono: a monochrome "
+        "sensor whose one response is the sum of the channels' (quantum_efficiency over each band); renders, "
+        "truths and reads are grey.",
+    )
+    demosaic: Literal["bilinear", "malvar2004", "menon2007"] = Field(
+        "menon2007",
+        description="Demosaicing of a Bayer sensor's reads (colour-demosaicing): bilinear; malvar2004, Malvar, He "
+        "and Cutler's gradient-corrected linear kernels (linear: the black level and read noise pass through "
+        "unchanged); menon2007, Menon, Andriani and Calvagno's directional filtering with a posteriori decision "
+        "(the fewest colour fringes at hard edges: figure camera_cfa; not linear). A demosaiced pixel is flagged "
+        "saturated when a photosite it depends on is (within 1, 2 and 8 photosites for the three).",
     )
     transfer_inefficiency: float = Field(
         0.0, ge=0, lt=1,

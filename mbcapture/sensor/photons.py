@@ -41,6 +41,7 @@ __all__ = [
     "electrons_per_radiance_second",
     "electrons_per_render_second",
     "expected_electrons",
+    "mono_weights",
 ]
 
 PLANCK_J_S = 6.62607015e-34
@@ -80,7 +81,21 @@ def electrons_per_render_second(cfg: SensorConfig, variant: str) -> np.ndarray:
     :func:`electrons_per_film_second` for spectral variants, :func:`electrons_per_radiance_second`
     otherwise. Shape (3,), float64."""
 
-    return electrons_per_film_second(cfg) if is_spectral_variant(variant) else electrons_per_radiance_second(cfg)
+    k = electrons_per_film_second(cfg) if is_spectral_variant(variant) else electrons_per_radiance_second(cfg)
+    # a monochrome sensor (sensor.cfa: mono): the renderer gives the mixture of mono_weights, and the one
+    # photosite collects every band's electrons: sum_c K_c x_c = (sum_c K_c) * (sum_c w_c x_c)
+    return np.full(3, k.sum()) if cfg.cfa == "mono" else k
+
+
+def mono_weights(cfg: SensorConfig, variant: str) -> np.ndarray | None:
+    """A monochrome sensor's (``sensor.cfa: mono``) mixture of the renderer's channels, (3,) summing
+    to 1: w_c = K_c / sum K, so that its photo-electrons, the mixture times
+    :func:`electrons_per_render_second`, are the sum of each band's (the channels' quantum
+    efficiencies sample the one spectral response over three bands). None for any other sensor."""
+    if cfg.cfa != "mono":
+        return None
+    k = electrons_per_film_second(cfg) if is_spectral_variant(variant) else electrons_per_radiance_second(cfg)
+    return k / k.sum()
 
 
 def expected_electrons(radiant_exposure: np.ndarray, cfg: SensorConfig) -> np.ndarray:

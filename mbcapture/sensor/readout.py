@@ -39,11 +39,12 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from contextvars import ContextVar
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
+from .cfa import demosaic, spread_to_footprint, to_mosaic
 from .config import SensorConfig
 from .sampling import NoiseStreams, binomial_quantile, poisson_quantile_memo
 
@@ -78,6 +79,14 @@ class SensorReads:
         the FD sum hit ``fd_full_well_e``, or the ADC hit its top code.
     ``bucket_saturated``: (K, H, W, C) bool, True where the bucket hit its full well.
     ``reads``: the bucket indices summed by each read, as given.
+
+    With a colour filter array (``cfg.cfa`` not 'none', :mod:`.cfa`), ``electrons`` and
+    ``bucket_saturated`` are the photosites', (K, H, W, 1); ``reads_dn`` are the demosaiced reads
+    (float, no longer integer codes) and ``saturated`` is spread over each demosaiced pixel's
+    footprint; ``mosaic_dn`` (R, H, W) holds the integer codes of the photosites (raw files) and
+    ``mosaic_saturated`` (R, H, W) their own flags;
+    ``reads_e_expected`` stays the ideal R, G, B sensor's (grey for a mono sensor): the truth.
+    Both are None without a colour filter array; ``cfa`` names it (``sensor.cfa``).
     """
 
     electrons: np.ndarray
@@ -86,6 +95,9 @@ class SensorReads:
     saturated: np.ndarray
     bucket_saturated: np.ndarray
     reads: tuple[tuple[int, ...], ...]
+    mosaic_dn: np.ndarray | None = None
+    mosaic_saturated: np.ndarray | None = None
+    cfa: str = "none"
 
 
 def fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig) -> FixedPattern:
@@ -217,7 +229,32 @@ def sensor_stage_hook(hook: Callable[[np.ndarray, Callable[[np.ndarray], SensorR
 
 def _simulate(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cfg: SensorConfig, streams: NoiseStreams,
               storage: np.ndarray | None, shared_photodiode: bool) -> SensorReads:
-    """:func:`simulate_reads` on validated arguments."""
+    """:func:`simulate_reads` on validated arguments: the photosites behind the colour filter array
+    (:mod:`.cfa`), then the reads demosaiced back to R, G, B."""
+    if cfg.cfa == "none":
+        return _simulate_photosites(expected, read_sets, cfg, streams, storage, shared_photodiode)
+    if cfg.cfa == "mono":
+        # one photosite per pixel; its input is the same in every channel (the renderer's mono mixture),
+        # the channels' mean where a caller gives them different
+        out = _simulate_photosites(expected.mean(axis=-1, keepdims=True), read_sets, cfg, streams, storage,
+                                   shared_photodiode)
+        mono = np.repeat(out.reads_e_expected, 3, axis=-1)
+        return replace(out, reads_dn=np.repeat(out.reads_dn, 3, axis=-1), reads_e_expected=mono,
+                       saturated=np.repeat(out.saturated, 3, axis=-1), mosaic_dn=out.reads_dn[..., 0],
+                       mosaic_saturated=out.saturated[..., 0], cfa="mono")
+    out = _simulate_photosites(to_mosaic(expected, cfg.cfa), read_sets, cfg, streams, storage, shared_photodiode)
+    # demosaic the signal above black (Malvar's and the bilinear kernels are linear, so this only matters
+    # for Menon's direction decision), not rounded again: the reads are the ISP's output from here on
+    signal = demosaic(out.reads_dn[..., 0] - cfg.black_level_dn, cfg.cfa, cfg.demosaic) + cfg.black_level_dn
+    full = np.stack([expected[list(r)].sum(axis=0) for r in read_sets])  # the ideal RGB sensor: the truth
+    return replace(out, reads_dn=signal, reads_e_expected=full,
+                   saturated=spread_to_footprint(out.saturated, cfg.demosaic), mosaic_dn=out.reads_dn[..., 0],
+                   mosaic_saturated=out.saturated[..., 0], cfa=cfg.cfa)
+
+
+def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cfg: SensorConfig,
+                         streams: NoiseStreams, storage: np.ndarray | None, shared_photodiode: bool) -> SensorReads:
+    """The photosites (one per pixel and channel of ``expected``): fixed pattern, shot noise, wells, reads."""
     fpn = fixed_pattern(expected.shape[1:], cfg)
     photo_e = expected * fpn.prnu_gain
     if shared_photodiode and cfg.parasitic_light > 0.0:
