@@ -1,4 +1,4 @@
-"""RGB illumination: protocol, ambient subtraction, colour matrices, Bayer mosaic/demosaic, masks and
+"""RGB illumination: protocol, ambient subtraction, colour matrices, masks and
 CIEDE2000 on small synthetic inputs with known answers (no rendering)."""
 
 from __future__ import annotations
@@ -167,27 +167,6 @@ def test_patch_boxes_lie_in_the_image_in_chart_order(chart):
     assert 10 < side[0] < 20  # 34 mm of a 0.39 m wide view on 160 px
 
 
-# -- Bayer ---------------------------------------------------------------------------------------
-@pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "GRBG", "GBRG"])
-@pytest.mark.parametrize("method", ["bilinear", "edge_aware"])
-def test_mosaic_demosaic_flat_colour(pattern, method):
-    img = np.broadcast_to(np.array([0.8, 0.3, 0.1]), (12, 16, 3)).copy()
-    raw = rgb.mosaic(img, pattern)
-    assert raw[0, 0] == img[0, 0, "RGB".index(pattern[0])] and raw[1, 1] == img[0, 0, "RGB".index(pattern[3])]
-    out = rgb.demosaic(raw, pattern, method, peak=1.0)
-    np.testing.assert_allclose(out[2:-2, 2:-2], img[2:-2, 2:-2], atol=2.0 / 65535)
-
-
-def test_demosaic_edge_makes_colour_error_that_registered_channels_do_not():
-    """A black/white vertical edge: a registered 3-channel image has no colour at the edge, the
-    demosaiced mosaic does (the Bayer capture's cross-talk/demosaic error)."""
-    img = np.zeros((16, 16, 3))
-    img[:, 7:] = 1.0
-    out = rgb.demosaic(rgb.mosaic(img, "RGGB"), "RGGB", "bilinear", peak=1.0)
-    chroma = np.abs(out - out.mean(-1, keepdims=True)).max()
-    assert chroma > 0.1
-
-
 # -- exact small cases ---------------------------------------------------------------------------
 def test_interior_masks_boundary_and_patches_smaller_than_a_pixel():
     # fraction 1 of (1.5, 1.5)-(4.5, 4.5): the centres 1.5 and 4.5 lie on the border and count
@@ -241,38 +220,6 @@ def test_xyz_to_lab_uses_the_given_white():
     white_xyz = colour.xy_to_XYZ(a)
     np.testing.assert_allclose(rgb.xyz_to_lab(white_xyz, a), [100.0, 0.0, 0.0], atol=1e-9)
     np.testing.assert_allclose(rgb.xyz_to_lab(np.array([-0.1, 0.5, 0.2]), a), rgb.xyz_to_lab(np.array([0.0, 0.5, 0.2]), a))
-
-
-def test_mosaic_defaults_and_dtype():
-    img = np.random.default_rng(3).uniform(0, 1, (6, 8, 3)).astype(np.float32)
-    raw = rgb.mosaic(img)
-    assert raw.dtype == np.float32
-    np.testing.assert_array_equal(raw, rgb.mosaic(img, "RGGB"))
-    assert raw[0, 0] == img[0, 0, 0] and raw[0, 1] == img[0, 1, 1] and raw[1, 1] == img[1, 1, 2]
-
-
-def test_demosaic_quantizes_to_16_bits_of_its_peak():
-    """Values on the 16-bit grid of the peak come back exactly; above the peak they clip to it;
-    black stays black; the default peak is the largest value; bilinear is the neighbour mean."""
-    q = np.random.default_rng(4).integers(1000, 60000, size=3)
-    peak = 2.5
-    img = np.broadcast_to(q / 65535.0 * peak, (16, 16, 3)).copy()
-    for method in ("bilinear", "edge_aware"):
-        out = rgb.demosaic(rgb.mosaic(img, "RGGB"), "RGGB", method, peak=peak)
-        np.testing.assert_allclose(out[4:-4, 4:-4], img[4:-4, 4:-4], rtol=1e-12)  # 1 count = 1.5e-5
-    over = rgb.demosaic(np.full((8, 8), 3.0 * peak), "RGGB", "bilinear", peak=peak)
-    np.testing.assert_allclose(over, peak, rtol=1e-12)
-    dark = np.zeros((8, 8))
-    dark[4, 4] = 7.0
-    d = rgb.demosaic(dark, "RGGB", "bilinear")  # default peak 7: the 16-bit grid spans 0..7
-    assert d[0, 0].tolist() == [0.0, 0.0, 0.0] and d[4, 4, 0] == pytest.approx(7.0, rel=1e-12)
-    # a red pixel (0, 0) of RGGB, bilinear: its green is the mean of its four green neighbours
-    raw = np.random.default_rng(5).integers(0, 65536, size=(12, 12)).astype(float)
-    b = rgb.demosaic(raw, "RGGB", "bilinear", peak=65535.0)
-    g4 = (raw[4, 5] + raw[4, 7] + raw[3, 6] + raw[5, 6]) / 4
-    assert b[4, 6, 1] == pytest.approx(g4, abs=1.0)
-    assert abs(rgb.demosaic(raw, "RGGB", "edge_aware", peak=65535.0)[4:8, 4:8] - b[4:8, 4:8]).max() > 100
-    np.testing.assert_array_equal(rgb.demosaic(raw), rgb.demosaic(raw, "RGGB", "edge_aware", peak=raw.max()))  # defaults
 
 
 def _box(lo, hi, v=1.0):

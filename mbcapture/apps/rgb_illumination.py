@@ -29,10 +29,12 @@ its true Y.
 
 Bayer comparison (``app.bayer``, computed inside the app from the capture's scene): one ordinary
 frame of a colour camera (``app.bayer_camera``'s R, G, B curves, peak QE ``sensor.quantum_efficiency``,
-RGGB colour filter array, same pixel, optics and noise model) exposed over the interleaved capture's
+colour filter array ``app.bayer_pattern``, same pixel, optics and noise model) exposed over the interleaved capture's
 span [start, start + 4T] with the three LEDs on together (each delivering the same energy as in its
-bucket: drive T / 4T) and the ambient on throughout, no ambient frame to subtract; demosaiced with
-OpenCV (``app.demosaic``) and colour-corrected with the same ``app.method``.
+bucket: drive T / 4T) and the ambient on throughout, no ambient frame to subtract. The frame goes
+through the sensor stage with ``sensor.cfa`` set to the pattern (mbcapture.sensor.cfa: one channel per
+photosite, demosaiced with ``app.demosaic``), the same path as any capture on a Bayer sensor, and
+is colour-corrected with the same ``app.method``.
 
 Metrics: CIEDE2000 (colour.delta_E, method 'CIE 2000') against the reference, mean and max over the
 whole image and over the patch interiors; the patches' mean colours against their true Lab.
@@ -71,8 +73,6 @@ CAPTIONS = {
     "bayer": "an ordinary Bayer colour camera over the same span, for comparison",
     "delta_e2000_bayer": "the Bayer image's CIEDE2000 against the reference, linear: white = %g" % DELTA_E_PNG_WHITE,
 }
-#: cv2 names a Bayer pattern by the 2x2 block at row 1, column 1 (so an RGGB sensor is 'BG').
-_CV2_BAYER = {"RGGB": "BG", "BGGR": "RG", "GRBG": "GB", "GBRG": "GR"}
 
 
 @protocols.register("rgb_illumination", app="rgb_illumination")
@@ -103,8 +103,9 @@ class Params(BaseModel):
                               "(colour.MSDS_CAMERA_SENSITIVITIES; spectral variants only).")
     bayer_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = Field("RGGB", description="Colour filter array layout, "
                                                                     "rows 0-1 x columns 0-1.")
-    demosaic: Literal["bilinear", "edge_aware"] = Field("edge_aware", description="OpenCV demosaicing of the Bayer "
-                                                         "capture: bilinear or edge-aware (cv2.demosaicing).")
+    demosaic: Literal["bilinear", "malvar2004", "menon2007"] = Field(
+        "menon2007", description="Demosaicing of the Bayer capture, as sensor.demosaic (the sensor stage's colour "
+        "filter array, colour-demosaicing): bilinear, malvar2004 or menon2007.")
     bayer_spp: int | None = Field(None, ge=1, le=4096, description="Samples per pixel of the Bayer frame's renders "
                                   "(default: the capture's largest samples per pixel per stratum, render.spp or the noise budget's).")
 
@@ -207,28 +208,6 @@ def xyz_to_linear_srgb(xyz: np.ndarray, white_xy: np.ndarray) -> np.ndarray:
                              chromatic_adaptation_transform="Bradford", apply_cctf_encoding=False)
 
 
-def mosaic(image: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
-    """(H, W, 3) -> (H, W): each pixel keeps the channel of its colour filter."""
-    idx = {"R": 0, "G": 1, "B": 2}
-    out = np.empty(image.shape[:2], image.dtype)
-    for (dy, dx), ch in zip(((0, 0), (0, 1), (1, 0), (1, 1)), pattern):
-        out[dy::2, dx::2] = image[dy::2, dx::2, idx[ch]]
-    return out
-
-
-def demosaic(raw: np.ndarray, pattern: str = "RGGB", method: str = "edge_aware", peak: float | None = None) -> np.ndarray:
-    """(H, W) mosaic (>= 0) -> (H, W, 3) RGB with OpenCV; values are quantized to 16 bits of
-    ``peak`` (default the largest value) and scaled back."""
-    import cv2
-
-    raw = np.asarray(raw, float)
-    peak = float(peak if peak is not None else raw.max()) or 1.0
-    q = np.clip(np.round(raw / peak * 65535.0), 0, 65535).astype(np.uint16)
-    suffix = "_EA" if method == "edge_aware" else ""
-    code = getattr(cv2, f"COLOR_Bayer{_CV2_BAYER[pattern]}2RGB{suffix}")
-    return cv2.demosaicing(q, code).astype(float) * (peak / 65535.0)
-
-
 def true_colours(scene) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Patch names, their XYZ (P, 3) under the three LEDs together (perfect white Y = 1) and that
     illuminant's white point xy."""
@@ -290,7 +269,8 @@ def reference_xyz(data: CaptureData, params: Params, white_mask: np.ndarray, whi
     rest = still(scene)  # the chart at rest through a still camera (camera.shake moves only the capture)
     renderer = (Renderer.from_config(rest, cfg, film_curves=_cmf_curves(), sensor=None,
                                      cache=getattr(data.renderer, "cache", None)) if spectral
-                else data.renderer if rest is scene else Renderer.from_config(rest, cfg, cache=getattr(data.renderer, "cache", None)))
+                else data.renderer if rest is scene and cfg.sensor.cfa != "mono"
+                else Renderer.from_config(rest, cfg, mono=None, cache=getattr(data.renderer, "cache", None)))
     seed = int(np.random.default_rng(data.seed.spawn(1)[0]).integers(0, 2**31 - 1))
     img = renderer.render(float(scene.extra["rest_time_s"]), params.reference_spp, seed, list(LED_GROUPS)).sum(0)
     img = img.astype(np.float64)
@@ -325,8 +305,10 @@ def bayer_capture(data: CaptureData, params: Params) -> dict:
     cfg, scene = data.cfg, data.scene
     spectral = cfg.render.variant.endswith("_spectral")
     W, H = cfg.render.width, cfg.render.height
+    # the sensor stage's own colour filter array (mbcapture.sensor.cfa): one channel per photosite, demosaiced
+    bayer = {"cfa": params.bayer_pattern, "demosaic": params.demosaic}
     if spectral:
-        sensor = cfg.sensor.model_copy(update={"spectral_response": params.bayer_camera})
+        sensor = cfg.sensor.model_copy(update={"spectral_response": params.bayer_camera, **bayer})
         try:
             curves_wl, curves = film_sensitivity(sensor)
             channel_quantum_efficiency(sensor)
@@ -334,7 +316,9 @@ def bayer_capture(data: CaptureData, params: Params) -> dict:
             raise ConfigError(f"app.bayer_camera: {exc}") from None
         renderer = Renderer.from_config(scene, cfg, sensor=sensor, cache=getattr(data.renderer, "cache", None))
     else:
-        sensor, renderer, curves_wl, curves = cfg.sensor, data.renderer, None, None
+        sensor, curves_wl, curves = cfg.sensor.model_copy(update=bayer), None, None
+        renderer = data.renderer if cfg.sensor.cfa != "mono" else \
+            Renderer.from_config(scene, cfg, mono=None, cache=getattr(data.renderer, "cache", None))
     t0, t1 = bayer_window(data)
     T = float(cfg.capture.unit_exposure_s)
     mids = _strata(scene, t0, t1, W, H, cfg.render.max_motion_px, cfg.render.max_strata)
@@ -351,12 +335,9 @@ def bayer_capture(data: CaptureData, params: Params) -> dict:
     expected = exposure * k_e
     rng = np.random.default_rng(data.seed.spawn(3)[2])
     out = simulate_reads(expected[None], [(0,)], sensor, rng, storage_s=[t1 - t0], shared_photodiode=False)
-    e = dn_to_electrons(out.reads_dn, sensor)[0]
-    raw = mosaic(e, params.bayer_pattern)
-    full = float(sensor.fd_full_well_e)
-    rgb = demosaic(np.clip(raw, 0, None), params.bayer_pattern, params.demosaic, peak=full) / (t1 - t0)
+    rgb = dn_to_electrons(out.reads_dn, sensor)[0] / (t1 - t0)  # demosaiced by the sensor stage
     return {"rates": rgb, "curves": (curves_wl, curves), "passes": len(mids), "window_s": [t0, t1],
-            "saturated_fraction": float(mosaic(out.saturated[0], params.bayer_pattern).mean()), "sensor": sensor}
+            "saturated_fraction": float(out.mosaic_saturated.mean()), "sensor": sensor}
 
 
 def _scores(xyz: np.ndarray, ref: np.ndarray, masks: np.ndarray, true_xyz: np.ndarray, white_xy) -> tuple[dict, np.ndarray]:
