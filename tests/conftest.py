@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from golden_cases import SPREAD_FILE, compare, count_differences, stored_inputs, tolerance, within
+from mbcapture.sensor.cfa import BAYER_PATTERNS, to_mosaic
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
 FAILURE_DIR = Path(__file__).resolve().parents[1] / "out" / "golden-failures"
@@ -167,8 +168,12 @@ class Golden:
         expected, meta = read_golden(GOLDEN_DIR / f"{case}.npz")
         failures = []
         for i, (fresh_in, fresh_dn, reads) in enumerate(zip(run.fresh_in, run.fresh_dn, run.reads)):
-            why = count_differences(fresh_dn, expected[f"sensor{i}_dn"], fresh_in, expected[f"sensor{i}_in"], reads,
-                                    run.gain_dn_per_e)
+            golden_in = expected[f"sensor{i}_in"]
+            if run.cfas[i] in BAYER_PATTERNS:  # a Bayer sensor: the photosites' inputs
+                fresh_in, golden_in = to_mosaic(fresh_in, run.cfas[i]), to_mosaic(golden_in, run.cfas[i])
+            elif run.cfas[i] == "mono":  # one photosite per pixel: the channels' mean
+                fresh_in, golden_in = fresh_in.mean(-1, keepdims=True), golden_in.mean(-1, keepdims=True)
+            why = count_differences(fresh_dn, expected[f"sensor{i}_dn"], fresh_in, golden_in, reads, run.gain_dn_per_e)
             failures += [f"sensor{i}_dn end to end, {w}" for w in why]
         self._fail(case, meta, failures)
 

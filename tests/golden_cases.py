@@ -10,7 +10,7 @@ exposure ramp.
 from __future__ import annotations
 
 from pathlib import Path
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -38,6 +38,9 @@ CAPTURE_CASES = [
     # the thin lens (camera.lens: thin) at f/1.4: at 32x24 its blur radius is under a tenth of a pixel, but its renders
     # draw lens samples a pinhole does not; its blur law is tested in tests/test_optics.py
     ("thin_lens", "metronome_hdr.yaml", ["camera.lens=thin", "sensor.f_number=1.4"]),
+    # a Bayer sensor (sensor.cfa): the stage's codes are the photosites' (R, H, W, 1); the HDR merge runs on
+    # them and its radiance is demosaiced (menon2007, the default)
+    ("bayer", "metronome_hdr.yaml", ["sensor.cfa=RGGB"]),
 ]
 
 #: Images of a config's captures that are not pinned, and why: a wrapped phase jumps by 2 pi where it
@@ -64,7 +67,9 @@ class CaseRun:
     ``fresh_in``    each stage's input as rendered on this machine;
     ``fresh_dn``    the reads the sensor gives on ``fresh_in`` (the end-to-end result);
     ``reads``       the buckets each read of each stage sums;
-    ``gain_dn_per_e`` the capture's conversion gain.
+    ``gain_dn_per_e`` the capture's conversion gain;
+    ``cfas``        each stage's colour filter array (``sensor.cfa``; an application's comparison
+                    captures may have their own).
     """
 
     images: dict[str, np.ndarray]
@@ -73,6 +78,13 @@ class CaseRun:
     reads: list[tuple[tuple[int, ...], ...]]
     gain_dn_per_e: float
     result: object = None
+    cfas: list[str] = field(default_factory=list)
+
+
+def sensor_codes(reads) -> np.ndarray:
+    """The integer codes a sensor stage read out: its photosites' on a colour-filter-array sensor
+    (R, H, W, 1), whose one-count flips between CPUs the golden counts; the reads otherwise."""
+    return reads.reads_dn if reads.mosaic_dn is None else reads.mosaic_dn[..., None]
 
 
 class StageRecorder:
@@ -86,20 +98,22 @@ class StageRecorder:
         self.fresh_dn: list[np.ndarray] = []
         self.used_dn: list[np.ndarray] = []
         self.reads: list[tuple[tuple[int, ...], ...]] = []
+        self.cfas: list[str] = []
 
     def __call__(self, expected_e: np.ndarray, simulate):
         i = len(self.fresh_in)
         fresh = simulate(expected_e)
         self.fresh_in.append(np.array(expected_e, np.float64))
-        self.fresh_dn.append(fresh.reads_dn)
+        self.fresh_dn.append(sensor_codes(fresh))
         self.reads.append(fresh.reads)
+        self.cfas.append(fresh.cfa)
         out = fresh
         if self.stored is not None:
             if i >= len(self.stored) or self.stored[i].shape != expected_e.shape:
                 raise AssertionError(f"sensor stage {i}: the golden stored {len(self.stored)} stage inputs "
                                      f"({[x.shape for x in self.stored]}), this run has input {expected_e.shape}")
             out = simulate(self.stored[i])
-        self.used_dn.append(out.reads_dn)
+        self.used_dn.append(sensor_codes(out))
         return out
 
 
@@ -118,7 +132,8 @@ def run_capture_case(config: str, overrides: list[str], extra: list[str] = (),
     images = {f"sensor{i}_in": x for i, x in enumerate(recorder.fresh_in)}
     images |= {f"sensor{i}_dn": x for i, x in enumerate(recorder.used_dn)}
     images |= {k: v for k, v in app_images(res).items() if k not in UNPINNED.get(config, {})}
-    return CaseRun(images, recorder.fresh_in, recorder.fresh_dn, recorder.reads, cfg.sensor.gain_dn_per_e, res)
+    return CaseRun(images, recorder.fresh_in, recorder.fresh_dn, recorder.reads, cfg.sensor.gain_dn_per_e, res,
+                   recorder.cfas)
 
 
 def app_images(res) -> dict[str, np.ndarray]:
