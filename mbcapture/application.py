@@ -131,6 +131,9 @@ class App:
     libraries_mb: float = 0.0
     #: The application's peak working set over a plain capture's (its own comparison captures).
     memory_scale: float = 1.0
+    #: Where its truth or reconstruction is pinhole geometry (Mitsuba AOVs through pixel centres, a
+    #: projective triangulation), what it is: such an application refuses camera.distortion. "" otherwise.
+    pinhole_truth: str = ""
 
 
 _REGISTRY: dict[str, App] = {}
@@ -140,15 +143,16 @@ _loaded = False
 
 
 def register(name: str, *, params: type[BaseModel] = NoParams, per_group: bool = False, description: str = "",
-             output_channels: int = 36, previews: int = 8, libraries_mb: float = 0.0, memory_scale: float = 1.0):
+             output_channels: int = 36, previews: int = 8, libraries_mb: float = 0.0, memory_scale: float = 1.0,
+             pinhole_truth: str = ""):
     """Decorator: ``fn(data: CaptureData, params) -> AppOutput`` is application ``name``.
     ``per_group``: the reconstruction or its metrics need ``CaptureData.group_exposure``.
     ``output_channels``, ``previews``, ``libraries_mb``, ``memory_scale``: what its outputs, libraries
-    and working set take (see :class:`App`)."""
+    and working set take; ``pinhole_truth``: why it needs a distortion-free camera (see :class:`App`)."""
 
     def deco(fn):
         _REGISTRY[name] = App(name, fn, params, per_group, description or (fn.__doc__ or "").strip().split("\n")[0],
-                              output_channels, previews, libraries_mb, memory_scale)
+                              output_channels, previews, libraries_mb, memory_scale, pinhole_truth)
         return fn
 
     return deco

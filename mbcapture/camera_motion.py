@@ -57,7 +57,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from .errors import ConfigError
 from .projective import frame
@@ -100,7 +100,7 @@ class ShakeSpec(BaseModel):
 
 class CameraSection(BaseModel):
     """``camera``: how the camera moves during a capture (default: held still), and its lens: depth of
-    field, relative illumination, diffraction."""
+    field, relative illumination, distortion, diffraction."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     shake: ShakeSpec | None = Field(
@@ -143,6 +143,22 @@ class CameraSection(BaseModel):
         "the sensor's width (render.width x sensor.pixel_pitch_um), replacing the scene's. null: the scene's field "
         "of view, and the focal length it implies.",
     )
+
+    distortion: list[float] | None = Field(
+        None, description="Radial lens distortion, Brown-Conrady coefficients [k1] to [k1, k2, k3]: the ray of "
+        "normalized pinhole position (x, y) lands at (x, y) (1 + k1 r^2 + k2 r^4 + k3 r^6), r^2 = x^2 + y^2 (k1 < 0 "
+        "barrel, > 0 pincushion). Every render is a pinhole render (widened to cover the rays the corners see) "
+        "resampled bilinearly onto the sensor's pixels; radiance is conserved along rays, so photometry holds. "
+        "The scene's field of view stays the sensor's horizontal extent in distorted coordinates. null: none. "
+        "Applications whose truths are pinhole geometry (multi_flash, structured_light, flash_matting) refuse it.",
+    )
+
+    @field_validator("distortion")
+    @classmethod
+    def _check_distortion(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and (not 1 <= len(v) <= 3 or not all(np.isfinite(x) and abs(x) < 10 for x in v)):
+            raise ValueError(f"distortion: expected 1 to 3 finite coefficients [k1, k2, k3] (|k| < 10), got {v}")
+        return v
 
     @model_validator(mode="after")
     def _one_source(self) -> "CameraSection":

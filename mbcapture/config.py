@@ -510,7 +510,10 @@ def config_from_dict(data: dict, source: str = "config", origin: Callable[[tuple
     except ValidationError as exc:
         raise ConfigError(format_validation(exc, origin=origin)) from None
     cfg.scene.params(origin)  # validate the scene's and the application's own keys now, not halfway through a run
-    cfg.app.resolve(cfg.capture.protocol, origin)
+    app, _ = cfg.app.resolve(cfg.capture.protocol, origin)
+    if cfg.camera.distortion and app.pinhole_truth:
+        raise ConfigError(f"{origin(('camera', 'distortion'))}: camera.distortion: the {app.name} application's truth is "
+                          f"pinhole geometry ({app.pinhole_truth}); remove the distortion for this application")
     return cfg
 
 

@@ -1,6 +1,7 @@
 """The lens between the scene and the pixels: its relative illumination (natural vignetting), its
-diffraction, applied to every render of a capture alike (:class:`mbcapture.render.Renderer`), and
-the geometry of its depth of field (a thin lens: Mitsuba's ``thinlens`` sensor renders it).
+radial distortion and its diffraction, applied to every render of a capture alike
+(:class:`mbcapture.render.Renderer`), and the geometry of its depth of field (a thin lens:
+Mitsuba's ``thinlens`` sensor renders it).
 
 The render is already the mean radiance over each pixel (a box filter the size of the pixel: the
 pixel aperture at 100 % fill factor), so the system MTF is that of the box times the lens's:
@@ -105,3 +106,68 @@ def blur_radius_px(camera, width: int, aperture_radius_m: float, focus_m: float,
     2 tan(fov / 2) / W of tangent. (The sensor keeps the field of view fixed while focusing: the
     thin lens's exact magnification differs by f / (s_f - f), under 1 % for the shipped scenes.)"""
     return aperture_radius_m * abs(1.0 / focus_m - 1.0 / depth_m) * width / (2.0 * tan_half(camera))
+
+
+def distort_normalized(x: np.ndarray, y: np.ndarray, k: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Radial Brown-Conrady distortion of normalized image coordinates (x/z, y/z of the undistorted,
+    pinhole ray): each point moves along its radius r to r (1 + k1 r^2 + k2 r^4 + k3 r^6)."""
+    r2 = x * x + y * y
+    scale = 1.0
+    for i, ki in enumerate(k):
+        scale = scale + ki * r2 ** (i + 1)
+    return x * scale, y * scale
+
+
+def undistortion_maps(camera, width: int, height: int, k: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray, float]:
+    """Where each pixel of a distorting lens looks: ``(map_x, map_y, tan_half_render)``.
+
+    A pixel centre of the sensor sits at distorted normalized coordinates (x_d, y_d) (the camera's
+    horizontal field of view spans x_d in [-tan(fov/2), tan(fov/2)]); the ray that the lens bends onto
+    it is the pinhole ray of (x_u, y_u) with distort(x_u, y_u) = (x_d, y_d). Barrel distortion (k1 < 0)
+    sends the sensor's corners to rays outside the pinhole's field, so the pinhole render that is
+    resampled must see wider: ``tan_half_render`` (>= tan(fov/2)) is the horizontal half-field it
+    needs, and ``map_x``, ``map_y`` (H, W) float32 are the positions, in that render's pixels, of each
+    sensor pixel's ray (for cv2.remap). ValueError when the distortion folds the image over (not
+    invertible inside the frame). The inversion is OpenCV's (cv2.undistortPoints, iterated to
+    convergence), checked against the forward model."""
+    import cv2
+
+    t = tan_half(camera)
+    xd = (2.0 * (np.arange(width) + 0.5) / width - 1.0) * t
+    yd = (2.0 * (np.arange(height) + 0.5) / height - 1.0) * t * height / width
+    gx, gy = np.meshgrid(xd, yd)
+    coeffs = np.array([*(list(k) + [0.0] * 3)[:2], 0.0, 0.0, (list(k) + [0.0] * 3)[2]], np.float64)
+    pts = np.stack([gx.ravel(), gy.ravel()], axis=-1)[:, None, :]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+    und = cv2.undistortPoints(pts, np.eye(3), coeffs, None, None, None, criteria)[:, 0, :]
+    xu, yu = und[:, 0].reshape(height, width), und[:, 1].reshape(height, width)
+    bx, by = distort_normalized(xu, yu, tuple(k))
+    # the forward model must give the pixel back, and the radius must grow with the radius (no fold)
+    r_u = np.hypot(xu, yu)
+    r = np.linspace(0.0, float(r_u.max()), 2049)
+    grows = np.all(np.diff(r * (1.0 + sum(ki * r ** (2 * (i + 1)) for i, ki in enumerate(k)))) > 0)
+    if not grows or np.max(np.abs(bx - gx) + np.abs(by - gy)) > 1e-7 * max(t, 1.0):
+        raise ValueError(f"camera.distortion {list(k)}: folds the image over inside the frame (the distorted radius "
+                         "must grow with the radius out to the corners); use smaller coefficients")
+    # a render of half-field t' puts x_u at pixel (x_u / t' + 1) W / 2 - 1/2, which must stay within
+    # [0, W - 1] (and y likewise) for bilinear interpolation
+    t_render = max(t, float(np.abs(xu).max()) * width / (width - 1) if width > 1 else t,
+                   float(np.abs(yu).max()) * width / (height - 1) if height > 1 else t)
+    map_x = ((xu / t_render + 1.0) * width / 2.0 - 0.5).astype(np.float32)
+    map_y = ((yu / (t_render * height / width) + 1.0) * height / 2.0 - 0.5).astype(np.float32)
+    return map_x, map_y, t_render
+
+
+def apply_distortion(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
+    """(..., H', W', C) pinhole render -> (..., H, W, C): each sensor pixel takes the radiance of the ray
+    the lens bends onto it (:func:`undistortion_maps`), bilinearly interpolated (cv2.remap). Radiance is
+    conserved along a ray, so resampling radiance keeps the photometry; the lens's relative
+    illumination is :func:`natural_vignetting`'s, evaluated on the render's grid before this."""
+    import cv2
+
+    img = np.asarray(image, np.float32)
+    flat = img.reshape(-1, *img.shape[-3:])
+    out = np.empty((flat.shape[0], *map_x.shape, flat.shape[-1]), np.float32)
+    for i, plane in enumerate(flat):
+        out[i] = cv2.remap(plane, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(*img.shape[:-3], *map_x.shape, img.shape[-1])

@@ -192,7 +192,9 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
                  f"thin lens at f/{s.f_number:g}, focal length "
                  + (f"{cfg.camera.focal_length_mm:g} mm" if cfg.camera.focal_length_mm else "from the field of view")
                  + ", focused at " + (f"{cfg.camera.focus_distance_m:g} m" if cfg.camera.focus_distance_m
-                                      else "the scene's subject")],
+                                      else "the scene's subject")
+                 + (f"; radial distortion k = {', '.join(f'{k:g}' for k in cfg.camera.distortion)} (Brown-Conrady)"
+                    if cfg.camera.distortion else "")],
         ["film", f"{rep['film'][0]} x {rep['film'][1]} px, variant {cfg.render.variant}"
                  + (", natural vignetting (cos^4 of the field angle)" if cfg.camera.vignetting == "cos4" else "")
                  + (f", diffraction at f/{cfg.sensor.f_number:g} (MTF at Nyquist "

@@ -143,3 +143,105 @@ def test_the_thin_lens_follows_the_config(tmp_path):
     assert len({pinhole.identity, r.identity, focused.identity}) == 3
     wide = scene_of(load_config(hdr, [*small, "camera.focal_length_mm=0.25"]))
     assert wide.camera.fov_deg == pytest.approx(math.degrees(2 * math.atan(64 * 5.6e-3 / 2 / 0.25)))
+
+
+# ----------------------------------------------------------------------------- distortion
+def _forward_px(xu, yu, k, t, W, H):
+    """Independent of the code: where the ray of normalized pinhole position (xu, yu) lands on the
+    sensor, in pixels, under radial distortion k (Brown-Conrady), the field spanning [-t, t] across."""
+    r2 = xu * xu + yu * yu
+    s = 1 + sum(ki * r2 ** (i + 1) for i, ki in enumerate(k))
+    return (xu * s / t + 1) * W / 2 - 0.5, (yu * s / (t * H / W) + 1) * H / 2 - 0.5
+
+
+@pytest.mark.parametrize("k", [(-0.2, 0.05), (0.15,), (-0.1, 0.0, 0.02)])
+def test_a_spot_lands_where_the_distortion_polynomial_sends_its_ray(k):
+    """A small Gaussian spot rendered (pinhole) at a known ray ends up, after apply_distortion, with its
+    centroid where the forward polynomial puts that ray, within 0.05 px."""
+    from dataclasses import dataclass
+
+    from mbcapture.optics import apply_distortion, undistortion_maps
+
+    @dataclass
+    class Cam:
+        fov_deg: float = 40.0
+
+    W, H = 160, 120
+    mx, my, t_r = undistortion_maps(Cam(), W, H, k)
+    t = math.tan(math.radians(20.0))
+    assert t_r >= t and (t_r > t) == (k[0] < 0)  # barrel needs a wider render, pincushion does not
+    for xu, yu in [(0.2, 0.1), (-0.25, 0.15), (0.05, -0.2)]:
+        cx, cy = (xu / t_r + 1) * W / 2 - 0.5, (yu / (t_r * H / W) + 1) * H / 2 - 0.5  # the spot in the render
+        yy, xx = np.mgrid[0:H, 0:W]
+        spot = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * 1.5**2)).astype(np.float32)
+        out = apply_distortion(np.repeat(spot[None, :, :, None], 3, -1), mx, my)[0, ..., 0].astype(np.float64)
+        want = _forward_px(xu, yu, k, t, W, H)
+        got = ((out * xx).sum() / out.sum(), (out * yy).sum() / out.sum())
+        assert abs(got[0] - want[0]) < 0.05 and abs(got[1] - want[1]) < 0.05, (got, want)
+
+
+def test_no_distortion_is_the_identity_and_a_fold_is_refused():
+    from dataclasses import dataclass
+
+    from mbcapture.optics import undistortion_maps
+
+    @dataclass
+    class Cam:
+        fov_deg: float = 40.0
+
+    mx, my, t_r = undistortion_maps(Cam(), 32, 24, (0.0,))
+    assert t_r == pytest.approx(math.tan(math.radians(20.0)))
+    np.testing.assert_allclose(mx, np.broadcast_to(np.arange(32.0), (24, 32)), atol=1e-4)
+    np.testing.assert_allclose(my, np.broadcast_to(np.arange(24.0)[:, None], (24, 32)), atol=1e-4)
+    with pytest.raises(ValueError, match="folds"):
+        undistortion_maps(Cam(), 32, 24, (-1.5,))
+
+
+@pytest.mark.render
+def test_a_rendered_straight_edge_bends_as_the_distortion_says():
+    """A vertical edge off the axis (x/z = 0.15 at 1 m): with barrel distortion its position in each row
+    follows the polynomial (solved here by bisection, independently of OpenCV), within 0.1 px; the
+    undistorted render keeps it straight."""
+    from mbcapture.render import Renderer
+
+    W, H, k = 96, 64, (-0.3,)
+    scene = _edge_scene(1.0)
+    # move the edge from x = 0 to x = 0.15 m: the plane is translated along x
+    from dataclasses import replace as dc_replace
+
+    from mbcapture.render.build import scale, translate
+
+    plane = scene.build.shapes[0]
+    shifted = dc_replace(plane, to_world=translate(0.15 + 10.0, 0.0, -1.0) @ scale(10.0, 10.0, 1.0))
+    scene = dc_replace(scene, build=dc_replace(scene.build, shapes=(shifted,)))
+    t = math.tan(math.radians(15.0))
+    img = Renderer(scene, W, H, max_depth=1, distortion=k).render(0.0, 64, 5)[0, ..., 1]
+    for row in (4, 20, 32, 50, 60):
+        values = img[row]
+        j = int(np.argmax(values > 0.5))  # first lit pixel; the edge crosses 0.5 between j - 1 and j
+        edge_px = j - 1 + (0.5 - values[j - 1]) / (values[j] - values[j - 1]) + 0.5  # box pixels: value = lit share
+        yd = ((row + 0.5) / H * 2 - 1) * t * H / W
+        lo, hi = -1.0, 1.0  # the ray (0.15, yu) that lands on this row: yu (1 + k1 r^2) = yd
+        for _ in range(80):
+            mid = (lo + hi) / 2
+            if mid * (1 + k[0] * (0.15**2 + mid**2)) < yd:
+                lo = mid
+            else:
+                hi = mid
+        want_x, _ = _forward_px(0.15, lo, k, t, W, H)
+        assert abs(edge_px - (want_x + 0.5)) < 0.1, (row, edge_px, want_x + 0.5)
+
+
+def test_distortion_keys_are_checked_and_pinhole_truth_applications_refuse_it():
+    from pathlib import Path
+
+    from mbcapture import load_config
+    from mbcapture.errors import ConfigError
+
+    configs = Path(__file__).resolve().parents[1] / "configs"
+    assert load_config(configs / "metronome_hdr.yaml", ["camera.distortion=[-0.1, 0.01]"]).camera.distortion == [-0.1, 0.01]
+    with pytest.raises(ConfigError, match="distortion: expected 1 to 3"):
+        load_config(configs / "metronome_hdr.yaml", ["camera.distortion=[0.1, 0.1, 0.1, 0.1]"])
+    for name in ("multi_flash", "structured_light", "flash_matting"):
+        with pytest.raises(ConfigError, match=f"camera.distortion: the {name} application"):
+            load_config(configs / f"{name}.yaml", ["camera.distortion=[-0.1]"])

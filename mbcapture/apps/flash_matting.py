@@ -227,6 +227,7 @@ CAPTIONS = {
 
 
 @register("flash_matting", output_channels=33, previews=8, libraries_mb=180, params=FlashMattingParams, per_group=True,
+          pinhole_truth="the true matte is the foreground's coverage rendered through pixel centres",
           description="flash-only image, trimap and alpha matte (app.matting) scored against the rendered coverage")
 def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
     if params.flash_group not in data.switchable:

@@ -417,6 +417,7 @@ CAPTIONS = {
 
 
 @register("multi_flash", output_channels=28, previews=3, params=MultiFlashParams,
+          pinhole_truth="depth edges of the aov depth through pixel centres; flash directions projected by the pinhole",
           description="multi-flash: shadow-free max composite and depth edges from ratio images (Raskar 2004)")
 def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
     cfg = data.cfg

@@ -301,6 +301,7 @@ CAPTIONS = {
 
 
 @register("structured_light", output_channels=22, previews=3, libraries_mb=60, params=StructuredLightParams,
+          pinhole_truth="triangulation through the pinhole camera and projector; truth depth from the aov",
           description="structured light: ambient-subtracted phase shifting or Gray code, unwrapping, triangulated depth")
 def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
     cfg = data.cfg

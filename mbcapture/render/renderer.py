@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import time
+from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
@@ -17,9 +18,11 @@ import numpy as np
 from ..errors import ConfigError
 from ..optics import (
     apply_diffraction,
+    apply_distortion,
     focus_distance_m,
     natural_vignetting,
     thin_lens_aperture_m,
+    undistortion_maps,
 )
 from ..scenes import SceneModel
 from ..sensor.photons import mono_weights
@@ -150,15 +153,28 @@ class Renderer:
                  film_curves: tuple[np.ndarray, np.ndarray] | None = None,
                  cache: RenderCache | None = None, sampler: str = "multijitter", vignetting: str = "none",
                  diffraction: bool = False, thin_lens: tuple[float, float] | None = None,
-                 mono: np.ndarray | None = None) -> None:
+                 mono: np.ndarray | None = None, distortion: Sequence[float] | None = None) -> None:
         if thin_lens is not None and not (thin_lens[0] > 0 and thin_lens[1] > 0):
             raise ConfigError(f"thin lens: aperture radius and focus distance must be positive, got {thin_lens}")
         #: (aperture radius m, focus distance m) of Mitsuba's thinlens sensor; None: a pinhole
         self.thin_lens = None if thin_lens is None else (float(thin_lens[0]), float(thin_lens[1]))
         if vignetting not in ("none", "cos4"):
             raise ConfigError(f"camera.vignetting: expected 'none' or 'cos4', got {vignetting!r}")
-        self._falloff = None if vignetting == "none" else \
-            natural_vignetting(scene.camera, width, height).astype(np.float32)[None, :, :, None]
+        # radial distortion (mbcapture.optics): Mitsuba renders a pinhole of field render_fov_deg (wider than
+        # the camera's for barrel distortion) and every render is resampled onto the sensor's pixels
+        self.distortion = None if not distortion else tuple(float(k) for k in distortion)
+        self.render_fov_deg = float(scene.camera.fov_deg)
+        self._undistort = None
+        if self.distortion is not None:
+            try:
+                map_x, map_y, t_render = undistortion_maps(scene.camera, width, height, self.distortion)
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
+            self._undistort = (map_x, map_y)
+            self.render_fov_deg = float(np.degrees(2.0 * np.arctan(t_render)))
+        # the falloff of each ray's field angle, on the grid Mitsuba renders (before any resampling)
+        self._falloff = None if vignetting == "none" else natural_vignetting(
+            replace(scene.camera, fov_deg=self.render_fov_deg), width, height).astype(np.float32)[None, :, :, None]
         if diffraction and sensor is None:
             raise ConfigError("camera.diffraction: needs the sensor (f-number, pixel pitch, wavelengths)")
         self._diffraction = sensor if diffraction else None  # the sensor's f-number, pitch and wavelengths
@@ -273,7 +289,7 @@ class Renderer:
         kw: dict[str, Any] = {"variant": r.variant, "max_depth": r.max_depth, "sampler": r.sampler,
                               "sensor": cfg.sensor, "cache": cache, "vignetting": cfg.camera.vignetting,
                               "diffraction": cfg.camera.diffraction, "thin_lens": lens,
-                              "mono": mono_weights(cfg.sensor, r.variant)}
+                              "mono": mono_weights(cfg.sensor, r.variant), "distortion": cfg.camera.distortion}
         kw.update(overrides)
         return cls(scene, r.width, r.height, **kw)
 
@@ -320,7 +336,7 @@ class Renderer:
             "sensor": {
                 **({"type": "perspective"} if self.thin_lens is None else
                    {"type": "thinlens", "aperture_radius": self.thin_lens[0], "focus_distance": self.thin_lens[1]}),
-                "fov": float(cam.fov_deg),
+                "fov": self.render_fov_deg,
                 "fov_axis": "x",
                 "near_clip": 1e-3,
                 "to_world": T().look_at(origin=list(cam.origin), target=list(cam.target),
@@ -597,10 +613,13 @@ class Renderer:
         spp = self.sample_count(spp)  # what the sampler really takes
         params = {"spp": int(spp), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
         img = self.cached("radiance", t_s, params, lambda: self._render(t_s, int(spp), int(seed), req))
-        # the lens (mbcapture.optics): relative illumination, then diffraction, on every render alike
+        # the lens (mbcapture.optics): relative illumination, distortion, then diffraction (a blur in the sensor
+        # plane), on every render alike
         # (exposures, truths, the pilot), after the cache: a render is cached as the pinhole sees it
         if self._falloff is not None:
             img = img * self._falloff
+        if self._undistort is not None:  # the lens bends each pixel's ray: resample the pinhole render
+            img = apply_distortion(img, *self._undistort)
         if self._diffraction is not None:
             s = self._diffraction
             img = apply_diffraction(img, s.pixel_pitch_um, s.f_number, s.wavelength_nm).astype(np.float32)
