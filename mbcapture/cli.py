@@ -182,10 +182,10 @@ def _cmd_plan(args) -> int:
     print(f"render ({s['planner']} planner): {s['passes']} passes x {plan.spp_label()} spp ({s['spp_source']}), "
           f"groups {s['groups_rendered']}" + (f" (left out: {s['groups_left_out']})" if s["groups_left_out"] else ""))
     if s["pilot"]:
-        need = [f"B{k + 1} {q['spp_for_median']:.0f}/{q['spp_for_p95']:.0f}" for k, q in enumerate(s["pilot"]["per_bucket"])
+        need = [f"{name} {q['spp_for_median']:.0f}/{q['spp_for_p95']:.0f}" for name, q in s["pilot"]["per_read"].items()
                 if q is not None]
         t = s["pilot"]["targets"]
-        print(f"pilot: {s['pilot']['renders']} renders, {s['pilot']['seconds']:.2f} s; spp each bucket needs for "
+        print(f"pilot: {s['pilot']['renders']} renders, {s['pilot']['seconds']:.2f} s; spp each read needs for "
               f"Monte Carlo / shot-noise variance median <= {t['median']:g} / p95 <= {t['p95']:g}: {', '.join(need)}")
     if s["estimate_s"]:
         c, e = s["cost_model"], s["estimate_s"]

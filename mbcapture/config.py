@@ -78,12 +78,20 @@ class RenderSection(_Model):
     noise_budget: float = Field(
         0.1,
         gt=0,
-        description="With render.spp null: the median, over lit unsaturated bucket samples, of the Monte Carlo variance of the bucket electrons as a fraction of the photon shot-noise variance the sensor adds there (0.1 = rendering adds ~5% to the noise).",
+        description="With render.spp null: the median, over the lit unsaturated samples of every read the sensor outputs (the worst read decides), of the Monte Carlo variance of the read's electrons as a fraction of the photon shot-noise variance the sensor adds there (0.1 = rendering adds ~5% to the noise).",
     )
     noise_budget_p95: float = Field(
         1.0,
         gt=0,
         description="With render.spp null: the same ratio's 95th percentile (1.0: in 95% of the samples rendering adds at most as much variance as the photons).",
+    )
+    noise_budget_tail: float = Field(
+        1.0,
+        gt=0,
+        description="The same ratio's 99.9th percentile on every read (1.0: no more than one sample in 1000 where "
+        "rendering noise exceeds the photons'; a user would take such samples for hot pixels). Reported and judged "
+        "on every run; the pilot does not raise spp for it (meeting a tail by more samples everywhere multiplies "
+        "the cost).",
     )
     max_spp: int = Field(1024, ge=2, le=1 << 16, description="Upper bound on the samples per pixel render.noise_budget may choose for one stratum.")
     estimator: Literal["independent", "difference"] = Field(

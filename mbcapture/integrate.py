@@ -34,7 +34,12 @@ from .plan import Plan
 
 @dataclass
 class Integrated:
-    """exposure (K, H, W, C); mc_var (K, H, W, C) or None (spp = 1); group_exposure (K, G, H, W, C) or None.
+    """exposure (K, H, W, C); group_exposure (K, G, H, W, C) or None.
+
+    mc_diff (K, H, W, C) or None (spp = 1): the signed half-sample difference, scaled so that its
+    square estimates the exposure's Monte Carlo variance (``mc_var``). Signed, because a read sums
+    buckets whose Monte Carlo errors come from the same renders: the read's variance is the square
+    of the summed differences, not the sum of the buckets' variances (:meth:`read_mc_var`).
 
     temporal_diff (K, H, W, C) or None (one stratum): the exposure with strata merged in pairs
     (each pair rendered once, at its first stratum's time, with both strata's weights) minus
@@ -43,9 +48,18 @@ class Integrated:
     """
 
     exposure: np.ndarray
-    mc_var: np.ndarray | None
+    mc_diff: np.ndarray | None
     group_exposure: np.ndarray | None = None
     temporal_diff: np.ndarray | None = None
+
+    @property
+    def mc_var(self) -> np.ndarray | None:
+        """(K, H, W, C) estimated Monte Carlo variance of each bucket's exposure (one sample of it)."""
+        return None if self.mc_diff is None else self.mc_diff**2
+
+    def read_mc_var(self, buckets) -> np.ndarray | None:
+        """(H, W, C) estimated Monte Carlo variance of the exposure summed over ``buckets`` (a read)."""
+        return None if self.mc_diff is None else self.mc_diff[list(buckets)].sum(axis=0) ** 2
 
 
 def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray) -> None:
@@ -133,13 +147,13 @@ def integrate(
                         accumulate(plan.weights_s[j], prev - full, temporal)
             bar.update(1)
     exposure = parts[0] + parts[1] if two else parts[0]
-    mc_var = None
+    mc_diff = None
     if two:
         # A = parts[0]/r, B = parts[1]/(1-r): Var[exposure] ~ (A - B)^2 r (1 - r) (r per stratum;
-        # exact when r is uniform, otherwise its weight-averaged value)
+        # exact when r is uniform, otherwise its weight-averaged value); kept signed (Integrated.mc_diff)
         rbar = float(np.average(r, weights=np.maximum(plan.weights_s.sum(axis=(1, 2)), 1e-300)))
-        mc_var = (parts[0] / rbar - parts[1] / (1 - rbar)) ** 2 * (rbar * (1 - rbar))
-    return Integrated(exposure=exposure, mc_var=mc_var, group_exposure=groups_out, temporal_diff=temporal)
+        mc_diff = (parts[0] / rbar - parts[1] / (1 - rbar)) * np.sqrt(rbar * (1 - rbar))
+    return Integrated(exposure=exposure, mc_diff=mc_diff, group_exposure=groups_out, temporal_diff=temporal)
 
 
 class _Control:

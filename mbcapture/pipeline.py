@@ -277,8 +277,10 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         "electrons_per_render_unit_second": dict(zip(renderer.channels, k_e.tolist())),  # per film channel
         "metrics": out.metrics,
         "render_error": {
-            **render_error(integrated.mc_var, buckets_e, k_e, list(plan.buckets_read), cfg.sensor.full_well_e,
-                           plan=plan, noise_budget=cfg.render.noise_budget, noise_budget_p95=cfg.render.noise_budget_p95),
+            **render_error(integrated.mc_diff, buckets_e, k_e, [r.buckets for r in timeline.reads],
+                           [r.name for r in timeline.reads], cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
+                           plan=plan, noise_budget=cfg.render.noise_budget, noise_budget_p95=cfg.render.noise_budget_p95,
+                           noise_budget_tail=cfg.render.noise_budget_tail),
             **temporal_error(integrated, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
         },
         "render_cache": {"folder": str(cache.root), **cache.stats.as_dict()} if cache is not None else {"folder": None},

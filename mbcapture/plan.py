@@ -46,6 +46,8 @@ class Plan:
     planner       'motion' or 'naive'.
     pilot         what the pilot measured (None without one).
     cost          the cost model {c0_s, c1_s_per_spp, compile_s, accumulate_s} (None without a pilot/probe).
+    read_sets     the buckets each read of the timeline sums (the noise budget is met on reads), and
+    read_names    their names.
     """
 
     starts_ticks: np.ndarray
@@ -69,6 +71,8 @@ class Plan:
     base_spp_setting: int | None = None
     base_time_s: float = 0.0
     max_spp_per_render: int = 1024
+    read_sets: tuple[tuple[int, ...], ...] = ()
+    read_names: tuple[str, ...] = ()
 
     @property
     def base_spp(self) -> int:
@@ -277,6 +281,8 @@ def make_plan(
         weights_s=w.astype(np.float64) * float(timeline.tick_s),
         groups=groups,
         buckets_read=buckets_read,
+        read_sets=tuple(tuple(r.buckets) for r in timeline.reads),
+        read_names=tuple(r.name for r in timeline.reads),
         spp=None if render.spp is None else np.full(len(starts), render.spp, dtype=np.int64),
         max_motion_px=render.max_motion_px,
         motion_px_total=motion_total,

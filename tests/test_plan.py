@@ -162,6 +162,11 @@ def test_explicit_spp_wins_and_null_spp_waits_for_the_pilot():
     assert q.spp is None and q.spp_source == "pending" and q.summary(timeline())["spp"] is None
 
 
+def read_weights(p) -> np.ndarray:
+    """(J, R) the one group's weights of each read: the sum of its buckets'."""
+    return np.stack([p.weights_s[:, list(r), 0].sum(axis=1) for r in p.read_sets], axis=1)
+
+
 def _budget_plan(mu, sigma, k_e=np.array([1e5, 1e5, 1e5]), budget=0.1, max_spp=1 << 14, speed=50.0, sigma_map=None,
                  budget_p95=1.0, size=(24, 32)):
     tl = timeline(periods=16)
@@ -174,13 +179,16 @@ def _budget_plan(mu, sigma, k_e=np.array([1e5, 1e5, 1e5]), budget=0.1, max_spp=1
 
 def test_noise_budget_spp_matches_the_closed_form():
     # one always-on group (the unused flash is left out), Gaussian noise: per bucket k
-    # MC variance (e-^2) = sum_j k_e^2 w_jk^2 sigma^2 / n_j,  shot variance = k_e sum_j w_jk mu.
+    # MC variance (e-^2) = sum_j k_e^2 w_jk^2 sigma^2 / n_j,  shot variance = k_e sum_j w_jk mu, for each
+    # READ k: its weights are its buckets' sums (the buckets' Monte Carlo errors come from the same renders)
     mu, sigma, k_e, f = 2.0, 3.0, 1e5, 0.1
     p0, p, r = _budget_plan(mu, sigma, budget=f)
     assert p.groups == ("ambient",)
     assert p.spp_source == "noise_budget" and p.spp.min() > 20 and np.all(p.spp % 2 == 0)  # well above the floor of 2
-    w = p0.weights_s[:, :, 0]  # (J, K)
+    w = read_weights(p0)  # (J, R)
     ratios = [(k_e**2 * w[:, k] ** 2 * sigma**2 / p.spp).sum() / (k_e * (w[:, k] * mu).sum()) for k in range(4)]
+    # the longest read (J4, all four buckets) binds; its ratio is 8x that of the shortest
+    assert int(np.argmax(ratios)) == 3
     # uniform noise: every pixel has this ratio, so the median target binds. The pilot's median
     # comes from 2304 pooled estimates of 9 degrees of freedom (their spread near the median is
     # ~sqrt(2/9) / sqrt(2304 / 9) = 3 %, 5 sd = 15 %); rounding n_j up (to a ladder of 19 % steps,
@@ -189,7 +197,7 @@ def test_noise_budget_spp_matches_the_closed_form():
     assert max(ratios) >= f * 0.85 / 1.19  # the binding bucket meets it, not far below
     # independent Gaussian samples: the measured convergence exponent is 1 (median 4x lower at 4x spp)
     k = int(np.argmax(ratios))
-    at = p.pilot["per_bucket"][k]["median_at"]
+    at = list(p.pilot["per_read"].values())[k]["median_at"]
     lo, hi = sorted(at)
     assert at[lo] / at[hi] == pytest.approx(hi / lo, rel=0.15)
     assert p.pilot["renders"] == 4 * p.pilot["times"] and p.cost["c1_s_per_spp"] > 0
@@ -208,7 +216,7 @@ def test_noise_budget_targets_the_median_and_the_95th_percentile(noisy_fraction)
     side = int(round(np.sqrt(noisy_fraction * H * W)))
     sigma_map[10:10 + side, 20:20 + side] = 20.0
     p0, p, _ = _budget_plan(mu, sigma, budget=f, sigma_map=sigma_map, size=(H, W))
-    w = p0.weights_s[:, :, 0]
+    w = read_weights(p0)
     calm = max((k_e**2 * w[:, k] ** 2 * sigma**2 / p.spp).sum() / (k_e * (w[:, k] * mu).sum()) for k in range(4))
     if noisy_fraction < 0.05:
         assert calm == pytest.approx(f, rel=0.2)  # the median pixel meets the budget exactly
@@ -240,9 +248,9 @@ def test_no_stratum_gets_fewer_samples_than_the_pilot_measured():
 def test_per_stratum_spp_follows_the_weights():
     """Neyman allocation per stratum. An accelerating point makes strata of very different lengths
     (the first, slow one ~7x the last), so their weights differ. With one group of per-sample
-    sigma and mean mu everywhere, bucket k asks stratum j for n_jk = w_jk sigma^2 k_e / (f mu)
-    samples (the module's rule: sqrt(a_jk) sum_j sqrt(a_jk) / V_k, a_jk = w_jk^2 sigma^2 k_e^2 per
-    sample, V_k = f k_e mu sum_j w_jk), and the stratum gets max_k n_jk, each half rounded up to the
+    sigma and mean mu everywhere, read k asks stratum j for n_jk = w_jk sigma^2 k_e / (f mu)
+    samples, w_jk the read's weight (its buckets' sum) (the module's rule: sqrt(a_jk) sum_j sqrt(a_jk) / V_k,
+    a_jk = w_jk^2 sigma^2 k_e^2 per sample, V_k = f k_e mu sum_j w_jk), and the stratum gets max_k n_jk, each half rounded up to the
     sampler's ladder of counts (steps of at most 19 %). The buckets' totals differ (T, 2T, 4T, 8T), so
     a rule that dropped V_k would over-sample the strata the short bucket weighs most. The
     pilot estimates sigma^2 from 2304 samples per pilot time: relative SE sqrt(2/2304) = 3 %, so
@@ -257,8 +265,8 @@ def test_per_stratum_spp_follows_the_weights():
     from mbcapture.budget import choose_spp
 
     p = choose_spp(p0, r, np.full(3, k_e), 1e12, f, 1 << 14, np.random.SeedSequence(5))
-    w_jk = p0.weights_s[:, :, 0]
-    w = w_jk.sum(axis=1)
+    w_jk = read_weights(p0)  # each read's weights: its buckets' sums
+    w = p0.weights_s[:, :, 0].sum(axis=1)
     assert p0.passes >= 10 and w.max() > 5 * w.min()  # strata of very different weight
     n_true = w_jk.max(axis=1) * sigma**2 * k_e / (f * mu)
     assert n_true.min() > 100  # far above the floor of 2 samples: the rule, not the floor, decides
@@ -292,6 +300,42 @@ def test_integrate_per_stratum_spp_is_unbiased_and_its_error_estimate_is_right()
         assert out.mc_var[k].mean() == pytest.approx(true_var[k], rel=5 * np.sqrt(2 / n))
     # renders: two halves per stratum, only the groups with weight
     assert len(r.calls) == 2 * p.passes
+
+
+def test_a_reads_monte_carlo_variance_adds_its_buckets_errors_coherently():
+    """A read sums buckets rendered from the same strata: their Monte Carlo errors add as amplitudes,
+    Var = sum_j (sum_k w_jk)^2 sigma^2 / n_j, not as variances (sum_j sum_k w_jk^2 sigma^2 / n_j); the
+    half-sample estimate (Integrated.read_mc_var) must say the first, and render_error must judge reads."""
+    from dataclasses import replace
+
+    from mbcapture.budget import render_error
+    from mbcapture.integrate import integrate
+
+    tl = timeline(periods=16)
+    p = replace(plan(point_scene(50.0), tl, spp=2), spp=None)
+    p = replace(p, spp=np.full(p.passes, 8))
+    mu, sigma = 2.0, 3.0
+    r = FakeRenderer(p.groups, {g: mu for g in p.groups}, {g: sigma for g in p.groups}, height=48, width=64)
+    out = integrate(r, p, tl.n_buckets, np.random.SeedSequence(2))
+    n = 48 * 64 * 3
+    w = p.weights_s[:, :, 0]
+    for read in p.read_sets:
+        coherent = (w[:, list(read)].sum(axis=1) ** 2 * sigma**2 / p.spp).sum()
+        incoherent = (w[:, list(read)] ** 2 * sigma**2 / p.spp[:, None]).sum()
+        got = out.read_mc_var(read).mean()
+        assert got == pytest.approx(coherent, rel=5 * np.sqrt(2 / n))
+        if len(read) > 1:
+            assert coherent > 1.5 * incoherent
+    # render_error: one entry per read, the longest (J4, all buckets) decides, its ratio ~ its closed form
+    k_e = np.full(3, 1e5)
+    buckets_e = out.exposure * k_e
+    rep = render_error(out.mc_diff, buckets_e, k_e, list(p.read_sets), list(p.read_names), 1e12, 4e12)
+    assert list(rep["reads"]) == list(p.read_names) and rep["deciding_read"] == p.read_names[-1]
+    longest = list(p.read_sets[-1])
+    want = k_e[0] ** 2 * (w[:, longest].sum(axis=1) ** 2 * sigma**2 / p.spp).sum() / (k_e[0] * w[:, longest].sum() * mu)
+    assert rep["to_shot_noise_variance_mean"] == pytest.approx(want, rel=0.1)
+    ratios = [rep["reads"][n_]["to_shot_noise_variance_median"] for n_ in p.read_names]
+    assert ratios == sorted(ratios)  # the ratio grows with the read's exposure
 
 
 def test_temporal_error_sees_change_in_time_and_not_noise():
