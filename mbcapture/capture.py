@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from . import resources
 from .budget import noise_verdict
 from .config import CaptureConfig
+from .errors import ConfigError
 from .io import check_out_dir, staged_outputs
 from .pipeline import (  # noqa: F401  (the names a capture's callers have always imported from here)
     CaptureResult,
@@ -52,17 +53,21 @@ def check_resources(cfg: CaptureConfig, out_dir: Path | None) -> resources.Resou
 
 def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True,
                 rendered: Rendered | None = None,
-                on_rendered: "Callable[[Rendered], None] | None" = None) -> CaptureResult:
+                on_rendered: "Callable[[Rendered], None] | None" = None, client: Any = None) -> CaptureResult:
     """Run one capture. With ``out_dir``, write its outputs there (atomically). ``progress``: a
     status line for every stage and a bar for the render passes (stderr). ``rendered``: the render
     stage of another capture with the same renders (see :class:`Rendered`), used instead of
     rendering; ``on_rendered(Rendered)`` is called once this capture's render stage is done (before
-    the sensor, so it is called even if a later stage fails)."""
+    the sensor, so it is called even if a later stage fails). ``client``: a Dask client whose workers
+    render the strata (mbcapture.cluster; not for videos)."""
     if out_dir is not None:
         check_out_dir(Path(out_dir))
     need = check_resources(cfg, None if out_dir is None else Path(out_dir))
     if progress:
         print(f"mbcapture: this run {need.line()}", file=sys.stderr)
+    if cfg.capture.frames > 1 and client is not None:
+        raise ConfigError("--workers/--scheduler: a video (capture.frames > 1) renders its frames here; "
+                          "use mbcapture sweep to spread captures over a cluster")
     if cfg.capture.frames > 1:  # a video: a capture per frame (mbcapture/video.py)
         result = run_video(cfg, progress=progress)
         if out_dir is not None:
@@ -71,7 +76,8 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         return result
     own_render = rendered is None
     with StageStatus(progress, stages=4 + own_render * (1 + (cfg.render.spp is None)) + (out_dir is not None)) as status:
-        result = capture_in_memory(cfg, status, progress=progress, rendered=rendered, on_rendered=on_rendered)
+        result = capture_in_memory(cfg, status, progress=progress, rendered=rendered, on_rendered=on_rendered,
+                                   client=client)
         if out_dir is not None:
             with status.stage("write outputs and report"):
                 write_outputs(result, Path(out_dir))

@@ -18,6 +18,7 @@ from . import application as apps
 from . import characterize, converge, figures, protocols, resources, scenes
 from .budget import probe_cost, resolve_spp
 from .capture import describe, prepare, render_cache, render_summary, run_capture
+from .cluster import start_client
 from .config import load_config
 from .errors import ConfigError, ConfigNotice, MBCaptureError
 from .io import check_out_dir
@@ -51,6 +52,11 @@ def _parser() -> argparse.ArgumentParser:
     _add_config_args(run)
     run.add_argument("--out", type=Path, default=None, help="output folder (default: out/<config name>)")
     run.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    run_where = run.add_mutually_exclusive_group()
+    run_where.add_argument("--workers", type=int, default=None, metavar="N",
+                           help="render the capture's strata on a local Dask cluster of N worker processes")
+    run_where.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                           help="render the capture's strata on an existing Dask cluster (tcp://host:port)")
 
     plan = sub.add_parser("plan", help="show what would be rendered, without rendering")
     _add_config_args(plan)
@@ -150,7 +156,17 @@ def _cmd_characterize(args) -> int:
 def _cmd_run(args) -> int:
     cfg = load_config(args.config, args.overrides)
     out = args.out or Path("out") / args.config.stem
-    result = run_capture(cfg, out, progress=not args.quiet)
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers: expected a number of processes >= 1, got {args.workers}")
+    client = None if args.workers is None and args.scheduler is None else start_client(args.workers, args.scheduler)
+    try:
+        result = run_capture(cfg, out, progress=not args.quiet, client=client)
+    finally:
+        if client is not None:
+            cluster = getattr(client, "cluster", None)
+            client.close()
+            if cluster is not None and args.scheduler is None:
+                cluster.close()
     if not args.quiet:
         r = result.report
         print(f"wrote {out}/  ({r['plan']['passes']} render passes x {result.plan.spp_label()} spp, "

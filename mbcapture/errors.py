@@ -21,3 +21,10 @@ class ResourceProblem(MBCaptureError):
 class ConfigNotice(UserWarning):
     """Not an error: the config was changed in a way the user should know of (e.g. ``--set
     scene.name=...`` dropped the old scene's keys). The CLI prints it as ``mbcapture: note: ...``."""
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one line: the message of an input error, else 'Type: message'."""
+
+    text = " ".join(str(exc).split())
+    return text if isinstance(exc, MBCaptureError) else f"{type(exc).__name__}: {text}"

@@ -32,6 +32,28 @@ import numpy as np
 from .plan import Plan
 
 
+def render_seeds(plan: Plan, seed: np.random.SeedSequence) -> np.ndarray:
+    """(J, 2) the seeds of each stratum's two half-sample renders."""
+    return np.random.default_rng(seed).integers(0, 2**31 - 1, size=(plan.passes, 2))
+
+
+def render_requests(plan: Plan, seed: np.random.SeedSequence) -> list[tuple[float, int, int, tuple[str, ...]]]:
+    """Every render :func:`integrate` makes for ``plan`` with the ``independent`` estimator, in its
+    order: (scene time s, samples per pixel, seed, groups). What a cluster renders ahead of it
+    (:mod:`mbcapture.cluster`)."""
+    spp = np.asarray(plan.spp, dtype=np.int64)
+    two = bool(np.all(spp >= 2)) and plan.passes > 0
+    seeds = render_seeds(plan, seed)
+    used = plan.weights_s.sum(axis=1) > 0
+    out = []
+    for j in range(plan.passes):
+        n = int(spp[j])
+        groups_j = tuple(plan.groups[g] for g in np.flatnonzero(used[j]))
+        for h, spp_h in enumerate((n // 2, n - n // 2) if two else (n,)):
+            out.append((float(plan.times_s[j]), int(spp_h), int(seeds[j, h]), groups_j))
+    return out
+
+
 @dataclass
 class Integrated:
     """exposure (K, H, W, C); group_exposure (K, G, H, W, C) or None.
@@ -108,7 +130,7 @@ def integrate(
     r = spp // 2 / np.maximum(spp, 1)  # share of the first half, per stratum
     groups_out = np.zeros((n_buckets, G, H, W, C), dtype=np.float64) if per_group else None
     temporal = np.zeros((n_buckets, H, W, C), dtype=np.float64) if plan.passes >= 2 else None
-    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(plan.passes, 2))
+    seeds = render_seeds(plan, seed)
     used = plan.weights_s.sum(axis=1) > 0  # (J, G): groups with weight in each stratum
     prev = None  # the previous (even) stratum's combined radiance, (G, H, W, C)
     control = _Control(renderer, plan, seed, stage) if plan.estimator == "difference" else None

@@ -16,13 +16,14 @@ from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from . import camera_motion, protocols, resources, scenes
 from .application import AppOutput, CaptureData
 from .budget import noise_verdict, render_error, resolve_spp
+from .cluster import render_on_cluster
 from .config import CaptureConfig, scene_of
 from .errors import ConfigError
 from .integrate import Integrated, integrate, temporal_error
@@ -204,14 +205,16 @@ class Rendered:
 
 def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool = False,
                       rendered: Rendered | None = None, on_rendered: "Callable[[Rendered], None] | None" = None,
-                      renderer: Renderer | None = None) -> CaptureResult:
+                      renderer: Renderer | None = None, client: Any = None) -> CaptureResult:
     """One capture, in the order of the data flow, nothing written: plan, render (or take
     ``rendered``), accumulate, the sensor stage (:func:`mbcapture.simulate.sense`), reconstruct.
     ``status``: the stage lines; ``progress``: a bar for the render passes; ``renderer``: a Renderer
     of this capture's scene to reuse (a video's frames), else one is made; ``on_rendered``: called
-    with the render stage once it is done."""
+    with the render stage once it is done; ``client``: a Dask client whose workers render the strata
+    (:mod:`mbcapture.cluster`)."""
     timer = _Timer()
     t_start = time.perf_counter()
+    cluster_info = None  # what the cluster rendered (report.json "cluster"), with a client
     with timer("plan"), status.stage("plan"):
         scene, timeline, plan, seeds = prepare(cfg)
         app, app_params = cfg.app.resolve(cfg.capture.protocol)
@@ -226,6 +229,9 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         pilot = status.stage("pilot render (spp from render.noise_budget)") if cfg.render.spp is None else nullcontext()
         with timer("pilot"), pilot:
             plan = resolve_spp(plan, renderer, cfg, seeds[2])  # render.spp null: spp from render.noise_budget
+        if client is not None:
+            with timer("cluster"), status.stage(f"render on the cluster ({plan.passes} passes)"):
+                cluster_info = render_on_cluster(client, cfg, plan, seeds[2], renderer)
         with status.stage(f"render ({plan.passes} passes)"):
             integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
                                    progress=progress)
@@ -284,6 +290,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
             **temporal_error(integrated, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
         },
         "render_cache": {"folder": str(cache.root), **cache.stats.as_dict()} if cache is not None else {"folder": None},
+        "cluster": cluster_info,
         "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant,
                      "llvm_target": _llvm_target_label() if llvm else None},
     }

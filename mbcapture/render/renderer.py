@@ -178,6 +178,8 @@ class Renderer:
         if diffraction and sensor is None:
             raise ConfigError("camera.diffraction: needs the sensor (f-number, pixel pitch, wavelengths)")
         self._diffraction = sensor if diffraction else None  # the sensor's f-number, pitch and wavelengths
+        #: renders made elsewhere (a cluster's workers, mbcapture.cluster), by (t, spp, seed, groups): used once
+        self._given: dict[tuple[float, int, int, tuple[str, ...]], np.ndarray] = {}
         # a monochrome sensor's mixture of the channels (mbcapture.sensor.mono_weights), or None
         self._mono = None if mono is None else np.asarray(mono, np.float64).reshape(3)
         if not isinstance(scene.build, SceneBuild):
@@ -610,9 +612,11 @@ class Renderer:
             raise ConfigError(f"render groups {req}: expected distinct names from {list(self.groups)}")
         if spp < 1:
             raise ConfigError(f"render spp must be >= 1, got {spp}")
+        given = self._given.pop((float(t_s), int(spp), int(seed), tuple(req)), None)
         spp = self.sample_count(spp)  # what the sampler really takes
         params = {"spp": int(spp), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
-        img = self.cached("radiance", t_s, params, lambda: self._render(t_s, int(spp), int(seed), req))
+        img = given if given is not None else \
+            self.cached("radiance", t_s, params, lambda: self._render(t_s, int(spp), int(seed), req))
         # the lens (mbcapture.optics): relative illumination, distortion, then diffraction (a blur in the sensor
         # plane), on every render alike
         # (exposures, truths, the pilot), after the cache: a render is cached as the pinhole sees it
@@ -626,6 +630,20 @@ class Renderer:
         if self._mono is not None:  # a monochrome sensor: its one response, in every channel
             img = np.repeat((img @ self._mono.astype(np.float32))[..., None], 3, axis=-1)
         return img
+
+    def give(self, t_s: float, spp: int, seed: int, groups: Sequence[str], radiance: np.ndarray) -> None:
+        """Hand this renderer the render of ``(t_s, spp, seed, groups)`` made by another process with
+        the same renderer (a cluster worker): :meth:`render` returns it (the lens applied as to its
+        own) instead of rendering, once."""
+        self._given[(float(t_s), int(spp), int(seed), tuple(groups))] = np.asarray(radiance, np.float32)
+
+    def raw_render(self, t_s: float, spp: int, seed: int, groups: Sequence[str]) -> np.ndarray:
+        """What :meth:`render` caches: the render before the lens's falloff, distortion, diffraction and
+        mono mixture (what :meth:`give` takes)."""
+        req = list(groups)
+        n = self.sample_count(spp)
+        params = {"spp": int(n), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
+        return self.cached("radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), req))
 
     def _render(self, t_s: float, spp: int, seed: int, req: list[str]) -> np.ndarray:
         start = time.perf_counter()

@@ -29,36 +29,19 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..capture import run_capture, write_outputs
+from ..cluster import drjit_threads, start_client, topology, usable_cores  # noqa: F401  (sweep API)
 from ..config import config_from_dict
-from ..errors import ConfigError
+from ..errors import one_line
 from ..io import staged_outputs
 from ..metrics import flat_items
 from ..render.llvm import ensure_llvm
 from ..sensor.sampling import POISSON_MEMO
-from .groups import SweepPlan, one_line
+from .groups import SweepPlan
 from .spec import Point, Sweep
 
 #: Folder names inside the sweep's output folder.
 ROWS_DIR = "rows"
 POINTS_DIR = "points"
-
-
-def usable_cores() -> int:
-    """Cores this process may run on (its CPU affinity), at least 1."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
-
-
-def _host_cores() -> tuple[str, int]:
-    return socket.gethostname(), usable_cores()
-
-
-def drjit_threads(cores: int, workers_on_host: int, concurrent: int) -> int:
-    """Dr.Jit threads for a task on a host with ``cores`` and ``workers_on_host`` worker processes
-    when at most ``concurrent`` such tasks run there at once."""
-    return max(1, cores // max(1, min(workers_on_host, concurrent)))
 
 
 # ------------------------------------------------------------------------------------ worker side
@@ -205,40 +188,6 @@ def run_here(sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None,
                 results[index] = outcome["result"]
             on_row(index, outcome["row"])
     return results
-
-
-def start_client(workers: int | None, scheduler: str | None = None):
-    """A Dask client: of a new LocalCluster of ``workers`` processes with one task thread each (its
-    ``.cluster``), or of the scheduler at ``scheduler`` (tcp://host:port)."""
-    import logging
-
-    from dask.distributed import Client, LocalCluster
-
-    if scheduler:
-        from urllib.parse import urlsplit
-
-        where = urlsplit(scheduler if "://" in scheduler else f"tcp://{scheduler}")
-        try:  # a refused or unreachable address fails here at once, not after Dask's retries
-            socket.create_connection((where.hostname, where.port or 8786), timeout=10).close()
-            return Client(scheduler, timeout="30s")
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise ConfigError(f"--scheduler {scheduler}: cannot connect ({one_line(exc)})") from None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           silence_logs=logging.ERROR, memory_limit=0)
-    try:
-        return Client(cluster)
-    except BaseException:
-        cluster.close()
-        raise
-
-
-def topology(client) -> dict[str, tuple[int, int]]:
-    """host -> (usable cores, worker processes on it), asked of every worker."""
-    per_worker = client.run(_host_cores)
-    hosts: dict[str, list[int]] = {}
-    for host, cores in per_worker.values():
-        hosts.setdefault(host, []).append(cores)
-    return {host: (min(c), len(c)) for host, c in hosts.items()}
 
 
 def run_on_dask(client, sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None, *,

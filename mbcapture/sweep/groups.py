@@ -35,7 +35,7 @@ import numpy as np
 
 from ..capture import prepare
 from ..config import CaptureConfig
-from ..errors import MBCaptureError
+from ..errors import MBCaptureError, one_line
 from ..render.cache import digest
 from ..sensor import electrons_per_render_second
 from ..sensor.spectral import film_sensitivity, is_spectral_variant
@@ -181,8 +181,3 @@ def plan_sweep(sweep: Sweep) -> SweepPlan:
     return SweepPlan(groups, failed, changing_axes(sweep, keys))
 
 
-def one_line(exc: BaseException) -> str:
-    """An exception as one line: the message of an input error, else 'Type: message'."""
-
-    text = " ".join(str(exc).split())
-    return text if isinstance(exc, MBCaptureError) else f"{type(exc).__name__}: {text}"

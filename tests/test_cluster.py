@@ -1,0 +1,87 @@
+"""One capture across a Dask cluster (mbcapture.cluster): the strata render on a LocalCluster's
+workers and the capture is the local one, bit for bit (same CPU); the CLI takes --workers."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mbcapture import load_config, run_capture
+from mbcapture.cluster import start_client
+from mbcapture.integrate import render_requests
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ["render.width=40", "render.height=32", "render.spp=4", "render.max_motion_px=0.05", "render.cache=off"]
+
+
+@pytest.fixture(scope="module")
+def client():
+    c = start_client(2)
+    yield c
+    cluster = c.cluster
+    c.close()
+    cluster.close()
+
+
+@pytest.mark.render
+def test_a_capture_rendered_on_two_workers_is_the_local_capture(client):
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", SMALL)
+    local = run_capture(cfg, progress=False)
+    spread = run_capture(cfg, progress=False, client=client)
+    assert local.plan.passes >= 3  # several strata, spread over both workers
+    info = spread.report["cluster"]
+    assert info["workers"] == 2 and info["renders"] == len(render_requests(spread.plan, np.random.SeedSequence(0)))
+    assert local.report["cluster"] is None
+    np.testing.assert_array_equal(spread.bucket_exposure, local.bucket_exposure)
+    np.testing.assert_array_equal(spread.reads_dn, local.reads_dn)
+    for name, img in local.images.items():
+        np.testing.assert_array_equal(spread.images[name], img, err_msg=name)
+
+
+@pytest.mark.render
+def test_the_difference_estimator_renders_here_and_says_so(client):
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", [*SMALL, "render.estimator=difference"])
+    spread = run_capture(cfg, progress=False, client=client)
+    assert spread.report["cluster"]["renders"] == 0 and "rendered here" in spread.report["cluster"]["note"]
+    np.testing.assert_array_equal(spread.reads_dn, run_capture(cfg, progress=False).reads_dn)
+
+
+def test_render_requests_are_what_integrate_renders():
+    """The list the cluster renders is exactly the renders integrate asks for, in its order."""
+    from mbcapture.integrate import integrate
+    from mbcapture.pipeline import prepare
+
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", SMALL)
+    _, timeline, plan, seeds = prepare(cfg)
+
+    class Recorder:
+        height, width, channels = 32, 40, ("R", "G", "B")
+
+        def __init__(self):
+            self.calls = []
+
+        def render(self, t, spp, seed, groups):
+            self.calls.append((float(t), int(spp), int(seed), tuple(groups)))
+            return np.zeros((len(groups), 32, 40, 3), np.float32)
+
+    rec = Recorder()
+    integrate(rec, plan, timeline.n_buckets, seeds[2])
+    assert rec.calls == render_requests(plan, seeds[2])
+
+
+@pytest.mark.render
+def test_mbcapture_run_takes_workers_and_refuses_a_bad_count(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    def run(*extra):
+        return subprocess.run([sys.executable, "-m", "mbcapture", "run", "metronome_hdr", "--quiet", "--out",
+                               str(tmp_path / "out"), *[a for s in SMALL for a in ("--set", s)], *extra],
+                              capture_output=True, text=True, cwd=ROOT)
+
+    ok = run("--workers", "1")
+    assert ok.returncode == 0, ok.stderr
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["cluster"]["workers"] == 1
+    bad = run("--workers", "0")
+    assert bad.returncode == 2 and "--workers" in bad.stderr and "Traceback" not in bad.stderr
