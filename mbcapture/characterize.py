@@ -109,7 +109,11 @@ def monochromatic(cfg: CaptureConfig) -> CaptureConfig:
     per channel (``sensor.wavelength_nm``). A sensor with spectral curves (``sensor.spectral_response``
     a camera, a spectral ``render.variant``) is measured at those wavelengths: its curves' quantum
     efficiency there, in the RGB render's one-wavelength-per-channel model, which for monochromatic
-    light is exact."""
+    light is exact. A colour filter array (``sensor.cfa``) is taken off: the standard measures the raw
+    photosites of each colour, and behind their filter a Bayer sensor's are the three-channel model's
+    (a mono sensor is measured per band)."""
+    if cfg.sensor.cfa != "none":
+        cfg = cfg.model_copy(update={"sensor": cfg.sensor.model_copy(update={"cfa": "none"})})
     if not is_spectral_variant(cfg.render.variant) and cfg.sensor.spectral_response == "effective_wavelength":
         return cfg
     wl, qe = channel_quantum_efficiency(cfg.sensor)

@@ -5,7 +5,10 @@ Monte Carlo noise alone: per unsaturated sample, its variance (the squared diffe
 over 3x3 pixels like the run's own estimate) over the shot-noise variance (the electrons). Prints
 each read's median, p95, p99, p99.9 and max, the share above 10, and each run's own estimate.
 
-    python scripts/render_noise_reads.py [CONFIG] [--size 640x512] [--set KEY=VALUE ...]
+    python scripts/render_noise_reads.py [CONFIG] [--size 640x512] [--set KEY=VALUE ...] [--map tail.png]
+
+``--map``: a picture of where the tail lies: the longest read's noise-free image with its samples
+whose rendering noise exceeds 10x (red) and 1x (yellow) their shot noise marked.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ def main() -> None:
     ap.add_argument("config", nargs="?", default="metronome_hdr")
     ap.add_argument("--size", default="640x512")
     ap.add_argument("--set", action="append", default=[], dest="sets")
+    ap.add_argument("--map", default=None, help="PNG of where the longest read's tail lies")
     args = ap.parse_args()
     w, h = args.size.split("x")
     base = [f"render.width={w}", f"render.height={h}", "render.cache=off", "sensor.noise_seed=7", *args.sets]
@@ -48,6 +52,32 @@ def main() -> None:
                              f"{o.get('to_shot_noise_variance_p999', float('nan')):.3g}" for o in own)
         print(f"{read.name:6s} {med:8.3g} {p95:8.3g} {p99:8.3g} {p999:8.3g} {ratio.max():9.3g} "
               f"{100 * (ratio > 10).mean():6.2f}%   {own_text}")
+        full_ratio = np.where(use, var / np.maximum(mean, 1e-300), 0.0)
+    if args.map:
+        tail_map(args.map, mean, full_ratio, read.name)
+
+
+def tail_map(path: str, electrons: np.ndarray, ratio: np.ndarray, name: str) -> None:
+    """The read's image (grey, gamma 1/2.2) with samples above 1x (yellow) and 10x (red) marked, any channel."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    grey = electrons.mean(axis=-1)
+    grey = np.clip(grey / np.percentile(grey, 99.5), 0, 1) ** (1 / 2.2)
+    rgb = np.repeat(grey[..., None], 3, -1) * 0.7
+    worst = ratio.max(axis=-1)
+    rgb[worst > 1] = (1.0, 0.85, 0.0)
+    rgb[worst > 10] = (1.0, 0.0, 0.0)
+    fig, ax = plt.subplots(figsize=(8, 6.6))
+    ax.imshow(rgb, interpolation="nearest")
+    ax.set_title(f"read {name}: rendering / shot-noise variance > 1 (yellow), > 10 (red); "
+                 f"{100 * (worst > 10).mean():.3f} % of pixels > 10", fontsize=9)
+    ax.set_xticks([]), ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

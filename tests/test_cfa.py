@@ -182,3 +182,12 @@ def test_the_hdr_app_merges_photosites_then_demosaics(tmp_path):
 
     with tifffile.TiffFile(tmp_path / "bayer" / "read_J1.dng") as t:
         assert t.pages[0].photometric == 32803 and t.pages[0].shape == (40, 48)
+
+
+def test_characterize_measures_the_photosites_without_the_mosaic():
+    """EMVA 1288 measures each colour's raw photosites; demosaiced frames would filter their noise."""
+    from mbcapture.characterize import monochromatic
+
+    for cfa in ("RGGB", "mono"):
+        cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", [f"sensor.cfa={cfa}"])
+        assert monochromatic(cfg).sensor.cfa == "none" and cfg.sensor.cfa == cfa
