@@ -372,6 +372,38 @@ def render_error(
     }
 
 
+#: Adaptive sampling refines the pixels whose estimated ratio exceeds this share of the tail target
+#: (the estimate is noisy: pooled over 9 pixels, a pixel at the target reads below it half the time).
+ADAPTIVE_SELECT = 0.5
+
+
+def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: np.ndarray, k_e: np.ndarray, reads: list[tuple[int, ...]],
+                full_well_e: float, fd_full_well_e: float, tail_target: float, max_factor: int) -> tuple[np.ndarray, int]:
+    """Adaptive sampling's choice, from the first pass's half-sample differences: the pixels (flat
+    indices) where any read's pooled Monte Carlo / shot-noise ratio, in any channel, exceeds
+    :data:`ADAPTIVE_SELECT` x ``tail_target`` (with their 3x3 neighbours: the estimate is pooled), and
+    the factor of samples that brings the 99th percentile of their ratios to that level (variance
+    ~ 1/spp: conservative for the quasi-Monte Carlo samplers), in [2, ``max_factor``]. (empty, 1)
+    when no pixel needs it."""
+    from scipy.ndimage import binary_dilation
+
+    K, H, W, C = buckets_e.shape
+    worst = np.zeros((H, W))
+    for buckets in reads:
+        idx = list(buckets)
+        var_e = pooled(mc_diff_exposure[idx].sum(axis=0) ** 2) * k_e**2
+        signal = buckets_e[idx].sum(axis=0)
+        use = (signal > 1.0) & (buckets_e[idx] < full_well_e).all(axis=0) & (signal < fd_full_well_e)
+        ratio = np.where(use, var_e / np.maximum(signal, 1e-300), 0.0)
+        worst = np.maximum(worst, ratio.max(axis=-1))
+    level = ADAPTIVE_SELECT * tail_target
+    chosen = worst > level
+    if not chosen.any():
+        return np.zeros(0, np.int64), 1
+    factor = int(np.clip(np.ceil(np.percentile(worst[chosen], 99) / level), 2, max_factor))
+    return np.flatnonzero(binary_dilation(chosen, np.ones((3, 3), bool))), factor
+
+
 def noise_verdict(render_error: dict) -> str:
     """One sentence: does the rendering's Monte Carlo noise matter next to the photon shot noise?
     Judged on the budget (``render_error.budget``: the median and 95th percentile of the per-sample

@@ -93,6 +93,17 @@ class RenderSection(_Model):
         "on every run; the pilot does not raise spp for it (meeting a tail by more samples everywhere multiplies "
         "the cost).",
     )
+    adaptive: bool = Field(
+        True,
+        description="With render.spp null: adaptive sampling. After the budgeted pass, the pixels where any read's "
+        "estimated Monte Carlo / shot-noise ratio exceeds half of render.noise_budget_tail (and their neighbours) "
+        "are rendered again, every stratum, with more samples (up to render.adaptive_max_factor x), and that "
+        "second pass replaces the first there (unbiased: it is independent of the choice). RGB variants with a "
+        "lens acting per pixel (no camera.distortion or camera.diffraction) and render.estimator independent; "
+        "elsewhere it is skipped and report.json says why. The tail lies on silhouettes (docs/noise.md).",
+    )
+    adaptive_max_factor: int = Field(
+        16, ge=2, le=256, description="Adaptive sampling's most samples at a refined pixel, as a multiple of its stratum's.")
     max_spp: int = Field(1024, ge=2, le=1 << 16, description="Upper bound on the samples per pixel render.noise_budget may choose for one stratum.")
     estimator: Literal["independent", "difference"] = Field(
         "independent",

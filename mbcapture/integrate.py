@@ -255,3 +255,53 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
         out["temporal_note"] = ("the coarse-minus-fine difference is within the Monte Carlo noise: 0 means too small "
                                 "to measure at this spp, not exactly 0")
     return out
+
+
+def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, factor: int,
+           seed: np.random.SeedSequence, *, per_group: bool = False, timer=None, progress: bool = False) -> Integrated:
+    """Adaptive sampling's second pass: every stratum again at ``pixels`` (flat indices) only, with
+    ``factor`` times its samples (two halves, for the error estimate), through
+    :meth:`mbcapture.render.Renderer.render_pixels`.
+
+    Unbiased: the pixels were chosen from the first pass's noise, so the first pass's values there
+    are not an unbiased estimate any more (a pixel is chosen because its estimate strayed); the
+    second pass is independent of that choice, and at those pixels it replaces the first (its
+    exposure, its half-sample difference, its per-group exposures). The first pass's samples there
+    are spent on the choice. The temporal-error estimate stays the first pass's."""
+    stage = timer if timer is not None else (lambda name: nullcontext())
+    pix = np.asarray(pixels, dtype=np.int64).ravel()
+    K, H, W, C = integrated.exposure.shape
+    spp = np.asarray(plan.spp, dtype=np.int64) * int(factor)
+    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(plan.passes, 2))
+    used = plan.weights_s.sum(axis=1) > 0
+    parts = [np.zeros((K, pix.size, C)) for _ in range(2)]
+    groups_out = np.zeros((K, len(plan.groups), pix.size, C)) if per_group and integrated.group_exposure is not None \
+        else None
+    with _progress(plan.passes, progress, "refine") as bar:
+        for j in range(plan.passes):
+            n = int(spp[j])
+            gsel = np.flatnonzero(used[j])
+            groups_j = [plan.groups[g] for g in gsel]
+            w_j = plan.weights_s[j][:, gsel]
+            for h, spp_h in enumerate((n // 2, n - n // 2)):
+                with stage("refine"):
+                    rad = renderer.render_pixels(float(plan.times_s[j]), spp_h, int(seeds[j, h]), groups_j, pix)
+                    share = spp_h / n
+                    parts[h] += np.einsum("kg,gpc->kpc", w_j * share, rad.astype(np.float64), optimize=True)
+                    if groups_out is not None:
+                        groups_out[:, gsel] += w_j[:, :, None, None] * (rad.astype(np.float64) * share)[None]
+            bar.update(1)
+    r = float((spp // 2 / np.maximum(spp, 1)).mean())
+    exposure = integrated.exposure.copy()
+    flat = exposure.reshape(K, H * W, C)
+    flat[:, pix] = parts[0] + parts[1]
+    mc_diff = None
+    if integrated.mc_diff is not None:
+        mc_diff = integrated.mc_diff.copy()
+        mc_diff.reshape(K, H * W, C)[:, pix] = (parts[0] / r - parts[1] / (1 - r)) * np.sqrt(r * (1 - r))
+    group_exposure = integrated.group_exposure
+    if groups_out is not None:
+        group_exposure = group_exposure.copy()
+        group_exposure.reshape(K, len(plan.groups), H * W, C)[:, :, pix] = groups_out
+    return Integrated(exposure=exposure, mc_diff=mc_diff, group_exposure=group_exposure,
+                      temporal_diff=integrated.temporal_diff)

@@ -22,11 +22,11 @@ import numpy as np
 
 from . import camera_motion, protocols, resources, scenes
 from .application import AppOutput, CaptureData
-from .budget import noise_verdict, render_error, resolve_spp
+from .budget import noise_verdict, render_error, resolve_spp, tail_pixels
 from .cluster import render_on_cluster
 from .config import CaptureConfig, scene_of
 from .errors import ConfigError
-from .integrate import Integrated, integrate, temporal_error
+from .integrate import Integrated, integrate, refine, temporal_error
 from .plan import Plan, make_plan
 from .progress import StageStatus
 from .render import Renderer, ensure_llvm
@@ -203,6 +203,33 @@ class Rendered:
         return self.plan
 
 
+def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
+                seed: np.random.SeedSequence, status: StageStatus, *, per_group: bool, timer, progress: bool,
+                ) -> tuple[Integrated, dict]:
+    """Adaptive sampling (render.adaptive): the pixels the first pass left over half the tail target
+    (:func:`mbcapture.budget.tail_pixels`) rendered again with more samples
+    (:func:`mbcapture.integrate.refine`). Returns the refined render stage and what report.json keeps."""
+    why = ("an RGB render.variant and a lens acting per pixel (no camera.distortion, camera.diffraction)"
+           if not renderer.renders_pixels else "render.estimator independent" if plan.estimator != "independent"
+           else "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None else None)
+    if why is not None:
+        return integrated, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}
+    start = time.perf_counter()
+    k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
+    pixels, factor = tail_pixels(integrated.mc_diff, integrated.exposure * k_e, k_e, [r.buckets for r in timeline.reads],
+                                 cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, cfg.render.noise_budget_tail,
+                                 cfg.render.adaptive_max_factor)
+    info = {"pixels": int(pixels.size), "share": round(pixels.size / (cfg.render.width * cfg.render.height), 6),
+            "factor": factor}
+    if pixels.size:
+        with status.stage(f"refine ({pixels.size} pixels x {factor} samples)"):
+            child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA))
+            integrated = refine(renderer, plan, integrated, pixels, factor, child, per_group=per_group, timer=timer,
+                                progress=progress)
+    info["seconds"] = round(time.perf_counter() - start, 3)
+    return integrated, info
+
+
 def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool = False,
                       rendered: Rendered | None = None, on_rendered: "Callable[[Rendered], None] | None" = None,
                       renderer: Renderer | None = None, client: Any = None) -> CaptureResult:
@@ -215,6 +242,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
     timer = _Timer()
     t_start = time.perf_counter()
     cluster_info = None  # what the cluster rendered (report.json "cluster"), with a client
+    adaptive_info = None  # what adaptive sampling refined (report.json "adaptive")
     with timer("plan"), status.stage("plan"):
         scene, timeline, plan, seeds = prepare(cfg)
         app, app_params = cfg.app.resolve(cfg.capture.protocol)
@@ -235,6 +263,9 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         with status.stage(f"render ({plan.passes} passes)"):
             integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
                                    progress=progress)
+        if cfg.render.spp is None and cfg.render.adaptive:
+            integrated, adaptive_info = refine_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
+                                                    per_group=app.per_group, timer=timer, progress=progress)
         moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
         if on_rendered is not None:
             on_rendered(Rendered(plan, integrated, moving))
@@ -291,6 +322,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         },
         "render_cache": {"folder": str(cache.root), **cache.stats.as_dict()} if cache is not None else {"folder": None},
         "cluster": cluster_info,
+        "adaptive": adaptive_info,
         "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant,
                      "llvm_target": _llvm_target_label() if llvm else None},
     }

@@ -645,6 +645,62 @@ class Renderer:
         params = {"spp": int(n), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
         return self.cached("radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), req))
 
+    @property
+    def renders_pixels(self) -> bool:
+        """Whether :meth:`render_pixels` works here: an RGB variant (the per-group channels are AOVs) and a
+        lens acting pixel by pixel (no distortion or diffraction, which mix neighbours)."""
+        return not self.spectral and self._undistort is None and self._diffraction is None
+
+    def render_pixels(self, t_s: float, spp: int, seed: int, groups: Sequence[str], pixels: np.ndarray) -> np.ndarray:
+        """Radiance of each requested group at the film pixels ``pixels`` (flat indices y * W + x) only,
+        ``spp`` samples each: float32 (len(groups), len(pixels), 3), the same estimator as :meth:`render`
+        (box filter: the mean over each pixel's area; the lens's falloff and a mono mixture applied), at a
+        cost in proportion to the pixels. Not cached. Written here because Mitsuba renders whole films
+        (or crop rectangles): the camera rays of the listed pixels are generated as ``mi.render`` does
+        (the sampler seeded over pixels x spp lanes, spp consecutive lanes per pixel, so its
+        stratification is per pixel) and each lane's per-group AOVs are summed into its pixel."""
+        if not self.renders_pixels:
+            raise ConfigError("render_pixels: needs an RGB variant and a lens without distortion or diffraction")
+        req = list(groups)
+        pix = np.ascontiguousarray(np.asarray(pixels, dtype=np.uint32).ravel())
+        out = np.zeros((len(req), pix.size, 3), np.float32)
+        lit = [g for g in req if self._group_emitters[g]]
+        if not lit or pix.size == 0:
+            return out
+        self._ensure_loaded()
+        self.set_time(t_s)
+        self._integrator.set_groups(lit, [self._group_emitters[g] for g in lit])
+        mi, dr = self._mi, self._dr
+        n_spp = self.sample_count(spp)
+        sensor = self._scene.sensors()[0]
+        sampler = sensor.sampler().clone()
+        sampler.set_sample_count(n_spp)
+        lanes = pix.size * n_spp
+        sampler.seed(int(seed) & 0xFFFFFFFF, lanes)
+        idx = dr.arange(mi.UInt32, lanes) // n_spp
+        pixel = dr.gather(mi.UInt32, mi.UInt32(pix), idx)
+        y = pixel // self.width
+        x = pixel - y * self.width
+        pos = mi.Vector2f(mi.Float(x), mi.Float(y)) + sampler.next_2d()
+        pos = pos * mi.ScalarVector2f(1.0 / self.width, 1.0 / self.height)
+        aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.5)
+        ray, weight = sensor.sample_ray_differential(sensor.shutter_open(), mi.Float(0.0), pos, aperture)
+        _, _, aovs = self._integrator.sample(self._scene, sampler, ray, None, mi.Bool(True))
+        C = len(aovs)
+        acc = dr.zeros(mi.Float, pix.size * C)
+        w = weight[0]
+        for c, value in enumerate(aovs):
+            dr.scatter_reduce(dr.ReduceOp.Add, acc, value * w, idx * C + c)
+        dr.eval(acc)
+        sums = np.asarray(acc, dtype=np.float64).reshape(pix.size, len(lit), 3) / n_spp
+        for i, g in enumerate(lit):
+            out[req.index(g)] = sums[:, i]
+        if self._falloff is not None:
+            out = out * self._falloff.reshape(-1)[pix][None, :, None]
+        if self._mono is not None:
+            out = np.repeat((out @ self._mono.astype(np.float32))[..., None], 3, axis=-1)
+        return out
+
     def _render(self, t_s: float, spp: int, seed: int, req: list[str]) -> np.ndarray:
         start = time.perf_counter()
         self._ensure_loaded()
