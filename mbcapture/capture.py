@@ -75,7 +75,9 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
             result.out_dir = Path(out_dir)
         return result
     own_render = rendered is None
-    with StageStatus(progress, stages=4 + own_render * (1 + (cfg.render.spp is None)) + (out_dir is not None)) as status:
+    budget = cfg.render.spp is None  # a pilot, and adaptive sampling's second pass when it is on
+    stages = 4 + own_render * (1 + budget + (budget and cfg.render.adaptive) + (client is not None)) + (out_dir is not None)
+    with StageStatus(progress, stages=stages) as status:
         result = capture_in_memory(cfg, status, progress=progress, rendered=rendered, on_rendered=on_rendered,
                                    client=client)
         if out_dir is not None:

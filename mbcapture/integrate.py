@@ -258,7 +258,8 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
 
 
 def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, factor: int,
-           seed: np.random.SeedSequence, *, per_group: bool = False, timer=None, progress: bool = False) -> Integrated:
+           seed: np.random.SeedSequence, *, per_group: bool = False, timer=None, progress: bool = False,
+           desc: str = "refine") -> Integrated:
     """Adaptive sampling's second pass: every stratum again at ``pixels`` (flat indices) only, with
     ``factor`` times its samples (two halves, for the error estimate), through
     :meth:`mbcapture.render.Renderer.render_pixels`.
@@ -277,7 +278,7 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     parts = [np.zeros((K, pix.size, C)) for _ in range(2)]
     groups_out = np.zeros((K, len(plan.groups), pix.size, C)) if per_group and integrated.group_exposure is not None \
         else None
-    with _progress(plan.passes, progress, "refine") as bar:
+    with _progress(plan.passes, progress, desc) as bar:
         for j in range(plan.passes):
             n = int(spp[j])
             gsel = np.flatnonzero(used[j])

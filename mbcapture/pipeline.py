@@ -212,21 +212,22 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
     why = ("an RGB render.variant and a lens acting per pixel (no camera.distortion, camera.diffraction)"
            if not renderer.renders_pixels else "render.estimator independent" if plan.estimator != "independent"
            else "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None else None)
-    if why is not None:
-        return integrated, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}
-    start = time.perf_counter()
-    k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
-    pixels, factor = tail_pixels(integrated.mc_diff, integrated.exposure * k_e, k_e, [r.buckets for r in timeline.reads],
-                                 cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, cfg.render.noise_budget_tail,
-                                 cfg.render.adaptive_max_factor)
-    info = {"pixels": int(pixels.size), "share": round(pixels.size / (cfg.render.width * cfg.render.height), 6),
-            "factor": factor}
-    if pixels.size:
-        with status.stage(f"refine ({pixels.size} pixels x {factor} samples)"):
+    with status.stage("adaptive sampling"):
+        if why is not None:
+            return integrated, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}
+        start = time.perf_counter()
+        k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
+        pixels, factor = tail_pixels(integrated.mc_diff, integrated.exposure * k_e, k_e,
+                                     [r.buckets for r in timeline.reads], cfg.sensor.full_well_e,
+                                     cfg.sensor.fd_full_well_e, cfg.render.noise_budget_tail,
+                                     cfg.render.adaptive_max_factor)
+        info = {"pixels": int(pixels.size), "share": round(pixels.size / (cfg.render.width * cfg.render.height), 6),
+                "factor": factor}
+        if pixels.size:
             child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA))
             integrated = refine(renderer, plan, integrated, pixels, factor, child, per_group=per_group, timer=timer,
-                                progress=progress)
-    info["seconds"] = round(time.perf_counter() - start, 3)
+                                progress=progress, desc=f"refine {pixels.size} px x{factor}")
+        info["seconds"] = round(time.perf_counter() - start, 3)
     return integrated, info
 
 
