@@ -32,6 +32,7 @@ sees the same photons in every point.
 from __future__ import annotations
 
 import hashlib
+import os
 import threading
 from collections import OrderedDict
 from typing import Callable
@@ -228,14 +229,36 @@ _HALF_LOG_2PI = 0.5 * np.log(2.0 * np.pi)
 CHUNK_LANES = 1 << 20
 
 
+def _usable_cores() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def _chunked(fn: Callable[..., np.ndarray], u: np.ndarray, *per_lane: np.ndarray) -> np.ndarray:
-    """``fn(u, *per_lane)`` over 1-D lanes, CHUNK_LANES at a time."""
+    """``fn(u, *per_lane)`` over 1-D lanes, CHUNK_LANES at a time, the chunks on as many threads as
+    this process has cores (numpy's and scipy's ufuncs release the GIL), each thread's chunk
+    CHUNK_LANES / threads so that the temporaries stay those of one chunk. Per lane, so the counts
+    are those of one pass, whatever the threads."""
     if u.size <= CHUNK_LANES:
         return fn(u, *per_lane)
+    threads = min(_usable_cores(), -(-u.size // CHUNK_LANES))
+    step = max(CHUNK_LANES // threads, 1)
     out = np.empty(u.size)
-    for a in range(0, u.size, CHUNK_LANES):
-        b = min(a + CHUNK_LANES, u.size)
+
+    def run(a: int) -> None:
+        b = min(a + step, u.size)
         out[a:b] = fn(u[a:b], *(x[a:b] for x in per_lane))
+
+    if threads == 1:
+        for a in range(0, u.size, step):
+            run(a)
+        return out
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="mbcapture-inversion") as pool:
+        list(pool.map(run, range(0, u.size, step)))
     return out
 
 
