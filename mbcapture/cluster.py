@@ -33,6 +33,7 @@ from .plan import Plan
 from .render import Renderer
 from .render.cache import open_cache
 from .render.llvm import ensure_llvm
+from .sensor.sampling import set_threads as set_inversion_threads
 
 __all__ = ["drjit_threads", "host_cores", "render_on_cluster", "start_client", "topology", "usable_cores"]
 
@@ -98,9 +99,10 @@ _WORKER_RENDERERS: dict[str, Renderer] = {}
 def _render_task(cfg: CaptureConfig, request: tuple[float, int, int, tuple[str, ...]],
                  threads: dict[str, int]) -> np.ndarray:
     """On a worker: the raw render of ``request`` for the capture ``cfg`` (its own renderer, built once)."""
+    n = threads.get(socket.gethostname())
+    set_inversion_threads(n)  # the worker's share of its host (its sensor work, if any)
     if cfg.render.variant.startswith("llvm"):
         ensure_llvm()
-        n = threads.get(socket.gethostname())
         if n:
             import drjit as dr
 

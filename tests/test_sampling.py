@@ -277,3 +277,21 @@ def test_inverting_in_chunks_gives_the_same_counts(monkeypatch, law):
         monkeypatch.setattr(sampling, "CHUNK_LANES", 7)
         chunked = sampling.binomial_quantile(u, n, 0.013)
     assert chunked.shape == shape and np.array_equal(chunked, whole)
+
+
+def test_the_inversions_threads_change_nothing_but_time(monkeypatch):
+    """Chunks run on a thread pool (sampling.set_threads, or every usable core): 1 or 3 threads give
+    the counts of one pass, bit for bit."""
+    import mbcapture.sensor.sampling as sampling
+
+    rng = np.random.default_rng(12)
+    mean = 10 ** rng.uniform(-2, 6, 5000)
+    u = rng.random(5000)
+    whole = sampling.poisson_quantile(u, mean)
+    monkeypatch.setattr(sampling, "CHUNK_LANES", 256)
+    try:
+        for n in (1, 3):
+            sampling.set_threads(n)
+            assert np.array_equal(sampling.poisson_quantile(u, mean), whole)
+    finally:
+        sampling.set_threads(None)

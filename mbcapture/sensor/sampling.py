@@ -229,7 +229,20 @@ _HALF_LOG_2PI = 0.5 * np.log(2.0 * np.pi)
 CHUNK_LANES = 1 << 20
 
 
+#: Threads the inversions may use; None: every core this process may run on. A process that shares
+#: its host with others (a Dask worker beside its siblings) sets its share (:func:`set_threads`).
+_THREADS: int | None = None
+
+
+def set_threads(n: int | None) -> None:
+    """The threads the Poisson and binomial inversions use in this process (None: every usable core)."""
+    global _THREADS
+    _THREADS = None if n is None else max(1, int(n))
+
+
 def _usable_cores() -> int:
+    if _THREADS is not None:
+        return _THREADS
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not Linux

@@ -36,6 +36,7 @@ from ..io import staged_outputs
 from ..metrics import flat_items
 from ..render.llvm import ensure_llvm
 from ..sensor.sampling import POISSON_MEMO
+from ..sensor.sampling import set_threads as set_inversion_threads
 from .groups import SweepPlan
 from .spec import Point, Sweep
 
@@ -46,13 +47,14 @@ POINTS_DIR = "points"
 
 # ------------------------------------------------------------------------------------ worker side
 def _prepare_process(threads: dict[str, int] | None, variant: str) -> None:
-    """For an LLVM variant: pick the libLLVM (before Mitsuba is imported) and set this process's
-    Dr.Jit thread count (``threads``: by host name)."""
+    """This worker's share of its host's cores (``threads``: by host name) for the sensor's inversions
+    and, for an LLVM variant, Dr.Jit (after picking the libLLVM, before Mitsuba is imported)."""
+    n = (threads or {}).get(socket.gethostname())
+    set_inversion_threads(n)
     if not variant.startswith("llvm"):
         return
 
     ensure_llvm()
-    n = (threads or {}).get(socket.gethostname())
     if n:
         import drjit as dr
 
