@@ -142,6 +142,17 @@ def test_group_key_changes_exactly_with_what_the_renders_receive():
     one, two = (load_config("metronome_hdr", [*fig6, f"capture.periods={n}"]) for n in (1, 2))
     assert group_key(one) != group_key(two) and render_key(one) == render_key(two)
     assert render_key(load_config("metronome_hdr", [*fig6, "capture.periods=1", "seed=5"])) != render_key(one)
+    # the lens's images read the sensor: diffraction its f-number, a thin lens its aperture, a mono sensor its
+    # mixture; a Bayer mosaic and the demosaicing read none of the renders
+    diff = [*base, "camera.diffraction=true"]
+    assert group_key(load_config("tiny_hdr", diff)) != key
+    assert group_key(load_config("tiny_hdr", [*diff, "sensor.f_number=8"])) != group_key(load_config("tiny_hdr", diff))
+    thin = [*base, "camera.lens=thin"]
+    assert group_key(load_config("tiny_hdr", [*thin, "sensor.f_number=8"])) != group_key(load_config("tiny_hdr", thin))
+    assert group_key(load_config("tiny_hdr", [*base, "sensor.cfa=mono"])) != key
+    for same_images in ("sensor.cfa=RGGB", "sensor.demosaic=bilinear"):
+        assert group_key(load_config("tiny_hdr", [*base, same_images])) == key, same_images
+    assert group_key(load_config("tiny_hdr", [*base, "camera.distortion=[-0.1]"])) != key
     # a hand-held camera: its trajectory is rendered (another hand, other renders), its noise is not
     shake = ["render.width=16", "render.height=12", "render.spp=4"]
     hkey = group_key(load_config("metronome_shake", shake))

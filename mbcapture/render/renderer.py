@@ -89,6 +89,32 @@ def _canonical(obj: Any, mi: Any) -> Any:
     raise TypeError(f"render cache key: cannot hash a {type(obj).__name__} in the scene description")
 
 
+def thin_lens_of(scene: SceneModel, cfg: Any) -> tuple[float, float] | None:
+    """(aperture radius m, focus distance m) of ``camera.lens: thin``, None for a pinhole."""
+    if cfg.camera.lens != "thin":
+        return None
+    focus = cfg.camera.focus_distance_m or focus_distance_m(scene.camera)
+    return thin_lens_aperture_m(scene.camera, cfg.render.width, cfg.sensor.pixel_pitch_um, cfg.sensor.f_number), focus
+
+
+def image_settings(scene: SceneModel, cfg: Any) -> dict[str, Any]:
+    """Everything of the camera and the sensor that :meth:`Renderer.from_config`'s images depend on,
+    as plain data (a sweep's render groups compare them): the field of view, the thin lens, the
+    falloff, distortion, diffraction (with the f-number, pixel pitch and wavelengths it uses) and a
+    mono sensor's channel mixture. Noise, wells and the ADC are not in it."""
+    s, cam = cfg.sensor, cfg.camera
+    mono = mono_weights(s, cfg.render.variant)
+    return {
+        "fov_deg": repr(float(scene.camera.fov_deg)),
+        "thin_lens": None if (lens := thin_lens_of(scene, cfg)) is None else [repr(float(x)) for x in lens],
+        "vignetting": cam.vignetting,
+        "distortion": cam.distortion,
+        "diffraction": None if not cam.diffraction else
+        {"f_number": s.f_number, "pixel_pitch_um": s.pixel_pitch_um, "wavelength_nm": list(s.wavelength_nm)},
+        "mono": None if mono is None else [repr(float(w)) for w in mono],
+    }
+
+
 class Renderer:
     """Radiance images of a scene's emitter groups at given scene times.
 
@@ -284,10 +310,7 @@ class Renderer:
         """The renderer a capture config asks for (film, variant, depth, sampler, sensor), with
         ``overrides`` of any keyword of :class:`Renderer` (e.g. ``film_curves``, ``sensor``)."""
         r = cfg.render
-        lens = None
-        if cfg.camera.lens == "thin":
-            focus = cfg.camera.focus_distance_m or focus_distance_m(scene.camera)
-            lens = (thin_lens_aperture_m(scene.camera, r.width, cfg.sensor.pixel_pitch_um, cfg.sensor.f_number), focus)
+        lens = thin_lens_of(scene, cfg)
         kw: dict[str, Any] = {"variant": r.variant, "max_depth": r.max_depth, "sampler": r.sampler,
                               "sensor": cfg.sensor, "cache": cache, "vignetting": cfg.camera.vignetting,
                               "diffraction": cfg.camera.diffraction, "thin_lens": lens,

@@ -6,8 +6,11 @@ computes exactly those arguments from each point's config, with the functions th
 calls, instead of a list of "render keys" that could drift:
 
 * the renderer: the scene and its parameters, the film, variant, path depth and sampler (the
-  ``render`` section), and in spectral mode the film's curves (``sensor.spectral_response`` and
-  ``quantum_efficiency`` through :func:`mbcapture.sensor.spectral.film_sensitivity`);
+  ``render`` section), the camera section, what of the lens and the sensor the images depend on
+  (:func:`mbcapture.render.renderer.image_settings`: field of view, thin lens, diffraction's
+  f-number, pitch and wavelengths, a mono sensor's mixture), and in spectral mode the film's curves
+  (``sensor.spectral_response`` and ``quantum_efficiency`` through
+  :func:`mbcapture.sensor.spectral.film_sensitivity`);
 * the plan (:func:`mbcapture.pipeline.prepare`): strata, render times, weights, the groups rendered
   in each stratum, the buckets read, samples per pixel, estimator; so ``capture.*`` keys, and the
   ``sensor.*`` keys a protocol reads (``bucket_count``, ``frame_readout_s`` of a sequential capture),
@@ -37,6 +40,7 @@ from ..capture import prepare
 from ..config import CaptureConfig
 from ..errors import MBCaptureError, one_line
 from ..render.cache import digest
+from ..render.renderer import image_settings
 from ..sensor import electrons_per_render_second
 from ..sensor.spectral import film_sensitivity, is_spectral_variant
 from .spec import Sweep
@@ -75,6 +79,8 @@ def render_inputs(cfg: CaptureConfig, *, accumulation: bool = True) -> dict:
         "render": render,
         # the camera's pose at each render time: the trajectory's parameters, or its file's content
         "camera": _camera(cfg),
+        # what of the lens and the sensor the images depend on (diffraction's f-number, a mono sensor's mixture)
+        "images": image_settings(scene, cfg),
         "plan": {
             "starts_ticks": _array(plan.starts_ticks), "ends_ticks": _array(plan.ends_ticks),
             "times_s": _array(plan.times_s), "weights_s": _array(plan.weights_s), "groups": list(plan.groups),
