@@ -303,6 +303,20 @@ def resolve_spp(plan: Plan, renderer, cfg, seed: np.random.SeedSequence) -> Plan
 TAIL_QUANTILE = 99.9
 
 
+def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: np.ndarray, k_e: np.ndarray, buckets,
+                     full_well_e: float, fd_full_well_e: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One read's ``(var_e, signal, use)``, each (H, W, C): its Monte Carlo variance in electrons^2 (the
+    square of its buckets' summed half-sample differences, pooled over 3x3 pixels), its expected
+    electrons, and the samples that count: lit, every bucket below the full well, the sum below the
+    floating diffusion's (``fd_full_well_e``; None: no limit)."""
+    idx = list(buckets)
+    var_e = pooled(mc_diff_exposure[idx].sum(axis=0) ** 2) * k_e**2
+    signal = buckets_e[idx].sum(axis=0)
+    fd_full = float("inf") if fd_full_well_e is None else fd_full_well_e
+    use = (signal > 1.0) & (buckets_e[idx] < full_well_e).all(axis=0) & (signal < fd_full)
+    return var_e, signal, use
+
+
 def render_error(
     mc_diff_exposure: np.ndarray | None, buckets_e: np.ndarray, k_e: np.ndarray, reads: list[tuple[int, ...]],
     read_names: list[str], full_well_e: float, fd_full_well_e: float | None = None,
@@ -329,13 +343,9 @@ def render_error(
     """
     if mc_diff_exposure is None:
         return {"note": "render.spp = 1: no half-sample error estimate"}
-    fd_full = float("inf") if fd_full_well_e is None else fd_full_well_e
     per_read, factors = {}, {}
     for name, buckets in zip(read_names, reads):
-        idx = list(buckets)
-        var_e = pooled(mc_diff_exposure[idx].sum(axis=0) ** 2) * k_e**2
-        signal = buckets_e[idx].sum(axis=0)
-        use = (signal > 1.0) & (buckets_e[idx] < full_well_e).all(axis=0) & (signal < fd_full)
+        var_e, signal, use = read_noise_ratio(mc_diff_exposure, buckets_e, k_e, buckets, full_well_e, fd_full_well_e)
         if not use.any():
             continue
         ratio = var_e[use] / signal[use]
@@ -390,10 +400,7 @@ def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: np.ndarray, k_e: np.nda
     K, H, W, C = buckets_e.shape
     worst = np.zeros((H, W))
     for buckets in reads:
-        idx = list(buckets)
-        var_e = pooled(mc_diff_exposure[idx].sum(axis=0) ** 2) * k_e**2
-        signal = buckets_e[idx].sum(axis=0)
-        use = (signal > 1.0) & (buckets_e[idx] < full_well_e).all(axis=0) & (signal < fd_full_well_e)
+        var_e, signal, use = read_noise_ratio(mc_diff_exposure, buckets_e, k_e, buckets, full_well_e, fd_full_well_e)
         ratio = np.where(use, var_e / np.maximum(signal, 1e-300), 0.0)
         worst = np.maximum(worst, ratio.max(axis=-1))
     level = ADAPTIVE_SELECT * tail_target

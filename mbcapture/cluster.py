@@ -19,7 +19,6 @@ renders here.
 
 from __future__ import annotations
 
-import os
 import socket
 import time
 from typing import Any, Callable
@@ -34,16 +33,10 @@ from .render import Renderer
 from .render.cache import open_cache
 from .render.llvm import ensure_llvm
 from .sensor.sampling import set_threads as set_inversion_threads
+from .sensor.sampling import usable_cores
 
-__all__ = ["drjit_threads", "host_cores", "render_on_cluster", "start_client", "topology", "usable_cores"]
-
-
-def usable_cores() -> int:
-    """Cores this process may run on (its CPU affinity), at least 1."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
+__all__ = ["drjit_threads", "host_cores", "prepare_worker", "render_on_cluster", "start_client", "topology",
+           "usable_cores"]
 
 
 def host_cores() -> tuple[str, int]:
@@ -92,6 +85,21 @@ def topology(client) -> dict[str, tuple[int, int]]:
 
 
 # ------------------------------------------------------------------------------------ worker side
+def prepare_worker(threads: dict[str, int] | None, variant: str) -> None:
+    """In a worker process: its share of its host's cores (``threads``: by host name) for the sensor's
+    inversions and, for an LLVM variant, Dr.Jit (after picking the libLLVM, before Mitsuba is imported)."""
+    n = (threads or {}).get(socket.gethostname())
+    set_inversion_threads(n)
+    if not variant.startswith("llvm"):
+        return
+    ensure_llvm()
+    if n:
+        import drjit as dr
+
+        if dr.thread_count() != n:
+            dr.set_thread_count(n)
+
+
 #: The renderer of each capture config a worker has seen (by the config's JSON), built once.
 _WORKER_RENDERERS: dict[str, Renderer] = {}
 
@@ -99,15 +107,7 @@ _WORKER_RENDERERS: dict[str, Renderer] = {}
 def _render_task(cfg: CaptureConfig, request: tuple[float, int, int, tuple[str, ...]],
                  threads: dict[str, int]) -> np.ndarray:
     """On a worker: the raw render of ``request`` for the capture ``cfg`` (its own renderer, built once)."""
-    n = threads.get(socket.gethostname())
-    set_inversion_threads(n)  # the worker's share of its host (its sensor work, if any)
-    if cfg.render.variant.startswith("llvm"):
-        ensure_llvm()
-        if n:
-            import drjit as dr
-
-            if dr.thread_count() != n:
-                dr.set_thread_count(n)
+    prepare_worker(threads, cfg.render.variant)
     key = cfg.model_dump_json()
     renderer = _WORKER_RENDERERS.get(key)
     if renderer is None:

@@ -273,7 +273,7 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     pix = np.asarray(pixels, dtype=np.int64).ravel()
     K, H, W, C = integrated.exposure.shape
     spp = np.asarray(plan.spp, dtype=np.int64) * int(factor)
-    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(plan.passes, 2))
+    seeds = render_seeds(plan, seed)
     used = plan.weights_s.sum(axis=1) > 0
     parts = [np.zeros((K, pix.size, C)) for _ in range(2)]
     groups_out = np.zeros((K, len(plan.groups), pix.size, C)) if per_group and integrated.group_exposure is not None \

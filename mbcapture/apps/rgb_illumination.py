@@ -260,6 +260,14 @@ def _cmf_curves() -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(cmfs.wavelengths, float), np.asarray(cmfs.values, float).T.copy()
 
 
+def colour_renderer(data: CaptureData, scene) -> Renderer:
+    """An RGB renderer of ``scene`` that keeps its colour channels apart: the capture's own when it is
+    that scene's and the sensor is not mono (whose renderer mixes them), else a new one sharing its cache."""
+    if scene is data.scene and data.cfg.sensor.cfa != "mono":
+        return data.renderer
+    return Renderer.from_config(scene, data.cfg, mono=None, cache=getattr(data.renderer, "cache", None))
+
+
 def reference_xyz(data: CaptureData, params: Params, white_mask: np.ndarray, white_y: float) -> np.ndarray:
     """The chart at rest under the three LEDs, noise-free, XYZ scaled so the white patch has Y = white_y."""
     import colour
@@ -269,8 +277,7 @@ def reference_xyz(data: CaptureData, params: Params, white_mask: np.ndarray, whi
     rest = still(scene)  # the chart at rest through a still camera (camera.shake moves only the capture)
     renderer = (Renderer.from_config(rest, cfg, film_curves=_cmf_curves(), sensor=None,
                                      cache=getattr(data.renderer, "cache", None)) if spectral
-                else data.renderer if rest is scene and cfg.sensor.cfa != "mono"
-                else Renderer.from_config(rest, cfg, mono=None, cache=getattr(data.renderer, "cache", None)))
+                else colour_renderer(data, rest))
     seed = int(np.random.default_rng(data.seed.spawn(1)[0]).integers(0, 2**31 - 1))
     img = renderer.render(float(scene.extra["rest_time_s"]), params.reference_spp, seed, list(LED_GROUPS)).sum(0)
     img = img.astype(np.float64)
@@ -317,8 +324,7 @@ def bayer_capture(data: CaptureData, params: Params) -> dict:
         renderer = Renderer.from_config(scene, cfg, sensor=sensor, cache=getattr(data.renderer, "cache", None))
     else:
         sensor, curves_wl, curves = cfg.sensor.model_copy(update=bayer), None, None
-        renderer = data.renderer if cfg.sensor.cfa != "mono" else \
-            Renderer.from_config(scene, cfg, mono=None, cache=getattr(data.renderer, "cache", None))
+        renderer = colour_renderer(data, scene)
     t0, t1 = bayer_window(data)
     T = float(cfg.capture.unit_exposure_s)
     mids = _strata(scene, t0, t1, W, H, cfg.render.max_motion_px, cfg.render.max_strata)

@@ -636,13 +636,10 @@ class Renderer:
         if spp < 1:
             raise ConfigError(f"render spp must be >= 1, got {spp}")
         given = self._given.pop((float(t_s), int(spp), int(seed), tuple(req)), None)
-        spp = self.sample_count(spp)  # what the sampler really takes
-        params = {"spp": int(spp), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
-        img = given if given is not None else \
-            self.cached("radiance", t_s, params, lambda: self._render(t_s, int(spp), int(seed), req))
+        img = given if given is not None else self.raw_render(t_s, spp, seed, req)
         # the lens (mbcapture.optics): relative illumination, distortion, then diffraction (a blur in the sensor
-        # plane), on every render alike
-        # (exposures, truths, the pilot), after the cache: a render is cached as the pinhole sees it
+        # plane), on every render alike (exposures, truths, the pilot), after the cache: a render is cached as
+        # the pinhole sees it
         if self._falloff is not None:
             img = img * self._falloff
         if self._undistort is not None:  # the lens bends each pixel's ray: resample the pinhole render
@@ -650,9 +647,13 @@ class Renderer:
         if self._diffraction is not None:
             s = self._diffraction
             img = apply_diffraction(img, s.pixel_pitch_um, s.f_number, s.wavelength_nm).astype(np.float32)
-        if self._mono is not None:  # a monochrome sensor: its one response, in every channel
-            img = np.repeat((img @ self._mono.astype(np.float32))[..., None], 3, axis=-1)
-        return img
+        return self._mono_mixed(img)
+
+    def _mono_mixed(self, img: np.ndarray) -> np.ndarray:
+        """``img`` (..., 3) as a monochrome sensor sees it (its one response in every channel); as is otherwise."""
+        if self._mono is None:
+            return img
+        return np.repeat((img @ self._mono.astype(np.float32))[..., None], 3, axis=-1)
 
     def give(self, t_s: float, spp: int, seed: int, groups: Sequence[str], radiance: np.ndarray) -> None:
         """Hand this renderer the render of ``(t_s, spp, seed, groups)`` made by another process with
@@ -720,9 +721,7 @@ class Renderer:
             out[req.index(g)] = sums[:, i]
         if self._falloff is not None:
             out = out * self._falloff.reshape(-1)[pix][None, :, None]
-        if self._mono is not None:
-            out = np.repeat((out @ self._mono.astype(np.float32))[..., None], 3, axis=-1)
-        return out
+        return self._mono_mixed(out)
 
     def _render(self, t_s: float, spp: int, seed: int, req: list[str]) -> np.ndarray:
         start = time.perf_counter()

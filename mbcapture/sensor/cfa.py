@@ -104,14 +104,8 @@ def spread_to_footprint(flags: np.ndarray, method: str) -> np.ndarray:
     f = np.asarray(flags, dtype=bool)
     if f.ndim >= 3 and f.shape[-1] == 1:
         f = f[..., 0]
-    r = footprint_radius(method)
-    H, W = f.shape[-2:]
-    pad = np.pad(f, [(0, 0)] * (f.ndim - 2) + [(r, r), (r, r)])
-    out = np.zeros_like(f)
-    # the dilation by a (2r+1)^2 square, separably: rows, then columns
-    rows = np.zeros(pad.shape[:-2] + (H, W + 2 * r), dtype=bool)
-    for d in range(2 * r + 1):
-        rows |= pad[..., d:d + H, :]
-    for d in range(2 * r + 1):
-        out |= rows[..., :, d:d + W]
+    from scipy.ndimage import maximum_filter
+
+    side = 2 * footprint_radius(method) + 1  # the dilation by a side x side square, nothing beyond the border
+    out = maximum_filter(f, size=(1,) * (f.ndim - 2) + (side, side), mode="constant", cval=False)
     return np.repeat(out[..., None], 3, axis=-1)

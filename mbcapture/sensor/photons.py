@@ -81,7 +81,7 @@ def electrons_per_render_second(cfg: SensorConfig, variant: str) -> np.ndarray:
     :func:`electrons_per_film_second` for spectral variants, :func:`electrons_per_radiance_second`
     otherwise. Shape (3,), float64."""
 
-    k = electrons_per_film_second(cfg) if is_spectral_variant(variant) else electrons_per_radiance_second(cfg)
+    k = _band_factors(cfg, variant)
     # a monochrome sensor (sensor.cfa: mono): the renderer gives the mixture of mono_weights, and the one
     # photosite collects every band's electrons: sum_c K_c x_c = (sum_c K_c) * (sum_c w_c x_c)
     return np.full(3, k.sum()) if cfg.cfa == "mono" else k
@@ -94,8 +94,13 @@ def mono_weights(cfg: SensorConfig, variant: str) -> np.ndarray | None:
     efficiencies sample the one spectral response over three bands). None for any other sensor."""
     if cfg.cfa != "mono":
         return None
-    k = electrons_per_film_second(cfg) if is_spectral_variant(variant) else electrons_per_radiance_second(cfg)
+    k = _band_factors(cfg, variant)
     return k / k.sum()
+
+
+def _band_factors(cfg: SensorConfig, variant: str) -> np.ndarray:
+    """Each channel's electrons per render unit and second, as three separate photosites see them."""
+    return electrons_per_film_second(cfg) if is_spectral_variant(variant) else electrons_per_radiance_second(cfg)
 
 
 def expected_electrons(radiant_exposure: np.ndarray, cfg: SensorConfig) -> np.ndarray:

@@ -240,13 +240,16 @@ def set_threads(n: int | None) -> None:
     _THREADS = None if n is None else max(1, int(n))
 
 
-def _usable_cores() -> int:
-    if _THREADS is not None:
-        return _THREADS
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity), at least 1."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not Linux
         return max(1, os.cpu_count() or 1)
+
+
+def _inversion_threads() -> int:
+    return usable_cores() if _THREADS is None else _THREADS
 
 
 def _chunked(fn: Callable[..., np.ndarray], u: np.ndarray, *per_lane: np.ndarray) -> np.ndarray:
@@ -256,7 +259,7 @@ def _chunked(fn: Callable[..., np.ndarray], u: np.ndarray, *per_lane: np.ndarray
     are those of one pass, whatever the threads."""
     if u.size <= CHUNK_LANES:
         return fn(u, *per_lane)
-    threads = min(_usable_cores(), -(-u.size // CHUNK_LANES))
+    threads = min(_inversion_threads(), -(-u.size // CHUNK_LANES))
     step = max(CHUNK_LANES // threads, 1)
     out = np.empty(u.size)
 

@@ -10,8 +10,9 @@ one is done. Render groups run in parallel on different workers.
 Dr.Jit renders with its own thread pool (one thread per core by default), so a worker process per
 core would oversubscribe the machine. Each task sets its process's Dr.Jit thread count: a leader
 gets the cores of its host divided by the number of leaders that can run there at once (one
-render group: all the cores), a follower (numpy, single-threaded) cores / workers. Every worker
-picks its libLLVM (:func:`mbcapture.render.llvm.ensure_llvm`) before Mitsuba is imported.
+render group: all the cores), a follower (numpy) cores / workers, which the sensor's inversions
+use too. Every worker picks its libLLVM (:func:`mbcapture.render.llvm.ensure_llvm`) before Mitsuba
+is imported (:func:`mbcapture.cluster.prepare_worker`).
 
 A point that fails (an exception in its capture, a worker lost) becomes a row with its error;
 the sweep goes on. Finished points are written to ``rows/<point id>.json`` as they arrive, so an
@@ -29,14 +30,18 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..capture import run_capture, write_outputs
-from ..cluster import drjit_threads, start_client, topology, usable_cores  # noqa: F401  (sweep API)
+from ..cluster import (  # noqa: F401  (sweep API)
+    drjit_threads,
+    prepare_worker,
+    start_client,
+    topology,
+    usable_cores,
+)
 from ..config import config_from_dict
 from ..errors import one_line
 from ..io import staged_outputs
 from ..metrics import flat_items
-from ..render.llvm import ensure_llvm
 from ..sensor.sampling import POISSON_MEMO
-from ..sensor.sampling import set_threads as set_inversion_threads
 from .groups import SweepPlan
 from .spec import Point, Sweep
 
@@ -46,22 +51,6 @@ POINTS_DIR = "points"
 
 
 # ------------------------------------------------------------------------------------ worker side
-def _prepare_process(threads: dict[str, int] | None, variant: str) -> None:
-    """This worker's share of its host's cores (``threads``: by host name) for the sensor's inversions
-    and, for an LLVM variant, Dr.Jit (after picking the libLLVM, before Mitsuba is imported)."""
-    n = (threads or {}).get(socket.gethostname())
-    set_inversion_threads(n)
-    if not variant.startswith("llvm"):
-        return
-
-    ensure_llvm()
-    if n:
-        import drjit as dr
-
-        if dr.thread_count() != n:
-            dr.set_thread_count(n)
-
-
 def flatten(data: Any, prefix: str) -> dict[str, Any]:
     """Scalars (numbers, booleans, strings, None) of nested dicts as ``{'a.b.c': value}``; lists are left out."""
     out: dict[str, Any] = {}
@@ -118,7 +107,7 @@ def run_point(task: dict, leader: dict | None = None, *after: Any, keep_result: 
     shared = leader.get("rendered") if leader else None
     try:
         cfg = config_from_dict(task["config"], source=f"sweep point {task['label']}")
-        _prepare_process(task.get("threads"), cfg.render.variant)
+        prepare_worker(task.get("threads"), cfg.render.variant)
         result = run_capture(cfg, progress=False, rendered=shared,
                              on_rendered=(lambda r: kept.update(rendered=r)) if task.get("leader") else None)
         if task.get("out_dir"):
