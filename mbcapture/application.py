@@ -134,6 +134,9 @@ class App:
     #: Where its truth or reconstruction is pinhole geometry (Mitsuba AOVs through pixel centres, a
     #: projective triangulation), what it is: such an application refuses camera.distortion. "" otherwise.
     pinhole_truth: str = ""
+    #: It demultiplexes reads whose sub-frames differ from pixel to pixel (capture.gate_code other
+    #: than 'global'); every other application refuses such a capture.
+    coded_gates: bool = False
 
 
 _REGISTRY: dict[str, App] = {}
@@ -144,15 +147,16 @@ _loaded = False
 
 def register(name: str, *, params: type[BaseModel] = NoParams, per_group: bool = False, description: str = "",
              output_channels: int = 36, previews: int = 8, libraries_mb: float = 0.0, memory_scale: float = 1.0,
-             pinhole_truth: str = ""):
+             pinhole_truth: str = "", coded_gates: bool = False):
     """Decorator: ``fn(data: CaptureData, params) -> AppOutput`` is application ``name``.
     ``per_group``: the reconstruction or its metrics need ``CaptureData.group_exposure``.
     ``output_channels``, ``previews``, ``libraries_mb``, ``memory_scale``: what its outputs, libraries
-    and working set take; ``pinhole_truth``: why it needs a distortion-free camera (see :class:`App`)."""
+    and working set take; ``pinhole_truth``: why it needs a distortion-free camera; ``coded_gates``:
+    it demultiplexes per-pixel coded reads (see :class:`App`)."""
 
     def deco(fn):
         _REGISTRY[name] = App(name, fn, params, per_group, description or (fn.__doc__ or "").strip().split("\n")[0],
-                              output_channels, previews, libraries_mb, memory_scale, pinhole_truth)
+                              output_channels, previews, libraries_mb, memory_scale, pinhole_truth, coded_gates)
         return fn
 
     return deco

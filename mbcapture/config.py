@@ -184,6 +184,35 @@ class ScheduleSpec(_Model):
     reads: tuple[ReadSpec, ...] = Field(min_length=1, description="Read events at the end of the capture.")
 
 
+class GateCodeSpec(_Model):
+    family: Literal["global", "one_hot", "hadamard", "random", "file"] = Field(
+        description="Per-pixel gate code (a coded two-bucket sensor): 'global' (every pixel sends sub-frame s to bucket s: "
+        "global gates written as a code), 'one_hot' (tile position f sends sub-frame f to bucket 1, the rest to bucket 2), "
+        "'hadamard' (bucket 1 where a Hadamard row is +1, bucket 2 where -1), 'random' (each pixel and sub-frame to "
+        "bucket 1 or 2 with probability 1/2), 'file' (an array file). See docs/coded_gates.md.")
+    subframes: int | None = Field(
+        None, ge=1, le=32, description="Sub-frames the protocol schedules (what it would give as many buckets); the code "
+        "routes each to a bucket per pixel. Required by every family but 'global' (whose default is sensor.bucket_count). "
+        "multi_flash: 4 (one per LED) or 5 (and ambient).")
+    tile: tuple[int, int] | None = Field(
+        None, description="one_hot, hadamard: the tile [height, width] of per-pixel codes repeated over the film "
+        "(default: the near-square tile that holds one code per position: 2x2 for 4 sub-frames, 2x3 for 5, 2x4 for Hadamard's 8).")
+    file: str | None = Field(
+        None, description="'file': a .npy array of shape (sub-frames, height, width) of 1-based buckets (0: drain), tiled "
+        "over the film; a relative path is relative to the working directory.")
+    seed: int | None = Field(None, ge=0, description="'random': the code's seed (default: the run's seed).")
+
+    @model_validator(mode="after")
+    def _file_only_for_file(self) -> "GateCodeSpec":
+        if (self.family == "file") != (self.file is not None):
+            raise ValueError("capture.gate_code.file is required by family 'file' and read by no other family")
+        if self.tile is not None and self.family not in ("one_hot", "hadamard"):
+            raise ValueError(f"capture.gate_code.tile is read by the one_hot and hadamard families, not {self.family!r}")
+        if self.tile is not None and min(self.tile) < 1:
+            raise ValueError("capture.gate_code.tile: height and width must be >= 1")
+        return self
+
+
 class CaptureSection(_Model):
     protocol: str = Field(
         "photon_efficient_hdr",
@@ -200,6 +229,9 @@ class CaptureSection(_Model):
         "with sensor.frame_readout_s between frames, instead of interleaving them.",
     )
     start_s: float = Field(0.0, ge=0, description="Scene time at which the capture starts (moves the metronome's phase).")
+    gate_code: GateCodeSpec | None = Field(
+        None, description="Per-pixel gates: each pixel chooses its bucket for every sub-frame of the schedule (a coded "
+        "two-bucket sensor). null: global gates, every pixel follows the schedule.")
     schedule: ScheduleSpec | None = Field(None, description="The 'custom' protocol's schedule (required for it, refused otherwise).")
     frames: int = Field(
         1, ge=1, le=100_000,
@@ -535,6 +567,16 @@ def config_from_dict(data: dict, source: str = "config", origin: Callable[[tuple
     if cfg.camera.distortion and app.pinhole_truth:
         raise ConfigError(f"{origin(('camera', 'distortion'))}: camera.distortion: the {app.name} application's truth is "
                           f"pinhole geometry ({app.pinhole_truth}); remove the distortion for this application")
+    code = cfg.capture.gate_code
+    if code is not None and code.family != "global":
+        if not app.coded_gates:
+            coded = [n for n in apps.names() if apps.get(n).coded_gates]
+            raise ConfigError(f"{origin(('capture', 'gate_code', 'family'))}: capture.gate_code.family {code.family!r}: "
+                              f"the {app.name} application reads global-gate reads; per-pixel codes need an application "
+                              f"that demultiplexes them ({', '.join(coded)})")
+        if cfg.sensor.cfa != "none":
+            raise ConfigError(f"{origin(('sensor', 'cfa'))}: sensor.cfa {cfg.sensor.cfa!r} with capture.gate_code: "
+                              "demultiplexing per-pixel codes on a colour mosaic is not modelled; set sensor.cfa none")
     return cfg
 
 

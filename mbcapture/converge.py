@@ -87,7 +87,7 @@ def render_point(cfg, scene, timeline, renderer, planner: str, spp: int, seed_ke
     _warm(renderer, probe)
     t0 = time.perf_counter()
     plan = make_plan(timeline, scene, render, np.random.default_rng(seeds[0]))
-    out = integrate(renderer, plan, timeline.n_buckets, seeds[1])
+    out = integrate(renderer, plan, timeline.n_channels, seeds[1])
     return out, plan, time.perf_counter() - t0
 
 

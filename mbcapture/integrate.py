@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .plan import Plan
+from .timeline import Timeline
 
 
 def render_seeds(plan: Plan, seed: np.random.SeedSequence) -> np.ndarray:
@@ -82,6 +83,18 @@ class Integrated:
     def read_mc_var(self, buckets) -> np.ndarray | None:
         """(H, W, C) estimated Monte Carlo variance of the exposure summed over ``buckets`` (a read)."""
         return None if self.mc_diff is None else self.mc_diff[list(buckets)].sum(axis=0) ** 2
+
+    def routed(self, timeline: Timeline) -> "Integrated":
+        """The same renders per bucket: a coded timeline's sub-frame channels sent through its
+        per-pixel gate code (:meth:`~mbcapture.timeline.Timeline.route`; every array is linear in
+        the renders, the signed differences too); itself with global gates."""
+        if timeline.code is None:
+            return self
+        groups = None
+        if self.group_exposure is not None:  # (S, G, H, W, C): route with the pixels on axes 1, 2
+            groups = np.moveaxis(timeline.route(np.moveaxis(self.group_exposure, 1, 3)), 3, 1)
+        return Integrated(exposure=timeline.route(self.exposure), mc_diff=timeline.route(self.mc_diff),
+                          group_exposure=groups, temporal_diff=timeline.route(self.temporal_diff))
 
 
 def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray) -> None:

@@ -74,6 +74,14 @@ def relative_mse(x: np.ndarray, y: np.ndarray, mask: np.ndarray | None = None, e
     return float(np.mean((xs - ys) ** 2 / (ys**2 + eps)))
 
 
+def nrmse(x: np.ndarray, y: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Normalised RMS error, sqrt(mean (x - y)^2) / mean |y|. Dimensionless; unlike the relative MSE,
+    dark reference samples (shadows) do not dominate it."""
+    xs, ys = _selected(x, y, mask)
+    scale = float(np.mean(np.abs(ys)))
+    return float(np.sqrt(np.mean((xs - ys) ** 2)) / scale) if scale > 0 else float("inf")
+
+
 def psnr(x: np.ndarray, y: np.ndarray, mask: np.ndarray | None = None, peak: float | None = None) -> float:
     """Peak signal-to-noise ratio in dB, 10 log10(peak^2 / MSE).
 

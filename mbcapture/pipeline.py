@@ -170,11 +170,12 @@ def describe(cfg: CaptureConfig, timeline: Timeline, plan: Plan) -> dict:
 
 
 def bucket_group_seconds(timeline: Timeline, switchable: tuple[str, ...]) -> np.ndarray:
-    """(K, S): seconds bucket k collected while switchable group ``switchable[s]`` was on."""
+    """(K, S): seconds bucket k collected while switchable group ``switchable[s]`` was on (a coded
+    capture: the mean over the code's pixels)."""
     out = np.zeros((timeline.n_buckets, len(switchable)))
     for k in range(timeline.n_buckets):
         for s, g in enumerate(switchable):
-            out[k, s] = float(timeline.gated_ticks([timeline.end_tick], k, g)[0] * timeline.tick_s)
+            out[k, s] = float(timeline.bucket_gated_ticks(k, g) * timeline.tick_s)
     return out
 
 
@@ -218,7 +219,7 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
         start = time.perf_counter()
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
         pixels, factor = tail_pixels(integrated.mc_diff, integrated.exposure * k_e, k_e,
-                                     [r.buckets for r in timeline.reads], cfg.sensor.full_well_e,
+                                     list(plan.read_sets), cfg.sensor.full_well_e,
                                      cfg.sensor.fd_full_well_e, cfg.render.noise_budget_tail,
                                      cfg.render.adaptive_max_factor)
         info = {"pixels": int(pixels.size), "share": round(pixels.size / (cfg.render.width * cfg.render.height), 6),
@@ -262,7 +263,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
             with timer("cluster"), status.stage(f"render on the cluster ({plan.passes} passes)"):
                 cluster_info = render_on_cluster(client, cfg, plan, seeds[2], renderer)
         with status.stage(f"render ({plan.passes} passes)"):
-            integrated = integrate(renderer, plan, timeline.n_buckets, seeds[2], per_group=app.per_group, timer=timer,
+            integrated = integrate(renderer, plan, timeline.n_channels, seeds[2], per_group=app.per_group, timer=timer,
                                    progress=progress)
         if cfg.render.spp is None and cfg.render.adaptive:
             integrated, adaptive_info = refine_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
@@ -274,6 +275,9 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         plan, integrated, moving = rendered.plan_for(plan), rendered.integrated, rendered.moving
         if app.per_group and integrated.group_exposure is None:
             raise ValueError("run_capture(rendered=...): the application needs per-group exposures")
+    channels = integrated  # per channel: the buckets, or a coded capture's sub-frames
+    with timer("accumulate"):
+        integrated = integrated.routed(timeline)  # per bucket, each pixel through its gate code
     exposure = integrated.exposure
 
     with timer("sensor"), status.stage("sensor"):
@@ -319,7 +323,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
                            [r.name for r in timeline.reads], cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
                            plan=plan, noise_budget=cfg.render.noise_budget, noise_budget_p95=cfg.render.noise_budget_p95,
                            noise_budget_tail=cfg.render.noise_budget_tail),
-            **temporal_error(integrated, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
+            **temporal_error(channels, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
         },
         "render_cache": {"folder": str(cache.root), **cache.stats.as_dict()} if cache is not None else {"folder": None},
         "cluster": cluster_info,

@@ -39,14 +39,16 @@ class Plan:
 
     starts_ticks, ends_ticks   (J,) stratum bounds [start, end), int64 ticks.
     times_s       (J,) scene time at which each stratum is rendered (jittered inside it).
-    weights_s     (J, K, G) seconds of stratum j in which bucket k collects while group g is on.
+    weights_s     (J, K, G) seconds of stratum j in which channel k (a bucket, or a coded capture's
+                  sub-frame) collects while group g is on.
     groups        the emitter groups rendered (G), in the scene's order.
     spp           (J,) int64 samples per pixel of each stratum, or None until :func:`choose_spp`.
     spp_source    'render.spp', 'noise_budget' (pilot) or 'pending' (noise budget, no pilot yet).
     planner       'motion' or 'naive'.
     pilot         what the pilot measured (None without one).
     cost          the cost model {c0_s, c1_s_per_spp, compile_s, accumulate_s} (None without a pilot/probe).
-    read_sets     the buckets each read of the timeline sums (the noise budget is met on reads), and
+    read_sets     the channels each read of the timeline sums (the noise budget is met on reads; a coded
+                  capture: one set per read and distinct pixel code), and
     read_names    their names.
     """
 
@@ -248,10 +250,11 @@ def make_plan(
             f"now up to ~{motion_total / render.max_strata:.2f} px"
         )
 
-    buckets_read = tuple(sorted({b for r in timeline.reads for b in r.buckets}))
+    read_names, read_sets = timeline.channel_read_sets()  # channels: buckets, or a coded capture's sub-frames
+    buckets_read = tuple(sorted({c for r in read_sets for c in r}))
     all_groups = scene.groups
     w = timeline.weights_ticks(edges, all_groups, scene.switchable, scene.drives)  # (J, K, G) ticks
-    read_mask = np.zeros(timeline.n_buckets, dtype=bool)
+    read_mask = np.zeros(timeline.n_channels, dtype=bool)
     read_mask[list(buckets_read)] = True
     w[:, ~read_mask, :] = 0
     used_g = w.sum(axis=(0, 1)) > 0
@@ -281,8 +284,8 @@ def make_plan(
         weights_s=w.astype(np.float64) * float(timeline.tick_s),
         groups=groups,
         buckets_read=buckets_read,
-        read_sets=tuple(tuple(r.buckets) for r in timeline.reads),
-        read_names=tuple(r.name for r in timeline.reads),
+        read_sets=read_sets,
+        read_names=read_names,
         spp=None if render.spp is None else np.full(len(starts), render.spp, dtype=np.int64),
         max_motion_px=render.max_motion_px,
         motion_px_total=motion_total,

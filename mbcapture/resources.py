@@ -84,7 +84,9 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> Re
     samples = px * 3
     K, R = timeline.n_buckets, len(timeline.reads)
     frames = cfg.capture.frames
-    per_frame = 8.0 * samples * FLOAT64_PER_BUCKET_SAMPLE * K * app.memory_scale
+    # accumulated per channel; a coded capture holds its sub-frames and its routed buckets
+    acc = timeline.n_channels + (K if timeline.code is not None else 0)
+    per_frame = 8.0 * samples * FLOAT64_PER_BUCKET_SAMPLE * acc * app.memory_scale
     held = 8.0 * samples * (2 * K + 2 * R) + 4.0 * px * app.output_channels  # a finished frame's arrays
     memory = (BASE_MEMORY_MB + app.libraries_mb) * MB + per_frame + (frames - 1) * held
 

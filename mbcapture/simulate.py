@@ -68,7 +68,7 @@ def capture_timeline(timeline: Timeline, scene, cfg, renderer, spp: int, seed: n
     s_plan, s_render, s_noise = seed.spawn(3)
     plan = make_plan(timeline, scene, cfg.render, np.random.default_rng(s_plan))
     plan = replace(plan, spp=np.full(plan.passes, int(spp), dtype=np.int64), spp_source="given")
-    integrated = integrate(renderer, plan, timeline.n_buckets, s_render)
+    integrated = integrate(renderer, plan, timeline.n_channels, s_render).routed(timeline)
     buckets_e = integrated.exposure * k_e
     out = sense(timeline, buckets_e, cfg.sensor, s_noise)
     exposure = np.array([float(timeline.read_exposure_ticks(r) * timeline.tick_s) for r in timeline.reads])

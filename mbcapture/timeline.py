@@ -29,6 +29,7 @@ import numpy as np
 
 from .drive import periodic_oscillation_ticks
 from .errors import ConfigError
+from .gatecode import GateCode
 
 if TYPE_CHECKING:
     from .drive import Drive
@@ -127,6 +128,13 @@ class Timeline:
     ``n_buckets`` counts charge stores: the sensor's buckets for an interleaved capture, or the
     frames of a conventional sensor for a sequential one (each frame is read destructively, so
     a frame is equivalent to a bucket read once).
+
+    ``code``: a per-pixel gate code (:class:`~mbcapture.gatecode.GateCode`), or None for global
+    gates. With a code, a slot's ``bucket`` names a *sub-frame* (0 .. ``n_channels`` - 1) and the
+    code says which bucket of each pixel collects it; the reads still name buckets. Everything
+    rendered and accumulated is per channel (a sub-frame, or a bucket without a code); the
+    sensor routes channels to buckets (:meth:`route`). Per-bucket times of a coded timeline
+    (exposure, centroid, gated time) are averages over the code's pixels, exact fractions.
     """
 
     tick_s: Fraction
@@ -135,8 +143,42 @@ class Timeline:
     reads: tuple[ReadEvent, ...]
     protocol: str
     sequential: bool = False
+    code: GateCode | None = None
 
     # ----------------------------------------------------------------- basic quantities
+    @property
+    def n_channels(self) -> int:
+        """What is accumulated: the sub-frames of a coded timeline, else the buckets."""
+        return self.code.n_subframes if self.code is not None else self.n_buckets
+
+    def route(self, channels: np.ndarray | None) -> np.ndarray | None:
+        """Per-channel arrays (n_channels, H, W, ...) -> per-bucket (n_buckets, H, W, ...): the code's
+        routing, or the arrays themselves with global gates."""
+        return channels if self.code is None or channels is None else self.code.route(channels)
+
+    def _shares(self, bucket: int) -> list[tuple[int, Fraction]]:
+        """(channel, fraction of pixels whose ``bucket`` collects it) for every channel that some
+        pixel's ``bucket`` collects; (bucket, 1) without a code."""
+        if self.code is None:
+            return [(bucket, Fraction(1))]
+        sh = self.code.shares()
+        return [(c, sh[c][bucket]) for c in range(self.n_channels) if sh[c][bucket] > 0]
+
+    def channel_read_sets(self) -> tuple[tuple[str, ...], tuple[tuple[int, ...], ...]]:
+        """The channels each read sums, per distinct pixel code: (names, channel sets). Without a
+        code, the reads themselves. The noise budget is met on these (every pixel's read is one)."""
+        if self.code is None:
+            return tuple(r.name for r in self.reads), tuple(tuple(r.buckets) for r in self.reads)
+        vectors, _ = self.code.vectors()
+        names, sets = [], []
+        for r in self.reads:
+            for v in vectors:
+                chans = tuple(int(c) for c in np.flatnonzero(np.isin(v, r.buckets)))
+                if chans and chans not in sets:
+                    names.append(r.name if len(vectors) == 1 else f"{r.name}@code{len(names)}")
+                    sets.append(chans)
+        return tuple(names), tuple(sets)
+
     @property
     def start_tick(self) -> int:
         return min(s.start_tick for s in self.segments)
@@ -206,8 +248,8 @@ class Timeline:
         ticks, plus the closed-form oscillating part), and the result is float64."""
         edges = np.asarray(edges, dtype=np.int64)
         drives = {g: d for g, d in (drives or {}).items() if g in groups}
-        out = np.zeros((len(edges) - 1, self.n_buckets, len(groups)), dtype=np.float64 if drives else np.int64)
-        for k in range(self.n_buckets):
+        out = np.zeros((len(edges) - 1, self.n_channels, len(groups)), dtype=np.float64 if drives else np.int64)
+        for k in range(self.n_channels):
             for gi, g in enumerate(groups):
                 sel = g if g in switchable else None
                 f = self.gated_ticks(edges, k, sel)
@@ -217,27 +259,38 @@ class Timeline:
                     out[:, k, gi] = np.diff(f)
         return out
 
-    def exposure_ticks(self, bucket: int) -> int:
-        return int(self.gated_ticks([self.end_tick], bucket)[0])
+    def exposure_ticks(self, bucket: int) -> int | Fraction:
+        """Ticks ``bucket`` collects (a coded timeline: the mean over the code's pixels, exact)."""
+        return self.bucket_gated_ticks(bucket, None)
 
-    def read_exposure_ticks(self, read: ReadEvent) -> int:
+    def bucket_gated_ticks(self, bucket: int, group: str | None) -> int | Fraction:
+        """Ticks ``bucket`` collects while ``group`` is on (None: all its gated time); a coded
+        timeline's mean over the code's pixels."""
+        tot = sum(share * int(self.gated_ticks([self.end_tick], c, group)[0]) for c, share in self._shares(bucket))
+        return int(tot) if Fraction(tot).denominator == 1 else Fraction(tot)
+
+    def read_exposure_ticks(self, read: ReadEvent) -> int | Fraction:
         return sum(self.exposure_ticks(b) for b in read.buckets)
 
     # ----------------------------------------------------------------- spans and centroids
-    def _bucket_slot_times(self, bucket: int) -> list[tuple[int, int, int, int]]:
-        """(first start, last end, sum of durations, sum of duration*midpoint*2) per segment."""
+    def _bucket_slot_times(self, bucket: int) -> list[tuple[int, int, int | Fraction, int | Fraction]]:
+        """(first start, last end, sum of durations, sum of duration*midpoint*2) per slot that
+        ``bucket`` collects; a coded timeline's durations weighted by the share of pixels (spans:
+        every slot some pixel's bucket collects)."""
+        shares = dict(self._shares(bucket))
         rows = []
         for seg in self.segments:
             off = 0
             P, n = seg.period_ticks, seg.repeats
             for s in seg.slots:
-                if s.bucket == bucket and s.ticks > 0:
+                if s.bucket in shares and s.ticks > 0:
+                    w = shares[s.bucket]
                     first = seg.start_tick + off
                     last_end = seg.start_tick + (n - 1) * P + off + s.ticks
                     dur = n * s.ticks
                     # sum over repeats of 2*midpoint*ticks, exact integers
                     mid2 = (2 * (seg.start_tick + off) + s.ticks) * n + 2 * P * (n * (n - 1) // 2)
-                    rows.append((first, last_end, dur, mid2 * s.ticks))
+                    rows.append((first, last_end, dur * w if w != 1 else dur, mid2 * s.ticks * w if w != 1 else mid2 * s.ticks))
                 off += s.ticks
         return rows
 
@@ -265,7 +318,9 @@ class Timeline:
           before it first collects);
         * a conventional sequential frame is read destructively at the end of its own exposure;
           the buckets of an interleaved capture are all read after the capture's last slot;
-        * a bucket that never collects is reset just before its read and holds no dark charge: 0.
+        * a bucket that never collects is reset just before its read and holds no dark charge: 0;
+        * with a per-pixel gate code, the reset is global: as the first slot that any pixel's
+          bucket collects opens.
 
         Longer than the exposure wherever the bucket's slots are interleaved with others."""
         first, last = self.span_ticks([bucket])
@@ -286,7 +341,7 @@ class Timeline:
                 {
                     "name": r.name,
                     "buckets": [b + 1 for b in r.buckets],
-                    "exposure_s": float(self.read_exposure_ticks(r) * self.tick_s),
+                    "exposure_s": float(self.read_exposure_ticks(r) * self.tick_s),  # coded: the pixels' mean
                     "span_start_s": float(t0 * self.tick_s),
                     "span_end_s": float(t1 * self.tick_s),
                     "span_s": float((t1 - t0) * self.tick_s),
@@ -320,8 +375,10 @@ def build_timeline(
     n_buckets: int,
     protocol: str,
     sequential: bool = False,
+    code: GateCode | None = None,
 ) -> Timeline:
-    """Choose the exact tick and convert seconds to integer ticks; check every bound."""
+    """Choose the exact tick and convert seconds to integer ticks; check every bound. With a gate
+    ``code``, the slots' buckets are its sub-frames and ``n_buckets`` the sensor's buckets."""
     durations = [s.duration_s for seg in segments for s in seg.slots] + [seg.start_s for seg in segments]
     for seg in segments:
         if seg.repeats < 1:
@@ -347,7 +404,11 @@ def build_timeline(
         bad = [b + 1 for b in r.buckets if not 0 <= b < n_buckets]
         if bad:
             raise ConfigError(f"capture.schedule.reads: read {r.name} names bucket(s) {bad}; the schedule has {n_buckets}")
-    tl = Timeline(tick, n_buckets, tuple(out_segments), tuple(reads), protocol, sequential)
+    if code is not None:
+        used = {s.bucket for seg in segments for s in seg.slots if s.bucket != DRAIN}
+        if max(used) >= code.n_subframes:
+            raise ConfigError(f"capture.gate_code: the schedule has {max(used) + 1} sub-frames, the code {code.n_subframes}")
+    tl = Timeline(tick, n_buckets, tuple(out_segments), tuple(reads), protocol, sequential, code)
     for r in tl.reads:
         if tl.read_exposure_ticks(r) == 0:
             raise ConfigError(f"capture: read {r.name} sums buckets {[b + 1 for b in r.buckets]} that never collect light")

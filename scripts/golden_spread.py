@@ -35,8 +35,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from golden_cases import SPREAD_FILE, all_cases, compare  # noqa: E402
 from conftest import GOLDEN_DIR, machine_description  # noqa: E402
+from golden_cases import SPREAD_FILE, all_cases, compare  # noqa: E402
 
 from mbcapture.portability import emulation_env, runnable_targets  # noqa: E402
 

@@ -143,7 +143,9 @@ def main(argv: list[str] | None = None) -> int:
         score = "-" if c["score"] is None else f"{c['score']:.1f}"
         print(f"{module:44s} " + " ".join(f"{c.get(k, 0):>11d}" for k in cols) + f"   {score:>7s}")
     if args.survivors:
-        from mutmut.mutation.diff_apply import get_diff_for_mutant  # run from the project root
+        from mutmut.mutation.diff_apply import (
+            get_diff_for_mutant,  # run from the project root
+        )
 
         counts: dict[str, Counter] = {}
         for module, codes in results.items():

@@ -15,8 +15,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from golden_cases import (
+    SPREAD_FILE,
+    compare,
+    count_differences,
+    stored_inputs,
+    tolerance,
+    within,
+)
 
-from golden_cases import SPREAD_FILE, compare, count_differences, stored_inputs, tolerance, within
 from mbcapture.sensor.cfa import BAYER_PATTERNS, to_mosaic
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"

@@ -9,8 +9,8 @@ exposure ramp.
 
 from __future__ import annotations
 
-from pathlib import Path
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -27,6 +27,8 @@ CAPTURE_CASES = [
     ("flash_no_flash", "flash_no_flash.yaml", []),
     ("flash_no_flash_sequential", "flash_no_flash.yaml", ["capture.sequential=true"]),
     ("multi_flash", "multi_flash.yaml", []),
+    # per-pixel gates: two buckets, five sub-frames sent by a Hadamard code, demultiplexed
+    ("coded_multi_flash", "coded_multi_flash.yaml", []),
     ("flash_matting", "flash_matting.yaml", []),
     ("moving_light", "moving_light.yaml", []),
     ("rgb_illumination", "rgb_illumination.yaml", []),

@@ -18,6 +18,7 @@ from mbcapture.apps import CaptureData, get
 from mbcapture.apps.flash_no_flash import (
     METHODS,
     FlashNoFlashParams,
+    blur_agreement,
     components,
     display_psnr,
     enhance,
@@ -26,7 +27,6 @@ from mbcapture.apps.flash_no_flash import (
     reconstruct,
     rel_rms,
     white_level,
-    blur_agreement,
 )
 from mbcapture.capture import bucket_group_seconds
 from mbcapture.config import config_from_dict
@@ -352,7 +352,12 @@ def test_letter_s_mask_is_the_region_its_points_sweep_over_the_capture():
     from mbcapture.apps.flash_no_flash import _letter_s_mask
     from mbcapture.camera_motion import moving_region
     from mbcapture.scenes import Camera, SceneModel
-    from mbcapture.timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
+    from mbcapture.timeline import (
+        ReadEvent,
+        SegmentSeconds,
+        SlotSeconds,
+        build_timeline,
+    )
 
     def points(t):  # (T, 5, 3): 0-1 a pair moving right at 2 m/s, 2-4 a triangle ("the S") moving down at 2 m/s
         t = np.asarray(t, float)[:, None]

@@ -334,7 +334,11 @@ def test_shadow_sweep_mask_covers_both_capture_modes_over_their_joint_span():
     from pathlib import Path
     from types import SimpleNamespace
 
-    from mbcapture.apps.moving_light import SWEEP_TIME_SAMPLES, _sweep_times, shadow_sweep_mask
+    from mbcapture.apps.moving_light import (
+        SWEEP_TIME_SAMPLES,
+        _sweep_times,
+        shadow_sweep_mask,
+    )
     from mbcapture.capture import prepare
 
     path = Path(__file__).resolve().parents[1] / "configs" / "moving_light.yaml"

@@ -505,26 +505,21 @@ def test_canny_edges_follow_the_documented_recipe():
 
 
 def test_layout_finds_flash_and_ambient_reads():
-    from types import SimpleNamespace
+    def sources(tl, reads=None):
+        reads = tl.reads if reads is None else reads
+        return mf.Sources([r.name for r in reads], [mf.read_groups(tl, r) for r in reads], None, None, None)
 
-    def data_for(*sets):
-        tl = protocols.build(load_config(CONFIG, list(sets)))
-        return SimpleNamespace(timeline=tl, read_names=[r.name for r in tl.reads])
-
-    five = data_for("sensor.bucket_count=5")
-    assert mf._layout(five, mf.MultiFlashParams()) == ([0, 1, 2, 3], list(mf.FLASH_GROUPS), 4)
-    assert mf._layout(five, mf.MultiFlashParams(ambient="subtract"))[2] == 4
-    assert mf._layout(five, mf.MultiFlashParams(ambient="none"))[2] is None
-    four = data_for("sensor.bucket_count=4")
-    assert mf._layout(four, mf.MultiFlashParams()) == ([0, 1, 2, 3], list(mf.FLASH_GROUPS), None)
+    five = protocols.build(load_config(CONFIG, ["sensor.bucket_count=5"]))
+    assert mf._layout(sources(five), mf.MultiFlashParams()) == ([0, 1, 2, 3], list(mf.FLASH_GROUPS), 4)
+    assert mf._layout(sources(five), mf.MultiFlashParams(ambient="subtract"))[2] == 4
+    assert mf._layout(sources(five), mf.MultiFlashParams(ambient="none"))[2] is None
+    four = protocols.build(load_config(CONFIG, ["sensor.bucket_count=4"]))
+    assert mf._layout(sources(four), mf.MultiFlashParams()) == ([0, 1, 2, 3], list(mf.FLASH_GROUPS), None)
     with pytest.raises(ConfigError, match="app.ambient: 'subtract' needs an ambient-only read"):
-        mf._layout(four, mf.MultiFlashParams(ambient="subtract"))
-    one = SimpleNamespace(timeline=SimpleNamespace(segments=five.timeline.segments, reads=five.timeline.reads[:1] +
-                                                   five.timeline.reads[4:]), read_names=["top", "ambient"])
+        mf._layout(sources(four), mf.MultiFlashParams(ambient="subtract"))
     with pytest.raises(ConfigError, match="capture.protocol: multi_flash needs reads lit by at least two"):
-        mf._layout(one, mf.MultiFlashParams())
-    two = SimpleNamespace(timeline=SimpleNamespace(segments=five.timeline.segments, reads=five.timeline.reads[:2] +
-                                                   five.timeline.reads[4:]), read_names=["top", "bottom", "ambient"])
+        mf._layout(sources(five, five.reads[:1] + five.reads[4:]), mf.MultiFlashParams())
+    two = sources(five, five.reads[:2] + five.reads[4:])
     assert mf._layout(two, mf.MultiFlashParams()) == ([0, 1], ["flash_top", "flash_bottom"], 2)
 
 

@@ -233,8 +233,9 @@ def _box(lo, hi, v=1.0):
 def test_led_matrices_integrate_spectra_that_are_zero_outside_their_samples():
     """Box LEDs and box sensitivities, each sampled only over its support (non-zero at its ends):
     on the 1 nm grid a product of boxes integrates to (overlap in nm + 1) x the values."""
-    import colour
     from types import SimpleNamespace
+
+    import colour
 
     leds = {"led_r": _box(690, 710), "led_g": _box(520, 540), "led_b": _box(440, 460)}
     sc = SimpleNamespace(extra={"led_spectra": leds})
@@ -323,8 +324,9 @@ def test_true_colours_with_leds_sampled_on_different_grids():
     """Each LED spectrum given only over its own band: the illuminant is still the sum of all
     three (each zero outside its samples), the same as with all three on one full grid. The sum
     used to be taken on the first LED's grid only, which dropped the other two LEDs' light."""
-    import colour
     from types import SimpleNamespace
+
+    import colour
 
     from mbcapture.render.build import Spectrum
 

@@ -5,7 +5,13 @@ import csv
 import numpy as np
 import pytest
 
-from mbcapture.converge import Point, equal_error_speedups, fit_slope, planner_seconds_at, relative_error
+from mbcapture.converge import (
+    Point,
+    equal_error_speedups,
+    fit_slope,
+    planner_seconds_at,
+    relative_error,
+)
 
 
 def _mc_points(method, c0, c1, sigma, spps, passes):

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from test_plan import FakeRenderer, plan, point_scene, timeline
 
 ROOT = Path(__file__).resolve().parents[1]

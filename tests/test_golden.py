@@ -32,10 +32,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import conftest
 import numpy as np
 import pytest
-
-import conftest
 from golden_cases import (
     CAPTURE_CASES,
     HDR_METHODS,
@@ -49,7 +48,13 @@ from golden_cases import (
     tolerance,
     within,
 )
-from mbcapture.portability import EMULATED_TARGETS, emulation_env, host_vector_width, second_target
+
+from mbcapture.portability import (
+    EMULATED_TARGETS,
+    emulation_env,
+    host_vector_width,
+    second_target,
+)
 
 #: Set in the child process that re-runs the golden tests on an emulated CPU.
 NESTED_ENV = "MBCAPTURE_GOLDEN_NESTED"
@@ -90,7 +95,12 @@ def test_this_process_compiles_for_the_target_it_was_given():
     """Dr.Jit's kernels and numpy's loops are those of MBCAPTURE_LLVM_TARGET when it is set (the
     second-target child), else of this host: the emulation proves it took effect."""
     from mbcapture.render import ensure_llvm
-    from mbcapture.render.llvm import TARGET_ENV_VAR, apply_target_from_env, llvm_target, parse_target
+    from mbcapture.render.llvm import (
+        TARGET_ENV_VAR,
+        apply_target_from_env,
+        llvm_target,
+        parse_target,
+    )
 
     ensure_llvm()
     import mitsuba as mi
@@ -270,6 +280,7 @@ def test_an_inf_turned_nan_fails(golden, photon_efficient_run):
 def test_goldens_catch_a_changed_noise_model(golden, monkeypatch, change):
     """The sensor golden pins the noise draws, not only their statistics."""
     import golden_cases
+
     import mbcapture.sensor.readout as readout
 
     if change == "numpy_poisson":  # the same law, drawn by numpy's rejection sampler

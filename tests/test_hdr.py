@@ -13,7 +13,11 @@ import numpy as np
 import pytest
 
 from mbcapture.errors import ConfigError
-from mbcapture.reconstruct.hdr import HDR_METHODS, merge_hdr, quantization_read_variance_e2
+from mbcapture.reconstruct.hdr import (
+    HDR_METHODS,
+    merge_hdr,
+    quantization_read_variance_e2,
+)
 from mbcapture.sensor import SensorConfig, simulate_reads
 
 N_SIGMA = 5.0

@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mbcapture.metrics import PU21_PARAMETERS, psnr, pu21_encode, pu21_psnr, relative_mse
+from mbcapture.metrics import (
+    PU21_PARAMETERS,
+    psnr,
+    pu21_encode,
+    pu21_psnr,
+    relative_mse,
+)
 
 
 def test_relative_mse_by_hand():

@@ -6,7 +6,13 @@ from __future__ import annotations
 import pytest
 
 from mbcapture.errors import EnvironmentProblem
-from mbcapture.portability import EMULATED_TARGETS, emulation_env, host_vector_width, runnable_targets, second_target
+from mbcapture.portability import (
+    EMULATED_TARGETS,
+    emulation_env,
+    host_vector_width,
+    runnable_targets,
+    second_target,
+)
 from mbcapture.render.llvm import CPU_TARGETS, TARGET_ENV_VAR, parse_target
 
 

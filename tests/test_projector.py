@@ -6,7 +6,15 @@ import pytest
 
 from mbcapture import projective as pj
 from mbcapture.errors import ConfigError
-from mbcapture.render.build import Material, Projector, SceneBuild, Shape, rotate, scale, translate
+from mbcapture.render.build import (
+    Material,
+    Projector,
+    SceneBuild,
+    Shape,
+    rotate,
+    scale,
+    translate,
+)
 from mbcapture.scenes import Camera, SceneModel
 
 pytestmark = pytest.mark.render

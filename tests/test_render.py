@@ -6,7 +6,6 @@ seed replicates, so their tolerances follow from the Monte Carlo error actually 
 
 from __future__ import annotations
 
-import math
 import os
 import subprocess
 import sys
@@ -17,7 +16,15 @@ import pytest
 
 from mbcapture.errors import EnvironmentProblem
 from mbcapture.render import llvm
-from mbcapture.render.build import Light, SceneBuild, Shape, frame_towards, rotate, scale, translate
+from mbcapture.render.build import (
+    Light,
+    SceneBuild,
+    Shape,
+    frame_towards,
+    rotate,
+    scale,
+    translate,
+)
 from mbcapture.scenes import Camera, SceneModel, load_module, make_scene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -257,9 +264,9 @@ def _marker_scene(camera: Camera) -> SceneModel:
     Camera(origin=(-0.5, 0.2, 0.4), target=(0.02, -0.01, 0.03), up=(0.1, 1.0, 0.2), fov_deg=50.0),
 ])
 def test_camera_project_matches_rendered_marker_positions(mitsuba_ready, camera):
-    from mbcapture.render import Renderer
-
     import drjit as dr
+
+    from mbcapture.render import Renderer
 
     sc = _marker_scene(camera)
     w, h = 64, 48

@@ -10,7 +10,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-
 from report_checks import check_report_folder, undocumented_keys
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,7 +15,12 @@ import pytest
 from scipy import special, stats
 
 from mbcapture.sensor import SensorConfig, simulate_reads
-from mbcapture.sensor.sampling import NoiseStreams, binomial_quantile, poisson_pmf, poisson_quantile
+from mbcapture.sensor.sampling import (
+    NoiseStreams,
+    binomial_quantile,
+    poisson_pmf,
+    poisson_quantile,
+)
 
 N_SIGMA = 5.0
 

@@ -9,9 +9,21 @@ import pytest
 from mbcapture import scenes
 from mbcapture.config import config_from_dict
 from mbcapture.errors import ConfigError
-from mbcapture.sensor import SensorConfig, electrons_per_film_second, electrons_per_radiance_second
-from mbcapture.sensor.photons import PLANCK_J_S, SPEED_OF_LIGHT_M_PER_S, electrons_per_render_second
-from mbcapture.sensor.spectral import camera_names, channel_quantum_efficiency, film_sensitivity
+from mbcapture.sensor import (
+    SensorConfig,
+    electrons_per_film_second,
+    electrons_per_radiance_second,
+)
+from mbcapture.sensor.photons import (
+    PLANCK_J_S,
+    SPEED_OF_LIGHT_M_PER_S,
+    electrons_per_render_second,
+)
+from mbcapture.sensor.spectral import (
+    camera_names,
+    channel_quantum_efficiency,
+    film_sensitivity,
+)
 
 CAMERA = "Nikon 5100 (NPL)"
 

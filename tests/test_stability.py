@@ -35,11 +35,22 @@ from mbcapture import protocols
 from mbcapture.config import config_from_dict, load_config
 from mbcapture.errors import ConfigError
 from mbcapture.integrate import accumulate
-from mbcapture.pendulum import OVERDAMPED_RATIO, STIFF_RATIO, Pendulum, nonlinear_period_s
+from mbcapture.pendulum import (
+    OVERDAMPED_RATIO,
+    STIFF_RATIO,
+    Pendulum,
+    nonlinear_period_s,
+)
 from mbcapture.reconstruct.hdr import merge_hdr, quantization_read_variance_e2
 from mbcapture.sensor import SensorConfig, dn_to_electrons, simulate_reads
 from mbcapture.sensor.sampling import POISSON_EXACT_MAX
-from mbcapture.timeline import DRAIN, ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
+from mbcapture.timeline import (
+    DRAIN,
+    ReadEvent,
+    SegmentSeconds,
+    SlotSeconds,
+    build_timeline,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny_hdr.yaml"
@@ -679,7 +690,12 @@ def test_flash_a_million_times_brighter_than_ambient():
 
 def test_multi_flash_ratio_images_where_the_max_is_zero():
     """Pixels that no flash lights (max = 0) get ratio 0, are invalid and never edges; no NaN."""
-    from mbcapture.apps.multi_flash import Epipole, flash_images, max_composite, raskar_depth_edges
+    from mbcapture.apps.multi_flash import (
+        Epipole,
+        flash_images,
+        max_composite,
+        raskar_depth_edges,
+    )
 
     eps = [Epipole(False, (1.0, 0.0)), Epipole(False, (-1.0, 0.0)), Epipole(False, (0.0, 1.0)), Epipole(False, (0.0, -1.0))]
     d = raskar_depth_edges(np.zeros((4, 24, 32, 3)), eps)

@@ -102,6 +102,8 @@ def test_shipped_sweep_loads_and_plans(path):
     assert not plan.failed and len(sweep.points) >= 12
     if path.stem == "sensor_noise":  # zero re-renders: one render group for all 64 points
         assert len(sweep.points) == 64 and len(plan.groups) == 1 and plan.axes_changing_renders == ()
+    if path.stem == "coded_gates":  # the code only routes the same sub-frame renders: one render group
+        assert len(plan.groups) == 1 and plan.axes_changing_renders == ()
     if path.stem == "interleaving":
         assert set(plan.axes_changing_renders) == {"capture.periods", "capture.protocol"}
 

@@ -11,7 +11,6 @@ import pytest
 from mbcapture.errors import ConfigError
 from mbcapture.render.build import (
     Environment,
-    Light,
     Material,
     SceneBuild,
     Shape,

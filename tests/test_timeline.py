@@ -10,7 +10,15 @@ from hypothesis import strategies as st
 from mbcapture import protocols
 from mbcapture.config import config_from_dict
 from mbcapture.errors import ConfigError
-from mbcapture.timeline import DRAIN, ReadEvent, SegmentSeconds, SlotSeconds, build_timeline, common_tick, exact
+from mbcapture.timeline import (
+    DRAIN,
+    ReadEvent,
+    SegmentSeconds,
+    SlotSeconds,
+    build_timeline,
+    common_tick,
+    exact,
+)
 
 
 def cfg(**capture):

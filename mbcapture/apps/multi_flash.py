@@ -71,8 +71,11 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .. import protocols
 from ..errors import ConfigError
-from ..metrics import luminance, relative_mse
-from ..render.aov import render_depth
+from ..metrics import luminance, nrmse, relative_mse
+from ..projective import points_from_depth
+from ..reconstruct.demultiplex import code_rank, demultiplex
+from ..reconstruct.photometric import angular_error_deg, near_light_normals
+from ..render.aov import render_depth, render_normals
 from ..timeline import ReadEvent, SlotSeconds, Timeline, exact
 from . import AppOutput, CaptureData, register
 
@@ -135,6 +138,11 @@ class MultiFlashParams(BaseModel):
                                 "truth flash image when its luminance is below this fraction of the truth max composite.")
     truth_spp: int = Field(0, ge=0, le=4096, description="Samples per pixel of the noise-free shadow-free truth "
                            "render (0: 4 x the capture's largest samples per pixel per stratum, render.spp or the noise budget's).")
+    demux_radius_px: int = Field(0, ge=0, le=16, description="Coded captures (capture.gate_code): half-width of the tent "
+                                 "window over which the per-light images are demultiplexed, px (0: the code's tile height "
+                                 "and width; a random code: 2).")
+    normals_shadow_ratio: float = Field(0.2, gt=0.0, lt=1.0, description="Photometric-stereo normals: a light whose "
+                                        "image is below this fraction of the brightest at a pixel is left out there (shadow).")
 
 
 # --------------------------------------------------------------------------------- geometry
@@ -384,11 +392,63 @@ def read_groups(timeline: Timeline, read: ReadEvent) -> frozenset[str]:
                      for g in s.groups_on)
 
 
-def _layout(data: CaptureData, params: MultiFlashParams) -> tuple[list[int], list[str], int | None]:
-    """(flash read indices, their groups, ambient read index or None) from the timeline."""
+@dataclass
+class Sources:
+    """The images the flash images come from: the reads of a global-gate (or sequential) capture,
+    or the sub-frame images demultiplexed from a coded capture's reads.
+
+    names (N,), groups (N,) the switchable groups lit in each, electrons (N, H, W, C), exposure_s
+    (N,), bad (N, H, W) no usable value there (a saturated read; a coded capture: a saturated
+    read in the window, or codes that do not separate the sub-frames); demux: how a coded capture
+    was demultiplexed (None otherwise)."""
+
+    names: list[str]
+    groups: list[frozenset[str]]
+    electrons: np.ndarray
+    exposure_s: np.ndarray
+    bad: np.ndarray
+    demux: dict | None = None
+
+
+def _sources(data: CaptureData, params: MultiFlashParams) -> Sources:
+    tl = data.timeline
+    if tl.code is None or tl.code.identity:
+        return Sources(list(data.read_names), [read_groups(tl, r) for r in tl.reads], data.reads_e(),
+                       np.asarray(data.exposure_s, np.float64), data.saturated.any(axis=-1))
+    # a coded capture: every pixel's reads are its own mix of the sub-frames; demultiplex them
+    code, W, H = tl.code, data.cfg.render.width, data.cfg.render.height
+    A = code.measurement([r.buckets for r in tl.reads], H, W)
+    rank = code_rank(A)
+    if rank < code.n_subframes:
+        raise ConfigError(f"capture.gate_code: the {code.family!r} code's reads separate at most {rank} of the "
+                          f"{code.n_subframes} sub-frames; use a code whose pixels differ (one_hot, hadamard, random)")
+    if params.demux_radius_px:
+        radius = (params.demux_radius_px, params.demux_radius_px)
+    else:
+        radius = (2, 2) if code.family == "random" else code.tile_shape
+    d = demultiplex(data.reads_e(), A, radius, bad=data.saturated.any(axis=-1))
+    from scipy.ndimage import binary_dilation
+
+    sat = data.saturated.any(axis=(0, -1))
+    near_sat = binary_dilation(sat, np.ones((2 * radius[0] - 1, 2 * radius[1] - 1), bool)) if sat.any() else sat
+    bad = np.broadcast_to(~d.valid | near_sat, (code.n_subframes, H, W))
+    groups, exposure = [], []
+    for c in range(code.n_subframes):
+        groups.append(frozenset(g for seg in tl.segments for sl in seg.slots if sl.bucket == c for g in sl.groups_on))
+        exposure.append(float(tl.gated_ticks([tl.end_tick], c)[0] * tl.tick_s))
+    names = [next(iter(g)).removeprefix("flash_") if len(g) == 1 else (AMBIENT_READ if not g else f"subframe{c + 1}")
+             for c, g in enumerate(groups)]
+    info = {"family": code.family, "tile": list(code.tile_shape), "subframes": code.n_subframes,
+            "buckets": code.n_buckets, "window_half_width_px": list(radius), "method": "local weighted least squares",
+            "noise_gain": dict(zip(names, [round(float(g), 4) for g in d.noise_gain])),
+            "undetermined_px": int((~d.valid).sum())}
+    return Sources(names, groups, d.images, np.asarray(exposure), bad, info)
+
+
+def _layout(src: Sources, params: MultiFlashParams) -> tuple[list[int], list[str], int | None]:
+    """(flash source indices, their groups, ambient source index or None)."""
     flash_idx, groups, ambient = [], [], None
-    for i, r in enumerate(data.timeline.reads):
-        g = read_groups(data.timeline, r)
+    for i, g in enumerate(src.groups):
         if len(g) == 1 and next(iter(g)) in FLASH_GROUPS:
             flash_idx.append(i)
             groups.append(next(iter(g)))
@@ -396,9 +456,10 @@ def _layout(data: CaptureData, params: MultiFlashParams) -> tuple[list[int], lis
             ambient = i
     if len(flash_idx) < 2:
         raise ConfigError("capture.protocol: multi_flash needs reads lit by at least two of "
-                          f"{list(FLASH_GROUPS)}, one LED group each (got {data.read_names})")
+                          f"{list(FLASH_GROUPS)}, one LED group each (got {src.names})")
     if params.ambient == "subtract" and ambient is None:
-        raise ConfigError("app.ambient: 'subtract' needs an ambient-only read (sensor.bucket_count >= 5)")
+        raise ConfigError("app.ambient: 'subtract' needs an ambient-only read (sensor.bucket_count >= 5, or 5 "
+                          "sub-frames of a coded capture)")
     return flash_idx, groups, (ambient if params.ambient != "none" else None)
 
 
@@ -413,27 +474,30 @@ CAPTIONS = {
     "depth_edges": "detected depth edges on the dimmed shadow-free image: green = matches a true depth edge "
                    "(within app.tolerance_px), red = no true edge near, blue = true edge missed (without a "
                    "reference: white = detected)",
+    "normals": "photometric-stereo normals from the flash images at the true depth, (n + 1) / 2 as RGB (x right, "
+               "y up, z towards the camera); black: fewer than three unshadowed lights",
 }
 
 
-@register("multi_flash", output_channels=28, previews=3, params=MultiFlashParams,
+@register("multi_flash", output_channels=34, previews=4, params=MultiFlashParams, coded_gates=True,
           pinhole_truth="depth edges of the aov depth through pixel centres; flash directions projected by the pinhole",
           description="multi-flash: shadow-free max composite and depth edges from ratio images (Raskar 2004)")
 def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
     cfg = data.cfg
     W, H = cfg.render.width, cfg.render.height
-    flash_idx, groups, ambient = _layout(data, params)
+    src = _sources(data, params)
+    flash_idx, groups, ambient = _layout(src, params)
     positions = data.scene.extra.get("flash_positions_m")
     if not positions or any(g not in positions for g in groups):
         raise ConfigError(f"scene.name: {data.scene.name!r} does not give extra['flash_positions_m'] for {groups}")
     epipoles = [epipole(data.scene.camera, positions[g], W, H) for g in groups]
-    images = flash_images(data.reads_e(), data.exposure_s, data.k_e, flash_idx, ambient)
+    images = flash_images(src.electrons, src.exposure_s, data.k_e, flash_idx, ambient)
     used = flash_idx + ([ambient] if ambient is not None else [])
-    bad = data.saturated[used].any(axis=(0, -1))
+    bad = src.bad[used].any(axis=0)
     shadow_free = max_composite(images)
     det = depth_edges(images, epipoles, bad, params)
     edges = det.edges
-    names = [data.read_names[i] for i in flash_idx]
+    names = [src.names[i] for i in flash_idx]
 
     out_images: dict[str, np.ndarray] = {"shadow_free": shadow_free, "depth_edges": edges.astype(np.float32)}
     if det.ratios is not None:
@@ -448,6 +512,7 @@ def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
         "epipoles_px": {n: {"at_infinity": not e.finite, ("direction" if not e.finite else "xy"): list(e.xy)}
                         for n, e in zip(names, epipoles)},
         "saturated_px": int(bad.sum()),
+        "coded_gates": src.demux,
         "detected_edge_px": int(edges.sum()),
     }
     png = {"shadow_free": ("shadow_free", cfg.output.png_percentile)}
@@ -456,6 +521,12 @@ def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
     if data.renderer is not None:
         truth = _truth(data, params, groups, ambient is None)
         metrics.update(_scores(data, params, edges, shadow_free, truth))
+        metrics["per_light"] = _per_light(images, truth["flash"], names, data.moving_mask)
+        normals, n_metrics = _normals(data, params, images, groups, truth)
+        metrics["normals"] = n_metrics
+        out_images["normals"] = (0.5 * (normals + 1.0) * (np.linalg.norm(normals, axis=-1, keepdims=True) > 0))
+        out_images["normals_truth"] = 0.5 * (truth["normals"] + 1.0)
+        png["normals"] = ("normals", None)
         out_images.update({"shadow_free_truth": truth["shadow_free"], "depth_edges_truth": truth["edges"].astype(np.float32),
                            "depth_truth_z": truth["z_m"].astype(np.float32),
                            "edges_overlay": edges_overlay(shadow_free, edges, truth["edges"], params.tolerance_px)})
@@ -467,6 +538,8 @@ def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
         s = metrics["shadow_free"]
         summary.append(f"shadow-free: relMSE {s['rel_mse']:.4g}, residual shadow "
                        f"{100 * s.get('residual_shadow_fraction', 0.0):.2f}% of shadowed pixels")
+        summary.append(f"per-light images: NRMSE {metrics['per_light']['mean_nrmse']:.4g} (mean); photometric-stereo "
+                       f"normals: median error {fmt(metrics['normals'].get('median_deg'))} deg")
     else:
         out_images["edges_overlay"] = edges_overlay(shadow_free, edges, None, params.tolerance_px)
     png["depth_edges"] = ("edges_overlay", None)
@@ -494,7 +567,51 @@ def _truth(data: CaptureData, params: MultiFlashParams, groups: list[str], with_
         z = depth_mid.z_m if t == t_mid else render_depth(renderer, t).z_m
         edges |= depth_discontinuities(z, params.truth_depth_jump)
     return {"t_s": t_mid, "times_s": times, "flash": flash, "shadow_free": max_composite(flash), "edges": edges,
-            "z_m": depth_mid.z_m, "spp": spp}
+            "z_m": depth_mid.z_m, "spp": spp, "normals": render_normals(renderer, t_mid),
+            "with_ambient": with_ambient and bool(always_on)}
+
+
+def _per_light(images: np.ndarray, truth: np.ndarray, names: list[str], moving: np.ndarray) -> dict:
+    """Normalised RMS error (:func:`~mbcapture.metrics.nrmse`) of each flash image against its
+    noise-free truth, over the image and the moving region (the relative MSE would be ruled by the
+    shadows' near-zero truth)."""
+    out = {n: nrmse(img, t) for n, img, t in zip(names, images, truth)}
+    res = {"nrmse": out, "mean_nrmse": float(np.mean(list(out.values())))}
+    if moving.any():
+        res["mean_nrmse_moving"] = float(np.mean([nrmse(img, t, mask=moving[..., None]) for img, t in zip(images, truth)]))
+    return res
+
+
+def _normals(data: CaptureData, params: MultiFlashParams, images: np.ndarray, groups: list[str],
+             truth: dict) -> tuple[np.ndarray, dict]:
+    """Photometric-stereo normals of the flash images (:func:`~mbcapture.reconstruct.photometric.near_light_normals`)
+    at the true depth, and their angular error against the normal AOV where every pixel of the 3x3
+    neighbourhood is a surface off the true depth edges."""
+    from scipy.ndimage import binary_dilation
+
+    directions = data.scene.extra.get("flash_directions")
+    if not directions or any(g not in directions for g in groups):
+        return np.zeros(images.shape[1:3] + (3,)), {"note": f"scene {data.scene.name!r} gives no flash_directions"}
+    positions = data.scene.extra["flash_positions_m"]
+    lum = luminance(np.maximum(images, 0.0))
+    note = ("ambient light kept in the flash images (no ambient read): it biases the normals" if truth["with_ambient"]
+            else "flash images free of ambient light (subtracted, or none in the scene)")
+    pts = points_from_depth(data.scene.camera, truth["z_m"])
+    n, ok = near_light_normals(lum, pts, np.array([positions[g] for g in groups]),
+                               np.array([directions[g] for g in groups]), shadow_ratio=params.normals_shadow_ratio)
+    tn = truth["normals"]
+    judged = ok & ~binary_dilation(truth["edges"] | ~np.isfinite(truth["z_m"]), np.ones((3, 3), bool))
+    judged &= np.linalg.norm(tn, axis=-1) > 0.5
+    err = angular_error_deg(n, tn)
+    out: dict = {"method": "near-light Lambertian photometric stereo at the true depth (3+ unshadowed lights)",
+                 "note": note, "solved_px": int(ok.sum()), "judged_px": int(judged.sum())}
+    if judged.any():
+        e = err[judged]
+        out.update({"median_deg": float(np.median(e)), "mean_deg": float(e.mean()), "p90_deg": float(np.percentile(e, 90))})
+        mov = judged & data.moving_mask
+        if mov.any():
+            out["median_deg_moving"] = float(np.median(err[mov]))
+    return n, out
 
 
 def _scores(data: CaptureData, params: MultiFlashParams, edges: np.ndarray, shadow_free: np.ndarray, truth: dict) -> dict:

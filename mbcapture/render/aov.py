@@ -1,4 +1,4 @@
-"""Ground-truth geometry images from Mitsuba's ``aov`` integrator: depth at pixel centres.
+"""Ground-truth geometry images from Mitsuba's ``aov`` integrator: depth and normals at pixel centres.
 
 Used by applications for truths that radiance cannot give (depth edges, mattes). Each render
 is one sample per pixel at the pixel's centre (a ``stratified`` sampler without jitter and a
@@ -54,21 +54,17 @@ def _centre_sensor(renderer):
     })
 
 
-def render_depth(renderer, t_s: float) -> DepthImage:
-    """Depth through every pixel's centre of ``renderer``'s scene at scene time ``t_s`` (s).
-
-    Moves the scene with ``renderer.set_time(t_s)`` (no kernel recompile), then renders
-    ``renderer.mitsuba_scene`` with ``aov`` (``depth``) from a sensor identical to the
-    renderer's camera but sampling pixel centres.
-    """
+def _centre_aov(renderer, t_s: float, aovs: str, kind: str, channels: "int | slice") -> np.ndarray:
+    """The ``aov`` integrator's channels ``aovs`` (the film's ``channels``) through every pixel's
+    centre of ``renderer``'s scene at scene time ``t_s`` (cached by the renderer's cache under ``kind``)."""
     mi = renderer.mitsuba
 
     def make() -> np.ndarray:
         renderer.set_time(t_s)
         kernels = renderer.__dict__.setdefault("_aov_cache", {})
-        key = (renderer.width, renderer.height)
+        key = (renderer.width, renderer.height, aovs)
         if key not in kernels:
-            kernels[key] = (_centre_sensor(renderer), mi.load_dict({"type": "aov", "aovs": "dd.y:depth"}))
+            kernels[key] = (_centre_sensor(renderer), mi.load_dict({"type": "aov", "aovs": aovs}))
         sensor, integrator = kernels[key]
         model = renderer.scene_model
         if model.camera_motion is not None:  # the centre sensor follows the handheld camera too
@@ -80,11 +76,26 @@ def render_depth(renderer, t_s: float) -> DepthImage:
             params["to_world"] = tf
             params.update()
         return np.asarray(mi.render(renderer.mitsuba_scene, sensor=sensor, integrator=integrator, spp=1, seed=0),
-                          dtype=np.float32)[..., -1]
+                          dtype=np.float32)[..., channels]
 
     # the renderer's cache (if any) keeps it: the key holds the scene, its pose at t_s and this kind
-    img = np.asarray(renderer.cached("depth_aov_centre", t_s, {}, make), dtype=np.float64)[..., None]
-    t = img[..., -1]
+    return np.asarray(renderer.cached(kind, t_s, {}, make), dtype=np.float64)
+
+
+def render_normals(renderer, t_s: float) -> np.ndarray:
+    """(H, W, 3) world-space unit shading normals through every pixel's centre at scene time ``t_s``;
+    zero where the centre ray hits nothing."""
+    return _centre_aov(renderer, t_s, "nn:sh_normal", "normal_aov_centre", np.s_[-3:])
+
+
+def render_depth(renderer, t_s: float) -> DepthImage:
+    """Depth through every pixel's centre of ``renderer``'s scene at scene time ``t_s`` (s).
+
+    Moves the scene with ``renderer.set_time(t_s)`` (no kernel recompile), then renders
+    ``renderer.mitsuba_scene`` with ``aov`` (``depth``) from a sensor identical to the
+    renderer's camera but sampling pixel centres.
+    """
+    t = _centre_aov(renderer, t_s, "dd.y:depth", "depth_aov_centre", np.s_[-1])
     cos = pixel_cosines(renderer.scene_model.camera, renderer.width, renderer.height)
     hit = t > 0
     distance = np.where(hit, t + NEAR_CLIP_M / cos, np.inf)

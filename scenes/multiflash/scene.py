@@ -22,7 +22,8 @@ Emitter groups (output order):
 ``flash_right``    ... right of the lens (image right, world +x)
 
 The four flash groups are switchable; ``extra["flash_positions_m"]`` gives each LED's centre
-(world, m) so that an application can find its epipole. Radiance scale at the default factors:
+(world, m) so that an application can find its epipole, ``extra["flash_directions"]`` the unit
+direction each faces (photometric stereo's emitter cosine). Radiance scale at the default factors:
 the wall under one LED about 1.1 W m^-2 sr^-1, under the ambient light about 0.1.
 
 Motion: the sliding box's centre is at x(t) = ``slide_amplitude_m`` sin(2 pi f t) (f =
@@ -84,6 +85,16 @@ def led_positions(p: Params) -> dict[str, tuple[float, float, float]]:
     """World centre of each LED (m): in the lens plane, ``led_offset_m`` from the lens centre."""
     o = _camera(p).origin
     return {g: (o[0] + p.led_offset_m * dx, o[1] + p.led_offset_m * dy, o[2]) for g, (dx, dy) in LED_DIRECTIONS.items()}
+
+
+def led_directions(p: Params) -> dict[str, tuple[float, float, float]]:
+    """The unit direction each LED faces (world): towards the camera's target, the wall's centre."""
+    target = np.asarray(_camera(p).target, float)
+    out = {}
+    for g, pos in led_positions(p).items():
+        d = target - np.asarray(pos, float)
+        out[g] = tuple(float(v) for v in d / np.linalg.norm(d))
+    return out
 
 
 def _static_shapes(p: Params) -> list[Shape]:
@@ -152,5 +163,5 @@ def make(params: Params) -> SceneModel:
         params=params,
         motion_points=motion_points if A > 0 else None,
         default_film=(640, 512),
-        extra={"flash_positions_m": led_positions(params)},
+        extra={"flash_positions_m": led_positions(params), "flash_directions": led_directions(params)},
     )

@@ -1,0 +1,112 @@
+"""Demultiplexing coded per-pixel reads into full-resolution sub-frame images.
+
+A coded two-bucket sensor (Wei et al., ECCV 2018) gives every pixel p a few reads m(p) (R), each
+a known 0/1 combination of the S sub-frame images x(p): m(p) = A(p) x(p), A(p) (R, S) from the
+pixel's gate code (:meth:`mbcapture.gatecode.GateCode.measurement`). One pixel's reads cannot
+determine S > R unknowns; neighbouring pixels carry other codes, so a neighbourhood can.
+
+:func:`demultiplex` solves, at every pixel, the weighted least-squares problem over its
+neighbourhood, assuming each sub-frame image locally constant:
+
+    x(p) = argmin_x  sum_q w(q - p) || m(q) - A(q) x ||^2,   w a separable tent window
+
+through its normal equations N(p) x = b(p), N = sum w A^T A (S x S), b = sum w A^T m: S(S+1)/2 + S
+filtered product images and one batched S x S solve per pixel. For a tiled code this is the
+least-squares counterpart of the C2B paper's "bucket demosaicing" (interpolate each code
+position's samples to full resolution, then solve per pixel): the tent of half-width equal to
+the tile's period interpolates each position's lattice bilinearly, and here the interpolation
+and the solve are one weighted fit. It works as well for random codes, whose tile is the film.
+Samples marked bad (a saturated read) get weight zero. Like any demosaicing it assumes the
+images smooth over the window, so edges blur over about the tile's size.
+
+Written by hand: no library demultiplexes per-pixel coded reads; the filtering is OpenCV's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Pixels whose normal equations are worse conditioned than this carry no estimate.
+MAX_CONDITION = 1e6
+
+
+@dataclass(frozen=True)
+class Demultiplexed:
+    """images (S, H, W, C) float64 sub-frame images (units of the reads); valid (H, W) bool where
+    the neighbourhood's codes determine every sub-frame; condition (H, W) the normal equations'
+    condition number; variance (S, H, W) each estimate's variance for independent reads of unit
+    variance (times the reads' noise variance: the estimate's; inf where not valid); noise_gain (S,)
+    its median over the valid pixels."""
+
+    images: np.ndarray
+    valid: np.ndarray
+    condition: np.ndarray
+    variance: np.ndarray
+    noise_gain: np.ndarray
+
+
+def tent(radius: int) -> np.ndarray:
+    """The normalised 1D tent of half-width ``radius`` (weights (radius - |d|) / radius, |d| < radius)."""
+    d = np.arange(-radius + 1, radius)
+    w = (radius - np.abs(d)).astype(np.float64)
+    return w / w.sum()
+
+
+def _filter(img: np.ndarray, ky: np.ndarray, kx: np.ndarray) -> np.ndarray:
+    import cv2
+
+    return cv2.sepFilter2D(np.ascontiguousarray(img, dtype=np.float64), cv2.CV_64F, kx, ky,
+                           borderType=cv2.BORDER_REFLECT_101)
+
+
+def code_rank(A: np.ndarray) -> int:
+    """The rank of the stacked measurements of every distinct pixel code in ``A`` (R, S, H, W): the
+    most sub-frames any neighbourhood of this code could separate."""
+    R, S = A.shape[:2]
+    rows = np.unique(A.reshape(R, S, -1).transpose(2, 0, 1).reshape(-1, R * S), axis=0).reshape(-1, S)
+    return int(np.linalg.matrix_rank(rows))
+
+
+def demultiplex(reads: np.ndarray, A: np.ndarray, radius: tuple[int, int], bad: np.ndarray | None = None) -> Demultiplexed:
+    """Sub-frame images from coded reads.
+
+    reads   (R, H, W, C) each pixel's reads (electrons, or any linear unit)
+    A       (R, S, H, W) 0/1: read r of pixel p holds sub-frame s
+    radius  (ry, rx) half-widths of the tent window, px (a tiled code: its tile's height and width)
+    bad     (R, H, W) bool: samples to leave out (saturated), or None
+    """
+    reads = np.asarray(reads, np.float64)
+    R, H, W, C = reads.shape
+    S = A.shape[1]
+    if A.shape != (R, S, H, W):
+        raise ValueError(f"A must be (reads={R}, sub-frames, {H}, {W}), got {A.shape}")
+    w = np.ones((R, H, W)) if bad is None else (~np.asarray(bad, bool)).astype(np.float64)
+    Aw = A * w[:, None]
+    ky, kx = tent(max(1, radius[0])), tent(max(1, radius[1]))
+    N = np.empty((H, W, S, S))
+    N2 = np.empty((H, W, S, S))  # the same with squared weights: the fit's noise
+    for i in range(S):
+        for j in range(i, S):
+            prod = (Aw[:, i] * A[:, j]).sum(axis=0)
+            N[..., i, j] = N[..., j, i] = _filter(prod, ky, kx)
+            N2[..., i, j] = N2[..., j, i] = _filter(prod, ky ** 2, kx ** 2)
+    b = np.empty((H, W, S, C))
+    for i in range(S):
+        for c in range(C):
+            b[..., i, c] = _filter((Aw[:, i] * reads[..., c]).sum(axis=0), ky, kx)
+    ev = np.linalg.eigvalsh(N)  # symmetric, batched: the condition number per pixel
+    condition = np.where(ev[..., 0] > 0, ev[..., -1] / np.maximum(ev[..., 0], 1e-300), np.inf)
+    valid = condition < MAX_CONDITION
+    x = np.zeros((H, W, S, C))
+    variance = np.full((H, W, S), np.inf)
+    gain = np.full(S, np.inf)
+    if valid.any():
+        inv = np.linalg.inv(N[valid])
+        x[valid] = inv @ b[valid]
+        # the weighted fit's variance for unit-variance independent reads: N^-1 N2 N^-1
+        variance[valid] = np.diagonal(inv @ N2[valid] @ inv, axis1=-2, axis2=-1)
+        gain = np.median(variance[valid], axis=0)
+    return Demultiplexed(images=np.moveaxis(x, 2, 0), valid=valid, condition=condition,
+                         variance=np.moveaxis(variance, 2, 0), noise_gain=gain)
