@@ -117,7 +117,7 @@ def timeline_png(tl: Timeline) -> bytes:
             for gi, g in enumerate(groups):
                 draw_timeline(ax, tl, y - 1 - gi, unit, "", height=0.35, until_tick=until_tick, background="#f2f2f2",
                               colour=lambda s, g=g: group_colour if g in s.groups_on else None)
-        labels = {y: "frames" if tl.sequential else "buckets"}
+        labels = {y: "frames" if tl.sequential else ("sub-frames" if tl.code is not None else "buckets")}
         labels.update({y - 1 - gi: f"{g} on" for gi, g in enumerate(groups)})
         ax.set_yticks(list(labels), list(labels.values()), fontsize=8)
 
@@ -149,14 +149,15 @@ def timeline_png(tl: Timeline) -> bytes:
             draw_timeline(ax, tl, y_top - 1 - gi, unit_d, "", height=0.35, until_tick=until, background="#f2f2f2",
                           colour=lambda s, g=g: group_colour if g in s.groups_on else None)
         ax.set_yticks([y_top - k for k in range(1 + len(groups))],
-                      ["frames" if tl.sequential else "buckets", *[f"{g} on" for g in groups]], fontsize=8)
+                      ["frames" if tl.sequential else ("sub-frames" if tl.code is not None else "buckets"),
+                       *[f"{g} on" for g in groups]], fontsize=8)
         ax.set_xlim(0, shown_s / unit_d)
         ax.set_ylim(y_top - len(groups) - 0.7, y_top + 0.7)
         ax.set_xlabel(f"time ({uname_d})")
         ax.set_title(f"the first {periods} of {seg.repeats} periods", fontsize=9)
     used = sorted({s.bucket for seg in tl.segments for s in seg.slots if s.bucket >= 0})
-    handles = [Patch(color=BUCKET_COLOURS[b % len(BUCKET_COLOURS)], label=f"{'frame' if tl.sequential else 'bucket'} {b + 1}")
-               for b in used]
+    kind = "frame" if tl.sequential else ("sub-frame" if tl.code is not None else "bucket")
+    handles = [Patch(color=BUCKET_COLOURS[b % len(BUCKET_COLOURS)], label=f"{kind} {b + 1}") for b in used]
     handles.append(Patch(color="#dddddd", label="no bucket collects (drain, readout)"))
     if groups:
         handles.append(Patch(color=group_colour, label="switchable group on"))
@@ -164,6 +165,35 @@ def timeline_png(tl: Timeline) -> bytes:
     fig.legend(handles=handles, loc="lower center", ncol=ncol, fontsize=7, frameon=False)
     set_margins(fig, left_in=1.45, right_in=0.15, bottom_in=0.7 + 0.2 * -(-len(handles) // ncol), top_in=0.3,
              hspace_in=0.75)
+    return png_bytes(fig)
+
+
+def gate_code_png(code, names: list[str], size_px: int = 12) -> bytes:
+    """One period of a per-pixel gate code: for each sub-frame, which bucket every pixel of a
+    ``size_px`` square (the film's top-left corner) sends it to (bucket colours; drain grey)."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Patch, Rectangle
+
+    full = code.full(size_px, size_px)
+    S, K = code.n_subframes, code.n_buckets
+    cmap = ListedColormap(["#bbbbbb", *[BUCKET_COLOURS[k % len(BUCKET_COLOURS)] for k in range(K)]])
+    fig = Figure(figsize=(1.7 * S + 0.4, 2.6))
+    axes = fig.subplots(1, S, squeeze=False)[0]
+    h, w = code.tile_shape
+    for s, ax in enumerate(axes):
+        ax.imshow(full[s] + 1, cmap=cmap, vmin=0, vmax=K, interpolation="nearest")
+        if h <= size_px and w <= size_px:  # the tile's outline
+            ax.add_patch(Rectangle((-0.5, -0.5), w, h, fill=False, edgecolor="black", lw=1.5))
+        ax.set_title(f"sub-frame {s + 1}: {names[s]}" if s < len(names) else f"sub-frame {s + 1}", fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    handles = [Patch(color=BUCKET_COLOURS[k % len(BUCKET_COLOURS)], label=f"bucket {k + 1}") for k in range(K)]
+    if (code.tile < 0).any():
+        handles.append(Patch(color="#bbbbbb", label="drain"))
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=7, frameon=False)
+    fig.suptitle(f"per-pixel gate code '{code.family}': {size_px} x {size_px} px, tile {h} x {w} outlined", fontsize=9)
+    set_margins(fig, left_in=0.1, right_in=0.1, bottom_in=0.45, top_in=0.45, hspace_in=0.2)
     return png_bytes(fig)
 
 

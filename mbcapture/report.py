@@ -25,7 +25,14 @@ from .budget import noise_verdict
 from .htmlparts import CSS, esc, figure, fmt, table
 from .metrics import flat_items, luminance
 from .optics import diffraction_otf
-from .plots import colour_map, histograms_png, png8, summed_label, timeline_png
+from .plots import (
+    colour_map,
+    gate_code_png,
+    histograms_png,
+    png8,
+    summed_label,
+    timeline_png,
+)
 
 if TYPE_CHECKING:
     from .capture import CaptureResult
@@ -225,6 +232,9 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
     sections.append("<h2 id='schedule'>Gate schedule</h2>" + figure(
         "report_timeline.png", "Which bucket collects the photodiode's charge in each slot, which switchable "
         "emitter groups (flash, LEDs) are on, and each read's span and centroid.", plot=True))
+    # ---- a coded capture's per-pixel gate code
+    if tl.code is not None and not tl.code.identity:
+        sections.append(gate_code_section(st, result))
     # ---- reads
     common_white = scales.get("read_common_scale_white_dn")
     own = scales.get("read_own_scale_white_dn", {})
@@ -300,6 +310,37 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
             f"<meta name='viewport' content='width=device-width, initial-scale=1'><style>{CSS}</style></head><body>"
             f"<h1>{esc(title)}</h1><p class='muted'>{nav}</p>" + "".join(sections) + "</body></html>\n")
     st.write_bytes("report.html", page.encode("utf-8"))
+
+
+def subframe_names(tl) -> list[str]:
+    """Each sub-frame of a coded timeline named by the switchable groups lit in it ('dark': none)."""
+    out = []
+    for c in range(tl.n_channels):
+        groups = sorted({g for seg in tl.segments for sl in seg.slots if sl.bucket == c for g in sl.groups_on})
+        out.append(" + ".join(groups) if groups else "dark")
+    return out
+
+
+def gate_code_section(st: "Staging", result: "CaptureResult") -> str:
+    """The report.html section of a coded capture: one period of its per-pixel patterns and how its
+    reads were demultiplexed (the application's ``coded_gates`` metrics, when it reports them)."""
+    tl = result.timeline
+    code = tl.code
+    st.write_bytes("gate_code.png", gate_code_png(code, subframe_names(tl)))
+    rows = [["family", code.family], ["sub-frames", code.n_subframes], ["buckets", code.n_buckets],
+            ["tile", f"{code.tile_shape[0]} x {code.tile_shape[1]} px"],
+            ["distinct pixel codes", len(code.vectors()[0])]]
+    demux = (result.report.get("metrics") or {}).get("coded_gates") or {}
+    for key in ("method", "window_half_width_px", "noise_gain", "undetermined_px"):
+        if key in demux:
+            rows.append([key.replace("_", " "), fmt(demux[key]) if not isinstance(demux[key], (dict, list))
+                         else ", ".join(f"{k}: {fmt(v)}" for k, v in demux[key].items()) if isinstance(demux[key], dict)
+                         else " x ".join(str(v) for v in demux[key])])
+    return ("<h2 id='gate-code'>Per-pixel gate code</h2><p>Every pixel sends each sub-frame of the schedule to a bucket "
+            "of its own choosing (capture.gate_code); the reads are demultiplexed into one image per sub-frame. "
+            "Noise gain: each sub-frame image's variance per unit variance of a read.</p>"
+            + figure("gate_code.png", "One period of the per-pixel patterns: the bucket each pixel of the film's corner "
+                     "sends each sub-frame to.", plot=True) + table(rows))
 
 
 def video_section_html(result) -> str:

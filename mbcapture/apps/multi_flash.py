@@ -58,6 +58,19 @@ Ground truth and metrics
     mid-time (plus the ambient group when it is not subtracted). Residual shadow: over pixels
     shadowed in some truth flash image (ratio below ``app.shadow_ratio``), the fraction where the
     shadow-free image is below half the truth, and the mean darkening max(0, 1 - I/I_truth).
+    ``per_light``: each flash image's normalised RMS error (RMS error / mean truth) against its
+    noise-free truth (``mean_nrmse``, and ``mean_nrmse_moving`` over the moving region).
+    ``normals``: photometric-stereo normals from the flash images (near-light Lambertian fit at the
+    true depth, :mod:`mbcapture.reconstruct.photometric`), their angular error against the normal
+    AOV over pixels whose 3x3 neighbourhood is surface off the true depth edges (``median_deg``,
+    ``mean_deg``, ``p90_deg``, ``median_deg_moving``).
+
+Coded captures (``capture.gate_code``, docs/coded_gates.md)
+    With per-pixel gates the reads ``B1``, ``B2`` hold each pixel's own mix of the sub-frames: the
+    sub-frame images are demultiplexed first (:func:`mbcapture.reconstruct.demultiplex.demultiplex`,
+    local least squares over a tent window the size of the code's tile, ``app.demux_radius_px``)
+    and take the place of the reads; pixels whose window holds a saturated read are left out.
+    ``coded_gates`` in the metrics says how (family, tile, window, per-sub-frame noise gain).
 """
 
 from __future__ import annotations
