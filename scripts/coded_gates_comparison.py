@@ -86,7 +86,7 @@ def main() -> None:
     lines = [f"Multi-flash scene at {w}x{h}, sliding box; each capture's samples from its noise budget "
              f"(`python scripts/coded_gates_comparison.py --size {args.size}`).", "",
              "| capture | per-light NRMSE (all / moving) | depth-edge F1 (all / moving) | shadow-free relMSE "
-             "| residual shadow | normals median error, deg (all / moving) | saturated px | samples per pixel |",
+             "| residual shadow | normals median error, deg (all / moving) | px without a value (saturated; coded: or undetermined) | samples per pixel |",
              "|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
     for name, path, sets in CAPTURES:

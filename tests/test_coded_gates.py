@@ -11,7 +11,12 @@ import pytest
 from mbcapture import load_config, protocols
 from mbcapture.errors import ConfigError
 from mbcapture.gatecode import DRAIN, GateCode, default_tile, make_code
-from mbcapture.reconstruct.demultiplex import code_rank, demultiplex, tent
+from mbcapture.reconstruct.demultiplex import (
+    code_rank,
+    demultiplex,
+    demultiplex_guided,
+    tent,
+)
 from mbcapture.reconstruct.photometric import angular_error_deg, near_light_normals
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -176,6 +181,26 @@ def test_demultiplexing_variance_matches_monte_carlo():
     np.testing.assert_allclose(var, d.variance[:, 6:8, 6:8], rtol=5 * np.sqrt(2 / (n - 1)))
     assert np.ptp(d.variance[:, 6:8, 6:8]) > 0.2 * d.variance.mean()  # it does depend on the position
     np.testing.assert_allclose(d.noise_gain, np.median(d.variance.reshape(S, -1), axis=1))
+
+
+def test_guided_demultiplexing_is_the_plain_fit_with_flat_weights_and_keeps_an_edge():
+    S, H, W = 5, 32, 40
+    code = make_code("hadamard", S, 2, width=W, height=H)
+    A = code.measurement([(0,), (1,)], H, W)
+    rng = np.random.default_rng(5)
+    x = rng.uniform(100, 1000, size=(S, H, W, 3))
+    plain = demultiplex(code.route(x), A, code.tile_shape)
+    flat = demultiplex_guided(code.route(x), A, code.tile_shape, sigma=1e9)  # every weight exp(0) = 1
+    np.testing.assert_allclose(flat.images, plain.images, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(flat.variance, plain.variance, rtol=1e-9)
+    # a vertical edge where every sub-frame image doubles: the plain fit mixes both sides, the guided one not
+    step = np.where(np.arange(W) < 20, 1.0, 2.0)[None, None, :, None] * np.array([300.0, 200, 500, 400, 100])[:, None, None, None]
+    step = np.broadcast_to(step, (S, H, W, 1)).copy()
+    reads = code.route(step)
+    cols = slice(17, 23)  # the columns the 3 x 3 tile's window straddles
+    err_plain = np.abs(demultiplex(reads, A, code.tile_shape).images - step)[:, 4:-4, cols].max()
+    err_guided = np.abs(demultiplex_guided(reads, A, code.tile_shape).images - step)[:, 4:-4, cols].max()
+    assert err_plain > 50 and err_guided < 1e-4 * step.max()  # the far side weighs exp(-50); the rest is rounding
 
 
 def test_a_uniform_two_bucket_code_cannot_separate_five_sub_frames():

@@ -67,8 +67,9 @@ Ground truth and metrics
 
 Coded captures (``capture.gate_code``, docs/coded_gates.md)
     With per-pixel gates the reads ``B1``, ``B2`` hold each pixel's own mix of the sub-frames: the
-    sub-frame images are demultiplexed first (:func:`mbcapture.reconstruct.demultiplex.demultiplex`,
-    local least squares over a tent window the size of the code's tile, ``app.demux_radius_px``)
+    sub-frame images are demultiplexed first (:mod:`mbcapture.reconstruct.demultiplex`: local least
+    squares over a tent window the size of the code's tile, ``app.demux_radius_px``; by default
+    edge-aware, ``app.demux_method: guided``, neighbours weighted by how alike their total light is)
     and take the place of the reads; pixels whose window holds a saturated read are left out.
     ``coded_gates`` in the metrics says how (family, tile, window, per-sub-frame noise gain).
 """
@@ -86,7 +87,7 @@ from .. import protocols
 from ..errors import ConfigError
 from ..metrics import luminance, nrmse, relative_mse
 from ..projective import points_from_depth
-from ..reconstruct.demultiplex import code_rank, demultiplex
+from ..reconstruct.demultiplex import code_rank, demultiplex, demultiplex_guided
 from ..reconstruct.photometric import angular_error_deg, near_light_normals
 from ..render.aov import render_depth, render_normals
 from ..timeline import ReadEvent, SlotSeconds, Timeline, exact
@@ -154,6 +155,12 @@ class MultiFlashParams(BaseModel):
     demux_radius_px: int = Field(0, ge=0, le=16, description="Coded captures (capture.gate_code): half-width of the tent "
                                  "window over which the per-light images are demultiplexed, px (0: the code's tile height "
                                  "and width; a random code: 2).")
+    demux_method: Literal["lsq", "guided"] = Field("guided", description="Coded captures: 'lsq' (least squares over "
+                                                   "a tent window) or 'guided' (the same with edge-aware weights: "
+                                                   "neighbours whose total light differs are left out).")
+    demux_guide_sigma: float = Field(0.1, gt=0.0, le=10.0, description="Coded captures, demux_method 'guided': the "
+                                     "relative difference of two pixels' total light at which a neighbour's weight "
+                                     "falls to exp(-1/2).")
     normals_shadow_ratio: float = Field(0.2, gt=0.0, lt=1.0, description="Photometric-stereo normals: a light whose "
                                         "image is below this fraction of the brightest at a pixel is left out there (shadow).")
 
@@ -439,7 +446,9 @@ def _sources(data: CaptureData, params: MultiFlashParams) -> Sources:
         radius = (params.demux_radius_px, params.demux_radius_px)
     else:
         radius = (2, 2) if code.family == "random" else code.tile_shape
-    d = demultiplex(data.reads_e(), A, radius, bad=data.saturated.any(axis=-1))
+    sat_samples = data.saturated.any(axis=-1)
+    d = (demultiplex(data.reads_e(), A, radius, bad=sat_samples) if params.demux_method == "lsq" else
+         demultiplex_guided(data.reads_e(), A, radius, params.demux_guide_sigma, bad=sat_samples))
     from scipy.ndimage import binary_dilation
 
     sat = data.saturated.any(axis=(0, -1))
@@ -452,7 +461,10 @@ def _sources(data: CaptureData, params: MultiFlashParams) -> Sources:
     names = [next(iter(g)).removeprefix("flash_") if len(g) == 1 else (AMBIENT_READ if not g else f"subframe{c + 1}")
              for c, g in enumerate(groups)]
     info = {"family": code.family, "tile": list(code.tile_shape), "subframes": code.n_subframes,
-            "buckets": code.n_buckets, "window_half_width_px": list(radius), "method": "local weighted least squares",
+            "buckets": code.n_buckets, "window_half_width_px": list(radius),
+            "method": "local weighted least squares" + (", edge-aware (guided by the total light, sigma "
+                                                        f"{params.demux_guide_sigma:g})" if params.demux_method == "guided"
+                                                        else ""),
             "noise_gain": dict(zip(names, [round(float(g), 4) for g in d.noise_gain])),
             "undetermined_px": int((~d.valid).sum())}
     return Sources(names, groups, d.images, np.asarray(exposure), bad, info)

@@ -61,6 +61,7 @@ def coded_gates(ctx: FigureContext) -> FigureOutput:
                f"{code.tile_shape[0]}x{code.tile_shape[1]}) at {W}x{H}: top, one period of the per-pixel patterns; "
                "bottom, a crop of its two reads, whose content changes from pixel to pixel with the code, the top LED's "
                "image demultiplexed from them, the same LED's image from the 5-bucket global-gate capture "
-               "(configs/multi_flash.yaml), and the truth. Demultiplexing keeps every photon but smooths over the "
-               "code's tile: thin shadows and edges blur.")
+               "(configs/multi_flash.yaml), and the truth. Demultiplexing keeps every photon but fits over the code's "
+               "tile: the edge-aware fit (app.demux_method: guided) keeps edges of the total light, and what is left "
+               "blurs over the tile.")
     return FigureOutput(fig, {"code": code.family, "tile": list(code.tile_shape), "rows": rows}, caption, rows)

@@ -19,6 +19,13 @@ and the solve are one weighted fit. It works as well for random codes, whose til
 Samples marked bad (a saturated read) get weight zero. Like any demosaicing it assumes the
 images smooth over the window, so edges blur over about the tile's size.
 
+:func:`demultiplex_guided` makes the window edge-aware (a joint-bilateral fit): neighbour q's
+weight is also exp(-((g(q) - g(p)) / (sigma g(p)))^2 / 2), with g the pixel's total light, the sum of
+its reads, which a two-bucket pixel measures at full resolution whatever its code. The fit then
+stops at silhouettes and at shadow edges (where one of S sub-frames goes dark, the total drops by
+about 1/S), instead of mixing both sides. The weights differ per pixel, so it sums the window's
+offsets explicitly instead of filtering.
+
 Written by hand: no library demultiplexes per-pixel coded reads; the filtering is OpenCV's.
 """
 
@@ -69,6 +76,63 @@ def code_rank(A: np.ndarray) -> int:
     return int(np.linalg.matrix_rank(rows))
 
 
+def _solve(N: np.ndarray, N2: np.ndarray, b: np.ndarray) -> Demultiplexed:
+    """Per-pixel solve of the normal equations N x = b (N (H, W, S, S), b (H, W, S, C)); N2: the
+    normal matrix with squared weights (the fit's noise)."""
+    H, W, S, C = b.shape
+    ev = np.linalg.eigvalsh(N)  # symmetric, batched: the condition number per pixel
+    condition = np.where(ev[..., 0] > 0, ev[..., -1] / np.maximum(ev[..., 0], 1e-300), np.inf)
+    valid = condition < MAX_CONDITION
+    x = np.zeros((H, W, S, C))
+    variance = np.full((H, W, S), np.inf)
+    gain = np.full(S, np.inf)
+    if valid.any():
+        inv = np.linalg.inv(N[valid])
+        x[valid] = inv @ b[valid]
+        # the weighted fit's variance for unit-variance independent reads: N^-1 N2 N^-1
+        variance[valid] = np.diagonal(inv @ N2[valid] @ inv, axis1=-2, axis2=-1)
+        gain = np.median(variance[valid], axis=0)
+    return Demultiplexed(images=np.moveaxis(x, 2, 0), valid=valid, condition=condition,
+                         variance=np.moveaxis(variance, 2, 0), noise_gain=gain)
+
+
+def _products(reads: np.ndarray, A: np.ndarray, bad: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel: P (H, W, S, S) = A^T diag(w) A and Q (H, W, S, C) = A^T diag(w) m, w = 0 on bad samples."""
+    w = np.ones(A.shape[:1] + A.shape[2:]) if bad is None else (~np.asarray(bad, bool)).astype(np.float64)
+    Aw = A * w[:, None]
+    P = np.einsum("rihw,rjhw->hwij", Aw, A)
+    Q = np.einsum("rihw,rhwc->hwic", Aw, reads)
+    return P, Q
+
+
+def demultiplex_guided(reads: np.ndarray, A: np.ndarray, radius: tuple[int, int], sigma: float = 0.1,
+                       bad: np.ndarray | None = None) -> Demultiplexed:
+    """:func:`demultiplex` with edge-aware weights: the tent times a Gaussian of the relative
+    difference of the pixels' total light (the sum of their reads' channel means), width ``sigma``."""
+    reads = np.asarray(reads, np.float64)
+    R, H, W, C = reads.shape
+    S = A.shape[1]
+    P, Q = _products(reads, A, bad)
+    guide = reads.mean(axis=-1).sum(axis=0)
+    scale = sigma * np.maximum(guide, 1e-12 + 1e-6 * float(guide.max(initial=0.0)))
+    ty, tx = tent(max(1, radius[0])), tent(max(1, radius[1]))
+    ry, rx = len(ty) // 2, len(tx) // 2
+    pad = ((ry, ry), (rx, rx))
+    Pp = np.pad(P, pad + ((0, 0), (0, 0)), mode="reflect")
+    Qp = np.pad(Q, pad + ((0, 0), (0, 0)), mode="reflect")
+    gp = np.pad(guide, pad, mode="reflect")
+    N, N2 = np.zeros((H, W, S, S)), np.zeros((H, W, S, S))
+    b = np.zeros((H, W, S, C))
+    for dy in range(-ry, ry + 1):
+        for dx in range(-rx, rx + 1):
+            win = (slice(ry + dy, ry + dy + H), slice(rx + dx, rx + dx + W))
+            wq = ty[dy + ry] * tx[dx + rx] * np.exp(-0.5 * ((gp[win] - guide) / scale) ** 2)
+            N += wq[..., None, None] * Pp[win]
+            N2 += (wq ** 2)[..., None, None] * Pp[win]
+            b += wq[..., None, None] * Qp[win]
+    return _solve(N, N2, b)
+
+
 def demultiplex(reads: np.ndarray, A: np.ndarray, radius: tuple[int, int], bad: np.ndarray | None = None) -> Demultiplexed:
     """Sub-frame images from coded reads.
 
@@ -96,17 +160,4 @@ def demultiplex(reads: np.ndarray, A: np.ndarray, radius: tuple[int, int], bad: 
     for i in range(S):
         for c in range(C):
             b[..., i, c] = _filter((Aw[:, i] * reads[..., c]).sum(axis=0), ky, kx)
-    ev = np.linalg.eigvalsh(N)  # symmetric, batched: the condition number per pixel
-    condition = np.where(ev[..., 0] > 0, ev[..., -1] / np.maximum(ev[..., 0], 1e-300), np.inf)
-    valid = condition < MAX_CONDITION
-    x = np.zeros((H, W, S, C))
-    variance = np.full((H, W, S), np.inf)
-    gain = np.full(S, np.inf)
-    if valid.any():
-        inv = np.linalg.inv(N[valid])
-        x[valid] = inv @ b[valid]
-        # the weighted fit's variance for unit-variance independent reads: N^-1 N2 N^-1
-        variance[valid] = np.diagonal(inv @ N2[valid] @ inv, axis1=-2, axis2=-1)
-        gain = np.median(variance[valid], axis=0)
-    return Demultiplexed(images=np.moveaxis(x, 2, 0), valid=valid, condition=condition,
-                         variance=np.moveaxis(variance, 2, 0), noise_gain=gain)
+    return _solve(N, N2, b)
