@@ -168,26 +168,36 @@ def timeline_png(tl: Timeline) -> bytes:
     return png_bytes(fig)
 
 
+def draw_gate_code(ax, code, subframe: int, size_px: int, title: str) -> None:
+    """Which bucket every pixel of a ``size_px`` square (the film's top-left corner) sends
+    ``subframe`` to, in bucket colours (drain grey), the code's tile outlined. The report's
+    gate-code plot and the coded_gates figure draw with it."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Rectangle
+
+    K = code.n_buckets
+    cmap = ListedColormap(["#bbbbbb", *[BUCKET_COLOURS[k % len(BUCKET_COLOURS)] for k in range(K)]])
+    ax.imshow(code.full(size_px, size_px)[subframe] + 1, cmap=cmap, vmin=0, vmax=K, interpolation="nearest")
+    h, w = code.tile_shape
+    if h <= size_px and w <= size_px:
+        ax.add_patch(Rectangle((-0.5, -0.5), w, h, fill=False, edgecolor="black", lw=1.5))
+    ax.set_title(title, fontsize=8)
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
 def gate_code_png(code, names: list[str], size_px: int = 12) -> bytes:
     """One period of a per-pixel gate code: for each sub-frame, which bucket every pixel of a
     ``size_px`` square (the film's top-left corner) sends it to (bucket colours; drain grey)."""
-    from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
-    from matplotlib.patches import Patch, Rectangle
+    from matplotlib.patches import Patch
 
-    full = code.full(size_px, size_px)
     S, K = code.n_subframes, code.n_buckets
-    cmap = ListedColormap(["#bbbbbb", *[BUCKET_COLOURS[k % len(BUCKET_COLOURS)] for k in range(K)]])
     fig = Figure(figsize=(1.7 * S + 0.4, 2.6))
     axes = fig.subplots(1, S, squeeze=False)[0]
     h, w = code.tile_shape
     for s, ax in enumerate(axes):
-        ax.imshow(full[s] + 1, cmap=cmap, vmin=0, vmax=K, interpolation="nearest")
-        if h <= size_px and w <= size_px:  # the tile's outline
-            ax.add_patch(Rectangle((-0.5, -0.5), w, h, fill=False, edgecolor="black", lw=1.5))
-        ax.set_title(f"sub-frame {s + 1}: {names[s]}" if s < len(names) else f"sub-frame {s + 1}", fontsize=8)
-        ax.set_xticks([])
-        ax.set_yticks([])
+        draw_gate_code(ax, code, s, size_px, f"sub-frame {s + 1}: {names[s]}" if s < len(names) else f"sub-frame {s + 1}")
     handles = [Patch(color=BUCKET_COLOURS[k % len(BUCKET_COLOURS)], label=f"bucket {k + 1}") for k in range(K)]
     if (code.tile < 0).any():
         handles.append(Patch(color="#bbbbbb", label="drain"))

@@ -331,11 +331,9 @@ def gate_code_section(st: "Staging", result: "CaptureResult") -> str:
             ["tile", f"{code.tile_shape[0]} x {code.tile_shape[1]} px"],
             ["distinct pixel codes", len(code.vectors()[0])]]
     demux = (result.report.get("metrics") or {}).get("coded_gates") or {}
-    for key in ("method", "window_half_width_px", "noise_gain", "undetermined_px"):
-        if key in demux:
-            rows.append([key.replace("_", " "), fmt(demux[key]) if not isinstance(demux[key], (dict, list))
-                         else ", ".join(f"{k}: {fmt(v)}" for k, v in demux[key].items()) if isinstance(demux[key], dict)
-                         else " x ".join(str(v) for v in demux[key])])
+    shown = {"method": fmt, "window_half_width_px": lambda v: " x ".join(map(str, v)),
+             "noise_gain": lambda v: ", ".join(f"{k}: {fmt(g)}" for k, g in v.items()), "undetermined_px": fmt}
+    rows += [[key.replace("_", " "), show(demux[key])] for key, show in shown.items() if key in demux]
     return ("<h2 id='gate-code'>Per-pixel gate code</h2><p>Every pixel sends each sub-frame of the schedule to a bucket "
             "of its own choosing (capture.gate_code); the reads are demultiplexed into one image per sub-frame. "
             "Noise gain: each sub-frame image's variance per unit variance of a read.</p>"

@@ -290,7 +290,7 @@ class Timeline:
                     dur = n * s.ticks
                     # sum over repeats of 2*midpoint*ticks, exact integers
                     mid2 = (2 * (seg.start_tick + off) + s.ticks) * n + 2 * P * (n * (n - 1) // 2)
-                    rows.append((first, last_end, dur * w if w != 1 else dur, mid2 * s.ticks * w if w != 1 else mid2 * s.ticks))
+                    rows.append((first, last_end, dur * w, mid2 * s.ticks * w))
                 off += s.ticks
         return rows
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..metrics import luminance
-from ..plots import BUCKET_COLOURS
+from ..plots import draw_gate_code
 from ..report import subframe_names
 from . import FigureContext, FigureOutput, figure
 
@@ -15,7 +15,6 @@ from . import FigureContext, FigureOutput, figure
         "and the per-light images demultiplexed from them", "beyond the paper")
 def coded_gates(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
-    from matplotlib.colors import ListedColormap
 
     coded = ctx.capture("coded_multi_flash")
     glob = ctx.capture("multi_flash")
@@ -26,13 +25,9 @@ def coded_gates(ctx: FigureContext) -> FigureOutput:
 
     fig = plt.figure(figsize=(15, 7.2))
     grid = fig.add_gridspec(2, max(code.n_subframes, 5))
-    cmap = ListedColormap(["#bbbbbb", *BUCKET_COLOURS[:code.n_buckets]])
-    full = code.full(8, 8)
     for s in range(code.n_subframes):  # one period of the per-pixel patterns, an 8 x 8 corner
-        ax = fig.add_subplot(grid[0, s])
-        ax.imshow(full[s] + 1, cmap=cmap, vmin=0, vmax=code.n_buckets, interpolation="nearest")
-        ax.set_title(f"sub-frame {s + 1}: {names[s]}\n(red: bucket 1, blue: bucket 2)", fontsize=8)
-        ax.set_xticks([]), ax.set_yticks([])
+        draw_gate_code(fig.add_subplot(grid[0, s]), code, s, 8,
+                       f"sub-frame {s + 1}: {names[s]}\n(red: bucket 1, blue: bucket 2)")
 
     def show(ax, img, title, white):
         ax.imshow(np.clip(img[crop] / white, 0, 1) ** (1 / 2.2), interpolation="nearest")

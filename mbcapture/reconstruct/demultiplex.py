@@ -97,8 +97,12 @@ def _solve(N: np.ndarray, N2: np.ndarray, b: np.ndarray) -> Demultiplexed:
 
 
 def _products(reads: np.ndarray, A: np.ndarray, bad: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel: P (H, W, S, S) = A^T diag(w) A and Q (H, W, S, C) = A^T diag(w) m, w = 0 on bad samples."""
-    w = np.ones(A.shape[:1] + A.shape[2:]) if bad is None else (~np.asarray(bad, bool)).astype(np.float64)
+    """Per pixel: P (H, W, S, S) = A^T diag(w) A and Q (H, W, S, C) = A^T diag(w) m, w = 0 on bad
+    samples: what each pixel adds to the normal equations of a window holding it."""
+    R, H, W, C = reads.shape
+    if A.shape[0] != R or A.shape[2:] != (H, W):
+        raise ValueError(f"A must be (reads={R}, sub-frames, {H}, {W}), got {A.shape}")
+    w = np.ones((R, H, W)) if bad is None else (~np.asarray(bad, bool)).astype(np.float64)
     Aw = A * w[:, None]
     P = np.einsum("rihw,rjhw->hwij", Aw, A)
     Q = np.einsum("rihw,rhwc->hwic", Aw, reads)
@@ -110,7 +114,7 @@ def demultiplex_guided(reads: np.ndarray, A: np.ndarray, radius: tuple[int, int]
     """:func:`demultiplex` with edge-aware weights: the tent times a Gaussian of the relative
     difference of the pixels' total light (the sum of their reads' channel means), width ``sigma``."""
     reads = np.asarray(reads, np.float64)
-    R, H, W, C = reads.shape
+    H, W, C = reads.shape[1:]
     S = A.shape[1]
     P, Q = _products(reads, A, bad)
     guide = reads.mean(axis=-1).sum(axis=0)
@@ -142,22 +146,18 @@ def demultiplex(reads: np.ndarray, A: np.ndarray, radius: tuple[int, int], bad: 
     bad     (R, H, W) bool: samples to leave out (saturated), or None
     """
     reads = np.asarray(reads, np.float64)
-    R, H, W, C = reads.shape
+    H, W, C = reads.shape[1:]
     S = A.shape[1]
-    if A.shape != (R, S, H, W):
-        raise ValueError(f"A must be (reads={R}, sub-frames, {H}, {W}), got {A.shape}")
-    w = np.ones((R, H, W)) if bad is None else (~np.asarray(bad, bool)).astype(np.float64)
-    Aw = A * w[:, None]
+    P, Q = _products(reads, A, bad)
     ky, kx = tent(max(1, radius[0])), tent(max(1, radius[1]))
     N = np.empty((H, W, S, S))
     N2 = np.empty((H, W, S, S))  # the same with squared weights: the fit's noise
     for i in range(S):
         for j in range(i, S):
-            prod = (Aw[:, i] * A[:, j]).sum(axis=0)
-            N[..., i, j] = N[..., j, i] = _filter(prod, ky, kx)
-            N2[..., i, j] = N2[..., j, i] = _filter(prod, ky ** 2, kx ** 2)
+            N[..., i, j] = N[..., j, i] = _filter(P[..., i, j], ky, kx)
+            N2[..., i, j] = N2[..., j, i] = _filter(P[..., i, j], ky ** 2, kx ** 2)
     b = np.empty((H, W, S, C))
     for i in range(S):
         for c in range(C):
-            b[..., i, c] = _filter((Aw[:, i] * reads[..., c]).sum(axis=0), ky, kx)
+            b[..., i, c] = _filter(Q[..., i, c], ky, kx)
     return _solve(N, N2, b)
