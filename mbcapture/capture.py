@@ -45,7 +45,7 @@ def check_resources(cfg: CaptureConfig, out_dir: Path | None) -> resources.Resou
     """Plan the run's memory and disk and stop it, before any work, when it cannot fit
     (:func:`mbcapture.resources.check`: one line, exit 2)."""
     _, timeline, plan, _ = prepare(cfg)
-    need = resources.estimate(cfg, timeline, plan, cfg.app.resolve(cfg.capture.protocol)[0])
+    need = resources.plan_resources(cfg, timeline, plan, cfg.app.resolve(cfg.capture.protocol)[0])
     cache = render_cache(cfg.render)
     resources.check(need, cfg, out_dir, None if cache is None else cache.root)
     return need
@@ -76,7 +76,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
         return result
     own_render = rendered is None
     budget = cfg.render.spp is None  # a pilot, and adaptive sampling's second pass when it is on
-    stages = 4 + own_render * (1 + budget + (budget and cfg.render.adaptive) + (client is not None)) + (out_dir is not None)
+    stages = 4 + own_render * (1 + budget + (budget and cfg.render.adaptive)) + (out_dir is not None)
     with StageStatus(progress, stages=stages) as status:
         result = capture_in_memory(cfg, status, progress=progress, rendered=rendered, on_rendered=on_rendered,
                                    client=client)

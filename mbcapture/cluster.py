@@ -104,40 +104,45 @@ def prepare_worker(threads: dict[str, int] | None, variant: str) -> None:
 _WORKER_RENDERERS: dict[str, Renderer] = {}
 
 
-def _render_task(cfg: CaptureConfig, request: tuple[float, int, int, tuple[str, ...]],
+def _render_task(cfg: CaptureConfig, request: tuple[float, int, int, tuple[str, ...], int],
                  threads: dict[str, int]) -> np.ndarray:
-    """On a worker: the raw render of ``request`` for the capture ``cfg`` (its own renderer, built once)."""
+    """On a worker: the raw render of ``request`` (t, spp, seed, groups, render band) for the capture
+    ``cfg`` (its own renderer, built once)."""
     prepare_worker(threads, cfg.render.variant)
     key = cfg.model_dump_json()
     renderer = _WORKER_RENDERERS.get(key)
     if renderer is None:
         renderer = _WORKER_RENDERERS[key] = Renderer.from_config(
             scene_of(cfg), cfg, cache=open_cache(cfg.render.cache, cfg.render.cache_max_gb))
-    t_s, spp, seed, groups = request
-    return renderer.raw_render(t_s, spp, seed, groups)
+    t_s, spp, seed, groups, band = request
+    return renderer.raw_render(t_s, spp, seed, groups, band=band)
 
 
 # ------------------------------------------------------------------------------------ client side
 def render_on_cluster(client, cfg: CaptureConfig, plan: Plan, seed: np.random.SeedSequence, renderer: Renderer,
-                      on_done: Callable[[], None] | None = None) -> dict[str, Any]:
+                      on_done: Callable[[], None] | None = None,
+                      rows: tuple[int, int] | None = None) -> dict[str, Any]:
     """Render ``plan``'s strata (the renders :func:`mbcapture.integrate.integrate` will ask for, with
-    ``seed``) on the cluster and give them to ``renderer``. ``on_done``: called after each render
-    arrives (a progress bar). Returns what report.json keeps (``cluster``)."""
+    ``seed``) on the cluster, each render band of ``rows`` (a tile; None: the whole film) a task of
+    its own, and give them to ``renderer``. ``on_done``: called after each render arrives (a
+    progress bar). Returns what report.json keeps (``cluster``)."""
     from dask.distributed import as_completed
 
     if plan.estimator != "independent":
         return {"renders": 0, "note": f"render.estimator {plan.estimator!r}: rendered here (its strata depend on "
                                       "its base render)"}
-    requests = render_requests(plan, seed)
+    bands = renderer.band_span((0, renderer.height) if rows is None else rows)
+    requests = [(*req, b) for req in render_requests(plan, seed) for b in bands]
     hosts = topology(client)
     threads = {h: drjit_threads(c, w, w) for h, (c, w) in hosts.items()}
     start = time.perf_counter()
-    futures = {client.submit(_render_task, cfg, req, threads, pure=False, key=f"render-{i}-{req[2]}"): req
+    futures = {client.submit(_render_task, cfg, req, threads, pure=False, key=f"render-{i}-{req[2]}-{req[4]}"): req
                for i, req in enumerate(requests)}
     for future in as_completed(list(futures)):
         req = futures.pop(future)
         try:
-            renderer.give(*req, future.result())
+            t_s, spp, seed_r, groups, band = req
+            renderer.give(t_s, spp, seed_r, groups, future.result(), band=band)
         except Exception as exc:  # a worker died, or its render failed: one line, not a Dask traceback
             raise ConfigError(f"cluster render at t = {req[0]:.6g} s failed: {one_line(exc)}") from None
         future.release()

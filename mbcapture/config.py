@@ -150,6 +150,21 @@ class RenderSection(_Model):
         None, gt=0, description="Refuse, before any work, a run whose planned peak memory exceeds this many GB "
         "(mbcapture plan prints the plan); null: only the machine's free memory limits it.",
     )
+    band_rows: int | None = Field(
+        None, ge=2, le=16384, multiple_of=2,
+        description="Rows of each render band (even): every film is rendered as fixed row bands, each a crop window "
+        "with a sampler seed of its own (the first band keeps the render seed), so that tiles of whole bands hold "
+        "exactly the pixels of the untiled run. null: about one megapixel per band (1048576 / render.width rows, "
+        "even): films up to 1 Mpx (640x512 and smaller) are one band. Changing it changes the render's random "
+        "numbers, as a new seed would. camera.distortion and camera.diffraction make the film one band.",
+    )
+    tiles: int | None = Field(
+        None, ge=1,
+        description="Tiles (runs of whole render bands) in which render, accumulation and the sensor stage go "
+        "through the film, to bound memory: the result is the untiled run's, bit for bit (docs/resources.md). "
+        "null: one tile when the capture fits in memory (render.max_memory_gb, else the free memory), otherwise "
+        "the fewest that fit; more tiles than bands give one band per tile.",
+    )
     cache_max_gb: float = Field(
         20.0, gt=0, description="Size cap of the render cache in GB (10^9 bytes); beyond it the least recently used renders are removed."
     )

@@ -26,10 +26,12 @@ from __future__ import annotations
 
 from contextlib import nullcontext
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
 from .plan import Plan
+from .render.renderer import RenderRows
 from .timeline import Timeline
 
 
@@ -189,6 +191,42 @@ def integrate(
         rbar = float(np.average(r, weights=np.maximum(plan.weights_s.sum(axis=(1, 2)), 1e-300)))
         mc_diff = (parts[0] / rbar - parts[1] / (1 - rbar)) * np.sqrt(rbar * (1 - rbar))
     return Integrated(exposure=exposure, mc_diff=mc_diff, group_exposure=groups_out, temporal_diff=temporal)
+
+
+def integrate_tiles(renderer, plan: Plan, n_buckets: int, seed: np.random.SeedSequence,
+                    tiles: tuple[tuple[int, int], ...], *, per_group: bool = False, timer=None,
+                    progress: bool = False, before_tile: Callable[[tuple[int, int]], None] | None = None,
+                    ) -> Integrated:
+    """:func:`integrate` tile by tile: each tile (rows first, end; runs of whole render bands,
+    :mod:`mbcapture.render.bands`) rendered through :class:`~mbcapture.render.renderer.RenderRows`
+    and accumulated alone, so that the renders, the two halves, the pairs of strata and the
+    per-group sums are held for one tile at a time; only the results are whole-film arrays. Every
+    array is per pixel and a band renders the same pixels in a tile as in the whole film, so the
+    result is :func:`integrate`'s on the whole film, bit for bit (tests/test_tiles.py).
+    ``before_tile(rows)``: called before each tile is integrated (a cluster renders its bands then)."""
+    if len(tiles) == 1 and tuple(tiles[0]) == (0, renderer.height):
+        if before_tile is not None:
+            before_tile(tuple(tiles[0]))
+        return integrate(renderer, plan, n_buckets, seed, per_group=per_group, timer=timer, progress=progress)
+    H, W, C = renderer.height, renderer.width, len(renderer.channels)
+    out: dict[str, np.ndarray | None] = {}
+    for i, (r0, r1) in enumerate(tiles):
+        if before_tile is not None:
+            before_tile((r0, r1))
+        part = integrate(RenderRows(renderer, (r0, r1)), plan, n_buckets, seed, per_group=per_group, timer=timer,
+                         progress=progress, desc=f"render tile {i + 1}/{len(tiles)}")
+        for name in ("exposure", "mc_diff", "group_exposure", "temporal_diff"):
+            value = getattr(part, name)
+            if value is None:
+                out[name] = None
+                continue
+            if name not in out:  # (K, [G,] H, W, C): the film's rows on the axis before the last two
+                shape = list(value.shape)
+                shape[-3] = H
+                out[name] = np.empty(shape, dtype=value.dtype)
+            out[name][..., r0:r1, :, :] = value
+    return Integrated(exposure=out["exposure"], mc_diff=out["mc_diff"], group_exposure=out["group_exposure"],
+                      temporal_diff=out["temporal_diff"])
 
 
 class _Control:

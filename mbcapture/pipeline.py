@@ -26,10 +26,11 @@ from .budget import noise_verdict, render_error, resolve_spp, tail_pixels
 from .cluster import render_on_cluster
 from .config import CaptureConfig, scene_of
 from .errors import ConfigError
-from .integrate import Integrated, integrate, refine, temporal_error
+from .integrate import Integrated, integrate_tiles, refine, temporal_error
 from .plan import Plan, make_plan
 from .progress import StageStatus
 from .render import Renderer, ensure_llvm
+from .render.bands import group_bands
 from .render.cache import open_cache
 from .render.llvm import llvm_target
 from .sensor import electrons_per_render_second
@@ -151,8 +152,11 @@ def prepare(cfg: CaptureConfig) -> tuple[scenes.SceneModel, Timeline, Plan, list
     return scene, timeline, plan, seeds
 
 
-def describe(cfg: CaptureConfig, timeline: Timeline, plan: Plan) -> dict:
-    """What is captured and how it is rendered: the head of report.json and of ``mbcapture plan``."""
+def describe(cfg: CaptureConfig, timeline: Timeline, plan: Plan, need: resources.Resources | None = None) -> dict:
+    """What is captured and how it is rendered: the head of report.json and of ``mbcapture plan``
+    (``need``: the resources the run planned, else planned now)."""
+    if need is None:
+        need = resources.plan_resources(cfg, timeline, plan, cfg.app.resolve(cfg.capture.protocol)[0])
     return {
         "scene": cfg.scene.name,
         "protocol": timeline.protocol,
@@ -165,7 +169,7 @@ def describe(cfg: CaptureConfig, timeline: Timeline, plan: Plan) -> dict:
         "capture_span_s": float(timeline.seconds(timeline.end_tick - timeline.start_tick)),
         "reads": timeline.describe_reads(),
         "plan": plan.summary(timeline),
-        "resources": resources.estimate(cfg, timeline, plan, cfg.app.resolve(cfg.capture.protocol)[0]).summary(),
+        "resources": need.summary(),
     }
 
 
@@ -204,13 +208,27 @@ class Rendered:
         return self.plan
 
 
+def merge_cluster_info(infos: list[dict]) -> dict:
+    """What report.json keeps of a capture's cluster renders, one :func:`render_on_cluster` per tile."""
+    out = dict(infos[0])
+    if len(infos) > 1:
+        for key in ("renders", "seconds"):
+            if key in out:
+                out[key] = round(sum(i[key] for i in infos), 3) if key == "seconds" else sum(i[key] for i in infos)
+        out["tiles"] = len(infos)
+    return out
+
+
 def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
                 seed: np.random.SeedSequence, status: StageStatus, *, per_group: bool, timer, progress: bool,
-                ) -> tuple[Integrated, dict]:
+                tiled: bool = False) -> tuple[Integrated, dict]:
     """Adaptive sampling (render.adaptive): the pixels the first pass left over half the tail target
     (:func:`mbcapture.budget.tail_pixels`) rendered again with more samples
-    (:func:`mbcapture.integrate.refine`). Returns the refined render stage and what report.json keeps."""
-    why = ("an RGB render.variant and a lens acting per pixel (no camera.distortion, camera.diffraction)"
+    (:func:`mbcapture.integrate.refine`). Returns the refined render stage and what report.json keeps.
+    Not in a tiled run (``tiled``): its choice of pixels and their second pass are the whole film's."""
+    why = ("a film in one tile (render.tiles; the choice of pixels and their second pass are the whole film's)"
+           if tiled else
+           "an RGB render.variant and a lens acting per pixel (no camera.distortion, camera.diffraction)"
            if not renderer.renders_pixels else "render.estimator independent" if plan.estimator != "independent"
            else "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None else None)
     with status.stage("adaptive sampling"):
@@ -248,6 +266,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
     with timer("plan"), status.stage("plan"):
         scene, timeline, plan, seeds = prepare(cfg)
         app, app_params = cfg.app.resolve(cfg.capture.protocol)
+        need = resources.plan_resources(cfg, timeline, plan, app)
     W, H = cfg.render.width, cfg.render.height
     t0_s, t1_s = timeline.seconds(timeline.start_tick), timeline.seconds(timeline.end_tick)
 
@@ -255,19 +274,33 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         llvm = ensure_llvm() if cfg.render.variant.startswith("llvm") else None
         cache = render_cache(cfg.render) if renderer is None else renderer.cache
         renderer = Renderer.from_config(scene, cfg, cache=cache) if renderer is None else renderer
+    # tiles of rows (runs of whole render bands) for render, accumulation and the sensor: the same result
+    # whatever their number (mbcapture.render.bands), so the memory plan alone chooses it
+    tiles = group_bands(renderer.bands, need.tiles)
+    tile_info = {"count": len(tiles), "rows": [list(t) for t in tiles], "render_bands": len(renderer.bands)}
     if rendered is None:
         pilot = status.stage("pilot render (spp from render.noise_budget)") if cfg.render.spp is None else nullcontext()
         with timer("pilot"), pilot:
             plan = resolve_spp(plan, renderer, cfg, seeds[2])  # render.spp null: spp from render.noise_budget
+        on_cluster = None
+        if client is not None:  # each tile's renders on the workers first, then accumulated here
+            infos: list[dict] = []
+
+            def on_cluster(rows: tuple[int, int]) -> None:
+                with timer("cluster"):
+                    infos.append(render_on_cluster(client, cfg, plan, seeds[2], renderer, rows=rows))
+
+        where = " on the cluster" if client is not None else ""
+        in_tiles = f" x {len(tiles)} tiles" if len(tiles) > 1 else ""
+        with status.stage(f"render{where} ({plan.passes} passes{in_tiles})"):
+            integrated = integrate_tiles(renderer, plan, timeline.n_channels, seeds[2], tiles, per_group=app.per_group,
+                                         timer=timer, progress=progress, before_tile=on_cluster)
         if client is not None:
-            with timer("cluster"), status.stage(f"render on the cluster ({plan.passes} passes)"):
-                cluster_info = render_on_cluster(client, cfg, plan, seeds[2], renderer)
-        with status.stage(f"render ({plan.passes} passes)"):
-            integrated = integrate(renderer, plan, timeline.n_channels, seeds[2], per_group=app.per_group, timer=timer,
-                                   progress=progress)
+            cluster_info = merge_cluster_info(infos)
         if cfg.render.spp is None and cfg.render.adaptive:
             integrated, adaptive_info = refine_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
-                                                    per_group=app.per_group, timer=timer, progress=progress)
+                                                    per_group=app.per_group, timer=timer, progress=progress,
+                                                    tiled=len(tiles) > 1)
         moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
         if on_rendered is not None:
             on_rendered(Rendered(plan, integrated, moving))
@@ -284,7 +317,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         spectral = cfg.render.variant.endswith("_spectral")
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)  # (C,) e- per render unit s (spectral: film units)
         buckets_e = exposure * k_e
-        sensor_out = sense(timeline, buckets_e, cfg.sensor, sensor_seed(cfg, seeds))
+        sensor_out = sense(timeline, buckets_e, cfg.sensor, sensor_seed(cfg, seeds), tiles=tiles)
 
     with timer("reconstruct"), status.stage(f"reconstruct ({app.name})"):
         mask = moving
@@ -313,7 +346,8 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         out = app.reconstruct(data, app_params)
 
     report = {
-        **describe(cfg, timeline, plan),
+        **describe(cfg, timeline, plan, need),
+        "tiles": tile_info,
         "app": app.name,
         "render_units": "camera-weighted film value, e- m^-2 sr^-1 s^-1 before optics" if spectral else "W m^-2 sr^-1",
         "electrons_per_render_unit_second": dict(zip(renderer.channels, k_e.tolist())),  # per film channel

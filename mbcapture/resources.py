@@ -17,6 +17,13 @@ The model counts the arrays the pipeline holds, per sample of the film (row x co
 * render cache: one float32 (group, row, column, RGB) array per render (two halves per stratum,
   and the pilot's), when the cache is on.
 
+Tiles (``render.tiles``, :func:`choose_tiles`): render, accumulation and the sensor stage go
+through the film a tile of rows at a time, so their working set scales with the largest tile
+while the whole-film results stay: ``HELD_PER_BUCKET_SAMPLE`` float64 values per sample of each
+bucket (the exposures and their half-sample and temporal differences, the expected electrons,
+the reads and their truths, and what the reconstruction and the noise report make of them).
+An application's comparison captures (``App.memory_scale`` above 1) are simulated whole.
+
 The constants were fitted to the peak resident memory and the bytes written of the shipped
 configs at 320x256 and 640x512 (``python scripts/resources.py`` measures them again and prints the
 model's error per config; docs/resources.md has the table): within 20 % of the measured memory and
@@ -34,6 +41,7 @@ from .application import App
 from .config import CaptureConfig
 from .errors import ResourceProblem
 from .plan import Plan
+from .render.bands import film_bands, group_bands
 from .timeline import Timeline
 
 MB = 1 << 20
@@ -43,6 +51,9 @@ GB = 1 << 30
 BASE_MEMORY_MB = 285.0
 #: Peak float64 values per sample of each bucket (fitted: the reads add nothing measurable).
 FLOAT64_PER_BUCKET_SAMPLE = 15.8
+#: Of those, the float64 values per bucket sample a tiled capture holds for the whole film (fitted
+#: like the above: scripts/resources.py --tiles).
+HELD_PER_BUCKET_SAMPLE = 7.0
 #: Compressed / raw size of float32 EXR layers (ZIP): noise-free floats to about 3/4, integer DN to under half.
 EXR_RATIO_EXPECTED = 0.75
 EXR_RATIO_DN = 0.45
@@ -64,13 +75,17 @@ class Resources:
     memory_bytes: int
     output_bytes: int
     cache_bytes: int
+    #: tiles of rows the film goes through (render, accumulate, sensor), and the film's render bands
+    tiles: int = 1
+    bands: int = 1
 
     def summary(self) -> dict:
         return {"peak_memory_gb": round(self.memory_bytes / GB, 3), "outputs_mb": round(self.output_bytes / MB, 2),
-                "render_cache_mb": round(self.cache_bytes / MB, 2)}
+                "render_cache_mb": round(self.cache_bytes / MB, 2), "tiles": self.tiles, "render_bands": self.bands}
 
     def line(self) -> str:
-        return (f"needs about {_size(self.memory_bytes)} of memory, {_size(self.output_bytes)} for its outputs"
+        tiles = f" in {self.tiles} tiles of rows" if self.tiles > 1 else ""
+        return (f"needs about {_size(self.memory_bytes)} of memory{tiles}, {_size(self.output_bytes)} for its outputs"
                 + (f" and {_size(self.cache_bytes)} of new render-cache entries" if self.cache_bytes else ""))
 
 
@@ -78,15 +93,33 @@ def _size(n: float) -> str:
     return f"{n / GB:.3g} GB" if n >= GB else f"{n / MB:.3g} MB"
 
 
-def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> Resources:
-    """The resources of the capture ``cfg`` with its ``timeline``, render ``plan`` and application."""
+def bands_of(cfg: CaptureConfig) -> tuple[tuple[int, int], ...]:
+    """The render bands of the film of ``cfg`` (:func:`mbcapture.render.bands.film_bands`, as its renderer makes them)."""
+    whole = bool(cfg.camera.distortion) or bool(cfg.camera.diffraction)
+    return film_bands(cfg.render.width, cfg.render.height, cfg.render.band_rows, whole)
+
+
+def tile_rows(cfg: CaptureConfig, tiles: int) -> tuple[tuple[int, int], ...]:
+    """The rows (first, end) of each of ``tiles`` tiles of the film of ``cfg`` (runs of whole bands)."""
+    return group_bands(bands_of(cfg), tiles)
+
+
+def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles: int = 1) -> Resources:
+    """The resources of the capture ``cfg`` with its ``timeline``, render ``plan`` and application,
+    going through its film in ``tiles`` tiles of rows (at most one per render band)."""
     px = cfg.render.width * cfg.render.height
     samples = px * 3
     K, R = timeline.n_buckets, len(timeline.reads)
     frames = cfg.capture.frames
     # accumulated per channel; a coded capture holds its sub-frames and its routed buckets
     acc = timeline.n_channels + (K if timeline.code is not None else 0)
-    per_frame = 8.0 * samples * FLOAT64_PER_BUCKET_SAMPLE * acc * app.memory_scale
+    rows = tile_rows(cfg, tiles)
+    per_sample = FLOAT64_PER_BUCKET_SAMPLE * app.memory_scale
+    if len(rows) > 1:  # the working set follows the largest tile; comparison captures stay whole
+        share = max(b - a for a, b in rows) / cfg.render.height
+        per_sample = (HELD_PER_BUCKET_SAMPLE + (FLOAT64_PER_BUCKET_SAMPLE - HELD_PER_BUCKET_SAMPLE) * share
+                      + FLOAT64_PER_BUCKET_SAMPLE * (app.memory_scale - 1.0))
+    per_frame = 8.0 * samples * per_sample * acc
     held = 8.0 * samples * (2 * K + 2 * R) + 4.0 * px * app.output_channels  # a finished frame's arrays
     memory = (BASE_MEMORY_MB + app.libraries_mb) * MB + per_frame + (frames - 1) * held
 
@@ -100,7 +133,28 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> Re
     if cfg.render.cache != "off":
         renders = frames * (2 * plan.passes + (PILOT_RENDERS if cfg.render.spp is None else 0))
         cache = min(renders * 4.0 * px * 3 * max(len(plan.groups), 1), cfg.render.cache_max_gb * GB)
-    return Resources(int(memory), int(outputs), int(cache))
+    return Resources(int(memory), int(outputs), int(cache), tiles=len(rows), bands=len(bands_of(cfg)))
+
+
+def choose_tiles(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> int:
+    """``render.tiles`` when set (at most one per band); otherwise the fewest tiles whose estimate,
+    with :data:`MARGIN`, fits in ``render.max_memory_gb`` and in the free memory (one per band
+    when none does: :func:`check` then says so). Any choice gives the same images."""
+    n_bands = len(bands_of(cfg))
+    if cfg.render.tiles is not None:
+        return min(int(cfg.render.tiles), n_bands)
+    limit = free_memory()[0] / MARGIN
+    if cfg.render.max_memory_gb is not None:
+        limit = min(limit, cfg.render.max_memory_gb * GB)
+    for n in range(1, n_bands + 1):
+        if estimate(cfg, timeline, plan, app, n).memory_bytes <= limit:
+            return n
+    return n_bands
+
+
+def plan_resources(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> Resources:
+    """:func:`estimate` with the tiles :func:`choose_tiles` takes: what a run of ``cfg`` will need."""
+    return estimate(cfg, timeline, plan, app, choose_tiles(cfg, timeline, plan, app))
 
 
 # ----------------------------------------------------------------------------- what is free
@@ -162,16 +216,19 @@ def check(need: Resources, cfg: CaptureConfig, out_dir: Path | None, cache_root:
     """ResourceProblem (one line, exit 2) when the run cannot fit: its memory (with MARGIN, the
     estimate's error) above what is free or above ``render.max_memory_gb``; its outputs above the
     free disk of ``out_dir``; its new render-cache entries above the free disk of ``cache_root``."""
-    film = f"film {cfg.render.width}x{cfg.render.height}"
+    film = f"film {cfg.render.width}x{cfg.render.height}" + (f" in {need.tiles} tiles" if need.tiles > 1 else "")
+    fewer = ("smaller render bands (render.band_rows) or fewer outputs" if need.tiles >= need.bands
+             else "more tiles (render.tiles, up to one per render band: "
+                  f"{need.bands})")
     cap = cfg.render.max_memory_gb
     if cap is not None and need.memory_bytes > cap * GB:
         raise ResourceProblem(f"render.max_memory_gb: this run needs about {_size(need.memory_bytes)} of memory "
                               f"({film}), above the cap of {cap:g} GB; use a smaller film (render.width, "
-                              "render.height) or raise the cap")
+                              f"render.height), {fewer}, or raise the cap")
     free, source = free_memory()
     if need.memory_bytes * MARGIN > free:
         raise ResourceProblem(f"render.width/height: this run needs about {_size(need.memory_bytes)} of memory "
-                              f"({film}) but {_size(free)} is free ({source}); use a smaller film")
+                              f"({film}) but {_size(free)} is free ({source}); use a smaller film or {fewer}")
     if out_dir is not None:
         disk = free_disk(out_dir)
         if need.output_bytes * MARGIN > disk:
@@ -193,4 +250,5 @@ def peak_rss_bytes() -> int:
     return _status_kb("VmHWM") * 1024
 
 
-__all__ = ["Resources", "check", "estimate", "free_disk", "free_memory", "peak_rss_bytes"]
+__all__ = ["Resources", "bands_of", "check", "choose_tiles", "estimate", "free_disk", "free_memory", "peak_rss_bytes",
+           "plan_resources", "tile_rows"]

@@ -26,17 +26,33 @@ import numpy as np
 
 from .integrate import integrate
 from .plan import Plan, make_plan
-from .sensor import SensorConfig, SensorReads, dn_to_electrons, simulate_reads
+from .sensor import SensorConfig, SensorReads, develop_reads, dn_to_electrons, join_rows, simulate_reads
+from .sensor.sampling import NoiseStreams
 from .timeline import Timeline
 
 
-def sense(timeline: Timeline, buckets_e: np.ndarray, sensor: SensorConfig, seed: np.random.SeedSequence) -> SensorReads:
+def sense(timeline: Timeline, buckets_e: np.ndarray, sensor: SensorConfig, seed: np.random.SeedSequence,
+          tiles: tuple[tuple[int, int], ...] | None = None) -> SensorReads:
     """The sensor stage: ``buckets_e`` (K, H, W, C) noise-free expected electrons of the buckets of
     ``timeline`` into its reads, with dark current over each bucket's storage time
     (:meth:`~mbcapture.timeline.Timeline.storage_s`) and, on a multi-bucket sensor, the buckets
-    sharing one photodiode (parasitic light); a sequential timeline's frames are separate exposures."""
-    return simulate_reads(buckets_e, [r.buckets for r in timeline.reads], sensor, seed,
-                          storage_s=timeline.storage_s(), shared_photodiode=not timeline.sequential)
+    sharing one photodiode (parasitic light); a sequential timeline's frames are separate exposures.
+
+    ``tiles``: rows (first, end) covering the film in order; each is sensed alone (its noise fields
+    the film's, cut to its rows) and the joined reads are developed once (a CFA's demosaicing), so
+    the result is the untiled stage's reads bit for bit, without the buckets' charge (``electrons``
+    None), and the noise fields and counts are held for one tile at a time."""
+    reads = [r.buckets for r in timeline.reads]
+    kw = {"storage_s": timeline.storage_s(), "shared_photodiode": not timeline.sequential}
+    if tiles is None or len(tiles) == 1:
+        return simulate_reads(buckets_e, reads, sensor, seed, **kw)
+    streams = NoiseStreams(seed)
+    H = buckets_e.shape[1]
+    parts = []
+    for r0, r1 in tiles:  # each tile's charge dropped as soon as its reads are made
+        part = simulate_reads(buckets_e[:, r0:r1], reads, sensor, streams, band=(r0, H), develop=False, **kw)
+        parts.append(replace(part, electrons=None, bucket_saturated=None))
+    return develop_reads(join_rows(parts, reads_only=True), sensor)
 
 
 @dataclass(frozen=True)

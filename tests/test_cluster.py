@@ -39,6 +39,22 @@ def test_a_capture_rendered_on_two_workers_is_the_local_capture(client):
 
 
 @pytest.mark.render
+def test_a_tiled_capture_on_two_workers_is_the_local_untiled_capture(client):
+    """Each tile's render bands are tasks of their own; the tiles go one after another."""
+    banded = [*SMALL, "render.band_rows=8"]  # 4 bands of the 32 rows
+    local = run_capture(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*banded, "render.tiles=1"]),
+                        progress=False)
+    spread = run_capture(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*banded, "render.tiles=2"]),
+                         progress=False, client=client)
+    info = spread.report["cluster"]
+    assert info["tiles"] == 2 and info["renders"] == 4 * len(render_requests(spread.plan, np.random.SeedSequence(0)))
+    np.testing.assert_array_equal(spread.bucket_exposure, local.bucket_exposure)
+    np.testing.assert_array_equal(spread.reads_dn, local.reads_dn)
+    for name, img in local.images.items():
+        np.testing.assert_array_equal(spread.images[name], img, err_msg=name)
+
+
+@pytest.mark.render
 def test_the_difference_estimator_renders_here_and_says_so(client):
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", [*SMALL, "render.estimator=difference"])
     spread = run_capture(cfg, progress=False, client=client)

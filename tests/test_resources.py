@@ -75,7 +75,7 @@ def test_a_film_that_cannot_fit_stops_before_any_work(monkeypatch, capsys):
     def no_work(*a, **k):
         raise AssertionError("the capture started")
 
-    monkeypatch.setattr(pipeline, "integrate", no_work)
+    monkeypatch.setattr(pipeline, "integrate_tiles", no_work)
     rc = main(["run", str(HDR), "--set", "render.width=16000", "--set", "render.height=12000", "--set", "render.spp=1",
                "--quiet"])
     err = capsys.readouterr().err

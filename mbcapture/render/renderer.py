@@ -37,6 +37,7 @@ from .build import (
     spectrum_to_rgb_radiance,
     spectrum_to_rgb_reflectance,
 )
+from .bands import band_seed, film_bands
 from .cache import RenderCache, digest
 from .integrator import PLUGIN_NAME, integrator_class
 from .llvm import apply_target_from_env, ensure_llvm, llvm_target
@@ -48,7 +49,7 @@ if TYPE_CHECKING:
 SAMPLERS = ("multijitter", "ldsampler", "independent")
 
 #: Modules whose code turns a scene description into pixels: part of every cache key.
-_PIXEL_CODE = ("renderer.py", "integrator.py", "build.py", "aov.py", "coverage.py")
+_PIXEL_CODE = ("renderer.py", "integrator.py", "build.py", "aov.py", "coverage.py", "bands.py")
 
 
 @lru_cache(maxsize=None)
@@ -169,6 +170,11 @@ class Renderer:
         ``("R", "G", "B")``.
     width, height
         Film size in pixels (columns, rows).
+    bands
+        The film's row bands (:mod:`.bands`): each is rendered as a crop window with a seed of its
+        own (band 0: the render's seed), so that any run of whole bands (:meth:`render_rows`, a tile)
+        holds the same pixels as the whole film. A lens that mixes neighbours (distortion,
+        diffraction) renders one band, the whole film.
     """
 
     channels: tuple[str, ...] = ("R", "G", "B")
@@ -179,7 +185,8 @@ class Renderer:
                  film_curves: tuple[np.ndarray, np.ndarray] | None = None,
                  cache: RenderCache | None = None, sampler: str = "multijitter", vignetting: str = "none",
                  diffraction: bool = False, thin_lens: tuple[float, float] | None = None,
-                 mono: np.ndarray | None = None, distortion: Sequence[float] | None = None) -> None:
+                 mono: np.ndarray | None = None, distortion: Sequence[float] | None = None,
+                 band_rows: int | None = None) -> None:
         if thin_lens is not None and not (thin_lens[0] > 0 and thin_lens[1] > 0):
             raise ConfigError(f"thin lens: aperture radius and focus distance must be positive, got {thin_lens}")
         #: (aperture radius m, focus distance m) of Mitsuba's thinlens sensor; None: a pinhole
@@ -204,8 +211,8 @@ class Renderer:
         if diffraction and sensor is None:
             raise ConfigError("camera.diffraction: needs the sensor (f-number, pixel pitch, wavelengths)")
         self._diffraction = sensor if diffraction else None  # the sensor's f-number, pitch and wavelengths
-        #: renders made elsewhere (a cluster's workers, mbcapture.cluster), by (t, spp, seed, groups): used once
-        self._given: dict[tuple[float, int, int, tuple[str, ...]], np.ndarray] = {}
+        #: renders made elsewhere (a cluster's workers, mbcapture.cluster), by (t, spp, seed, groups, band): used once
+        self._given: dict[tuple[float, int, int, tuple[str, ...], int], np.ndarray] = {}
         # a monochrome sensor's mixture of the channels (mbcapture.sensor.mono_weights), or None
         self._mono = None if mono is None else np.asarray(mono, np.float64).reshape(3)
         if not isinstance(scene.build, SceneBuild):
@@ -274,6 +281,13 @@ class Renderer:
                 shape = self._group_spectral_shape(g)
                 if shape is not None:
                     self._dicts[g] = self._scene_dict(flat_group=g, film_shape=shape)
+        whole = self.distortion is not None or diffraction  # the lens mixes neighbouring pixels
+        if whole and band_rows is not None and band_rows < self.height:
+            raise ConfigError("render.band_rows: camera.distortion and camera.diffraction act on the whole film, "
+                              "which is then one band; set render.band_rows null")
+        #: (first row, end row) of each band of the film
+        self.bands: tuple[tuple[int, int], ...] = film_bands(self.width, self.height, band_rows, whole)
+        self._crop: dict[int, tuple[int, int]] = {}  # id(params) -> the rows its film renders now
         self._loaded = False
         self._scene: Any = None
         self._params: Any = None
@@ -314,7 +328,8 @@ class Renderer:
         kw: dict[str, Any] = {"variant": r.variant, "max_depth": r.max_depth, "sampler": r.sampler,
                               "sensor": cfg.sensor, "cache": cache, "vignetting": cfg.camera.vignetting,
                               "diffraction": cfg.camera.diffraction, "thin_lens": lens,
-                              "mono": mono_weights(cfg.sensor, r.variant), "distortion": cfg.camera.distortion}
+                              "mono": mono_weights(cfg.sensor, r.variant), "distortion": cfg.camera.distortion,
+                              "band_rows": r.band_rows}
         kw.update(overrides)
         return cls(scene, r.width, r.height, **kw)
 
@@ -494,8 +509,10 @@ class Renderer:
     # -- state and rendering ------------------------------------------------------------------
     @property
     def mitsuba_scene(self) -> Any:
-        """The loaded ``mi.Scene`` (at the last :meth:`set_time`), for AOV or reference renders."""
+        """The loaded ``mi.Scene`` (at the last :meth:`set_time`), for AOV or reference renders, its
+        film whole (not a band's crop window)."""
         self._ensure_loaded()
+        self._set_rows(self._params, (0, self.height))
         return self._scene
 
     @property
@@ -629,19 +646,39 @@ class Renderer:
         for a given ``seed``. ``groups`` defaults to all of :attr:`groups`, in any order given;
         groups not requested are not rendered at all.
         """
+        return self.render_rows(t_s, spp, seed, groups, (0, self.height))
+
+    def band_span(self, rows: tuple[int, int]) -> range:
+        """The indices of the bands that make up ``rows`` (first, end) exactly; ValueError otherwise."""
+        r0, r1 = (int(r) for r in rows)
+        idx = [i for i, (a, b) in enumerate(self.bands) if a >= r0 and b <= r1]
+        if not idx or self.bands[idx[0]][0] != r0 or self.bands[idx[-1]][1] != r1:
+            raise ValueError(f"rows {r0}..{r1}: not a run of whole bands of the film ({self.bands})")
+        return range(idx[0], idx[-1] + 1)
+
+    def render_rows(self, t_s: float, spp: int, seed: int, groups: Sequence[str] | None,
+                    rows: tuple[int, int]) -> np.ndarray:
+        """:meth:`render`'s rows ``rows`` (first, end; a run of whole :attr:`bands`), rendering only
+        those: float32 (group, end - first, width, channel), equal to the whole film's rows."""
         req = list(self.groups if groups is None else groups)
         bad = [g for g in req if g not in self.groups]
         if bad or len(set(req)) != len(req):
             raise ConfigError(f"render groups {req}: expected distinct names from {list(self.groups)}")
         if spp < 1:
             raise ConfigError(f"render spp must be >= 1, got {spp}")
-        given = self._given.pop((float(t_s), int(spp), int(seed), tuple(req)), None)
-        img = given if given is not None else self.raw_render(t_s, spp, seed, req)
+        span = self.band_span(rows)
+        r0, r1 = int(rows[0]), int(rows[1])
+
+        def band(b: int) -> np.ndarray:  # given by a cluster worker, or rendered here
+            given = self._given.pop((float(t_s), int(spp), int(seed), tuple(req), b), None)
+            return given if given is not None else self.raw_render(t_s, spp, seed, req, band=b)
+
+        img = band(span[0]) if len(span) == 1 else np.concatenate([band(b) for b in span], axis=1)
         # the lens (mbcapture.optics): relative illumination, distortion, then diffraction (a blur in the sensor
         # plane), on every render alike (exposures, truths, the pilot), after the cache: a render is cached as
-        # the pinhole sees it
+        # the pinhole sees it. Distortion and diffraction make the film one band (whole).
         if self._falloff is not None:
-            img = img * self._falloff
+            img = img * self._falloff[:, r0:r1]
         if self._undistort is not None:  # the lens bends each pixel's ray: resample the pinhole render
             img = apply_distortion(img, *self._undistort)
         if self._diffraction is not None:
@@ -655,19 +692,30 @@ class Renderer:
             return img
         return np.repeat((img @ self._mono.astype(np.float32))[..., None], 3, axis=-1)
 
-    def give(self, t_s: float, spp: int, seed: int, groups: Sequence[str], radiance: np.ndarray) -> None:
-        """Hand this renderer the render of ``(t_s, spp, seed, groups)`` made by another process with
-        the same renderer (a cluster worker): :meth:`render` returns it (the lens applied as to its
-        own) instead of rendering, once."""
-        self._given[(float(t_s), int(spp), int(seed), tuple(groups))] = np.asarray(radiance, np.float32)
+    def give(self, t_s: float, spp: int, seed: int, groups: Sequence[str], radiance: np.ndarray, band: int = 0) -> None:
+        """Hand this renderer the raw render of band ``band`` of ``(t_s, spp, seed, groups)`` made by
+        another process with the same renderer (a cluster worker, :meth:`raw_render`): :meth:`render`
+        and :meth:`render_rows` use it (the lens applied as to their own) instead of rendering, once."""
+        self._given[(float(t_s), int(spp), int(seed), tuple(groups), int(band))] = np.asarray(radiance, np.float32)
 
-    def raw_render(self, t_s: float, spp: int, seed: int, groups: Sequence[str]) -> np.ndarray:
+    def raw_render(self, t_s: float, spp: int, seed: int, groups: Sequence[str], band: int | None = None) -> np.ndarray:
         """What :meth:`render` caches: the render before the lens's falloff, distortion, diffraction and
-        mono mixture (what :meth:`give` takes)."""
+        mono mixture (what :meth:`give` takes), of band ``band`` (None: the whole film, band after band)."""
         req = list(groups)
+        if band is None:
+            if len(self.bands) == 1:
+                band = 0
+            else:
+                return np.concatenate([self.raw_render(t_s, spp, seed, req, band=b) for b in range(len(self.bands))],
+                                      axis=1)
         n = self.sample_count(spp)
         params = {"spp": int(n), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
-        return self.cached("radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), req))
+        if len(self.bands) == 1:  # the whole film: the key it has always had
+            return self.cached("radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), req))
+        rows = self.bands[band]
+        params["rows"] = list(rows)
+        return self.cached("radiance", t_s, params,
+                           lambda: self._render(t_s, int(n), band_seed(seed, band), req, rows))
 
     @property
     def renders_pixels(self) -> bool:
@@ -693,6 +741,7 @@ class Renderer:
             return out
         self._ensure_loaded()
         self.set_time(t_s)
+        self._set_rows(self._params, (0, self.height))  # the rays below address the whole film
         self._integrator.set_groups(lit, [self._group_emitters[g] for g in lit])
         mi, dr = self._mi, self._dr
         n_spp = self.sample_count(spp)
@@ -723,27 +772,42 @@ class Renderer:
             out = out * self._falloff.reshape(-1)[pix][None, :, None]
         return self._mono_mixed(out)
 
-    def _render(self, t_s: float, spp: int, seed: int, req: list[str]) -> np.ndarray:
+    def _set_rows(self, params: Any, rows: tuple[int, int]) -> None:
+        """Make the film of the scene whose parameters are ``params`` render rows ``rows`` (a crop window)."""
+        if self._crop.get(id(params), (0, self.height)) == tuple(rows):
+            return
+        mi = self._mi
+        params["sensor.film.crop_size"] = mi.ScalarVector2u(self.width, rows[1] - rows[0])
+        params["sensor.film.crop_offset"] = mi.ScalarPoint2u(0, rows[0])
+        params.update()
+        self._crop[id(params)] = tuple(rows)
+
+    def _render(self, t_s: float, spp: int, seed: int, req: list[str], rows: tuple[int, int] | None = None) -> np.ndarray:
+        """The Mitsuba pass(es) of ``req`` at ``t_s``: the whole film, or its ``rows`` (a band)."""
         start = time.perf_counter()
         self._ensure_loaded()
-        out = np.zeros((len(req), self.height, self.width, 3), np.float32)
+        rows = (0, self.height) if rows is None else (int(rows[0]), int(rows[1]))
+        h = rows[1] - rows[0]
+        out = np.zeros((len(req), h, self.width, 3), np.float32)
         lit = [g for g in req if self._group_emitters[g]]
         if lit and self.spectral:
             self.set_time(t_s)
             for g in lit:
                 scene, emitters = (self._group_scenes[g][0], self._group_scenes[g][2]) if g in self._group_scenes \
                     else (self._scene, self._group_emitters[g])
+                self._set_rows(self._group_scenes[g][1] if g in self._group_scenes else self._params, rows)
                 self._integrator.set_groups([g], [emitters])
                 img = self._mi.render(scene, integrator=self._integrator, spp=int(spp),
                                       seed=int(seed) & 0xFFFFFFFF)
                 out[req.index(g)] = np.asarray(img, dtype=np.float32)[..., :3]
         elif lit:
             self.set_time(t_s)
+            self._set_rows(self._params, rows)
             self._integrator.set_groups(lit, [self._group_emitters[g] for g in lit])
             img = self._mi.render(self._scene, integrator=self._integrator, spp=int(spp),
                                   seed=int(seed) & 0xFFFFFFFF)
             arr = np.asarray(img, dtype=np.float32)[..., 3:]
-            arr = arr.reshape(self.height, self.width, len(lit), 3).transpose(2, 0, 1, 3)
+            arr = arr.reshape(h, self.width, len(lit), 3).transpose(2, 0, 1, 3)
             for i, g in enumerate(lit):
                 out[req.index(g)] = arr[i]
         self.last_render_s = time.perf_counter() - start
@@ -754,7 +818,26 @@ class Renderer:
         float32 (row, col, channel): the reference the group images must sum to."""
         self._ensure_loaded()
         self.set_time(t_s)
+        self._set_rows(self._params, (0, self.height))
         integ = self._mi.load_dict({"type": "path", "max_depth": self.max_depth,
                                     "rr_depth": max(self.max_depth + 1, 5)})
         img = self._mi.render(self._scene, integrator=integ, spp=int(spp), seed=int(seed))
         return np.asarray(img, dtype=np.float32)[..., :3]
+
+
+class RenderRows:
+    """Rows (first, end) of a :class:`Renderer`'s film, a run of whole bands: what
+    :func:`mbcapture.integrate.integrate` asks of a renderer (``render``, the film size, the channels,
+    ``sample_count``), so that a tile integrates exactly as the whole film does on those rows."""
+
+    def __init__(self, renderer: Renderer, rows: tuple[int, int]):
+        renderer.band_span(rows)  # whole bands, or ValueError
+        self.renderer, self.rows = renderer, (int(rows[0]), int(rows[1]))
+        self.width, self.height = renderer.width, self.rows[1] - self.rows[0]
+        self.channels, self.groups, self.cache = renderer.channels, renderer.groups, renderer.cache
+
+    def render(self, t_s: float, spp: int, seed: int, groups: Sequence[str] | None = None) -> np.ndarray:
+        return self.renderer.render_rows(t_s, spp, seed, groups, self.rows)
+
+    def sample_count(self, spp: int) -> int:
+        return self.renderer.sample_count(spp)

@@ -33,6 +33,12 @@ Order of the physics (one capture):
 Non-destructive cumulative reads (J1 = B4, J2 = B4 + B3, ...) therefore share the same
 photons and are correlated, Cov(J_i, J_j) = lambda * min(t_i, t_j) for i != j, while each
 read has its own independent read noise.
+
+A film may be sensed in row bands (``band``, a tiled capture): every noise field and fixed-pattern
+map is then the whole film's, cut to the band's rows (:class:`~.sampling.BandedField`), so the
+bands joined (:func:`join_rows`) are the whole film's reads bit for bit; a colour filter array's
+mosaic is demosaiced once the bands are joined (:func:`develop_reads`), since demosaicing reaches
+across rows.
 """
 
 from __future__ import annotations
@@ -46,9 +52,10 @@ import numpy as np
 
 from .cfa import demosaic, spread_to_footprint, to_mosaic
 from .config import SensorConfig
-from .sampling import NoiseStreams, binomial_quantile, poisson_quantile_memo
+from .sampling import BandedField, NoiseStreams, binomial_quantile, poisson_quantile_memo
 
-__all__ = ["FixedPattern", "SensorReads", "dn_to_electrons", "fixed_pattern", "sensor_stage_hook", "simulate_reads"]
+__all__ = ["FixedPattern", "SensorReads", "develop_reads", "dn_to_electrons", "fixed_pattern", "join_rows",
+           "sensor_stage_hook", "simulate_reads"]
 
 
 @dataclass(frozen=True)
@@ -87,30 +94,45 @@ class SensorReads:
     ``mosaic_saturated`` (R, H, W) their own flags;
     ``reads_e_expected`` stays the ideal R, G, B sensor's (grey for a mono sensor): the truth.
     Both are None without a colour filter array; ``cfa`` names it (``sensor.cfa``).
+
+    ``electrons`` and ``bucket_saturated`` are None where the caller kept the reads only
+    (:func:`join_rows` with ``reads_only``: a tiled capture does not hold the buckets' charge).
     """
 
-    electrons: np.ndarray
+    electrons: np.ndarray | None
     reads_dn: np.ndarray
     reads_e_expected: np.ndarray
     saturated: np.ndarray
-    bucket_saturated: np.ndarray
+    bucket_saturated: np.ndarray | None
     reads: tuple[tuple[int, ...], ...]
     mosaic_dn: np.ndarray | None = None
     mosaic_saturated: np.ndarray | None = None
     cfa: str = "none"
 
 
-def fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig) -> FixedPattern:
+def fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig, rows: tuple[int, int] | None = None,
+                  streams: NoiseStreams | None = None) -> FixedPattern:
     """The PRNU / DSNU maps of the sensor identified by ``cfg.fpn_seed``, for (H, W, C) images: a
     pixel component (``prnu``, ``dsnu_e``) plus row and column components (``prnu_row``,
     ``prnu_col``, ``dsnu_row_e``, ``dsnu_col_e``), whose variances add.
 
     Drawn from their own generator so that they do not depend on (nor consume) the
     capture's random stream: the same sensor gives the same maps in every capture.
+
+    ``rows`` (r0, r1): those rows of the (H, W, C) maps, equal to the whole maps' rows; ``streams``
+    keeps the pixel maps' stream position for the next band (:class:`~.sampling.BandedField`).
     """
-    rng = np.random.default_rng(np.random.SeedSequence(cfg.fpn_seed))
-    prnu_pixel = cfg.prnu * rng.standard_normal(shape)
-    dsnu_offset_e = cfg.dsnu_e * rng.standard_normal(shape)
+    seed = np.random.SeedSequence(cfg.fpn_seed)
+    if rows is None:
+        rng = np.random.default_rng(seed)
+        prnu_pixel = cfg.prnu * rng.standard_normal(shape)
+        dsnu_offset_e = cfg.dsnu_e * rng.standard_normal(shape)
+    else:  # the pixel maps are the first 2 x H x W x C normals of their generator: PRNU's, then DSNU's
+        full = (2, *shape)
+        field = BandedField(seed, full, "normal") if streams is None else \
+            streams.banded(("fpn", cfg.fpn_seed), seed, full, "normal")
+        pixel = field.rows(*rows)
+        prnu_pixel, dsnu_offset_e = cfg.prnu * pixel[0], cfg.dsnu_e * pixel[1]
     # row and column components (EMVA 1288 R4.0 reports DSNU and PRNU split so), from a generator of
     # their own so that the pixel maps stay those of the same fpn_seed; shared by a row's (a
     # column's) pixels and channels: one row driver, one column amplifier. Variances add.
@@ -118,6 +140,8 @@ def fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig) -> FixedPatter
     H, W = shape[:2]
     prnu_lines = cfg.prnu_row * lines.standard_normal((H, 1, 1)) + cfg.prnu_col * lines.standard_normal((1, W, 1))
     dsnu_lines = cfg.dsnu_row_e * lines.standard_normal((H, 1, 1)) + cfg.dsnu_col_e * lines.standard_normal((1, W, 1))
+    if rows is not None:  # (H, 1, 1) + (1, W, 1): drawn whole (a line each), cut to the band
+        prnu_lines, dsnu_lines = prnu_lines[rows[0]:rows[1]], dsnu_lines[rows[0]:rows[1]]
     prnu_gain = np.maximum(1.0 + prnu_pixel + prnu_lines, 0.0)
     return FixedPattern(prnu_gain=prnu_gain, dsnu_offset_e=dsnu_offset_e + dsnu_lines)
 
@@ -146,6 +170,8 @@ def simulate_reads(
     *,
     storage_s: np.ndarray | Sequence[float] | None = None,
     shared_photodiode: bool = True,
+    band: tuple[int, int] | None = None,
+    develop: bool = True,
 ) -> SensorReads:
     """Simulate the noisy buckets and their reads.
 
@@ -170,6 +196,14 @@ def simulate_reads(
         True (a multi-bucket pixel): the K buckets share one photodiode, so parasitic light
         couples them and K may not exceed ``cfg.bucket_count``. False: the K "buckets" are
         separate frames of a conventional sequential capture; no parasitic coupling.
+    band:
+        (first row, film height): ``expected_bucket_e`` holds rows first row .. first row + H' of a
+        film of that height, and every noise field is the film's, cut to those rows (pass the same
+        :class:`~.sampling.NoiseStreams` for every band). None: the whole film.
+    develop:
+        False: a colour filter array's photosites are returned undeveloped (``reads_dn`` (R, H, W, 1),
+        ``reads_e_expected`` already the R, G, B truth), for :func:`develop_reads` once the bands of
+        a film are joined. No effect without a colour filter array.
 
     Returns
     -------
@@ -192,13 +226,22 @@ def simulate_reads(
             raise ValueError(f"storage_s: expected {k_buckets} non-negative seconds, got {storage!r}")
 
     streams = noise if isinstance(noise, NoiseStreams) else NoiseStreams(noise)
+    film = None
+    if band is not None:
+        r0, height = (int(x) for x in band)
+        if not 0 <= r0 <= height - expected.shape[1]:
+            raise ValueError(f"band: rows {r0}..{r0 + expected.shape[1]} outside a film of {height} rows")
+        if r0 % 2 and cfg.cfa not in ("none", "mono"):
+            raise ValueError(f"band: a {cfg.cfa} colour filter array's band must start on an even row, got {r0}")
+        film = _Film(r0, height)
 
     def simulate(e: np.ndarray) -> SensorReads:
         """This call's sensor (its noise fields, storage times and reads) on the input ``e``."""
         e = np.asarray(e, dtype=np.float64)
         if e.shape != expected.shape or not np.all(np.isfinite(e)) or np.any(e < 0):
             raise ValueError(f"sensor stage input: expected finite electrons >= 0 of shape {expected.shape}")
-        return _simulate(e, read_sets, cfg, streams, storage, shared_photodiode)
+        photosites = _photosites(e, read_sets, cfg, streams, storage, shared_photodiode, film)
+        return develop_reads(photosites, cfg) if develop else photosites
 
     hook = _STAGE_HOOK.get()
     return simulate(expected) if hook is None else hook(expected, simulate)
@@ -227,35 +270,86 @@ def sensor_stage_hook(hook: Callable[[np.ndarray, Callable[[np.ndarray], SensorR
         _STAGE_HOOK.reset(token)
 
 
-def _simulate(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cfg: SensorConfig, streams: NoiseStreams,
-              storage: np.ndarray | None, shared_photodiode: bool) -> SensorReads:
-    """:func:`simulate_reads` on validated arguments: the photosites behind the colour filter array
-    (:mod:`.cfa`), then the reads demosaiced back to R, G, B."""
+@dataclass(frozen=True)
+class _Film:
+    """Where a band lies: its first row and the film's height."""
+
+    r0: int
+    height: int
+
+    def field(self, shape: tuple[int, ...]) -> tuple[tuple[int, ...], tuple[int, int]]:
+        """The film's field shape of a band array's ``shape`` (axis 1: rows), and the band's rows."""
+        return (shape[0], self.height, *shape[2:]), (self.r0, self.r0 + shape[1])
+
+
+def _photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cfg: SensorConfig, streams: NoiseStreams,
+                storage: np.ndarray | None, shared_photodiode: bool, film: _Film | None) -> SensorReads:
+    """:func:`simulate_reads` on validated arguments, up to the photosites behind the colour filter
+    array (:mod:`.cfa`); :func:`develop_reads` turns them into R, G, B reads."""
     if cfg.cfa == "none":
-        return _simulate_photosites(expected, read_sets, cfg, streams, storage, shared_photodiode)
+        return _simulate_photosites(expected, read_sets, cfg, streams, storage, shared_photodiode, film)
     if cfg.cfa == "mono":
         # one photosite per pixel; its input is the same in every channel (the renderer's mono mixture),
         # the channels' mean where a caller gives them different
-        out = _simulate_photosites(expected.mean(axis=-1, keepdims=True), read_sets, cfg, streams, storage,
-                                   shared_photodiode)
+        return _simulate_photosites(expected.mean(axis=-1, keepdims=True), read_sets, cfg, streams, storage,
+                                    shared_photodiode, film)
+    out = _simulate_photosites(to_mosaic(expected, cfg.cfa), read_sets, cfg, streams, storage, shared_photodiode, film)
+    full = np.stack([expected[list(r)].sum(axis=0) for r in read_sets])  # the ideal RGB sensor: the truth
+    return replace(out, reads_e_expected=full)
+
+
+def develop_reads(photosites: SensorReads, cfg: SensorConfig) -> SensorReads:
+    """The reads of :func:`simulate_reads` (``develop=False``: photosites, a band's or a joined film's)
+    as the camera delivers them: a Bayer mosaic demosaiced (``sensor.demosaic``) and its saturation
+    spread over each pixel's footprint, a mono sensor's one value in every channel; as they are
+    without a colour filter array."""
+    out = photosites
+    if cfg.cfa == "none":
+        return out
+    if cfg.cfa == "mono":
         mono = np.repeat(out.reads_e_expected, 3, axis=-1)
         return replace(out, reads_dn=np.repeat(out.reads_dn, 3, axis=-1), reads_e_expected=mono,
                        saturated=np.repeat(out.saturated, 3, axis=-1), mosaic_dn=out.reads_dn[..., 0],
                        mosaic_saturated=out.saturated[..., 0], cfa="mono")
-    out = _simulate_photosites(to_mosaic(expected, cfg.cfa), read_sets, cfg, streams, storage, shared_photodiode)
     # demosaic the signal above black (Malvar's and the bilinear kernels are linear, so this only matters
     # for Menon's direction decision), not rounded again: the reads are the ISP's output from here on
     signal = demosaic(out.reads_dn[..., 0] - cfg.black_level_dn, cfg.cfa, cfg.demosaic) + cfg.black_level_dn
-    full = np.stack([expected[list(r)].sum(axis=0) for r in read_sets])  # the ideal RGB sensor: the truth
-    return replace(out, reads_dn=signal, reads_e_expected=full,
-                   saturated=spread_to_footprint(out.saturated, cfg.demosaic), mosaic_dn=out.reads_dn[..., 0],
-                   mosaic_saturated=out.saturated[..., 0], cfa=cfg.cfa)
+    return replace(out, reads_dn=signal, saturated=spread_to_footprint(out.saturated, cfg.demosaic),
+                   mosaic_dn=out.reads_dn[..., 0], mosaic_saturated=out.saturated[..., 0], cfa=cfg.cfa)
+
+
+def join_rows(bands: Sequence[SensorReads], reads_only: bool = False) -> SensorReads:
+    """The reads of a film's row bands (in order, each from :func:`simulate_reads` with ``band``),
+    joined along the rows; ``reads_only``: without the buckets' charge (``electrons``,
+    ``bucket_saturated`` None), which a tiled capture does not keep."""
+    if not bands:
+        raise ValueError("join_rows: no bands")
+
+    def cat(name: str) -> np.ndarray | None:
+        parts = [getattr(b, name) for b in bands]
+        return None if parts[0] is None else np.concatenate(parts, axis=1)
+
+    first = bands[0]
+    keep = ("reads_dn", "reads_e_expected", "saturated") + (() if reads_only else ("electrons", "bucket_saturated"))
+    joined = {name: cat(name) for name in keep}
+    for name in ("mosaic_dn", "mosaic_saturated"):  # (R, H, W): rows on axis 1 too
+        joined[name] = cat(name)
+    if reads_only:
+        joined.update(electrons=None, bucket_saturated=None)
+    return replace(first, **joined)
 
 
 def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cfg: SensorConfig,
-                         streams: NoiseStreams, storage: np.ndarray | None, shared_photodiode: bool) -> SensorReads:
-    """The photosites (one per pixel and channel of ``expected``): fixed pattern, shot noise, wells, reads."""
-    fpn = fixed_pattern(expected.shape[1:], cfg)
+                         streams: NoiseStreams, storage: np.ndarray | None, shared_photodiode: bool,
+                         film: _Film | None = None) -> SensorReads:
+    """The photosites (one per pixel and channel of ``expected``): fixed pattern, shot noise, wells, reads.
+    ``film``: where a band lies in its film (every field cut to its rows); None: the whole film."""
+    def field(kind: str, stage: str, shape: tuple[int, ...]) -> np.ndarray:
+        draw = streams.uniform if kind == "uniform" else streams.normal
+        return draw(stage, shape) if film is None else draw(stage, *film.field(shape))
+
+    fpn = fixed_pattern(expected.shape[1:], cfg) if film is None else \
+        fixed_pattern((film.height, *expected.shape[2:]), cfg, (film.r0, film.r0 + expected.shape[1]), streams)
     photo_e = expected * fpn.prnu_gain
     if shared_photodiode and cfg.parasitic_light > 0.0:
         others_e = photo_e.sum(axis=0, keepdims=True) - photo_e
@@ -265,12 +359,12 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
         mean_e = mean_e + (cfg.dark_current_e_per_s * storage)[:, None, None, None]
 
     # remembered: a sweep's points that differ only after this draw (read noise, full wells, ADC) reuse it
-    electrons = poisson_quantile_memo(streams.uniform("shot", mean_e.shape), mean_e)
+    electrons = poisson_quantile_memo(field("uniform", "shot", mean_e.shape), mean_e)
     bucket_saturated = electrons >= cfg.full_well_e
     np.minimum(electrons, cfg.full_well_e, out=electrons)
 
     if cfg.transfer_inefficiency > 0.0:
-        lost = binomial_quantile(streams.uniform("transfer", electrons.shape), electrons, cfg.transfer_inefficiency)
+        lost = binomial_quantile(field("uniform", "transfer", electrons.shape), electrons, cfg.transfer_inefficiency)
         transferred = electrons - lost
     else:
         transferred = electrons
@@ -281,10 +375,14 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
     reads_e_expected = np.empty(shape, dtype=np.float64)
     saturated = np.empty(shape, dtype=bool)
     adc_max = float(cfg.adc_max_dn)
-    read_noise = streams.normal("read", shape)
-    # temporal row noise: one offset per row and read, shared by the row's pixels and channels
-    row_noise = cfg.read_noise_row_e * streams.normal("row", (n_reads, shape[1], 1, 1)) \
-        if cfg.read_noise_row_e > 0.0 else None
+    read_noise = field("normal", "read", shape)
+    # temporal row noise: one offset per row and read, shared by the row's pixels and channels (a line
+    # per read: drawn whole, cut to a band's rows)
+    row_noise = None
+    if cfg.read_noise_row_e > 0.0:
+        rows = (0, shape[1]) if film is None else (film.r0, film.r0 + shape[1])
+        row_noise = cfg.read_noise_row_e * streams.normal(
+            "row", (n_reads, shape[1] if film is None else film.height, 1, 1))[:, rows[0]:rows[1]]
     for r, buckets in enumerate(read_sets):
         idx = list(buckets)
         fd_e = transferred[idx].sum(axis=0)

@@ -27,6 +27,15 @@ Streams: :class:`NoiseStreams` spawns one child seed per named stage (``shot``,
 ``transfer``, ``read``) from the capture's sensor seed, so turning one noise source on or off
 (or changing its parameter) leaves the draws of the others unchanged: a sweep over read noise
 sees the same photons in every point.
+
+Row bands (a film sensed in tiles, :mod:`mbcapture.pipeline`): :class:`BandedField` gives rows
+r0:r1 of a field exactly as the whole field has them, without drawing the whole field at once.
+numpy's ``Generator`` draws a double from one 64-bit output and a ziggurat normal from one or
+more, one value after another with nothing buffered, so a stream cut anywhere and resumed from
+its saved bit-generator state continues bit for bit (tests/test_tiles.py checks it). The field
+is C-ordered (leading axis, row, ...), so each leading index's band is one contiguous run of the
+stream; the state at the end of each run is kept, and the next band resumes there: sensing a
+film band after band draws each field about once.
 """
 
 from __future__ import annotations
@@ -40,7 +49,7 @@ from typing import Callable
 import numpy as np
 from scipy import special, stats
 
-__all__ = ["NoiseStreams", "binomial_quantile", "invert_discrete", "poisson_pmf", "poisson_quantile",
+__all__ = ["BandedField", "NoiseStreams", "binomial_quantile", "invert_discrete", "poisson_pmf", "poisson_quantile",
            "poisson_quantile_memo", "uniform_open"]
 
 #: Above this mean a Poisson count is no longer an exact float64 integer: the draw is the rounded
@@ -63,11 +72,63 @@ def uniform_open(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray
     return u
 
 
+#: Values skipped at a time when a banded field moves its stream forward (bounded memory).
+_SKIP_CHUNK = 1 << 20
+
+
+class BandedField:
+    """Row bands of the random field of ``shape`` (leading axis, rows, ...) that
+    ``default_rng(seed)`` draws in C order, ``kind`` 'uniform' (:func:`uniform_open`) or 'normal'
+    (``standard_normal``): :meth:`rows` (r0, r1) equals ``whole[:, r0:r1]`` bit for bit, at the cost
+    of the band plus the stream skipped to reach it (nothing when bands come in order)."""
+
+    def __init__(self, seed: np.random.SeedSequence, shape: tuple[int, ...], kind: str):
+        if kind not in ("uniform", "normal"):
+            raise ValueError(f"BandedField kind: expected 'uniform' or 'normal', got {kind!r}")
+        if len(shape) < 2:
+            raise ValueError(f"BandedField shape: expected (leading, rows, ...), got {shape}")
+        self.shape, self.kind = tuple(int(n) for n in shape), kind
+        self._marks: dict[int, dict] = {0: np.random.PCG64(seed).state}  # stream offset -> bit-generator state
+
+    def _draw(self, g: np.random.Generator, n: int) -> np.ndarray:
+        return uniform_open(g, (n,)) if self.kind == "uniform" else g.standard_normal(n)
+
+    def _at(self, offset: int) -> np.random.Generator:
+        """A generator whose next value is the stream's value number ``offset``."""
+        start = max(o for o in self._marks if o <= offset)
+        g = np.random.Generator(np.random.PCG64())
+        g.bit_generator.state = self._marks[start]
+        if self.kind == "uniform":  # one 64-bit output per double: jump
+            g.bit_generator.advance(offset - start)
+        else:  # a normal takes one or more outputs: draw through
+            for a in range(start, offset, _SKIP_CHUNK):
+                self._draw(g, min(_SKIP_CHUNK, offset - a))
+        return g
+
+    def rows(self, r0: int, r1: int) -> np.ndarray:
+        """float64 (leading, r1 - r0, ...): rows r0:r1 of the field."""
+        lead, H = self.shape[:2]
+        if not 0 <= r0 < r1 <= H:
+            raise ValueError(f"BandedField rows: expected 0 <= r0 < r1 <= {H}, got {r0}, {r1}")
+        row = int(np.prod(self.shape[2:], dtype=np.int64))
+        out = np.empty((lead, r1 - r0, *self.shape[2:]))
+        for a in range(lead):
+            start, n = (a * H + r0) * row, (r1 - r0) * row
+            g = self._at(start)
+            out[a] = self._draw(g, n).reshape(out.shape[1:])
+            self._marks[start + n] = g.bit_generator.state
+        return out
+
+
 class NoiseStreams:
     """Per-stage random fields of one capture's sensor, fixed by one seed.
 
     ``seed``: a :class:`numpy.random.SeedSequence`, an int, or a Generator (tests): a Generator
     gives up a fixed number of its draws to seed the stages, whatever the signal.
+
+    ``rows`` (r0, r1) asks for those rows (axis 1) of the field of ``shape``: the same values as
+    the whole field's rows, for a film sensed band by band (:class:`BandedField`, kept per field
+    so that consecutive bands continue the stream).
     """
 
     def __init__(self, seed: np.random.SeedSequence | np.random.Generator | int):
@@ -76,23 +137,38 @@ class NoiseStreams:
         elif not isinstance(seed, np.random.SeedSequence):
             seed = np.random.SeedSequence(int(seed))
         self._seeds = dict(zip(STAGES, seed.spawn(len(STAGES))))
+        self._bands: dict[tuple, BandedField] = {}
 
-    def _rng(self, stage: str) -> np.random.Generator:
+    def _seed(self, stage: str) -> np.random.SeedSequence:
         if stage in DERIVED:  # a child of another stage's seed, made without spawning from it
             base, key = DERIVED[stage]
             s = self._seeds[base]
-            return np.random.default_rng(np.random.SeedSequence(s.entropy, spawn_key=(*s.spawn_key, key)))
+            return np.random.SeedSequence(s.entropy, spawn_key=(*s.spawn_key, key))
         if stage not in self._seeds:
             raise ValueError(f"noise stage {stage!r}: expected one of {[*self._seeds, *DERIVED]}")
-        return np.random.default_rng(self._seeds[stage])
+        return self._seeds[stage]
 
-    def uniform(self, stage: str, shape: tuple[int, ...]) -> np.ndarray:
-        """The stage's uniform field in (0, 1), float64 of ``shape`` (the same on every call)."""
-        return uniform_open(self._rng(stage), shape)
+    def _rng(self, stage: str) -> np.random.Generator:
+        return np.random.default_rng(self._seed(stage))
 
-    def normal(self, stage: str, shape: tuple[int, ...]) -> np.ndarray:
-        """The stage's standard normal field, float64 of ``shape`` (the same on every call)."""
-        return self._rng(stage).standard_normal(shape)
+    def banded(self, key: tuple, seed: np.random.SeedSequence, shape: tuple[int, ...], kind: str) -> BandedField:
+        """The :class:`BandedField` of ``seed``, ``shape`` and ``kind``, kept under ``key`` for later bands."""
+        k = (key, tuple(shape), kind)
+        if k not in self._bands:
+            self._bands[k] = BandedField(seed, shape, kind)
+        return self._bands[k]
+
+    def uniform(self, stage: str, shape: tuple[int, ...], rows: tuple[int, int] | None = None) -> np.ndarray:
+        """The stage's uniform field in (0, 1), float64 of ``shape`` (the same on every call), or its ``rows``."""
+        if rows is None:
+            return uniform_open(self._rng(stage), shape)
+        return self.banded(("stage", stage), self._seed(stage), shape, "uniform").rows(*rows)
+
+    def normal(self, stage: str, shape: tuple[int, ...], rows: tuple[int, int] | None = None) -> np.ndarray:
+        """The stage's standard normal field, float64 of ``shape`` (the same on every call), or its ``rows``."""
+        if rows is None:
+            return self._rng(stage).standard_normal(shape)
+        return self.banded(("stage", stage), self._seed(stage), shape, "normal").rows(*rows)
 
 
 def _cornish_fisher(z: np.ndarray, mean: np.ndarray, var: np.ndarray, skew: np.ndarray,

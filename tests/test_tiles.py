@@ -1,0 +1,167 @@
+"""Tiles of rows (render.tiles): render, accumulation and the sensor stage go through the film a
+run of whole render bands at a time, and the capture is the untiled capture bit for bit (same
+CPU); the noise fields cut to a band are the whole field's rows; the memory plan chooses tiles."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mbcapture import load_config, run_capture
+from mbcapture.pipeline import prepare
+from mbcapture.render.bands import band_seed, film_bands, group_bands
+from mbcapture.resources import MARGIN, GB, choose_tiles, estimate
+from mbcapture.sensor import SensorConfig, develop_reads, join_rows, simulate_reads
+from mbcapture.sensor.sampling import BandedField, NoiseStreams, uniform_open
+
+ROOT = Path(__file__).resolve().parents[1]
+#: 4 render bands of 16 rows on a 48x64 film
+SMALL = ["render.width=48", "render.height=64", "render.spp=4", "render.max_motion_px=0.05", "render.cache=off",
+         "render.band_rows=16"]
+
+
+# ----------------------------------------------------------------------------- bands and fields
+def test_film_bands_cover_the_film_in_even_bands_of_about_a_megapixel():
+    assert film_bands(640, 512) == ((0, 512),)  # the paper's sensor: one band, rendered as it always was
+    bands = film_bands(4096, 3072)
+    assert len(bands) == 12 and all(b - a == 256 for a, b in bands)
+    odd = film_bands(1000, 3001)
+    assert odd[0] == (0, 1048) and odd[-1][1] == 3001 and all(a % 2 == 0 for a, _ in odd)
+    assert all(b == c for (_, b), (c, _) in zip(odd[:-1], odd[1:]))  # contiguous
+    assert film_bands(4096, 3072, whole=True) == ((0, 3072),)
+    assert group_bands(film_bands(48, 64, 16), 3) == ((0, 16), (16, 48), (48, 64))
+    assert group_bands(film_bands(48, 64, 16), 99) == film_bands(48, 64, 16)
+
+
+def test_band_seeds_keep_the_render_seed_for_the_first_band_and_differ_elsewhere():
+    assert band_seed(1234, 0) == 1234
+    seeds = {band_seed(1234, b) for b in range(1, 50)}
+    assert len(seeds) == 49 and 1234 not in seeds
+    assert band_seed(1234, 3) == band_seed(1234, 3) and band_seed(1234, 3) != band_seed(1235, 3)
+
+
+@pytest.mark.parametrize("kind", ["uniform", "normal"])
+def test_a_banded_field_is_the_whole_fields_rows(kind):
+    seed = np.random.SeedSequence(7)
+    shape = (3, 50, 9, 3)
+    rng = np.random.default_rng(seed)
+    whole = uniform_open(rng, shape) if kind == "uniform" else rng.standard_normal(shape)
+    field = BandedField(seed, shape, kind)
+    for r0, r1 in [(0, 11), (11, 12), (12, 40), (40, 50)]:  # in order, as a tiled capture asks
+        np.testing.assert_array_equal(field.rows(r0, r1), whole[:, r0:r1])
+    np.testing.assert_array_equal(BandedField(seed, shape, kind).rows(30, 47), whole[:, 30:47])  # out of order
+    np.testing.assert_array_equal(field.rows(5, 20), whole[:, 5:20])  # back again
+    with pytest.raises(ValueError, match="rows"):
+        field.rows(10, 51)
+
+
+@pytest.mark.parametrize("cfa", ["none", "RGGB", "mono"])
+def test_sensing_a_film_band_by_band_gives_the_whole_films_reads(cfa):
+    """Every noise source on (shot, transfer, read, row noise; pixel, row and column fixed pattern)."""
+    e = np.random.default_rng(1).random((4, 30, 17, 3)) * 3000
+    cfg = SensorConfig(cfa=cfa, transfer_inefficiency=1e-3, read_noise_row_e=0.7, prnu_row=0.01, dsnu_col_e=0.5,
+                       prnu=0.01, dsnu_e=1.0, full_well_e=2500)
+    reads = [(3,), (3, 2), (3, 2, 1), (3, 2, 1, 0)]
+    whole = simulate_reads(e, reads, cfg, np.random.SeedSequence(9), storage_s=[1e-3] * 4)
+    streams = NoiseStreams(np.random.SeedSequence(9))
+    parts = [simulate_reads(e[:, a:b], reads, cfg, streams, storage_s=[1e-3] * 4, band=(a, 30), develop=False)
+             for a, b in [(0, 8), (8, 10), (10, 24), (24, 30)]]
+    joined = develop_reads(join_rows(parts), cfg)
+    assert whole.bucket_saturated.any() and not whole.bucket_saturated.all()  # wells reached in places
+    for name in ("reads_dn", "saturated", "reads_e_expected", "electrons", "bucket_saturated", "mosaic_dn"):
+        a, b = getattr(whole, name), getattr(joined, name)
+        assert (a is None) == (b is None), name
+        if a is not None:
+            np.testing.assert_array_equal(b, a, err_msg=name)
+    if cfa == "RGGB":
+        with pytest.raises(ValueError, match="even row"):
+            simulate_reads(e[:, 3:9], reads, cfg, NoiseStreams(1), band=(3, 30))
+
+
+# ----------------------------------------------------------------------------- whole captures
+def _pair(config: str, extra: list[str], tiles: int):
+    cfg = load_config(ROOT / "configs" / config, [*SMALL, *extra])
+    untiled = run_capture(load_config(ROOT / "configs" / config, [*SMALL, *extra, "render.tiles=1"]), progress=False)
+    tiled = run_capture(load_config(ROOT / "configs" / config, [*SMALL, *extra, f"render.tiles={tiles}"]),
+                        progress=False)
+    return cfg, untiled, tiled
+
+
+def _assert_same(untiled, tiled):
+    for name in ("bucket_exposure", "buckets_e", "reads_expected_e", "reads_dn", "saturated", "render_var_exposure",
+                 "mosaic_dn"):
+        a, b = getattr(untiled, name), getattr(tiled, name)
+        assert (a is None) == (b is None), name
+        if a is not None:
+            np.testing.assert_array_equal(b, a, err_msg=name)
+    assert untiled.images.keys() == tiled.images.keys()
+    for name, img in untiled.images.items():
+        np.testing.assert_array_equal(tiled.images[name], img, err_msg=name)
+    assert tiled.report["render_error"] == untiled.report["render_error"]
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("config, extra, tiles", [
+    ("metronome_hdr.yaml", [], 3),  # uneven tiles: 1 + 2 + 1 bands
+    ("metronome_hdr.yaml", ["sensor.cfa=RGGB", "sensor.read_noise_row_e=1.0", "sensor.transfer_inefficiency=0.001"], 4),
+    ("multi_flash.yaml", [], 2),  # per-group exposures
+])
+def test_a_tiled_capture_is_the_untiled_capture(config, extra, tiles):
+    _, untiled, tiled = _pair(config, extra, tiles)
+    assert untiled.report["tiles"]["count"] == 1 and untiled.report["tiles"]["render_bands"] == 4
+    assert tiled.report["tiles"]["count"] == tiles
+    assert untiled.plan.passes >= 2
+    _assert_same(untiled, tiled)
+
+
+@pytest.mark.render
+def test_the_difference_estimator_integrates_tiles_as_the_whole_film():
+    """Its base and common-random-number renders are per tile too (the sensor is left out: at a few
+    samples this control variate can give a negative exposure, which the sensor refuses)."""
+    from mbcapture.config import scene_of
+    from mbcapture.integrate import integrate, integrate_tiles
+    from mbcapture.render import Renderer
+
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", [*SMALL, "render.estimator=difference"])
+    _, timeline, plan, seeds = prepare(cfg)
+    renderer = Renderer.from_config(scene_of(cfg), cfg)
+    whole = integrate(renderer, plan, timeline.n_channels, seeds[2])
+    tiled = integrate_tiles(renderer, plan, timeline.n_channels, seeds[2], group_bands(renderer.bands, 3))
+    for name in ("exposure", "mc_diff", "temporal_diff"):
+        np.testing.assert_array_equal(getattr(tiled, name), getattr(whole, name), err_msg=name)
+
+
+@pytest.mark.render
+def test_bands_render_the_rows_of_their_own_seeds():
+    """A film of several bands is no copy of one band: each band has its own random numbers, and the
+    first band is the one-band film's first rows."""
+    from mbcapture.config import scene_of
+    from mbcapture.render import Renderer
+
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", SMALL)
+    one = load_config(ROOT / "configs" / "metronome_hdr.yaml", [*SMALL[:-1]])
+    banded = Renderer.from_config(scene_of(cfg), cfg).render(0.0, 4, 11)
+    whole = Renderer.from_config(scene_of(one), one).render(0.0, 4, 11)
+    np.testing.assert_array_equal(banded[:, :16], whole[:, :16])
+    assert not np.array_equal(banded[:, 16:], whole[:, 16:])
+    # other bands: other numbers, the same scene (means agree within the Monte Carlo noise of 4 spp)
+    rel = abs(banded[:, 16:].mean() - whole[:, 16:].mean()) / whole[:, 16:].mean()
+    assert rel < 0.05
+
+
+# ----------------------------------------------------------------------------- the memory plan
+def test_tiles_are_chosen_from_the_memory_cap_and_shrink_the_estimate():
+    cfg = load_config(ROOT / "configs" / "sensor_12mp.yaml", ["render.spp=4", "render.cache=off"])
+    _, timeline, plan, _ = prepare(cfg)
+    app = cfg.app.resolve(cfg.capture.protocol)[0]
+    whole, tiled = estimate(cfg, timeline, plan, app, 1), estimate(cfg, timeline, plan, app, 12)
+    assert whole.tiles == 1 and tiled.tiles == 12 and tiled.bands == 12
+    assert tiled.memory_bytes < 0.6 * whole.memory_bytes
+    cap = (whole.memory_bytes + tiled.memory_bytes) / 2 / GB
+    capped = load_config(ROOT / "configs" / "sensor_12mp.yaml",
+                         ["render.spp=4", "render.cache=off", f"render.max_memory_gb={cap}"])
+    n = choose_tiles(capped, timeline, plan, app)
+    assert 1 < n <= 12
+    assert estimate(capped, timeline, plan, app, n).memory_bytes <= cap * GB
+    assert estimate(capped, timeline, plan, app, n - 1).memory_bytes > min(cap * GB, 1e30) or n == 1
+    assert MARGIN > 1
