@@ -95,7 +95,7 @@ def write_outputs(result: CaptureResult, out: Path, extra=None, *, raw: bool = T
     names = [r.name for r in tl.reads]
     with staged_outputs(out) as st:
         if raw:
-            st.write_exr("buckets.exr", {f"B{k + 1}": result.buckets_e[k] for k in range(tl.n_buckets)})
+            st.write_exr("buckets.exr", {f"B{k + 1}": result.bucket_exposure[k] * result.k_e for k in range(tl.n_buckets)})
             st.write_exr("reads_expected.exr", {n: result.reads_expected_e[i] for i, n in enumerate(names)})
             st.write_exr("reads.exr", {n: result.reads_dn[i] for i, n in enumerate(names)})
         app_out = result.app_output

@@ -210,7 +210,9 @@ def _cmd_plan(args) -> int:
               f"kernel compilation ~{c['compile_s']:.1f} s)")
     print(f"image motion during the capture: {s['image_motion_px_total']:.2f} px (at most {s['max_motion_px']} px per stratum)")
     r, (free, source) = info["resources"], resources.free_memory()
-    print(f"resources: peak memory about {r['peak_memory_gb']:.3g} GB ({free / 2**30:.3g} GB free: {source}), outputs "
+    tiles = (f" in {r['tiles']} tiles of rows (render.tiles; {r['render_bands']} render bands)" if r["tiles"] > 1
+             else f" in one tile ({r['render_bands']} render band{'s' * (r['render_bands'] > 1)})")
+    print(f"resources: peak memory about {r['peak_memory_gb']:.3g} GB{tiles} ({free / 2**30:.3g} GB free: {source}), outputs "
           f"about {r['outputs_mb']:.3g} MB" + (f", new render-cache entries about {r['render_cache_mb']:.3g} MB"
                                                if r["render_cache_mb"] else ""))
     for n in s["notes"]:

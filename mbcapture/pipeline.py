@@ -46,12 +46,17 @@ class CaptureResult:
     """Everything a capture produced, as arrays (axes: read/bucket, row, column, channel).
 
     bucket_exposure       (K, H, W, C) noise-free radiant exposure per bucket, W m^-2 sr^-1 s
-    buckets_e             (K, H, W, C) noise-free expected electrons per bucket
+    k_e                   (C,) electrons per render unit and second
+    buckets_e             (K, H, W, C) noise-free expected electrons per bucket (bucket_exposure x k_e, made
+                          when asked for: a large film does not hold it twice)
     reads_expected_e      (R, H, W, C) noise-free, unclipped expected electrons of each read
     reads_dn              (R, H, W, C) simulated reads, DN
     saturated             (R, H, W, C) bool
     moving_mask           (H, W) pixels the moving parts cross during the capture
-    render_var_exposure   (K, H, W, C) estimated Monte Carlo variance of bucket_exposure (None if spp = 1)
+    render_mc_diff        (K, H, W, C) signed half-sample difference of bucket_exposure (None if spp = 1;
+                          mbcapture.integrate.Integrated.mc_diff)
+    render_var_exposure   (K, H, W, C) estimated Monte Carlo variance of bucket_exposure, its square (made
+                          when asked for; None if spp = 1)
     mosaic_dn             (R, H, W) a colour-filter-array sensor's photosite codes (sensor.cfa), else None;
                           reads_dn are then the demosaiced reads
     app                   name of the application that reconstructed the reads
@@ -62,19 +67,27 @@ class CaptureResult:
     timeline: Timeline
     plan: Plan
     bucket_exposure: np.ndarray
-    buckets_e: np.ndarray
+    k_e: np.ndarray
     reads_expected_e: np.ndarray
     reads_dn: np.ndarray
     saturated: np.ndarray
     moving_mask: np.ndarray
     app: str
     images: dict[str, np.ndarray]
-    render_var_exposure: np.ndarray | None = None
+    render_mc_diff: np.ndarray | None = None
     mosaic_dn: np.ndarray | None = None
     report: dict = field(default_factory=dict)
     out_dir: Path | None = None  # where run_capture wrote it
     app_output: AppOutput | None = None
     video: object = None  # a video run (capture.frames > 1): mbcapture.video.VideoFrames of every frame
+
+    @property
+    def buckets_e(self) -> np.ndarray:
+        return self.bucket_exposure * self.k_e
+
+    @property
+    def render_var_exposure(self) -> np.ndarray | None:
+        return None if self.render_mc_diff is None else self.render_mc_diff**2
 
 
 class _Timer:
@@ -316,8 +329,8 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
     with timer("sensor"), status.stage("sensor"):
         spectral = cfg.render.variant.endswith("_spectral")
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)  # (C,) e- per render unit s (spectral: film units)
-        buckets_e = exposure * k_e
-        sensor_out = sense(timeline, buckets_e, cfg.sensor, sensor_seed(cfg, seeds), tiles=tiles)
+        # the expected electrons exposure x k_e, made tile by tile inside the sensor stage
+        sensor_out = sense(timeline, exposure, cfg.sensor, sensor_seed(cfg, seeds), tiles=tiles, per_unit=k_e)
 
     with timer("reconstruct"), status.stage(f"reconstruct ({app.name})"):
         mask = moving
@@ -353,7 +366,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         "electrons_per_render_unit_second": dict(zip(renderer.channels, k_e.tolist())),  # per film channel
         "metrics": out.metrics,
         "render_error": {
-            **render_error(integrated.mc_diff, buckets_e, k_e, [r.buckets for r in timeline.reads],
+            **render_error(integrated.mc_diff, exposure * k_e, k_e, [r.buckets for r in timeline.reads],
                            [r.name for r in timeline.reads], cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
                            plan=plan, noise_budget=cfg.render.noise_budget, noise_budget_p95=cfg.render.noise_budget_p95,
                            noise_budget_tail=cfg.render.noise_budget_tail),
@@ -371,14 +384,14 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         timeline=timeline,
         plan=plan,
         bucket_exposure=exposure,
-        buckets_e=buckets_e,
+        k_e=k_e,
         reads_expected_e=sensor_out.reads_e_expected,
         reads_dn=sensor_out.reads_dn,
         saturated=sensor_out.saturated,
         moving_mask=mask,
         app=app.name,
         images=out.images,
-        render_var_exposure=integrated.mc_var,
+        render_mc_diff=integrated.mc_diff,
         mosaic_dn=sensor_out.mosaic_dn,
         report=report,
         app_output=out,

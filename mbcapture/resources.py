@@ -20,8 +20,10 @@ The model counts the arrays the pipeline holds, per sample of the film (row x co
 Tiles (``render.tiles``, :func:`choose_tiles`): render, accumulation and the sensor stage go
 through the film a tile of rows at a time, so their working set scales with the largest tile
 while the whole-film results stay: ``HELD_PER_BUCKET_SAMPLE`` float64 values per sample of each
-bucket (the exposures and their half-sample and temporal differences, the expected electrons,
-the reads and their truths, and what the reconstruction and the noise report make of them).
+bucket (the exposures and their half-sample and temporal differences, the reads and their
+truths, and what the reconstruction, the noise report and the writing of the outputs make of
+them), plus one per emitter group for an application that asks for per-group exposures, plus
+``APP_CHANNEL_HELD`` per pixel and channel of the application's images (its reconstruction).
 An application's comparison captures (``App.memory_scale`` above 1) are simulated whole.
 
 The constants were fitted to the peak resident memory and the bytes written of the shipped
@@ -51,9 +53,12 @@ GB = 1 << 30
 BASE_MEMORY_MB = 285.0
 #: Peak float64 values per sample of each bucket (fitted: the reads add nothing measurable).
 FLOAT64_PER_BUCKET_SAMPLE = 15.8
-#: Of those, the float64 values per bucket sample a tiled capture holds for the whole film (fitted
-#: like the above: scripts/resources.py --tiles).
+#: Of those, the float64 values per bucket sample a tiled capture holds for the whole film, and the
+#: float64 values per pixel and output channel its application's reconstruction holds and makes (fitted
+#: to the peak memory of metronome_hdr and multi_flash at 640x512 and 1280x1024 and flash_matting at
+#: 640x512 in 16 tiles of 64 rows: scripts/resources.py --band-rows 64 --tiles 16, within 0.90-1.15).
 HELD_PER_BUCKET_SAMPLE = 7.0
+APP_CHANNEL_HELD = 2.7
 #: Compressed / raw size of float32 EXR layers (ZIP): noise-free floats to about 3/4, integer DN to under half.
 EXR_RATIO_EXPECTED = 0.75
 EXR_RATIO_DN = 0.45
@@ -117,7 +122,10 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles
     per_sample = FLOAT64_PER_BUCKET_SAMPLE * app.memory_scale
     if len(rows) > 1:  # the working set follows the largest tile; comparison captures stay whole
         share = max(b - a for a, b in rows) / cfg.render.height
-        per_sample = (HELD_PER_BUCKET_SAMPLE + (FLOAT64_PER_BUCKET_SAMPLE - HELD_PER_BUCKET_SAMPLE) * share
+        groups = len(plan.groups) if app.per_group else 0  # the per-group exposures stay whole too
+        images = APP_CHANNEL_HELD * app.output_channels / (3.0 * acc)  # the reconstruction, per bucket sample
+        per_sample = (HELD_PER_BUCKET_SAMPLE + groups + images
+                      + (FLOAT64_PER_BUCKET_SAMPLE - HELD_PER_BUCKET_SAMPLE) * share
                       + FLOAT64_PER_BUCKET_SAMPLE * (app.memory_scale - 1.0))
     per_frame = 8.0 * samples * per_sample * acc
     held = 8.0 * samples * (2 * K + 2 * R) + 4.0 * px * app.output_channels  # a finished frame's arrays

@@ -32,7 +32,7 @@ from .timeline import Timeline
 
 
 def sense(timeline: Timeline, buckets_e: np.ndarray, sensor: SensorConfig, seed: np.random.SeedSequence,
-          tiles: tuple[tuple[int, int], ...] | None = None) -> SensorReads:
+          tiles: tuple[tuple[int, int], ...] | None = None, per_unit: np.ndarray | None = None) -> SensorReads:
     """The sensor stage: ``buckets_e`` (K, H, W, C) noise-free expected electrons of the buckets of
     ``timeline`` into its reads, with dark current over each bucket's storage time
     (:meth:`~mbcapture.timeline.Timeline.storage_s`) and, on a multi-bucket sensor, the buckets
@@ -41,18 +41,21 @@ def sense(timeline: Timeline, buckets_e: np.ndarray, sensor: SensorConfig, seed:
     ``tiles``: rows (first, end) covering the film in order; each is sensed alone (its noise fields
     the film's, cut to its rows) and the joined reads are developed once (a CFA's demosaicing), so
     the result is the untiled stage's reads bit for bit, without the buckets' charge (``electrons``
-    None), and the noise fields and counts are held for one tile at a time."""
+    None), and the noise fields and counts are held for one tile at a time.
+
+    ``per_unit`` (C,): ``buckets_e`` is in render units (exposures) and each tile's expected electrons
+    are ``buckets_e[tile] * per_unit``, made as the tile is sensed (the same values as multiplying first)."""
     reads = [r.buckets for r in timeline.reads]
     kw = {"storage_s": timeline.storage_s(), "shared_photodiode": not timeline.sequential}
+    scale = (lambda a: a) if per_unit is None else (lambda a: a * per_unit)  # noqa: E731
     if tiles is None or len(tiles) == 1:
-        return simulate_reads(buckets_e, reads, sensor, seed, **kw)
+        return simulate_reads(scale(buckets_e), reads, sensor, seed, **kw)
     streams = NoiseStreams(seed)
     H = buckets_e.shape[1]
-    parts = []
-    for r0, r1 in tiles:  # each tile's charge dropped as soon as its reads are made
-        part = simulate_reads(buckets_e[:, r0:r1], reads, sensor, streams, band=(r0, H), develop=False, **kw)
-        parts.append(replace(part, electrons=None, bucket_saturated=None))
-    return develop_reads(join_rows(parts, reads_only=True), sensor)
+    # one tile at a time: its noise fields, counts and charge made, its reads copied into the film's, let go
+    parts = (simulate_reads(scale(buckets_e[:, r0:r1]), reads, sensor, streams, band=(r0, H), develop=False, **kw)
+             for r0, r1 in tiles)
+    return develop_reads(join_rows(parts, height=H, reads_only=True), sensor)
 
 
 @dataclass(frozen=True)

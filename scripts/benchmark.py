@@ -26,6 +26,13 @@
 8. 2 workers against 1 on a render-bound sweep (--sweep-film): 4 seeds of the default capture at
    render.spp 32, each its own render group, `mbcapture sweep --workers 1` and `--workers 2`, each
    with an empty render cache.
+9. A sensor of real size: configs/sensor_12mp.yaml (4096x3072) at --big-spp samples per stratum and
+   strata of --big-motion-px pixels of motion (2: about 11 strata instead of 41; memory does not
+   depend on the strata, time does), render cache off, outputs written, each run in a fresh process: untiled (render.tiles 1), in
+   --big-tiles tiles (default 12: one per render band), and so tiled on a local Dask cluster of 1
+   and of 2 workers. Prints each run's peak resident memory (this process's; the workers' are
+   their own) against the plan, its wall time, the render's samples per second per core, and the
+   speed-ups of the workers over the tiled local run.
 """
 
 from __future__ import annotations
@@ -179,6 +186,61 @@ def sweep_workers(args) -> None:
           f"speed-up {times[1] / times[2]:.2f}x")
 
 
+def _child_capture(sets: list[str], workers: int | None) -> dict:
+    """One capture of configs/sensor_12mp.yaml in a fresh process, outputs written: wall seconds, peak
+    resident memory (VmHWM), planned memory, tiles, render seconds and samples rendered."""
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    child = """
+import json, sys, tempfile, time
+from mbcapture import load_config, run_capture
+from mbcapture.cluster import start_client
+from mbcapture.resources import peak_rss_bytes
+cfg = load_config(sys.argv[1], sys.argv[4:])
+workers = int(sys.argv[3])
+client = start_client(workers) if workers else None
+t0 = time.perf_counter()
+r = run_capture(cfg, sys.argv[2], progress=False, client=client)
+wall = time.perf_counter() - t0
+rep = r.report
+print(json.dumps({"wall_s": wall, "peak_bytes": peak_rss_bytes(), "planned_gb": rep["resources"]["peak_memory_gb"],
+                  "tiles": rep["tiles"]["count"], "render_s": rep["timings_s"].get("render", 0.0)
+                  + rep["timings_s"].get("cluster", 0.0), "samples": cfg.render.width * cfg.render.height
+                  * sum(s["spp"] for s in rep["plan"]["strata"])}))
+"""
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = subprocess.run([sys.executable, "-c", child, str(ROOT / "configs" / "sensor_12mp.yaml"),
+                               str(Path(tmp) / "out"), str(workers or 0), *sets],
+                              capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode != 0:
+        raise SystemExit(f"[9] {' '.join(sets)} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def big_sensor(args) -> None:
+    from mbcapture.cluster import usable_cores
+
+    base = [f"render.spp={args.big_spp}", "render.cache=off", f"render.max_motion_px={args.big_motion_px}"]
+    tiled = [*base, f"render.tiles={args.big_tiles}"]
+    runs = {"untiled": _child_capture([*base, "render.tiles=1"], None), "tiled": _child_capture(tiled, None)}
+    for n in (1, 2):
+        runs[f"tiled, {n} worker{'s' * (n > 1)}"] = _child_capture(tiled, n)
+    cores = usable_cores()
+    for name, r in runs.items():
+        rate = r["samples"] / max(r["render_s"], 1e-9) / cores
+        print(f"[9] 4096x3072, {args.big_spp} spp, strata of {args.big_motion_px} px, {name}: {r['tiles']} tiles, peak memory "
+              f"{r['peak_bytes'] / 2**30:.2f} GiB (planned {r['planned_gb']:.2f} GB, ratio "
+              f"{r['peak_bytes'] / 2**30 / r['planned_gb']:.2f}), {r['wall_s']:.0f} s, render "
+              f"{rate / 1e6:.2f} M samples/s per core ({cores} cores)")
+    t = runs["tiled"]["wall_s"]
+    print(f"[9] speed-up over the tiled run here: 1 worker {t / runs['tiled, 1 worker']['wall_s']:.2f}x, "
+          f"2 workers {t / runs['tiled, 2 workers']['wall_s']:.2f}x; tiled / untiled peak memory "
+          f"{runs['tiled']['peak_bytes'] / runs['untiled']['peak_bytes']:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--width", type=int, default=160)
@@ -192,9 +254,14 @@ def main() -> None:
     ap.add_argument("--compare-film", default="160x128", help="[6] film, WxH")
     ap.add_argument("--sweep-film", default="320x256", help="[7], [8] film, WxH")
     ap.add_argument("--sweep-workers", type=int, default=2, help="[7] local Dask workers")
-    ap.add_argument("--only", default="1,2,3,4,5,6,7,8", help="which benchmarks to run, e.g. 4")
+    ap.add_argument("--big-spp", type=int, default=2, help="[9] samples per stratum at 4096x3072")
+    ap.add_argument("--big-motion-px", type=float, default=2.0, help="[9] render.max_motion_px at 4096x3072")
+    ap.add_argument("--big-tiles", type=int, default=12, help="[9] render.tiles of the tiled runs")
+    ap.add_argument("--only", default="1,2,3,4,5,6,7,8", help="which benchmarks to run, e.g. 4 ([9] only when named)")
     args = ap.parse_args()
     only = {int(x) for x in args.only.split(",")}
+    if 9 in only:
+        big_sensor(args)
     if 7 in only:
         sweep_cost(args)
     if 8 in only:

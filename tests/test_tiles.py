@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 
 from mbcapture import load_config, run_capture
+from mbcapture.capture import check_resources
+from mbcapture.errors import ResourceProblem
 from mbcapture.pipeline import prepare
 from mbcapture.render.bands import band_seed, film_bands, group_bands
-from mbcapture.resources import MARGIN, GB, choose_tiles, estimate
+from mbcapture.resources import GB, choose_tiles, estimate
 from mbcapture.sensor import SensorConfig, develop_reads, join_rows, simulate_reads
 from mbcapture.sensor.sampling import BandedField, NoiseStreams, uniform_open
 
@@ -156,12 +158,18 @@ def test_tiles_are_chosen_from_the_memory_cap_and_shrink_the_estimate():
     app = cfg.app.resolve(cfg.capture.protocol)[0]
     whole, tiled = estimate(cfg, timeline, plan, app, 1), estimate(cfg, timeline, plan, app, 12)
     assert whole.tiles == 1 and tiled.tiles == 12 and tiled.bands == 12
-    assert tiled.memory_bytes < 0.6 * whole.memory_bytes
+    # more tiles, less memory: the working set follows the largest tile, the whole-film results stay
+    steps = [estimate(cfg, timeline, plan, app, n).memory_bytes for n in (1, 2, 3, 4, 6, 12)]
+    assert all(a > b for a, b in zip(steps, steps[1:])), steps
+    assert tiled.memory_bytes == steps[-1] and steps[-1] > 0.5 * steps[0]
     cap = (whole.memory_bytes + tiled.memory_bytes) / 2 / GB
     capped = load_config(ROOT / "configs" / "sensor_12mp.yaml",
                          ["render.spp=4", "render.cache=off", f"render.max_memory_gb={cap}"])
     n = choose_tiles(capped, timeline, plan, app)
     assert 1 < n <= 12
     assert estimate(capped, timeline, plan, app, n).memory_bytes <= cap * GB
-    assert estimate(capped, timeline, plan, app, n - 1).memory_bytes > min(cap * GB, 1e30) or n == 1
-    assert MARGIN > 1
+    assert estimate(capped, timeline, plan, app, n - 1).memory_bytes > cap * GB  # the fewest that fit
+    with pytest.raises(ResourceProblem, match="render.max_memory_gb"):  # below one band per tile: one line, exit 2
+        check_resources(load_config(ROOT / "configs" / "sensor_12mp.yaml",
+                                    ["render.spp=4", "render.cache=off", f"render.max_memory_gb={0.9 * tiled.memory_bytes / GB}"]),
+                        None)

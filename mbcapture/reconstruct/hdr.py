@@ -109,6 +109,16 @@ def _first_pass_rate(m: MergeInput) -> np.ndarray:
     return np.maximum(rate, 0.0)
 
 
+def _read_sum(coef: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """sum_i coef[i] * values[i] over the reads (axis 0), added in read order, one sample at a time:
+    the same value for a sample whatever the other samples (BLAS and einsum choose their summation
+    order by the arrays' shapes, so a merge in chunks would differ in the last bits)."""
+    out = coef[0] * values[0]
+    for i in range(1, len(coef)):
+        out = out + coef[i] * values[i]
+    return out
+
+
 def _ramp_fit(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
     n_reads, n_pix = m.x_e.shape
     rate = np.empty(n_pix)
@@ -122,15 +132,15 @@ def _ramp_fit(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
         shared = np.minimum.outer(t, t) if m.cumulative else np.diag(t)
         d, v = np.linalg.eigh(shared)  # shared = v diag(d) v^T, d >= 0
         a = v.T @ t  # (n,)
-        y = v.T @ x  # (n, P_g)
-        lam = (t @ x) / (t @ t)  # pass 0: ordinary least squares through the origin
+        y = np.stack([_read_sum(v[:, i], x) for i in range(len(reads))])  # (n, P_g) = v^T x
+        lam = _read_sum(t, x) / (t @ t)  # pass 0: ordinary least squares through the origin
         for _ in range(2):  # pass 1: GLS with C(lam_0); pass 2: iterate once with the fitted lam
             w = 1.0 / (np.maximum(lam, 0.0)[None, :] * d[:, None] + m.read_var_e2)  # (n, P_g)
-            fisher = np.einsum("i,ip->p", a**2, w)
-            lam = np.einsum("i,ip,ip->p", a, w, y) / fisher
+            fisher = _read_sum(a**2, w)
+            lam = _read_sum(a, w * y) / fisher
         w = 1.0 / (np.maximum(lam, 0.0)[None, :] * d[:, None] + m.read_var_e2)
         rate[pix] = lam
-        sigma[pix] = 1.0 / np.sqrt(np.einsum("i,ip->p", a**2, w))
+        sigma[pix] = 1.0 / np.sqrt(_read_sum(a**2, w))
     return rate, sigma
 
 
@@ -231,8 +241,33 @@ def merge_hdr(
     n_reads = dn.shape[0]
     pixel_shape = dn.shape[1:]
     dn2 = dn.reshape(n_reads, -1)
+    sat2 = sat.reshape(n_reads, -1)
+    n = dn2.shape[1]
+    rate, sigma = np.empty(n), np.empty(n)
+    valid, n_used = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64)
+    # every method is per sample: MERGE_CHUNK samples at a time give the same values with the
+    # temporaries (a dozen (R, chunk) arrays) of one chunk, whatever the film
+    for a in range(0, n, MERGE_CHUNK):
+        b = min(a + MERGE_CHUNK, n)
+        rate[a:b], sigma[a:b], valid[a:b], n_used[a:b] = _merge_samples(dn2[:, a:b], sat2[:, a:b], t, cfg, method,
+                                                                         cumulative)
+    return HDRResult(
+        rate_e_per_s=rate.reshape(pixel_shape),
+        sigma_e_per_s=sigma.reshape(pixel_shape),
+        valid=valid.reshape(pixel_shape),
+        n_used=n_used.reshape(pixel_shape),
+    )
+
+
+#: Samples merged at a time by :func:`merge_hdr` (its methods are per sample).
+MERGE_CHUNK = 1 << 18
+
+
+def _merge_samples(dn2: np.ndarray, sat2: np.ndarray, t: np.ndarray, cfg: SensorConfig, method: str,
+                   cumulative: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`merge_hdr` on (R, P) codes and flags: rate, sigma, valid, reads used, each (P,)."""
     x_e = dn_to_electrons(dn2, cfg)
-    ok = ~sat.reshape(n_reads, -1)
+    ok = ~sat2
     usable = np.cumprod(ok, axis=0).astype(bool) if cumulative else ok
     n_used = usable.sum(axis=0)
     valid = n_used > 0
@@ -252,10 +287,4 @@ def merge_hdr(
             cfg=cfg,
         )
         rate[valid], sigma[valid] = HDR_METHODS[method](m)
-
-    return HDRResult(
-        rate_e_per_s=rate.reshape(pixel_shape),
-        sigma_e_per_s=sigma.reshape(pixel_shape),
-        valid=valid.reshape(pixel_shape),
-        n_used=n_used.astype(np.int64).reshape(pixel_shape),
-    )
+    return rate, sigma, valid, n_used

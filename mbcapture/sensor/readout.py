@@ -46,7 +46,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass, replace
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -318,25 +318,41 @@ def develop_reads(photosites: SensorReads, cfg: SensorConfig) -> SensorReads:
                    mosaic_dn=out.reads_dn[..., 0], mosaic_saturated=out.saturated[..., 0], cfa=cfg.cfa)
 
 
-def join_rows(bands: Sequence[SensorReads], reads_only: bool = False) -> SensorReads:
+def join_rows(bands: "Iterable[SensorReads]", height: int | None = None, reads_only: bool = False) -> SensorReads:
     """The reads of a film's row bands (in order, each from :func:`simulate_reads` with ``band``),
     joined along the rows; ``reads_only``: without the buckets' charge (``electrons``,
-    ``bucket_saturated`` None), which a tiled capture does not keep."""
-    if not bands:
+    ``bucket_saturated`` None), which a tiled capture does not keep. ``bands`` may be a generator:
+    with the film's ``height`` each band is copied into the film's arrays as it comes and let go,
+    so the bands are never all held at once."""
+    names = ("reads_dn", "reads_e_expected", "saturated", "mosaic_dn", "mosaic_saturated") + \
+        (() if reads_only else ("electrons", "bucket_saturated"))
+    first: SensorReads | None = None
+    film: dict[str, np.ndarray | None] = {}
+    parts: dict[str, list[np.ndarray]] = {n: [] for n in names}
+    row = 0
+    for b in bands:
+        first = b if first is None else first
+        h = b.reads_dn.shape[1]
+        for name in names:
+            value = getattr(b, name)
+            if value is None:
+                film[name] = None
+            elif height is None:
+                parts[name].append(value)
+            else:
+                if name not in film:  # rows on axis 1 of every array
+                    film[name] = np.empty((value.shape[0], height, *value.shape[2:]), value.dtype)
+                film[name][:, row:row + h] = value
+        row += h
+    if first is None:
         raise ValueError("join_rows: no bands")
-
-    def cat(name: str) -> np.ndarray | None:
-        parts = [getattr(b, name) for b in bands]
-        return None if parts[0] is None else np.concatenate(parts, axis=1)
-
-    first = bands[0]
-    keep = ("reads_dn", "reads_e_expected", "saturated") + (() if reads_only else ("electrons", "bucket_saturated"))
-    joined = {name: cat(name) for name in keep}
-    for name in ("mosaic_dn", "mosaic_saturated"):  # (R, H, W): rows on axis 1 too
-        joined[name] = cat(name)
+    if height is None:
+        film = {n: None if not parts[n] else np.concatenate(parts[n], axis=1) for n in names}
+    elif row != height:
+        raise ValueError(f"join_rows: the bands hold {row} rows, not the film's {height}")
     if reads_only:
-        joined.update(electrons=None, bucket_saturated=None)
-    return replace(first, **joined)
+        film.update(electrons=None, bucket_saturated=None)
+    return replace(first, **film)
 
 
 def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cfg: SensorConfig,
