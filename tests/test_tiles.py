@@ -68,7 +68,7 @@ def test_sensing_a_film_band_by_band_gives_the_whole_films_reads(cfa):
     streams = NoiseStreams(np.random.SeedSequence(9))
     parts = [simulate_reads(e[:, a:b], reads, cfg, streams, storage_s=[1e-3] * 4, band=(a, 30), develop=False)
              for a, b in [(0, 8), (8, 10), (10, 24), (24, 30)]]
-    joined = develop_reads(join_rows(parts), cfg)
+    joined = develop_reads(join_rows(parts, height=30), cfg)
     assert whole.bucket_saturated.any() and not whole.bucket_saturated.all()  # wells reached in places
     for name in ("reads_dn", "saturated", "reads_e_expected", "electrons", "bucket_saturated", "mosaic_dn"):
         a, b = getattr(whole, name), getattr(joined, name)

@@ -698,16 +698,10 @@ class Renderer:
         and :meth:`render_rows` use it (the lens applied as to their own) instead of rendering, once."""
         self._given[(float(t_s), int(spp), int(seed), tuple(groups), int(band))] = np.asarray(radiance, np.float32)
 
-    def raw_render(self, t_s: float, spp: int, seed: int, groups: Sequence[str], band: int | None = None) -> np.ndarray:
-        """What :meth:`render` caches: the render before the lens's falloff, distortion, diffraction and
-        mono mixture (what :meth:`give` takes), of band ``band`` (None: the whole film, band after band)."""
+    def raw_render(self, t_s: float, spp: int, seed: int, groups: Sequence[str], band: int = 0) -> np.ndarray:
+        """What :meth:`render` caches: band ``band`` of the render before the lens's falloff, distortion,
+        diffraction and mono mixture (what :meth:`give` takes)."""
         req = list(groups)
-        if band is None:
-            if len(self.bands) == 1:
-                band = 0
-            else:
-                return np.concatenate([self.raw_render(t_s, spp, seed, req, band=b) for b in range(len(self.bands))],
-                                      axis=1)
         n = self.sample_count(spp)
         params = {"spp": int(n), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
         if len(self.bands) == 1:  # the whole film: the key it has always had

@@ -318,17 +318,16 @@ def develop_reads(photosites: SensorReads, cfg: SensorConfig) -> SensorReads:
                    mosaic_dn=out.reads_dn[..., 0], mosaic_saturated=out.saturated[..., 0], cfa=cfg.cfa)
 
 
-def join_rows(bands: "Iterable[SensorReads]", height: int | None = None, reads_only: bool = False) -> SensorReads:
-    """The reads of a film's row bands (in order, each from :func:`simulate_reads` with ``band``),
-    joined along the rows; ``reads_only``: without the buckets' charge (``electrons``,
-    ``bucket_saturated`` None), which a tiled capture does not keep. ``bands`` may be a generator:
-    with the film's ``height`` each band is copied into the film's arrays as it comes and let go,
-    so the bands are never all held at once."""
+def join_rows(bands: "Iterable[SensorReads]", height: int, reads_only: bool = False) -> SensorReads:
+    """The reads of a film of ``height`` rows from its row bands (in order, each from
+    :func:`simulate_reads` with ``band``); ``reads_only``: without the buckets' charge
+    (``electrons``, ``bucket_saturated`` None), which a tiled capture does not keep. ``bands`` may be
+    a generator: each band is copied into the film's arrays as it comes and let go, so the bands are
+    never all held at once."""
     names = ("reads_dn", "reads_e_expected", "saturated", "mosaic_dn", "mosaic_saturated") + \
         (() if reads_only else ("electrons", "bucket_saturated"))
     first: SensorReads | None = None
     film: dict[str, np.ndarray | None] = {}
-    parts: dict[str, list[np.ndarray]] = {n: [] for n in names}
     row = 0
     for b in bands:
         first = b if first is None else first
@@ -337,18 +336,14 @@ def join_rows(bands: "Iterable[SensorReads]", height: int | None = None, reads_o
             value = getattr(b, name)
             if value is None:
                 film[name] = None
-            elif height is None:
-                parts[name].append(value)
-            else:
-                if name not in film:  # rows on axis 1 of every array
-                    film[name] = np.empty((value.shape[0], height, *value.shape[2:]), value.dtype)
-                film[name][:, row:row + h] = value
+                continue
+            if name not in film:  # rows on axis 1 of every array
+                film[name] = np.empty((value.shape[0], height, *value.shape[2:]), value.dtype)
+            film[name][:, row:row + h] = value
         row += h
     if first is None:
         raise ValueError("join_rows: no bands")
-    if height is None:
-        film = {n: None if not parts[n] else np.concatenate(parts[n], axis=1) for n in names}
-    elif row != height:
+    if row != height:
         raise ValueError(f"join_rows: the bands hold {row} rows, not the film's {height}")
     if reads_only:
         film.update(electrons=None, bucket_saturated=None)
@@ -392,13 +387,9 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
     saturated = np.empty(shape, dtype=bool)
     adc_max = float(cfg.adc_max_dn)
     read_noise = field("normal", "read", shape)
-    # temporal row noise: one offset per row and read, shared by the row's pixels and channels (a line
-    # per read: drawn whole, cut to a band's rows)
-    row_noise = None
-    if cfg.read_noise_row_e > 0.0:
-        rows = (0, shape[1]) if film is None else (film.r0, film.r0 + shape[1])
-        row_noise = cfg.read_noise_row_e * streams.normal(
-            "row", (n_reads, shape[1] if film is None else film.height, 1, 1))[:, rows[0]:rows[1]]
+    # temporal row noise: one offset per row and read, shared by the row's pixels and channels
+    row_noise = cfg.read_noise_row_e * field("normal", "row", (n_reads, shape[1], 1, 1)) \
+        if cfg.read_noise_row_e > 0.0 else None
     for r, buckets in enumerate(read_sets):
         idx = list(buckets)
         fd_e = transferred[idx].sum(axis=0)
