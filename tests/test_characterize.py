@@ -9,6 +9,7 @@ pattern (the mean gain of its pixels, the variance of its rows) carry that sampl
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import subprocess
@@ -100,11 +101,19 @@ LEADING = ["system_gain_dn_per_e", "responsivity_dn_per_photon", "quantum_effici
            "dsnu_e", "prnu_percent"]
 
 
+CHANGE_SETTINGS = ch.Settings(width=64, height=64, steps=30, dark_steps=4, frames=8)
+
+
+@functools.lru_cache(maxsize=1)
+def _unchanged() -> dict:
+    """The unchanged sensor's figures, measured once per test process for every change below."""
+    return _measure([], CHANGE_SETTINGS)["reads"]["bucket"]["channels"]["G"]
+
+
 @pytest.mark.parametrize("change,moved", CHANGES, ids=[c for c, _ in CHANGES])
 def test_a_sensor_change_moves_exactly_the_figures_it_should(change, moved):
-    settings = ch.Settings(width=64, height=64, steps=30, dark_steps=4, frames=8)
-    base = _measure([], settings)["reads"]["bucket"]["channels"]["G"]
-    new = _measure([change], settings)["reads"]["bucket"]["channels"]["G"]
+    base = _unchanged()
+    new = _measure([change], CHANGE_SETTINGS)["reads"]["bucket"]["channels"]["G"]
     for name in LEADING:
         a, b = base[name], new[name]
         z = abs(a["value"] - b["value"]) / math.hypot(a["uncertainty"], b["uncertainty"])

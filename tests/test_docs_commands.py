@@ -84,6 +84,18 @@ FENCED = fenced_commands()
 INLINE = inline_commands()
 
 
+def unique_commands(found: list[tuple[str, int, str, str]]) -> list[tuple[str, str, str]]:
+    """One run per distinct command or block, with every place that shows it ('README.md:44 +
+    characterize.md:6'): a command shown twice does the same thing twice (the workspace is shared)."""
+    places: dict[tuple[str, str], list[str]] = {}
+    for where, line, lang, cmd in found:
+        places.setdefault((lang, cmd), []).append(f"{where}:{line}")
+    return [(" + ".join(at), lang, cmd) for (lang, cmd), at in places.items()]
+
+
+RUNS = unique_commands(FENCED)
+
+
 # ----------------------------------------------------------------------------- running
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
@@ -142,14 +154,14 @@ def run_command(cmd: str, ws: Path, capsys) -> None:
 
 
 @pytest.mark.render
-@pytest.mark.parametrize("where,line,lang,cmd", FENCED, ids=[f"{f}:{n}" for f, n, _, _ in FENCED])
-def test_fenced_command_runs(where, line, lang, cmd, workspace, monkeypatch, capsys):
+@pytest.mark.parametrize("where,lang,cmd", RUNS, ids=[w for w, _, _ in RUNS])
+def test_fenced_command_runs(where, lang, cmd, workspace, monkeypatch, capsys):
     monkeypatch.chdir(workspace)
     monkeypatch.setenv("MBCAPTURE_SET", TINY)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the $MBCAPTURE_SET notice
         if lang == "python":
-            exec(compile(cmd, f"{where}:{line}", "exec"), {"__name__": "__docs__"})
+            exec(compile(cmd, where, "exec"), {"__name__": "__docs__"})
         else:
             run_command(cmd, workspace, capsys)
 

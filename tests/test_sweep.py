@@ -168,9 +168,10 @@ def test_group_key_changes_exactly_with_what_the_renders_receive():
 
 
 # ------------------------------------------------------------------------------ on a LocalCluster
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def client():
-    """One LocalCluster of 2 worker processes for every sweep test (starting one costs seconds)."""
+    """One LocalCluster of 2 worker processes for every sweep test (starting one costs seconds); for the
+    session, so that a test of another module run in between does not close and start it again."""
     from mbcapture.sweep.execute import start_client
 
     c = start_client(2)
@@ -179,10 +180,11 @@ def client():
     c.cluster.close()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def tiny_sweep(tmp_path_factory, client):
     """3 points (seed, read noise: (0, 1), (0, 20), (1, 1); 16x12, 4 spp) in 2 render groups, run once
-    on the cluster with a render cache of its own; keep: all."""
+    on the cluster with a render cache of its own; keep: all. For the session: once per test process,
+    even where another module's tests run between this module's."""
     folder = tmp_path_factory.mktemp("sweep")
     path = write_sweep(folder, {"base": "tiny_hdr", "set": {**TINY, "render.cache": str(folder / "cache")},
                                 "axes": {"zip": [{"seed": [0, 0, 1], "sensor.read_noise_e": [1.0, 20.0, 1.0]}]},
