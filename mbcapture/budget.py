@@ -303,18 +303,43 @@ def resolve_spp(plan: Plan, renderer, cfg, seed: np.random.SeedSequence) -> Plan
 TAIL_QUANTILE = 99.9
 
 
-def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: np.ndarray, k_e: np.ndarray, buckets,
+def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray, buckets,
                      full_well_e: float, fd_full_well_e: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One read's ``(var_e, signal, use)``, each (H, W, C): its Monte Carlo variance in electrons^2 (the
     square of its buckets' summed half-sample differences, pooled over 3x3 pixels), its expected
     electrons, and the samples that count: lit, every bucket below the full well, the sum below the
     floating diffusion's (``fd_full_well_e``; None: no limit)."""
-    idx = list(buckets)
-    var_e = pooled(mc_diff_exposure[idx].sum(axis=0) ** 2) * k_e**2
-    signal = buckets_e[idx].sum(axis=0)
+    # bucket by bucket, in the read's order: the same sums as .sum(axis=0) over a copy of the read's
+    # buckets, without the copy (a large film's noise report then holds a read, not its buckets)
+    idx = [int(b) for b in buckets]
+    diff = np.array(mc_diff_exposure[idx[0]], dtype=np.float64)
+    e = buckets_e[idx[0]]
+    signal, below = np.array(e, dtype=np.float64), e < full_well_e
+    for b in idx[1:]:
+        diff += mc_diff_exposure[b]
+        e = buckets_e[b]
+        signal += e
+        below &= e < full_well_e
+    var_e = pooled(diff**2) * k_e**2
     fd_full = float("inf") if fd_full_well_e is None else fd_full_well_e
-    use = (signal > 1.0) & (buckets_e[idx] < full_well_e).all(axis=0) & (signal < fd_full)
+    use = (signal > 1.0) & below & (signal < fd_full)
     return var_e, signal, use
+
+
+class BucketElectrons:
+    """The expected electrons of each bucket, ``exposure[b] x k_e``, made when bucket ``b`` is asked
+    for (``[b]``; ``shape`` as the exposures'): what the noise report reads, bucket by bucket, without
+    holding every bucket's electrons beside the exposures."""
+
+    def __init__(self, exposure: np.ndarray, k_e: np.ndarray):
+        self.exposure, self.k_e = exposure, k_e
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.exposure.shape
+
+    def __getitem__(self, b: int) -> np.ndarray:
+        return self.exposure[b] * self.k_e
 
 
 def render_error(

@@ -287,19 +287,33 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
         return {"temporal_method": "one stratum: not measured (strata are compared in pairs); the image motion "
                                    "inside it is plan.image_motion_px_total",
                 "temporal_rel_rms_estimate": None}
-    e = integrated.exposure[buckets] * k_e
-    use = (e > 1.0) & (e < full_well_e)
-    if not use.any():
+    # bucket by bucket, one quantity at a time: the means of the samples of every bucket in order (the
+    # same as over copies of all the buckets at once), holding one of them, not copies of the buckets
+    exposure, mc_diff = integrated.exposure, integrated.mc_diff
+    use = []
+    for b in buckets:
+        e = exposure[b] * k_e
+        use.append((e > 1.0) & (e < full_well_e))
+    if not any(u.any() for u in use):
         return {"temporal_method": "no unsaturated lit samples"}
-    d2 = (D[buckets] * k_e)[use] ** 2
-    mc = (integrated.mc_var[buckets] * k_e**2)[use] if integrated.mc_var is not None else np.zeros_like(d2)
-    resolved = bool(d2.mean() > mc.mean())
-    coarse = float(np.sqrt(max(d2.mean() - mc.mean(), 0.0)) / e[use].mean())
+
+    def mean_of(values) -> float:  # the samples of every bucket in one array, filled a bucket at a time
+        samples, at = np.empty(sum(int(u.sum()) for u in use)), 0
+        for b, u in zip(buckets, use):
+            part = values(b)[u]
+            samples[at:at + part.size], at = part, at + part.size
+        return float(samples.mean())
+
+    d2 = mean_of(lambda b: (D[b] * k_e) ** 2)
+    mc = mean_of(lambda b: mc_diff[b] ** 2 * k_e**2) if mc_diff is not None else 0.0
+    signal = mean_of(lambda b: exposure[b] * k_e)
+    resolved = bool(d2 > mc)
+    coarse = float(np.sqrt(max(d2 - mc, 0.0)) / signal)
     out = {
         "temporal_method": "strata merged in pairs (coarse minus fine), Monte Carlo part subtracted",
         "temporal_rel_rms_coarse": coarse,
         "temporal_rel_rms_estimate": coarse / 2,
-        "temporal_raw_rel_rms_coarse": float(np.sqrt(d2.mean()) / e[use].mean()),
+        "temporal_raw_rel_rms_coarse": float(np.sqrt(d2) / signal),
         "temporal_resolved": resolved,
     }
     if not resolved:

@@ -22,7 +22,7 @@ import numpy as np
 
 from . import camera_motion, protocols, resources, scenes
 from .application import AppOutput, CaptureData
-from .budget import noise_verdict, render_error, resolve_spp, tail_pixels
+from .budget import BucketElectrons, noise_verdict, render_error, resolve_spp, tail_pixels
 from .cluster import render_on_cluster
 from .config import CaptureConfig, scene_of
 from .errors import ConfigError
@@ -249,7 +249,7 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
             return integrated, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}
         start = time.perf_counter()
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
-        pixels, factor = tail_pixels(integrated.mc_diff, integrated.exposure * k_e, k_e,
+        pixels, factor = tail_pixels(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e,
                                      list(plan.read_sets), cfg.sensor.full_well_e,
                                      cfg.sensor.fd_full_well_e, cfg.render.noise_budget_tail,
                                      cfg.render.adaptive_max_factor)
@@ -366,7 +366,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         "electrons_per_render_unit_second": dict(zip(renderer.channels, k_e.tolist())),  # per film channel
         "metrics": out.metrics,
         "render_error": {
-            **render_error(integrated.mc_diff, exposure * k_e, k_e, [r.buckets for r in timeline.reads],
+            **render_error(integrated.mc_diff, BucketElectrons(exposure, k_e), k_e, [r.buckets for r in timeline.reads],
                            [r.name for r in timeline.reads], cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
                            plan=plan, noise_budget=cfg.render.noise_budget, noise_budget_p95=cfg.render.noise_budget_p95,
                            noise_budget_tail=cfg.render.noise_budget_tail),

@@ -149,3 +149,59 @@ def test_every_application_declares_what_it_writes():
     for name in application.names():
         app = application.get(name)
         assert app.output_channels > 0 and app.previews > 0 and app.libraries_mb >= 0 and app.memory_scale > 0, name
+
+
+def _report_inputs():
+    rng = np.random.default_rng(1)
+    shape = (4, 96, 128, 3)
+    exposure = rng.uniform(0.5, 2.0, shape)
+    exposure[:, :8] = 1e-4  # dark rows: left out of every figure
+    mc_diff, temporal = rng.normal(0, 0.01, shape), rng.normal(0, 0.02, shape)
+    return exposure, mc_diff, temporal, np.array([900.0, 1000.0, 1100.0])
+
+
+def _traced_peak(fn) -> int:
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        fn()
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+def test_the_noise_report_holds_a_read_not_copies_of_every_bucket():
+    """render_error and temporal_error go bucket by bucket (what set a tiled film's peak memory), with the
+    figures of the formulas on copies of all the buckets at once, exactly."""
+    from mbcapture.budget import BucketElectrons, render_error
+    from mbcapture.integrate import Integrated, temporal_error
+
+    exposure, mc_diff, temporal, k_e = _report_inputs()
+    reads, names = [(3,), (2, 3), (1, 2, 3), (0, 1, 2, 3)], ["J1", "J2", "J3", "J4"]
+    whole = exposure * k_e
+    report = render_error(mc_diff, BucketElectrons(exposure, k_e), k_e, reads, names, 1.9e3, 7e3)
+    assert report == render_error(mc_diff, whole, k_e, reads, names, 1.9e3, 7e3)
+    # J4 by the formula on copies: summed differences squared, pooled over 3x3, against the summed electrons
+    from mbcapture.budget import pooled
+
+    var_e = pooled(mc_diff.sum(axis=0) ** 2) * k_e**2
+    signal = whole.sum(axis=0)
+    use = (signal > 1.0) & (whole < 1.9e3).all(axis=0) & (signal < 7e3)
+    assert report["reads"]["J4"]["to_shot_noise_variance_mean"] == float(var_e[use].sum() / signal[use].sum())
+    assert 0 < report["reads"]["J4"]["samples"] == int(use.sum()) < use.size
+
+    integrated = Integrated(exposure=exposure, mc_diff=mc_diff, temporal_diff=temporal)
+    figures = temporal_error(integrated, k_e, [0, 1, 2, 3], 1.9e3)
+    lit = (whole > 1.0) & (whole < 1.9e3)
+    d2, mc = ((temporal * k_e)[lit] ** 2).mean(), ((mc_diff**2 * k_e**2)[lit]).mean()
+    assert figures["temporal_rel_rms_coarse"] == float(np.sqrt(max(d2 - mc, 0.0)) / whole[lit].mean())
+    assert figures["temporal_raw_rel_rms_coarse"] == float(np.sqrt(d2) / whole[lit].mean())
+
+    # memory, in four-bucket float64 arrays: one read's working arrays, not the buckets' copies and
+    # their electrons (measured: 2.1 and 2.2 here; 3.4 and 4.2 on copies)
+    unit = exposure.nbytes
+    peak = _traced_peak(lambda: render_error(mc_diff, BucketElectrons(exposure, k_e), k_e, reads, names, 1.9e3))
+    assert peak < 2.6 * unit, peak / unit
+    peak = _traced_peak(lambda: temporal_error(integrated, k_e, [0, 1, 2, 3], 1.9e3))
+    assert peak < 2.6 * unit, peak / unit

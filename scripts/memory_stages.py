@@ -1,0 +1,99 @@
+"""Where a capture's memory goes: the resident memory at the start and end of each stage and its peak
+inside it, from a thread that samples /proc/self/status every 10 ms.
+
+    python scripts/memory_stages.py CONFIG [--out DIR] [--set KEY=VALUE ...]
+    python scripts/memory_stages.py metronome_hdr --set render.width=1280 --set render.height=1024 \\
+        --set render.spp=4 --set render.cache=off --set render.band_rows=64 --set render.tiles=16
+
+Stages: those of report.json's timings_s (render and accumulate once per render band and tile), the
+noise report's two estimates (render_error, temporal_error) and the writing of the outputs. A stage
+shorter than the sampling period may show a lower peak than it had; the last line is the process's
+own high-water mark (VmHWM), which misses nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import mbcapture.capture as capture  # noqa: E402
+import mbcapture.pipeline as pipeline  # noqa: E402
+from mbcapture import load_config, run_capture  # noqa: E402
+from mbcapture.config import resolve_config_path  # noqa: E402
+from mbcapture.resources import peak_rss_bytes  # noqa: E402
+
+MIB = 1 << 20
+
+
+def rss_mib() -> float:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024
+
+
+class Sampler:
+    """The highest resident memory seen since the last :meth:`reset`."""
+
+    def __init__(self, period_s: float = 0.01):
+        self.peak, self.period_s = 0.0, period_s
+        threading.Thread(target=self._run, daemon=True).start()
+
+    def _run(self) -> None:
+        while True:
+            self.peak = max(self.peak, rss_mib())
+            time.sleep(self.period_s)
+
+    def reset(self) -> float:
+        self.peak = now = rss_mib()
+        return now
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("config")
+    ap.add_argument("--out", type=Path, default=None, help="where the outputs go (default: a temporary folder)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args()
+    sampler, rows = Sampler(), []
+
+    def measured(name: str, fn):
+        def wrapper(*a, **k):
+            start = sampler.reset()
+            try:
+                return fn(*a, **k)
+            finally:
+                rows.append((name, start, sampler.peak, rss_mib()))
+        return wrapper
+
+    timer_call = pipeline._Timer.__call__
+
+    @contextmanager
+    def timed(self, name):
+        start = sampler.reset()
+        with timer_call(self, name):
+            yield
+        rows.append((name, start, sampler.peak, rss_mib()))
+
+    pipeline._Timer.__call__ = timed
+    for name in ("render_error", "temporal_error"):
+        setattr(pipeline, name, measured(name, getattr(pipeline, name)))
+    capture.write_outputs = measured("write outputs", capture.write_outputs)
+
+    cfg = load_config(resolve_config_path(args.config), args.overrides)
+    with tempfile.TemporaryDirectory() as tmp:
+        run_capture(cfg, args.out or Path(tmp) / "out", progress=False)
+    print(f"{'stage':16s} {'start':>8s} {'peak':>8s} {'end':>8s}  MiB")
+    for name, start, peak, end in rows:
+        print(f"{name:16s} {start:8.0f} {peak:8.0f} {end:8.0f}")
+    print(f"high-water mark (VmHWM) {peak_rss_bytes() / MIB:.0f} MiB")
+
+
+if __name__ == "__main__":
+    main()
