@@ -320,7 +320,10 @@ def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | Buck
         e = buckets_e[b]
         signal += e
         below &= e < full_well_e
-    var_e = pooled(diff**2) * k_e**2
+    np.square(diff, out=diff)
+    var_e = pooled(diff)
+    del diff
+    var_e *= k_e**2
     fd_full = float("inf") if fd_full_well_e is None else fd_full_well_e
     use = (signal > 1.0) & below & (signal < fd_full)
     return var_e, signal, use
@@ -373,13 +376,14 @@ def render_error(
         var_e, signal, use = read_noise_ratio(mc_diff_exposure, buckets_e, k_e, buckets, full_well_e, fd_full_well_e)
         if not use.any():
             continue
-        ratio = var_e[use] / signal[use]
+        var_e, signal = var_e[use], signal[use]  # the samples that count, the read's whole arrays let go
+        ratio = var_e / signal
         median, p95 = budget_quantiles(ratio)
         tail = float(np.percentile(ratio, TAIL_QUANTILE))
         per_read[name] = {
             "samples": int(use.sum()),
-            "rel_rms": float(np.sqrt(var_e[use].mean()) / signal[use].mean()),
-            "to_shot_noise_variance_mean": float(var_e[use].sum() / signal[use].sum()),
+            "rel_rms": float(np.sqrt(var_e.mean()) / signal.mean()),
+            "to_shot_noise_variance_mean": float(var_e.sum() / signal.sum()),
             "to_shot_noise_variance_median": median,
             "to_shot_noise_variance_p95": p95,
             "to_shot_noise_variance_p999": tail,

@@ -199,7 +199,7 @@ def test_the_noise_report_holds_a_read_not_copies_of_every_bucket():
     assert figures["temporal_raw_rel_rms_coarse"] == float(np.sqrt(d2) / whole[lit].mean())
 
     # memory, in four-bucket float64 arrays: one read's working arrays, not the buckets' copies and
-    # their electrons (measured: 2.1 and 2.2 here; 3.4 and 4.2 on copies)
+    # their electrons (measured: 1.85 and 2.2 here; 3.4 and 4.2 on copies)
     unit = exposure.nbytes
     peak = _traced_peak(lambda: render_error(mc_diff, BucketElectrons(exposure, k_e), k_e, reads, names, 1.9e3))
     assert peak < 2.6 * unit, peak / unit
