@@ -303,8 +303,8 @@ def resolve_spp(plan: Plan, renderer, cfg, seed: np.random.SeedSequence) -> Plan
 TAIL_QUANTILE = 99.9
 
 
-def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray, buckets,
-                     full_well_e: float, fd_full_well_e: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
+                     buckets, full_well_e: float, fd_full_well_e: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One read's ``(var_e, signal, use)``, each (H, W, C): its Monte Carlo variance in electrons^2 (the
     square of its buckets' summed half-sample differences, pooled over 3x3 pixels), its expected
     electrons, and the samples that count: lit, every bucket below the full well, the sum below the
@@ -346,8 +346,8 @@ class BucketElectrons:
 
 
 def render_error(
-    mc_diff_exposure: np.ndarray | None, buckets_e: np.ndarray, k_e: np.ndarray, reads: list[tuple[int, ...]],
-    read_names: list[str], full_well_e: float, fd_full_well_e: float | None = None,
+    mc_diff_exposure: np.ndarray | None, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
+    reads: list[tuple[int, ...]], read_names: list[str], full_well_e: float, fd_full_well_e: float | None = None,
     *, plan: Plan | None = None, noise_budget: float = 0.1, noise_budget_p95: float = 1.0,
     noise_budget_tail: float = 1.0,
 ) -> dict:
@@ -416,8 +416,8 @@ def render_error(
 ADAPTIVE_SELECT = 0.5
 
 
-def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: np.ndarray, k_e: np.ndarray, reads: list[tuple[int, ...]],
-                full_well_e: float, fd_full_well_e: float, tail_target: float, max_factor: int) -> tuple[np.ndarray, int]:
+def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
+                reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float, tail_target: float, max_factor: int) -> tuple[np.ndarray, int]:
     """Adaptive sampling's choice, from the first pass's half-sample differences: the pixels (flat
     indices) where any read's pooled Monte Carlo / shot-noise ratio, in any channel, exceeds
     :data:`ADAPTIVE_SELECT` x ``tail_target`` (with their 3x3 neighbours: the estimate is pooled), and

@@ -196,7 +196,7 @@ def _cgroup_headroom() -> int | None:
 def free_memory() -> tuple[int, str]:
     """(bytes, where from) this process can still hold resident, counting what it holds now: the
     smallest of the kernel's MemAvailable, the cgroup's limit and the address-space limit (ulimit -v)."""
-    rss = _status_kb("VmRSS") * 1024
+    rss = rss_bytes()
     options: list[tuple[int, str]] = []
     avail = _proc_kb("/proc/meminfo", "MemAvailable")
     if avail is not None:
@@ -251,6 +251,11 @@ def check(need: Resources, cfg: CaptureConfig, out_dir: Path | None, cache_root:
                                   "free some space")
 
 
+def rss_bytes() -> int:
+    """This process's resident memory now: VmRSS of /proc/self/status (0 where unknown)."""
+    return _status_kb("VmRSS") * 1024
+
+
 def peak_rss_bytes() -> int:
     """This process's peak resident memory so far: VmHWM of /proc/self/status (getrusage's ru_maxrss
     is no measure of it in a child process: Linux carries the high-water mark of the memory a
@@ -259,4 +264,4 @@ def peak_rss_bytes() -> int:
 
 
 __all__ = ["Resources", "bands_of", "check", "choose_tiles", "estimate", "free_disk", "free_memory", "peak_rss_bytes",
-           "plan_resources", "tile_rows"]
+           "plan_resources", "rss_bytes", "tile_rows"]

@@ -28,14 +28,13 @@ import mbcapture.capture as capture  # noqa: E402
 import mbcapture.pipeline as pipeline  # noqa: E402
 from mbcapture import load_config, run_capture  # noqa: E402
 from mbcapture.config import resolve_config_path  # noqa: E402
-from mbcapture.resources import peak_rss_bytes  # noqa: E402
+from mbcapture.resources import peak_rss_bytes, rss_bytes  # noqa: E402
 
 MIB = 1 << 20
 
 
 def rss_mib() -> float:
-    with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024
+    return rss_bytes() / MIB
 
 
 class Sampler:
