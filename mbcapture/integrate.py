@@ -35,6 +35,9 @@ from .render.renderer import RenderRows
 from .timeline import Timeline
 
 
+DIFF_DTYPE = np.float32  # what Integrated.mc_diff and Integrated.temporal_diff are kept in (see Integrated)
+
+
 def render_seeds(plan: Plan, seed: np.random.SeedSequence) -> np.ndarray:
     """(J, 2) the seeds of each stratum's two half-sample renders."""
     return np.random.default_rng(seed).integers(0, 2**31 - 1, size=(plan.passes, 2))
@@ -61,15 +64,20 @@ def render_requests(plan: Plan, seed: np.random.SeedSequence) -> list[tuple[floa
 class Integrated:
     """exposure (K, H, W, C); group_exposure (K, G, H, W, C) or None.
 
-    mc_diff (K, H, W, C) or None (spp = 1): the signed half-sample difference, scaled so that its
-    square estimates the exposure's Monte Carlo variance (``mc_var``). Signed, because a read sums
+    mc_diff (K, H, W, C) float32 or None (spp = 1): the signed half-sample difference, scaled so that
+    its square estimates the exposure's Monte Carlo variance (``mc_var``). Signed, because a read sums
     buckets whose Monte Carlo errors come from the same renders: the read's variance is the square
     of the summed differences, not the sum of the buckets' variances (:meth:`read_mc_var`).
 
-    temporal_diff (K, H, W, C) or None (one stratum): the exposure with strata merged in pairs
+    temporal_diff (K, H, W, C) float32 or None (one stratum): the exposure with strata merged in pairs
     (each pair rendered once, at its first stratum's time, with both strata's weights) minus
     the exposure; its mean square, less its Monte Carlo part, measures the temporal error of
     strata twice as long as the plan's (:func:`temporal_error`).
+
+    The two differences are accumulated in float64 and kept in float32 (:data:`DIFF_DTYPE`): they only
+    estimate errors (a squared half-sample difference is itself a one-degree-of-freedom chi-square
+    variable, 141 % uncertain), so float32's 6e-8 changes nothing a user reads, and a large film holds
+    them at half the memory. Their squares and sums are taken in float64.
     """
 
     exposure: np.ndarray
@@ -79,12 +87,12 @@ class Integrated:
 
     @property
     def mc_var(self) -> np.ndarray | None:
-        """(K, H, W, C) estimated Monte Carlo variance of each bucket's exposure (one sample of it)."""
-        return None if self.mc_diff is None else self.mc_diff**2
+        """(K, H, W, C) float64 estimated Monte Carlo variance of each bucket's exposure (one sample of it)."""
+        return None if self.mc_diff is None else np.square(self.mc_diff, dtype=np.float64)
 
     def read_mc_var(self, buckets) -> np.ndarray | None:
-        """(H, W, C) estimated Monte Carlo variance of the exposure summed over ``buckets`` (a read)."""
-        return None if self.mc_diff is None else self.mc_diff[list(buckets)].sum(axis=0) ** 2
+        """(H, W, C) float64 estimated Monte Carlo variance of the exposure summed over ``buckets`` (a read)."""
+        return None if self.mc_diff is None else self.mc_diff[list(buckets)].sum(axis=0, dtype=np.float64) ** 2
 
     def routed(self, timeline: Timeline) -> "Integrated":
         """The same renders per bucket: a coded timeline's sub-frame channels sent through its
@@ -183,13 +191,21 @@ def integrate(
                     else:  # coarse (pair rendered once, at the even stratum) minus fine
                         accumulate(plan.weights_s[j], prev - full, temporal)
             bar.update(1)
+    if temporal is not None:
+        temporal = temporal.astype(DIFF_DTYPE)
     exposure = parts[0] + parts[1] if two else parts[0]
     mc_diff = None
     if two:
         # A = parts[0]/r, B = parts[1]/(1-r): Var[exposure] ~ (A - B)^2 r (1 - r) (r per stratum;
-        # exact when r is uniform, otherwise its weight-averaged value); kept signed (Integrated.mc_diff)
+        # exact when r is uniform, otherwise its weight-averaged value); kept signed (Integrated.mc_diff).
+        # In place on the halves, which are done with: (A - B) sqrt(r (1 - r)), operation for operation
         rbar = float(np.average(r, weights=np.maximum(plan.weights_s.sum(axis=(1, 2)), 1e-300)))
-        mc_diff = (parts[0] / rbar - parts[1] / (1 - rbar)) * np.sqrt(rbar * (1 - rbar))
+        a, b = parts
+        a /= rbar
+        b /= 1 - rbar
+        a -= b
+        a *= np.sqrt(rbar * (1 - rbar))
+        mc_diff = a.astype(DIFF_DTYPE)
     return Integrated(exposure=exposure, mc_diff=mc_diff, group_exposure=groups_out, temporal_diff=temporal)
 
 
@@ -305,7 +321,7 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
         return float(samples.mean())
 
     d2 = mean_of(lambda b: (D[b] * k_e) ** 2)
-    mc = mean_of(lambda b: mc_diff[b] ** 2 * k_e**2) if mc_diff is not None else 0.0
+    mc = mean_of(lambda b: (mc_diff[b] * k_e) ** 2) if mc_diff is not None else 0.0
     signal = mean_of(lambda b: exposure[b] * k_e)
     resolved = bool(d2 > mc)
     coarse = float(np.sqrt(max(d2 - mc, 0.0)) / signal)

@@ -53,7 +53,7 @@ class CaptureResult:
     reads_dn              (R, H, W, C) simulated reads, DN
     saturated             (R, H, W, C) bool
     moving_mask           (H, W) pixels the moving parts cross during the capture
-    render_mc_diff        (K, H, W, C) signed half-sample difference of bucket_exposure (None if spp = 1;
+    render_mc_diff        (K, H, W, C) float32 signed half-sample difference of bucket_exposure (None if spp = 1;
                           mbcapture.integrate.Integrated.mc_diff)
     render_var_exposure   (K, H, W, C) estimated Monte Carlo variance of bucket_exposure, its square (made
                           when asked for; None if spp = 1)
@@ -87,7 +87,7 @@ class CaptureResult:
 
     @property
     def render_var_exposure(self) -> np.ndarray | None:
-        return None if self.render_mc_diff is None else self.render_mc_diff**2
+        return None if self.render_mc_diff is None else np.square(self.render_mc_diff, dtype=np.float64)
 
 
 class _Timer:

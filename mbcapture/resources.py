@@ -54,11 +54,12 @@ BASE_MEMORY_MB = 285.0
 #: Peak float64 values per sample of each bucket (fitted: the reads add nothing measurable).
 FLOAT64_PER_BUCKET_SAMPLE = 15.8
 #: Of those, the float64 values per bucket sample a tiled capture holds for the whole film, and the
-#: float64 values per pixel and output channel its application's reconstruction holds and makes (fitted
-#: to the peak memory of metronome_hdr and multi_flash at 640x512 and 1280x1024 and flash_matting at
-#: 640x512 in 16 tiles of 64 rows: scripts/resources.py --band-rows 64 --tiles 16, within 0.90-1.15).
-HELD_PER_BUCKET_SAMPLE = 7.0
-APP_CHANNEL_HELD = 2.7
+#: float64 values per pixel and output channel its application's reconstruction holds and makes (fitted,
+#: minimax, to the peak memory of metronome_hdr, multi_flash and flash_matting at 640x512 and 1280x1024
+#: in tiles of 64 rows: scripts/resources.py --band-rows 64 --tiles 16, within 0.88-1.15; the two
+#: error estimates are float32, half a value each: mbcapture.integrate.DIFF_DTYPE).
+HELD_PER_BUCKET_SAMPLE = 5.5
+APP_CHANNEL_HELD = 2.75
 #: Compressed / raw size of float32 EXR layers (ZIP): noise-free floats to about 3/4, integer DN to under half.
 EXR_RATIO_EXPECTED = 0.75
 EXR_RATIO_DN = 0.45
@@ -128,7 +129,8 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles
                       + (FLOAT64_PER_BUCKET_SAMPLE - HELD_PER_BUCKET_SAMPLE) * share
                       + FLOAT64_PER_BUCKET_SAMPLE * (app.memory_scale - 1.0))
     per_frame = 8.0 * samples * per_sample * acc
-    held = 8.0 * samples * (2 * K + 2 * R) + 4.0 * px * app.output_channels  # a finished frame's arrays
+    # a finished frame's arrays: exposures (float64) and their half-sample differences (float32), reads and truths
+    held = 8.0 * samples * (1.5 * K + 2 * R) + 4.0 * px * app.output_channels
     memory = (BASE_MEMORY_MB + app.libraries_mb) * MB + per_frame + (frames - 1) * held
 
     exr = 4.0 * px * (3 * (K + R) * EXR_RATIO_EXPECTED + 3 * R * EXR_RATIO_DN

@@ -300,6 +300,10 @@ def test_integrate_per_stratum_spp_is_unbiased_and_its_error_estimate_is_right()
         assert out.mc_var[k].mean() == pytest.approx(true_var[k], rel=5 * np.sqrt(2 / n))
     # renders: two halves per stratum, only the groups with weight
     assert len(r.calls) == 2 * p.passes
+    # the two error estimates are kept in float32 (half a large film's memory for them), their squares in float64
+    assert out.exposure.dtype == np.float64 and out.mc_var.dtype == np.float64
+    assert out.mc_diff.dtype == out.temporal_diff.dtype == np.float32
+    assert out.mc_diff.nbytes == out.temporal_diff.nbytes == out.exposure.nbytes // 2
 
 
 def test_a_reads_monte_carlo_variance_adds_its_buckets_errors_coherently():
