@@ -212,6 +212,8 @@ def _cmd_plan(args) -> int:
     r, (free, source) = info["resources"], resources.free_memory()
     tiles = (f" in {r['tiles']} tiles of rows (render.tiles; {r['render_bands']} render bands)" if r["tiles"] > 1
              else f" in one tile ({r['render_bands']} render band{'s' * (r['render_bands'] > 1)})")
+    if r["spill_gb"]:
+        tiles += f", the film's results in {r['spill_gb']:.3g} GB of scratch files on disk (render.spill)"
     print(f"resources: peak memory about {r['peak_memory_gb']:.3g} GB{tiles} ({free / 2**30:.3g} GB free: {source}), outputs "
           f"about {r['outputs_mb']:.3g} MB" + (f", new render-cache entries about {r['render_cache_mb']:.3g} MB"
                                                if r["render_cache_mb"] else ""))

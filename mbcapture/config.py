@@ -165,6 +165,21 @@ class RenderSection(_Model):
         "null: one tile when the capture fits in memory (render.max_memory_gb, else the free memory), otherwise "
         "the fewest that fit; more tiles than bands give one band per tile.",
     )
+    spill: bool | None = Field(
+        None,
+        description="Keep a tiled capture's whole-film results (the exposures and their error estimates, per-group "
+        "exposures, the reads, their truths and saturation) in scratch files on disk, memory-mapped, so that memory "
+        "holds the working set and not the film (the kernel keeps the files' pages while memory is free and writes "
+        "them back when it is not); the same values bit for bit. null: only when the film does not fit in memory in "
+        "tiles alone; true: whenever the film goes in more than one tile; false: never. Not for a video's frames "
+        "(docs/resources.md).",
+    )
+    spill_dir: str | None = Field(
+        None,
+        description="Folder of render.spill's scratch files, on a disk (each is unlinked as soon as it is made: "
+        "nothing is left in the folder after a run, even a killed one). null: the user cache folder's 'scratch' "
+        "(~/.cache/mbcapture/scratch on Linux), or $MBCAPTURE_SCRATCH_DIR.",
+    )
     cache_max_gb: float = Field(
         20.0, gt=0, description="Size cap of the render cache in GB (10^9 bytes); beyond it the least recently used renders are removed."
     )

@@ -30,6 +30,7 @@ from typing import Callable
 
 import numpy as np
 
+from .filmstore import IN_MEMORY, FilmStore
 from .plan import Plan
 from .render.renderer import RenderRows
 from .timeline import Timeline
@@ -212,14 +213,16 @@ def integrate(
 def integrate_tiles(renderer, plan: Plan, n_buckets: int, seed: np.random.SeedSequence,
                     tiles: tuple[tuple[int, int], ...], *, per_group: bool = False, timer=None,
                     progress: bool = False, before_tile: Callable[[tuple[int, int]], None] | None = None,
-                    ) -> Integrated:
+                    store: FilmStore = IN_MEMORY) -> Integrated:
     """:func:`integrate` tile by tile: each tile (rows first, end; runs of whole render bands,
     :mod:`mbcapture.render.bands`) rendered through :class:`~mbcapture.render.renderer.RenderRows`
     and accumulated alone, so that the renders, the two halves, the pairs of strata and the
     per-group sums are held for one tile at a time; only the results are whole-film arrays. Every
     array is per pixel and a band renders the same pixels in a tile as in the whole film, so the
     result is :func:`integrate`'s on the whole film, bit for bit (tests/test_tiles.py).
-    ``before_tile(rows)``: called before each tile is integrated (a cluster renders its bands then)."""
+    ``before_tile(rows)``: called before each tile is integrated (a cluster renders its bands then).
+    ``store``: where the whole-film results of several tiles are made (in memory, or on disk:
+    :mod:`mbcapture.filmstore`)."""
     if len(tiles) == 1 and tuple(tiles[0]) == (0, renderer.height):
         if before_tile is not None:
             before_tile(tuple(tiles[0]))
@@ -239,7 +242,7 @@ def integrate_tiles(renderer, plan: Plan, n_buckets: int, seed: np.random.SeedSe
             if name not in out:  # (K, [G,] H, W, C): the film's rows on the axis before the last two
                 shape = list(value.shape)
                 shape[-3] = H
-                out[name] = np.empty(shape, dtype=value.dtype)
+                out[name] = store.empty(shape, value.dtype)
             out[name][..., r0:r1, :, :] = value
     return Integrated(exposure=out["exposure"], mc_diff=out["mc_diff"], group_exposure=out["group_exposure"],
                       temporal_diff=out["temporal_diff"])

@@ -26,6 +26,7 @@ from .budget import BucketElectrons, noise_verdict, render_error, resolve_spp, t
 from .cluster import render_on_cluster
 from .config import CaptureConfig, scene_of
 from .errors import ConfigError
+from .filmstore import IN_MEMORY, FilmStore
 from .integrate import Integrated, integrate_tiles, refine, temporal_error
 from .plan import Plan, make_plan
 from .progress import StageStatus
@@ -290,7 +291,10 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
     # tiles of rows (runs of whole render bands) for render, accumulation and the sensor: the same result
     # whatever their number (mbcapture.render.bands), so the memory plan alone chooses it
     tiles = group_bands(renderer.bands, need.tiles)
-    tile_info = {"count": len(tiles), "rows": [list(t) for t in tiles], "render_bands": len(renderer.bands)}
+    # a tiled film's whole-film results in scratch files on disk when the plan says so (render.spill)
+    store = FilmStore(resources.spill_folder(cfg)) if need.spill_bytes and len(tiles) > 1 else IN_MEMORY
+    tile_info = {"count": len(tiles), "rows": [list(t) for t in tiles], "render_bands": len(renderer.bands),
+                 "spill": {"folder": str(store.folder), "gb": None} if store.spills else None}
     if rendered is None:
         pilot = status.stage("pilot render (spp from render.noise_budget)") if cfg.render.spp is None else nullcontext()
         with timer("pilot"), pilot:
@@ -307,7 +311,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         in_tiles = f" x {len(tiles)} tiles" if len(tiles) > 1 else ""
         with status.stage(f"render{where} ({plan.passes} passes{in_tiles})"):
             integrated = integrate_tiles(renderer, plan, timeline.n_channels, seeds[2], tiles, per_group=app.per_group,
-                                         timer=timer, progress=progress, before_tile=on_cluster)
+                                         timer=timer, progress=progress, before_tile=on_cluster, store=store)
         if client is not None:
             cluster_info = merge_cluster_info(infos)
         if cfg.render.spp is None and cfg.render.adaptive:
@@ -330,7 +334,10 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         spectral = cfg.render.variant.endswith("_spectral")
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)  # (C,) e- per render unit s (spectral: film units)
         # the expected electrons exposure x k_e, made tile by tile inside the sensor stage
-        sensor_out = sense(timeline, exposure, cfg.sensor, sensor_seed(cfg, seeds), tiles=tiles, per_unit=k_e)
+        sensor_out = sense(timeline, exposure, cfg.sensor, sensor_seed(cfg, seeds), tiles=tiles, per_unit=k_e,
+                           store=store)
+    if store.spills:
+        tile_info["spill"]["gb"] = round(store.spilled_bytes / resources.GB, 3)
 
     with timer("reconstruct"), status.stage(f"reconstruct ({app.name})"):
         mask = moving

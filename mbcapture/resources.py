@@ -42,6 +42,7 @@ from pathlib import Path
 from .application import App
 from .config import CaptureConfig
 from .errors import ResourceProblem
+from .filmstore import default_scratch_dir
 from .plan import Plan
 from .render.bands import film_bands, group_bands
 from .timeline import Timeline
@@ -84,15 +85,19 @@ class Resources:
     #: tiles of rows the film goes through (render, accumulate, sensor), and the film's render bands
     tiles: int = 1
     bands: int = 1
+    #: the whole-film results kept in scratch files on disk (render.spill, :mod:`mbcapture.filmstore`)
+    spill_bytes: int = 0
 
     def summary(self) -> dict:
         return {"peak_memory_gb": round(self.memory_bytes / GB, 3), "outputs_mb": round(self.output_bytes / MB, 2),
-                "render_cache_mb": round(self.cache_bytes / MB, 2), "tiles": self.tiles, "render_bands": self.bands}
+                "render_cache_mb": round(self.cache_bytes / MB, 2), "tiles": self.tiles, "render_bands": self.bands,
+                "spill_gb": round(self.spill_bytes / GB, 3)}
 
     def line(self) -> str:
         tiles = f" in {self.tiles} tiles of rows" if self.tiles > 1 else ""
-        return (f"needs about {_size(self.memory_bytes)} of memory{tiles}, {_size(self.output_bytes)} for its outputs"
-                + (f" and {_size(self.cache_bytes)} of new render-cache entries" if self.cache_bytes else ""))
+        spill = f" and {_size(self.spill_bytes)} of scratch files on disk (render.spill)" if self.spill_bytes else ""
+        return (f"needs about {_size(self.memory_bytes)} of memory{tiles}{spill}, {_size(self.output_bytes)} for its "
+                "outputs" + (f" and {_size(self.cache_bytes)} of new render-cache entries" if self.cache_bytes else ""))
 
 
 def _size(n: float) -> str:
@@ -110,9 +115,22 @@ def tile_rows(cfg: CaptureConfig, tiles: int) -> tuple[tuple[int, int], ...]:
     return group_bands(bands_of(cfg), tiles)
 
 
-def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles: int = 1) -> Resources:
+def spilled_per_bucket_sample(timeline: Timeline, plan: Plan, app: App) -> float:
+    """Float64 values per bucket sample (of the accumulated channels) that ``render.spill`` keeps on disk:
+    the exposures (1), their two float32 error estimates (1), the per-group exposures of an application
+    that asks for them (one per group), and per read its DN, its expected electrons and its saturation
+    flags (2 + 1/8)."""
+    acc = timeline.n_channels + (timeline.n_buckets if timeline.code is not None else 0)
+    groups = len(plan.groups) if app.per_group else 0
+    return 2.0 + groups + len(timeline.reads) * (2.0 + 1.0 / 8.0) / acc
+
+
+def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles: int = 1,
+             spill: bool = False) -> Resources:
     """The resources of the capture ``cfg`` with its ``timeline``, render ``plan`` and application,
-    going through its film in ``tiles`` tiles of rows (at most one per render band)."""
+    going through its film in ``tiles`` tiles of rows (at most one per render band); ``spill``: with the
+    whole-film results of a tiled run in scratch files (:func:`spilled_per_bucket_sample`), whose
+    pages the kernel may drop, so they count as disk, not memory."""
     px = cfg.render.width * cfg.render.height
     samples = px * 3
     K, R = timeline.n_buckets, len(timeline.reads)
@@ -128,6 +146,8 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles
         per_sample = (HELD_PER_BUCKET_SAMPLE + groups + images
                       + (FLOAT64_PER_BUCKET_SAMPLE - HELD_PER_BUCKET_SAMPLE) * share
                       + FLOAT64_PER_BUCKET_SAMPLE * (app.memory_scale - 1.0))
+    spill_values = spilled_per_bucket_sample(timeline, plan, app) if spill and len(rows) > 1 and frames == 1 else 0.0
+    per_sample -= spill_values
     per_frame = 8.0 * samples * per_sample * acc
     # a finished frame's arrays: exposures (float64) and their half-sample differences (float32), reads and truths
     held = 8.0 * samples * (1.5 * K + 2 * R) + 4.0 * px * app.output_channels
@@ -143,28 +163,46 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles
     if cfg.render.cache != "off":
         renders = frames * (2 * plan.passes + (PILOT_RENDERS if cfg.render.spp is None else 0))
         cache = min(renders * 4.0 * px * 3 * max(len(plan.groups), 1), cfg.render.cache_max_gb * GB)
-    return Resources(int(memory), int(outputs), int(cache), tiles=len(rows), bands=len(bands_of(cfg)))
+    return Resources(int(memory), int(outputs), int(cache), tiles=len(rows), bands=len(bands_of(cfg)),
+                     spill_bytes=int(8.0 * samples * acc * spill_values))
 
 
-def choose_tiles(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> int:
-    """``render.tiles`` when set (at most one per band); otherwise the fewest tiles whose estimate,
-    with :data:`MARGIN`, fits in ``render.max_memory_gb`` and in the free memory (one per band
-    when none does: :func:`check` then says so). Any choice gives the same images."""
+def choose_layout(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> tuple[int, bool]:
+    """(tiles, spill). Tiles: ``render.tiles`` when set (at most one per band); otherwise the fewest
+    whose estimate, with :data:`MARGIN`, fits in ``render.max_memory_gb`` and in the free memory (one
+    per band when none does: :func:`check` then says so). Spill (``render.spill``; only with more than
+    one tile, and not for a video's frames): true or false as set; null, only when tiles alone do not
+    fit, and then the fewest tiles that fit with it. Any choice gives the same images."""
     n_bands = len(bands_of(cfg))
-    if cfg.render.tiles is not None:
-        return min(int(cfg.render.tiles), n_bands)
+    setting = cfg.render.spill
+    can_spill = cfg.capture.frames == 1 and setting is not False
     limit = free_memory()[0] / MARGIN
     if cfg.render.max_memory_gb is not None:
         limit = min(limit, cfg.render.max_memory_gb * GB)
-    for n in range(1, n_bands + 1):
-        if estimate(cfg, timeline, plan, app, n).memory_bytes <= limit:
-            return n
-    return n_bands
+
+    def fits(n: int, spill: bool) -> bool:
+        return estimate(cfg, timeline, plan, app, n, spill).memory_bytes <= limit
+
+    if cfg.render.tiles is not None:
+        n = min(int(cfg.render.tiles), n_bands)
+        return n, n > 1 and can_spill and (setting is True or not fits(n, False))
+    spilled = [(n, True) for n in range(2, n_bands + 1)] if can_spill else []
+    # true: spill whenever tiles are needed; null: only when tiles alone are not enough
+    options = [(1, False), *spilled] if setting is True else [*((n, False) for n in range(1, n_bands + 1)), *spilled]
+    for n, spill in options:
+        if fits(n, spill):
+            return n, spill
+    return n_bands, n_bands > 1 and can_spill
+
+
+def choose_tiles(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> int:
+    """The tiles of :func:`choose_layout`."""
+    return choose_layout(cfg, timeline, plan, app)[0]
 
 
 def plan_resources(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> Resources:
-    """:func:`estimate` with the tiles :func:`choose_tiles` takes: what a run of ``cfg`` will need."""
-    return estimate(cfg, timeline, plan, app, choose_tiles(cfg, timeline, plan, app))
+    """:func:`estimate` with the tiles and spill :func:`choose_layout` takes: what a run of ``cfg`` will need."""
+    return estimate(cfg, timeline, plan, app, *choose_layout(cfg, timeline, plan, app))
 
 
 # ----------------------------------------------------------------------------- what is free
@@ -186,13 +224,24 @@ def _status_kb(field: str) -> int:
 
 
 def _cgroup_headroom() -> int | None:
-    """Bytes the cgroup (v2) still allows this process tree, or None without a limit."""
+    """Bytes this process's memory cgroup still allows it, or None without a limit: cgroup v2
+    (memory.max, memory.current), else v1 (the memory controller's memory.limit_in_bytes and
+    memory.usage_in_bytes of the group /proc/self/cgroup names)."""
     try:
         limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
         used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+        return None if limit == "max" else int(limit) - used
     except (OSError, ValueError):
+        pass
+    try:
+        group = next(line.split(":", 2)[2].strip() for line in Path("/proc/self/cgroup").read_text().splitlines()
+                     if "memory" in line.split(":", 2)[1].split(","))
+        folder = Path("/sys/fs/cgroup/memory") / group.lstrip("/")
+        limit_v1 = int((folder / "memory.limit_in_bytes").read_text())
+        used = int((folder / "memory.usage_in_bytes").read_text())
+    except (OSError, ValueError, StopIteration, IndexError):
         return None
-    return None if limit == "max" else int(limit) - used
+    return None if limit_v1 >= 1 << 60 else limit_v1 - used  # v1 writes "no limit" as a huge page-aligned number
 
 
 def free_memory() -> tuple[int, str]:
@@ -245,12 +294,30 @@ def check(need: Resources, cfg: CaptureConfig, out_dir: Path | None, cache_root:
             raise ResourceProblem(f"--out {out_dir}: the outputs need about {_size(need.output_bytes)} but "
                                   f"{_size(disk)} is free on that disk; free some space, choose another --out "
                                   "or a smaller film")
+    if need.spill_bytes:
+        folder = spill_folder(cfg)
+        disk = free_disk(folder)
+        if need.spill_bytes * MARGIN > disk:
+            raise ResourceProblem(f"render.spill_dir {folder}: the film's arrays need about {_size(need.spill_bytes)} "
+                                  f"of scratch files there but {_size(disk)} is free; free some space, choose another "
+                                  "folder (render.spill_dir) or a smaller film")
     if cache_root is not None and need.cache_bytes:
         disk = free_disk(cache_root)
         if need.cache_bytes * MARGIN > disk:
             raise ResourceProblem(f"render.cache: the renders need about {_size(need.cache_bytes)} in {cache_root} "
                                   f"but {_size(disk)} is free there; set render.cache: off, another folder, or "
                                   "free some space")
+
+
+def spill_folder(cfg: CaptureConfig) -> Path:
+    """Where ``render.spill`` makes its scratch files: ``render.spill_dir``, else :func:`mbcapture.filmstore.default_scratch_dir`."""
+    return Path(cfg.render.spill_dir).expanduser() if cfg.render.spill_dir else default_scratch_dir()
+
+
+def anon_bytes() -> int:
+    """This process's anonymous resident memory now (RssAnon: what the kernel cannot drop or write back
+    to a file; a spilled film's mapped pages are not in it), 0 where unknown."""
+    return _status_kb("RssAnon") * 1024
 
 
 def rss_bytes() -> int:
@@ -265,5 +332,6 @@ def peak_rss_bytes() -> int:
     return _status_kb("VmHWM") * 1024
 
 
-__all__ = ["Resources", "bands_of", "check", "choose_tiles", "estimate", "free_disk", "free_memory", "peak_rss_bytes",
-           "plan_resources", "rss_bytes", "tile_rows"]
+__all__ = ["Resources", "anon_bytes", "bands_of", "check", "choose_layout", "choose_tiles", "estimate", "free_disk",
+           "free_memory", "peak_rss_bytes", "plan_resources", "rss_bytes", "spill_folder", "spilled_per_bucket_sample",
+           "tile_rows"]

@@ -24,6 +24,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .filmstore import IN_MEMORY, FilmStore
 from .integrate import integrate
 from .plan import Plan, make_plan
 from .sensor import SensorConfig, SensorReads, develop_reads, dn_to_electrons, join_rows, simulate_reads
@@ -32,7 +33,8 @@ from .timeline import Timeline
 
 
 def sense(timeline: Timeline, buckets_e: np.ndarray, sensor: SensorConfig, seed: np.random.SeedSequence,
-          tiles: tuple[tuple[int, int], ...] | None = None, per_unit: np.ndarray | None = None) -> SensorReads:
+          tiles: tuple[tuple[int, int], ...] | None = None, per_unit: np.ndarray | None = None,
+          store: FilmStore = IN_MEMORY) -> SensorReads:
     """The sensor stage: ``buckets_e`` (K, H, W, C) noise-free expected electrons of the buckets of
     ``timeline`` into its reads, with dark current over each bucket's storage time
     (:meth:`~mbcapture.timeline.Timeline.storage_s`) and, on a multi-bucket sensor, the buckets
@@ -44,7 +46,8 @@ def sense(timeline: Timeline, buckets_e: np.ndarray, sensor: SensorConfig, seed:
     None), and the noise fields and counts are held for one tile at a time.
 
     ``per_unit`` (C,): ``buckets_e`` is in render units (exposures) and each tile's expected electrons
-    are ``buckets_e[tile] * per_unit``, made as the tile is sensed (the same values as multiplying first)."""
+    are ``buckets_e[tile] * per_unit``, made as the tile is sensed (the same values as multiplying first).
+    ``store``: where a tiled stage's joined reads are made (in memory, or on disk: :mod:`mbcapture.filmstore`)."""
     reads = [r.buckets for r in timeline.reads]
     kw = {"storage_s": timeline.storage_s(), "shared_photodiode": not timeline.sequential}
     scale = (lambda a: a) if per_unit is None else (lambda a: a * per_unit)  # noqa: E731
@@ -55,7 +58,7 @@ def sense(timeline: Timeline, buckets_e: np.ndarray, sensor: SensorConfig, seed:
     # one tile at a time: its noise fields, counts and charge made, its reads copied into the film's, let go
     parts = (simulate_reads(scale(buckets_e[:, r0:r1]), reads, sensor, streams, band=(r0, H), develop=False, **kw)
              for r0, r1 in tiles)
-    return develop_reads(join_rows(parts, height=H, reads_only=True), sensor)
+    return develop_reads(join_rows(parts, height=H, reads_only=True, empty=store.empty), sensor)
 
 
 @dataclass(frozen=True)

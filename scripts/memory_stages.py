@@ -1,5 +1,7 @@
 """Where a capture's memory goes: the resident memory at the start and end of each stage and its peak
-inside it, from a thread that samples /proc/self/status every 10 ms.
+inside it, from a thread that samples /proc/self/status every 10 ms: all of it (VmRSS) and its anonymous
+part (RssAnon), which leaves out the pages of files mapped into memory, such as a spilled film's
+(render.spill): those the kernel writes back and drops when memory is short.
 
     python scripts/memory_stages.py CONFIG [--out DIR] [--set KEY=VALUE ...]
     python scripts/memory_stages.py metronome_hdr --set render.width=1280 --set render.height=1024 \\
@@ -8,7 +10,7 @@ inside it, from a thread that samples /proc/self/status every 10 ms.
 Stages: those of report.json's timings_s (render and accumulate once per render band and tile), the
 noise report's two estimates (render_error, temporal_error) and the writing of the outputs. A stage
 shorter than the sampling period may show a lower peak than it had; the last line is the process's
-own high-water mark (VmHWM), which misses nothing.
+own high-water mark (VmHWM), which misses nothing, and the highest anonymous memory sampled.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import mbcapture.capture as capture  # noqa: E402
 import mbcapture.pipeline as pipeline  # noqa: E402
 from mbcapture import load_config, run_capture  # noqa: E402
 from mbcapture.config import resolve_config_path  # noqa: E402
-from mbcapture.resources import peak_rss_bytes, rss_bytes  # noqa: E402
+from mbcapture.resources import anon_bytes, peak_rss_bytes, rss_bytes  # noqa: E402
 
 MIB = 1 << 20
 
@@ -38,20 +40,22 @@ def rss_mib() -> float:
 
 
 class Sampler:
-    """The highest resident memory seen since the last :meth:`reset`."""
+    """The highest resident memory (and anonymous memory) seen since the last :meth:`reset`, and over the run."""
 
     def __init__(self, period_s: float = 0.01):
-        self.peak, self.period_s = 0.0, period_s
+        self.peak, self.peak_anon, self.run_anon, self.period_s = 0.0, 0.0, 0.0, period_s
         threading.Thread(target=self._run, daemon=True).start()
 
     def _run(self) -> None:
         while True:
-            self.peak = max(self.peak, rss_mib())
+            anon = anon_bytes() / MIB
+            self.peak, self.peak_anon = max(self.peak, rss_mib()), max(self.peak_anon, anon)
+            self.run_anon = max(self.run_anon, anon)
             time.sleep(self.period_s)
 
     def reset(self) -> float:
-        self.peak = now = rss_mib()
-        return now
+        self.peak, self.peak_anon = rss_mib(), anon_bytes() / MIB
+        return self.peak
 
 
 def main() -> None:
@@ -68,7 +72,7 @@ def main() -> None:
             try:
                 return fn(*a, **k)
             finally:
-                rows.append((name, start, sampler.peak, rss_mib()))
+                rows.append((name, start, sampler.peak, rss_mib(), sampler.peak_anon))
         return wrapper
 
     timer_call = pipeline._Timer.__call__
@@ -78,7 +82,7 @@ def main() -> None:
         start = sampler.reset()
         with timer_call(self, name):
             yield
-        rows.append((name, start, sampler.peak, rss_mib()))
+        rows.append((name, start, sampler.peak, rss_mib(), sampler.peak_anon))
 
     pipeline._Timer.__call__ = timed
     for name in ("render_error", "temporal_error"):
@@ -88,10 +92,11 @@ def main() -> None:
     cfg = load_config(resolve_config_path(args.config), args.overrides)
     with tempfile.TemporaryDirectory() as tmp:
         run_capture(cfg, args.out or Path(tmp) / "out", progress=False)
-    print(f"{'stage':16s} {'start':>8s} {'peak':>8s} {'end':>8s}  MiB")
-    for name, start, peak, end in rows:
-        print(f"{name:16s} {start:8.0f} {peak:8.0f} {end:8.0f}")
-    print(f"high-water mark (VmHWM) {peak_rss_bytes() / MIB:.0f} MiB")
+    print(f"{'stage':16s} {'start':>8s} {'peak':>8s} {'end':>8s} {'anon peak':>10s}  MiB")
+    for name, start, peak, end, anon in rows:
+        print(f"{name:16s} {start:8.0f} {peak:8.0f} {end:8.0f} {anon:10.0f}")
+    print(f"high-water mark (VmHWM) {peak_rss_bytes() / MIB:.0f} MiB; anonymous memory, highest sampled: "
+          f"{sampler.run_anon:.0f} MiB")
 
 
 if __name__ == "__main__":

@@ -205,3 +205,44 @@ def test_the_noise_report_holds_a_read_not_copies_of_every_bucket():
     assert peak < 2.6 * unit, peak / unit
     peak = _traced_peak(lambda: temporal_error(integrated, k_e, [0, 1, 2, 3], 1.9e3))
     assert peak < 2.6 * unit, peak / unit
+
+
+# ----------------------------------------------------------------------------- a film spilled to disk
+def test_a_spilled_array_is_an_array_on_a_scratch_file_that_leaves_no_name(tmp_path):
+    from mbcapture.filmstore import FilmStore
+
+    store = FilmStore(tmp_path / "scratch")
+    a = store.empty((3, 5, 7, 3), np.float64)
+    z = store.zeros((2, 5), bool)
+    assert type(a) is np.ndarray and a.flags.writeable and a.shape == (3, 5, 7, 3) and a.dtype == np.float64
+    assert not z.any() and store.spilled_bytes == a.nbytes + z.nbytes
+    values = np.random.default_rng(0).random(a.shape)
+    a[...] = values
+    a[1, 2:4] *= 2.0  # numpy's arithmetic on it, in place and not
+    values[1, 2:4] *= 2.0
+    assert np.array_equal(a, values) and type(a + 1) is np.ndarray
+    assert list((tmp_path / "scratch").iterdir()) == []  # unlinked once mapped
+    assert FilmStore(None).empty((2, 2), np.float32).base is None  # in memory: plain numpy
+
+
+def test_a_scratch_disk_too_small_is_one_line_before_any_array(tmp_path, monkeypatch):
+    from mbcapture import filmstore
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(filmstore.os, "posix_fallocate", full)
+    store = filmstore.FilmStore(tmp_path)
+    with pytest.raises(ResourceProblem, match=r"render.spill_dir .*: the film's arrays need 0.09 GB more there "
+                                              r"\(No space left on device\)"):
+        store.empty((12, 1000, 1000), np.float64)
+    assert store.spilled_bytes == 0 and list(tmp_path.iterdir()) == []
+    # and the plan's own check: the scratch files above the free disk of render.spill_dir
+    monkeypatch.setattr(resources, "free_disk", lambda path: 1 << 20)
+    cfg = load_config(HDR, [*SMALL, "render.tiles=2", "render.band_rows=12", "render.spill=true",
+                            f"render.spill_dir={tmp_path}", "render.cache=off"])
+    need = _need([*SMALL, "render.tiles=2", "render.band_rows=12", "render.spill=true", "render.cache=off"])
+    assert need.spill_bytes > 0
+    big = resources.Resources(need.memory_bytes, need.output_bytes, 0, need.tiles, need.bands, spill_bytes=2 << 20)
+    with pytest.raises(ResourceProblem, match=rf"render.spill_dir {tmp_path}: the film's arrays need about 2 MB"):
+        resources.check(big, cfg, None, None)

@@ -2,6 +2,7 @@
 run of whole render bands at a time, and the capture is the untiled capture bit for bit (same
 CPU); the noise fields cut to a band are the whole field's rows; the memory plan chooses tiles."""
 
+import mmap
 from pathlib import Path
 
 import numpy as np
@@ -105,15 +106,33 @@ def _assert_same(untiled, tiled):
 @pytest.mark.render
 @pytest.mark.parametrize("config, extra, tiles", [
     ("metronome_hdr.yaml", [], 3),  # uneven tiles: 1 + 2 + 1 bands
-    ("metronome_hdr.yaml", ["sensor.cfa=RGGB", "sensor.read_noise_row_e=1.0", "sensor.transfer_inefficiency=0.001"], 4),
+    # a Bayer mosaic, row noise and transfer loss, with the film's results in scratch files on disk
+    ("metronome_hdr.yaml", ["sensor.cfa=RGGB", "sensor.read_noise_row_e=1.0", "sensor.transfer_inefficiency=0.001",
+                            "render.spill=true"], 4),
     ("multi_flash.yaml", [], 2),  # per-group exposures
 ])
-def test_a_tiled_capture_is_the_untiled_capture(config, extra, tiles):
-    _, untiled, tiled = _pair(config, extra, tiles)
+def test_a_tiled_capture_is_the_untiled_capture(config, extra, tiles, tmp_path):
+    scratch = tmp_path / "scratch"
+    _, untiled, tiled = _pair(config, [*extra, f"render.spill_dir={scratch}"], tiles)
     assert untiled.report["tiles"]["count"] == 1 and untiled.report["tiles"]["render_bands"] == 4
     assert tiled.report["tiles"]["count"] == tiles
     assert untiled.plan.passes >= 2
     _assert_same(untiled, tiled)
+    spill = tiled.report["tiles"]["spill"]
+    assert untiled.report["tiles"]["spill"] is None and (spill is not None) == ("render.spill=true" in extra)
+    if spill is not None:  # mapped from scratch files, which leave no name behind
+        assert spill["folder"] == str(scratch) and spill["gb"] > 0 and list(scratch.iterdir()) == []
+        # the exposures and the joined photosite codes (the Bayer reads are demosaiced from them in memory)
+        assert isinstance(_root(tiled.bucket_exposure), mmap.mmap) and isinstance(_root(tiled.mosaic_dn), mmap.mmap)
+    else:
+        assert not isinstance(_root(tiled.bucket_exposure), mmap.mmap)
+
+
+def _root(a: np.ndarray):
+    """What an array's memory finally belongs to (following views and buffers)."""
+    while (isinstance(a, np.ndarray) and a.base is not None) or isinstance(a, memoryview):
+        a = a.obj if isinstance(a, memoryview) else a.base
+    return a
 
 
 @pytest.mark.render
@@ -171,5 +190,41 @@ def test_tiles_are_chosen_from_the_memory_cap_and_shrink_the_estimate():
     assert estimate(capped, timeline, plan, app, n - 1).memory_bytes > cap * GB  # the fewest that fit
     with pytest.raises(ResourceProblem, match="render.max_memory_gb"):  # below one band per tile: one line, exit 2
         check_resources(load_config(ROOT / "configs" / "sensor_12mp.yaml",
-                                    ["render.spp=4", "render.cache=off", f"render.max_memory_gb={0.9 * tiled.memory_bytes / GB}"]),
-                        None)
+                                    ["render.spp=4", "render.cache=off", "render.spill=false",
+                                     f"render.max_memory_gb={0.9 * tiled.memory_bytes / GB}"]), None)
+
+
+def test_a_film_that_tiles_cannot_fit_spills_its_results_to_disk(tmp_path):
+    """render.spill null: below what tiles alone need, the whole-film results go to scratch files, and
+    the plan counts them as disk (the exposures, both error estimates, the reads, truths and flags)."""
+    from mbcapture.resources import choose_layout, spilled_per_bucket_sample
+
+    sets = ["render.spp=4", "render.cache=off", f"render.spill_dir={tmp_path}"]
+    cfg = load_config(ROOT / "configs" / "sensor_12mp.yaml", sets)
+    _, timeline, plan, _ = prepare(cfg)
+    app = cfg.app.resolve(cfg.capture.protocol)[0]
+    tiled, spilled = estimate(cfg, timeline, plan, app, 12), estimate(cfg, timeline, plan, app, 12, spill=True)
+    # HDR, 4 buckets and 4 reads: 2 (exposure, two float32 estimates) + 4 x 2.125 / 4 values per bucket sample
+    assert spilled_per_bucket_sample(timeline, plan, app) == 2.0 + 2.125
+    per_value = 8 * 4096 * 3072 * 3 * 4
+    assert spilled.spill_bytes == int(per_value * 4.125) and tiled.spill_bytes == 0
+    assert tiled.memory_bytes - spilled.memory_bytes == pytest.approx(spilled.spill_bytes, abs=2)
+    assert estimate(cfg, timeline, plan, app, 1, spill=True).spill_bytes == 0  # one tile: nothing to spill
+    cap = (tiled.memory_bytes + spilled.memory_bytes) / 2 / GB  # tiles alone cannot fit, spilled can
+    capped = load_config(ROOT / "configs" / "sensor_12mp.yaml", [*sets, f"render.max_memory_gb={cap}"])
+    n, spill = choose_layout(capped, timeline, plan, app)
+    assert spill and 1 < n <= 12 and estimate(capped, timeline, plan, app, n, True).memory_bytes <= cap * GB
+    need = check_resources(capped, None)
+    assert need.spill_bytes > 0 and "scratch files on disk" in need.line()
+    assert choose_layout(load_config(ROOT / "configs" / "sensor_12mp.yaml", [*sets, "render.spill=false",
+                                                                           f"render.max_memory_gb={cap}"]),
+                         timeline, plan, app) == (12, False)
+    # a small film in tiles fits in memory: no spill unless asked for; never in one tile
+    small = [*SMALL, f"render.spill_dir={tmp_path}"]
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", [*small, "render.tiles=2"])
+    _, timeline, plan, _ = prepare(cfg)
+    assert choose_layout(cfg, timeline, plan, app) == (2, False)
+    assert choose_layout(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*small, "render.tiles=2", "render.spill=true"]),
+                         timeline, plan, app) == (2, True)
+    assert choose_layout(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*small, "render.spill=true"]),
+                         timeline, plan, app) == (1, False)

@@ -318,12 +318,14 @@ def develop_reads(photosites: SensorReads, cfg: SensorConfig) -> SensorReads:
                    mosaic_dn=out.reads_dn[..., 0], mosaic_saturated=out.saturated[..., 0], cfa=cfg.cfa)
 
 
-def join_rows(bands: "Iterable[SensorReads]", height: int, reads_only: bool = False) -> SensorReads:
+def join_rows(bands: "Iterable[SensorReads]", height: int, reads_only: bool = False,
+              empty: "Callable[[tuple, np.dtype], np.ndarray]" = np.empty) -> SensorReads:
     """The reads of a film of ``height`` rows from its row bands (in order, each from
     :func:`simulate_reads` with ``band``); ``reads_only``: without the buckets' charge
     (``electrons``, ``bucket_saturated`` None), which a tiled capture does not keep. ``bands`` may be
     a generator: each band is copied into the film's arrays as it comes and let go, so the bands are
-    never all held at once."""
+    never all held at once. ``empty(shape, dtype)`` makes the film's arrays (``np.empty``, or
+    :meth:`mbcapture.filmstore.FilmStore.empty` for arrays on disk)."""
     names = ("reads_dn", "reads_e_expected", "saturated", "mosaic_dn", "mosaic_saturated") + \
         (() if reads_only else ("electrons", "bucket_saturated"))
     first: SensorReads | None = None
@@ -338,7 +340,7 @@ def join_rows(bands: "Iterable[SensorReads]", height: int, reads_only: bool = Fa
                 film[name] = None
                 continue
             if name not in film:  # rows on axis 1 of every array
-                film[name] = np.empty((value.shape[0], height, *value.shape[2:]), value.dtype)
+                film[name] = empty((value.shape[0], height, *value.shape[2:]), value.dtype)
             film[name][:, row:row + h] = value
         row += h
     if first is None:
