@@ -8,13 +8,17 @@ previews, report.json and report.html.
 from __future__ import annotations
 
 import sys
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable
+
+import numpy as np
 
 from . import resources
 from .budget import noise_verdict
 from .config import CaptureConfig
 from .errors import ConfigError
+from .filmstore import FilmStore
 from .io import check_out_dir, staged_outputs
 from .pipeline import (  # noqa: F401  (the names a capture's callers have always imported from here)
     CaptureResult,
@@ -93,15 +97,19 @@ def write_outputs(result: CaptureResult, out: Path, extra=None, *, raw: bool = T
     EXRs (buckets.exr, reads_expected.exr, reads.exr)."""
     cfg, tl = result.config, result.timeline
     names = [r.name for r in tl.reads]
+    # a spilled film (render.spill) makes the EXRs' float32 channels in scratch files as well
+    spill = (result.report.get("tiles") or {}).get("spill")
+    empty = FilmStore(spill["folder"]).empty if spill else np.empty
     with staged_outputs(out) as st:
         if raw:
-            st.write_exr("buckets.exr", {f"B{k + 1}": result.bucket_exposure[k] * result.k_e for k in range(tl.n_buckets)})
-            st.write_exr("reads_expected.exr", {n: result.reads_expected_e[i] for i, n in enumerate(names)})
-            st.write_exr("reads.exr", {n: result.reads_dn[i] for i, n in enumerate(names)})
+            st.write_exr("buckets.exr", {f"B{k + 1}": partial(np.multiply, result.bucket_exposure[k], result.k_e)
+                                         for k in range(tl.n_buckets)}, empty=empty)
+            st.write_exr("reads_expected.exr", {n: result.reads_expected_e[i] for i, n in enumerate(names)}, empty=empty)
+            st.write_exr("reads.exr", {n: result.reads_dn[i] for i, n in enumerate(names)}, empty=empty)
         app_out = result.app_output
-        st.write_exr(f"{result.app}.exr", app_out.images)
+        st.write_exr(f"{result.app}.exr", app_out.images, empty=empty)
         for file, layers in app_out.extra_exr.items():
-            st.write_exr(file, layers)
+            st.write_exr(file, layers, empty=empty)
         for stem, (image, percentile) in app_out.png.items():
             st.write_png(f"{stem}.png", app_out.images[image], percentile)
         if cfg.output.dng:

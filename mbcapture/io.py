@@ -20,7 +20,7 @@ import threading
 from contextlib import contextmanager
 from io import BytesIO
 from pathlib import Path
-from typing import Iterator, Mapping
+from typing import Callable, Iterator, Mapping
 
 import numpy as np
 import yaml
@@ -104,8 +104,9 @@ class Staging:
     def write_yaml(self, name: str, data) -> None:
         self.path(name).write_text(yaml.safe_dump(data, sort_keys=False))
 
-    def write_exr(self, name: str, layers: Mapping[str, np.ndarray], channels=CHANNELS_RGB) -> None:
-        write_exr(self.path(name), layers, channels)
+    def write_exr(self, name: str, layers: Mapping[str, "np.ndarray | Callable[[], np.ndarray]"],
+                  channels=CHANNELS_RGB, empty: "Callable[..., np.ndarray]" = np.empty) -> None:
+        write_exr(self.path(name), layers, channels, empty)
 
     def write_png(self, name: str, rgb_linear: np.ndarray, percentile: float | None = 99.5) -> None:
         write_png(self.path(name), rgb_linear, percentile)
@@ -216,24 +217,32 @@ def _json_default(obj):
 
 
 # ----------------------------------------------------------------------------- EXR
-def write_exr(path: Path, layers: Mapping[str, np.ndarray], channels=CHANNELS_RGB) -> None:
+def write_exr(path: Path, layers: Mapping[str, "np.ndarray | Callable[[], np.ndarray]"], channels=CHANNELS_RGB,
+              empty: "Callable[..., np.ndarray]" = np.empty) -> None:
     """Write layers ``{'B1': (H, W, C) array, ...}`` as float32 channels ``B1.R, B1.G, ...``.
 
-    A 2-D array becomes a single channel named after its layer.
+    A 2-D array becomes a single channel named after its layer. A layer may be given as a function
+    that makes its array, called when the layer is converted and let go after it (so that arrays made
+    for the file, such as exposure x k_e, are not all held at once). ``empty(shape, dtype)`` makes the
+    float32 channels OpenEXR writes from, which its Python binding takes whole (np.empty, or a spilled
+    film's :meth:`mbcapture.filmstore.FilmStore.empty`, so a large film's channels are not all in memory).
     """
     import OpenEXR
 
     chans = {}
     for layer, arr in layers.items():
-        arr = np.asarray(arr)
+        arr = np.asarray(arr() if callable(arr) else arr)
         if arr.ndim == 2:
-            chans[layer] = np.ascontiguousarray(arr, dtype=np.float32)
+            chans[layer] = dst = empty(arr.shape, np.float32)
+            dst[...] = arr
             continue
         if arr.shape[-1] != len(channels):
             raise ValueError(f"layer {layer}: {arr.shape[-1]} channels, expected {len(channels)}")
         for ci, c in enumerate(channels):
-            # non-contiguous slices are written silently wrong by OpenEXR 3.x: copy
-            chans[f"{layer}.{c}"] = np.ascontiguousarray(arr[..., ci], dtype=np.float32)
+            # a contiguous copy of each channel: non-contiguous slices are written silently wrong by OpenEXR 3.x
+            chans[f"{layer}.{c}"] = dst = empty(arr.shape[:-1], np.float32)
+            dst[...] = arr[..., ci]
+        del arr
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with OpenEXR.File(header, chans) as f:
         f.write(str(path))
@@ -259,25 +268,39 @@ def read_exr(path: Path, channels=CHANNELS_RGB) -> dict[str, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- PNG
+#: Samples (row x column x channel) :func:`tonemap` encodes at a time.
+TONEMAP_BAND_SAMPLES = 1 << 18
+
+
 def tonemap(rgb_linear: np.ndarray, percentile: float | None = 99.5) -> np.ndarray:
     """Linear RGB (H, W, 3), or grey (H, W) / (H, W, 1), -> 8-bit sRGB: scale so the luminance
     ``percentile`` maps to 1 (None: 1.0 is white), clip, and apply the sRGB transfer function
     (colour-science)."""
     import colour
 
-    rgb = np.nan_to_num(np.asarray(rgb_linear, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    rgb = np.array(rgb_linear, dtype=np.float64)  # one copy, made finite and scaled in place
+    np.nan_to_num(rgb, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
     if rgb.ndim == 2:
         rgb = rgb[..., None]
     if rgb.shape[-1] == 1:
         rgb = np.repeat(rgb, 3, axis=-1)
-    lum = luminance(rgb)
     if percentile is None:
         white = 1.0
     else:
-        white = np.percentile(lum, percentile) if lum.size else 1.0
-    scaled = np.clip(rgb / white, 0.0, 1.0) if white > 0 else np.zeros_like(rgb)
-    encoded = colour.cctf_encoding(scaled, function="sRGB")
-    return np.round(encoded * 255).astype(np.uint8)
+        white = np.percentile(luminance(rgb), percentile) if rgb.size else 1.0
+    # elementwise from here, a band of rows at a time (the same values as the whole image at once): the
+    # encoding's temporaries are a band's, not several copies of a large film's image
+    out = np.empty(rgb.shape, np.uint8)
+    rows = max(1, TONEMAP_BAND_SAMPLES // max(1, rgb[0].size)) if rgb.shape[0] else 1
+    for r0 in range(0, rgb.shape[0], rows):
+        band = rgb[r0:r0 + rows]
+        if white > 0:
+            band /= white
+            np.clip(band, 0.0, 1.0, out=band)
+        else:
+            band[...] = 0.0
+        out[r0:r0 + rows] = np.round(colour.cctf_encoding(band, function="sRGB") * 255)
+    return out
 
 
 def write_png(path: Path, rgb_linear: np.ndarray, percentile: float | None = 99.5) -> None:

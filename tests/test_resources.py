@@ -246,3 +246,44 @@ def test_a_scratch_disk_too_small_is_one_line_before_any_array(tmp_path, monkeyp
     big = resources.Resources(need.memory_bytes, need.output_bytes, 0, need.tiles, need.bands, spill_bytes=2 << 20)
     with pytest.raises(ResourceProblem, match=rf"render.spill_dir {tmp_path}: the film's arrays need about 2 MB"):
         resources.check(big, cfg, None, None)
+
+
+def test_exr_channels_made_in_scratch_files_write_the_same_file(tmp_path):
+    """A spilled film's EXRs: layers made when written (functions) and float32 channels in scratch files
+    give the same file, byte for byte, as whole arrays in memory."""
+    from functools import partial
+
+    from mbcapture.filmstore import FilmStore
+
+    rng = np.random.default_rng(3)
+    exposure, k_e = rng.random((2, 6, 10, 3)), np.array([900.0, 1000.0, 1100.0])
+    mask = rng.random((6, 10))
+    mio.write_exr(tmp_path / "a.exr", {"B1": exposure[0] * k_e, "B2": exposure[1] * k_e, "valid": mask})
+    store = FilmStore(tmp_path / "scratch")
+    mio.write_exr(tmp_path / "b.exr", {"B1": partial(np.multiply, exposure[0], k_e),
+                                       "B2": partial(np.multiply, exposure[1], k_e), "valid": mask}, empty=store.empty)
+    assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
+    assert store.spilled_bytes == 4 * 6 * 10 * 7  # seven float32 channels
+    back = mio.read_exr(tmp_path / "b.exr")
+    np.testing.assert_array_equal(back["B2"], (exposure[1] * k_e).astype(np.float32))
+
+
+def test_tonemap_encodes_a_band_of_rows_at_a_time_with_the_whole_images_values():
+    """What the previews (PNG) of a large film cost: one float64 copy of the image and a band's
+    temporaries, not the seven copies the whole-image encoding made; the same bytes."""
+    import colour
+
+    from mbcapture.io import luminance, tonemap
+
+    rng = np.random.default_rng(5)
+    img = rng.random((1024, 1024, 3)) * 4.0
+    img[::97, ::89] = np.nan
+    img[::101, ::83] = np.inf
+    finite = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
+    white = np.percentile(luminance(finite), 99.5)
+    want = np.round(colour.cctf_encoding(np.clip(finite / white, 0.0, 1.0), function="sRGB") * 255).astype(np.uint8)
+    assert np.array_equal(tonemap(img, 99.5), want)
+    grey = img[..., 0]
+    assert np.array_equal(tonemap(grey, None), tonemap(np.repeat(grey[..., None], 3, axis=-1), None))
+    peak = _traced_peak(lambda: tonemap(img, 99.5))
+    assert peak < 2.0 * img.nbytes, peak / img.nbytes  # measured 1.67 (the copy, its luminance, the percentile, a band); 7.4 before

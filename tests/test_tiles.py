@@ -124,6 +124,14 @@ def test_a_tiled_capture_is_the_untiled_capture(config, extra, tiles, tmp_path):
         assert spill["folder"] == str(scratch) and spill["gb"] > 0 and list(scratch.iterdir()) == []
         # the exposures and the joined photosite codes (the Bayer reads are demosaiced from them in memory)
         assert isinstance(_root(tiled.bucket_exposure), mmap.mmap) and isinstance(_root(tiled.mosaic_dn), mmap.mmap)
+        # its outputs, whose float32 channels are made in scratch files too, are the untiled run's files
+        from mbcapture.capture import write_outputs
+
+        write_outputs(untiled, tmp_path / "untiled")
+        write_outputs(tiled, tmp_path / "tiled")
+        for name in ("buckets.exr", "reads_expected.exr", "reads.exr", "hdr.exr"):
+            assert (tmp_path / "tiled" / name).read_bytes() == (tmp_path / "untiled" / name).read_bytes(), name
+        assert list(scratch.iterdir()) == []
     else:
         assert not isinstance(_root(tiled.bucket_exposure), mmap.mmap)
 
