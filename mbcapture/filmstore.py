@@ -3,7 +3,7 @@
 A tiled capture (``render.tiles``) renders, accumulates and senses its film a tile of rows at a
 time, but its results are whole-film arrays: the exposures and their two error estimates (and the
 per-group exposures of an application that asks for them), the reads, their truths and their
-saturation. At 24 megapixels those alone are about 12 GB. With ``render.spill`` they are made in
+saturation. At 24 megapixels those alone are about 9 GB (an HDR capture of four buckets). With ``render.spill`` they are made in
 files of a scratch folder and mapped into memory (``mmap``): the kernel keeps their pages in the
 page cache while memory is free and writes them back and drops them when it is not, so the memory
 a run must hold is its working set, not its film. The values are the same bit for bit (the same
@@ -67,12 +67,6 @@ class FilmStore:
             os.close(fd)
         self.spilled_bytes += nbytes
         return np.frombuffer(buffer, dtype=dtype).reshape(shape)
-
-    def zeros(self, shape, dtype) -> np.ndarray:
-        """An array of zeros of ``shape`` and ``dtype`` (a new scratch file reads as zeros)."""
-        if self.folder is None:
-            return np.zeros(shape, dtype)
-        return self.empty(shape, dtype)  # fallocate'd pages read as zeros
 
 
 #: Arrays in memory: what a capture uses unless it spills.

@@ -57,7 +57,7 @@ FLOAT64_PER_BUCKET_SAMPLE = 15.8
 #: Of those, the float64 values per bucket sample a tiled capture holds for the whole film, and the
 #: float64 values per pixel and output channel its application's reconstruction holds and makes (fitted,
 #: minimax, to the peak memory of metronome_hdr, multi_flash and flash_matting at 640x512 and 1280x1024
-#: in tiles of 64 rows: scripts/resources.py --band-rows 64 --tiles 16, within 0.88-1.15; the two
+#: in tiles of 64 rows: scripts/resources.py --band-rows 64 --tiles 16, within 0.87-1.15; the two
 #: error estimates are float32, half a value each: mbcapture.integrate.DIFF_DTYPE).
 HELD_PER_BUCKET_SAMPLE = 5.5
 APP_CHANNEL_HELD = 2.75
@@ -223,20 +223,23 @@ def _status_kb(field: str) -> int:
     return _proc_kb("/proc/self/status", field) or 0
 
 
-def _cgroup_headroom() -> int | None:
+def _cgroup_headroom(root: Path = Path("/sys/fs/cgroup"), own: Path = Path("/proc/self/cgroup")) -> int | None:
     """Bytes this process's memory cgroup still allows it, or None without a limit: cgroup v2
     (memory.max, memory.current), else v1 (the memory controller's memory.limit_in_bytes and
-    memory.usage_in_bytes of the group /proc/self/cgroup names)."""
+    memory.usage_in_bytes of the group ``own`` names; at the controller's root in a container, which
+    sees its own group there). ``root``, ``own``: where they are read (tests)."""
     try:
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
-        used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+        limit = (root / "memory.max").read_text().strip()
+        used = int((root / "memory.current").read_text())
         return None if limit == "max" else int(limit) - used
     except (OSError, ValueError):
         pass
     try:
-        group = next(line.split(":", 2)[2].strip() for line in Path("/proc/self/cgroup").read_text().splitlines()
+        group = next(line.split(":", 2)[2].strip() for line in own.read_text().splitlines()
                      if "memory" in line.split(":", 2)[1].split(","))
-        folder = Path("/sys/fs/cgroup/memory") / group.lstrip("/")
+        folder = root / "memory" / group.lstrip("/")
+        if not folder.is_dir():
+            folder = root / "memory"
         limit_v1 = int((folder / "memory.limit_in_bytes").read_text())
         used = int((folder / "memory.usage_in_bytes").read_text())
     except (OSError, ValueError, StopIteration, IndexError):

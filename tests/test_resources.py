@@ -213,9 +213,9 @@ def test_a_spilled_array_is_an_array_on_a_scratch_file_that_leaves_no_name(tmp_p
 
     store = FilmStore(tmp_path / "scratch")
     a = store.empty((3, 5, 7, 3), np.float64)
-    z = store.zeros((2, 5), bool)
+    z = store.empty((2, 5), bool)
     assert type(a) is np.ndarray and a.flags.writeable and a.shape == (3, 5, 7, 3) and a.dtype == np.float64
-    assert not z.any() and store.spilled_bytes == a.nbytes + z.nbytes
+    assert store.spilled_bytes == a.nbytes + z.nbytes
     values = np.random.default_rng(0).random(a.shape)
     a[...] = values
     a[1, 2:4] *= 2.0  # numpy's arithmetic on it, in place and not
@@ -287,3 +287,30 @@ def test_tonemap_encodes_a_band_of_rows_at_a_time_with_the_whole_images_values()
     assert np.array_equal(tonemap(grey, None), tonemap(np.repeat(grey[..., None], 3, axis=-1), None))
     peak = _traced_peak(lambda: tonemap(img, 99.5))
     assert peak < 2.0 * img.nbytes, peak / img.nbytes  # measured 1.67 (the copy, its luminance, the percentile, a band); 7.4 before
+
+
+def test_the_free_memory_reads_a_cgroup_v1_or_v2_limit(tmp_path):
+    from mbcapture.resources import _cgroup_headroom
+
+    own = tmp_path / "cgroup"
+    own.write_text("12:pids:/\n4:memory:/jobs/run7\n0::/\n")
+    v1 = tmp_path / "v1" / "memory" / "jobs" / "run7"
+    v1.mkdir(parents=True)
+    (v1 / "memory.limit_in_bytes").write_text(f"{14 << 30}\n")
+    (v1 / "memory.usage_in_bytes").write_text(f"{3 << 30}\n")
+    assert _cgroup_headroom(tmp_path / "v1", own) == 11 << 30
+    (v1 / "memory.limit_in_bytes").write_text("9223372036854771712\n")  # v1's "no limit"
+    assert _cgroup_headroom(tmp_path / "v1", own) is None
+    inside = tmp_path / "container" / "memory"  # a container: its own group at the controller's root
+    inside.mkdir(parents=True)
+    (inside / "memory.limit_in_bytes").write_text(f"{2 << 30}\n")
+    (inside / "memory.usage_in_bytes").write_text(f"{1 << 30}\n")
+    assert _cgroup_headroom(tmp_path / "container", own) == 1 << 30
+    v2 = tmp_path / "v2"
+    v2.mkdir()
+    (v2 / "memory.max").write_text(f"{8 << 30}\n")
+    (v2 / "memory.current").write_text(f"{5 << 30}\n")
+    assert _cgroup_headroom(v2, own) == 3 << 30
+    (v2 / "memory.max").write_text("max\n")
+    assert _cgroup_headroom(v2, own) is None
+    assert _cgroup_headroom(tmp_path / "nothing", tmp_path / "missing") is None
