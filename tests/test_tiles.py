@@ -205,7 +205,7 @@ def test_tiles_are_chosen_from_the_memory_cap_and_shrink_the_estimate():
 def test_a_film_that_tiles_cannot_fit_spills_its_results_to_disk(tmp_path):
     """render.spill null: below what tiles alone need, the whole-film results go to scratch files, and
     the plan counts them as disk (the exposures, both error estimates, the reads, truths and flags)."""
-    from mbcapture.resources import choose_layout, spilled_per_bucket_sample
+    from mbcapture.resources import choose_layout, plan_resources, spilled_per_bucket_sample
 
     sets = ["render.spp=4", "render.cache=off", f"render.spill_dir={tmp_path}"]
     cfg = load_config(ROOT / "configs" / "sensor_12mp.yaml", sets)
@@ -222,8 +222,8 @@ def test_a_film_that_tiles_cannot_fit_spills_its_results_to_disk(tmp_path):
     capped = load_config(ROOT / "configs" / "sensor_12mp.yaml", [*sets, f"render.max_memory_gb={cap}"])
     n, spill = choose_layout(capped, timeline, plan, app)
     assert spill and 1 < n <= 12 and estimate(capped, timeline, plan, app, n, True).memory_bytes <= cap * GB
-    need = check_resources(capped, None)
-    assert need.spill_bytes > 0 and "scratch files on disk" in need.line()
+    need = plan_resources(capped, timeline, plan, app)  # what `mbcapture plan` and the run's first line say
+    assert (need.tiles, need.spill_bytes > 0) == (n, True) and "scratch files on disk" in need.line()
     assert choose_layout(load_config(ROOT / "configs" / "sensor_12mp.yaml", [*sets, "render.spill=false",
                                                                            f"render.max_memory_gb={cap}"]),
                          timeline, plan, app) == (12, False)
