@@ -18,7 +18,6 @@ from . import resources
 from .budget import noise_verdict
 from .config import CaptureConfig
 from .errors import ConfigError
-from .filmstore import FilmStore
 from .io import check_out_dir, staged_outputs
 from .pipeline import (  # noqa: F401  (the names a capture's callers have always imported from here)
     CaptureResult,
@@ -97,9 +96,7 @@ def write_outputs(result: CaptureResult, out: Path, extra=None, *, raw: bool = T
     EXRs (buckets.exr, reads_expected.exr, reads.exr)."""
     cfg, tl = result.config, result.timeline
     names = [r.name for r in tl.reads]
-    # a spilled film (render.spill) makes the EXRs' float32 channels in scratch files as well
-    spill = (result.report.get("tiles") or {}).get("spill")
-    empty = FilmStore(spill["folder"]).empty if spill else np.empty
+    empty = result.film_store.empty  # a spilled film (render.spill) makes the EXRs' channels in scratch files too
     with staged_outputs(out) as st:
         if raw:
             st.write_exr("buckets.exr", {f"B{k + 1}": partial(np.multiply, result.bucket_exposure[k], result.k_e)

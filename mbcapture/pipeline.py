@@ -60,6 +60,8 @@ class CaptureResult:
                           when asked for; None if spp = 1)
     mosaic_dn             (R, H, W) a colour-filter-array sensor's photosite codes (sensor.cfa), else None;
                           reads_dn are then the demosaiced reads
+    film_store            where the whole-film arrays were made: in memory, or scratch files (render.spill);
+                          write_outputs makes the EXRs' channels there too
     app                   name of the application that reconstructed the reads
     images                its images by name (hdr: radiance, sigma, valid, truth, moving; see docs)
     """
@@ -79,6 +81,7 @@ class CaptureResult:
     mosaic_dn: np.ndarray | None = None
     report: dict = field(default_factory=dict)
     out_dir: Path | None = None  # where run_capture wrote it
+    film_store: FilmStore = IN_MEMORY  # where its whole-film arrays were made (render.spill: scratch files)
     app_output: AppOutput | None = None
     video: object = None  # a video run (capture.frames > 1): mbcapture.video.VideoFrames of every frame
 
@@ -293,8 +296,6 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
     tiles = group_bands(renderer.bands, need.tiles)
     # a tiled film's whole-film results in scratch files on disk when the plan says so (render.spill)
     store = FilmStore(resources.spill_folder(cfg)) if need.spill_bytes and len(tiles) > 1 else IN_MEMORY
-    tile_info = {"count": len(tiles), "rows": [list(t) for t in tiles], "render_bands": len(renderer.bands),
-                 "spill": {"folder": str(store.folder), "gb": None} if store.spills else None}
     if rendered is None:
         pilot = status.stage("pilot render (spp from render.noise_budget)") if cfg.render.spp is None else nullcontext()
         with timer("pilot"), pilot:
@@ -336,8 +337,6 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         # the expected electrons exposure x k_e, made tile by tile inside the sensor stage
         sensor_out = sense(timeline, exposure, cfg.sensor, sensor_seed(cfg, seeds), tiles=tiles, per_unit=k_e,
                            store=store)
-    if store.spills:
-        tile_info["spill"]["gb"] = round(store.spilled_bytes / resources.GB, 3)
 
     with timer("reconstruct"), status.stage(f"reconstruct ({app.name})"):
         mask = moving
@@ -367,7 +366,9 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
 
     report = {
         **describe(cfg, timeline, plan, need),
-        "tiles": tile_info,
+        "tiles": {"count": len(tiles), "rows": [list(t) for t in tiles], "render_bands": len(renderer.bands),
+                  "spill": {"folder": str(store.folder), "gb": round(store.spilled_bytes / resources.GB, 3)}
+                  if store.spills else None},
         "app": app.name,
         "render_units": "camera-weighted film value, e- m^-2 sr^-1 s^-1 before optics" if spectral else "W m^-2 sr^-1",
         "electrons_per_render_unit_second": dict(zip(renderer.channels, k_e.tolist())),  # per film channel
@@ -400,6 +401,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         images=out.images,
         render_mc_diff=integrated.mc_diff,
         mosaic_dn=sensor_out.mosaic_dn,
+        film_store=store,
         report=report,
         app_output=out,
     )

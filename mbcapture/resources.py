@@ -115,14 +115,19 @@ def tile_rows(cfg: CaptureConfig, tiles: int) -> tuple[tuple[int, int], ...]:
     return group_bands(bands_of(cfg), tiles)
 
 
+def accumulated_channels(timeline: Timeline) -> int:
+    """The per-pixel channels a capture accumulates: its buckets, or a coded capture's sub-frames and
+    the buckets they are routed to."""
+    return timeline.n_channels + (timeline.n_buckets if timeline.code is not None else 0)
+
+
 def spilled_per_bucket_sample(timeline: Timeline, plan: Plan, app: App) -> float:
     """Float64 values per bucket sample (of the accumulated channels) that ``render.spill`` keeps on disk:
     the exposures (1), their two float32 error estimates (1), the per-group exposures of an application
     that asks for them (one per group), and per read its DN, its expected electrons and its saturation
     flags (2 + 1/8)."""
-    acc = timeline.n_channels + (timeline.n_buckets if timeline.code is not None else 0)
     groups = len(plan.groups) if app.per_group else 0
-    return 2.0 + groups + len(timeline.reads) * (2.0 + 1.0 / 8.0) / acc
+    return 2.0 + groups + len(timeline.reads) * (2.0 + 1.0 / 8.0) / accumulated_channels(timeline)
 
 
 def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles: int = 1,
@@ -136,7 +141,7 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles
     K, R = timeline.n_buckets, len(timeline.reads)
     frames = cfg.capture.frames
     # accumulated per channel; a coded capture holds its sub-frames and its routed buckets
-    acc = timeline.n_channels + (K if timeline.code is not None else 0)
+    acc = accumulated_channels(timeline)
     rows = tile_rows(cfg, tiles)
     per_sample = FLOAT64_PER_BUCKET_SAMPLE * app.memory_scale
     if len(rows) > 1:  # the working set follows the largest tile; comparison captures stay whole
@@ -335,6 +340,6 @@ def peak_rss_bytes() -> int:
     return _status_kb("VmHWM") * 1024
 
 
-__all__ = ["Resources", "anon_bytes", "bands_of", "check", "choose_layout", "choose_tiles", "estimate", "free_disk",
-           "free_memory", "peak_rss_bytes", "plan_resources", "rss_bytes", "spill_folder", "spilled_per_bucket_sample",
-           "tile_rows"]
+__all__ = ["Resources", "accumulated_channels", "anon_bytes", "bands_of", "check", "choose_layout", "choose_tiles",
+           "estimate", "free_disk", "free_memory", "peak_rss_bytes", "plan_resources", "rss_bytes", "spill_folder",
+           "spilled_per_bucket_sample", "tile_rows"]
