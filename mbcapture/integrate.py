@@ -352,12 +352,18 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     are not an unbiased estimate any more (a pixel is chosen because its estimate strayed); the
     second pass is independent of that choice, and at those pixels it replaces the first (its
     exposure, its half-sample difference, its per-group exposures). The first pass's samples there
-    are spent on the choice. The temporal-error estimate stays the first pass's."""
+    are spent on the choice. Independent in time too: each half of each stratum is rendered at a
+    time of its own, drawn afresh inside the stratum (the first pass's draws are part of the noise
+    that chose the pixels). The temporal-error estimate stays the first pass's."""
     stage = timer if timer is not None else (lambda name: nullcontext())
     pix = np.asarray(pixels, dtype=np.int64).ravel()
     K, H, W, C = integrated.exposure.shape
     spp = np.asarray(plan.spp, dtype=np.int64) * int(factor)
     seeds = render_seeds(plan, seed)
+    # times of its own: the first pass's time draws (a moving edge's positions) made its noise too
+    times = plan.draw_times(np.random.default_rng(
+        np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x71AE)))) \
+        if plan.bounds_s is not None else np.stack([plan.times_s, plan.times_s], axis=1)
     used = plan.weights_s.sum(axis=1) > 0
     parts = [np.zeros((K, pix.size, C)) for _ in range(2)]
     groups_out = np.zeros((K, len(plan.groups), pix.size, C)) if per_group and integrated.group_exposure is not None \
@@ -370,7 +376,7 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
             w_j = plan.weights_s[j][:, gsel]
             for h, spp_h in enumerate((n // 2, n - n // 2)):
                 with stage("refine"):
-                    rad = renderer.render_pixels(float(plan.times_s[j]), spp_h, int(seeds[j, h]), groups_j, pix)
+                    rad = renderer.render_pixels(float(times[j, h]), spp_h, int(seeds[j, h]), groups_j, pix)
                     share = spp_h / n
                     parts[h] += np.einsum("kg,gpc->kpc", w_j * share, rad.astype(np.float64), optimize=True)
                     if groups_out is not None:

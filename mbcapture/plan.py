@@ -39,6 +39,7 @@ class Plan:
 
     starts_ticks, ends_ticks   (J,) stratum bounds [start, end), int64 ticks.
     times_s       (J,) scene time at which each stratum is rendered (jittered inside it).
+    bounds_s      (J, 2) each stratum's start and end, s (what :meth:`draw_times` jitters in).
     weights_s     (J, K, G) seconds of stratum j in which channel k (a bucket, or a coded capture's
                   sub-frame) collects while group g is on.
     groups        the emitter groups rendered (G), in the scene's order.
@@ -75,6 +76,14 @@ class Plan:
     max_spp_per_render: int = 1024
     read_sets: tuple[tuple[int, ...], ...] = ()
     read_names: tuple[str, ...] = ()
+    bounds_s: np.ndarray | None = None
+
+    def draw_times(self, rng: np.random.Generator, per_stratum: int = 2) -> np.ndarray:
+        """(J, per_stratum) fresh render times, each uniform in its stratum and independent of the
+        others and of ``times_s`` (adaptive sampling's second pass draws its own: see
+        :func:`mbcapture.integrate.refine`)."""
+        start, end = self.bounds_s[:, :1], self.bounds_s[:, 1:]
+        return start + rng.random((self.passes, per_stratum)) * (end - start)
 
     @property
     def base_spp(self) -> int:
@@ -281,6 +290,7 @@ def make_plan(
         starts_ticks=starts,
         ends_ticks=ends,
         times_s=np.asarray(times, dtype=np.float64),
+        bounds_s=np.stack([timeline.seconds(starts), timeline.seconds(ends)], axis=1).astype(np.float64),
         weights_s=w.astype(np.float64) * float(timeline.tick_s),
         groups=groups,
         buckets_read=buckets_read,

@@ -107,7 +107,45 @@ def test_sequential_gaps_are_not_rendered():
 def test_render_times_are_inside_their_strata():
     tl = timeline(periods=16)
     p = plan(point_scene(100.0), tl)
-    assert np.all(p.times_s >= tl.seconds(p.starts_ticks)) and np.all(p.times_s < tl.seconds(p.ends_ticks))
+    start, end = tl.seconds(p.starts_ticks), tl.seconds(p.ends_ticks)
+    assert np.all(p.times_s >= start) and np.all(p.times_s < end)
+    np.testing.assert_array_equal(p.bounds_s, np.stack([start, end], axis=1))
+    # fresh draws (adaptive sampling's second pass): inside their strata, independent of the plan's
+    fresh = p.draw_times(np.random.default_rng(3))
+    assert fresh.shape == (p.passes, 2) and not np.any(fresh == p.times_s[:, None])
+    assert np.all(fresh >= start[:, None]) and np.all(fresh < end[:, None])
+    # uniform in the stratum: the two draws' difference over its length is triangular on (-1, 1), mean 0,
+    # variance 1/6 (5 standard errors; Var[d^2] = E[d^4] - E[d^2]^2 = 1/15 - 1/36)
+    d = (fresh[:, 1] - fresh[:, 0]) / (end - start)
+    assert p.passes > 30 and abs(d.mean()) < 5 * np.sqrt(1 / 6 / p.passes)
+    assert d.var() == pytest.approx(1 / 6, abs=5 * np.sqrt((1 / 15 - 1 / 36) / p.passes))
+
+
+def test_the_second_pass_renders_at_times_of_its_own():
+    """Adaptive sampling's second pass is independent of the first in time too: the first pass's
+    render times (a moving edge's positions) are part of the noise that chose its pixels."""
+    from mbcapture.integrate import integrate, refine
+
+    tl = timeline(periods=16)
+    p = plan(point_scene(50.0), tl, spp=4)
+    r = FakeRenderer(p.groups, {g: 1.0 for g in p.groups}, {g: 0.5 for g in p.groups}, height=4, width=8)
+    first = integrate(r, p, tl.n_buckets, np.random.SeedSequence(1))
+    times = []
+
+    def render_pixels(t_s, spp, seed, groups, pixels):
+        times.append(t_s)
+        return np.ones((len(groups), len(pixels), 3), np.float32)
+
+    r.render_pixels = render_pixels
+    out = refine(r, p, first, np.array([3, 9]), 2, np.random.SeedSequence(2))
+    t = np.array(times).reshape(p.passes, 2)
+    assert np.all(t >= p.bounds_s[:, :1]) and np.all(t < p.bounds_s[:, 1:])
+    assert not np.any(t == p.times_s[:, None]) and np.all(t[:, 0] != t[:, 1])
+    # the refined pixels hold the second pass (radiance 1 everywhere: the weights' sum), the others the first
+    K = tl.n_buckets
+    flat, before = out.exposure.reshape(K, -1, 3), first.exposure.reshape(K, -1, 3)
+    np.testing.assert_allclose(flat[:, [3, 9]], np.broadcast_to(p.weights_s.sum(axis=(0, 2))[:, None, None], (K, 2, 3)))
+    np.testing.assert_array_equal(np.delete(flat, [3, 9], axis=1), np.delete(before, [3, 9], axis=1))
 
 
 def test_max_strata_coarsens_and_says_so():
