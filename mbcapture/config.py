@@ -129,8 +129,10 @@ class RenderSection(_Model):
         "multijitter",
         description="Mitsuba sample generator. 'multijitter' (correlated multi-jittered, Kensler 2013; any count) and "
         "'ldsampler' (a scrambled low-discrepancy sequence; counts rounded up to powers of 4) are randomized "
-        "quasi-Monte Carlo: unbiased, independent between seeds, and on the metronome at 128 spp 4.6x and 10.6x lower "
-        "in Monte Carlo variance than 'independent' (uniform random numbers).",
+        "quasi-Monte Carlo: unbiased, independent between seeds, and on the metronome at 128 spp 7.2x and 11x lower "
+        "in Monte Carlo variance than 'independent' (uniform random numbers) on the mean pixel, but 4.8x and 5.6x on "
+        "the median pixel, which the noise budget judges (indirect light): there ldsampler's power-of-4 counts cost "
+        "more samples than its lower variance saves (docs/noise.md).",
     )
     max_motion_px: float = Field(
         0.5, gt=0, description="Largest image motion, in pixels, of any moving point inside one time stratum (the paper's vT << p)."
