@@ -102,7 +102,10 @@ def _parser() -> argparse.ArgumentParser:
     sweep.add_argument("--out", type=Path, default=None, help="output folder (default: out/sweep_<sweep name>)")
     where = sweep.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=None, metavar="N",
-                       help="worker processes of the local Dask cluster (default: one per core)")
+                       help="run on a local Dask cluster of N worker processes (default: one per core; a sweep whose "
+                            "points all share one set of renders runs in this process unless this is given)")
+    where.add_argument("--in-process", dest="in_process", action="store_const", const=True, default=None,
+                       help="run every point in this process, without Dask")
     where.add_argument("--scheduler", default=None, metavar="ADDRESS",
                        help="run on an existing Dask cluster (tcp://host:port) instead of a local one")
     sweep.add_argument("--resume", action="store_true", help="skip the points that finished in an earlier run into --out")
@@ -262,7 +265,7 @@ def _cmd_sweep(args) -> int:
     say = (lambda line: None) if args.quiet else print
     try:
         outcome = run_sweep(sweep, out, workers=args.workers, scheduler=args.scheduler, resume=args.resume,
-                            progress=not args.quiet, say=say)
+                            progress=not args.quiet, in_process=args.in_process, say=say)
     except KeyboardInterrupt:
         print(f"mbcapture: interrupted; the points that finished are kept in {out}/rows "
               "(--resume goes on from there)", file=sys.stderr)

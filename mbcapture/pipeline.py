@@ -10,10 +10,12 @@ share a render stage through :class:`Rendered`. Nothing here writes a file.
 
 from __future__ import annotations
 
+import copy
 import platform
 import time
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
+from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
@@ -107,6 +109,33 @@ class _Timer:
             self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
 
 
+def _error_estimates(rendered: Rendered, integrated: Integrated, channels: Integrated, k_e: np.ndarray,
+                     timeline, plan: Plan, cfg: CaptureConfig) -> dict:
+    """report.json's ``render_error``: the run's own estimate of its rendering error on every read
+    (:func:`mbcapture.budget.render_error`) and its temporal part
+    (:func:`mbcapture.integrate.temporal_error`). Besides the renders they depend on the electrons per
+    render unit, the full wells, the reads and the budgets alone, and are kept on ``rendered`` under
+    those, so the points of a sweep's render group that differ in anything else compute them once.
+    A coded capture's reads route through its gate code: not kept."""
+    reads = [r.buckets for r in timeline.reads]
+    names = [r.name for r in timeline.reads]
+    r, s = cfg.render, cfg.sensor
+    key = (np.asarray(k_e, np.float64).tobytes(), s.full_well_e, s.fd_full_well_e, tuple(map(tuple, reads)),
+           tuple(names), tuple(plan.buckets_read), r.noise_budget, r.noise_budget_p95, r.noise_budget_tail)
+    if timeline.code is None and key in rendered.estimates:
+        return copy.deepcopy(rendered.estimates[key])
+    out = {
+        **render_error(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, reads, names,
+                       s.full_well_e, s.fd_full_well_e, plan=plan, noise_budget=r.noise_budget,
+                       noise_budget_p95=r.noise_budget_p95, noise_budget_tail=r.noise_budget_tail),
+        **temporal_error(channels, k_e, list(plan.buckets_read), s.full_well_e),
+    }
+    if timeline.code is None:
+        rendered.estimates[key] = copy.deepcopy(out)
+    return out
+
+
+@lru_cache(maxsize=1)
 def _versions() -> dict:
     out = {"python": platform.python_version()}
     for pkg in ("mbcapture", "mitsuba", "drjit", "numpy", "scipy", "pydantic", "OpenEXR"):
@@ -214,6 +243,10 @@ class Rendered:
     #: (H, W) bool, the moving region of the capture's span (:func:`mbcapture.camera_motion.moving_region`): it depends on the
     #: scene, the span and the film only, so the captures sharing these renders share it too
     moving: np.ndarray
+    #: the run's estimates of its rendering error (render_error, temporal_error) by what they depend on
+    #: besides these renders (:func:`_error_estimates`): the points of a sweep's render group that differ
+    #: only in read noise, ADC or the application share them
+    estimates: dict = field(default_factory=dict, compare=False, repr=False)
 
     def plan_for(self, own: Plan) -> Plan:
         same = (own.groups == self.plan.groups and np.array_equal(own.times_s, self.plan.times_s)
@@ -320,8 +353,9 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
                                                     per_group=app.per_group, timer=timer, progress=progress,
                                                     tiled=len(tiles) > 1)
         moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
+        rendered = Rendered(plan, integrated, moving)
         if on_rendered is not None:
-            on_rendered(Rendered(plan, integrated, moving))
+            on_rendered(rendered)
     else:  # another capture's render stage, with the same renders
         plan, integrated, moving = rendered.plan_for(plan), rendered.integrated, rendered.moving
         if app.per_group and integrated.group_exposure is None:
@@ -373,13 +407,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         "render_units": "camera-weighted film value, e- m^-2 sr^-1 s^-1 before optics" if spectral else "W m^-2 sr^-1",
         "electrons_per_render_unit_second": dict(zip(renderer.channels, k_e.tolist())),  # per film channel
         "metrics": out.metrics,
-        "render_error": {
-            **render_error(integrated.mc_diff, BucketElectrons(exposure, k_e), k_e, [r.buckets for r in timeline.reads],
-                           [r.name for r in timeline.reads], cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
-                           plan=plan, noise_budget=cfg.render.noise_budget, noise_budget_p95=cfg.render.noise_budget_p95,
-                           noise_budget_tail=cfg.render.noise_budget_tail),
-            **temporal_error(channels, k_e, list(plan.buckets_read), cfg.sensor.full_well_e),
-        },
+        "render_error": _error_estimates(rendered, integrated, channels, k_e, timeline, plan, cfg),
         "render_cache": {"folder": str(cache.root), **cache.stats.as_dict()} if cache is not None else {"folder": None},
         "cluster": cluster_info,
         "adaptive": adaptive_info,

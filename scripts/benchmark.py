@@ -22,8 +22,8 @@
    160x128): samples chosen, wall time and the measured Monte Carlo / shot-noise ratio, then a
    second capture of the same scene with another protocol (interleaved_hdr) on the warm cache.
 7. A 64-point sensor sweep against one capture (--sweep-film, default 320x256): `mbcapture sweep
-   sensor_noise` (read noise x full well x f-number, one render group) on a local Dask cluster of
-   --sweep-workers processes against `mbcapture run` of its first point, each in its own process with
+   sensor_noise` (read noise x full well x f-number, one render group; where the sweep chooses to run it,
+   or on a local Dask cluster of --sweep-workers processes) against `mbcapture run` of its first point, each in its own process with
    an empty render cache (target: at most 1.5x), and where the sweep's time goes.
 8. 2 workers against 1 on a render-bound sweep (--sweep-film): 4 seeds of the default capture at
    render.spp 32, each its own render group, `mbcapture sweep --workers 1` and `--workers 2`, each
@@ -151,8 +151,9 @@ def sweep_cost(args) -> None:
         data["render"]["cache"] = str(tmp / "cache_run")
         (tmp / "first.yaml").write_text(yaml.safe_dump(data))
         t_run = _timed_command(["run", str(tmp / "first.yaml"), "--quiet", "--out", str(tmp / "run")])
+        where = ["--workers", str(args.sweep_workers)] if args.sweep_workers else []  # none: the sweep's own choice
         t_sweep = _timed_command(["sweep", "sensor_noise", *film, "--set", f"render.cache={tmp / 'cache_sweep'}",
-                                  "--workers", str(args.sweep_workers), "--out", str(tmp / "sweep"), "--quiet"])
+                                  *where, "--out", str(tmp / "sweep"), "--quiet"])
         table = pd.read_parquet(tmp / "sweep" / "results.parquet")
         summary = json.loads((tmp / "sweep" / "sweep.json").read_text())["summary"]
         report = json.loads((tmp / "run" / "report.json").read_text())
@@ -161,7 +162,7 @@ def sweep_cost(args) -> None:
     print(f"[7] {w}x{h}: `mbcapture run` of the sweep's first point {t_run:.1f} s ({report['plan']['passes']} passes x "
           f"{report['plan']['spp']} spp, capture {report['timings_s']['total_before_write']:.1f} s of it); "
           f"`mbcapture sweep sensor_noise` ({len(table)} points, {summary['render_groups']} render group, "
-          f"{args.sweep_workers} workers) {t_sweep:.1f} s: ratio {t_sweep / t_run:.2f} (target <= 1.5)")
+          f"{summary['executor']}) {t_sweep:.1f} s: ratio {t_sweep / t_run:.2f} (target <= 1.5)")
     print(f"    in the sweep: the group's first point {lead['seconds'].sum():.1f} s ({summary['renders_rendered']} renders "
           f"rendered), the other {len(rest)} points {rest['seconds'].mean():.2f} s each (sensor "
           f"{rest['timings_s.sensor'].mean():.2f} s, reconstruct {rest['timings_s.reconstruct'].mean():.2f} s), "
@@ -255,7 +256,8 @@ def main() -> None:
     ap.add_argument("--budget-film", default="640x512", help="[5] film, WxH")
     ap.add_argument("--compare-film", default="160x128", help="[6] film, WxH")
     ap.add_argument("--sweep-film", default="320x256", help="[7], [8] film, WxH")
-    ap.add_argument("--sweep-workers", type=int, default=2, help="[7] local Dask workers")
+    ap.add_argument("--sweep-workers", type=int, default=None,
+                    help="[7] local Dask workers (default: none given, the sweep chooses: this process for one render set)")
     ap.add_argument("--big-spp", type=int, default=2, help="[9] samples per stratum at 4096x3072")
     ap.add_argument("--big-motion-px", type=float, default=2.0, help="[9] render.max_motion_px at 4096x3072")
     ap.add_argument("--big-tiles", type=int, default=12, help="[9] render.tiles of the tiled runs")

@@ -281,3 +281,40 @@ def test_a_failing_point_is_recorded_and_the_others_finish(tmp_path, client):
     assert list(table["status"]) == ["ok", "failed", "failed"]
     assert "multi_flash needs" in (tmp_path / "out" / "index.html").read_text()
     assert not (tmp_path / "out" / "points").exists()  # keep: none
+
+
+# ------------------------------------------------------------------------------ in this process
+def test_the_executor_is_this_process_for_one_set_of_renders_and_dask_otherwise():
+    from types import SimpleNamespace
+
+    from mbcapture.sweep import choose_executor
+
+    one = SimpleNamespace(groups=(SimpleNamespace(points=(0, 1, 2), renders="a"),))
+    two = SimpleNamespace(groups=(SimpleNamespace(points=(0, 1), renders="a"), SimpleNamespace(points=(2,), renders="b")))
+    shared = SimpleNamespace(groups=(SimpleNamespace(points=(0,), renders="a"), SimpleNamespace(points=(1,), renders="a")))
+    free = {"workers": None, "scheduler": None, "client": None, "in_process": None}
+    assert choose_executor(one, {0, 1, 2}, **free)
+    assert choose_executor(shared, {0, 1}, **free)  # two groups (e.g. per-group exposures) on the same images
+    assert not choose_executor(two, {0, 1, 2}, **free)
+    assert choose_executor(two, {0, 1}, **free)  # what is left to run renders one set
+    for given in ({"workers": 2}, {"scheduler": "tcp://x:8786"}, {"client": object()}, {"in_process": False}):
+        assert not choose_executor(one, {0, 1, 2}, **{**free, **given}), given
+    assert choose_executor(two, {0, 1, 2}, **{**free, "in_process": True})
+
+
+@pytest.mark.render
+def test_a_sweep_of_one_render_set_runs_here_and_shares_its_error_estimates(tmp_path):
+    """No Dask for points that all share one set of renders; the run's rendering-error estimate is
+    computed once per full well and light level and equals a capture's own."""
+    from mbcapture.capture import run_capture
+
+    path = write_sweep(tmp_path, {"base": "tiny_hdr", "set": {**TINY, "render.cache": "off"},
+                                  "axes": {"grid": {"sensor.full_well_e": [5000.0, 9000.0],
+                                                    "sensor.read_noise_e": [1.0, 20.0]}}})
+    sweep = load_sweep(path)
+    outcome = run_sweep(sweep, tmp_path / "out", progress=False, keep_results=True)
+    assert outcome.summary["executor"] == "this process (no Dask)" and outcome.summary["ok"] == 4
+    assert outcome.summary["points_sharing_renders"] == 3
+    for i, point in enumerate(sweep.points):
+        own = run_capture(point.config, progress=False).report["render_error"]
+        assert outcome.results[i].report["render_error"] == own, point.label
