@@ -25,6 +25,7 @@ import os
 import socket
 import time
 import traceback
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -166,19 +167,39 @@ def groups_to_run(plan: SweepPlan, pending: set[int]) -> list[list[int]]:
 def run_here(sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None, *,
              on_row: Callable[[int, dict], None], keep_results: bool = False) -> dict[int, Any]:
     """Run the pending points in this process, group by group (the leader's render stage handed to
-    the others). Returns the CaptureResults by point index when ``keep_results``."""
+    the others). Returns the CaptureResults by point index when ``keep_results``.
+
+    The others of a group run on a pool of threads, one per usable core, where they write no images
+    (``keep`` none or report: matplotlib's text rendering is not thread-safe): their stages are numpy,
+    which runs outside the interpreter's lock, and each point's result is a function of its config and
+    the shared renders alone, so the order they finish in changes nothing but the order of the rows."""
     results: dict[int, Any] = {}
+    threads = usable_cores() if sweep.spec.keep in ("none", "report") else 1
     for members in groups_to_run(plan, pending):
-        leader_out: dict | None = None
-        for n, index in enumerate(members):
-            task = make_task(sweep, sweep.points[index], out, leader=n == 0, threads=None)
-            outcome = run_point(task, leader_out, keep_result=keep_results)
-            if n == 0:
-                leader_out = {"rendered": outcome["rendered"]}
-            if keep_results and outcome.get("result") is not None:
-                results[index] = outcome["result"]
-            on_row(index, outcome["row"])
+        leader = run_point(make_task(sweep, sweep.points[members[0]], out, leader=True, threads=None),
+                           keep_result=keep_results)
+        shared = {"rendered": leader["rendered"]}
+        outcomes = [(members[0], leader)]
+        rest = [(i, make_task(sweep, sweep.points[i], out, leader=False, threads=None)) for i in members[1:]]
+        if threads > 1 and len(rest) > 1:
+            with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="sweep-point") as pool:
+                futures = {pool.submit(run_point, task, shared, keep_result=keep_results): i for i, task in rest}
+                on_row(*_kept(results, outcomes[0], keep_results))
+                for future in as_completed(futures):
+                    on_row(*_kept(results, (futures[future], future.result()), keep_results))
+            continue
+        on_row(*_kept(results, outcomes[0], keep_results))
+        for i, task in rest:
+            on_row(*_kept(results, (i, run_point(task, shared, keep_result=keep_results)), keep_results))
     return results
+
+
+def _kept(results: dict[int, Any], done: tuple[int, dict], keep_results: bool) -> tuple[int, dict]:
+    """(index, row) of a finished point, its CaptureResult kept in ``results`` when asked."""
+    index, outcome = done
+    if keep_results and outcome.get("result") is not None:
+        results[index] = outcome["result"]
+    return index, outcome["row"]
 
 
 def run_on_dask(client, sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None, *,
