@@ -137,6 +137,11 @@ class App:
     #: It demultiplexes reads whose sub-frames differ from pixel to pixel (capture.gate_code other
     #: than 'global'); every other application refuses such a capture.
     coded_gates: bool = False
+    #: Its reconstruction may render (reference, truth, AOV or comparison images through
+    #: ``CaptureData.renderer``), so its captures are not run side by side in one process's threads
+    #: (a sweep's points, :func:`mbcapture.sweep.execute.run_here`). False: it works on the capture's
+    #: arrays alone.
+    renders: bool = True
 
 
 _REGISTRY: dict[str, App] = {}
@@ -147,16 +152,17 @@ _loaded = False
 
 def register(name: str, *, params: type[BaseModel] = NoParams, per_group: bool = False, description: str = "",
              output_channels: int = 36, previews: int = 8, libraries_mb: float = 0.0, memory_scale: float = 1.0,
-             pinhole_truth: str = "", coded_gates: bool = False):
+             pinhole_truth: str = "", coded_gates: bool = False, renders: bool = True):
     """Decorator: ``fn(data: CaptureData, params) -> AppOutput`` is application ``name``.
     ``per_group``: the reconstruction or its metrics need ``CaptureData.group_exposure``.
     ``output_channels``, ``previews``, ``libraries_mb``, ``memory_scale``: what its outputs, libraries
     and working set take; ``pinhole_truth``: why it needs a distortion-free camera; ``coded_gates``:
-    it demultiplexes per-pixel coded reads (see :class:`App`)."""
+    it demultiplexes per-pixel coded reads; ``renders``: its reconstruction may render (see :class:`App`)."""
 
     def deco(fn):
         _REGISTRY[name] = App(name, fn, params, per_group, description or (fn.__doc__ or "").strip().split("\n")[0],
-                              output_channels, previews, libraries_mb, memory_scale, pinhole_truth, coded_gates)
+                              output_channels, previews, libraries_mb, memory_scale, pinhole_truth, coded_gates,
+                              renders)
         return fn
 
     return deco

@@ -318,3 +318,27 @@ def test_a_sweep_of_one_render_set_runs_here_and_shares_its_error_estimates(tmp_
     for i, point in enumerate(sweep.points):
         own = run_capture(point.config, progress=False).report["render_error"]
         assert outcome.results[i].report["render_error"] == own, point.label
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("config", ["metronome_hdr", "flash_no_flash", "moving_light"])
+def test_an_application_that_says_it_renders_nothing_renders_nothing_on_shared_renders(config, monkeypatch):
+    """App.renders False lets a sweep run its points side by side in threads: on another capture's
+    renders, such an application's capture must not touch Mitsuba."""
+    from mbcapture.capture import run_capture
+    from mbcapture.render.renderer import Renderer
+
+    cfg = load_config(config, ["render.width=16", "render.height=12", "render.spp=4", "render.cache=off"])
+    app, _ = cfg.app.resolve(cfg.capture.protocol)
+    assert not app.renders
+    kept = {}
+    run_capture(cfg, progress=False, on_rendered=lambda r: kept.update(rendered=r))
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("rendered")
+
+    for method in ("render", "render_rows", "render_pixels", "render_path", "raw_render", "_ensure_loaded", "set_time"):
+        monkeypatch.setattr(Renderer, method, refuse)
+    again = run_capture(load_config(config, ["render.width=16", "render.height=12", "render.spp=4", "render.cache=off",
+                                             "sensor.read_noise_e=7"]), progress=False, rendered=kept["rendered"])
+    assert again.images

@@ -294,7 +294,7 @@ def blur_agreement(ambient_in_flash: np.ndarray, ambient_in_noflash: np.ndarray,
     return {"pixels": int(mask.sum()), "rel_rms": rel_rms(ambient_in_flash, ambient_in_noflash, mask)}
 
 
-@register("flash_no_flash", output_channels=33, previews=7, libraries_mb=90, params=FlashNoFlashParams, per_group=True,
+@register("flash_no_flash", renders=False, output_channels=33, previews=7, libraries_mb=90, params=FlashNoFlashParams, per_group=True,
           description="flash, no-flash, flash-only and Petschnigg-enhanced images (app.method), blur agreement")
 def reconstruct(data: CaptureData, p: FlashNoFlashParams) -> AppOutput:
     if data.group_exposure is None:

@@ -82,7 +82,7 @@ CAPTIONS = {
 }
 
 
-@register("hdr", output_channels=15, previews=2, description="HDR merge of the reads (hdr.method), with sigma and valid layers")
+@register("hdr", output_channels=15, previews=2, renders=False, description="HDR merge of the reads (hdr.method), with sigma and valid layers")
 def reconstruct(data: CaptureData, params) -> AppOutput:
     cfg, tl = data.cfg, data.timeline
     cumulative = not data.sequential and any(len(r.buckets) > 1 for r in tl.reads)

@@ -193,7 +193,7 @@ def flicker_metrics(data: CaptureData, group_name: str) -> dict:
     return out
 
 
-@register("moving_light", output_channels=21, previews=4, memory_scale=1.12, params=MovingLightParams, per_group=True,
+@register("moving_light", renders=False, output_channels=21, previews=4, memory_scale=1.12, params=MovingLightParams, per_group=True,
           description="HDR of a moving-light scene plus read consistency (shadow sweep, flicker phase)")
 def reconstruct(data: CaptureData, params: MovingLightParams) -> AppOutput:
     base = hdr_app.reconstruct(data, None)

@@ -169,24 +169,32 @@ def run_here(sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None,
     """Run the pending points in this process, group by group (the leader's render stage handed to
     the others). Returns the CaptureResults by point index when ``keep_results``.
 
-    The others of a group run on a pool of threads, one per usable core, where they write no images
-    (``keep`` none or report: matplotlib's text rendering is not thread-safe): their stages are numpy,
-    which runs outside the interpreter's lock, and each point's result is a function of its config and
-    the shared renders alone, so the order they finish in changes nothing but the order of the rows."""
+    The others of a group run on a pool of threads, one per usable core, where their stages are numpy
+    alone: they write no images (``keep`` none or report: matplotlib's text rendering is not
+    thread-safe) and their applications render nothing (``App.renders``: Mitsuba is driven from one
+    thread). numpy runs outside the interpreter's lock, and each point's result is a function of its
+    config and the shared renders alone, so the order they finish in changes nothing but the order of
+    the rows."""
     results: dict[int, Any] = {}
-    threads = usable_cores() if sweep.spec.keep in ("none", "report") else 1
+    apps = {sweep.points[i].config.app.resolve(sweep.points[i].config.capture.protocol)[0] for i in pending}
+    side_by_side = sweep.spec.keep in ("none", "report") and not any(app.renders for app in apps)
+    threads = usable_cores() if side_by_side else 1
     for members in groups_to_run(plan, pending):
         leader = run_point(make_task(sweep, sweep.points[members[0]], out, leader=True, threads=None),
                            keep_result=keep_results)
         shared = {"rendered": leader["rendered"]}
         outcomes = [(members[0], leader)]
         rest = [(i, make_task(sweep, sweep.points[i], out, leader=False, threads=None)) for i in members[1:]]
-        if threads > 1 and len(rest) > 1:
-            with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="sweep-point") as pool:
+        # threads only on the leader's renders: a point that renders for itself (its leader failed) runs alone
+        if threads > 1 and len(rest) > 1 and shared["rendered"] is not None:
+            pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="sweep-point")
+            try:
                 futures = {pool.submit(run_point, task, shared, keep_result=keep_results): i for i, task in rest}
                 on_row(*_kept(results, outcomes[0], keep_results))
                 for future in as_completed(futures):
                     on_row(*_kept(results, (futures[future], future.result()), keep_results))
+            finally:  # an interrupt drops the points not started (--resume runs them)
+                pool.shutdown(wait=True, cancel_futures=True)
             continue
         on_row(*_kept(results, outcomes[0], keep_results))
         for i, task in rest:
