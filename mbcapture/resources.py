@@ -51,7 +51,11 @@ MB = 1 << 20
 GB = 1 << 30
 
 #: Resident memory before the first array: Python, numpy/scipy, Mitsuba, Dr.Jit's LLVM and kernels.
-BASE_MEMORY_MB = 285.0
+#: About a third of it is the libraries' file pages, and how many of those are resident depends on the
+#: page cache: a freshly installed environment (every library just written) maps 60 MB more than one
+#: installed long ago, the same code and packages, the same anonymous memory (measured at 320x256:
+#: RssFile 216 against 156 MB, RssAnon 223 MB both). 310 sits between the two.
+BASE_MEMORY_MB = 310.0
 #: Peak float64 values per sample of each bucket (fitted: the reads add nothing measurable).
 FLOAT64_PER_BUCKET_SAMPLE = 15.8
 #: Of those, the float64 values per bucket sample a tiled capture holds for the whole film, and the
