@@ -120,9 +120,10 @@ def _error_estimates(rendered: Rendered, integrated: Integrated, channels: Integ
     reads = [r.buckets for r in timeline.reads]
     names = [r.name for r in timeline.reads]
     r, s = cfg.render, cfg.sensor
-    key = (np.asarray(k_e, np.float64).tobytes(), s.full_well_e, s.fd_full_well_e, tuple(map(tuple, reads)),
-           tuple(names), tuple(plan.buckets_read), r.noise_budget, r.noise_budget_p95, r.noise_budget_tail)
-    if timeline.code is None and key in rendered.estimates:
+    key = None if timeline.code is not None else (
+        np.asarray(k_e, np.float64).tobytes(), s.full_well_e, s.fd_full_well_e, tuple(map(tuple, reads)),
+        tuple(names), tuple(plan.buckets_read), r.noise_budget, r.noise_budget_p95, r.noise_budget_tail)
+    if key in rendered.estimates:
         return copy.deepcopy(rendered.estimates[key])
     out = {
         **render_error(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, reads, names,
@@ -130,7 +131,7 @@ def _error_estimates(rendered: Rendered, integrated: Integrated, channels: Integ
                        noise_budget_p95=r.noise_budget_p95, noise_budget_tail=r.noise_budget_tail),
         **temporal_error(channels, k_e, list(plan.buckets_read), s.full_well_e),
     }
-    if timeline.code is None:
+    if key is not None:
         rendered.estimates[key] = copy.deepcopy(out)
     return out
 

@@ -133,7 +133,7 @@ def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, sch
                                  in_process=in_process)
     executor = "nothing to run" if not pending else "this process (no Dask)"
     if pending and in_process:
-        say("running in this process: every point uses the same renders (--workers N runs on a local Dask cluster)")
+        say("running in this process, without Dask (--workers N runs on a local Dask cluster)")
     if pending and not in_process:
         if client is None:
             client = own_client = start_client(workers or min(usable_cores(), len(pending)), scheduler)

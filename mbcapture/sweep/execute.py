@@ -179,32 +179,29 @@ def run_here(sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None,
     apps = {sweep.points[i].config.app.resolve(sweep.points[i].config.capture.protocol)[0] for i in pending}
     side_by_side = sweep.spec.keep in ("none", "report") and not any(app.renders for app in apps)
     threads = usable_cores() if side_by_side else 1
-    for members in groups_to_run(plan, pending):
-        leader = run_point(make_task(sweep, sweep.points[members[0]], out, leader=True, threads=None),
+    for first, *rest in groups_to_run(plan, pending):
+        leader = run_point(make_task(sweep, sweep.points[first], out, leader=True, threads=None),
                            keep_result=keep_results)
+        on_row(*_kept(results, first, leader, keep_results))
         shared = {"rendered": leader["rendered"]}
-        outcomes = [(members[0], leader)]
-        rest = [(i, make_task(sweep, sweep.points[i], out, leader=False, threads=None)) for i in members[1:]]
+        tasks = {i: make_task(sweep, sweep.points[i], out, leader=False, threads=None) for i in rest}
         # threads only on the leader's renders: a point that renders for itself (its leader failed) runs alone
-        if threads > 1 and len(rest) > 1 and shared["rendered"] is not None:
+        if threads > 1 and len(tasks) > 1 and shared["rendered"] is not None:
             pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="sweep-point")
             try:
-                futures = {pool.submit(run_point, task, shared, keep_result=keep_results): i for i, task in rest}
-                on_row(*_kept(results, outcomes[0], keep_results))
+                futures = {pool.submit(run_point, task, shared, keep_result=keep_results): i for i, task in tasks.items()}
                 for future in as_completed(futures):
-                    on_row(*_kept(results, (futures[future], future.result()), keep_results))
+                    on_row(*_kept(results, futures[future], future.result(), keep_results))
             finally:  # an interrupt drops the points not started (--resume runs them)
                 pool.shutdown(wait=True, cancel_futures=True)
-            continue
-        on_row(*_kept(results, outcomes[0], keep_results))
-        for i, task in rest:
-            on_row(*_kept(results, (i, run_point(task, shared, keep_result=keep_results)), keep_results))
+        else:
+            for i, task in tasks.items():
+                on_row(*_kept(results, i, run_point(task, shared, keep_result=keep_results), keep_results))
     return results
 
 
-def _kept(results: dict[int, Any], done: tuple[int, dict], keep_results: bool) -> tuple[int, dict]:
+def _kept(results: dict[int, Any], index: int, outcome: dict, keep_results: bool) -> tuple[int, dict]:
     """(index, row) of a finished point, its CaptureResult kept in ``results`` when asked."""
-    index, outcome = done
     if keep_results and outcome.get("result") is not None:
         results[index] = outcome["result"]
     return index, outcome["row"]
