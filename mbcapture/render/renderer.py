@@ -730,10 +730,10 @@ class Renderer:
         req = list(groups)
         pix = np.ascontiguousarray(np.asarray(pixels, dtype=np.uint32).ravel())
         out = np.zeros((len(req), pix.size, 3), np.float32)
+        self._ensure_loaded()  # the emitters of each group are known once the scene is loaded
         lit = [g for g in req if self._group_emitters[g]]
         if not lit or pix.size == 0:
             return out
-        self._ensure_loaded()
         self.set_time(t_s)
         self._set_rows(self._params, (0, self.height))  # the rays below address the whole film
         self._integrator.set_groups(lit, [self._group_emitters[g] for g in lit])
@@ -742,6 +742,9 @@ class Renderer:
         sensor = self._scene.sensors()[0]
         sampler = sensor.sampler().clone()
         sampler.set_sample_count(n_spp)
+        # n_spp consecutive lanes are one pixel's sequence; the clone would keep the last mi.render's
+        # count, and the quasi-Monte Carlo samplers would then stratify over the wrong sequences
+        sampler.set_samples_per_wavefront(n_spp)
         lanes = pix.size * n_spp
         sampler.seed(int(seed) & 0xFFFFFFFF, lanes)
         idx = dr.arange(mi.UInt32, lanes) // n_spp
