@@ -417,14 +417,20 @@ ADAPTIVE_SELECT = 0.5
 
 
 def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
-                reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float, tail_target: float, max_factor: int) -> tuple[np.ndarray, int]:
-    """Adaptive sampling's choice, from the first pass's half-sample differences: the pixels (flat
-    indices) where any read's pooled Monte Carlo / shot-noise ratio, in any channel, exceeds
-    :data:`ADAPTIVE_SELECT` x ``tail_target`` (with their 3x3 neighbours: the estimate is pooled), and
-    the factor of samples that brings the 99th percentile of their ratios to that level (variance
-    ~ 1/spp: conservative for the quasi-Monte Carlo samplers), in [2, ``max_factor``]. (empty, 1)
-    when no pixel needs it."""
-    from scipy.ndimage import binary_dilation
+                reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float, tail_target: float,
+                max_factor: int) -> list[tuple[np.ndarray, int]]:
+    """Adaptive sampling's choice, from the first pass's half-sample differences: tiers of pixels
+    (flat indices) and the factor of samples each tier gets, from the most any read's pooled Monte
+    Carlo / shot-noise ratio, in any channel, reaches at the pixel.
+
+    A pixel is chosen where that ratio exceeds :data:`ADAPTIVE_SELECT` x ``tail_target``; its factor
+    is the ratio over that level (variance ~ 1/spp: conservative for the quasi-Monte Carlo samplers),
+    rounded up to a power of two in [2, ``max_factor``], so that one sample budget serves the many
+    pixels a little over the level and the few far over it (the lamp's rim in a short read) alike.
+    A pixel's neighbours within 3x3 get at least its factor (the estimate is pooled over them).
+    Returns [(pixels, factor)] by increasing factor, every pixel in one tier at most; [] when no
+    pixel needs it."""
+    from scipy.ndimage import grey_dilation
 
     K, H, W, C = buckets_e.shape
     worst = np.zeros((H, W))
@@ -435,9 +441,15 @@ def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketEle
     level = ADAPTIVE_SELECT * tail_target
     chosen = worst > level
     if not chosen.any():
-        return np.zeros(0, np.int64), 1
-    factor = int(np.clip(np.ceil(np.percentile(worst[chosen], 99) / level), 2, max_factor))
-    return np.flatnonzero(binary_dilation(chosen, np.ones((3, 3), bool))), factor
+        return []
+    top = int(np.log2(max_factor))  # tiers up to the largest power of two <= max_factor
+    # every chosen pixel gets at least the factor that brings the 99th percentile of the chosen to the
+    # level: the estimate is too noisy to trust a low one (a pixel read at 0.6 x the level may be at 5x)
+    floor = int(np.clip(np.ceil(np.log2(np.percentile(worst[chosen], 99) / level)), 1, min(top, 4)))
+    tier = np.zeros((H, W), np.int64)  # log2 of the factor; 0: not refined
+    tier[chosen] = np.clip(np.ceil(np.log2(worst[chosen] / level)), floor, top).astype(np.int64)
+    tier = grey_dilation(tier, size=(3, 3), mode="constant", cval=0)
+    return [(np.flatnonzero(tier == t), 1 << int(t)) for t in np.unique(tier[tier > 0])]
 
 
 def noise_verdict(render_error: dict) -> str:

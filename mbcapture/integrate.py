@@ -342,8 +342,8 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
 
 
 def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, factor: int,
-           seed: np.random.SeedSequence, *, per_group: bool = False, timer=None, progress: bool = False,
-           desc: str = "refine") -> Integrated:
+           seed: np.random.SeedSequence, *, points: int = 1, per_group: bool = False, timer=None,
+           progress: bool = False, desc: str = "refine") -> Integrated:
     """Adaptive sampling's second pass: every stratum again at ``pixels`` (flat indices) only, with
     ``factor`` times its samples (two halves, for the error estimate), through
     :meth:`mbcapture.render.Renderer.render_pixels`.
@@ -352,18 +352,24 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     are not an unbiased estimate any more (a pixel is chosen because its estimate strayed); the
     second pass is independent of that choice, and at those pixels it replaces the first (its
     exposure, its half-sample difference, its per-group exposures). The first pass's samples there
-    are spent on the choice. Independent in time too: each half of each stratum is rendered at a
-    time of its own, drawn afresh inside the stratum (the first pass's draws are part of the noise
-    that chose the pixels). The temporal-error estimate stays the first pass's."""
+    are spent on the choice. Independent in time too: each half of each stratum is rendered at
+    times of its own, drawn afresh inside the stratum (the first pass's draws are part of the noise
+    that chose the pixels): ``points`` times per half, one in each of ``points`` equal parts of the
+    stratum, its samples shared among them (:meth:`Plan.draw_times`). Where a moving edge crosses a
+    pixel, its value changes within a stratum, and one time per half leaves that change as noise
+    that more samples do not lower; ``points`` > 1 stratifies it. The halves' difference holds it
+    too, so the error estimate covers it. The temporal-error estimate stays the first pass's."""
     stage = timer if timer is not None else (lambda name: nullcontext())
     pix = np.asarray(pixels, dtype=np.int64).ravel()
     K, H, W, C = integrated.exposure.shape
     spp = np.asarray(plan.spp, dtype=np.int64) * int(factor)
-    seeds = render_seeds(plan, seed)
-    # times of its own: the first pass's time draws (a moving edge's positions) made its noise too
-    times = plan.draw_times(np.random.default_rng(
-        np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x71AE)))) \
-        if plan.bounds_s is not None else np.stack([plan.times_s, plan.times_s], axis=1)
+    points = max(1, min(int(points), int((spp // 2).min())))  # at least one sample at each time
+    # times of their own: the first pass's time draws (a moving edge's positions) made its noise too
+    rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x71AE)))
+    times = plan.draw_times(rng, points=points) if plan.bounds_s is not None else \
+        np.broadcast_to(plan.times_s[:, None, None], (plan.passes, 2, 1))
+    seeds = render_seeds(plan, seed)[:, :, None] if times.shape[2] == 1 else np.random.default_rng(
+        np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5EED))).integers(0, 2**31 - 1, times.shape)
     used = plan.weights_s.sum(axis=1) > 0
     parts = [np.zeros((K, pix.size, C)) for _ in range(2)]
     groups_out = np.zeros((K, len(plan.groups), pix.size, C)) if per_group and integrated.group_exposure is not None \
@@ -375,12 +381,16 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
             groups_j = [plan.groups[g] for g in gsel]
             w_j = plan.weights_s[j][:, gsel]
             for h, spp_h in enumerate((n // 2, n - n // 2)):
-                with stage("refine"):
-                    rad = renderer.render_pixels(float(times[j, h]), spp_h, int(seeds[j, h]), groups_j, pix)
-                    share = spp_h / n
-                    parts[h] += np.einsum("kg,gpc->kpc", w_j * share, rad.astype(np.float64), optimize=True)
-                    if groups_out is not None:
-                        groups_out[:, gsel] += w_j[:, :, None, None] * (rad.astype(np.float64) * share)[None]
+                # the half's samples shared among its times (each time's render an unbiased estimate at it)
+                counts = np.diff(np.linspace(0, spp_h, times.shape[2] + 1).round().astype(int))
+                for i, spp_hi in enumerate(counts):
+                    with stage("refine"):
+                        rad = renderer.render_pixels(float(times[j, h, i]), int(spp_hi), int(seeds[j, h, i]), groups_j,
+                                                     pix)
+                        share = spp_h / n / len(counts)
+                        parts[h] += np.einsum("kg,gpc->kpc", w_j * share, rad.astype(np.float64), optimize=True)
+                        if groups_out is not None:
+                            groups_out[:, gsel] += w_j[:, :, None, None] * (rad.astype(np.float64) * share)[None]
             bar.update(1)
     r = float((spp // 2 / np.maximum(spp, 1)).mean())
     exposure = integrated.exposure.copy()

@@ -14,7 +14,7 @@ import copy
 import platform
 import time
 from contextlib import contextmanager, nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
@@ -29,7 +29,7 @@ from .cluster import render_on_cluster
 from .config import CaptureConfig, scene_of
 from .errors import ConfigError
 from .filmstore import IN_MEMORY, FilmStore
-from .integrate import Integrated, integrate_tiles, refine, temporal_error
+from .integrate import Integrated, integrate, integrate_tiles, refine, temporal_error
 from .plan import Plan, make_plan
 from .progress import StageStatus
 from .render import Renderer, ensure_llvm
@@ -270,13 +270,110 @@ def merge_cluster_info(infos: list[dict]) -> dict:
     return out
 
 
+#: The top-up aims this far under the budget (the run's own estimate scatters from seed to seed), and
+#: sizes its pass for the less favourable of variance ~ 1/spp and ~ spp^-TOP_UP_EXPONENT (the steep
+#: end of what the pilot sees): a pass with fewer samples than the first is dearer per sample with
+#: quasi-Monte Carlo samplers, one with more gains less than their exponent promises.
+TOP_UP_MARGIN = 1.1
+TOP_UP_EXPONENT = 1.5
+
+
+def _read_figures(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig, names: list[str] | None = None) -> dict:
+    """The run's own estimate of each read's rendering noise (render_error's ``reads``), of the reads
+    ``names`` (default: all)."""
+    k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
+    reads = [r for r in timeline.reads if names is None or r.name in names]
+    return render_error(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, [r.buckets for r in reads],
+                        [r.name for r in reads], cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e).get("reads", {})
+
+
+def over_budget(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig) -> tuple[float, str | None, float]:
+    """How far the run's own estimate of its rendering noise is over the budget's median and p95
+    targets (render.noise_budget, render.noise_budget_p95) on its worst read: (max over reads of
+    median / target and p95 / target, that read, its median ratio); (0, None, 0) without an estimate."""
+    reads = _read_figures(integrated, timeline, cfg)
+    if not reads:
+        return 0.0, None, 0.0
+    over = {n: max(v["to_shot_noise_variance_median"] / cfg.render.noise_budget,
+                   v["to_shot_noise_variance_p95"] / cfg.render.noise_budget_p95) for n, v in reads.items()}
+    worst = max(over, key=over.get)
+    return over[worst], worst, reads[worst]["to_shot_noise_variance_median"]
+
+
+def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
+           seed: np.random.SeedSequence, status: StageStatus, *, per_group: bool, timer, progress: bool,
+           why_not: str | None) -> tuple[Plan, Integrated, dict | None]:
+    """render.top_up: when the pilot's choice left the run's own estimate over the median or p95 target
+    (:func:`over_budget` > 1; the pilot extrapolates from 8 and 32 samples, and its exponent can be
+    too steep for the count it reaches), a second pass of every stratum at the same times, combined
+    with the first.
+
+    Its samples: a pass whose variance V2 satisfies 1 / (1 / V1 + 1 / V2) <= V1 / (F x
+    :data:`TOP_UP_MARGIN`) for the first pass's V1 and its factor F over the budget (see
+    :data:`TOP_UP_EXPONENT`), at most render.max_spp per stratum in all. The combination
+    ``(E1 + c E2) / (1 + c)`` with ``c = V1 / V2`` (the worst read's median ratio in each pass:
+    inverse-variance weights, one for the whole film) is unbiased whatever ``c`` (each pass is, and ``c`` is a property of the whole film's noise,
+    not of any pixel's value), and so is its half-sample difference ``(d1 + c d2) / (1 + c)`` as an
+    error estimate. Returns the plan with the summed samples, the combined render stage and what
+    report.json keeps (None when the first pass met the budget)."""
+    if integrated.mc_diff is None:
+        return plan, integrated, None
+    factor, worst, v1 = over_budget(integrated, timeline, cfg)
+    if factor <= 1.0:
+        return plan, integrated, None
+    if why_not is not None:
+        return plan, integrated, {"applied": False, "before": round(factor, 4),
+                                  "note": f"not applied: a top-up needs {why_not}"}
+    status.add_stage()
+    with status.stage(f"top-up render (the estimate is {factor:.2f}x the noise budget)"):
+        start = time.perf_counter()
+        count = getattr(renderer, "sample_count", lambda m: m)
+        gap = factor * TOP_UP_MARGIN - 1.0  # V1 / V2 needed
+        share = max(gap ** (1.0 / TOP_UP_EXPONENT), gap)  # n2 / n1
+        extra = np.array([2 * count(max(int(np.ceil(share * n / 2)), 1)) for n in plan.spp], np.int64)
+        extra = np.minimum(extra, np.maximum(cfg.render.max_spp - plan.spp, 0))
+        if not extra.any():
+            return plan, integrated, {"applied": False, "before": round(factor, 4),
+                                      "note": f"render.max_spp={cfg.render.max_spp} reached"}
+        child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x70F))
+        second = integrate(renderer, replace(plan, spp=extra), timeline.n_channels, child, per_group=per_group,
+                           timer=timer, progress=progress, desc="top-up")
+        v2 = _read_figures(second, timeline, cfg, [worst]).get(worst, {}).get("to_shot_noise_variance_median", 0.0)
+        c = v1 / v2 if v2 > 0 else float(extra.sum() / plan.spp.sum())
+
+        def mix(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+            if a is None or b is None:
+                return None
+            return ((a.astype(np.float64) + c * b) / (1.0 + c)).astype(a.dtype)
+
+        integrated = Integrated(exposure=mix(integrated.exposure, second.exposure),
+                                mc_diff=mix(integrated.mc_diff, second.mc_diff),
+                                group_exposure=mix(integrated.group_exposure, second.group_exposure),
+                                temporal_diff=mix(integrated.temporal_diff, second.temporal_diff))
+        plan = replace(plan, spp=plan.spp + extra)
+        info = {"applied": True, "before": round(factor, 4), "read": worst, "spp_added": extra.tolist(),
+                "weight": round(c, 4), "after": round(over_budget(integrated, timeline, cfg)[0], 4),
+                "seconds": round(time.perf_counter() - start, 3)}
+    return plan, integrated, info
+
+
+#: Adaptive sampling renders each half of a stratum at this many times (one in each equal part of the
+#: stratum) at the pixels the moving parts cross, where the value changes within a stratum and one
+#: time per half leaves that change as noise more samples do not lower (jittered, its variance falls
+#: as 1 / points^3 for an edge moving at constant speed); elsewhere at one time, which keeps each
+#: render's samples together (the quasi-Monte Carlo samplers stratify within a render).
+REFINE_TIME_POINTS = 4
+
+
 def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
-                seed: np.random.SeedSequence, status: StageStatus, *, per_group: bool, timer, progress: bool,
-                tiled: bool = False) -> tuple[Integrated, dict]:
+                seed: np.random.SeedSequence, status: StageStatus, *, moving: np.ndarray, per_group: bool, timer,
+                progress: bool, tiled: bool = False) -> tuple[Integrated, dict]:
     """Adaptive sampling (render.adaptive): the pixels the first pass left over half the tail target
     (:func:`mbcapture.budget.tail_pixels`) rendered again with more samples
-    (:func:`mbcapture.integrate.refine`). Returns the refined render stage and what report.json keeps.
-    Not in a tiled run (``tiled``): its choice of pixels and their second pass are the whole film's."""
+    (:func:`mbcapture.integrate.refine`), those in ``moving`` (the pixels the moving parts cross) at
+    :data:`REFINE_TIME_POINTS` times per half-stratum. Returns the refined render stage and what
+    report.json keeps. Not in a tiled run (``tiled``): its choice of pixels and their second pass are
+    the whole film's."""
     why = ("a film in one tile (render.tiles; the choice of pixels and their second pass are the whole film's)"
            if tiled else
            "an RGB render.variant and a lens acting per pixel (no camera.distortion, camera.diffraction)"
@@ -287,16 +384,23 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
             return integrated, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}
         start = time.perf_counter()
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
-        pixels, factor = tail_pixels(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e,
-                                     list(plan.read_sets), cfg.sensor.full_well_e,
-                                     cfg.sensor.fd_full_well_e, cfg.render.noise_budget_tail,
-                                     cfg.render.adaptive_max_factor)
-        info = {"pixels": int(pixels.size), "share": round(pixels.size / (cfg.render.width * cfg.render.height), 6),
-                "factor": factor}
-        if pixels.size:
-            child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA))
-            integrated = refine(renderer, plan, integrated, pixels, factor, child, per_group=per_group, timer=timer,
-                                progress=progress, desc=f"refine {pixels.size} px x{factor}")
+        tiers = tail_pixels(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e,
+                            list(plan.read_sets), cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
+                            cfg.render.noise_budget_tail, cfg.render.adaptive_max_factor)
+        n_pix = sum(p.size for p, _ in tiers)
+        info = {"pixels": int(n_pix), "share": round(n_pix / (cfg.render.width * cfg.render.height), 6),
+                "tiers": [{"factor": f, "pixels": int(p.size)} for p, f in tiers],
+                # the second pass's samples over the first pass's, on the whole film
+                "added_samples": round(sum(p.size * f for p, f in tiers) / (cfg.render.width * cfg.render.height), 4)}
+        on_moving = moving.ravel()
+        for i, (pixels, factor) in enumerate(tiers):
+            info["tiers"][i]["moving_pixels"] = int(on_moving[pixels].sum())
+            for part, points in ((pixels[~on_moving[pixels]], 1), (pixels[on_moving[pixels]], REFINE_TIME_POINTS)):
+                if part.size:
+                    child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA, i, points))
+                    integrated = refine(renderer, plan, integrated, part, factor, child, points=points,
+                                        per_group=per_group, timer=timer, progress=progress,
+                                        desc=f"refine {part.size} px x{factor}" + (" moving" if points > 1 else ""))
         info["seconds"] = round(time.perf_counter() - start, 3)
     return integrated, info
 
@@ -314,6 +418,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
     t_start = time.perf_counter()
     cluster_info = None  # what the cluster rendered (report.json "cluster"), with a client
     adaptive_info = None  # what adaptive sampling refined (report.json "adaptive")
+    top_up_info = None  # the budget's second pass (report.json "top_up")
     with timer("plan"), status.stage("plan"):
         scene, timeline, plan, seeds = prepare(cfg)
         app, app_params = cfg.app.resolve(cfg.capture.protocol)
@@ -349,11 +454,20 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
                                          timer=timer, progress=progress, before_tile=on_cluster, store=store)
         if client is not None:
             cluster_info = merge_cluster_info(infos)
+        if cfg.render.spp is None and cfg.render.top_up:
+            why_not = ("a film in one tile (render.tiles)" if len(tiles) > 1 else
+                       "renders in this process (no cluster)" if client is not None else
+                       "an uncoded capture (no capture.gate_code)" if timeline.code is not None else
+                       "render.estimator independent" if plan.estimator != "independent" else
+                       "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None else None)
+            plan, integrated, top_up_info = top_up(cfg, renderer, plan, timeline, integrated, seeds[2], status,
+                                                   per_group=app.per_group, timer=timer, progress=progress,
+                                                   why_not=why_not)
+        moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
         if cfg.render.spp is None and cfg.render.adaptive:
             integrated, adaptive_info = refine_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
-                                                    per_group=app.per_group, timer=timer, progress=progress,
-                                                    tiled=len(tiles) > 1)
-        moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
+                                                    moving=moving, per_group=app.per_group, timer=timer,
+                                                    progress=progress, tiled=len(tiles) > 1)
         rendered = Rendered(plan, integrated, moving)
         if on_rendered is not None:
             on_rendered(rendered)
@@ -412,6 +526,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         "render_cache": {"folder": str(cache.root), **cache.stats.as_dict()} if cache is not None else {"folder": None},
         "cluster": cluster_info,
         "adaptive": adaptive_info,
+        "top_up": top_up_info,
         "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant,
                      "llvm_target": _llvm_target_label() if llvm else None},
     }

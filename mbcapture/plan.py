@@ -78,12 +78,15 @@ class Plan:
     read_names: tuple[str, ...] = ()
     bounds_s: np.ndarray | None = None
 
-    def draw_times(self, rng: np.random.Generator, per_stratum: int = 2) -> np.ndarray:
-        """(J, per_stratum) fresh render times, each uniform in its stratum and independent of the
-        others and of ``times_s`` (adaptive sampling's second pass draws its own: see
-        :func:`mbcapture.integrate.refine`)."""
-        start, end = self.bounds_s[:, :1], self.bounds_s[:, 1:]
-        return start + rng.random((self.passes, per_stratum)) * (end - start)
+    def draw_times(self, rng: np.random.Generator, per_stratum: int = 2, points: int = 1) -> np.ndarray:
+        """(J, per_stratum, points) fresh render times, independent of each other and of ``times_s``
+        (adaptive sampling's second pass draws its own: see :func:`mbcapture.integrate.refine`). Each
+        of a stratum's ``per_stratum`` draws is ``points`` times, one uniform in each of ``points``
+        equal parts of the stratum (jittered: their mean is an unbiased, stratified estimate of the
+        stratum's mean over time); with ``points`` 1, one time uniform in the stratum."""
+        start, end = self.bounds_s[:, 0, None, None], self.bounds_s[:, 1, None, None]
+        u = (np.arange(points) + rng.random((self.passes, per_stratum, points))) / points
+        return np.minimum(start + u * (end - start), np.nextafter(end, start))
 
     @property
     def base_spp(self) -> int:

@@ -64,6 +64,11 @@ class StageStatus:
         while not self._stop.wait(self.interval_s):
             self.refresh()
 
+    def add_stage(self) -> None:
+        """One more stage than counted at the start (one that only some runs need: a top-up render)."""
+        if self.stages:
+            self.stages += 1
+
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
         """Show ``name`` (and its running time) while the block runs."""

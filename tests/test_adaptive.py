@@ -72,9 +72,11 @@ def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_err
     cfg, timeline, plan, seeds, r = setup
     first = integrate(r, plan, timeline.n_buckets, seeds[2])
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
-    pixels, factor = tail_pixels(first.mc_diff, first.exposure * k_e, k_e, [x.buckets for x in timeline.reads],
-                                 cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, 40.0, 16)  # a tail target that
+    tiers = tail_pixels(first.mc_diff, first.exposure * k_e, k_e, [x.buckets for x in timeline.reads],
+                        cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, 40.0, 16)  # a tail target that
     # leaves most pixels alone at this small spp
+    assert len(tiers) == 1  # at most 16x: every chosen pixel at the one factor the most needy ask
+    pixels, factor = tiers[0]
     assert 0 < pixels.size < 64 * 48 and 2 <= factor <= 16
     refined = refine(r, plan, first, pixels, factor, np.random.SeedSequence(9))
     brute = integrate(r, replace(plan, spp=plan.spp * 16), timeline.n_buckets, np.random.SeedSequence(10))
@@ -89,3 +91,87 @@ def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_err
         assert abs(d.mean()) < 5 * se, (k, d.mean(), se)
     # the refined pixels are less noisy than the first pass made them: their estimated variance fell
     assert flat(refined.mc_var)[:, pixels].mean() < flat(first.mc_var)[:, pixels].mean() / 2
+
+
+def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
+    """Tiers of factors, from each pixel's estimated ratio over half the tail target: a region far over
+    the target gets more samples than one just over it, never fewer than the factor that brings the
+    chosen pixels' 99th percentile to the level, each pixel in one tier, neighbours included; at
+    render.adaptive_max_factor 16 one tier (every chosen pixel alike)."""
+    H = W = 24
+    signal = np.full((1, H, W, 1), 1000.0)  # electrons, one bucket, one channel, below the full well
+    diff = np.zeros((1, H, W, 1))
+    diff[0, 2:9, 2:9] = np.sqrt(1000 * 0.9)  # ratio 0.9: just over the level (0.5 x tail target 1)
+    diff[0, 14:21, 14:21] = np.sqrt(1000 * 50.0)  # ratio 50: 100 x the level
+    k_e = np.ones(1)
+    args = (diff, signal, k_e, [(0,)], 1e9, 1e9, 1.0)
+    tiers = tail_pixels(*args, 256)
+    factors = [f for _, f in tiers]
+    assert factors == sorted(set(factors)) and factors[0] == 16 and factors[-1] == 128  # 2^ceil(log2(100))
+    given = np.zeros(H * W, int)
+    for p, f in tiers:
+        assert (given[p] == 0).all()  # each pixel in one tier
+        given[p] = f
+    given = given.reshape(H, W)
+    assert given[5, 5] == 16 and given[17, 17] == 128  # the centres: the low region raised to the floor
+    assert given[1, 5] == 16 and given[13, 14] == 128  # outside each region, its neighbour's factor
+    assert given[11, 11] == 0 and given[0, 23] == 0  # far from both: not refined
+    low_high = set(np.flatnonzero(given).tolist())
+    one = tail_pixels(*args, 16)
+    assert len(one) == 1 and one[0][1] == 16 and set(one[0][0].tolist()) == low_high
+    assert tail_pixels(diff * 0, signal, k_e, [(0,)], 1e9, 1e9, 1.0, 256) == []
+
+
+@pytest.mark.render
+def test_a_capture_with_adaptive_sampling_reports_its_tiers(tmp_path):
+    """`mbcapture run` with render.adaptive: report.json says which tiers were refined at what factor
+    and what they added, every key documented in docs/report.md."""
+    from report_checks import undocumented_keys
+
+    from mbcapture import run_capture
+
+    # at most 32 spp and a tail target of 10: a few tiers, not the whole film
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
+                      ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.cache=off",
+                       "render.max_spp=32", "render.adaptive=true", "render.adaptive_max_factor=64",
+                       "render.noise_budget_tail=10"])
+    result = run_capture(cfg, tmp_path, progress=False)
+    info = result.report["adaptive"]
+    tiers = info["tiers"]
+    assert len(tiers) >= 2 and info["pixels"] == sum(t["pixels"] for t in tiers) < 32 * 24
+    factors = [t["factor"] for t in tiers]
+    assert factors == sorted(set(factors)) and all(2 <= f <= 64 and f & (f - 1) == 0 for f in factors)
+    assert info["added_samples"] == pytest.approx(sum(t["pixels"] * t["factor"] for t in tiers) / (32 * 24), abs=1e-4)
+    assert undocumented_keys(result.report, [r.name for r in result.timeline.reads]) == []
+
+
+@pytest.mark.render
+def test_a_top_up_meets_the_budget_without_bias(setup):
+    """render.top_up: a first pass at about half the samples the budget needs is over it; the top-up's
+    second pass, combined with it by inverse-variance weight, brings the estimate under it, and the
+    combination matches a brute-force render within its standard error."""
+    from mbcapture.pipeline import over_budget, top_up
+    from mbcapture.progress import StageStatus
+
+    _, timeline, plan, seeds, r = setup
+    # a budget that 64 spp misses by about 2x at this film (the default's takes ~1500 spp here)
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
+                      [*SMALL, "render.noise_budget=2", "render.noise_budget_p95=100"])
+    low = plan  # 64 spp
+    first = integrate(r, low, timeline.n_buckets, seeds[2])
+    before = over_budget(first, timeline, cfg)[0]
+    assert 1.3 < before < 4
+    topped_plan, topped, info = top_up(cfg, r, low, timeline, first, np.random.SeedSequence(4), StageStatus(False),
+                                       per_group=False, timer=None, progress=False, why_not=None)
+    assert info["applied"] and info["before"] == pytest.approx(before, rel=1e-3)
+    assert (topped_plan.spp == low.spp + np.array(info["spp_added"])).all()
+    assert info["after"] < 1.0 and info["after"] == pytest.approx(over_budget(topped, timeline, cfg)[0], rel=1e-3)
+    brute = integrate(r, replace(plan, spp=plan.spp * 4), timeline.n_buckets, np.random.SeedSequence(10))
+    for k in range(topped.exposure.shape[0]):  # per bucket, the whole film's mean against brute force
+        d = topped.exposure[k] - brute.exposure[k]
+        se = np.sqrt((topped.mc_var[k] + brute.mc_var[k]).sum()) / d.size
+        assert abs(d.mean()) < 5 * se, (k, d.mean(), se)
+    # not applied where it cannot run, and says why
+    same_plan, same, note = top_up(cfg, r, low, timeline, first, np.random.SeedSequence(4), StageStatus(False),
+                                   per_group=False, timer=None, progress=False, why_not="a reason")
+    assert same is first and same_plan is low and not note["applied"] and "a reason" in note["note"]

@@ -112,7 +112,9 @@ def test_render_times_are_inside_their_strata():
     np.testing.assert_array_equal(p.bounds_s, np.stack([start, end], axis=1))
     # fresh draws (adaptive sampling's second pass): inside their strata, independent of the plan's
     fresh = p.draw_times(np.random.default_rng(3))
-    assert fresh.shape == (p.passes, 2) and not np.any(fresh == p.times_s[:, None])
+    assert fresh.shape == (p.passes, 2, 1)
+    fresh = fresh[..., 0]
+    assert not np.any(fresh == p.times_s[:, None])
     assert np.all(fresh >= start[:, None]) and np.all(fresh < end[:, None])
     # uniform in the stratum: the two draws' difference over its length is triangular on (-1, 1), mean 0,
     # variance 1/6 (5 standard errors; Var[d^2] = E[d^4] - E[d^2]^2 = 1/15 - 1/36)
@@ -146,6 +148,26 @@ def test_the_second_pass_renders_at_times_of_its_own():
     flat, before = out.exposure.reshape(K, -1, 3), first.exposure.reshape(K, -1, 3)
     np.testing.assert_allclose(flat[:, [3, 9]], np.broadcast_to(p.weights_s.sum(axis=(0, 2))[:, None, None], (K, 2, 3)))
     np.testing.assert_array_equal(np.delete(flat, [3, 9], axis=1), np.delete(before, [3, 9], axis=1))
+
+    # at several times per half (a moving pixel's second pass): one time in each quarter of the stratum,
+    # the half's samples shared among them, each time's render weighted alike
+    times.clear()
+    counts = []
+
+    def render_pixels_counted(t_s, spp, seed, groups, pixels):
+        counts.append(spp)
+        return render_pixels(t_s, spp, seed, groups, pixels)
+
+    r.render_pixels = render_pixels_counted
+    out = refine(r, p, first, np.array([3, 9]), 4, np.random.SeedSequence(3), points=4)
+    t = np.array(times).reshape(p.passes, 2, 4)
+    part = (t - p.bounds_s[:, :1, None]) / (p.bounds_s[:, 1:, None] - p.bounds_s[:, :1, None]) * 4
+    np.testing.assert_array_equal(np.floor(part), np.broadcast_to(np.arange(4), part.shape))
+    assert np.array(counts).reshape(p.passes, 2, 4).sum(axis=(1, 2)).tolist() == (p.spp * 4).tolist()
+    flat = out.exposure.reshape(K, -1, 3)
+    np.testing.assert_allclose(flat[:, [3, 9]], np.broadcast_to(p.weights_s.sum(axis=(0, 2))[:, None, None], (K, 2, 3)))
+    # jittered, not fixed: the same quarter's times differ between the strata's halves
+    assert np.all(t[:, 0] != t[:, 1])
 
 
 def test_max_strata_coarsens_and_says_so():
