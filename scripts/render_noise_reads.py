@@ -28,15 +28,20 @@ def main() -> None:
     ap.add_argument("config", nargs="?", default="metronome_hdr")
     ap.add_argument("--size", default="640x512")
     ap.add_argument("--set", action="append", default=[], dest="sets")
+    ap.add_argument("--seeds", default="1,2", help="the two run seeds, comma-separated")
     ap.add_argument("--map", default=None, help="PNG of where the longest read's tail lies")
     args = ap.parse_args()
     w, h = args.size.split("x")
+    seeds = [int(s) for s in args.seeds.split(",")]
+    if len(seeds) != 2:
+        raise SystemExit(f"--seeds: two comma-separated run seeds expected, got {args.seeds!r}")
     base = [f"render.width={w}", f"render.height={h}", "render.cache=off", "sensor.noise_seed=7", *args.sets]
-    runs = [capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False)) for s in (1, 2)]
+    runs = [capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False))
+            for s in seeds]
     cfg = runs[0].config
     print(f"{args.config} at {args.size}: spp {runs[0].plan.spp_label()} and {runs[1].plan.spp_label()}")
     print(f"{'read':6s} {'median':>8s} {'p95':>8s} {'p99':>8s} {'p99.9':>8s} {'max':>9s} {'>10x':>7s}   run's own "
-          "median / p95 / p99.9 (seed 1, seed 2)")
+          f"median / p95 / p99.9 (seed {seeds[0]}, seed {seeds[1]})")
     for i, read in enumerate(runs[0].timeline.reads):
         e1, e2 = (r.reads_expected_e[i] for r in runs)
         var = pooled((e1 - e2)[None] ** 2 / 2.0)[0]

@@ -23,9 +23,17 @@ def test_readme_tables_are_those_of_the_measured_data():
     assert rt.main(["--check", "--readme", str(ROOT / "README.md"), "--data", str(ROOT / "docs" / "measured.json")]) == 0
     data = json.loads((ROOT / "docs" / "measured.json").read_text())
     readme = (ROOT / "README.md").read_text()
-    for row in data["tables"]["hdr"]:  # the numbers in the README are the measured ones
+    for row in data["tables"]["hdr"]["rows"]:  # the numbers in the README are the measured ones
         assert f"| {row['label']} | {row['passes']} × {row['spp']} |" in readme
         assert f"{row['hdr_rel_mse']:.3g} / {row['hdr_rel_mse_moving']:.3g}" in readme
+    # the noise budget table: every shipped config whose samples the budget chooses, its figures as measured
+    budget = data["tables"]["budget"]["rows"]
+    assert [r["label"] for r in budget] == [label for label, _, _ in rt.budget_rows(ROOT)]
+    for row in budget:
+        e = row["render_error"]
+        assert f"| {row['label']} | {row['passes']} × {row['spp']} |" in readme
+        if e is not None:
+            assert f"| {e['median']:.2g} ({e['median_read']}) | {e['p95']:.2g} ({e['p95_read']}) |" in readme
     assert "python scripts/readme_tables.py" in readme  # the README says how to regenerate them
 
 
@@ -34,7 +42,8 @@ def test_rewrite_changes_only_the_table_and_check_sees_a_hand_edit(tmp_path):
     row = {"label": "default", "command": "mbcapture run configs/metronome_hdr.yaml --quiet", "film": [640, 512],
            "passes": 7, "spp": 16, "wall_s": 24.4, "hdr_rel_mse": 0.00107, "hdr_rel_mse_moving": 0.00174,
            "reads_disagreement_moving": 0.024, "llvm": "19", "variant": "llvm_ad_rgb"}
-    data = {"machine": "test", "seconds": 99.0, "load_average_5min": 1.0, "tables": {"hdr": [row]}}
+    data = {"tables": {"hdr": {"machine": "test", "seconds": 99.0, "load_average_5min": 1.0, "only": "hdr",
+                               "rows": [row]}}}
     (tmp_path / "m.json").write_text(json.dumps(data))
     begin, end = rt.markers("hdr")
     readme = tmp_path / "README.md"
