@@ -425,8 +425,9 @@ def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketEle
 
     A pixel is chosen where that ratio exceeds :data:`ADAPTIVE_SELECT` x ``tail_target``; its factor
     is the ratio over that level (variance ~ 1/spp: conservative for the quasi-Monte Carlo samplers),
-    rounded up to a power of two in [2, ``max_factor``], so that one sample budget serves the many
-    pixels a little over the level and the few far over it (the lamp's rim in a short read) alike.
+    rounded up to a power of two in [2, ``max_factor``], and at least the factor that brings the
+    chosen pixels' 99th percentile to the level (at most 16): a factor for the few pixels far over
+    the level (the lamp's rim in a short read) without trusting a low one to the many near it.
     A pixel's neighbours within 3x3 get at least its factor (the estimate is pooled over them).
     Returns [(pixels, factor)] by increasing factor, every pixel in one tier at most; [] when no
     pixel needs it."""

@@ -97,20 +97,22 @@ class RenderSection(_Model):
         True,
         description="With render.spp null: when the run's own estimate of its rendering noise is over "
         "render.noise_budget or render.noise_budget_p95 on any read (the pilot extrapolates from 8 and 32 samples "
-        "and can fall short), render every stratum again at its times with the samples that close the gap "
-        "(variance ~ 1/spp) and combine the two passes by their samples (unbiased). Once; report.json's top_up "
-        "says what it added. A film in one tile, rendered in this process, no capture.gate_code, render.estimator independent.",
+        "and can fall short), render every stratum again at its times with the samples that close the gap with a "
+        "10 % margin, and combine the two passes with one inverse-variance weight for the whole film (unbiased). "
+        "Once, within render.max_spp; report.json's top_up says what it added. A film in one tile, rendered in "
+        "this process, no capture.gate_code, render.estimator independent.",
     )
     adaptive: bool = Field(
         False,
         description="With render.spp null: adaptive sampling (off by default: on the default capture at 640x512 it "
         "refines 8 % of the pixels at 16x and adds 1.45x the render time; at 320x256 it takes the longest read's "
-        "99.9th percentile from 7.1 to 1.15 and every other read's under 1; docs/noise.md). After the budgeted pass, the pixels where any read's "
-        "estimated Monte Carlo / shot-noise ratio exceeds half of render.noise_budget_tail (and their neighbours) "
+        "99.9th percentile from 7.1 to 1.15 and every other read's under 1; docs/noise.md). After the budgeted "
+        "pass, the pixels where any read's estimated Monte Carlo / shot-noise ratio exceeds half of render.noise_budget_tail (and their neighbours) "
         "are rendered again, every stratum, with more samples, and that second pass replaces the first there. "
         "Every chosen pixel gets at least the factor that brings the chosen pixels' 99th percentile to that "
         "level (at most 16), and a pixel further over gets the power of two its own estimate asks for, up to "
-        "render.adaptive_max_factor (unbiased: it is independent of the choice). RGB variants with a "
+        "render.adaptive_max_factor; the moving parts' pixels at 4 times per half-stratum (unbiased: it is "
+        "independent of the choice). RGB variants with a "
         "lens acting per pixel (no camera.distortion or camera.diffraction) and render.estimator independent; "
         "elsewhere it is skipped and report.json says why. The tail lies on silhouettes (docs/noise.md).",
     )
