@@ -100,7 +100,8 @@ class RenderSection(_Model):
         "and can fall short), render every stratum again at its times with the samples that close the gap with a "
         "10 % margin, and combine the two passes with one inverse-variance weight for the whole film (unbiased). "
         "Once, within render.max_spp; report.json's top_up says what it added. A film in one tile, rendered in "
-        "this process, no capture.gate_code, render.estimator independent.",
+        "this process, no capture.gate_code, render.estimator independent, and room in free memory for a second "
+        "set of the film's arrays.",
     )
     adaptive: bool = Field(
         False,

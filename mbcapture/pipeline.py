@@ -321,6 +321,15 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     factor, worst, v1 = over_budget(integrated, timeline, cfg)
     if factor <= 1.0:
         return plan, integrated, None
+    # the second pass holds a second set of the film's arrays while it renders (two float64 halves of
+    # each, its per-group and temporal sums): not where they would not fit beside what the run holds
+    arrays = [a for a in (integrated.exposure, integrated.mc_diff, integrated.group_exposure,
+                          integrated.temporal_diff) if a is not None]
+    need = 3 * sum(a.size * 8 for a in arrays)
+    free, where = resources.free_memory()
+    if why_not is None and need > free - resources.rss_bytes():
+        why_not = (f"room for a second set of the film's arrays ({need / 1e9:.2f} GB; "
+                   f"{max(free - resources.rss_bytes(), 0) / 1e9:.2f} GB free by {where})")
     if why_not is not None:
         return plan, integrated, {"applied": False, "before": round(factor, 4),
                                   "note": f"not applied: a top-up needs {why_not}"}

@@ -146,7 +146,7 @@ def test_a_capture_with_adaptive_sampling_reports_its_tiers(tmp_path):
 
 
 @pytest.mark.render
-def test_a_top_up_meets_the_budget_without_bias(setup):
+def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
     """render.top_up: a first pass at about half the samples the budget needs is over it; the top-up's
     second pass, combined with it by inverse-variance weight, brings the estimate under it, and the
     combination matches a brute-force render within its standard error."""
@@ -175,3 +175,10 @@ def test_a_top_up_meets_the_budget_without_bias(setup):
     same_plan, same, note = top_up(cfg, r, low, timeline, first, np.random.SeedSequence(4), StageStatus(False),
                                    per_group=False, timer=None, progress=False, why_not="a reason")
     assert same is first and same_plan is low and not note["applied"] and "a reason" in note["note"]
+    # nor where its second set of the film's arrays would not fit in free memory
+    from mbcapture import resources
+
+    monkeypatch.setattr(resources, "free_memory", lambda: (resources.rss_bytes() + 1000, "a test"))
+    _, same, note = top_up(cfg, r, low, timeline, first, np.random.SeedSequence(4), StageStatus(False),
+                           per_group=False, timer=None, progress=False, why_not=None)
+    assert same is first and not note["applied"] and "free by a test" in note["note"]
