@@ -69,6 +69,33 @@ def test_eviction_removes_the_least_recently_used(tmp_path):
     assert c.size_bytes() <= 3.5 * size
 
 
+def test_writes_walk_the_folder_once_per_rescan_and_still_keep_the_cap(tmp_path, monkeypatch):
+    """A write does not measure the whole cache (a stat per entry, per render): the folder is walked
+    on the first write and every RESCAN_EVERY writes. Another process's entries (another
+    RenderCache on the same folder) are counted at the next walk, and the cap then holds."""
+    from mbcapture.render import cache as cache_mod
+
+    arr = np.zeros((16, 16, 3), np.float32)
+    walks = []
+    real_entries = RenderCache.entries
+    monkeypatch.setattr(RenderCache, "entries", lambda self: walks.append(1) or real_entries(self))
+    n = 3 * cache_mod.RESCAN_EVERY
+    mine = RenderCache(tmp_path, max_bytes=10**9)
+    for i in range(n):
+        mine.put(_key(i), arr)
+    assert len(walks) == 3, len(walks)  # writes 1, 65 and 129; the old code walked on each of the 192
+    assert mine._known_bytes == sum(p.stat().st_size for p in real_entries(mine))
+    # another writer fills the folder past this object's cap: seen, and evicted, within RESCAN_EVERY writes
+    entry = real_entries(mine)[0].stat().st_size
+    mine.max_bytes = (n + 10) * entry
+    other = RenderCache(tmp_path, max_bytes=10**9)
+    for i in range(n, 2 * n):
+        other.put(_key(i), arr)
+    for i in range(cache_mod.RESCAN_EVERY + 1):
+        mine.put(_key(2 * n + i), arr)
+    assert sum(p.stat().st_size for p in real_entries(mine)) <= mine.max_bytes
+
+
 def _hammer(root: str, worker: int, rounds: int) -> int:
     c = RenderCache(root, max_bytes=6 * 64 * 64 * 3 * 4)  # small cap: evictions race with reads
     bad = 0

@@ -16,7 +16,11 @@ wrong checksum, an unreadable header) is deleted and reported as a miss, so it i
 and never used. Two processes rendering the same key both write the same bytes; the last
 rename wins. Reads touch the entry's modification time; when the cache grows beyond its size
 cap, the least recently used entries are removed (under an advisory lock, so two evictions do
-not race; a reader whose entry vanishes sees a miss).
+not race; a reader whose entry vanishes sees a miss). The cache's size is not measured on every
+write: a walk of the folder costs a ``stat`` per entry, and a run writes an entry per render, so a
+large cache made every render pay for all the others. A ``RenderCache`` walks the folder on its
+first write and then every ``RESCAN_EVERY`` writes (to see other processes' entries), adds its own
+writes' bytes in between, and evicts as soon as that count passes the cap.
 
 Where: ``render.cache`` ("on": the platform's user cache folder from platformdirs, e.g.
 ``~/.cache/mbcapture/renders`` on Linux, or ``$MBCAPTURE_CACHE_DIR`` when set; "off"; or a
@@ -41,6 +45,8 @@ __all__ = ["CacheStats", "RenderCache", "default_cache_dir", "open_cache"]
 ENV_DIR = "MBCAPTURE_CACHE_DIR"
 SUFFIX = ".npy.entry"
 FORMAT = 1
+#: Writes between two walks of the folder that measure the cache's size (see the module doc).
+RESCAN_EVERY = 64
 
 
 def default_cache_dir() -> Path:
@@ -76,6 +82,8 @@ class RenderCache:
         self.root = Path(root).expanduser()
         self.max_bytes = int(max_bytes)
         self.stats = CacheStats()
+        self._known_bytes: int | None = None  # the size at the last walk, plus this object's writes since
+        self._writes_since_walk = 0
 
     # -- paths ------------------------------------------------------------------------------
     def _path(self, key: str) -> Path:
@@ -128,8 +136,9 @@ class RenderCache:
             path.parent.mkdir(parents=True, exist_ok=True)
             fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
             try:
+                head = json.dumps(header, sort_keys=True).encode("utf-8") + b"\n"
                 with os.fdopen(fd, "wb") as f:
-                    f.write(json.dumps(header, sort_keys=True).encode("utf-8") + b"\n")
+                    f.write(head)
                     f.write(data)
                 os.replace(tmp, path)
             except BaseException:
@@ -138,7 +147,17 @@ class RenderCache:
                 raise
         except OSError:
             return
-        self.evict()
+        self._count_written(len(head) + len(data))
+
+    def _count_written(self, nbytes: int) -> None:
+        """Keep the size count up to date after a write of ``nbytes``; evict when it passes the cap."""
+        if self._known_bytes is None or self._writes_since_walk >= RESCAN_EVERY:
+            self._known_bytes, self._writes_since_walk = self.size_bytes(), 0
+        else:
+            self._known_bytes += nbytes  # an overwritten key counts twice: it errs towards a walk
+            self._writes_since_walk += 1
+        if self._known_bytes > self.max_bytes:
+            self.evict()
 
     def _damaged(self, path: Path, kind: str) -> None:
         with contextlib.suppress(OSError):
@@ -173,8 +192,6 @@ class RenderCache:
 
     def evict(self) -> int:
         """Remove least recently used entries until the cache is within its cap; returns how many."""
-        if self.size_bytes() <= self.max_bytes:
-            return 0
         removed = 0
         with self._lock():
             files = []
@@ -190,6 +207,7 @@ class RenderCache:
                     p.unlink()
                     total -= size
                     removed += 1
+        self._known_bytes, self._writes_since_walk = total, 0
         return removed
 
     def clear(self) -> int:
