@@ -14,6 +14,7 @@ whose rendering noise exceeds 10x (red) and 1x (yellow) their shot noise marked.
 from __future__ import annotations
 
 import argparse
+import time
 
 import numpy as np
 
@@ -36,10 +37,14 @@ def main() -> None:
     if len(seeds) != 2:
         raise SystemExit(f"--seeds: two comma-separated run seeds expected, got {args.seeds!r}")
     base = [f"render.width={w}", f"render.height={h}", "render.cache=off", "sensor.noise_seed=7", *args.sets]
-    runs = [capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False))
-            for s in seeds]
+    runs, seconds = [], []
+    for s in seeds:
+        t0 = time.perf_counter()
+        runs.append(capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False)))
+        seconds.append(time.perf_counter() - t0)
     cfg = runs[0].config
-    print(f"{args.config} at {args.size}: spp {runs[0].plan.spp_label()} and {runs[1].plan.spp_label()}")
+    print(f"{args.config} at {args.size}: spp {runs[0].plan.spp_label()} and {runs[1].plan.spp_label()}; "
+          f"{seconds[0]:.0f} s and {seconds[1]:.0f} s (render cache off)")
     print(f"{'read':6s} {'median':>8s} {'p95':>8s} {'p99':>8s} {'p99.9':>8s} {'max':>9s} {'>10x':>7s}   run's own "
           f"median / p95 / p99.9 (seed {seeds[0]}, seed {seeds[1]})")
     for i, read in enumerate(runs[0].timeline.reads):
