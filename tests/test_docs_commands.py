@@ -39,6 +39,10 @@ NOT_RUN = {
         "its --quick ladders are ~40 renders and a 64-spp reference: 18 s even at 16x12",
         "mbcapture converge configs/metronome_hdr.yaml --quick --spp 1,2 --naive-spp 1 --ref-spp 4 "
         "--set capture.periods=2"),
+    "mbcapture characterize metronome_hdr": (
+        "a full datasheet, 504 frames of 128x128 pixels drawn exactly: 20 s of the suite "
+        "(tests/test_characterize.py checks the command's datasheet at 48x40)",
+        "mbcapture characterize metronome_hdr --size 32x32 --steps 20 --dark-steps 3 --frames 2"),
     # docs/mutation.md: a mutation run is hours of CPU (every mutant runs its tests), and the report
     # and `mutmut show` read what a run left in mutants/
     "scripts/mutation.sh": ("a full mutation run: hours on 2 cores", None),
