@@ -467,8 +467,7 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
             why_not = ("a film in one tile (render.tiles)" if len(tiles) > 1 else
                        "renders in this process (no cluster)" if client is not None else
                        "an uncoded capture (no capture.gate_code)" if timeline.code is not None else
-                       "render.estimator independent" if plan.estimator != "independent" else
-                       "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None else None)
+                       "render.estimator independent" if plan.estimator != "independent" else None)
             plan, integrated, top_up_info = top_up(cfg, renderer, plan, timeline, integrated, seeds[2], status,
                                                    per_group=app.per_group, timer=timer, progress=progress,
                                                    why_not=why_not)
