@@ -204,3 +204,98 @@ def test_spectral_emitter_film_value_is_the_integral():
     assert np.all(np.abs(pix.mean(axis=0) - expected) < 4 * sem + 3e-3 * np.asarray(expected))
     # the LED's own band (G) is sampled densely: per-pixel noise of a few percent at 4 spp
     assert pix[:, 1].std() / pix[:, 1].mean() < 0.05
+
+
+# -- tiles: many rectangles as one shape and one BSDF (mbcapture.render.tiles) ---------------------
+def _tile_matrices():
+    """Four 0.4 m tiles in a 2 x 2 grid, the lower right one mirrored in x (it must face +z too)."""
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    return (translate(-0.5, 0.5, 0) @ scale(0.4), translate(0.5, 0.5, 0) @ scale(0.4),
+            translate(-0.5, -0.5, 0) @ scale(0.4), translate(0.5, -0.5, 0) @ mirror @ scale(0.4))
+
+
+def _reflectance_spectra():
+    wl = tuple(np.arange(380.0, 781.0, 10.0))
+    x = (np.asarray(wl) - 380.0) / 400.0
+    return (Spectrum(wl, tuple(0.1 + 0.8 * x)), Spectrum(wl, tuple(0.9 - 0.8 * x)),
+            Spectrum(wl, tuple(0.5 + 0.4 * np.sin(6 * x))), Spectrum(wl, tuple(np.full_like(x, 0.3))))
+
+
+def _tiles_and_rectangles(values, twosided=False):
+    from mbcapture.render.build import PerTile
+
+    mats = _tile_matrices()
+    tiles = SceneBuild(shapes=(Shape("grid", "tiles", translate(0, 0.05, 0), Material(PerTile(values), twosided),
+                                     tiles=mats),), environment=Environment("sky", (1.0, 1.0, 1.0)))
+    rects = SceneBuild(shapes=tuple(Shape(f"r{i}", "rectangle", translate(0, 0.05, 0) @ m, Material(v, twosided))
+                                    for i, (m, v) in enumerate(zip(mats, values))),
+                       environment=Environment("sky", (1.0, 1.0, 1.0)))
+    return tiles, rects
+
+
+def test_tile_geometry_faces_the_rectangles_normal_and_indexes_tiles():
+    from mbcapture.render.tiles import tile_geometry
+
+    v, f, uv = tile_geometry(_tile_matrices(), translate(0, 0.05, 0))
+    assert v.shape == (16, 3) and f.shape == (8, 3) and uv.shape == (16, 2)
+    normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    assert np.all(normals[:, 2] > 0) and np.allclose(normals[:, :2], 0)  # all face +z, the mirrored one too
+    np.testing.assert_array_equal(np.floor(uv[:, 0]), np.repeat(np.arange(4), 4))  # vertex -> its tile
+    np.testing.assert_allclose(v[:4].mean(axis=0), (-0.5, 0.55, 0.0))  # tile 0's centre under to_world
+    assert np.allclose(np.abs(v[:4, :2] - (-0.5, 0.55)), 0.4)
+
+
+def test_tile_tables_refuse_what_they_cannot_evaluate():
+    from mbcapture.render.tiles import tile_table
+
+    spectra = _reflectance_spectra()
+    t = tile_table(spectra, True, "here")
+    assert t["table"].shape == (4, 41) and t["wavelengths"][0] == 380.0 and not t["upsample"]
+    rgb = tile_table(spectra, False, "here")  # RGB variant: each spectrum's linear sRGB albedo
+    np.testing.assert_allclose(rgb["table"][3], spectrum_to_rgb_reflectance(spectra[3]))
+    assert tile_table([(0.1, 0.2, 0.3)], True, "here")["upsample"]  # RGB tiles, spectral variant
+    with pytest.raises(ConfigError, match="here: tile reflectances must be all spectra or all RGB"):
+        tile_table([spectra[0], (0.1, 0.2, 0.3)], True, "here")
+    other = Spectrum((380.0, 500.0, 780.0), (0.1, 0.2, 0.3))
+    with pytest.raises(ConfigError, match="here: the tiles' spectra must share one wavelength grid"):
+        tile_table([spectra[0], other], True, "here")
+    with pytest.raises(ConfigError, match="here: .* regular wavelength grid"):
+        tile_table([other, other], True, "here")
+    with pytest.raises(ConfigError, match="here: a tiles shape needs at least one tile"):
+        tile_table([], True, "here")
+
+
+def test_tiles_shape_checks_name_the_shape():
+    from mbcapture.render.build import Light, PerTile
+
+    m = _tile_matrices()
+    cases = [
+        (Shape("g", "tiles", np.eye(4), Material(PerTile(((0.1, 0.1, 0.1),) * 3)), tiles=m), "4 tiles but 3 reflectances"),
+        (Shape("g", "tiles", np.eye(4), Material((0.5, 0.5, 0.5))), "needs at least one tile matrix"),
+        (Shape("g", "tiles", np.eye(4), None, Light("sky", (1.0, 1.0, 1.0)), tiles=m), "cannot emit light"),
+        (Shape("g", "rectangle", np.eye(4), Material(PerTile(((0.1, 0.1, 0.1),)))), "belong to kind 'tiles'"),
+        (Shape("g", "rectangle", np.eye(4), Material((0.5, 0.5, 0.5)), tiles=m), "belong to kind 'tiles'"),
+    ]
+    for shape, message in cases:
+        with pytest.raises(ConfigError, match=rf"scene 'x', shape 'g': .*{message}"):
+            SceneBuild(shapes=(shape,)).check_files("x")
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("variant,kind", [("llvm_ad_rgb", "spectra"), ("llvm_ad_spectral", "spectra"),
+                                          ("llvm_ad_spectral", "rgb")])
+def test_tiles_render_as_the_rectangles_they_replace(variant, kind):
+    """One tiles shape renders the image of its tiles as separate rectangles with their own BSDFs,
+    to float rounding at the tiles' edges: the same paths, the same reflectances (spectra
+    interpolated as Mitsuba's 'irregular' spectrum does, RGB upsampled as its 'rgb' texture does)."""
+    from mbcapture.render import Renderer
+    from mbcapture.sensor import SensorConfig
+
+    values = _reflectance_spectra() if kind == "spectra" else ((0.8, 0.2, 0.1), (0.1, 0.7, 0.2), (0.2, 0.3, 0.9), (0.5, 0.5, 0.5))
+    sensor = SensorConfig(spectral_response="Nikon 5100 (NPL)")
+    imgs = [Renderer(_poster_scene(b), 32, 32, variant=variant, max_depth=2, sensor=sensor).render(0.0, 8, 5)[0]
+            for b in _tiles_and_rectangles(values)]
+    tiles_img, rect_img = (i.astype(np.float64) for i in imgs)
+    assert np.ptp(rect_img[8:12, 8:12].mean(axis=(0, 1)) - rect_img[8:12, 20:24].mean(axis=(0, 1))) > 0.05 * rect_img.max()
+    same = np.isclose(tiles_img, rect_img, rtol=1e-5, atol=1e-6 * rect_img.max()).all(axis=-1)
+    assert same.mean() > 0.99, f"only {same.mean():.3f} of the pixels agree"

@@ -19,6 +19,10 @@ Mitsuba variants use spectra as they are (irregular spectra); RGB variants get t
 values (:func:`spectrum_to_rgb_reflectance`, :func:`spectrum_to_rgb_radiance`).
 
 Meshes: ``kind="mesh"`` with ``mesh=<path>`` loads a PLY or OBJ file (``to_world`` applies on top).
+Tiles: ``kind="tiles"`` with ``tiles=(matrix, ...)`` is a set of rectangles (tile i the canonical
+rectangle under ``to_world @ tiles[i]``) rendered as one shape with one BSDF, its material's
+reflectance a :class:`PerTile` (one RGB or Spectrum per tile): many small patches then cost one
+shape in the render kernel, not one each (:mod:`mbcapture.render.tiles`).
 Texture and mesh files are checked (:meth:`SceneBuild.check_files`) before Mitsuba sees them: a
 missing, unreadable or corrupt file is a :class:`~mbcapture.errors.ConfigError` naming the file
 and the shape.
@@ -42,7 +46,7 @@ import numpy as np
 
 from ..errors import ConfigError
 
-ShapeKind = Literal["rectangle", "disk", "cube", "sphere", "cylinder", "mesh"]
+ShapeKind = Literal["rectangle", "disk", "cube", "sphere", "cylinder", "mesh", "tiles"]
 RGB = tuple[float, float, float]
 #: Shape kinds whose ``to_world`` Mitsuba exposes as an updatable parameter.
 MOVABLE_EMITTER_KINDS: frozenset[str] = frozenset({"rectangle", "disk", "sphere", "cylinder"})
@@ -96,7 +100,15 @@ class Texture:
     filter_type: Literal["bilinear", "nearest"] = "bilinear"
 
 
-Reflectance = Union[RGB, Spectrum, Texture]
+@dataclass(frozen=True, eq=False)
+class PerTile:
+    """One reflectance per tile of a ``kind="tiles"`` shape, in tile order: all RGB albedos or
+    all spectra (sharing one regular wavelength grid)."""
+
+    values: tuple[Union[RGB, Spectrum], ...]
+
+
+Reflectance = Union[RGB, Spectrum, Texture, PerTile]
 Radiance = Union[RGB, Spectrum]
 
 TEXTURE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".exr"})
@@ -132,6 +144,7 @@ class Shape:
     light: Light | None = None
     part: str | None = None
     mesh: str | None = None  # kind "mesh": a .ply or .obj file
+    tiles: tuple[np.ndarray, ...] = ()  # kind "tiles": each tile's (4, 4) matrix, under to_world
 
 
 @dataclass(frozen=True)
@@ -223,7 +236,8 @@ class SceneBuild:
         return tuple(seen)
 
     def check_files(self, scene_name: str = "scene") -> None:
-        """Every texture and mesh file exists and decodes; else ConfigError naming file and shape."""
+        """Every texture and mesh file exists and decodes and every tiles shape is well formed;
+        else ConfigError naming the file and the shape."""
         for s in self.shapes:
             where = f"scene {scene_name!r}, shape {s.name!r}"
             if s.kind == "mesh":
@@ -235,6 +249,17 @@ class SceneBuild:
                     raise ConfigError(f"{where}: mesh {s.mesh}: {exc}") from None
             elif s.mesh is not None:
                 raise ConfigError(f"{where}: a mesh file is only read by kind 'mesh', not {s.kind!r}")
+            per_tile = s.material is not None and isinstance(s.material.reflectance, PerTile)
+            if s.kind == "tiles":
+                if not s.tiles:
+                    raise ConfigError(f"{where}: kind 'tiles' needs at least one tile matrix")
+                if s.light is not None:
+                    raise ConfigError(f"{where}: a tiles shape cannot emit light")
+                if per_tile and len(s.material.reflectance.values) != len(s.tiles):
+                    raise ConfigError(f"{where}: {len(s.tiles)} tiles but "
+                                      f"{len(s.material.reflectance.values)} reflectances")
+            elif s.tiles or per_tile:
+                raise ConfigError(f"{where}: tiles and PerTile reflectances belong to kind 'tiles', not {s.kind!r}")
             if s.material is not None and isinstance(s.material.reflectance, Texture):
                 tex = s.material.reflectance
                 try:

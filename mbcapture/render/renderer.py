@@ -30,6 +30,7 @@ from ..sensor.spectral import film_sensitivity
 from .build import (
     MOVABLE_EMITTER_KINDS,
     Material,
+    PerTile,
     SceneBuild,
     Shape,
     Spectrum,
@@ -41,6 +42,7 @@ from .bands import band_seed, film_bands
 from .cache import RenderCache, digest
 from .integrator import PLUGIN_NAME, integrator_class
 from .llvm import apply_target_from_env, ensure_llvm, llvm_target
+from .tiles import materialize, tile_table, tiles_description
 
 if TYPE_CHECKING:
     from ..sensor.config import SensorConfig
@@ -49,7 +51,7 @@ if TYPE_CHECKING:
 SAMPLERS = ("multijitter", "ldsampler", "independent")
 
 #: Modules whose code turns a scene description into pixels: part of every cache key.
-_PIXEL_CODE = ("renderer.py", "integrator.py", "build.py", "aov.py", "coverage.py", "bands.py")
+_PIXEL_CODE = ("renderer.py", "integrator.py", "build.py", "aov.py", "coverage.py", "bands.py", "tiles.py")
 
 
 @lru_cache(maxsize=None)
@@ -267,6 +269,7 @@ class Renderer:
 
         self._build = build
         build.check_files(scene.name)
+        self._python_objects: list[Any] = []  # Python Mitsuba objects its scenes hold (mbcapture.render.tiles)
         if build.projectors and self.spectral:
             raise ConfigError(f"scene {scene.name!r}: projector emitters are supported in RGB variants only, "
                               f"not {variant!r}")
@@ -336,7 +339,7 @@ class Renderer:
     # -- scene construction -------------------------------------------------------------------
     def _load(self, d: dict[str, Any]) -> Any:
         try:
-            return self._mi.load_dict(d)
+            return self._mi.load_dict(materialize(self._mi, d, self._python_objects))
         except RuntimeError as exc:  # Mitsuba's own loader errors (e.g. a file it cannot parse)
             msg = " ".join(str(exc).split())
             raise ConfigError(f"scene {self.scene_model.name!r}: Mitsuba cannot load the scene: {msg[:400]}") from None
@@ -457,18 +460,28 @@ class Renderer:
 
     def _shape_dict(self, s: Shape, to_world: np.ndarray) -> dict[str, Any]:
         mi = self._mi
+        if s.kind == "tiles":  # one mesh, one BSDF (mbcapture.render.tiles)
+            return tiles_description(s.tiles, to_world, self._bsdf_dict(s))
         out: dict[str, Any] = {"type": s.kind, "to_world": mi.ScalarTransform4f(to_world)}
         if s.kind == "mesh":
             out["type"] = "ply" if str(s.mesh).lower().endswith(".ply") else "obj"
             out["filename"] = str(s.mesh)
             out["face_normals"] = True
-        mat = s.material or Material((0.0, 0.0, 0.0))
-        bsdf: dict[str, Any] = {"type": "diffuse", "reflectance": self._reflectance_dict(mat.reflectance)}
-        out["bsdf"] = {"type": "twosided", "material": bsdf} if mat.twosided else bsdf
+        out["bsdf"] = self._bsdf_dict(s)
         if s.light is not None:
             out["emitter"] = {"type": "area",
                               "radiance": self._emission_dict(s.light.radiance, s.light.group == self._flat_group)}
         return out
+
+    def _bsdf_dict(self, s: Shape) -> dict[str, Any]:
+        """The shape's Lambertian BSDF (black without a material)."""
+        mat = s.material or Material((0.0, 0.0, 0.0))
+        if isinstance(mat.reflectance, PerTile):
+            refl = tile_table(mat.reflectance.values, self.spectral, f"scene {self.scene_model.name!r}, shape {s.name!r}")
+        else:
+            refl = self._reflectance_dict(mat.reflectance)
+        bsdf: dict[str, Any] = {"type": "diffuse", "reflectance": refl}
+        return {"type": "twosided", "material": bsdf} if mat.twosided else bsdf
 
     def _emission_dict(self, value: Any, flat: bool) -> dict[str, Any]:
         """Emission; ``flat``: a Spectrum's integral as a constant (its shape is in the film)."""
