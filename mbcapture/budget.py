@@ -42,7 +42,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .integrate import accumulate
+from .integrate import ErrorSample, accumulate
 from .plan import Plan
 from .sensor import electrons_per_render_second
 
@@ -128,6 +128,50 @@ def budget_quantiles(ratio: np.ndarray) -> tuple[float, float]:
     POOL_PX^2 degrees of freedom (unbiased for a uniform ratio); the 95th percentile is left as it
     is (the estimates' own spread only widens it: conservative)."""
     return float(np.median(ratio)) / chi2_median_factor(POOL_PX**2), float(np.percentile(ratio, 95))
+
+
+#: Coverage of the interval the run states for each of its quantiles (render_error's ``*_interval``).
+INTERVAL_COVERAGE = 0.95
+
+
+def quantiles_with_intervals(values: np.ndarray, percents: "list[float]", weight: np.ndarray | None = None,
+                             design: "np.ndarray | float" = 1.0) -> list[tuple[float, float, float]]:
+    """(estimate, low, high) of each percentile in ``percents`` of ``values`` (1-D), weighted by
+    ``weight`` (None: 1 each), with an :data:`INTERVAL_COVERAGE` interval from the order statistics.
+
+    The share of the values below a point is a mean of indicators, so its standard error is
+    sqrt(p (1 - p) / n_eff), with Kish's effective count n_eff = (sum w)^2 / sum(w^2 d) and ``design``
+    d the number of values that share their data (a pooled 3x3 estimate shares its renders with its
+    neighbours, a pixel's channels their paths): the interval is the values at p -/+ z x that error.
+    The estimate is the inverted empirical CDF (the smallest value whose share reaches p). What it
+    covers: the quantile's uncertainty over a finite set of noisy estimates, which an outside
+    measurement with the same estimator (3x3 pooled squared differences) shares in kind. A high end
+    at p + z se >= 1 is the largest value (the interval is then open above)."""
+    from scipy.stats import norm
+
+    v = np.asarray(values, np.float64).ravel()
+    if v.size == 0:
+        raise ValueError("quantiles_with_intervals: no values")
+    z = float(norm.ppf(0.5 + INTERVAL_COVERAGE / 2))
+    d = np.broadcast_to(np.asarray(design, np.float64), v.shape)
+    probs = np.asarray(percents, np.float64) / 100.0
+    if weight is None:
+        n_eff = v.size**2 / d.sum()
+    else:
+        w = np.asarray(weight, np.float64).ravel()
+        n_eff = w.sum() ** 2 / (w**2 * d).sum()
+    se = np.sqrt(probs * (1 - probs) / n_eff)
+    wanted = np.clip(np.stack([probs, probs - z * se, probs + z * se], -1), 0.0, 1.0)  # (len(percents), 3)
+    if weight is None:  # rank of the inverted CDF: O(n) by partition (a 12 MP film's read is 36 M values)
+        ranks = np.clip(np.ceil(wanted * v.size).astype(np.int64) - 1, 0, v.size - 1)
+        part = np.partition(v, np.unique(ranks))
+        picked = part[ranks]
+    else:
+        order = np.argsort(v, kind="stable")
+        cw = np.cumsum(w[order])
+        idx = np.clip(np.searchsorted(cw, wanted * cw[-1], side="left"), 0, v.size - 1)
+        picked = v[order][idx]
+    return [(float(e), float(lo), float(hi)) for e, lo, hi in picked]
 
 
 #: The pilot's two sample counts: at each, two independent renders (their mean is the main
@@ -349,7 +393,7 @@ def render_error(
     mc_diff_exposure: np.ndarray | None, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
     reads: list[tuple[int, ...]], read_names: list[str], full_well_e: float, fd_full_well_e: float | None = None,
     *, plan: Plan | None = None, noise_budget: float = 0.1, noise_budget_p95: float = 1.0,
-    noise_budget_tail: float = 1.0,
+    noise_budget_tail: float = 1.0, sample: ErrorSample | None = None,
 ) -> dict:
     """The run's own estimate of its Monte Carlo rendering error on every read the sensor outputs,
     from two half-sample renders, and whether it is within the noise budget.
@@ -364,7 +408,10 @@ def render_error(
     chi-square variable), its median, 95th and 99.9th percentiles (the tail: render.noise_budget_tail;
     pooled estimates are conservative there, as their own chi-square spread with 9 degrees of freedom
     alone puts the 99.9th percentile of a uniform ratio at 3.1 x its value) and the share of samples
-    above 10. ``reads``: each read's figures; ``deciding_read``: the read furthest over (or
+    above 10. Each quantile comes with its :data:`INTERVAL_COVERAGE` interval
+    (:func:`quantiles_with_intervals`; ``*_interval``). After adaptive sampling (``sample``, an
+    :class:`~mbcapture.integrate.ErrorSample`) the refined pixels count once each and the unrefined
+    ones through their audit blocks, weighted. ``reads``: each read's figures; ``deciding_read``: the read furthest over (or
     closest to) its targets, whose figures are repeated at the top level. ``budget``: the targets,
     whether each is met on every read, and if the median or p95 is not, the samples per pixel that
     would meet them (scaled as 1/spp, which randomized quasi-Monte Carlo beats: an upper bound).
@@ -376,18 +423,37 @@ def render_error(
         var_e, signal, use = read_noise_ratio(mc_diff_exposure, buckets_e, k_e, buckets, full_well_e, fd_full_well_e)
         if not use.any():
             continue
+        samples = int(use.sum())
+        channels = use.shape[-1]
+        weight, design = None, float(POOL_PX**2 * channels)  # a pooled estimate shares its renders with 3x3 x C
+        if sample is not None:
+            w = np.broadcast_to(sample.weight[..., None], use.shape)
+            use = use & (w > 0)
+            if not use.any():
+                continue
+            weight = w[use]
+            design = np.where(np.broadcast_to(sample.independent[..., None], use.shape)[use], channels, design)
         var_e, signal = var_e[use], signal[use]  # the samples that count, the read's whole arrays let go
         ratio = var_e / signal
-        median, p95 = budget_quantiles(ratio)
-        tail = float(np.percentile(ratio, TAIL_QUANTILE))
+        (median, *median_iv), (p95, *p95_iv), (tail, *tail_iv) = quantiles_with_intervals(
+            ratio, [50.0, 95.0, TAIL_QUANTILE], weight, design)
+        factor = chi2_median_factor(POOL_PX**2)  # the median of noisy estimates, unbiased (budget_quantiles)
+        median, median_iv = median / factor, [m / factor for m in median_iv]
+
+        def mean(a: np.ndarray) -> float:  # over the film: weighted after adaptive sampling
+            return float(np.average(a, weights=weight))
+
         per_read[name] = {
-            "samples": int(use.sum()),
-            "rel_rms": float(np.sqrt(var_e.mean()) / signal.mean()),
-            "to_shot_noise_variance_mean": float(var_e.sum() / signal.sum()),
+            "samples": samples,
+            "rel_rms": float(np.sqrt(mean(var_e)) / mean(signal)),
+            "to_shot_noise_variance_mean": mean(var_e) / mean(signal),
             "to_shot_noise_variance_median": median,
             "to_shot_noise_variance_p95": p95,
             "to_shot_noise_variance_p999": tail,
-            "share_above_10": float((ratio > 10.0).mean()),
+            "to_shot_noise_variance_median_interval": median_iv,
+            "to_shot_noise_variance_p95_interval": p95_iv,
+            "to_shot_noise_variance_p999_interval": tail_iv,
+            "share_above_10": mean(ratio > 10.0),
         }
         factors[name] = (max(median / noise_budget, p95 / noise_budget_p95), tail / noise_budget_tail)
     if not per_read:
@@ -403,7 +469,10 @@ def render_error(
         budget["spp_that_would_meet"] = int(2 * np.ceil(float(plan.spp.max()) * body / 2))
     return {
         "method": "two independent half-sample renders per stratum, summed over each read's buckets; squared "
-                  "differences pooled over 3x3 pixels",
+                  "differences pooled over 3x3 pixels" + ("; after adaptive sampling: the refined pixels and "
+                                                          "audit blocks of the others" if sample is not None else ""),
+        "interval": f"{INTERVAL_COVERAGE:.0%} interval of each quantile over the estimates it is taken from "
+                    "(order statistics, effective count with pooled neighbours and channels sharing renders)",
         **per_read[deciding],
         "deciding_read": deciding,
         "reads": per_read,
@@ -453,6 +522,48 @@ def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketEle
     return [(np.flatnonzero(tier == t), 1 << int(t)) for t in np.unique(tier[tier > 0])]
 
 
+#: Adaptive sampling's audit: this share of the unrefined film's 3x3 blocks is rendered again at the
+#: first pass's samples, so that the run's own error estimate sees the unrefined pixels through
+#: estimates the choice of pixels did not see (:class:`~mbcapture.integrate.ErrorSample`).
+AUDIT_SHARE = 0.1
+
+
+def audit_blocks(refined: np.ndarray, rng: np.random.Generator, share: float = AUDIT_SHARE) -> np.ndarray:
+    """Centres (flat indices) of audit blocks: the 3x3 blocks of the film's 3-pixel lattice whose
+    centre was left unrefined (``refined`` (H, W) bool), ``share`` of them (at least one) drawn at
+    random without replacement; empty when there is none. A block's unrefined pixels are rendered
+    again; its refined ones are fresh already. Blocks next to refined pixels are not left out: the
+    film around the refined regions is noisier than elsewhere, and leaving it out would bias the
+    audit low."""
+    H, W = refined.shape
+    rows, cols = np.arange(1, H - 1, POOL_PX), np.arange(1, W - 1, POOL_PX)
+    r, c = np.meshgrid(rows, cols, indexing="ij")
+    centres = (r * W + c)[~refined[r, c]]
+    if centres.size == 0:
+        return centres.astype(np.int64)
+    n = max(1, int(np.ceil(share * centres.size)))
+    return np.sort(rng.choice(centres, size=n, replace=False)).astype(np.int64)
+
+
+def audit_pixels(refined: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """The pixels (flat indices, sorted) an audit renders again: its blocks' unrefined pixels."""
+    W = refined.shape[1]
+    block = (centres[:, None] + (np.arange(-1, 2)[:, None] * W + np.arange(-1, 2)).ravel()[None]).ravel()
+    return np.sort(block[~refined.ravel()[block]])
+
+
+def audit_sample(refined: np.ndarray, centres: np.ndarray) -> ErrorSample:
+    """The :class:`~mbcapture.integrate.ErrorSample` of an adaptive run: refined pixels count once,
+    each audit block's centre for (unrefined pixels) / (blocks)."""
+    H, W = refined.shape
+    weight = refined.astype(np.float64).ravel()
+    independent = np.zeros(H * W, bool)
+    if centres.size:
+        weight[centres] = (H * W - refined.sum()) / centres.size  # each centre stands for its share of the unrefined
+        independent[centres] = True
+    return ErrorSample(weight.reshape(H, W), independent.reshape(H, W))
+
+
 def noise_verdict(render_error: dict) -> str:
     """One sentence: does the rendering's Monte Carlo noise matter next to the photon shot noise?
     Judged on the budget (``render_error.budget``: the median and 95th percentile of the per-sample
@@ -467,8 +578,10 @@ def noise_verdict(render_error: dict) -> str:
     level = (f"rendering noise variance is {med:.3g} x the shot-noise variance in the median sample{where} and "
              f"{p95:.3g} x in the 95th percentile (budget {budget['median_target']:g} / {budget['p95_target']:g})")
     tail = render_error.get("to_shot_noise_variance_p999")
+    tail_iv = render_error.get("to_shot_noise_variance_p999_interval")
+    within = "" if tail_iv is None else f", {INTERVAL_COVERAGE:.0%} interval {tail_iv[0]:.3g}-{tail_iv[1]:.3g}"
     tail_text = "" if tail is None or "tail_target" not in budget else (
-        f" Tail: {tail:.3g} x in the 99.9th percentile ({'within' if budget.get('tail_met') else 'over'} "
+        f" Tail: {tail:.3g} x in the 99.9th percentile{within} ({'within' if budget.get('tail_met') else 'over'} "
         f"render.noise_budget_tail {budget['tail_target']:g}).")
     if budget["met"]:
         return f"Sensor noise dominates: {level}, adding {extra:.1f} % to the median sample's noise.{tail_text}"

@@ -113,7 +113,10 @@ class RenderSection(_Model):
         "Every chosen pixel gets at least the factor that brings the chosen pixels' 99th percentile to that "
         "level (at most 16), and a pixel further over gets the power of two its own estimate asks for, up to "
         "render.adaptive_max_factor; the moving parts' pixels at 4 times per half-stratum (unbiased: it is "
-        "independent of the choice). RGB variants with a "
+        "independent of the choice). It also renders again, at the first pass's samples, 10 % of the film's "
+        "3x3 blocks whose centre it did not refine (the audit): the unrefined pixels' own estimates are why "
+        "they were not chosen and read low, so the run's own error estimate takes them from the audit blocks "
+        "(report.json adaptive.audit, render_error.method). RGB variants with a "
         "lens acting per pixel (no camera.distortion or camera.diffraction) and render.estimator independent; "
         "elsewhere it is skipped and report.json says why. The tail lies on silhouettes (docs/noise.md).",
     )

@@ -24,7 +24,16 @@ import numpy as np
 
 from . import camera_motion, protocols, resources, scenes
 from .application import AppOutput, CaptureData
-from .budget import BucketElectrons, noise_verdict, render_error, resolve_spp, tail_pixels
+from .budget import (
+    BucketElectrons,
+    audit_blocks,
+    audit_pixels,
+    audit_sample,
+    noise_verdict,
+    render_error,
+    resolve_spp,
+    tail_pixels,
+)
 from .cluster import render_on_cluster
 from .config import CaptureConfig, scene_of
 from .errors import ConfigError
@@ -128,7 +137,8 @@ def _error_estimates(rendered: Rendered, integrated: Integrated, channels: Integ
     out = {
         **render_error(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, reads, names,
                        s.full_well_e, s.fd_full_well_e, plan=plan, noise_budget=r.noise_budget,
-                       noise_budget_p95=r.noise_budget_p95, noise_budget_tail=r.noise_budget_tail),
+                       noise_budget_p95=r.noise_budget_p95, noise_budget_tail=r.noise_budget_tail,
+                       sample=integrated.error_sample),
         **temporal_error(channels, k_e, list(plan.buckets_read), s.full_well_e),
     }
     if key is not None:
@@ -402,14 +412,31 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
                 # the second pass's samples over the first pass's, on the whole film
                 "added_samples": round(sum(p.size * f for p, f in tiers) / (cfg.render.width * cfg.render.height), 4)}
         on_moving = moving.ravel()
-        for i, (pixels, factor) in enumerate(tiers):
-            info["tiers"][i]["moving_pixels"] = int(on_moving[pixels].sum())
+        W, H = cfg.render.width, cfg.render.height
+        refined = np.zeros(H * W, bool)
+        for pixels, _ in tiers:
+            refined[pixels] = True
+        refined = refined.reshape(H, W)
+        # the audit: blocks of unrefined pixels rendered again as the first pass was (factor 1), for an
+        # error estimate of the unrefined film that the choice did not see (mbcapture.integrate.ErrorSample)
+        centres = np.array([], np.int64) if not tiers else audit_blocks(refined, np.random.default_rng(
+            np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xA0D))))
+        block = audit_pixels(refined, centres)
+        passes = [(pixels, factor, f"refine {{}} px x{factor}") for pixels, factor in tiers]
+        if block.size:
+            passes.append((block, 1, "audit {} px"))
+            info["audit"] = {"blocks": int(centres.size), "pixels": int(block.size)}
+        for i, (pixels, factor, what) in enumerate(passes):
+            if i < len(tiers):
+                info["tiers"][i]["moving_pixels"] = int(on_moving[pixels].sum())
             for part, points in ((pixels[~on_moving[pixels]], 1), (pixels[on_moving[pixels]], REFINE_TIME_POINTS)):
                 if part.size:
                     child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA, i, points))
                     integrated = refine(renderer, plan, integrated, part, factor, child, points=points,
                                         per_group=per_group, timer=timer, progress=progress,
-                                        desc=f"refine {part.size} px x{factor}" + (" moving" if points > 1 else ""))
+                                        desc=what.format(part.size) + (" moving" if points > 1 else ""))
+        if tiers:
+            integrated = replace(integrated, error_sample=audit_sample(refined, centres))
         info["seconds"] = round(time.perf_counter() - start, 3)
     return integrated, info
 

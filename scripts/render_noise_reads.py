@@ -3,7 +3,8 @@ differ only in the run seed (render samples, strata jitter, pilot), with the sen
 fixed and the render cache off. The difference of their noise-free expected electrons per read is
 Monte Carlo noise alone: per unsaturated sample, its variance (the squared difference over 2, pooled
 over 3x3 pixels like the run's own estimate) over the shot-noise variance (the electrons). Prints
-each read's median, p95, p99, p99.9 and max, the share above 10, and each run's own estimate.
+each read's median, p95, p99, p99.9 and max, the share above 10, and each run's own estimate, with
+whether the outside figure falls in the interval each run states for its median, p95 and p99.9.
 
     python scripts/render_noise_reads.py [CONFIG] [--size 640x512] [--set KEY=VALUE ...] [--map tail.png]
 
@@ -62,6 +63,13 @@ def main() -> None:
                              f"{o.get('to_shot_noise_variance_p999', float('nan')):.3g}" for o in own)
         print(f"{read.name:6s} {med:8.3g} {p95:8.3g} {p99:8.3g} {p999:8.3g} {ratio.max():9.3g} "
               f"{100 * (ratio > 10).mean():6.2f}%   {own_text}")
+        # does the outside measurement fall in each run's stated 95 % interval?
+        for q, key, outside in (("median", "median", med), ("p95", "p95", p95), ("p99.9", "p999", p999)):
+            ivs = [o.get(f"to_shot_noise_variance_{key}_interval") for o in own]
+            text = "; ".join("no interval" if iv is None else
+                             f"[{iv[0]:.3g}, {iv[1]:.3g}] {'holds' if iv[0] <= outside <= iv[1] else 'MISSES'} it"
+                             for iv in ivs)
+            print(f"{'':6s} {q:>6s}: outside {outside:.3g}; the runs' intervals {text}")
         full_ratio = np.where(use, var / np.maximum(mean, 1e-300), 0.0)
     if args.map:
         tail_map(args.map, mean, full_ratio, read.name)

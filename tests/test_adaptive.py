@@ -182,3 +182,123 @@ def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
     _, same, note = top_up(cfg, r, low, timeline, first, np.random.SeedSequence(4), StageStatus(False),
                            per_group=False, timer=None, progress=False, why_not=None)
     assert same is first and not note["applied"] and "free by a test" in note["note"]
+
+
+def test_quantile_intervals_cover_the_true_quantile_at_their_stated_rate():
+    """The stated 95 % intervals hold the population's quantile in 95 % of trials, within the binomial
+    error of the trial count; weighted (a subsample standing for the rest) and with values that share
+    their data (each repeated ``design`` times) too. Without the design factor the repeated values'
+    interval is too narrow and misses far more often."""
+    from scipy.stats import expon
+
+    from mbcapture.budget import quantiles_with_intervals
+
+    rng = np.random.default_rng(11)
+    trials, n = 400, 3000
+    tol = 4 * np.sqrt(0.95 * 0.05 / trials)  # four binomial standard errors of the coverage
+    truth = {q: expon.ppf(q / 100) for q in (50.0, 95.0, 99.0)}
+
+    def coverage(draw) -> dict:
+        hits = {q: 0 for q in truth}
+        for _ in range(trials):
+            values, weight, design = draw()
+            for q, (_, lo, hi) in zip(truth, quantiles_with_intervals(values, list(truth), weight, design)):
+                hits[q] += lo <= truth[q] <= hi
+        return {q: h / trials for q, h in hits.items()}
+
+    plain = coverage(lambda: (rng.exponential(size=n), None, 1.0))
+    # a tenth of the population measured, each value standing for 10 (the audit's weights); the other
+    # part (a fifth of the population, uniform on [0, 0.5]) measured whole
+    def weighted():
+        part = rng.exponential(size=n // 10)
+        rest = rng.exponential(size=n // 5)
+        return np.concatenate([part, rest]), np.concatenate([np.full(part.size, 10.0), np.ones(rest.size)]), 1.0
+    mixture_truth = {}
+    big = np.concatenate([rng.exponential(size=10**6), rng.exponential(size=2 * 10**5)])
+    for q in truth:
+        mixture_truth[q] = np.percentile(big, q)
+    shared = lambda d: (np.repeat(rng.exponential(size=n // 4), 4), None, d)  # noqa: E731
+    with_design, without = coverage(lambda: shared(4.0)), coverage(lambda: shared(1.0))
+    for q in truth:
+        assert abs(plain[q] - 0.95) < tol, (q, plain[q])
+        assert abs(with_design[q] - 0.95) < tol, (q, with_design[q])
+    assert min(without.values()) < 0.95 - tol  # too narrow without the design factor
+    truth.update(mixture_truth)  # the weighted mixture is exponential too, by construction
+    mixed = coverage(weighted)
+    for q in truth:
+        assert abs(mixed[q] - 0.95) < tol, (q, mixed[q])
+
+
+def test_the_audit_removes_the_bias_of_the_pixels_adaptive_sampling_left():
+    """Adaptive sampling leaves the pixels whose estimate read low, so their first-pass estimates
+    understate the film's tail; audit blocks rendered afresh measure it. A film of known per-pixel
+    Monte Carlo / shot-noise ratios (a smooth field with a heavy tail), half-sample differences drawn
+    from it: after the choice and a fresh second pass at the chosen pixels, the unaudited estimate's
+    99.9th percentile lies below the interval of an outside measurement (fresh differences
+    everywhere); with the audit, the outside figure lies in the run's interval."""
+    from scipy.ndimage import gaussian_filter
+
+    from mbcapture.budget import audit_blocks, audit_pixels, audit_sample, render_error
+
+    rng = np.random.default_rng(5)
+    H, W = 240, 320
+    g = gaussian_filter(rng.standard_normal((H, W)), 6)
+    field = 0.05 * np.exp(1.5 * g / g.std())  # median 0.05, 7 % of the film over 0.5
+    ratio = field[None, :, :, None]  # (K=1, H, W, C=1): the true ratio of every sample
+    signal = np.full((1, H, W, 1), 5000.0)
+    k_e = np.ones(1)
+
+    def diff(r=ratio) -> np.ndarray:  # a half-sample difference whose square estimates var = r x signal
+        return np.sqrt(r * signal) * rng.standard_normal(r.shape)
+
+    def err(d, sample=None):
+        return render_error(d, signal, k_e, [(0,)], ["J"], 1e12, None, sample=sample)["reads"]["J"]
+
+    first = diff()
+    tiers = tail_pixels(first, signal, k_e, [(0,)], 1e12, 1e12, 1.0, 16)
+    refined = np.zeros(H * W, bool)
+    after = ratio.copy().reshape(1, H * W, 1)  # the true ratio after the second pass: over its factor
+    for p, f in tiers:
+        refined[p] = True
+        after[:, p] /= f
+    refined, after = refined.reshape(H, W), after.reshape(ratio.shape)
+    assert 0.02 < refined.mean() < 0.5
+    second = np.where(refined[None, :, :, None], diff(after), first)  # the refined pixels rendered afresh
+    outside = err(diff(after))  # what two independent runs would show
+    naive = err(second)
+    assert naive["to_shot_noise_variance_p999"] < outside["to_shot_noise_variance_p999_interval"][0]
+    centres = audit_blocks(refined, rng, 0.3)
+    block = audit_pixels(refined, centres)
+    assert not refined.ravel()[block].any() and np.unique(block).size == block.size
+    fresh = diff().reshape(1, H * W, 1)
+    audited = second.reshape(1, H * W, 1).copy()
+    audited[:, block] = fresh[:, block]
+    own = err(audited.reshape(1, H, W, 1), audit_sample(refined, centres))
+    for q in ("median", "p95", "p999"):
+        lo, hi = own[f"to_shot_noise_variance_{q}_interval"]
+        assert lo <= outside[f"to_shot_noise_variance_{q}"] <= hi, (q, lo, outside[f"to_shot_noise_variance_{q}"], hi)
+
+
+def test_audit_blocks_lie_on_the_lattice_at_unrefined_centres():
+    from mbcapture.budget import audit_blocks, audit_pixels, audit_sample
+
+    refined = np.zeros((30, 31), bool)
+    refined[10:14, 5:20] = True  # covers the lattice centres of block row 3 and 4 (rows 10, 13), columns 7..19
+    rng = np.random.default_rng(0)
+    centres = audit_blocks(refined, rng, 1.0)
+    r, c = np.divmod(centres, 31)
+    assert np.all(r % 3 == 1) and np.all(c % 3 == 1) and r.max() <= 28 and c.max() <= 28
+    assert not refined.ravel()[centres].any()
+    assert centres.size == 10 * 10 - 2 * 5  # the 10 x 10 lattice less 2 rows x 5 covered centres (x = 7..19)
+    assert (10 * 31 + 4) in centres  # a block whose right column is refined: kept (leaving such out biases the audit low)
+    pix = audit_pixels(refined, centres)
+    expected = {(y + dy) * 31 + x + dx for y, x in zip(r, c) for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                if not refined[y + dy, x + dx]}
+    assert pix.tolist() == sorted(expected)  # the blocks' unrefined pixels, once each
+    assert (10 * 31 + 3) in pix and (10 * 31 + 5) not in pix  # that block's unrefined pixels rendered, not its refined ones
+    some = audit_blocks(refined, rng, 0.1)
+    assert some.size == 9 and set(some) <= set(centres)
+    s = audit_sample(refined, some)
+    assert s.weight[refined].tolist() == [1.0] * refined.sum() and s.independent.sum() == 9
+    np.testing.assert_allclose(s.weight.ravel()[some], (30 * 31 - refined.sum()) / 9)
+    assert s.weight.sum() == pytest.approx(30 * 31)  # the weights stand for the whole film
