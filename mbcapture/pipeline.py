@@ -390,7 +390,9 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
     """Adaptive sampling (render.adaptive): the pixels the first pass left over half the tail target
     (:func:`mbcapture.budget.tail_pixels`) rendered again with more samples
     (:func:`mbcapture.integrate.refine`), those in ``moving`` (the pixels the moving parts cross) at
-    :data:`REFINE_TIME_POINTS` times per half-stratum. Returns the refined render stage and what
+    :data:`REFINE_TIME_POINTS` times per half-stratum; then the audit (:func:`mbcapture.budget.audit_blocks`),
+    whose blocks of unrefined pixels give the run's own error estimate the unrefined film
+    (:class:`~mbcapture.integrate.ErrorSample`). Returns the refined render stage and what
     report.json keeps. Not in a tiled run (``tiled``): its choice of pixels and their second pass are
     the whole film's."""
     why = ("a film in one tile (render.tiles; the choice of pixels and their second pass are the whole film's)"
@@ -417,8 +419,9 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
         for pixels, _ in tiers:
             refined[pixels] = True
         refined = refined.reshape(H, W)
-        # the audit: blocks of unrefined pixels rendered again as the first pass was (factor 1), for an
-        # error estimate of the unrefined film that the choice did not see (mbcapture.integrate.ErrorSample)
+        # the audit: blocks of unrefined pixels rendered again at the first pass's samples (factor 1) and, like
+        # it, at one time per half (there, drawn afresh), for an error estimate of the unrefined film that the
+        # choice did not see (mbcapture.integrate.ErrorSample)
         centres = np.array([], np.int64) if not tiers else audit_blocks(refined, np.random.default_rng(
             np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xA0D))))
         block = audit_pixels(refined, centres)
@@ -429,7 +432,10 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
         for i, (pixels, factor, what) in enumerate(passes):
             if i < len(tiers):
                 info["tiers"][i]["moving_pixels"] = int(on_moving[pixels].sum())
-            for part, points in ((pixels[~on_moving[pixels]], 1), (pixels[on_moving[pixels]], REFINE_TIME_POINTS)):
+                parts = ((pixels[~on_moving[pixels]], 1), (pixels[on_moving[pixels]], REFINE_TIME_POINTS))
+            else:
+                parts = ((pixels, 1),)
+            for part, points in parts:
                 if part.size:
                     child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA, i, points))
                     integrated = refine(renderer, plan, integrated, part, factor, child, points=points,
