@@ -414,34 +414,30 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
                 # the second pass's samples over the first pass's, on the whole film
                 "added_samples": round(sum(p.size * f for p, f in tiers) / (cfg.render.width * cfg.render.height), 4)}
         on_moving = moving.ravel()
-        W, H = cfg.render.width, cfg.render.height
-        refined = np.zeros(H * W, bool)
-        for pixels, _ in tiers:
-            refined[pixels] = True
-        refined = refined.reshape(H, W)
-        # the audit: blocks of unrefined pixels rendered again at the first pass's samples (factor 1) and, like
-        # it, at one time per half (there, drawn afresh), for an error estimate of the unrefined film that the
-        # choice did not see (mbcapture.integrate.ErrorSample)
-        centres = np.array([], np.int64) if not tiers else audit_blocks(refined, np.random.default_rng(
-            np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xA0D))))
-        block = audit_pixels(refined, centres)
-        passes = [(pixels, factor, f"refine {{}} px x{factor}") for pixels, factor in tiers]
-        if block.size:
-            passes.append((block, 1, "audit {} px"))
-            info["audit"] = {"blocks": int(centres.size), "pixels": int(block.size)}
-        for i, (pixels, factor, what) in enumerate(passes):
-            if i < len(tiers):
-                info["tiers"][i]["moving_pixels"] = int(on_moving[pixels].sum())
-                parts = ((pixels[~on_moving[pixels]], 1), (pixels[on_moving[pixels]], REFINE_TIME_POINTS))
-            else:
-                parts = ((pixels, 1),)
-            for part, points in parts:
+        for i, (pixels, factor) in enumerate(tiers):
+            info["tiers"][i]["moving_pixels"] = int(on_moving[pixels].sum())
+            for part, points in ((pixels[~on_moving[pixels]], 1), (pixels[on_moving[pixels]], REFINE_TIME_POINTS)):
                 if part.size:
                     child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA, i, points))
                     integrated = refine(renderer, plan, integrated, part, factor, child, points=points,
                                         per_group=per_group, timer=timer, progress=progress,
-                                        desc=what.format(part.size) + (" moving" if points > 1 else ""))
+                                        desc=f"refine {part.size} px x{factor}" + (" moving" if points > 1 else ""))
         if tiers:
+            # the audit: blocks of unrefined pixels rendered again at the first pass's samples (factor 1) and,
+            # like it, at one time per half (there, drawn afresh), for an error estimate of the unrefined film
+            # that the choice did not see (mbcapture.integrate.ErrorSample)
+            refined = np.zeros(on_moving.size, bool)
+            for pixels, _ in tiers:
+                refined[pixels] = True
+            refined = refined.reshape(moving.shape)
+            centres = audit_blocks(refined, np.random.default_rng(
+                np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xA0D))))
+            block = audit_pixels(refined, centres)
+            if block.size:
+                child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA, len(tiers), 1))
+                integrated = refine(renderer, plan, integrated, block, 1, child, points=1, per_group=per_group,
+                                    timer=timer, progress=progress, desc=f"audit {block.size} px")
+                info["audit"] = {"blocks": int(centres.size), "pixels": int(block.size)}
             integrated = replace(integrated, error_sample=audit_sample(refined, centres))
         info["seconds"] = round(time.perf_counter() - start, 3)
     return integrated, info

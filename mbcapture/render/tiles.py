@@ -110,12 +110,8 @@ def tile_texture_class(variant: str) -> type:
             self.table = mi.Float(np.ascontiguousarray(table, np.float32).ravel())
             self.grid = None if wavelengths is None else (float(wavelengths[0]), float(wavelengths[1] - wavelengths[0]))
 
-        def _row(self, si: Any, active: Any) -> tuple[Any, Any]:
-            tile = dr.clip(mi.UInt32(dr.floor(si.uv.x)), 0, self.n_tiles - 1)
-            return tile * self.width, active
-
         def eval(self, si: Any, active: Any = True) -> Any:
-            base, active = self._row(si, active)
+            base = dr.clip(mi.UInt32(dr.floor(si.uv.x)), 0, self.n_tiles - 1) * self.width  # the tile's row
             if self.grid is None and not self.upsample:  # RGB variant: the tile's albedo
                 return mi.Color3f(*(dr.gather(mi.Float, self.table, base + c, active) for c in range(3)))
             if self.upsample:  # spectral variant, RGB tile
