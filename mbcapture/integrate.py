@@ -52,12 +52,13 @@ def render_requests(plan: Plan, seed: np.random.SeedSequence) -> list[tuple[floa
     two = bool(np.all(spp >= 2)) and plan.passes > 0
     seeds = render_seeds(plan, seed)
     used = plan.weights_s.sum(axis=1) > 0
+    times = plan.render_times
     out = []
     for j in range(plan.passes):
         n = int(spp[j])
         groups_j = tuple(plan.groups[g] for g in np.flatnonzero(used[j]))
         for h, spp_h in enumerate((n // 2, n - n // 2) if two else (n,)):
-            out.append((float(plan.times_s[j]), int(spp_h), int(seeds[j, h]), groups_j))
+            out.append((float(times[j, h]), int(spp_h), int(seeds[j, h]), groups_j))
     return out
 
 
@@ -92,7 +93,7 @@ class Integrated:
     of the summed differences, not the sum of the buckets' variances (:meth:`read_mc_var`).
 
     temporal_diff (K, H, W, C) float32 or None (one stratum): the exposure with strata merged in pairs
-    (each pair rendered once, at its first stratum's time, with both strata's weights) minus
+    (each pair rendered once, at its first stratum's render times, with both strata's weights) minus
     the exposure; its mean square, less its Monte Carlo part, measures the temporal error of
     strata twice as long as the plan's (:func:`temporal_error`).
 
@@ -161,10 +162,11 @@ def integrate(
 ) -> Integrated:
     """Render every stratum of ``plan`` with ``renderer`` and accumulate the bucket exposures.
 
-    Stratum j is rendered at ``plan.spp[j]`` samples as two halves (n//2, n - n//2), with only
-    the groups that have weight in it. The halves give the Monte Carlo variance (exact when
-    every stratum splits in the same ratio, as with even or uniform spp). Consecutive strata
-    are paired to measure the temporal error (see :class:`Integrated`).
+    Stratum j is rendered at ``plan.spp[j]`` samples as two halves (n//2, n - n//2), each at its
+    own time (:attr:`Plan.render_times`), with only the groups that have weight in it. The halves
+    give the Monte Carlo variance, the time sampling's included (exact when every stratum splits
+    in the same ratio, as with even or uniform spp). Consecutive strata are paired to measure the
+    temporal error (see :class:`Integrated`).
     """
     if plan.spp is None:
         raise ValueError("plan.spp is not chosen yet: call mbcapture.budget.resolve_spp first")
@@ -179,6 +181,7 @@ def integrate(
     groups_out = np.zeros((n_buckets, G, H, W, C), dtype=np.float64) if per_group else None
     temporal = np.zeros((n_buckets, H, W, C), dtype=np.float64) if plan.passes >= 2 else None
     seeds = render_seeds(plan, seed)
+    times = plan.render_times
     used = plan.weights_s.sum(axis=1) > 0  # (J, G): groups with weight in each stratum
     prev = None  # the previous (even) stratum's combined radiance, (G, H, W, C)
     control = _Control(renderer, plan, seed, stage) if plan.estimator == "difference" else None
@@ -198,9 +201,9 @@ def integrate(
             for h, spp_h in enumerate(halves):
                 with stage("render"):
                     if control is None:
-                        radiance = renderer.render(float(plan.times_s[j]), spp_h, int(seeds[j, h]), groups_j)
+                        radiance = renderer.render(float(times[j, h]), spp_h, int(seeds[j, h]), groups_j)
                     else:
-                        radiance = control.stratum(float(plan.times_s[j]), h, spp_h, gsel)
+                        radiance = control.stratum(float(times[j, h]), h, spp_h, gsel)
                 with stage("accumulate"):
                     accumulate(w_j * (spp_h / n), radiance, parts[h])
                     if combined is not None:
@@ -391,7 +394,7 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     # times of their own: the first pass's time draws (a moving edge's positions) made its noise too
     rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x71AE)))
     times = plan.draw_times(rng, points=points) if plan.bounds_s is not None else \
-        np.broadcast_to(plan.times_s[:, None, None], (plan.passes, 2, 1))
+        plan.render_times[:, :, None]
     seeds = render_seeds(plan, seed)[:, :, None] if times.shape[2] == 1 else np.random.default_rng(
         np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5EED))).integers(0, 2**31 - 1, times.shape)
     used = plan.weights_s.sum(axis=1) > 0

@@ -260,7 +260,7 @@ class Rendered:
     estimates: dict = field(default_factory=dict, compare=False, repr=False)
 
     def plan_for(self, own: Plan) -> Plan:
-        same = (own.groups == self.plan.groups and np.array_equal(own.times_s, self.plan.times_s)
+        same = (own.groups == self.plan.groups and np.array_equal(own.render_times, self.plan.render_times)
                 and np.array_equal(own.weights_s, self.plan.weights_s)
                 and (own.spp is None or np.array_equal(own.spp, self.plan.spp)))
         if not same:

@@ -38,7 +38,10 @@ class Plan:
     """What will be rendered.
 
     starts_ticks, ends_ticks   (J,) stratum bounds [start, end), int64 ticks.
-    times_s       (J,) scene time at which each stratum is rendered (jittered inside it).
+    times_s       (J,) a scene time uniform in each stratum (jittered): the time of its first half-sample
+                  render, and of the stratum where one time stands for it (the pilot, a truth render).
+    half_times_s  (J, 2) the times of each stratum's two half-sample renders, drawn independently, each
+                  uniform in the stratum (the first is ``times_s``): see :attr:`render_times`.
     bounds_s      (J, 2) each stratum's start and end, s (what :meth:`draw_times` jitters in).
     weights_s     (J, K, G) seconds of stratum j in which channel k (a bucket, or a coded capture's
                   sub-frame) collects while group g is on.
@@ -77,6 +80,31 @@ class Plan:
     read_sets: tuple[tuple[int, ...], ...] = ()
     read_names: tuple[str, ...] = ()
     bounds_s: np.ndarray | None = None
+    half_times_s: np.ndarray | None = None
+
+    @property
+    def render_times(self) -> np.ndarray:
+        """(J, 2) the scene time of each stratum's two half-sample renders.
+
+        Each half is rendered at its own time, uniform in the stratum and independent of the other's.
+        A half's value then carries both its Monte Carlo noise and the noise of where in the stratum
+        its time fell (a moving edge's position), so the halves' difference, which the run's own error
+        estimate squares, holds both, as two captures with different seeds do. Rendered at one shared
+        time, the halves agreed on the time noise and the estimate left it out (docs/noise.md).
+        A plan built without half times (tests) renders both halves at ``times_s``."""
+        if self.half_times_s is not None:
+            return self.half_times_s
+        return np.repeat(np.asarray(self.times_s, dtype=np.float64)[:, None], 2, axis=1)
+
+    def render_time_shares(self) -> np.ndarray:
+        """(J, 2) each half-sample render's share of its stratum's samples, as :func:`mbcapture.integrate.integrate`
+        splits them (n // 2 and n - n // 2 when every stratum has 2 samples or more; else one render, at the
+        first half's time): what a truth rendered at :attr:`render_times` weights each time with."""
+        spp = np.asarray(self.spp, dtype=np.int64)
+        if spp.size and np.all(spp >= 2):
+            first = (spp // 2) / spp
+            return np.stack([first, 1.0 - first], axis=1)
+        return np.stack([np.ones(self.passes), np.zeros(self.passes)], axis=1)
 
     def draw_times(self, rng: np.random.Generator, per_stratum: int = 2, points: int = 1) -> np.ndarray:
         """(J, per_stratum, points) fresh render times, independent of each other and of ``times_s``
@@ -166,11 +194,11 @@ class Plan:
                 {
                     "start_s": float(timeline.seconds(a)),
                     "end_s": float(timeline.seconds(b)),
-                    "render_time_s": float(t),
+                    "render_times_s": [float(x) for x in t],
                     "spp": None if spp is None else int(n),
                 }
                 for a, b, t, n in zip(
-                    self.starts_ticks, self.ends_ticks, self.times_s, spp if spp is not None else [None] * self.passes
+                    self.starts_ticks, self.ends_ticks, self.render_times, spp if spp is not None else [None] * self.passes
                 )
             ],
             "notes": self.notes,
@@ -287,12 +315,15 @@ def make_plan(
     w = w[:, :, used_g]
     live = w.sum(axis=(1, 2)) > 0  # strata in idle gaps (sequential frames) carry no weight
     starts, ends, w = edges[:-1][live], edges[1:][live], w[live]
-    # jittered (stratified) render time inside each stratum: unbiased on average over seeds
+    # jittered (stratified) render times inside each stratum, one per half-sample render (Plan.render_times):
+    # unbiased on average over seeds; the second half's are drawn after the first's, which stay the stratum's time
     times = timeline.seconds(starts) + rng.random(len(starts)) * timeline.seconds(ends - starts)
+    second = timeline.seconds(starts) + rng.random(len(starts)) * timeline.seconds(ends - starts)
     return Plan(
         starts_ticks=starts,
         ends_ticks=ends,
         times_s=np.asarray(times, dtype=np.float64),
+        half_times_s=np.stack([times, second], axis=1).astype(np.float64),
         bounds_s=np.stack([timeline.seconds(starts), timeline.seconds(ends)], axis=1).astype(np.float64),
         weights_s=w.astype(np.float64) * float(timeline.tick_s),
         groups=groups,

@@ -297,7 +297,7 @@ def main() -> None:
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", film)
     scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
     renderer = Renderer.from_config(scene, cfg)
-    times = [s["render_time_s"] for s in r4["plan"]["strata"]]
+    times = [s["render_times_s"][0] for s in r4["plan"]["strata"]]
     renderer.render_path(times[0], args.spp, 0)  # warm-up compile
     raw = []
     for _ in range(args.repeats):

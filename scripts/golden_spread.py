@@ -1,6 +1,7 @@
 """Measure how much each golden image differs between CPU targets; write tests/golden/cross_target.json.
 
     python scripts/golden_spread.py [--targets native,haswell,haswell-w4,skylake-avx512] [--cases A,B]
+    python scripts/golden_spread.py --carry-over OLD.json
 
 Every golden case (tests/golden_cases.py) is computed once per target, each in its own process
 whose libraries compile and dispatch for that target (mbcapture.portability: Dr.Jit's vector
@@ -15,7 +16,8 @@ record (the tests compare those as counts, golden_cases.count_differences).
 
 The file keeps the hosts the spreads were measured on: a run on another machine with the same
 goldens adds its host and keeps the larger difference of each image. Takes about a minute per
-target on 2 cores. Run it after ``pytest --regen-golden``.
+target on 2 cores. Run it after ``pytest --regen-golden``; then ``--carry-over OLD`` (the committed
+file before) keeps the hosts this machine is not, for the regenerated goldens too (see carry_over).
 """
 
 from __future__ import annotations
@@ -57,7 +59,13 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(all_cases()))
     ap.add_argument("--out", type=Path, default=SPREAD_FILE)
     ap.add_argument("--dump", type=Path, help=argparse.SUPPRESS)
+    ap.add_argument("--carry-over", type=Path, metavar="EARLIER",
+                    help="measure nothing: keep EARLIER's hosts (another machine's spreads of the previous goldens) "
+                         "in --out, each image at the larger difference")
     args = ap.parse_args()
+    if args.carry_over:
+        carry_over(args.out, args.carry_over)
+        return
     cases = [c for c in args.cases.split(",") if c]
     if args.dump:
         dump(args.dump, cases)
@@ -122,21 +130,55 @@ def main() -> None:
     if set(cases) != set(all_cases()):  # a partial run updates its cases only
         doc["cases"] = {**old.get("cases", {}), **spread}
         doc["golden_made"] = {**old.get("golden_made", {}), **made}
-    if old.get("golden_made") == doc["golden_made"]:  # the same goldens measured on another host: keep both
-        for case, images in old.get("cases", {}).items():
-            for name, m in images.items():
-                cur = doc["cases"].setdefault(case, {}).setdefault(name, m)
-                doc["cases"][case][name] = {k: max(cur.get(k, 0), m.get(k, 0)) for k in set(cur) | set(m)}
-        doc["hosts"] = [h for h in old.get("hosts", []) if h.get("cpu") != host["cpu"]] + doc["hosts"]
-        doc["targets"] = {**old.get("targets", {}), **doc["targets"]}
-    tmp_out = args.out.with_suffix(".json.tmp")
-    tmp_out.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp_out, args.out)
-    print(f"wrote {args.out.relative_to(ROOT)}")
+    # the same goldens measured on another host: keep both, case by case
+    same = [c for c in doc["cases"] if c in old.get("golden_made", {}) and old["golden_made"][c] == doc["golden_made"].get(c)]
+    merge(doc, old, same, carried=False)
+    write(doc, args.out)
     for case in cases:
         worst = max(spread[case].items(), key=lambda kv: kv[1]["rel_l2"])
         flips = sum(v["flips"] for v in spread[case].values())
         print(f"  {case:28s} largest relative L2 {worst[1]['rel_l2']:.2e} ({worst[0]}), samples differing {flips}")
+
+
+def merge(doc: dict, old: dict, cases: list[str], *, carried: bool) -> None:
+    """Into ``doc``: ``old``'s spreads of ``cases``, each image at the larger difference of the two, and
+    ``old``'s hosts that ``doc`` does not measure. ``carried``: ``old`` measured earlier goldens of some
+    of those cases (the same code on images that have changed since), which its hosts then say."""
+    if not cases:
+        return
+    for case in cases:
+        for name, m in old.get("cases", {}).get(case, {}).items():
+            cur = doc["cases"].setdefault(case, {}).setdefault(name, m)
+            doc["cases"][case][name] = {k: max(cur.get(k, 0), m.get(k, 0)) for k in set(cur) | set(m)}
+    cpus = {h.get("cpu") for h in doc["hosts"]}
+    for h in old.get("hosts", []):
+        if h.get("cpu") in cpus:
+            continue
+        if carried:
+            h = {**h, "carried_over": {"cases": cases, "their_goldens_made": old.get("golden_made", {})}}
+        doc["hosts"].append(h)
+    doc["targets"] = {**old.get("targets", {}), **doc["targets"]}
+
+
+def write(doc: dict, out: Path) -> None:
+    tmp_out = out.with_suffix(".json.tmp")
+    tmp_out.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    os.replace(tmp_out, out)
+    print(f"wrote {out.relative_to(ROOT)}")
+
+
+def carry_over(out: Path, earlier: Path) -> None:
+    """``--carry-over EARLIER``: keep an earlier file's hosts in ``out`` for goldens regenerated since.
+
+    After ``pytest --regen-golden`` this host measures its own targets only. Another host's measurement
+    of the previous goldens (the same code paths on images that changed, e.g. only in their render
+    times) is the best evidence there is of that host's differences until it measures the new ones.
+    Each image keeps the larger difference of the two, so no tolerance shrinks."""
+    doc, old = json.loads(out.read_text()), json.loads(earlier.read_text())
+    cases = sorted(c for c in old.get("cases", {}) if c in doc["cases"])
+    changed = any(old.get("golden_made", {}).get(c) != doc["golden_made"].get(c) for c in cases)
+    merge(doc, old, cases, carried=changed)
+    write(doc, out)
 
 
 if __name__ == "__main__":

@@ -46,6 +46,12 @@ def main() -> None:
     cfg = runs[0].config
     print(f"{args.config} at {args.size}: spp {runs[0].plan.spp_label()} and {runs[1].plan.spp_label()}; "
           f"{seconds[0]:.0f} s and {seconds[1]:.0f} s (render cache off)")
+    n = [float(np.asarray(r.plan.spp).sum()) for r in runs]
+    if abs(n[0] - n[1]) > 1e-9 * max(n):
+        # the outside variance is the mean of the two runs' (Var[e1 - e2] / 2): a run with more samples
+        # reads its own figures below it, the other above, by about half the difference each
+        print(f"the runs' samples per pixel differ by {100 * (n[1] / n[0] - 1):+.1f} % (seed {seeds[1]} against seed "
+              f"{seeds[0]}); the outside figure is the mean of their variances, each run's own is its own")
     print(f"{'read':6s} {'median':>8s} {'p95':>8s} {'p99':>8s} {'p99.9':>8s} {'max':>9s} {'>10x':>7s}   run's own "
           f"median / p95 / p99.9 (seed {seeds[0]}, seed {seeds[1]})")
     for i, read in enumerate(runs[0].timeline.reads):

@@ -21,7 +21,9 @@ compares the child's images with its own.
 A change that alters an image fails here; on failure the expected, obtained and difference
 images are written to out/golden-failures/<case>/. After an intended change:
 ``pytest tests/test_golden.py --regen-golden`` (fails once, for review), then
-``python scripts/golden_spread.py``, and commit both.
+``python scripts/golden_spread.py``, then ``python scripts/golden_spread.py --carry-over OLD`` with
+OLD the committed cross_target.json (``git show HEAD:tests/golden/cross_target.json``), which keeps
+the other hosts' measurements, and commit both.
 """
 
 from __future__ import annotations

@@ -1,5 +1,7 @@
 """The planner: strata follow image motion, weights are exact, unused groups are left out."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -121,6 +123,52 @@ def test_render_times_are_inside_their_strata():
     d = (fresh[:, 1] - fresh[:, 0]) / (end - start)
     assert p.passes > 30 and abs(d.mean()) < 5 * np.sqrt(1 / 6 / p.passes)
     assert d.var() == pytest.approx(1 / 6, abs=5 * np.sqrt((1 / 15 - 1 / 36) / p.passes))
+
+
+def test_each_half_sample_render_has_its_own_time():
+    """The two halves of a stratum are rendered at independent times, each uniform in the stratum;
+    the first is the stratum's time (the pilot's)."""
+    from mbcapture.integrate import integrate, render_requests
+
+    tl = timeline(periods=16)
+    p = plan(point_scene(100.0), tl, spp=4)
+    start, end = tl.seconds(p.starts_ticks), tl.seconds(p.ends_ticks)
+    t = p.render_times
+    assert t.shape == (p.passes, 2)
+    np.testing.assert_array_equal(t[:, 0], p.times_s)
+    assert np.all(t >= start[:, None]) and np.all(t < end[:, None]) and np.all(t[:, 0] != t[:, 1])
+    d = (t[:, 1] - t[:, 0]) / (end - start)  # triangular on (-1, 1): mean 0, variance 1/6 (see above)
+    assert p.passes > 30 and abs(d.mean()) < 5 * np.sqrt(1 / 6 / p.passes)
+    assert d.var() == pytest.approx(1 / 6, abs=5 * np.sqrt((1 / 15 - 1 / 36) / p.passes))
+    r = FakeRenderer(p.groups, {g: 1.0 for g in p.groups}, {g: 0.5 for g in p.groups}, height=4, width=8)
+    integrate(r, p, tl.n_buckets, np.random.SeedSequence(1))
+    np.testing.assert_array_equal([c[0] for c in r.calls], t.ravel())
+    np.testing.assert_array_equal([q[0] for q in render_requests(p, np.random.SeedSequence(1))], t.ravel())
+    np.testing.assert_array_equal(p.render_time_shares(), np.full((p.passes, 2), 0.5))
+    one = replace(p, spp=np.ones(p.passes, np.int64))
+    np.testing.assert_array_equal(one.render_time_shares(), np.tile([1.0, 0.0], (p.passes, 1)))
+
+
+def test_the_half_sample_error_estimate_holds_the_time_sampling_noise():
+    """A pixel whose value changes within a stratum (a moving edge) carries noise from where in the
+    stratum its render times fell. With no Monte Carlo noise at all, the halves' difference must
+    still estimate the exposure's variance over seeds: its mean square over many seeds equals the
+    exposures' variance. (Rendered at one shared time, the difference was exactly 0.)"""
+    from mbcapture.integrate import integrate
+
+    tl = timeline(periods=16)
+    scene = point_scene(10.0, groups=("ambient",), switchable=frozenset())  # a few strata (5), one group
+    runs, est, expo = 400, [], []
+    for s in range(runs):
+        p = make_plan(tl, scene, RenderSection(width=160, height=128, spp=2), np.random.default_rng(s))
+        r = FakeRenderer(p.groups, {g: 1.0 for g in p.groups}, {g: 0.0 for g in p.groups}, height=1, width=4, slope=1e3)
+        out = integrate(r, p, tl.n_buckets, np.random.SeedSequence(s))
+        expo.append(out.exposure[3, 0, -1, 0])
+        est.append(float(out.mc_var[3, 0, -1, 0]))
+    var = float(np.var(expo, ddof=1))
+    assert var > 0
+    # the mean of 400 one-degree-of-freedom estimates: relative standard error sqrt(2 / 400) = 7 %; 5 of them
+    assert np.mean(est) == pytest.approx(var, rel=5 * np.sqrt(2 / runs))
 
 
 def test_the_second_pass_renders_at_times_of_its_own():
@@ -339,7 +387,6 @@ def test_per_stratum_spp_follows_the_weights():
 
 
 def test_integrate_per_stratum_spp_is_unbiased_and_its_error_estimate_is_right():
-    from dataclasses import replace
 
     from mbcapture.integrate import integrate
 
@@ -370,7 +417,6 @@ def test_a_reads_monte_carlo_variance_adds_its_buckets_errors_coherently():
     """A read sums buckets rendered from the same strata: their Monte Carlo errors add as amplitudes,
     Var = sum_j (sum_k w_jk)^2 sigma^2 / n_j, not as variances (sum_j sum_k w_jk^2 sigma^2 / n_j); the
     half-sample estimate (Integrated.read_mc_var) must say the first, and render_error must judge reads."""
-    from dataclasses import replace
 
     from mbcapture.budget import render_error
     from mbcapture.integrate import integrate
@@ -403,7 +449,6 @@ def test_a_reads_monte_carlo_variance_adds_its_buckets_errors_coherently():
 
 
 def test_temporal_error_sees_change_in_time_and_not_noise():
-    from dataclasses import replace
 
     from mbcapture.integrate import integrate, temporal_error
 

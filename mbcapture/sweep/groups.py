@@ -83,7 +83,7 @@ def render_inputs(cfg: CaptureConfig, *, accumulation: bool = True) -> dict:
         "images": image_settings(scene, cfg),
         "plan": {
             "starts_ticks": _array(plan.starts_ticks), "ends_ticks": _array(plan.ends_ticks),
-            "times_s": _array(plan.times_s), "weights_s": _array(plan.weights_s), "groups": list(plan.groups),
+            "times_s": _array(plan.render_times), "weights_s": _array(plan.weights_s), "groups": list(plan.groups),
             "buckets_read": list(plan.buckets_read), "spp": _array(plan.spp), "estimator": plan.estimator,
             "base_spp": plan.base_spp_setting, "base_time_s": repr(plan.base_time_s),
             "max_spp_per_render": plan.max_spp_per_render, "tick_s": str(timeline.tick_s),
