@@ -47,7 +47,7 @@ from collections import OrderedDict
 from typing import Callable
 
 import numpy as np
-from scipy import special, stats
+from scipy import special
 
 __all__ = ["BandedField", "NoiseStreams", "binomial_quantile", "invert_discrete", "poisson_pmf", "poisson_quantile",
            "poisson_quantile_memo", "uniform_open"]
@@ -413,6 +413,9 @@ def _binomial_lanes(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
         guess = _start(special.ndtri(uu), nn * p, var, (1.0 - 2.0 * p) / sd, (1.0 - 6.0 * p * (1.0 - p)) / var)
         odds = p / (1.0 - p)
         n_int = nn.astype(np.int64)
+        # here, not at the top: scipy.stats takes 1.1 s to import, a third of the command line's start
+        # (`mbcapture --help`), and only this pmf needs it
+        from scipy import stats
         out[sel] = invert_discrete(
             uu, np.minimum(guess, nn),
             cdf=lambda k, i: special.bdtr(k, n_int[i], p),
