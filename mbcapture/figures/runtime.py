@@ -9,9 +9,9 @@ from . import FigureContext, FigureOutput, figure
 
 @figure("error_vs_runtime", "Rendering error against run time: motion planner vs naive per-slot", "beyond the paper")
 def error_vs_runtime(ctx: FigureContext) -> FigureOutput:
-    # 160x128 whatever the figure size: the figure is about convergence rates, and the naive ladder
-    # renders every slot of 64 periods (256 renders per point). Quick: 16 periods (64 slot renders),
-    # 80x64 and a 32-spp reference, a preview of the same comparison in a tenth of the time.
+    # 160x128 whatever the other figures' size: the figure is about convergence rates, and the naive
+    # ladder renders every slot of 64 periods (256 renders per point). Quick: 16 periods (64 slot
+    # renders), 80x64 and a 32-spp reference, a preview of the same comparison.
     periods = 16 if ctx.quick else 64
     width, height = (80, 64) if ctx.quick else (160, 128)
     cfg = ctx.config("metronome_hdr", (f"capture.periods={periods}", f"render.width={width}", f"render.height={height}"))
