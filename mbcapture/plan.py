@@ -316,14 +316,13 @@ def make_plan(
     live = w.sum(axis=(1, 2)) > 0  # strata in idle gaps (sequential frames) carry no weight
     starts, ends, w = edges[:-1][live], edges[1:][live], w[live]
     # jittered (stratified) render times inside each stratum, one per half-sample render (Plan.render_times):
-    # unbiased on average over seeds; the second half's are drawn after the first's, which stay the stratum's time
-    times = timeline.seconds(starts) + rng.random(len(starts)) * timeline.seconds(ends - starts)
-    second = timeline.seconds(starts) + rng.random(len(starts)) * timeline.seconds(ends - starts)
+    # unbiased on average over seeds; the first halves' are drawn first and stay the strata's times
+    halves = timeline.seconds(starts) + rng.random((2, len(starts))) * timeline.seconds(ends - starts)
     return Plan(
         starts_ticks=starts,
         ends_ticks=ends,
-        times_s=np.asarray(times, dtype=np.float64),
-        half_times_s=np.stack([times, second], axis=1).astype(np.float64),
+        times_s=np.asarray(halves[0], dtype=np.float64),
+        half_times_s=np.ascontiguousarray(halves.T, dtype=np.float64),
         bounds_s=np.stack([timeline.seconds(starts), timeline.seconds(ends)], axis=1).astype(np.float64),
         weights_s=w.astype(np.float64) * float(timeline.tick_s),
         groups=groups,

@@ -142,8 +142,9 @@ def main() -> None:
 
 def merge(doc: dict, old: dict, cases: list[str], *, carried: bool) -> None:
     """Into ``doc``: ``old``'s spreads of ``cases``, each image at the larger difference of the two, and
-    ``old``'s hosts that ``doc`` does not measure. ``carried``: ``old`` measured earlier goldens of some
-    of those cases (the same code on images that have changed since), which its hosts then say."""
+    ``old``'s hosts that ``doc`` does not measure; a host that counts for some cases only says which.
+    ``carried``: ``old`` measured earlier goldens of some of those cases (the same code on images that
+    have changed since), which its hosts then say."""
     if not cases:
         return
     for case in cases:
@@ -156,6 +157,8 @@ def merge(doc: dict, old: dict, cases: list[str], *, carried: bool) -> None:
             continue
         if carried:
             h = {**h, "carried_over": {"cases": cases, "their_goldens_made": old.get("golden_made", {})}}
+        elif set(cases) != set(doc["cases"]):
+            h = {**h, "cases": cases}
         doc["hosts"].append(h)
     doc["targets"] = {**old.get("targets", {}), **doc["targets"]}
 
@@ -164,7 +167,7 @@ def write(doc: dict, out: Path) -> None:
     tmp_out = out.with_suffix(".json.tmp")
     tmp_out.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
     os.replace(tmp_out, out)
-    print(f"wrote {out.relative_to(ROOT)}")
+    print(f"wrote {out}")
 
 
 def carry_over(out: Path, earlier: Path) -> None:

@@ -387,7 +387,6 @@ def test_per_stratum_spp_follows_the_weights():
 
 
 def test_integrate_per_stratum_spp_is_unbiased_and_its_error_estimate_is_right():
-
     from mbcapture.integrate import integrate
 
     tl = timeline(periods=16)
@@ -417,7 +416,6 @@ def test_a_reads_monte_carlo_variance_adds_its_buckets_errors_coherently():
     """A read sums buckets rendered from the same strata: their Monte Carlo errors add as amplitudes,
     Var = sum_j (sum_k w_jk)^2 sigma^2 / n_j, not as variances (sum_j sum_k w_jk^2 sigma^2 / n_j); the
     half-sample estimate (Integrated.read_mc_var) must say the first, and render_error must judge reads."""
-
     from mbcapture.budget import render_error
     from mbcapture.integrate import integrate
 
@@ -449,7 +447,6 @@ def test_a_reads_monte_carlo_variance_adds_its_buckets_errors_coherently():
 
 
 def test_temporal_error_sees_change_in_time_and_not_noise():
-
     from mbcapture.integrate import integrate, temporal_error
 
     tl = timeline(periods=16)
