@@ -315,8 +315,14 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
            why_not: str | None) -> tuple[Plan, Integrated, dict | None]:
     """render.top_up: when the pilot's choice left the run's own estimate over the median or p95 target
     (:func:`over_budget` > 1; the pilot extrapolates from 8 and 32 samples, and its exponent can be
-    too steep for the count it reaches), a second pass of every stratum at the same times, combined
-    with the first.
+    too steep for the count it reaches), a second pass of every stratum, combined with the first.
+
+    The second pass renders each half of each stratum at a time of its own, drawn afresh in the
+    stratum (:meth:`Plan.draw_times`). Where a moving edge crosses a pixel, where in the stratum a
+    render's time falls is noise too, and the first pass's estimate holds it (:attr:`Plan.render_times`);
+    a second pass at the first pass's times would repeat that noise, so combining them would not
+    lower it. The returned plan says which times make up the combined exposure, with which weights
+    (:meth:`Plan.exposure_time_mix`: the applications' truths of what the capture saw render there).
 
     Its samples: a pass whose variance V2 satisfies 1 / (1 / V1 + 1 / V2) <= V1 / (F x
     :data:`TOP_UP_MARGIN`) for the first pass's V1 and its factor F over the budget (see
@@ -350,12 +356,19 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         gap = factor * TOP_UP_MARGIN - 1.0  # V1 / V2 needed
         share = max(gap ** (1.0 / TOP_UP_EXPONENT), gap)  # n2 / n1
         extra = np.array([2 * count(max(int(np.ceil(share * n / 2)), 1)) for n in plan.spp], np.int64)
-        extra = np.minimum(extra, np.maximum(cfg.render.max_spp - plan.spp, 0))
-        if not extra.any():
+        room = np.maximum(cfg.render.max_spp - plan.spp, 0) // 2 * 2  # two halves of whole samples
+        if (room < 2).any():
+            # the second pass must render every stratum: its exposure is the combination's only where
+            # it holds all of them (a stratum left out would be missing from it, not less noisy)
             return plan, integrated, {"applied": False, "before": round(factor, 4),
-                                      "note": f"render.max_spp={cfg.render.max_spp} reached"}
+                                      "note": f"render.max_spp={cfg.render.max_spp} reached in "
+                                              f"{int((room < 2).sum())} of {plan.passes} strata"}
+        extra = np.minimum(extra, room)
         child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x70F))
-        second = integrate(renderer, replace(plan, spp=extra), timeline.n_channels, child, per_group=per_group,
+        rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x70F, 0x7)))
+        times = plan.draw_times(rng)[:, :, 0] if plan.bounds_s is not None else plan.render_times
+        second_plan = replace(plan, spp=extra, times_s=times[:, 0], half_times_s=times)
+        second = integrate(renderer, second_plan, timeline.n_channels, child, per_group=per_group,
                            timer=timer, progress=progress, desc="top-up")
         v2 = _read_figures(second, timeline, cfg, [worst]).get(worst, {}).get("to_shot_noise_variance_median", 0.0)
         c = v1 / v2 if v2 > 0 else float(extra.sum() / plan.spp.sum())
@@ -369,7 +382,10 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
                                 mc_diff=mix(integrated.mc_diff, second.mc_diff),
                                 group_exposure=mix(integrated.group_exposure, second.group_exposure),
                                 temporal_diff=mix(integrated.temporal_diff, second.temporal_diff))
-        plan = replace(plan, spp=plan.spp + extra)
+        # the exposure's times: the first pass's at weight 1 / (1 + c), the second's at c / (1 + c)
+        t1, w1 = plan.exposure_time_mix()
+        plan = replace(plan, spp=plan.spp + extra, mix_times_s=np.concatenate([t1, times], axis=1),
+                       mix_weights=np.concatenate([w1, c * second_plan.render_time_shares()], axis=1) / (1.0 + c))
         info = {"applied": True, "before": round(factor, 4), "read": worst, "spp_added": extra.tolist(),
                 "weight": round(c, 4), "after": round(over_budget(integrated, timeline, cfg)[0], 4),
                 "seconds": round(time.perf_counter() - start, 3)}

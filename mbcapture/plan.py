@@ -43,6 +43,9 @@ class Plan:
     half_times_s  (J, 2) the times of each stratum's two half-sample renders, drawn independently, each
                   uniform in the stratum (the first is ``times_s``): see :attr:`render_times`.
     bounds_s      (J, 2) each stratum's start and end, s (what :meth:`draw_times` jitters in).
+    mix_times_s, mix_weights  (J, M) after a top-up (:func:`mbcapture.pipeline.top_up`): every time whose
+                  render makes up the stratum's exposure, and its weight in it; None before
+                  (:meth:`exposure_time_mix`).
     weights_s     (J, K, G) seconds of stratum j in which channel k (a bucket, or a coded capture's
                   sub-frame) collects while group g is on.
     groups        the emitter groups rendered (G), in the scene's order.
@@ -81,6 +84,8 @@ class Plan:
     read_names: tuple[str, ...] = ()
     bounds_s: np.ndarray | None = None
     half_times_s: np.ndarray | None = None
+    mix_times_s: np.ndarray | None = None
+    mix_weights: np.ndarray | None = None
 
     @property
     def render_times(self) -> np.ndarray:
@@ -105,6 +110,16 @@ class Plan:
             first = (spp // 2) / spp
             return np.stack([first, 1.0 - first], axis=1)
         return np.stack([np.ones(self.passes), np.zeros(self.passes)], axis=1)
+
+    def exposure_time_mix(self) -> tuple[np.ndarray, np.ndarray]:
+        """((J, M) times, (J, M) weights): the scene times whose renders make up each stratum's exposure,
+        and each one's weight in it (each row sums to 1). What a truth of "what the capture saw"
+        (flash matting's alpha, multi-flash's depth edges) renders at. The two half-sample renders
+        (:attr:`render_times`, :meth:`render_time_shares`), or after a top-up both passes' four,
+        weighted as the top-up combined them."""
+        if self.mix_times_s is not None:
+            return self.mix_times_s, self.mix_weights
+        return self.render_times, self.render_time_shares()
 
     def draw_times(self, rng: np.random.Generator, per_stratum: int = 2, points: int = 1) -> np.ndarray:
         """(J, per_stratum, points) fresh render times, independent of each other and of ``times_s``
@@ -165,6 +180,8 @@ class Plan:
 
     def summary(self, timeline: Timeline) -> dict:
         spp = None if self.spp is None else self.spp
+        # the times each stratum's exposure was rendered at, and their weights (none before the samples are chosen)
+        mix = self.exposure_time_mix() if spp is not None else (self.render_times, [None] * self.passes)
         uniform = spp is not None and int(spp.min()) == int(spp.max())
         return {
             "planner": self.planner,
@@ -195,10 +212,11 @@ class Plan:
                     "start_s": float(timeline.seconds(a)),
                     "end_s": float(timeline.seconds(b)),
                     "render_times_s": [float(x) for x in t],
+                    "render_time_weights": None if wt is None else [round(float(x), 6) for x in wt],
                     "spp": None if spp is None else int(n),
                 }
-                for a, b, t, n in zip(
-                    self.starts_ticks, self.ends_ticks, self.render_times, spp if spp is not None else [None] * self.passes
+                for a, b, t, wt, n in zip(
+                    self.starts_ticks, self.ends_ticks, *mix, spp if spp is not None else [None] * self.passes
                 )
             ],
             "notes": self.notes,

@@ -338,8 +338,10 @@ def _matting_data():
     tl = SimpleNamespace(reads=[ReadEvent("noflash", (2, 3)), ReadEvent("flash", (0, 1))])
     plan = SimpleNamespace(groups=groups, weights_s=np.stack([np.array([[0.0, 0.002], [0.0, 0.0005], [0.0, 0.0], [0.0, 0.0]]),
                                                               np.array([[0.0, 0.001], [0.0, 0.0005], [0.0, 0.0], [0.0, 0.0]])]),
-                           times_s=np.array([0.001, 0.003]), render_times=np.array([[0.001, 0.0015], [0.003, 0.0035]]),
-                           render_time_shares=lambda: np.array([[0.5, 0.5], [0.25, 0.75]]))
+                           times_s=np.array([0.001, 0.003]),
+                           # each stratum's two halves and a top-up's pass (Plan.exposure_time_mix)
+                           exposure_time_mix=lambda: (np.array([[0.001, 0.0015, 0.0012], [0.003, 0.0035, 0.0031]]),
+                                                      np.array([[0.25, 0.25, 0.5], [0.125, 0.375, 0.5]])))
     data = CaptureData(cfg=None, scene=None, timeline=tl, plan=plan, read_names=["noflash", "flash"],
                        exposure_s=np.array([0.004, 0.004]), reads_dn=np.zeros(0), saturated=np.zeros(0),
                        reads_e_expected=np.zeros(0), bucket_exposure=np.zeros(0), k_e=np.ones(3),
@@ -364,7 +366,8 @@ def test_flash_only_truth_is_the_flash_reads_flash_radiance():
 def test_alpha_truth_weights_each_stratum_by_the_flash_reads_flash_time(monkeypatch):
     """The reference matte is the foreground's coverage averaged over the strata with the seconds
     the flash read collected while the flash was on (the plan's weights of its buckets), at each
-    half-sample render's time with its share of the stratum's samples."""
+    time a render of the stratum was made at (both halves, a top-up's too) with its weight in the
+    stratum's exposure."""
     data, _ = _matting_data()
     got = {}
 
@@ -380,8 +383,9 @@ def test_alpha_truth_weights_each_stratum_by_the_flash_reads_flash_time(monkeypa
 
     d = dataclasses.replace(data, cfg=cfg, scene="the scene", renderer=SimpleNamespace(cache="the cache"), seed=seed)
     assert fm.alpha_truth(d, fm.FlashMattingParams(truth_spp=7)) == "coverage"
-    np.testing.assert_allclose(got["weights_s"], [0.00125, 0.00125, 0.0015 * 0.25, 0.0015 * 0.75], rtol=1e-15)
-    np.testing.assert_array_equal(got["times_s"], [0.001, 0.0015, 0.003, 0.0035])
+    np.testing.assert_allclose(got["weights_s"], [0.0025 * 0.25, 0.0025 * 0.25, 0.0025 * 0.5,
+                                                  0.0015 * 0.125, 0.0015 * 0.375, 0.0015 * 0.5], rtol=1e-15)
+    np.testing.assert_array_equal(got["times_s"], [0.001, 0.0015, 0.0012, 0.003, 0.0035, 0.0031])
     assert got["size"] == (4, 3) and got["spp"] == 7 and got["seed"] is seed and got["variant"] == "scalar_rgb"
     assert got["scene"] == "the scene" and got["cache"] == "the cache"
     assert fm.alpha_truth(dataclasses.replace(d, renderer=None), fm.FlashMattingParams()) is None

@@ -218,6 +218,56 @@ def test_the_second_pass_renders_at_times_of_its_own():
     assert np.all(t[:, 0] != t[:, 1])
 
 
+def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
+    """render.top_up's second pass draws a time of its own for each half of each stratum: at the first
+    pass's times it would repeat the first pass's time noise, which combining the passes could then
+    not lower. The plan it returns lists every render's time with its weight in the combined
+    exposure, and on a film that changes in time with no Monte Carlo noise those times and weights
+    rebuild the combined exposure exactly (what flash matting's truth relies on)."""
+    from types import SimpleNamespace
+
+    from mbcapture import pipeline
+    from mbcapture.integrate import integrate
+    from mbcapture.progress import StageStatus
+
+    tl = timeline(periods=16)
+    p = plan(point_scene(100.0), tl, spp=4)
+    mu = {g: 1.0 + i for i, g in enumerate(p.groups)}
+    r = FakeRenderer(p.groups, mu, {g: 0.0 for g in p.groups}, height=2, width=8, slope=1e3)
+    first = integrate(r, p, tl.n_buckets, np.random.SeedSequence(1))
+    times, weights = p.exposure_time_mix()  # before a top-up: the two halves
+    np.testing.assert_array_equal(times, p.render_times)
+    np.testing.assert_array_equal(weights, p.render_time_shares())
+    # the first pass 2x over the budget on J1, whose median ratio reads 0.2 there and 0.1 in the second: c = 2
+    monkeypatch.setattr(pipeline, "over_budget", lambda integrated, timeline, cfg: (2.0, "J1", 0.2))
+    monkeypatch.setattr(pipeline, "_read_figures", lambda *a, **k: {"J1": {"to_shot_noise_variance_median": 0.1}})
+    cfg = SimpleNamespace(render=SimpleNamespace(max_spp=1024))
+    r.calls.clear()
+    topped_plan, topped, info = pipeline.top_up(cfg, r, p, tl, first, np.random.SeedSequence(2), StageStatus(False),
+                                                per_group=False, timer=None, progress=False, why_not=None)
+    assert info["applied"] and info["weight"] == 2.0
+    t2 = np.array([c[0] for c in r.calls]).reshape(p.passes, 2)
+    assert np.all(t2 >= p.bounds_s[:, :1]) and np.all(t2 < p.bounds_s[:, 1:])
+    assert not np.isin(t2, p.render_times).any() and np.all(t2[:, 0] != t2[:, 1])
+    times, weights = topped_plan.exposure_time_mix()
+    np.testing.assert_array_equal(times, np.concatenate([p.render_times, t2], axis=1))
+    # each pass's halves take half its samples: 1/3 of the weight to each first-pass half, 2/3 to each second's
+    np.testing.assert_allclose(weights, np.tile([1 / 6, 1 / 6, 1 / 3, 1 / 3], (p.passes, 1)), rtol=1e-12)
+    ramp = np.linspace(0, 1, 8) * 1e3
+    radiance = np.array([[mu[g] + ramp * t for g in p.groups] for t in times.ravel()]).reshape(*times.shape, -1, 8)
+    expected = np.einsum("jkg,jm,jmgx->kx", p.weights_s, weights, radiance)
+    np.testing.assert_allclose(topped.exposure[:, 0, :, 0], expected, rtol=1e-6)
+    strata = topped_plan.summary(tl)["strata"]
+    assert [len(s["render_times_s"]) for s in strata] == [4] * p.passes
+    assert sum(strata[0]["render_time_weights"]) == pytest.approx(1.0, abs=1e-5)
+    # a stratum with no room under render.max_spp: not applied (the second pass must hold every stratum)
+    cfg.render.max_spp = int(p.spp.max()) + 1
+    same_plan, same, note = pipeline.top_up(cfg, r, p, tl, first, np.random.SeedSequence(2), StageStatus(False),
+                                            per_group=False, timer=None, progress=False, why_not=None)
+    assert same is first and same_plan is p and not note["applied"]
+    assert note["note"] == f"render.max_spp={p.spp.max() + 1} reached in {p.passes} of {p.passes} strata"
+
+
 def test_max_strata_coarsens_and_says_so():
     p = plan(point_scene(500.0), timeline(periods=16), max_strata=8)
     assert p.passes == 8 and p.coarsened and "coarsened" in p.notes[0]

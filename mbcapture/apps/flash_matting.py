@@ -196,11 +196,13 @@ def alpha_truth(data: CaptureData, params: FlashMattingParams) -> np.ndarray | N
     g = data.group_index(params.flash_group)
     buckets = list(data.timeline.reads[_read(data, FLASH_READ)].buckets)
     weights = data.plan.weights_s[:, buckets, g].sum(axis=1)  # (J,) seconds the flash read collected, flash on
-    # at each half-sample render's time, with its share of the stratum's samples: where the capture saw the parts
-    weights = weights[:, None] * data.plan.render_time_shares()
+    # at each render's time (both halves, and a top-up's), with its weight in the stratum's exposure: where
+    # the capture saw the parts
+    times, shares = data.plan.exposure_time_mix()
+    weights = weights[:, None] * shares
     cfg = data.cfg
     seed = data.seed if data.seed is not None else np.random.SeedSequence(cfg.seed)
-    return coverage_alpha(data.scene, data.plan.render_times.ravel(), weights.ravel(), cfg.render.width, cfg.render.height,
+    return coverage_alpha(data.scene, times.ravel(), weights.ravel(), cfg.render.width, cfg.render.height,
                           params.truth_spp, seed, variant=cfg.render.variant,
                           cache=getattr(data.renderer, "cache", None))
 

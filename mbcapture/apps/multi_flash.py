@@ -586,7 +586,9 @@ def _truth(data: CaptureData, params: MultiFlashParams, groups: list[str], with_
     if with_ambient and always_on:  # the flash reads hold the always-on light too
         flash = flash + rad[always_on].sum(axis=0)[None]
     depth_mid = render_depth(renderer, t_mid)
-    times = [t_mid] if params.truth_time == "mid" else sorted(set(float(t) for t in data.plan.render_times.ravel()))
+    # strata_union: every time a render of the capture was made at (both halves, a top-up's pass)
+    times = [t_mid] if params.truth_time == "mid" else \
+        sorted({float(t) for t in data.plan.exposure_time_mix()[0].ravel()})
     edges = np.zeros(depth_mid.z_m.shape, bool)
     for t in times:
         z = depth_mid.z_m if t == t_mid else render_depth(renderer, t).z_m
