@@ -77,3 +77,15 @@ def test_a_row_is_what_mbcapture_run_reports(monkeypatch, capsys):
     assert row["film"] == [16, 12] and row["spp"] == 2 and row["passes"] >= 1
     assert row["wall_s"] > 0 and row["hdr_rel_mse"] > 0 and row["reads_disagreement_moving"] is not None
     assert row["command"] == "mbcapture run configs/metronome_hdr.yaml --quiet --set capture.protocol=interleaved_hdr"
+
+
+def test_a_video_rows_wall_time_is_all_its_frames():
+    """A video's report.json is its first frame's, with every frame's time summed beside it: the table
+    shows the sum (hdr_video's 16 frames read 25 s when it showed the first frame's)."""
+    def run(args):
+        out = Path(args[args.index("--out") + 1])
+        (out / "report.json").write_text(json.dumps({
+            "metrics": {}, "plan": {"passes": 4, "spp": 448}, "film": [160, 128], "versions": {},
+            "timings_s": {"total_before_write": 25.0, "video_total_before_write": 330.0}}))
+
+    assert _script().measure("configs/hdr_video.yaml", [], run=run)["wall_s"] == 330.0
