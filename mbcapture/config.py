@@ -108,7 +108,7 @@ class RenderSection(_Model):
     adaptive: bool = Field(
         False,
         description="With render.spp null: adaptive sampling (off by default: on the default capture at 640x512 it "
-        "brings every read under the median, p95 and tail targets (the longest read's 99.9th percentile from 4.4 "
+        "brings every read under the median, p95 and tail targets (the longest read's 99.9th percentile from 6.0 "
         "to 0.75, measured from two render seeds) and takes 2.3x the time of the run without it; docs/noise.md). After the budgeted "
         "pass, the pixels where any read's estimated Monte Carlo / shot-noise ratio exceeds half of render.noise_budget_tail (and their neighbours) "
         "are rendered again, every stratum, with more samples, and that second pass replaces the first there. "
