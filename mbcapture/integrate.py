@@ -393,8 +393,7 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     points = max(1, min(int(points), int((spp // 2).min())))  # at least one sample at each time
     # times of their own: the first pass's time draws (a moving edge's positions) made its noise too
     rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x71AE)))
-    times = plan.draw_times(rng, points=points) if plan.bounds_s is not None else \
-        plan.render_times[:, :, None]
+    times = plan.draw_times(rng, points=points)
     seeds = render_seeds(plan, seed)[:, :, None] if times.shape[2] == 1 else np.random.default_rng(
         np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5EED))).integers(0, 2**31 - 1, times.shape)
     used = plan.weights_s.sum(axis=1) > 0

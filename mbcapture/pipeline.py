@@ -366,7 +366,7 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         extra = np.minimum(extra, room)
         child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x70F))
         rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x70F, 0x7)))
-        times = plan.draw_times(rng)[:, :, 0] if plan.bounds_s is not None else plan.render_times
+        times = plan.draw_times(rng)[:, :, 0]
         second_plan = replace(plan, spp=extra, times_s=times[:, 0], half_times_s=times)
         second = integrate(renderer, second_plan, timeline.n_channels, child, per_group=per_group,
                            timer=timer, progress=progress, desc="top-up")

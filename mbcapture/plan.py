@@ -123,10 +123,14 @@ class Plan:
 
     def draw_times(self, rng: np.random.Generator, per_stratum: int = 2, points: int = 1) -> np.ndarray:
         """(J, per_stratum, points) fresh render times, independent of each other and of ``times_s``
-        (adaptive sampling's second pass draws its own: see :func:`mbcapture.integrate.refine`). Each
-        of a stratum's ``per_stratum`` draws is ``points`` times, one uniform in each of ``points``
-        equal parts of the stratum (jittered: their mean is an unbiased, stratified estimate of the
-        stratum's mean over time); with ``points`` 1, one time uniform in the stratum."""
+        (the second passes of adaptive sampling and the top-up draw their own:
+        :func:`mbcapture.integrate.refine`, :func:`mbcapture.pipeline.top_up`). Each of a stratum's
+        ``per_stratum`` draws is ``points`` times, one uniform in each of ``points`` equal parts of
+        the stratum (jittered: their mean is an unbiased, stratified estimate of the stratum's mean
+        over time); with ``points`` 1, one time uniform in the stratum. A plan built
+        without stratum bounds (tests) has nothing to draw in: its :attr:`render_times`, one point each."""
+        if self.bounds_s is None:
+            return self.render_times[:, :per_stratum, None]
         start, end = self.bounds_s[:, 0, None, None], self.bounds_s[:, 1, None, None]
         u = (np.arange(points) + rng.random((self.passes, per_stratum, points))) / points
         return np.minimum(start + u * (end - start), np.nextafter(end, start))
