@@ -15,8 +15,9 @@ and p95 with independent samples).
 
 The pilot, at up to ``PILOT_TIMES`` strata: two independent renders at each of ``PILOT_SPP``
 (4 and 16). Each pair is the main render's two-halves estimator at twice the count, and its
-squared difference over 4 that estimator's variance, per pixel; pooled over 3x3 pixels (9
-degrees of freedom; :func:`budget_quantiles` corrects the median for the chi-square spread) and
+squared difference over 4 that estimator's variance, per pixel; pooled over 3x3 pixels (about 9
+degrees of freedom; :func:`budget_quantiles` takes the median of the true ratios behind these noisy
+estimates, :func:`deconvolved_median`) and
 divided by the pilot's expected electrons, this gives each read's ratios at the two counts. With
 randomized quasi-Monte Carlo samplers (``render.sampler``) variance falls faster than 1/spp, so
 the exponent between the two counts is measured (clipped to [1, 2]) and each target's quantile is
@@ -118,20 +119,148 @@ def pooled(v: np.ndarray) -> np.ndarray:
 
 def chi2_median_factor(dof: float) -> float:
     """Median of chi^2_dof / dof (Wilson-Hilferty): how far below the mean the median of noisy
-    variance estimates lies; 0.93 for 9 degrees of freedom."""
+    variance estimates of one uniform variance lies; 0.93 for 9 degrees of freedom."""
     return (1.0 - 2.0 / (9.0 * dof)) ** 3
 
 
-def budget_quantiles(ratio: np.ndarray) -> tuple[float, float]:
+#: Bounds of the effective degrees of freedom :func:`effective_dof` returns.
+DOF_RANGE = (1.0, 4.0 * POOL_PX**2)
+#: Fewer usable checkerboard pairs than this: :func:`effective_dof` returns POOL_PX^2 (Gaussian errors).
+DOF_MIN_PAIRS = 100
+#: :func:`effective_dof` measures bands of this many rows, on at most about this many values.
+DOF_BAND_ROWS = 64
+DOF_MAX_VALUES = 1 << 22
+
+
+def effective_dof(unpooled: np.ndarray, use: np.ndarray) -> float:
+    """The effective degrees of freedom of a POOL_PX x POOL_PX pooled variance estimate, measured on
+    its own data: ``unpooled`` (..., H, W, C) the squared differences before pooling, ``use`` the
+    samples that count (same shape).
+
+    Each pool is split like a checkerboard into its 5 corner-and-centre pixels (A) and its 4 edge
+    pixels (B): two independent estimates of nearly the same variance. Were each squared difference
+    sigma^2 chi^2_1 (Gaussian errors), the mean of n of them is a gamma variable of shape n/2, and
+    Var[log(A/B)] = psi'(5/2) + psi'(4/2). Rendering errors are heavier-tailed than Gaussian (rare
+    bright paths) and neighbouring pixels' variances differ, which both widen it; with excess kurtosis
+    kappa the shape of a mean of n is n/(2 + kappa). Solving for kappa from the measured variance of
+    log(A/B) gives the 9-pixel pool's effective degrees of freedom, 18/(2 + kappa), within
+    :data:`DOF_RANGE`. Measured on the metronome (scripts/render_noise_reads.py --truth): 7.2 at
+    160x128, 7.6 at 320x256, against 9 for Gaussian errors."""
+    from scipy.ndimage import convolve
+    from scipy.optimize import brentq
+    from scipy.special import polygamma
+
+    if POOL_PX != 3:
+        raise NotImplementedError("effective_dof: the checkerboard split is written for 3x3 pools")
+    v = np.asarray(unpooled)
+    use = np.broadcast_to(np.asarray(use, bool), v.shape)
+    odd = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+    shape = [1] * (v.ndim - 3) + [3, 3, 1]
+    H = v.shape[-3]
+    # bands of rows, each split on its own; a large film is measured on every step-th band, so that
+    # this holds a few bands' temporaries rather than the film's
+    step = max(1, int(np.ceil(v.size / DOF_MAX_VALUES)))
+    logs = []
+    for r0 in range(0, H, DOF_BAND_ROWS * step):
+        band = np.asarray(v[..., r0:r0 + DOF_BAND_ROWS, :, :], dtype=np.float64)
+        a = convolve(band, ((1.0 - odd) / 5.0).reshape(shape), mode="nearest")
+        b = convolve(band, (odd / 4.0).reshape(shape), mode="nearest")
+        ok = use[..., r0:r0 + DOF_BAND_ROWS, :, :] & (a > 0.0) & (b > 0.0)
+        logs.append(np.log(a[ok] / b[ok]))
+    ratios = np.concatenate(logs)
+    if ratios.size < DOF_MIN_PAIRS:
+        return float(POOL_PX**2)
+    spread = float(np.var(ratios))
+
+    def excess(kappa: float) -> float:
+        return float(polygamma(1, 5.0 / (2.0 + kappa)) + polygamma(1, 4.0 / (2.0 + kappa))) - spread
+
+    lo, hi = 18.0 / DOF_RANGE[1] - 2.0, 18.0 / DOF_RANGE[0] - 2.0  # kappa at the most and fewest dof
+    if excess(lo) >= 0.0:
+        return DOF_RANGE[1]
+    if excess(hi) <= 0.0:
+        return DOF_RANGE[0]
+    return 18.0 / (2.0 + brentq(excess, lo, hi, xtol=1e-6))
+
+
+#: The log-ratio histogram :func:`deconvolved_median` works on: bins per unit of log, and
+#: Richardson-Lucy iterations.
+DECONV_BINS_PER_UNIT = 10
+DECONV_ITERATIONS = 200
+#: The relative standard deviation of :func:`deconvolved_median` times sqrt(effective count) of its
+#: values (:func:`effective_count`): its scatter, the estimates' own sampling noise included. Measured
+#: on lognormal fields (log sd 1.5) under chi^2_1 noise pooled over 3x3 on a 240x320 film: 2.1-2.3
+#: (16 fields; 2000 and 20000 values drawn from the film), 1.5 on the whole film, 2.9 on adaptive
+#: sampling's audited sample with its weights (20 fields, tests/test_adaptive.py's film); on the
+#: metronome's own runs 0.7-0.8 (12 runs at 320x256, 24 at 160x128). The largest, rounded up.
+DECONV_REL_SD = 3.0
+
+
+def deconvolved_median(ratio: np.ndarray, dof: float, weight: np.ndarray | None = None) -> float:
+    """The median of the true ratios behind noisy pooled estimates ``ratio`` (1-D, >= 0; ``weight``
+    per value, None: 1 each), each the true ratio times an independent chi^2_dof / dof.
+
+    Dividing the estimates' median by :func:`chi2_median_factor` is right only where every estimate
+    has the same true ratio. Over a film the true ratios spread (walls, edges, shadows), and the
+    estimates' distribution is theirs convolved with the noise's, in log space, whose mean lies below
+    its median: measured on the metronome against 12 and 24 independent runs, that division read the
+    median 13-15 % low. This removes the noise's kernel from a histogram of log estimates by
+    Richardson-Lucy iteration (the maximum-likelihood deconvolution for counts) and returns the median
+    of what is left; the estimates at 0 (no variance measured) count below it. Written here: scipy and
+    scikit-image deconvolve images with a shift-invariant kernel, not one histogram with a kernel
+    given by its cumulative distribution."""
+    from scipy.stats import chi2
+
+    r = np.asarray(ratio, dtype=np.float64).ravel()
+    w = np.ones_like(r) if weight is None else np.asarray(weight, dtype=np.float64).ravel()
+    if r.size == 0 or not w.sum() > 0:
+        raise ValueError("deconvolved_median: no values")
+    pos = r > 0.0
+    zero_share = float(w[~pos].sum() / w.sum())
+    if zero_share >= 0.5 or not pos.any():
+        return 0.0
+    lr, wp = np.log(r[pos]), w[pos]
+    # the histogram spans the middle 99.8 % (what lies beyond is put in its end bins: it counts on the
+    # right side of the median, where it lies does not), so its size does not grow with a few outliers
+    lo, hi = (float(x) for x in np.percentile(lr, [0.1, 99.9]))
+    lr = np.clip(lr, lo, hi)
+    step = 1.0 / DECONV_BINS_PER_UNIT
+    # the noise's log reaches far below 0 (chi^2 near 0) and a little above: room on both sides
+    edges = np.arange(lo - 4.0, hi + 2.0 + step, step)
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    idx = np.minimum(((lr - edges[0]) / step).astype(np.int64), centres.size - 1)
+    h = np.bincount(idx, weights=wp, minlength=centres.size)
+    h /= h.sum()
+    # kernel[i, j]: the chance that an estimate falls in bin i when its true ratio is at centre j
+    kernel = np.diff(chi2.cdf(dof * np.exp(edges[:, None] - centres[None, :]), dof), axis=0)
+    g = h.copy()
+    for _ in range(DECONV_ITERATIONS):
+        g *= kernel.T @ (h / np.maximum(kernel @ g, 1e-300))
+        g /= g.sum()
+    cdf = zero_share + (1.0 - zero_share) * np.cumsum(g)
+    return float(np.exp(np.interp(0.5, cdf, edges[1:])))
+
+
+def budget_quantiles(ratio: np.ndarray, dof: float = POOL_PX**2) -> tuple[float, float]:
     """(median, 95th percentile) of per-sample Monte Carlo / shot variance ratios estimated from
-    pooled squared differences: the median is divided by :func:`chi2_median_factor` of the
-    POOL_PX^2 degrees of freedom (unbiased for a uniform ratio); the 95th percentile is left as it
-    is (the estimates' own spread only widens it: conservative)."""
-    return float(np.median(ratio)) / chi2_median_factor(POOL_PX**2), float(np.percentile(ratio, 95))
+    pooled squared differences (``dof``: their effective degrees of freedom, :func:`effective_dof`):
+    the median is :func:`deconvolved_median`'s; the 95th percentile is left as it is (the
+    estimates' own spread only widens it: conservative)."""
+    return deconvolved_median(ratio, dof), float(np.percentile(ratio, 95))
 
 
 #: Coverage of the interval the run states for each of its quantiles (render_error's ``*_interval``).
 INTERVAL_COVERAGE = 0.95
+
+
+def effective_count(n: int, weight: np.ndarray | None = None, design: "np.ndarray | float" = 1.0) -> float:
+    """Kish's effective count of ``n`` values with weights ``weight`` (None: 1 each) and ``design`` d the
+    number of values that share their data: (sum w)^2 / sum(w^2 d)."""
+    d = np.broadcast_to(np.asarray(design, np.float64), (n,))
+    if weight is None:
+        return n**2 / float(d.sum())
+    w = np.asarray(weight, np.float64).ravel()
+    return float(w.sum() ** 2 / (w**2 * d).sum())
 
 
 def quantiles_with_intervals(values: np.ndarray, percents: "list[float]", weight: np.ndarray | None = None,
@@ -153,13 +282,9 @@ def quantiles_with_intervals(values: np.ndarray, percents: "list[float]", weight
     if v.size == 0:
         raise ValueError("quantiles_with_intervals: no values")
     z = float(norm.ppf(0.5 + INTERVAL_COVERAGE / 2))
-    d = np.broadcast_to(np.asarray(design, np.float64), v.shape)
     probs = np.asarray(percents, np.float64) / 100.0
-    if weight is None:
-        n_eff = v.size**2 / d.sum()
-    else:
-        w = np.asarray(weight, np.float64).ravel()
-        n_eff = w.sum() ** 2 / (w**2 * d).sum()
+    n_eff = effective_count(v.size, weight, design)
+    w = None if weight is None else np.asarray(weight, np.float64).ravel()
     se = np.sqrt(probs * (1 - probs) / n_eff)
     wanted = np.clip(np.stack([probs, probs - z * se, probs + z * se], -1), 0.0, 1.0)  # (len(percents), 3)
     if weight is None:  # rank of the inverted CDF: O(n) by partition (a 12 MP film's read is 36 M values)
@@ -194,17 +319,19 @@ def _ladder(x: float) -> int:
 
 
 def _pilot_ratios(diffs: list[np.ndarray], owner: np.ndarray, w: np.ndarray, alpha: np.ndarray,
-                  electrons: np.ndarray, lit: np.ndarray, k: int) -> np.ndarray:
+                  electrons: np.ndarray, lit: np.ndarray, k: int) -> tuple[np.ndarray, float]:
     """Per-sample ratio of bucket k's Monte Carlo variance to its shot noise, for strata rendered
     at alpha_j times the pilot's count, over the lit samples: diffs[p] (G, H, W, C) are one pilot
     time's differences of two independent renders (electrons per second), whose square over 4
-    estimates the variance of their mean; pooled over POOL_PX^2 pixels."""
+    estimates the variance of their mean; pooled over POOL_PX^2 pixels. With the pooled estimates'
+    :func:`effective_dof`."""
     var_k = np.zeros(lit.shape[1:])
     for p, d in enumerate(diffs):
         sel = owner == p
         C = np.einsum("jg,jh->gh", w[sel, k] / alpha[sel, None], w[sel, k])  # (G, G)
-        var_k += pooled(np.einsum("gh,gywc,hywc->ywc", C, d, d, optimize=True)) / 4.0
-    return var_k[lit[k]] / electrons[k][lit[k]]
+        var_k += np.einsum("gh,gywc,hywc->ywc", C, d, d, optimize=True) / 4.0
+    dof = effective_dof(var_k, lit[k])
+    return pooled(var_k)[lit[k]] / electrons[k][lit[k]], dof
 
 
 def choose_spp(
@@ -286,7 +413,7 @@ def choose_spp(
         if not lit[k].any():
             per_read.append(None)
             continue
-        q = {n: budget_quantiles(_pilot_ratios(diffs[s], owner, w, alpha, electrons, lit, k))
+        q = {n: budget_quantiles(*_pilot_ratios(diffs[s], owner, w, alpha, electrons, lit, k))
              for n, s in ((n_lo, PILOT_SPP[0]), (n_hi, PILOT_SPP[-1]))}
         need = []
         for i, target in enumerate((noise_budget, p95_target)):
@@ -348,11 +475,13 @@ TAIL_QUANTILE = 99.9
 
 
 def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
-                     buckets, full_well_e: float, fd_full_well_e: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     buckets, full_well_e: float, fd_full_well_e: float | None,
+                     dof: list[float] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One read's ``(var_e, signal, use)``, each (H, W, C): its Monte Carlo variance in electrons^2 (the
     square of its buckets' summed half-sample differences, pooled over 3x3 pixels), its expected
     electrons, and the samples that count: lit, every bucket below the full well, the sum below the
-    floating diffusion's (``fd_full_well_e``; None: no limit)."""
+    floating diffusion's (``fd_full_well_e``; None: no limit). ``dof``: a list to which the pooled
+    estimate's :func:`effective_dof` on the samples that count is appended (measured before pooling)."""
     # bucket by bucket, in the read's order: the same sums as .sum(axis=0) over a copy of the read's
     # buckets, without the copy (a large film's noise report then holds a read, not its buckets)
     idx = [int(b) for b in buckets]
@@ -364,12 +493,14 @@ def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | Buck
         e = buckets_e[b]
         signal += e
         below &= e < full_well_e
+    fd_full = float("inf") if fd_full_well_e is None else fd_full_well_e
+    use = (signal > 1.0) & below & (signal < fd_full)
     np.square(diff, out=diff)
+    if dof is not None:
+        dof.append(effective_dof(diff, use))
     var_e = pooled(diff)
     del diff
     var_e *= k_e**2
-    fd_full = float("inf") if fd_full_well_e is None else fd_full_well_e
-    use = (signal > 1.0) & below & (signal < fd_full)
     return var_e, signal, use
 
 
@@ -404,8 +535,9 @@ def render_error(
     Per read, over its samples that hold light and whose buckets all stay below the full well (and
     the sum below the floating diffusion's): the ratio of Monte Carlo variance to photon shot-noise
     variance (electrons^2) per sample, from squared half differences pooled over 3x3 pixels
-    (:func:`budget_quantiles` for the median; a single squared difference is a 1-degree-of-freedom
-    chi-square variable), its median, 95th and 99.9th percentiles (the tail: render.noise_budget_tail;
+    (a single squared difference is a 1-degree-of-freedom chi-square variable; the median is
+    :func:`deconvolved_median`'s, with the pooled estimates' :func:`effective_dof`, reported as
+    ``estimate_dof``), its median, 95th and 99.9th percentiles (the tail: render.noise_budget_tail;
     pooled estimates are conservative there, as their own chi-square spread with 9 degrees of freedom
     alone puts the 99.9th percentile of a uniform ratio at 3.1 x its value) and the share of samples
     above 10. Each quantile comes with its :data:`INTERVAL_COVERAGE` interval
@@ -418,9 +550,13 @@ def render_error(
     """
     if mc_diff_exposure is None:
         return {"note": "render.spp = 1: no half-sample error estimate"}
+    from scipy.stats import norm
+
     per_read, factors = {}, {}
     for name, buckets in zip(read_names, reads):
-        var_e, signal, use = read_noise_ratio(mc_diff_exposure, buckets_e, k_e, buckets, full_well_e, fd_full_well_e)
+        dof: list[float] = []
+        var_e, signal, use = read_noise_ratio(mc_diff_exposure, buckets_e, k_e, buckets, full_well_e, fd_full_well_e,
+                                              dof)
         if not use.any():
             continue
         samples = int(use.sum())
@@ -437,8 +573,15 @@ def render_error(
         ratio = var_e / signal
         (median, *median_iv), (p95, *p95_iv), (tail, *tail_iv) = quantiles_with_intervals(
             ratio, [50.0, 95.0, TAIL_QUANTILE], weight, design)
-        factor = chi2_median_factor(POOL_PX**2)  # the median of noisy estimates, unbiased (budget_quantiles)
+        # the median of the true ratios behind the noisy estimates (deconvolved_median); its interval is
+        # the estimates' median's, moved by the same factor
+        true_median = deconvolved_median(ratio, dof[0], weight)
+        factor = median / true_median if median > 0 and true_median > 0 else chi2_median_factor(dof[0])
         median, median_iv = median / factor, [m / factor for m in median_iv]
+        # the deconvolution's own scatter (DECONV_REL_SD), which the order statistics do not hold
+        half = float(norm.ppf(0.5 + INTERVAL_COVERAGE / 2)) * DECONV_REL_SD / np.sqrt(
+            effective_count(ratio.size, weight, design))
+        median_iv = [min(median_iv[0], median * (1.0 - half)), max(median_iv[1], median * (1.0 + half))]
 
         def mean(a: np.ndarray) -> float:  # over the film: weighted after adaptive sampling
             return float(np.average(a, weights=weight))
@@ -454,6 +597,7 @@ def render_error(
             "to_shot_noise_variance_p95_interval": p95_iv,
             "to_shot_noise_variance_p999_interval": tail_iv,
             "share_above_10": mean(ratio > 10.0),
+            "estimate_dof": round(dof[0], 3),
         }
         factors[name] = (max(median / noise_budget, p95 / noise_budget_p95), tail / noise_budget_tail)
     if not per_read:

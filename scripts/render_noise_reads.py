@@ -8,6 +8,11 @@ whether the outside figure falls in the interval each run states for its median,
 
     python scripts/render_noise_reads.py [CONFIG] [--size 640x512] [--set KEY=VALUE ...] [--map tail.png]
 
+``--truth N``: the converged median as well, from N runs (the two and N - 2 more seeds; the samples per
+pixel must be fixed, ``--set render.spp=...``): each sample's variance over the N runs, pooled over 3x3
+pixels (9 (N - 1) degrees of freedom), its median over the samples unsaturated in every run, and each
+estimate (outside and own) over it.
+
 ``--map``: a picture of where the tail lies: the longest read's noise-free image with its samples
 whose rendering noise exceeds 10x (red) and 1x (yellow) their shot noise marked.
 """
@@ -20,7 +25,7 @@ import time
 import numpy as np
 
 from mbcapture import load_config
-from mbcapture.budget import budget_quantiles, pooled
+from mbcapture.budget import budget_quantiles, deconvolved_median, effective_dof, pooled
 from mbcapture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
@@ -32,6 +37,7 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], dest="sets")
     ap.add_argument("--seeds", default="1,2", help="the two run seeds, comma-separated")
     ap.add_argument("--map", default=None, help="PNG of where the longest read's tail lies")
+    ap.add_argument("--truth", type=int, default=0, help="runs for the converged median (0: none; at least 3)")
     args = ap.parse_args()
     w, h = args.size.split("x")
     seeds = [int(s) for s in args.seeds.split(",")]
@@ -56,12 +62,13 @@ def main() -> None:
           f"median / p95 / p99.9 (seed {seeds[0]}, seed {seeds[1]})")
     for i, read in enumerate(runs[0].timeline.reads):
         e1, e2 = (r.reads_expected_e[i] for r in runs)
-        var = pooled((e1 - e2)[None] ** 2 / 2.0)[0]
         mean = (e1 + e2) / 2
         full = np.stack([(r.buckets_e[list(read.buckets)] < cfg.sensor.full_well_e).all(axis=0) for r in runs]).all(0)
         use = (mean > 1.0) & full & (mean < cfg.sensor.fd_full_well_e)
+        squared = (e1 - e2) ** 2 / 2.0
+        var = pooled(squared[None])[0]
         ratio = var[use] / mean[use]
-        med, p95 = budget_quantiles(ratio)
+        med, p95 = budget_quantiles(ratio, effective_dof(squared, use))
         p99, p999 = np.percentile(ratio, [99, 99.9])
         own = [r.report["render_error"].get("reads", {}).get(read.name, {}) for r in runs]
         own_text = ", ".join(f"{o.get('to_shot_noise_variance_median', float('nan')):.3g} / "
@@ -79,6 +86,47 @@ def main() -> None:
         full_ratio = np.where(use, var / np.maximum(mean, 1e-300), 0.0)
     if args.map:
         tail_map(args.map, mean, full_ratio, read.name)
+    if args.truth:
+        converged(args, base, runs)
+
+
+def converged(args, base: list[str], runs: list) -> None:
+    """--truth: the median of each read's ratio from args.truth runs, against the two runs' estimates."""
+    if args.truth < 3:
+        raise SystemExit(f"--truth: at least 3 runs, got {args.truth}")
+    spp = [np.asarray(r.plan.spp) for r in runs]
+    if not any(sv.startswith("render.spp=") and sv != "render.spp=null" for sv in args.sets):
+        raise SystemExit("--truth: fix the samples per pixel (--set render.spp=N): the runs must share them")
+    if not np.array_equal(*spp):
+        raise SystemExit("--truth: the two runs rendered different samples per pixel")
+    seeds = [int(s) for s in args.seeds.split(",")]
+    more = [max(seeds) + 1 + i for i in range(args.truth - 2)]
+    cfg = runs[0].config
+    reads = [r.reads_expected_e for r in runs]
+    full = [np.stack([(r.buckets_e[list(rd.buckets)] < cfg.sensor.full_well_e).all(axis=0)
+                      for rd in runs[0].timeline.reads]) for r in runs]
+    t0 = time.perf_counter()
+    for s in more:
+        r = capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False))
+        reads.append(r.reads_expected_e)
+        full.append(np.stack([(r.buckets_e[list(rd.buckets)] < cfg.sensor.full_well_e).all(axis=0)
+                              for rd in runs[0].timeline.reads]))
+    print(f"converged median from {args.truth} runs (seeds {seeds + more}; {time.perf_counter() - t0:.0f} s for the "
+          f"{len(more)} more): each estimate over it")
+    E = np.stack(reads)  # (N, R, H, W, C)
+    ok = np.stack(full).all(axis=0)
+    for i, read in enumerate(runs[0].timeline.reads):
+        mean = E[:, i].mean(axis=0)
+        use = (mean > 1.0) & ok[i] & (mean < cfg.sensor.fd_full_well_e)
+        ratio = pooled(E[:, i].var(axis=0, ddof=1)[None])[0][use] / mean[use]
+        truth = deconvolved_median(ratio, 9.0 * (args.truth - 1))
+        e1, e2 = E[0, i], E[1, i]
+        pair = (mean > 1.0) & ok[i] & (mean < cfg.sensor.fd_full_well_e)
+        squared = (e1 - e2) ** 2 / 2.0
+        outside = budget_quantiles(pooled(squared[None])[0][pair] / ((e1 + e2) / 2)[pair], effective_dof(squared, pair))[0]
+        own = [r.report["render_error"]["reads"][read.name]["to_shot_noise_variance_median"] for r in runs]
+        print(f"{read.name:6s} converged median {truth:.4g}; outside {outside / truth:.3f} of it, the runs' own "
+              f"{own[0] / truth:.3f} and {own[1] / truth:.3f}")
 
 
 def tail_map(path: str, electrons: np.ndarray, ratio: np.ndarray, name: str) -> None:
