@@ -474,14 +474,13 @@ def resolve_spp(plan: Plan, renderer, cfg, seed: np.random.SeedSequence) -> Plan
 TAIL_QUANTILE = 99.9
 
 
-def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
-                     buckets, full_well_e: float, fd_full_well_e: float | None,
-                     dof: list[float] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One read's ``(var_e, signal, use)``, each (H, W, C): its Monte Carlo variance in electrons^2 (the
-    square of its buckets' summed half-sample differences, pooled over 3x3 pixels), its expected
-    electrons, and the samples that count: lit, every bucket below the full well, the sum below the
-    floating diffusion's (``fd_full_well_e``; None: no limit). ``dof``: a list to which the pooled
-    estimate's :func:`effective_dof` on the samples that count is appended (measured before pooling)."""
+def read_squared_difference(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons",
+                            buckets, full_well_e: float,
+                            fd_full_well_e: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One read's ``(squared, signal, use)``, each (H, W, C): the square of its buckets' summed half-sample
+    differences (exposure units, not pooled), its expected electrons, and the samples that count: lit,
+    every bucket below the full well, the sum below the floating diffusion's (``fd_full_well_e``; None:
+    no limit)."""
     # bucket by bucket, in the read's order: the same sums as .sum(axis=0) over a copy of the read's
     # buckets, without the copy (a large film's noise report then holds a read, not its buckets)
     idx = [int(b) for b in buckets]
@@ -494,12 +493,18 @@ def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | Buck
         signal += e
         below &= e < full_well_e
     fd_full = float("inf") if fd_full_well_e is None else fd_full_well_e
-    use = (signal > 1.0) & below & (signal < fd_full)
     np.square(diff, out=diff)
-    if dof is not None:
-        dof.append(effective_dof(diff, use))
-    var_e = pooled(diff)
-    del diff
+    return diff, signal, (signal > 1.0) & below & (signal < fd_full)
+
+
+def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
+                     buckets, full_well_e: float, fd_full_well_e: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One read's ``(var_e, signal, use)``, each (H, W, C): its Monte Carlo variance in electrons^2 (the
+    square of its buckets' summed half-sample differences, pooled over 3x3 pixels), its expected
+    electrons, and the samples that count (:func:`read_squared_difference`)."""
+    squared, signal, use = read_squared_difference(mc_diff_exposure, buckets_e, buckets, full_well_e, fd_full_well_e)
+    var_e = pooled(squared)
+    del squared
     var_e *= k_e**2
     return var_e, signal, use
 
@@ -554,11 +559,14 @@ def render_error(
 
     per_read, factors = {}, {}
     for name, buckets in zip(read_names, reads):
-        dof: list[float] = []
-        var_e, signal, use = read_noise_ratio(mc_diff_exposure, buckets_e, k_e, buckets, full_well_e, fd_full_well_e,
-                                              dof)
+        squared, signal, use = read_squared_difference(mc_diff_exposure, buckets_e, buckets, full_well_e,
+                                                       fd_full_well_e)
         if not use.any():
             continue
+        dof = effective_dof(squared, use)  # measured before pooling
+        var_e = pooled(squared)
+        del squared
+        var_e *= k_e**2
         samples = int(use.sum())
         channels = use.shape[-1]
         weight, design = None, float(POOL_PX**2 * channels)  # a pooled estimate shares its renders with 3x3 x C
@@ -575,8 +583,8 @@ def render_error(
             ratio, [50.0, 95.0, TAIL_QUANTILE], weight, design)
         # the median of the true ratios behind the noisy estimates (deconvolved_median); its interval is
         # the estimates' median's, moved by the same factor
-        true_median = deconvolved_median(ratio, dof[0], weight)
-        factor = median / true_median if median > 0 and true_median > 0 else chi2_median_factor(dof[0])
+        true_median = deconvolved_median(ratio, dof, weight)
+        factor = median / true_median if median > 0 and true_median > 0 else chi2_median_factor(dof)
         median, median_iv = median / factor, [m / factor for m in median_iv]
         # the deconvolution's own scatter (DECONV_REL_SD), which the order statistics do not hold
         half = float(norm.ppf(0.5 + INTERVAL_COVERAGE / 2)) * DECONV_REL_SD / np.sqrt(
@@ -597,7 +605,7 @@ def render_error(
             "to_shot_noise_variance_p95_interval": p95_iv,
             "to_shot_noise_variance_p999_interval": tail_iv,
             "share_above_10": mean(ratio > 10.0),
-            "estimate_dof": round(dof[0], 3),
+            "estimate_dof": round(dof, 3),
         }
         factors[name] = (max(median / noise_budget, p95 / noise_budget_p95), tail / noise_budget_tail)
     if not per_read:
