@@ -43,6 +43,10 @@ def main() -> None:
     seeds = [int(s) for s in args.seeds.split(",")]
     if len(seeds) != 2:
         raise SystemExit(f"--seeds: two comma-separated run seeds expected, got {args.seeds!r}")
+    if args.truth and args.truth < 3:
+        raise SystemExit(f"--truth: at least 3 runs, got {args.truth}")
+    if args.truth and not any(sv.startswith("render.spp=") and sv != "render.spp=null" for sv in args.sets):
+        raise SystemExit("--truth: fix the samples per pixel (--set render.spp=N): the runs must share them")
     base = [f"render.width={w}", f"render.height={h}", "render.cache=off", "sensor.noise_seed=7", *args.sets]
     runs, seconds = [], []
     for s in seeds:
@@ -92,11 +96,7 @@ def main() -> None:
 
 def converged(args, base: list[str], runs: list) -> None:
     """--truth: the median of each read's ratio from args.truth runs, against the two runs' estimates."""
-    if args.truth < 3:
-        raise SystemExit(f"--truth: at least 3 runs, got {args.truth}")
     spp = [np.asarray(r.plan.spp) for r in runs]
-    if not any(sv.startswith("render.spp=") and sv != "render.spp=null" for sv in args.sets):
-        raise SystemExit("--truth: fix the samples per pixel (--set render.spp=N): the runs must share them")
     if not np.array_equal(*spp):
         raise SystemExit("--truth: the two runs rendered different samples per pixel")
     seeds = [int(s) for s in args.seeds.split(",")]
@@ -120,10 +120,9 @@ def converged(args, base: list[str], runs: list) -> None:
         use = (mean > 1.0) & ok[i] & (mean < cfg.sensor.fd_full_well_e)
         ratio = pooled(E[:, i].var(axis=0, ddof=1)[None])[0][use] / mean[use]
         truth = deconvolved_median(ratio, 9.0 * (args.truth - 1))
-        e1, e2 = E[0, i], E[1, i]
-        pair = (mean > 1.0) & ok[i] & (mean < cfg.sensor.fd_full_well_e)
+        e1, e2 = E[0, i], E[1, i]  # the outside figure of the first two runs, on the samples unsaturated in all
         squared = (e1 - e2) ** 2 / 2.0
-        outside = budget_quantiles(pooled(squared[None])[0][pair] / ((e1 + e2) / 2)[pair], effective_dof(squared, pair))[0]
+        outside = budget_quantiles(pooled(squared[None])[0][use] / ((e1 + e2) / 2)[use], effective_dof(squared, use))[0]
         own = [r.report["render_error"]["reads"][read.name]["to_shot_noise_variance_median"] for r in runs]
         print(f"{read.name:6s} converged median {truth:.4g}; outside {outside / truth:.3f} of it, the runs' own "
               f"{own[0] / truth:.3f} and {own[1] / truth:.3f}")
