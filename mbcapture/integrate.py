@@ -133,9 +133,16 @@ class Integrated:
                           error_sample=self.error_sample)
 
 
-def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray) -> None:
-    """out[k] += sum_g weights_s[k, g] * radiance[g]  (float64; radiance (G, H, W, C))."""
-    out += np.einsum("kg,ghwc->khwc", weights_s, radiance.astype(np.float64, copy=False), optimize=True)
+def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray, scratch: np.ndarray | None = None) -> None:
+    """out[k] += sum_g weights_s[k, g] * radiance[g]  (float64; radiance (G, H, W, C)). ``scratch``: a float64
+    array of ``out``'s shape the sum is made in (None: a new one). :func:`integrate` passes one for the whole
+    capture: a new 30 MB array per render (640x512, 4 buckets) is memory the system must map and zero first,
+    which took about as long as the arithmetic."""
+    K, G = out.shape[0], radiance.shape[0]
+    tmp = np.empty_like(out) if scratch is None else scratch
+    np.matmul(np.asarray(weights_s, np.float64), radiance.reshape(G, -1).astype(np.float64, copy=False),
+              out=tmp.reshape(K, -1))
+    out += tmp
 
 
 def accumulate_groups(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray) -> None:
@@ -183,7 +190,9 @@ def integrate(
     seeds = render_seeds(plan, seed)
     times = plan.render_times
     used = plan.weights_s.sum(axis=1) > 0  # (J, G): groups with weight in each stratum
-    prev = None  # the previous (even) stratum's combined radiance, (G, H, W, C)
+    scratch = np.empty((n_buckets, H, W, C))  # accumulate's sum, made once for every render
+    # the even stratum's combined radiance and the odd one's, (G, H, W, C), made once
+    pair = [np.zeros((G, H, W, C)), np.zeros((G, H, W, C))] if temporal is not None else None
     control = _Control(renderer, plan, seed, stage) if plan.estimator == "difference" else None
     if control is not None and not two:
         raise ValueError("render.estimator 'difference' needs at least 2 samples per pixel per stratum")
@@ -205,19 +214,19 @@ def integrate(
                     else:
                         radiance = control.stratum(float(times[j, h]), h, spp_h, gsel)
                 with stage("accumulate"):
-                    accumulate(w_j * (spp_h / n), radiance, parts[h])
+                    accumulate(w_j * (spp_h / n), radiance, parts[h], scratch)
                     if combined is not None:
                         combined += radiance * (spp_h / n)
             with stage("accumulate"):
                 if groups_out is not None:
                     groups_out[:, gsel] += w_j[:, :, None, None, None] * combined[None]
                 if temporal is not None:
-                    full = np.zeros((G, H, W, C), dtype=np.float64)
+                    full = pair[j % 2]
+                    full.fill(0.0)
                     full[gsel] = combined
-                    if j % 2 == 0:
-                        prev = full
-                    else:  # coarse (pair rendered once, at the even stratum) minus fine
-                        accumulate(plan.weights_s[j], prev - full, temporal)
+                    if j % 2 == 1:  # coarse (pair rendered once, at the even stratum) minus fine
+                        np.subtract(pair[0], full, out=full)
+                        accumulate(plan.weights_s[j], full, temporal, scratch)
             bar.update(1)
     if temporal is not None:
         temporal = temporal.astype(DIFF_DTYPE)
