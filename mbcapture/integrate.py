@@ -139,9 +139,12 @@ def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray, scr
     capture: a new 30 MB array per render (640x512, 4 buckets) is memory the system must map and zero first,
     which took about as long as the arithmetic."""
     K, G = out.shape[0], radiance.shape[0]
+    if G == 0 or out.size == 0:  # no group (or no pixel): nothing to add
+        return
     tmp = np.empty_like(out) if scratch is None else scratch
-    np.matmul(np.asarray(weights_s, np.float64), radiance.reshape(G, -1).astype(np.float64, copy=False),
-              out=tmp.reshape(K, -1))
+    n = out.size // K
+    np.matmul(np.asarray(weights_s, np.float64), radiance.reshape(G, n).astype(np.float64, copy=False),
+              out=tmp.reshape(K, n))
     out += tmp
 
 
