@@ -187,6 +187,9 @@ def effective_dof(unpooled: np.ndarray, use: np.ndarray) -> float:
 #: Richardson-Lucy iterations.
 DECONV_BINS_PER_UNIT = 10
 DECONV_ITERATIONS = 200
+#: :func:`deconvolved_median` bins its estimates this many at a time, and sets its histogram's range
+#: from at most this many of them.
+DECONV_RANGE_VALUES = 1 << 20
 #: The relative standard deviation of :func:`deconvolved_median` times sqrt(effective count) of its
 #: values (:func:`effective_count`): its scatter, the estimates' own sampling noise included. Measured
 #: on lognormal fields (log sd 1.5) under chi^2_1 noise pooled over 3x3 on a 240x320 film: 2.1-2.3
@@ -212,24 +215,29 @@ def deconvolved_median(ratio: np.ndarray, dof: float, weight: np.ndarray | None 
     from scipy.stats import chi2
 
     r = np.asarray(ratio, dtype=np.float64).ravel()
-    w = np.ones_like(r) if weight is None else np.asarray(weight, dtype=np.float64).ravel()
-    if r.size == 0 or not w.sum() > 0:
+    w = None if weight is None else np.asarray(weight, dtype=np.float64).ravel()
+    total = float(r.size if w is None else w.sum())
+    if r.size == 0 or not total > 0:
         raise ValueError("deconvolved_median: no values")
     pos = r > 0.0
-    zero_share = float(w[~pos].sum() / w.sum())
+    zero_share = float((~pos).sum() if w is None else w[~pos].sum()) / total
     if zero_share >= 0.5 or not pos.any():
         return 0.0
-    lr, wp = np.log(r[pos]), w[pos]
-    # the histogram spans the middle 99.8 % (what lies beyond is put in its end bins: it counts on the
-    # right side of the median, where it lies does not), so its size does not grow with a few outliers
-    lo, hi = (float(x) for x in np.percentile(lr, [0.1, 99.9]))
-    lr = np.clip(lr, lo, hi)
+    # the histogram spans the middle 99.8 % of the positive estimates (what lies beyond is put in its end
+    # bins: it counts on the right side of the median, where it lies does not), so its size does not grow
+    # with a few outliers; measured on at most DECONV_RANGE_VALUES of them, evenly strided
+    stride = max(1, -(-r.size // DECONV_RANGE_VALUES))
+    lo, hi = (float(x) for x in np.log(np.percentile(r[::stride][pos[::stride]], [0.1, 99.9])))
     step = 1.0 / DECONV_BINS_PER_UNIT
     # the noise's log reaches far below 0 (chi^2 near 0) and a little above: room on both sides
     edges = np.arange(lo - 4.0, hi + 2.0 + step, step)
     centres = 0.5 * (edges[1:] + edges[:-1])
-    idx = np.minimum(((lr - edges[0]) / step).astype(np.int64), centres.size - 1)
-    h = np.bincount(idx, weights=wp, minlength=centres.size)
+    h = np.zeros(centres.size)
+    for a in range(0, r.size, DECONV_RANGE_VALUES):  # in chunks: a 12 MP read holds 36 M estimates
+        sel = pos[a:a + DECONV_RANGE_VALUES]
+        lr = np.log(np.clip(r[a:a + DECONV_RANGE_VALUES][sel], np.exp(lo), np.exp(hi)))
+        idx = np.clip(((lr - edges[0]) / step).astype(np.int64), 0, centres.size - 1)
+        h += np.bincount(idx, weights=None if w is None else w[a:a + DECONV_RANGE_VALUES][sel], minlength=centres.size)
     h /= h.sum()
     # kernel[i, j]: the chance that an estimate falls in bin i when its true ratio is at centre j
     kernel = np.diff(chi2.cdf(dof * np.exp(edges[:, None] - centres[None, :]), dof), axis=0)
