@@ -137,25 +137,26 @@ def effective_dof(unpooled: np.ndarray, use: np.ndarray) -> float:
     its own data: ``unpooled`` (..., H, W, C) the squared differences before pooling, ``use`` the
     samples that count (same shape).
 
-    Each pool is split like a checkerboard into its 5 corner-and-centre pixels (A) and its 4 edge
-    pixels (B): two independent estimates of nearly the same variance. Were each squared difference
-    sigma^2 chi^2_1 (Gaussian errors), the mean of n of them is a gamma variable of shape n/2, and
-    Var[log(A/B)] = psi'(5/2) + psi'(4/2). Rendering errors are heavier-tailed than Gaussian (rare
-    bright paths) and neighbouring pixels' variances differ, which both widen it; with excess kurtosis
-    kappa the shape of a mean of n is n/(2 + kappa). Solving for kappa from the measured variance of
-    log(A/B) gives the 9-pixel pool's effective degrees of freedom, 18/(2 + kappa), within
-    :data:`DOF_RANGE`. Measured on the metronome (scripts/render_noise_reads.py --truth): 7.2 at
-    160x128, 7.6 at 320x256, against 9 for Gaussian errors."""
+    Each pool is split like a checkerboard into its cells of even and odd parity (for 3x3: the centre
+    and corners, 5, against the edges, 4): two independent estimates A and B of nearly the same
+    variance. Were each squared difference sigma^2 chi^2_1 (Gaussian errors), the mean of n of them is
+    a gamma variable of shape n/2, and Var[log(A/B)] = psi'(n_A/2) + psi'(n_B/2). Rendering errors are
+    heavier-tailed than Gaussian (rare bright paths) and neighbouring pixels' variances differ, which
+    both widen it; with excess kurtosis kappa the shape of a mean of n is n/(2 + kappa). Solving for
+    kappa from the measured variance of log(A/B) gives the whole pool's effective degrees of freedom,
+    2 POOL_PX^2/(2 + kappa), within :data:`DOF_RANGE`. Measured on the metronome
+    (scripts/render_noise_reads.py --truth): 7.2 at 160x128, 7.6 at 320x256, against 9 for Gaussian
+    errors."""
     from scipy.ndimage import convolve
     from scipy.optimize import brentq
     from scipy.special import polygamma
 
-    if POOL_PX != 3:
-        raise NotImplementedError("effective_dof: the checkerboard split is written for 3x3 pools")
     v = np.asarray(unpooled)
     use = np.broadcast_to(np.asarray(use, bool), v.shape)
-    odd = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
-    shape = [1] * (v.ndim - 3) + [3, 3, 1]
+    odd = (np.add.outer(np.arange(POOL_PX), np.arange(POOL_PX)) % 2).astype(np.float64)
+    n_even, n_odd = float((1.0 - odd).sum()), float(odd.sum())
+    n_pool = float(POOL_PX**2)
+    shape = [1] * (v.ndim - 3) + [POOL_PX, POOL_PX, 1]
     H = v.shape[-3]
     # bands of rows, each split on its own; a large film is measured on every step-th band, so that
     # this holds a few bands' temporaries rather than the film's
@@ -163,24 +164,25 @@ def effective_dof(unpooled: np.ndarray, use: np.ndarray) -> float:
     logs = []
     for r0 in range(0, H, DOF_BAND_ROWS * step):
         band = np.asarray(v[..., r0:r0 + DOF_BAND_ROWS, :, :], dtype=np.float64)
-        a = convolve(band, ((1.0 - odd) / 5.0).reshape(shape), mode="nearest")
-        b = convolve(band, (odd / 4.0).reshape(shape), mode="nearest")
+        a = convolve(band, ((1.0 - odd) / n_even).reshape(shape), mode="nearest")
+        b = convolve(band, (odd / n_odd).reshape(shape), mode="nearest")
         ok = use[..., r0:r0 + DOF_BAND_ROWS, :, :] & (a > 0.0) & (b > 0.0)
         logs.append(np.log(a[ok] / b[ok]))
     ratios = np.concatenate(logs)
     if ratios.size < DOF_MIN_PAIRS:
-        return float(POOL_PX**2)
+        return n_pool
     spread = float(np.var(ratios))
 
     def excess(kappa: float) -> float:
-        return float(polygamma(1, 5.0 / (2.0 + kappa)) + polygamma(1, 4.0 / (2.0 + kappa))) - spread
+        return float(polygamma(1, n_even / (2.0 + kappa)) + polygamma(1, n_odd / (2.0 + kappa))) - spread
 
-    lo, hi = 18.0 / DOF_RANGE[1] - 2.0, 18.0 / DOF_RANGE[0] - 2.0  # kappa at the most and fewest dof
+    # kappa at the most and the fewest degrees of freedom
+    lo, hi = 2.0 * n_pool / DOF_RANGE[1] - 2.0, 2.0 * n_pool / DOF_RANGE[0] - 2.0
     if excess(lo) >= 0.0:
         return DOF_RANGE[1]
     if excess(hi) <= 0.0:
         return DOF_RANGE[0]
-    return 18.0 / (2.0 + brentq(excess, lo, hi, xtol=1e-6))
+    return 2.0 * n_pool / (2.0 + brentq(excess, lo, hi, xtol=1e-6))
 
 
 #: The log-ratio histogram :func:`deconvolved_median` works on: bins per unit of log, and
@@ -261,6 +263,13 @@ def budget_quantiles(ratio: np.ndarray, dof: float = POOL_PX**2) -> tuple[float,
 INTERVAL_COVERAGE = 0.95
 
 
+def interval_z() -> float:
+    """The standard normal quantile of :data:`INTERVAL_COVERAGE`'s two-sided interval (1.96 for 95 %)."""
+    from scipy.stats import norm
+
+    return float(norm.ppf(0.5 + INTERVAL_COVERAGE / 2))
+
+
 def effective_count(n: int, weight: np.ndarray | None = None, design: "np.ndarray | float" = 1.0) -> float:
     """Kish's effective count of ``n`` values with weights ``weight`` (None: 1 each) and ``design`` d the
     number of values that share their data: (sum w)^2 / sum(w^2 d)."""
@@ -284,12 +293,10 @@ def quantiles_with_intervals(values: np.ndarray, percents: "list[float]", weight
     covers: the quantile's uncertainty over a finite set of noisy estimates, which an outside
     measurement with the same estimator (3x3 pooled squared differences) shares in kind. A high end
     at p + z se >= 1 is the largest value (the interval is then open above)."""
-    from scipy.stats import norm
-
     v = np.asarray(values, np.float64).ravel()
     if v.size == 0:
         raise ValueError("quantiles_with_intervals: no values")
-    z = float(norm.ppf(0.5 + INTERVAL_COVERAGE / 2))
+    z = interval_z()
     probs = np.asarray(percents, np.float64) / 100.0
     n_eff = effective_count(v.size, weight, design)
     w = None if weight is None else np.asarray(weight, np.float64).ravel()
@@ -563,7 +570,6 @@ def render_error(
     """
     if mc_diff_exposure is None:
         return {"note": "render.spp = 1: no half-sample error estimate"}
-    from scipy.stats import norm
 
     per_read, factors = {}, {}
     for name, buckets in zip(read_names, reads):
@@ -595,7 +601,7 @@ def render_error(
         factor = median / true_median if median > 0 and true_median > 0 else chi2_median_factor(dof)
         median, median_iv = median / factor, [m / factor for m in median_iv]
         # the deconvolution's own scatter (DECONV_REL_SD), which the order statistics do not hold
-        half = float(norm.ppf(0.5 + INTERVAL_COVERAGE / 2)) * DECONV_REL_SD / np.sqrt(
+        half = interval_z() * DECONV_REL_SD / np.sqrt(
             effective_count(ratio.size, weight, design))
         median_iv = [min(median_iv[0], median * (1.0 - half)), max(median_iv[1], median * (1.0 + half))]
 
