@@ -206,26 +206,20 @@ def test_invert_discrete_finds_the_quantile_from_any_start(offset):
     by n, starts beyond n clipped). Against scipy's ppf, u including a relative 1e-9 either side of
     every CDF step. The samplers themselves start within a count or two, so only this exercises
     the long walks."""
-    from mbcapture.sensor.sampling import invert_discrete
+    from mbcapture.sensor.sampling import DiscreteLaw, invert_discrete
 
     rng = np.random.default_rng(abs(offset) + 100)
     for lam in (0.7, 30.0, 5000.0):
         ks = np.arange(0, int(lam + 10 * np.sqrt(lam)) + 10)
         u = _u_with_steps(stats.poisson.cdf(ks, lam), rng, 300)
         want = stats.poisson.ppf(u, lam)
-        lm = np.full(u.size, lam)
-        got = invert_discrete(u, np.maximum(want + offset, 0.0), cdf=lambda k, i: special.pdtr(k, lm[i]),
-                              sf=lambda k, i: special.pdtrc(k, lm[i]), pmf=lambda k, i: poisson_pmf(k, lm[i]),
-                              ratio_up=lambda k, i: lm[i] / (k + 1.0))
+        got = invert_discrete(u, np.maximum(want + offset, 0.0), DiscreteLaw("poisson", np.full(u.size, lam)))
         np.testing.assert_array_equal(got, want, err_msg=f"Poisson {lam}, start offset {offset}")
     for n, p in ((12, 0.4), (2000, 0.03)):
         ks = np.arange(0, n + 1)
         u = _u_with_steps(stats.binom.cdf(ks, n, p), rng, 300)
         want = stats.binom.ppf(u, n, p)
-        nn = np.full(u.size, float(n))
-        got = invert_discrete(u, np.maximum(want + offset, 0.0), cdf=lambda k, i: special.bdtr(k, n, p),
-                              sf=lambda k, i: special.bdtrc(k, n, p), pmf=lambda k, i: stats.binom.pmf(k, n, p),
-                              ratio_up=lambda k, i: np.maximum(nn[i] - k, 0.0) / (k + 1.0) * p / (1 - p), upper=nn)
+        got = invert_discrete(u, np.maximum(want + offset, 0.0), DiscreteLaw("binomial", np.full(u.size, float(n)), p))
         np.testing.assert_array_equal(got, want, err_msg=f"binomial {n}, {p}, start offset {offset}")
 
 
@@ -300,3 +294,18 @@ def test_the_inversions_threads_change_nothing_but_time(monkeypatch):
             assert np.array_equal(sampling.poisson_quantile(u, mean), whole)
     finally:
         sampling.set_threads(None)
+
+
+def test_normal_runs_are_the_fields_leading_slices_bit_for_bit():
+    """NoiseStreams.normal_runs yields normal(stage, shape, rows)[i] for each i in order (the whole
+    field's values, drawn one slice at a time into one array), for the whole film and for a band."""
+    shape = (3, 20, 7, 3)
+    whole = NoiseStreams(9).normal("read", shape)
+    runs = [r.copy() for r in NoiseStreams(9).normal_runs("read", shape)]
+    assert len(runs) == 3
+    np.testing.assert_array_equal(np.stack(runs), whole)
+    streams = NoiseStreams(9)
+    for r0, r1 in ((0, 6), (6, 20)):  # bands in order, as a tiled capture asks
+        band = np.stack([r.copy() for r in streams.normal_runs("read", shape, (r0, r1))])
+        np.testing.assert_array_equal(band, whole[:, r0:r1])
+    assert not np.array_equal(np.stack(runs), NoiseStreams(10).normal("read", shape))

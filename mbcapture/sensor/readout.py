@@ -238,7 +238,7 @@ def simulate_reads(
     def simulate(e: np.ndarray) -> SensorReads:
         """This call's sensor (its noise fields, storage times and reads) on the input ``e``."""
         e = np.asarray(e, dtype=np.float64)
-        if e.shape != expected.shape or not np.all(np.isfinite(e)) or np.any(e < 0):
+        if e is not expected and (e.shape != expected.shape or not np.all(np.isfinite(e)) or np.any(e < 0)):
             raise ValueError(f"sensor stage input: expected finite electrons >= 0 of shape {expected.shape}")
         photosites = _photosites(e, read_sets, cfg, streams, storage, shared_photodiode, film)
         return develop_reads(photosites, cfg) if develop else photosites
@@ -361,24 +361,32 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
         draw = streams.uniform if kind == "uniform" else streams.normal
         return draw(stage, shape) if film is None else draw(stage, *film.field(shape))
 
+    def normal_runs(stage: str, shape: tuple[int, ...]) -> Iterator[np.ndarray]:  # field("normal", ...)[i], in turn
+        return streams.normal_runs(stage, shape) if film is None else streams.normal_runs(stage, *film.field(shape))
+
     fpn = fixed_pattern(expected.shape[1:], cfg) if film is None else \
         fixed_pattern((film.height, *expected.shape[2:]), cfg, (film.r0, film.r0 + expected.shape[1]), streams)
-    photo_e = expected * fpn.prnu_gain
+    # arrays of the film's size are made once and then worked in place: a fresh array costs its page
+    # faults, more than the arithmetic (numpy asks the kernel for huge pages, which it may compact for)
+    mean_e = expected * fpn.prnu_gain
     if shared_photodiode and cfg.parasitic_light > 0.0:
-        others_e = photo_e.sum(axis=0, keepdims=True) - photo_e
-        photo_e = photo_e + cfg.parasitic_light * others_e
-    mean_e = photo_e
+        others_e = mean_e.sum(axis=0, keepdims=True) - mean_e
+        others_e *= cfg.parasitic_light
+        mean_e += others_e
+        del others_e
     if storage is not None:
-        mean_e = mean_e + (cfg.dark_current_e_per_s * storage)[:, None, None, None]
+        mean_e += (cfg.dark_current_e_per_s * storage)[:, None, None, None]
 
     # remembered: a sweep's points that differ only after this draw (read noise, full wells, ADC) reuse it
     electrons = poisson_quantile_memo(field("uniform", "shot", mean_e.shape), mean_e)
+    del mean_e
     bucket_saturated = electrons >= cfg.full_well_e
     np.minimum(electrons, cfg.full_well_e, out=electrons)
 
     if cfg.transfer_inefficiency > 0.0:
         lost = binomial_quantile(field("uniform", "transfer", electrons.shape), electrons, cfg.transfer_inefficiency)
         transferred = electrons - lost
+        del lost
     else:
         transferred = electrons
 
@@ -388,23 +396,30 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
     reads_e_expected = np.empty(shape, dtype=np.float64)
     saturated = np.empty(shape, dtype=bool)
     adc_max = float(cfg.adc_max_dn)
-    read_noise = field("normal", "read", shape)
+    read_noise = normal_runs("read", shape)
     # temporal row noise: one offset per row and read, shared by the row's pixels and channels
     row_noise = cfg.read_noise_row_e * field("normal", "row", (n_reads, shape[1], 1, 1)) \
         if cfg.read_noise_row_e > 0.0 else None
+    signal_e, scratch = np.empty(shape[1:]), np.empty(shape[1:])
     for r, buckets in enumerate(read_sets):
         idx = list(buckets)
-        fd_e = transferred[idx].sum(axis=0)
-        sat = bucket_saturated[idx].any(axis=0) | (fd_e >= cfg.fd_full_well_e)
-        np.minimum(fd_e, cfg.fd_full_well_e, out=fd_e)
-        signal_e = fd_e + fpn.dsnu_offset_e + cfg.read_noise_e * read_noise[r]
+        _sum_buckets(transferred, idx, out=signal_e)  # the floating diffusion's charge
+        sat = saturated[r]
+        _any_buckets(bucket_saturated, idx, out=sat)
+        sat |= signal_e >= cfg.fd_full_well_e
+        np.minimum(signal_e, cfg.fd_full_well_e, out=signal_e)
+        signal_e += fpn.dsnu_offset_e
+        np.multiply(next(read_noise), cfg.read_noise_e, out=scratch)
+        signal_e += scratch
         if row_noise is not None:
             signal_e += row_noise[r]
-        dn = np.rint(cfg.gain_dn_per_e * signal_e + cfg.black_level_dn)
+        dn = signal_e  # in DN from here
+        dn *= cfg.gain_dn_per_e
+        dn += cfg.black_level_dn
+        np.rint(dn, out=dn)
         sat |= dn >= adc_max
-        reads_dn[r] = np.clip(dn, 0.0, adc_max)
-        reads_e_expected[r] = expected[idx].sum(axis=0)
-        saturated[r] = sat
+        np.clip(dn, 0.0, adc_max, out=reads_dn[r])
+        _sum_buckets(expected, idx, out=reads_e_expected[r])
 
     return SensorReads(
         electrons=electrons,
@@ -414,6 +429,23 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
         bucket_saturated=bucket_saturated,
         reads=read_sets,
     )
+
+
+def _sum_buckets(a: np.ndarray, idx: list[int], out: np.ndarray) -> np.ndarray:
+    """``a[idx].sum(axis=0)`` into ``out``, bucket after bucket (the order numpy sums a leading
+    axis in, so the same bits), without the copy ``a[idx]``."""
+    np.copyto(out, a[idx[0]])
+    for i in idx[1:]:
+        out += a[i]
+    return out
+
+
+def _any_buckets(a: np.ndarray, idx: list[int], out: np.ndarray) -> np.ndarray:
+    """``a[idx].any(axis=0)`` into ``out``, without the copy ``a[idx]``."""
+    np.copyto(out, a[idx[0]])
+    for i in idx[1:]:
+        out |= a[i]
+    return out
 
 
 def dn_to_electrons(reads_dn: np.ndarray, cfg: SensorConfig) -> np.ndarray:

@@ -19,9 +19,13 @@ answer wherever the mean exceeds a few), evaluate the exact CDF once at k0 with 
 regularized incomplete gamma / beta functions (the lower tail P(X <= k0) when u <= 1/2, the
 upper tail P(X > k0) against 1 - u, which is exact in float64, when u > 1/2, so neither tail
 loses digits), and step k up or down by the pmf recurrence (pmf(k+1) = pmf(k) * ratio) until
-k is the smallest count with F(k) >= u. Each lane needs one CDF and one pmf evaluation and a
-step or two; measured: 3.9 M Poisson draws with means up to ~1e4 in about 1 s (numpy's
-rejection sampler: 0.14 s).
+k is the smallest count with F(k) >= u. Each lane needs one CDF and one pmf evaluation; the start
+is the answer in all but about one lane in a thousand (the default capture's: 4595 of 3.9 M), and
+only those walk. Measured on the default
+capture's 3.9 M bucket samples at 640x512 (means up to 1.4e7, median 1.6e3): 0.78 s on one core,
+0.5 s of it scipy's incomplete gamma (the tails), 0.38 s on this 2-core VM's two threads; numpy's
+rejection sampler takes 0.14 s. The tails are evaluated with the ufuncs' ``where=`` on all lanes at
+once: selecting each tail's lanes by fancy indexing first cost a quarter as much again.
 
 Streams: :class:`NoiseStreams` spawns one child seed per named stage (``shot``,
 ``transfer``, ``read``) from the capture's sensor seed, so turning one noise source on or off
@@ -44,12 +48,13 @@ import hashlib
 import os
 import threading
 from collections import OrderedDict
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, Iterator
 
 import numpy as np
 from scipy import special
 
-__all__ = ["BandedField", "NoiseStreams", "binomial_quantile", "invert_discrete", "poisson_pmf", "poisson_quantile",
+__all__ = ["BandedField", "DiscreteLaw", "NoiseStreams", "binomial_quantile", "invert_discrete", "poisson_pmf", "poisson_quantile",
            "poisson_quantile_memo", "uniform_open"]
 
 #: Above this mean a Poisson count is no longer an exact float64 integer: the draw is the rounded
@@ -107,16 +112,23 @@ class BandedField:
 
     def rows(self, r0: int, r1: int) -> np.ndarray:
         """float64 (leading, r1 - r0, ...): rows r0:r1 of the field."""
+        if not 0 <= r0 < r1 <= self.shape[1]:
+            raise ValueError(f"BandedField rows: expected 0 <= r0 < r1 <= {self.shape[1]}, got {r0}, {r1}")
+        out = np.empty((self.shape[0], r1 - r0, *self.shape[2:]))
+        for a in range(self.shape[0]):
+            self.run(a, r0, r1, out[a])
+        return out
+
+    def run(self, a: int, r0: int, r1: int, out: np.ndarray) -> np.ndarray:
+        """``out`` (r1 - r0, ...) filled with rows r0:r1 of leading index ``a`` of the field (``rows(r0, r1)[a]``)."""
         lead, H = self.shape[:2]
-        if not 0 <= r0 < r1 <= H:
-            raise ValueError(f"BandedField rows: expected 0 <= r0 < r1 <= {H}, got {r0}, {r1}")
+        if not 0 <= r0 < r1 <= H or not 0 <= a < lead:
+            raise ValueError(f"BandedField run: expected 0 <= a < {lead} and rows 0 <= r0 < r1 <= {H}, got {a}, {r0}, {r1}")
         row = int(np.prod(self.shape[2:], dtype=np.int64))
-        out = np.empty((lead, r1 - r0, *self.shape[2:]))
-        for a in range(lead):
-            start, n = (a * H + r0) * row, (r1 - r0) * row
-            g = self._at(start)
-            out[a] = self._draw(g, n).reshape(out.shape[1:])
-            self._marks[start + n] = g.bit_generator.state
+        start, n = (a * H + r0) * row, (r1 - r0) * row
+        g = self._at(start)
+        out[...] = self._draw(g, n).reshape(out.shape)
+        self._marks[start + n] = g.bit_generator.state
         return out
 
 
@@ -170,6 +182,22 @@ class NoiseStreams:
             return self._rng(stage).standard_normal(shape)
         return self.banded(("stage", stage), self._seed(stage), shape, "normal").rows(*rows)
 
+    def normal_runs(self, stage: str, shape: tuple[int, ...], rows: tuple[int, int] | None = None) -> Iterator[np.ndarray]:
+        """:meth:`normal`'s field one leading index at a time, ``normal(stage, shape, rows)[i]`` for i in
+        order, each drawn into the same array (valid until the next): the field's values without the
+        whole field's memory, which is new memory the system must map and zero first (a 640x512
+        capture's read noise: 31 MB, which took longer than the draw)."""
+        out = np.empty(shape[1:] if rows is None else (rows[1] - rows[0], *shape[2:]))
+        if rows is None:  # a normal is one or more 64-bit outputs, nothing buffered: draws continue the stream
+            g = self._rng(stage)
+            for _ in range(shape[0]):
+                g.standard_normal(out=out)
+                yield out
+            return
+        field = self.banded(("stage", stage), self._seed(stage), shape, "normal")
+        for a in range(shape[0]):
+            yield field.run(a, *rows, out)
+
 
 def _cornish_fisher(z: np.ndarray, mean: np.ndarray, var: np.ndarray, skew: np.ndarray,
                     exkurt: np.ndarray) -> np.ndarray:
@@ -192,65 +220,112 @@ def _start(z: np.ndarray, mean: np.ndarray, var: np.ndarray, skew: np.ndarray, e
     return np.maximum(np.ceil(x - 0.5), 0.0)
 
 
-def invert_discrete(
-    u: np.ndarray,
-    k0: np.ndarray,
-    cdf: Callable[[np.ndarray, np.ndarray], np.ndarray],
-    sf: Callable[[np.ndarray, np.ndarray], np.ndarray],
-    pmf: Callable[[np.ndarray, np.ndarray], np.ndarray],
-    ratio_up: Callable[[np.ndarray, np.ndarray], np.ndarray],
-    upper: np.ndarray | None = None,
-    max_steps: int = 100_000,
-) -> np.ndarray:
-    """min{k in [0, upper] : F(k) >= u} for every lane, walking from the integer start ``k0``.
+@dataclass(frozen=True)
+class DiscreteLaw:
+    """The law of each lane of :func:`invert_discrete`: Poisson(``param``) (``p`` unused) or
+    Binomial(``param``, ``p``), ``param`` 1-D (one mean or number of trials per lane).
 
-    ``u`` (in (0, 1)), ``k0`` and ``upper`` (None: unbounded) are 1-D of one length; each
-    callable takes (k, lane indices) and returns, at those lanes, the law's CDF P(X <= k),
-    survival function P(X > k), pmf P(X = k) and pmf(k+1) / pmf(k). Lanes with u <= 1/2
-    compare the CDF with u; the others compare the survival function with 1 - u (exact in
-    float64 for u > 1/2), so neither tail loses digits. A walk of more than one step adds pmf
-    terms of very different size (a poor start in a far tail), so its lanes are walked again
-    from where they stopped, with the tail evaluated afresh, until no lane moves more than one
-    step: the final decision always rests on an exact tail value and at most one pmf term.
-    Returns float64 integer counts.
+    Its exact tails and pmf are scipy's and :func:`poisson_pmf` (evaluated at the walks' starts
+    only); the walk between them steps the pmf by its recurrence pmf(k+1) = pmf(k) * ratio(k), with
+    ratio(k) = mean / (k + 1), or max(n - k, 0) / (k + 1) * p / (1 - p) bounded by k <= n. Each method
+    takes the lanes it works on: an index array, or ``slice(None)`` for all of them (no copies)."""
+
+    kind: str
+    param: np.ndarray
+    p: float = 0.0
+
+    def __post_init__(self):
+        if self.kind not in ("poisson", "binomial"):
+            raise ValueError(f"DiscreteLaw kind: expected 'poisson' or 'binomial', got {self.kind!r}")
+
+    @property
+    def binomial(self) -> bool:
+        return self.kind == "binomial"
+
+    def tail_gap(self, k: np.ndarray, u: np.ndarray, lanes: np.ndarray | slice) -> np.ndarray:
+        """t(k) at ``lanes``: P(X <= k) - u where u <= 1/2, (1 - u) - P(X > k) elsewhere (exact in
+        float64 for u > 1/2, so neither tail loses digits). Both rise with k by pmf(k + 1); the
+        quantile is the smallest k with t(k) >= 0."""
+        a = self.param[lanes]
+        lo = u <= 0.5
+        t = np.empty(u.size)
+        if self.binomial:  # scipy's binomial tails take integer trials
+            n = a.astype(np.int64)
+            special.bdtr(k, n, self.p, out=t, where=lo)
+            special.bdtrc(k, n, self.p, out=t, where=~lo)
+        else:
+            special.pdtr(k, a, out=t, where=lo)
+            special.pdtrc(k, a, out=t, where=~lo)
+        np.subtract(t, u, out=t, where=lo)
+        np.subtract(1.0 - u, t, out=t, where=~lo)
+        return t
+
+    def upper(self, lanes: np.ndarray | slice) -> np.ndarray | None:
+        """The largest count at ``lanes``: the binomial's n; None (unbounded) for Poisson."""
+        return self.param[lanes] if self.binomial else None
+
+    def ratio_up(self, k: np.ndarray, lanes: np.ndarray | slice) -> np.ndarray:
+        """pmf(k + 1) / pmf(k) at ``lanes``."""
+        if self.binomial:
+            return np.maximum(self.param[lanes] - k, 0.0) / (k + 1.0) * (self.p / (1.0 - self.p))
+        return self.param[lanes] / (k + 1.0)
+
+    def pmf(self, k: np.ndarray, lanes: np.ndarray | slice) -> np.ndarray:
+        """P(X = k) at ``lanes``."""
+        if self.binomial:
+            # here, not at the top: scipy.stats takes 1.1 s to import, a third of the command line's start
+            # (`mbcapture --help`), and only this pmf needs it
+            from scipy import stats
+            return stats.binom.pmf(k, self.param[lanes], self.p)
+        return poisson_pmf(k, self.param[lanes])
+
+
+def invert_discrete(u: np.ndarray, k0: np.ndarray, law: DiscreteLaw, max_steps: int = 100_000) -> np.ndarray:
+    """min{k in [0, upper] : F(k) >= u} for every lane, walking from the integer start ``k0``
+    (upper: the binomial's n; unbounded for Poisson).
+
+    ``u`` (in (0, 1)) and ``k0`` are 1-D of the law's length. The tail is evaluated exactly at the
+    start (:meth:`DiscreteLaw.tail_gap`) and the walk adds or removes pmf terms from there. A walk
+    of more than one step adds pmf terms of very different size (a poor start in a far tail), so
+    its lanes are walked again from where they stopped, with the tail evaluated afresh, until no
+    lane moves more than one step: the final decision always rests on an exact tail value and at
+    most one pmf term. Returns float64 integer counts.
     """
-    k = _walk(u, k0, cdf, sf, pmf, ratio_up, upper, max_steps)
+    k = _walk(u, k0, law, slice(None), max_steps)
     moved = np.flatnonzero(np.abs(k - k0) > 1.0)
     for _ in range(64):
         if moved.size == 0:
             return k
-        sub = lambda f: (lambda kk, i: f(kk, moved[i]))  # noqa: E731  (lane indices of the subset)
-        again = _walk(u[moved], k[moved], sub(cdf), sub(sf), sub(pmf), sub(ratio_up),
-                      None if upper is None else upper[moved], max_steps)
+        again = _walk(u[moved], k[moved], law, moved, max_steps)
         still = np.abs(again - k[moved]) > 1.0
         k[moved] = again
         moved = moved[still]
     raise RuntimeError("invert_discrete: walks do not settle")
 
 
-def _walk(u, k0, cdf, sf, pmf, ratio_up, upper, max_steps) -> np.ndarray:
-    """One walk of :func:`invert_discrete` from ``k0``, with the tail evaluated exactly at k0 only."""
-    lanes = np.arange(u.size)
+def _walk(u: np.ndarray, k0: np.ndarray, law: DiscreteLaw, lanes: np.ndarray | slice, max_steps: int) -> np.ndarray:
+    """One walk of :func:`invert_discrete` from ``k0`` at the law's ``lanes``, with the tail evaluated
+    exactly at k0 only. The samplers' starts are the answer in all but about one lane in a thousand,
+    so the walks below run on those few: the whole-array work is the tail, the pmf and one comparison."""
+    upper = law.upper(lanes)
     k = np.maximum(k0, 0.0) if upper is None else np.clip(k0, 0.0, upper)
-    lo = u <= 0.5
-    # t(k) = +P(X <= k) - u on lower lanes, -(P(X > k) - (1 - u)) on upper lanes: both rise
-    # with k by pmf(k+1), and the answer is the smallest k with t(k) >= 0
-    t = np.empty(u.size)
-    t[lo] = cdf(k[lo], lanes[lo]) - u[lo]
-    t[~lo] = (1.0 - u[~lo]) - sf(k[~lo], lanes[~lo])
-    p = pmf(k, lanes)
+    t = law.tail_gap(k, u, lanes)  # rises with k by pmf(k + 1); the answer is the smallest k with t(k) >= 0
+    p = law.pmf(k, lanes)
+    at = (lambda i: i) if isinstance(lanes, slice) else (lambda i: lanes[i])  # noqa: E731  (law lanes of walk lanes)
     # walking down: t(k-1) = t(k) - pmf(k); walking up: t(k+1) = t(k) + pmf(k+1)
-    down = np.flatnonzero((t >= 0.0) & (k > 0.0))
-    kk, tt, pp = k[down], t[down] - p[down], p[down]
-    for _ in range(max_steps):  # here tt = t(kk - 1): step down while it is still >= 0
-        go = tt >= 0.0
-        if not go.any():
+    t_below = t - p
+    down = np.flatnonzero((t_below >= 0.0) & (k > 0.0))  # t(k - 1) >= 0 as well: k is not the smallest
+    kk, tt, pp = k[down], t_below[down], p[down]
+    for _ in range(max_steps):  # here tt = t(kk - 1) >= 0: step down while it is
+        if down.size == 0:
             break
-        down, kk, tt, pp = down[go], kk[go] - 1.0, tt[go], pp[go]
+        kk = kk - 1.0
         k[down] = kk
-        pp = pp / ratio_up(kk, down)  # pmf(kk) from pmf(kk + 1)
+        pp = pp / law.ratio_up(kk, at(down))  # pmf(kk) from pmf(kk + 1)
         more = kk > 0.0
         down, kk, tt, pp = down[more], kk[more], tt[more] - pp[more], pp[more]
+        go = tt >= 0.0
+        down, kk, tt, pp = down[go], kk[go], tt[go], pp[go]
     else:
         raise RuntimeError("invert_discrete: no convergence walking down")
     up = np.flatnonzero(t < 0.0)
@@ -258,7 +333,7 @@ def _walk(u, k0, cdf, sf, pmf, ratio_up, upper, max_steps) -> np.ndarray:
     for _ in range(max_steps):  # here tt = t(kk) < 0: step up until it is >= 0
         if up.size == 0:
             break
-        pp = pp * ratio_up(kk, up)
+        pp = pp * law.ratio_up(kk, at(up))
         kk, tt = kk + 1.0, tt + pp
         met = (tt >= 0.0) | (pp == 0.0)  # pp == 0: the pmf underflowed, the tail is exhausted
         if upper is not None:
@@ -375,13 +450,7 @@ def _poisson_lanes(u: np.ndarray, lam: np.ndarray) -> np.ndarray:
     sel = np.flatnonzero((lam > 0.0) & ~big)
     if sel.size:
         lm, uu = lam[sel], u[sel]
-        out[sel] = invert_discrete(
-            uu, _start(z[sel], lm, lm, 1.0 / np.sqrt(lm), 1.0 / lm),
-            cdf=lambda k, i: special.pdtr(k, lm[i]),
-            sf=lambda k, i: special.pdtrc(k, lm[i]),
-            pmf=lambda k, i: poisson_pmf(k, lm[i]),
-            ratio_up=lambda k, i: lm[i] / (k + 1.0),
-        )
+        out[sel] = invert_discrete(uu, _start(z[sel], lm, lm, 1.0 / np.sqrt(lm), 1.0 / lm), DiscreteLaw("poisson", lm))
     return out
 
 
@@ -411,19 +480,7 @@ def _binomial_lanes(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
         var = nn * p * (1.0 - p)
         sd = np.sqrt(var)
         guess = _start(special.ndtri(uu), nn * p, var, (1.0 - 2.0 * p) / sd, (1.0 - 6.0 * p * (1.0 - p)) / var)
-        odds = p / (1.0 - p)
-        n_int = nn.astype(np.int64)
-        # here, not at the top: scipy.stats takes 1.1 s to import, a third of the command line's start
-        # (`mbcapture --help`), and only this pmf needs it
-        from scipy import stats
-        out[sel] = invert_discrete(
-            uu, np.minimum(guess, nn),
-            cdf=lambda k, i: special.bdtr(k, n_int[i], p),
-            sf=lambda k, i: special.bdtrc(k, n_int[i], p),
-            pmf=lambda k, i: stats.binom.pmf(k, nn[i], p),
-            ratio_up=lambda k, i: np.maximum(nn[i] - k, 0.0) / (k + 1.0) * odds,
-            upper=nn,
-        )
+        out[sel] = invert_discrete(uu, np.minimum(guess, nn), DiscreteLaw("binomial", nn, p))
     return out
 
 
