@@ -133,18 +133,24 @@ class Integrated:
                           error_sample=self.error_sample)
 
 
-def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray, scratch: np.ndarray | None = None) -> None:
+def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray, scratch: np.ndarray | None = None,
+               radiance64: np.ndarray | None = None) -> None:
     """out[k] += sum_g weights_s[k, g] * radiance[g]  (float64; radiance (G, H, W, C)). ``scratch``: a float64
-    array of ``out``'s shape the sum is made in (None: a new one). :func:`integrate` passes one for the whole
-    capture: a new 30 MB array per render (640x512, 4 buckets) is memory the system must map and zero first,
-    which took about as long as the arithmetic."""
+    array of ``out``'s shape the sum is made in (None: a new one); ``radiance64``: a float64 array of at least
+    G radiance images that a float32 ``radiance`` is widened into (None: a new one). :func:`integrate` passes
+    both, made once for the whole capture: a new 30 MB array per render (640x512, 4 buckets) is memory the
+    system must map and zero first, which took about as long as the arithmetic."""
     K, G = out.shape[0], radiance.shape[0]
     if G == 0 or out.size == 0:  # no group (or no pixel): nothing to add
         return
     tmp = np.empty_like(out) if scratch is None else scratch
     n = out.size // K
-    np.matmul(np.asarray(weights_s, np.float64), radiance.reshape(G, n).astype(np.float64, copy=False),
-              out=tmp.reshape(K, n))
+    if radiance.dtype == np.float64 or radiance64 is None:
+        wide = radiance.reshape(G, n).astype(np.float64, copy=False)
+    else:  # the same values (float32 -> float64 is exact), in the given array
+        wide = radiance64.reshape(-1)[:G * n].reshape(G, n)
+        np.copyto(wide, radiance.reshape(G, n))
+    np.matmul(np.asarray(weights_s, np.float64), wide, out=tmp.reshape(K, n))
     out += tmp
 
 
@@ -193,7 +199,8 @@ def integrate(
     seeds = render_seeds(plan, seed)
     times = plan.render_times
     used = plan.weights_s.sum(axis=1) > 0  # (J, G): groups with weight in each stratum
-    scratch = np.empty((n_buckets, H, W, C))  # accumulate's sum, made once for every render
+    # accumulate's sum and its widened radiance, made once for every render
+    scratch, radiance64 = np.empty((n_buckets, H, W, C)), np.empty((G, H, W, C))
     # the even stratum's combined radiance and the odd one's, (G, H, W, C), made once
     pair = [np.zeros((G, H, W, C)), np.zeros((G, H, W, C))] if temporal is not None else None
     control = _Control(renderer, plan, seed, stage) if plan.estimator == "difference" else None
@@ -217,7 +224,7 @@ def integrate(
                     else:
                         radiance = control.stratum(float(times[j, h]), h, spp_h, gsel)
                 with stage("accumulate"):
-                    accumulate(w_j * (spp_h / n), radiance, parts[h], scratch)
+                    accumulate(w_j * (spp_h / n), radiance, parts[h], scratch, radiance64)
                     if combined is not None:
                         combined += radiance * (spp_h / n)
             with stage("accumulate"):
@@ -229,7 +236,7 @@ def integrate(
                     full[gsel] = combined
                     if j % 2 == 1:  # coarse (pair rendered once, at the even stratum) minus fine
                         np.subtract(pair[0], full, out=full)
-                        accumulate(plan.weights_s[j], full, temporal, scratch)
+                        accumulate(plan.weights_s[j], full, temporal, scratch, radiance64)
             bar.update(1)
     if temporal is not None:
         temporal = temporal.astype(DIFF_DTYPE)
