@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+from scipy.linalg import blas
 
 from .filmstore import IN_MEMORY, FilmStore
 from .plan import Plan
@@ -133,25 +134,33 @@ class Integrated:
                           error_sample=self.error_sample)
 
 
-def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray, scratch: np.ndarray | None = None,
-               radiance64: np.ndarray | None = None) -> None:
-    """out[k] += sum_g weights_s[k, g] * radiance[g]  (float64; radiance (G, H, W, C)). ``scratch``: a float64
-    array of ``out``'s shape the sum is made in (None: a new one); ``radiance64``: a float64 array of at least
-    G radiance images that a float32 ``radiance`` is widened into (None: a new one). :func:`integrate` passes
-    both, made once for the whole capture: a new 30 MB array per render (640x512, 4 buckets) is memory the
-    system must map and zero first, which took about as long as the arithmetic."""
+def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray, radiance64: np.ndarray | None = None) -> None:
+    """out[k] += sum_g weights_s[k, g] * radiance[g]  (float64, ``out`` C-contiguous; radiance (G, H, W, C)).
+
+    One BLAS call does the product and the sum (dgemm with beta 1, into ``out``'s own memory): the
+    same rounding as the product made apart and then added (one rounding of the dot product, one of
+    the sum; checked equal bit for bit), without a product array of ``out``'s size to fill and read
+    again. Written with scipy's BLAS because numpy's matmul has no "add into" (``out=`` overwrites).
+    ``radiance64``: a float64 array of at least G radiance images that a float32 ``radiance`` is widened
+    into (None: a new one); :func:`integrate` passes one made for the whole capture, as a new 24 MB
+    array per render (640x512) is memory the system must map and zero first."""
     K, G = out.shape[0], radiance.shape[0]
     if G == 0 or out.size == 0:  # no group (or no pixel): nothing to add
         return
-    tmp = np.empty_like(out) if scratch is None else scratch
+    if not out.flags.c_contiguous:
+        raise ValueError("accumulate: out must be C-contiguous")
     n = out.size // K
     if radiance.dtype == np.float64 or radiance64 is None:
-        wide = radiance.reshape(G, n).astype(np.float64, copy=False)
+        wide = np.ascontiguousarray(radiance.reshape(G, n), dtype=np.float64)
     else:  # the same values (float32 -> float64 is exact), in the given array
         wide = radiance64.reshape(-1)[:G * n].reshape(G, n)
         np.copyto(wide, radiance.reshape(G, n))
-    np.matmul(np.asarray(weights_s, np.float64), wide, out=tmp.reshape(K, n))
-    out += tmp
+    # column-major view of the row-major product: out^T (n, K) += wide^T (n, G) @ weights^T (G, K)
+    target = out.reshape(K, n).T
+    w = np.asarray(weights_s, np.float64)
+    result = blas.dgemm(1.0, wide.T, w.T, 1.0, target, overwrite_c=1)
+    if not np.shares_memory(result, out):  # BLAS worked on a copy (never for these layouts): keep its sum
+        target[...] = result
 
 
 def accumulate_groups(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray) -> None:
@@ -199,8 +208,9 @@ def integrate(
     seeds = render_seeds(plan, seed)
     times = plan.render_times
     used = plan.weights_s.sum(axis=1) > 0  # (J, G): groups with weight in each stratum
-    # accumulate's sum and its widened radiance, made once for every render
-    scratch, radiance64 = np.empty((n_buckets, H, W, C)), np.empty((G, H, W, C))
+    radiance64 = np.empty((G, H, W, C))  # each render widened to float64 for accumulate, made once
+    # each stratum's radiance, its halves combined (the temporal pairs and the per-group sums), made once
+    combined_all = np.empty((G, H, W, C)) if temporal is not None or groups_out is not None else None
     # the even stratum's combined radiance and the odd one's, (G, H, W, C), made once
     pair = [np.zeros((G, H, W, C)), np.zeros((G, H, W, C))] if temporal is not None else None
     control = _Control(renderer, plan, seed, stage) if plan.estimator == "difference" else None
@@ -216,7 +226,10 @@ def integrate(
             gsel = np.flatnonzero(used[j])
             groups_j = tuple(plan.groups[g] for g in gsel)
             w_j = plan.weights_s[j][:, gsel]
-            combined = np.zeros((len(gsel), H, W, C), dtype=np.float64) if temporal is not None or groups_out is not None else None
+            combined = None
+            if combined_all is not None:
+                combined = combined_all[:len(gsel)]
+                combined.fill(0.0)
             for h, spp_h in enumerate(halves):
                 with stage("render"):
                     if control is None:
@@ -224,7 +237,7 @@ def integrate(
                     else:
                         radiance = control.stratum(float(times[j, h]), h, spp_h, gsel)
                 with stage("accumulate"):
-                    accumulate(w_j * (spp_h / n), radiance, parts[h], scratch, radiance64)
+                    accumulate(w_j * (spp_h / n), radiance, parts[h], radiance64)
                     if combined is not None:
                         combined += radiance * (spp_h / n)
             with stage("accumulate"):
@@ -232,11 +245,14 @@ def integrate(
                     groups_out[:, gsel] += w_j[:, :, None, None, None] * combined[None]
                 if temporal is not None:
                     full = pair[j % 2]
-                    full.fill(0.0)
-                    full[gsel] = combined
+                    if len(gsel) == G:
+                        np.copyto(full, combined)
+                    else:  # the groups without weight here are zero
+                        full.fill(0.0)
+                        full[gsel] = combined
                     if j % 2 == 1:  # coarse (pair rendered once, at the even stratum) minus fine
                         np.subtract(pair[0], full, out=full)
-                        accumulate(plan.weights_s[j], full, temporal, scratch, radiance64)
+                        accumulate(plan.weights_s[j], full, temporal)
             bar.update(1)
     if temporal is not None:
         temporal = temporal.astype(DIFF_DTYPE)

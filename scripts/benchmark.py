@@ -317,7 +317,8 @@ def main() -> None:
         raw.append(time.perf_counter() - t0)
     t_raw = min(raw)
     t_pipe = r4["timings_s"]["render"] + r4["timings_s"]["accumulate"]
-    print(f"[2] pipeline render+accumulate {t_pipe:.2f} s vs raw mi.render 'path' {t_raw:.2f} s for "
+    print(f"[2] pipeline render+accumulate {t_pipe:.2f} s (render {r4['timings_s']['render']:.2f} s, accumulate "
+          f"{r4['timings_s']['accumulate']:.2f} s) vs raw mi.render 'path' {t_raw:.2f} s for "
           f"{len(times)} passes x {args.spp} spp: ratio {t_pipe / t_raw:.2f} (target <= 1.25)")
     # the same samples buy different errors: the per-group integrator estimates direct light from every
     # emitter at each vertex, 'path' from one chosen at random. Per-pixel variance over 4 seeds of the same
