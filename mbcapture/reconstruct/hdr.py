@@ -123,7 +123,9 @@ def _ramp_fit(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
     n_reads, n_pix = m.x_e.shape
     rate = np.empty(n_pix)
     sigma = np.empty(n_pix)
-    codes = (m.usable.astype(np.int64) << np.arange(n_reads, dtype=np.int64)[:, None]).sum(axis=0)
+    codes = np.zeros(n_pix, np.int64)  # bit i: read i usable
+    for i in range(n_reads):
+        codes[m.usable[i]] |= 1 << i
     for code in np.unique(codes):
         pix = np.flatnonzero(codes == code)
         reads = np.flatnonzero((int(code) >> np.arange(n_reads)) & 1)
@@ -268,7 +270,10 @@ def _merge_samples(dn2: np.ndarray, sat2: np.ndarray, t: np.ndarray, cfg: Sensor
     """:func:`merge_hdr` on (R, P) codes and flags: rate, sigma, valid, reads used, each (P,)."""
     x_e = dn_to_electrons(dn2, cfg)
     ok = ~sat2
-    usable = np.cumprod(ok, axis=0).astype(bool) if cumulative else ok
+    usable = ok
+    if cumulative:  # a read is usable while it and every read before it are unsaturated
+        for i in range(1, usable.shape[0]):
+            usable[i] &= usable[i - 1]
     n_used = usable.sum(axis=0)
     valid = n_used > 0
 
