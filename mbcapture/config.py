@@ -39,6 +39,10 @@ from .optics import fov_deg_for
 from .sensor.config import SensorConfig
 from .sensor.spectral import EFFECTIVE_WAVELENGTH, is_spectral_variant
 
+#: PyYAML's safe loader, on libyaml where PyYAML was built with it: the same documents (every shipped
+#: config compared equal) in 0.19 ms instead of 2.3 ms; a sweep loads its base config once per point.
+_YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
 #: The shipped configs, which ``load_config`` (and ``mbcapture run``) also finds by name.
 SHIPPED_CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
@@ -690,7 +694,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
         except OSError as exc:
             raise ConfigError(f"{p}: cannot read config file ({exc.strerror})") from None
         try:
-            data = yaml.safe_load(text)
+            data = yaml.load(text, Loader=_YAML_LOADER)
         except yaml.YAMLError as exc:
             mark = getattr(exc, "problem_mark", None)
             where = f" line {mark.line + 1}, column {mark.column + 1}" if mark else ""
