@@ -177,7 +177,8 @@ def plan_sweep(sweep: Sweep) -> SweepPlan:
     for p in sweep.points:
         try:
             keys[p.index] = group_key(p.config)
-            renders.setdefault(keys[p.index], render_key(p.config))
+            if keys[p.index] not in renders:  # a group's renders are its first point's (computed once: a plan each)
+                renders[keys[p.index]] = render_key(p.config)
         except (MBCaptureError, ValueError) as exc:
             failed[p.index] = one_line(exc)
     members: dict[str, list[int]] = {}
