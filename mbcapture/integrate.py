@@ -134,7 +134,8 @@ class Integrated:
                           error_sample=self.error_sample)
 
 
-def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray, radiance64: np.ndarray | None = None) -> None:
+def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray,
+               radiance64: np.ndarray | None = None) -> None:
     """out[k] += sum_g weights_s[k, g] * radiance[g]  (float64, ``out`` C-contiguous; radiance (G, H, W, C)).
 
     One BLAS call does the product and the sum (dgemm with beta 1, into ``out``'s own memory): the

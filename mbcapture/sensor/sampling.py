@@ -21,11 +21,12 @@ upper tail P(X > k0) against 1 - u, which is exact in float64, when u > 1/2, so 
 loses digits), and step k up or down by the pmf recurrence (pmf(k+1) = pmf(k) * ratio) until
 k is the smallest count with F(k) >= u. Each lane needs one CDF and one pmf evaluation; the start
 is the answer in all but about one lane in a thousand (the default capture's: 4595 of 3.9 M), and
-only those walk. Measured on the default
-capture's 3.9 M bucket samples at 640x512 (means up to 1.4e7, median 1.6e3): 0.78 s on one core,
-0.5 s of it scipy's incomplete gamma (the tails), 0.38 s on this 2-core VM's two threads; numpy's
-rejection sampler takes 0.14 s. The tails are evaluated with the ufuncs' ``where=`` on all lanes at
-once: selecting each tail's lanes by fancy indexing first cost a quarter as much again.
+only those walk. Measured on the default capture's 3.9 M bucket samples at 640x512 (means up to
+1.4e7, median 1.6e3): 0.78 s on one core, 0.5 s of it scipy's incomplete gamma (the tails), 0.38 s
+on this 2-core VM's two threads; numpy's rejection sampler takes 0.14 s. The tails are evaluated
+with the ufuncs' ``where=`` on all lanes at once: selecting each tail's lanes by fancy indexing
+first cost a quarter as much again. A walk compiled with numba was no faster than this one, and its
+compiler (llvmlite's LLVM, beside Dr.Jit's) added 120 MB to every process.
 
 Streams: :class:`NoiseStreams` spawns one child seed per named stage (``shot``,
 ``transfer``, ``read``) from the capture's sensor seed, so turning one noise source on or off
@@ -54,8 +55,8 @@ from typing import Callable, Iterator
 import numpy as np
 from scipy import special
 
-__all__ = ["BandedField", "DiscreteLaw", "NoiseStreams", "binomial_quantile", "invert_discrete", "poisson_pmf", "poisson_quantile",
-           "poisson_quantile_memo", "uniform_open"]
+__all__ = ["BandedField", "DiscreteLaw", "NoiseStreams", "binomial_quantile", "invert_discrete", "poisson_pmf",
+           "poisson_quantile", "poisson_quantile_memo", "uniform_open"]
 
 #: Above this mean a Poisson count is no longer an exact float64 integer: the draw is the rounded
 #: Cornish-Fisher quantile (relative skewness 1/sqrt(mean) < 3e-8, below float64 use downstream).
@@ -123,7 +124,8 @@ class BandedField:
         """``out`` (r1 - r0, ...) filled with rows r0:r1 of leading index ``a`` of the field (``rows(r0, r1)[a]``)."""
         lead, H = self.shape[:2]
         if not 0 <= r0 < r1 <= H or not 0 <= a < lead:
-            raise ValueError(f"BandedField run: expected 0 <= a < {lead} and rows 0 <= r0 < r1 <= {H}, got {a}, {r0}, {r1}")
+            raise ValueError(f"BandedField run: expected 0 <= a < {lead} and rows 0 <= r0 < r1 <= {H}, "
+                             f"got {a}, {r0}, {r1}")
         row = int(np.prod(self.shape[2:], dtype=np.int64))
         start, n = (a * H + r0) * row, (r1 - r0) * row
         g = self._at(start)
@@ -182,7 +184,8 @@ class NoiseStreams:
             return self._rng(stage).standard_normal(shape)
         return self.banded(("stage", stage), self._seed(stage), shape, "normal").rows(*rows)
 
-    def normal_runs(self, stage: str, shape: tuple[int, ...], rows: tuple[int, int] | None = None) -> Iterator[np.ndarray]:
+    def normal_runs(self, stage: str, shape: tuple[int, ...],
+                    rows: tuple[int, int] | None = None) -> Iterator[np.ndarray]:
         """:meth:`normal`'s field one leading index at a time, ``normal(stage, shape, rows)[i]`` for i in
         order, each drawn into the same array (valid until the next): the field's values without the
         whole field's memory, which is new memory the system must map and zero first (a 640x512

@@ -129,7 +129,9 @@ def plot(df, metric: str, axes: list[str]):
     layout = {axis: _facets(ok, axis, axes) for axis in axes}
     ncols = min(max(len(panels) for _, panels, _, _ in layout.values()), 4)
     nrows = sum(-(-len(panels) // ncols) for _, panels, _, _ in layout.values())
-    fig, grid = plt.subplots(nrows, ncols, figsize=(3.4 * ncols + 0.6, 2.5 * nrows + 0.5), squeeze=False, sharex="row", sharey=True)
+    # one metric: every panel on one scale (labelled on the first column); each row one x axis
+    fig, grid = plt.subplots(nrows, ncols, figsize=(3.4 * ncols + 0.6, 2.5 * nrows + 0.5), squeeze=False,
+                             sharex="row", sharey=True)
     y_all = ok[metric].to_numpy(dtype=float, na_value=np.nan)
     row = 0
     for axis, (facet, panels, line_keys, structured) in layout.items():
