@@ -387,6 +387,24 @@ def test_many_strata_accumulate_like_a_compensated_sum():
     assert rel.max() < 1e-13, rel.max()
 
 
+def test_accumulate_adds_into_its_output_as_the_product_made_apart_would():
+    """accumulate's one BLAS call (dgemm, beta 1, into the output's memory) gives the bits of the
+    product made apart and then added, for float32 radiance widened into a given array or a new one,
+    and for float64 radiance; an output that is not C-contiguous is refused, not silently copied."""
+    rng = np.random.default_rng(22)
+    K, G, H, W, C = 4, 3, 5, 7, 3
+    w = rng.uniform(0, 1e-3, size=(K, G))
+    rad32 = rng.uniform(0, 50, size=(G, H, W, C)).astype(np.float32)
+    start = rng.uniform(0, 1, size=(K, H, W, C))
+    want = start + (w @ rad32.reshape(G, -1).astype(np.float64)).reshape(start.shape)
+    for rad, buffer in ((rad32, None), (rad32, np.empty((G + 1, H, W, C))), (rad32.astype(np.float64), None)):
+        out = start.copy()
+        accumulate(w, rad, out, buffer)
+        np.testing.assert_array_equal(out, want)
+    with pytest.raises(ValueError, match="C-contiguous"):
+        accumulate(w, rad32, np.zeros((W, H, K, C)).transpose(2, 1, 0, 3))
+
+
 # =============================================================================== invariants
 class ConstantRenderer:
     """Stands in for the Mitsuba renderer: radiance L_g of each group, the same at every time."""
