@@ -730,11 +730,13 @@ def audit_sample(refined: np.ndarray, centres: np.ndarray) -> ErrorSample:
     return ErrorSample(weight.reshape(H, W), independent.reshape(H, W))
 
 
-def noise_verdict(render_error: dict) -> str:
+def noise_verdict(render_error: dict, *, adaptive_hint: bool = False) -> str:
     """One sentence: does the rendering's Monte Carlo noise matter next to the photon shot noise?
     Judged on the budget (``render_error.budget``: the median and 95th percentile of the per-sample
     Monte Carlo / shot-noise variance ratio of the deciding read against render.noise_budget and
-    render.noise_budget_p95), with the tail (99.9th percentile) against render.noise_budget_tail."""
+    render.noise_budget_p95), with the tail (99.9th percentile) against render.noise_budget_tail.
+    ``adaptive_hint``: a run that could have sampled adaptively and did not; a tail over its target
+    then points to render.adaptive."""
     med, p95 = render_error.get("to_shot_noise_variance_median"), render_error.get("to_shot_noise_variance_p95")
     budget = render_error.get("budget")
     if med is None or budget is None:
@@ -749,6 +751,8 @@ def noise_verdict(render_error: dict) -> str:
     tail_text = "" if tail is None or "tail_target" not in budget else (
         f" Tail: {tail:.3g} x in the 99.9th percentile{within} ({'within' if budget.get('tail_met') else 'over'} "
         f"render.noise_budget_tail {budget['tail_target']:g}).")
+    if tail_text and adaptive_hint and not budget.get("tail_met"):
+        tail_text += " render.adaptive: true renders the pixels over it again (docs/noise.md)."
     if budget["met"]:
         return f"Sensor noise dominates: {level}, adding {extra:.1f} % to the median sample's noise.{tail_text}"
     head = (f"Rendering noise is visible in the simulated images: {level}, adding {extra:.0f} % to the median "

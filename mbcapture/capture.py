@@ -37,7 +37,8 @@ from .video import run_video, write_video_files
 
 def render_summary(report: dict) -> list[str]:
     """The lines a run prints about its rendering: noise against the budget, and the cache."""
-    out = [noise_verdict(report.get("render_error", {}))]
+    err = report.get("render_error", {})
+    out = [err.get("verdict") or noise_verdict(err)]
     cache = report.get("render_cache", {})
     if cache.get("folder"):
         out.append(f"render cache: {cache['hits']} renders reused, {cache['rendered']} rendered ({cache['folder']})")

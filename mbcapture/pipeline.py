@@ -583,7 +583,8 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
         "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant,
                      "llvm_target": _llvm_target_label() if llvm else None},
     }
-    report["render_error"]["verdict"] = noise_verdict(report["render_error"])
+    report["render_error"]["verdict"] = noise_verdict(
+        report["render_error"], adaptive_hint=cfg.render.spp is None and not cfg.render.adaptive)
     result = CaptureResult(
         config=cfg,
         timeline=timeline,

@@ -128,6 +128,14 @@ def test_noise_verdict_follows_the_budget():
     assert "pilot under-estimated" in noise_verdict(missed) and "render.spp >= 480" in noise_verdict(missed)
     assert "render.spp: null" not in noise_verdict(missed)
     assert "spp = 1" in noise_verdict({"note": "render.spp = 1: no half-sample error estimate"})
+    # a tail over its target points to adaptive sampling where the run could have used it
+    tail_over = {**within, "to_shot_noise_variance_p999": 4.7,
+                 "budget": {**within["budget"], "tail_target": 1.0, "tail_met": False}}
+    assert "over render.noise_budget_tail 1" in noise_verdict(tail_over)
+    assert "render.adaptive: true" in noise_verdict(tail_over, adaptive_hint=True)
+    assert "render.adaptive" not in noise_verdict(tail_over)
+    tail_within = {**tail_over, "budget": {**tail_over["budget"], "tail_met": True}}
+    assert "render.adaptive" not in noise_verdict(tail_within, adaptive_hint=True)
 
 
 def test_long_schedule_is_drawn_in_outline_plus_its_first_periods(monkeypatch):
