@@ -64,10 +64,11 @@ def main() -> None:
               f"{seeds[0]}); the outside figure is the mean of their variances, each run's own is its own")
     print(f"{'read':6s} {'median':>8s} {'p95':>8s} {'p99':>8s} {'p99.9':>8s} {'max':>9s} {'>10x':>7s}   run's own "
           f"median / p95 / p99.9 (seed {seeds[0]}, seed {seeds[1]})")
+    below = [below_full_well(r, cfg.sensor.full_well_e) for r in runs]  # (R, H, W, C) each
     for i, read in enumerate(runs[0].timeline.reads):
         e1, e2 = (r.reads_expected_e[i] for r in runs)
         mean = (e1 + e2) / 2
-        full = np.stack([(r.buckets_e[list(read.buckets)] < cfg.sensor.full_well_e).all(axis=0) for r in runs]).all(0)
+        full = below[0][i] & below[1][i]
         use = (mean > 1.0) & full & (mean < cfg.sensor.fd_full_well_e)
         squared = (e1 - e2) ** 2 / 2.0
         var = pooled(squared[None])[0]
@@ -91,11 +92,17 @@ def main() -> None:
     if args.map:
         tail_map(args.map, mean, full_ratio, read.name)
     if args.truth:
-        converged(args, base, runs)
+        converged(args, base, runs, below)
 
 
-def converged(args, base: list[str], runs: list) -> None:
-    """--truth: the median of each read's ratio from args.truth runs, against the two runs' estimates."""
+def below_full_well(run, full_well_e: float) -> np.ndarray:
+    """(R, H, W, C) bool: for each read of ``run``, every one of its buckets below the full well."""
+    return np.stack([(run.buckets_e[list(rd.buckets)] < full_well_e).all(axis=0) for rd in run.timeline.reads])
+
+
+def converged(args, base: list[str], runs: list, below: list[np.ndarray]) -> None:
+    """--truth: the median of each read's ratio from args.truth runs, against the two runs' estimates
+    (``below``: each run's :func:`below_full_well`)."""
     spp = [np.asarray(r.plan.spp) for r in runs]
     if not np.array_equal(*spp):
         raise SystemExit("--truth: the two runs rendered different samples per pixel")
@@ -103,14 +110,12 @@ def converged(args, base: list[str], runs: list) -> None:
     more = [max(seeds) + 1 + i for i in range(args.truth - 2)]
     cfg = runs[0].config
     reads = [r.reads_expected_e for r in runs]
-    full = [np.stack([(r.buckets_e[list(rd.buckets)] < cfg.sensor.full_well_e).all(axis=0)
-                      for rd in runs[0].timeline.reads]) for r in runs]
+    full = list(below)
     t0 = time.perf_counter()
     for s in more:
         r = capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False))
         reads.append(r.reads_expected_e)
-        full.append(np.stack([(r.buckets_e[list(rd.buckets)] < cfg.sensor.full_well_e).all(axis=0)
-                              for rd in runs[0].timeline.reads]))
+        full.append(below_full_well(r, cfg.sensor.full_well_e))
     print(f"converged median from {args.truth} runs (seeds {seeds + more}; {time.perf_counter() - t0:.0f} s for the "
           f"{len(more)} more): each estimate over it")
     E = np.stack(reads)  # (N, R, H, W, C)

@@ -403,9 +403,9 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
     signal_e, scratch = np.empty(shape[1:]), np.empty(shape[1:])
     for r, buckets in enumerate(read_sets):
         idx = list(buckets)
-        _sum_buckets(transferred, idx, out=signal_e)  # the floating diffusion's charge
+        _reduce_buckets(np.add, transferred, idx, out=signal_e)  # the floating diffusion's charge
         sat = saturated[r]
-        _any_buckets(bucket_saturated, idx, out=sat)
+        _reduce_buckets(np.logical_or, bucket_saturated, idx, out=sat)
         sat |= signal_e >= cfg.fd_full_well_e
         np.minimum(signal_e, cfg.fd_full_well_e, out=signal_e)
         signal_e += fpn.dsnu_offset_e
@@ -419,7 +419,7 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
         np.rint(dn, out=dn)
         sat |= dn >= adc_max
         np.clip(dn, 0.0, adc_max, out=reads_dn[r])
-        _sum_buckets(expected, idx, out=reads_e_expected[r])
+        _reduce_buckets(np.add, expected, idx, out=reads_e_expected[r])
 
     return SensorReads(
         electrons=electrons,
@@ -431,20 +431,13 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
     )
 
 
-def _sum_buckets(a: np.ndarray, idx: list[int], out: np.ndarray) -> np.ndarray:
-    """``a[idx].sum(axis=0)`` into ``out``, bucket after bucket (the order numpy sums a leading
-    axis in, so the same bits), without the copy ``a[idx]``."""
+def _reduce_buckets(op: np.ufunc, a: np.ndarray, idx: list[int], out: np.ndarray) -> np.ndarray:
+    """``op.reduce(a[idx], axis=0)`` into ``out`` (np.add: the buckets' sum, np.logical_or: any),
+    bucket after bucket (the order numpy reduces a leading axis in, so the same bits), without the
+    copy ``a[idx]``."""
     np.copyto(out, a[idx[0]])
     for i in idx[1:]:
-        out += a[i]
-    return out
-
-
-def _any_buckets(a: np.ndarray, idx: list[int], out: np.ndarray) -> np.ndarray:
-    """``a[idx].any(axis=0)`` into ``out``, without the copy ``a[idx]``."""
-    np.copyto(out, a[idx[0]])
-    for i in idx[1:]:
-        out |= a[i]
+        op(out, a[i], out=out)
     return out
 
 
