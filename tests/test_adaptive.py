@@ -298,3 +298,39 @@ def test_audit_blocks_lie_on_the_lattice_at_unrefined_centres():
     assert s.weight[refined].tolist() == [1.0] * refined.sum() and s.independent.sum() == 9
     np.testing.assert_allclose(s.weight.ravel()[some], (30 * 31 - refined.sum()) / 9)
     assert s.weight.sum() == pytest.approx(30 * 31)  # the weights stand for the whole film
+
+
+@pytest.mark.render
+def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monkeypatch):
+    """scripts/render_noise_reads.py: with adaptive sampling both runs refine the pixels the first run
+    chose (one estimator, the one whose error the first run's own figures estimate); --own-choices
+    lets each choose."""
+    import importlib.util
+
+    from mbcapture import pipeline
+    from mbcapture.pipeline import capture_in_memory
+    from mbcapture.progress import StageStatus
+
+    spec = importlib.util.spec_from_file_location("render_noise_reads", ROOT / "scripts" / "render_noise_reads.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    sets = ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.cache=off", "render.max_spp=32",
+            "render.adaptive=true", "render.noise_budget_tail=10"]
+    for share in (True, False):
+        calls = []
+
+        def choose(*args, **kwargs):
+            calls.append(tail_pixels(*args, **kwargs))
+            return calls[-1]
+
+        monkeypatch.setattr(script, "tail_pixels", choose)  # what FirstChoice calls to choose
+        choice = script.FirstChoice(share=share)
+        used = []
+        for seed in (1, 2):
+            monkeypatch.setattr(pipeline, "tail_pixels", choice)
+            run = capture_in_memory(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*sets, f"seed={seed}"]),
+                                    StageStatus(False))
+            used.append(choice.tiers)
+            assert run.report["adaptive"]["pixels"] == sum(p.size for p, _ in choice.tiers) > 0
+        assert len(calls) == (1 if share else 2)
+        assert (used[1] is used[0]) == share
