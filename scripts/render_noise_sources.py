@@ -10,9 +10,12 @@ the electrons per radiance unit, which is the same for every row), over the lit 
   config's own, so the step from one row to the next is what one more bounce adds;
 * by emitter group, at the config's depth: each group's share of the mean and of the variance;
 * by sampler, at the config's depth: multijitter, ldsampler and independent, each at the samples
-  the sampler really takes for --spp (ldsampler rounds up to a power of 4).
+  the sampler really takes for --spp (ldsampler rounds up to a power of 4);
+* with ``--strata K``: the mean of K renders of --spp each (a static pixel's sum over K strata, each
+  rendered with a pattern of its own) against one render of K x --spp (one pattern across the
+  strata): how much a pattern shared by the strata could lower the variance, at most (equal weights).
 
-    python scripts/render_noise_sources.py [CONFIG] [--size 160x128] [--spp 16] [--seeds 12] [--set KEY=VALUE ...]
+    python scripts/render_noise_sources.py [CONFIG] [--size 160x128] [--spp 16] [--seeds 12] [--strata K] [--set KEY=VALUE ...]
 
 Each row prints the median, 95th and 99.9th percentile and the mean over the lit pixels of
 (variance x samples) / mean, relative to the median of the config's own render (1.00 is what the
@@ -43,6 +46,7 @@ def main() -> None:
     ap.add_argument("--size", default="160x128")
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--seeds", type=int, default=12)
+    ap.add_argument("--strata", type=int, default=0, help="K: K patterns of --spp against one of K x --spp (0: not measured)")
     ap.add_argument("--set", action="append", default=[], dest="sets")
     args = ap.parse_args()
     w, h = args.size.split("x")
@@ -82,6 +86,15 @@ def main() -> None:
     for sampler in ("multijitter", "ldsampler", "independent"):
         imgs, n = (own, n_own) if sampler == cfg.render.sampler else renders(sampler=sampler)
         row(f"sampler {sampler} ({n} spp)", per_sample_ratio(imgs, n, mean))
+    if args.strata > 1:
+        k = args.strata
+        r = Renderer.from_config(scene, cfg)
+        many = np.stack([np.mean([r.render(t, n_own, 5000 + 100 * s + i, groups) for i in range(k)], axis=0)
+                         for s in range(args.seeds)])
+        n_one = r.sample_count(k * n_own)
+        one = np.stack([r.render(t, n_one, 9000 + s, groups) for s in range(args.seeds)])
+        row(f"{k} patterns of {n_own} spp, their mean", per_sample_ratio(many, k * n_own, mean))
+        row(f"one pattern of {n_one} spp", per_sample_ratio(one, n_one, mean))
 
 
 if __name__ == "__main__":
