@@ -136,6 +136,12 @@ def test_noise_verdict_follows_the_budget():
     assert "render.adaptive" not in noise_verdict(tail_over)
     tail_within = {**tail_over, "budget": {**tail_over["budget"], "tail_met": True}}
     assert "render.adaptive" not in noise_verdict(tail_within, adaptive_hint=True)
+    # over by the estimate, with an interval that reaches below the target: the run says it cannot tell
+    clear = {**tail_over, "to_shot_noise_variance_p999_interval": [3.6, 6.6]}
+    unclear = {**tail_over, "to_shot_noise_variance_p999": 1.18, "to_shot_noise_variance_p999_interval": [0.93, 10.2]}
+    assert "(over render.noise_budget_tail 1)" in noise_verdict(clear) and "cannot tell" not in noise_verdict(clear)
+    assert "(over render.noise_budget_tail 1 by this estimate, but its interval reaches below it" in noise_verdict(unclear)
+    assert "cannot tell" not in noise_verdict({**unclear, "budget": tail_within["budget"]})
 
 
 def test_long_schedule_is_drawn_in_outline_plus_its_first_periods(monkeypatch):
