@@ -89,7 +89,7 @@ def main() -> None:
     if args.strata > 1:
         k = args.strata
         r = Renderer.from_config(scene, cfg)
-        many = np.stack([np.mean([r.render(t, n_own, 5000 + 100 * s + i, groups) for i in range(k)], axis=0)
+        many = np.stack([np.mean([r.render(t, n_own, 5000 + k * s + i, groups) for i in range(k)], axis=0)
                          for s in range(args.seeds)])
         n_one = r.sample_count(k * n_own)
         one = np.stack([r.render(t, n_one, 9000 + s, groups) for s in range(args.seeds)])
