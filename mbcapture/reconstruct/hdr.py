@@ -269,8 +269,7 @@ def _merge_samples(dn2: np.ndarray, sat2: np.ndarray, t: np.ndarray, cfg: Sensor
                    cumulative: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`merge_hdr` on (R, P) codes and flags: rate, sigma, valid, reads used, each (P,)."""
     x_e = dn_to_electrons(dn2, cfg)
-    ok = ~sat2
-    usable = ok
+    usable = ~sat2
     if cumulative:  # a read is usable while it and every read before it are unsaturated
         for i in range(1, usable.shape[0]):
             usable[i] &= usable[i - 1]
