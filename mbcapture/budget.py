@@ -349,6 +349,23 @@ def _pilot_ratios(diffs: list[np.ndarray], owner: np.ndarray, w: np.ndarray, alp
     return pooled(var_k)[lit[k]] / electrons[k][lit[k]], dof
 
 
+def shared_pattern_gain(weights: np.ndarray, exponent: float) -> float:
+    """What a pattern shared by the strata (render.pattern 'shared') does to a read's variance at a
+    static pixel, by the pilot's own model: the read sums its strata with ``weights`` (J,), the
+    equivalent of K = (sum w)^2 / sum w^2 strata of equal weight, whose samples, drawn from one
+    pattern, are stratified like one render of K times the samples; per-sample variance falls as
+    spp^-(exponent - 1) (the exponent the pilot measured between its counts), so the read's variance is
+    K^-(exponent - 1) times what independent patterns give. Applied to the median only: the median
+    sample is a static pixel lit by indirect light, where the pattern's dimensions (the paths') hold
+    the variance; at the 95th percentile edges and moving pixels weigh more, and the camera ray's
+    position in the pixel is not drawn from the pattern (docs/noise.md)."""
+    w = np.abs(np.asarray(weights, dtype=np.float64))
+    if w.sum() <= 0:
+        return 1.0
+    k_eff = w.sum() ** 2 / np.square(w).sum()
+    return float(k_eff ** -(max(exponent, 1.0) - 1.0))
+
+
 def choose_spp(
     plan: Plan,
     renderer,
@@ -379,6 +396,7 @@ def choose_spp(
     # the budget is met on the reads the sensor outputs: a read's weights (and electrons) are its buckets'
     # sums, and its Monte Carlo errors add coherently (the same renders); one read per bucket without sets
     read_sets = plan.read_sets or tuple((b,) for b in plan.buckets_read)
+    shared = plan.pattern == "shared" and plan.estimator == "independent"
     w_b = plan.weights_s  # (J, K, G)
     w = np.stack([w_b[:, list(r)].sum(axis=1) for r in read_sets], axis=1)  # (J, R, G)
     J, K, G = w.shape  # K: reads from here on
@@ -430,12 +448,16 @@ def choose_spp(
             continue
         q = {n: budget_quantiles(*_pilot_ratios(diffs[s], owner, w, alpha, electrons, lit, k))
              for n, s in ((n_lo, PILOT_SPP[0]), (n_hi, PILOT_SPP[-1]))}
-        need = []
+        need, gain = [], 1.0
         for i, target in enumerate((noise_budget, p95_target)):
             lo, hi_q = q[n_lo][i], q[n_hi][i]
             expo = float(np.clip(np.log(max(lo, 1e-300) / max(hi_q, 1e-300)) / np.log(n_hi / n_lo), *EXPONENT_RANGE))
+            if i == 0 and shared:
+                gain = shared_pattern_gain(w[:, k].sum(axis=1), expo)
+                hi_q = hi_q * gain
             need.append(n_hi * (hi_q / target) ** (1.0 / expo) if hi_q > 0 else 0.0)
-        per_read.append({"median_at": {n_lo: round(q[n_lo][0], 4), n_hi: round(q[n_hi][0], 4)},
+        per_read.append({"shared_pattern_median_factor": round(gain, 4)} if shared else {})
+        per_read[-1].update({"median_at": {n_lo: round(q[n_lo][0], 4), n_hi: round(q[n_hi][0], 4)},
                            "p95_at": {n_lo: round(q[n_lo][1], 4), n_hi: round(q[n_hi][1], 4)},
                            "spp_for_median": round(need[0], 1), "spp_for_p95": round(need[1], 1)})
         scale = max(scale, *need)

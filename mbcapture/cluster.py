@@ -104,9 +104,9 @@ def prepare_worker(threads: dict[str, int] | None, variant: str) -> None:
 _WORKER_RENDERERS: dict[str, Renderer] = {}
 
 
-def _render_task(cfg: CaptureConfig, request: tuple[float, int, int, tuple[str, ...], int],
+def _render_task(cfg: CaptureConfig, request: tuple[float, int, int, tuple[str, ...], tuple[int, int] | None, int],
                  threads: dict[str, int]) -> np.ndarray:
-    """On a worker: the raw render of ``request`` (t, spp, seed, groups, render band) for the capture
+    """On a worker: the raw render of ``request`` (t, spp, seed, groups, shared pattern, render band) for the capture
     ``cfg`` (its own renderer, built once)."""
     prepare_worker(threads, cfg.render.variant)
     key = cfg.model_dump_json()
@@ -114,8 +114,8 @@ def _render_task(cfg: CaptureConfig, request: tuple[float, int, int, tuple[str, 
     if renderer is None:
         renderer = _WORKER_RENDERERS[key] = Renderer.from_config(
             scene_of(cfg), cfg, cache=open_cache(cfg.render.cache, cfg.render.cache_max_gb))
-    t_s, spp, seed, groups, band = request
-    return renderer.raw_render(t_s, spp, seed, groups, band=band)
+    t_s, spp, seed, groups, pattern, band = request
+    return renderer.raw_render(t_s, spp, seed, groups, band=band, pattern=pattern)
 
 
 # ------------------------------------------------------------------------------------ client side
@@ -136,13 +136,13 @@ def render_on_cluster(client, cfg: CaptureConfig, plan: Plan, seed: np.random.Se
     hosts = topology(client)
     threads = {h: drjit_threads(c, w, w) for h, (c, w) in hosts.items()}
     start = time.perf_counter()
-    futures = {client.submit(_render_task, cfg, req, threads, pure=False, key=f"render-{i}-{req[2]}-{req[4]}"): req
+    futures = {client.submit(_render_task, cfg, req, threads, pure=False, key=f"render-{i}-{req[2]}-{req[5]}"): req
                for i, req in enumerate(requests)}
     for future in as_completed(list(futures)):
         req = futures.pop(future)
         try:
-            t_s, spp, seed_r, groups, band = req
-            renderer.give(t_s, spp, seed_r, groups, future.result(), band=band)
+            t_s, spp, seed_r, groups, pattern, band = req
+            renderer.give(t_s, spp, seed_r, groups, future.result(), band=band, pattern=pattern)
         except Exception as exc:  # a worker died, or its render failed: one line, not a Dask traceback
             raise ConfigError(f"cluster render at t = {req[0]:.6g} s failed: {one_line(exc)}") from None
         future.release()

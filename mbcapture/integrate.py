@@ -45,13 +45,39 @@ def render_seeds(plan: Plan, seed: np.random.SeedSequence) -> np.ndarray:
     return np.random.default_rng(seed).integers(0, 2**31 - 1, size=(plan.passes, 2))
 
 
-def render_requests(plan: Plan, seed: np.random.SeedSequence) -> list[tuple[float, int, int, tuple[str, ...]]]:
+def render_patterns(plan: Plan, seed: np.random.SeedSequence) -> list[list[tuple[int, int] | None]]:
+    """The shared pattern (key, offset) of each stratum's half-sample renders, [j][h], or None
+    (render.pattern 'own', or the ``difference`` estimator): half h of every stratum draws from one
+    pattern of its own, stratum j taking the samples after those of strata 0 .. j - 1, so that the
+    halves stay independent (the run's error estimate is their difference) and each is stratified
+    over the strata together."""
+    spp = np.asarray(plan.spp, dtype=np.int64)
+    two = bool(np.all(spp >= 2)) and plan.passes > 0
+    halves = [(int(n) // 2, int(n) - int(n) // 2) if two else (int(n),) for n in spp]
+    if plan.pattern != "shared" or plan.estimator != "independent":
+        return [[None] * len(h) for h in halves]
+    keys = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5A7E))) \
+        .integers(0, 2**32, size=2)
+    offset = [0, 0]
+    out = []
+    for h_j in halves:
+        row = []
+        for h, n_h in enumerate(h_j):
+            row.append((int(keys[h]), offset[h]))
+            offset[h] += n_h
+        out.append(row)
+    return out
+
+
+def render_requests(plan: Plan, seed: np.random.SeedSequence) \
+        -> list[tuple[float, int, int, tuple[str, ...], tuple[int, int] | None]]:
     """Every render :func:`integrate` makes for ``plan`` with the ``independent`` estimator, in its
-    order: (scene time s, samples per pixel, seed, groups). What a cluster renders ahead of it
-    (:mod:`mbcapture.cluster`)."""
+    order: (scene time s, samples per pixel, seed, groups, shared pattern or None). What a cluster
+    renders ahead of it (:mod:`mbcapture.cluster`)."""
     spp = np.asarray(plan.spp, dtype=np.int64)
     two = bool(np.all(spp >= 2)) and plan.passes > 0
     seeds = render_seeds(plan, seed)
+    patterns = render_patterns(plan, seed)
     used = plan.weights_s.sum(axis=1) > 0
     times = plan.render_times
     out = []
@@ -59,7 +85,7 @@ def render_requests(plan: Plan, seed: np.random.SeedSequence) -> list[tuple[floa
         n = int(spp[j])
         groups_j = tuple(plan.groups[g] for g in np.flatnonzero(used[j]))
         for h, spp_h in enumerate((n // 2, n - n // 2) if two else (n,)):
-            out.append((float(times[j, h]), int(spp_h), int(seeds[j, h]), groups_j))
+            out.append((float(times[j, h]), int(spp_h), int(seeds[j, h]), groups_j, patterns[j][h]))
     return out
 
 
@@ -207,6 +233,7 @@ def integrate(
     groups_out = np.zeros((n_buckets, G, H, W, C), dtype=np.float64) if per_group else None
     temporal = np.zeros((n_buckets, H, W, C), dtype=np.float64) if plan.passes >= 2 else None
     seeds = render_seeds(plan, seed)
+    patterns = render_patterns(plan, seed)
     times = plan.render_times
     used = plan.weights_s.sum(axis=1) > 0  # (J, G): groups with weight in each stratum
     radiance64 = np.empty((G, H, W, C))  # each render widened to float64 for accumulate, made once
@@ -234,7 +261,8 @@ def integrate(
             for h, spp_h in enumerate(halves):
                 with stage("render"):
                     if control is None:
-                        radiance = renderer.render(float(times[j, h]), spp_h, int(seeds[j, h]), groups_j)
+                        radiance = renderer.render(float(times[j, h]), spp_h, int(seeds[j, h]), groups_j,
+                                                   pattern=patterns[j][h])
                     else:
                         radiance = control.stratum(float(times[j, h]), h, spp_h, gsel)
                 with stage("accumulate"):

@@ -77,6 +77,8 @@ class Plan:
     pilot: dict | None = None
     cost: dict | None = None
     estimator: str = "independent"
+    #: render.pattern: 'own' (each render its sampler's pattern) or 'shared' (mbcapture.render.pattern)
+    pattern: str = "own"
     base_spp_setting: int | None = None
     base_time_s: float = 0.0
     max_spp_per_render: int = 1024
@@ -196,6 +198,7 @@ class Plan:
             "spp_range": None if spp is None else [int(spp.min()), int(spp.max())],
             "spp_source": self.spp_source,
             "estimator": self.estimator,
+            "pattern": self.pattern,
             "base_spp": self.base_spp if self.estimator == "difference" and self.spp is not None else None,
             "noise_budget": self.noise_budget,
             "samples_per_pixel_total": None if spp is None else int(spp.sum()),
@@ -361,6 +364,7 @@ def make_plan(
         planner=render.planner,
         noise_budget=None if render.spp is not None else render.noise_budget,
         estimator=render.estimator,
+        pattern=render.pattern,
         base_spp_setting=render.base_spp,
         base_time_s=float(timeline.seconds(timeline.start_tick)),
         max_spp_per_render=render.max_spp,

@@ -76,8 +76,8 @@ def test_render_requests_are_what_integrate_renders():
         def __init__(self):
             self.calls = []
 
-        def render(self, t, spp, seed, groups):
-            self.calls.append((float(t), int(spp), int(seed), tuple(groups)))
+        def render(self, t, spp, seed, groups, pattern=None):
+            self.calls.append((float(t), int(spp), int(seed), tuple(groups), pattern))
             return np.zeros((len(groups), 32, 40, 3), np.float32)
 
     rec = Recorder()

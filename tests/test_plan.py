@@ -288,7 +288,7 @@ class FakeRenderer:
     def set_time(self, t_s, force=False):
         pass
 
-    def render(self, t_s, spp, seed, groups=None):
+    def render(self, t_s, spp, seed, groups=None, pattern=None):
         groups = tuple(self.groups if groups is None else groups)
         self.calls.append((t_s, spp, groups))
         rng = np.random.default_rng(seed)

@@ -415,7 +415,7 @@ class ConstantRenderer:
     def __init__(self, radiance: dict[str, float]):
         self.radiance = radiance
 
-    def render(self, t_s, spp, seed, groups):
+    def render(self, t_s, spp, seed, groups, pattern=None):
         out = np.empty((len(groups), self.height, self.width, 3), np.float32)
         for i, g in enumerate(groups):
             out[i] = self.radiance[g]

@@ -18,6 +18,13 @@ Emitters of groups that are not requested are never sampled, and their emission 
 when a path hits them (they still occlude). Without any group requested the kernel would be
 empty; the renderer never asks for that.
 
+Random numbers: from the render's sampler (render.sampler), or, after :meth:`use_pattern`, the paths'
+dimensions from the pattern the strata of a capture share (:mod:`mbcapture.render.pattern`; the
+camera ray's position stays the sampler's). Either way through ``next_1d(sampler, dim, active)`` and
+``next_2d(...)``, which take the sampler as an argument: Dr.Jit's symbolic loop carries the sampler's
+state from one vertex to the next only when the loop body names it (a closure calling
+``sampler.next_2d`` would draw the same numbers at every vertex).
+
 Output: the film's RGB is the sum over the requested groups, followed by the AOV channels
 ``<group>.R, <group>.G, <group>.B`` for each requested group, in the requested order.
 
@@ -44,6 +51,8 @@ from __future__ import annotations
 
 from functools import lru_cache
 from typing import Any, Sequence
+
+from . import pattern
 
 #: Name under which the integrator is registered with ``mi.register_integrator``.
 PLUGIN_NAME = "mbcapture_groups"
@@ -78,6 +87,10 @@ def integrator_class(variant: str) -> type:
             self.group_names: list[str] = []
             self.group_emitters: list[list[mi.Emitter]] = []
             self.spectral: bool = bool(mi.is_spectral)
+            #: None: every dimension from Mitsuba's sampler. Else (seed, offset, first pixel): the path's
+            #: dimensions from the shared pattern (mbcapture.render.pattern), the sample j of a pixel
+            #: being the pattern's sample offset + j (see :meth:`use_pattern`).
+            self.pattern: tuple[int, int, int] | None = None
 
         def set_groups(self, names: Sequence[str], emitters: Sequence[Sequence[Any]]) -> None:
             """Choose the groups to render: ``emitters[g]`` are the emitters of ``names[g]``."""
@@ -88,10 +101,32 @@ def integrator_class(variant: str) -> type:
             self.group_names = list(names)
             self.group_emitters = [list(e) for e in emitters]
 
+        def use_pattern(self, seed: int | None, offset: int = 0, first_pixel: int = 0) -> None:
+            """Draw the next renders' path dimensions from the pattern keyed ``seed`` (None: from
+            Mitsuba's sampler), sample j of a pixel being the pattern's ``offset + j``; the film's
+            pixel 0 is the image's pixel ``first_pixel`` (row-major: a band's first row x width)."""
+            self.pattern = None if seed is None else (int(seed) & 0xFFFFFFFF, int(offset), int(first_pixel))
+
         def aov_names(self) -> list[str]:
             if self.spectral:
                 return []
             return [f"{g}.{c}" for g in self.group_names for c in "RGB"]
+
+        def _draws(self, sampler, ray) -> tuple[Any, Any]:
+            """``next_1d(dim, active)`` and ``next_2d(dim, active)`` for :meth:`sample`: Mitsuba's
+            sampler (which counts dimensions itself and ignores ``dim``) or the shared pattern."""
+            if self.pattern is None:
+                return (lambda sampler, dim, active: sampler.next_1d(active)), \
+                    (lambda sampler, dim, active: sampler.next_2d(active))
+            # mi.render's wavefront: sample_count() consecutive lanes per pixel, pixels row-major
+            spp = sampler.sample_count()
+            seed, offset, first = (mi.UInt32(v) for v in self.pattern)
+            dr.make_opaque(seed, offset, first)  # literals would recompile the kernel for every stratum
+            lane = dr.arange(mi.UInt32, dr.width(ray))
+            index = lane % spp + offset
+            key = pattern.hash_u32(dr, lane // spp + first) ^ pattern.hash_u32(dr, seed)
+            return ((lambda sampler, dim, active: pattern.pair(dr, mi, index, key, dim).x),
+                    (lambda sampler, dim, active: pattern.pair(dr, mi, index, key, dim)))
 
         @dr.syntax
         def sample(self, scene, sampler, ray, medium=None, active=True):
@@ -116,6 +151,8 @@ def integrator_class(variant: str) -> type:
             prev_bsdf_delta = mi.Bool(True)
             valid_first = mi.Bool(False)
             result = tuple(mi.Spectrum(0.0) for _ in range(n_groups))
+            n_emitters = sum(len(e) for e in emitters)
+            next_1d, next_2d = self._draws(sampler, ray)
 
             while dr.hint(active, max_iterations=max_depth, label="mbcapture per-group path"):
                 si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0), active=active)
@@ -142,10 +179,12 @@ def integrator_class(variant: str) -> type:
                 # Next-event estimation towards every emitter of every requested group.
                 active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
                 nee_terms = []
+                n_em = 0
                 for g in range(n_groups):
                     acc = hit_terms[g]
                     for emitter in emitters[g]:
-                        ds_em, em_weight = emitter.sample_direction(si, sampler.next_2d(active_em), active_em)
+                        n_em += 1
+                        ds_em, em_weight = emitter.sample_direction(si, next_2d(sampler, depth * (n_emitters + 2) + n_em, active_em), active_em)
                         ok = active_em & (ds_em.pdf != 0.0)
                         wo = si.to_local(ds_em.d)
                         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, ok)
@@ -161,7 +200,8 @@ def integrator_class(variant: str) -> type:
 
                 # BSDF sampling: continue the path.
                 bs, bsdf_weight = bsdf.sample(
-                    ctx, si, sampler.next_1d(active_next), sampler.next_2d(active_next), active_next
+                    ctx, si, next_1d(sampler, depth * (n_emitters + 2), active_next),
+                    next_2d(sampler, depth * (n_emitters + 2) + n_emitters + 1, active_next), active_next
                 )
                 throughput = dr.select(active_next, throughput * bsdf_weight, 0.0)
                 ray = si.spawn_ray(si.to_world(bs.wo))

@@ -650,16 +650,19 @@ class Renderer:
         return tf
 
     def render(self, t_s: float, spp: int, seed: int,
-               groups: Sequence[str] | None = None) -> np.ndarray:
+               groups: Sequence[str] | None = None, pattern: tuple[int, int] | None = None) -> np.ndarray:
         """Radiance (W m^-2 sr^-1) of each requested emitter group at scene time ``t_s`` (s);
         in spectral mode the ``specfilm`` value, photo-electrons per (m^2 sr s).
 
         Returns float32 (group, row, col, channel) = (len(groups), height, width, 3), box pixel
         filter (the mean radiance over each pixel), ``spp`` samples per pixel, deterministic
         for a given ``seed``. ``groups`` defaults to all of :attr:`groups`, in any order given;
-        groups not requested are not rendered at all.
+        groups not requested are not rendered at all. ``pattern`` (key, offset): the paths' dimensions
+        drawn from the shared pattern ``key``, this render's samples being its ``offset``, ``offset + 1``,
+        ... (:mod:`mbcapture.render.pattern`; ``seed`` then seeds the camera rays' positions only);
+        None: all from render.sampler, seeded by ``seed``.
         """
-        return self.render_rows(t_s, spp, seed, groups, (0, self.height))
+        return self.render_rows(t_s, spp, seed, groups, (0, self.height), pattern)
 
     def band_span(self, rows: tuple[int, int]) -> range:
         """The indices of the bands that make up ``rows`` (first, end) exactly; ValueError otherwise."""
@@ -670,7 +673,7 @@ class Renderer:
         return range(idx[0], idx[-1] + 1)
 
     def render_rows(self, t_s: float, spp: int, seed: int, groups: Sequence[str] | None,
-                    rows: tuple[int, int]) -> np.ndarray:
+                    rows: tuple[int, int], pattern: tuple[int, int] | None = None) -> np.ndarray:
         """:meth:`render`'s rows ``rows`` (first, end; a run of whole :attr:`bands`), rendering only
         those: float32 (group, end - first, width, channel), equal to the whole film's rows."""
         req = list(self.groups if groups is None else groups)
@@ -683,8 +686,8 @@ class Renderer:
         r0, r1 = int(rows[0]), int(rows[1])
 
         def band(b: int) -> np.ndarray:  # given by a cluster worker, or rendered here
-            given = self._given.pop((float(t_s), int(spp), int(seed), tuple(req), b), None)
-            return given if given is not None else self.raw_render(t_s, spp, seed, req, band=b)
+            given = self._given.pop((float(t_s), int(spp), int(seed), tuple(req), b, _pattern_key(pattern)), None)
+            return given if given is not None else self.raw_render(t_s, spp, seed, req, band=b, pattern=pattern)
 
         img = band(span[0]) if len(span) == 1 else np.concatenate([band(b) for b in span], axis=1)
         # the lens (mbcapture.optics): relative illumination, distortion, then diffraction (a blur in the sensor
@@ -705,24 +708,29 @@ class Renderer:
             return img
         return np.repeat((img @ self._mono.astype(np.float32))[..., None], 3, axis=-1)
 
-    def give(self, t_s: float, spp: int, seed: int, groups: Sequence[str], radiance: np.ndarray, band: int = 0) -> None:
+    def give(self, t_s: float, spp: int, seed: int, groups: Sequence[str], radiance: np.ndarray, band: int = 0,
+             pattern: tuple[int, int] | None = None) -> None:
         """Hand this renderer the raw render of band ``band`` of ``(t_s, spp, seed, groups)`` made by
         another process with the same renderer (a cluster worker, :meth:`raw_render`): :meth:`render`
         and :meth:`render_rows` use it (the lens applied as to their own) instead of rendering, once."""
-        self._given[(float(t_s), int(spp), int(seed), tuple(groups), int(band))] = np.asarray(radiance, np.float32)
+        self._given[(float(t_s), int(spp), int(seed), tuple(groups), int(band), _pattern_key(pattern))] = \
+            np.asarray(radiance, np.float32)
 
-    def raw_render(self, t_s: float, spp: int, seed: int, groups: Sequence[str], band: int = 0) -> np.ndarray:
+    def raw_render(self, t_s: float, spp: int, seed: int, groups: Sequence[str], band: int = 0,
+                   pattern: tuple[int, int] | None = None) -> np.ndarray:
         """What :meth:`render` caches: band ``band`` of the render before the lens's falloff, distortion,
         diffraction and mono mixture (what :meth:`give` takes)."""
         req = list(groups)
         n = self.sample_count(spp)
         params = {"spp": int(n), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
+        if pattern is not None:  # without one, the key renders have always had
+            params["pattern"] = list(_pattern_key(pattern))
         if len(self.bands) == 1:  # the whole film: the key it has always had
-            return self.cached("radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), req))
+            return self.cached("radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), req, None, pattern))
         rows = self.bands[band]
         params["rows"] = list(rows)
         return self.cached("radiance", t_s, params,
-                           lambda: self._render(t_s, int(n), band_seed(seed, band), req, rows))
+                           lambda: self._render(t_s, int(n), band_seed(seed, band), req, rows, pattern))
 
     @property
     def renders_pixels(self) -> bool:
@@ -750,6 +758,7 @@ class Renderer:
         self.set_time(t_s)
         self._set_rows(self._params, (0, self.height))  # the rays below address the whole film
         self._integrator.set_groups(lit, [self._group_emitters[g] for g in lit])
+        self._integrator.use_pattern(None)  # its lanes are not mi.render's: render.sampler's pattern
         mi, dr = self._mi, self._dr
         n_spp = self.sample_count(spp)
         sensor = self._scene.sensors()[0]
@@ -792,11 +801,16 @@ class Renderer:
         params.update()
         self._crop[id(params)] = tuple(rows)
 
-    def _render(self, t_s: float, spp: int, seed: int, req: list[str], rows: tuple[int, int] | None = None) -> np.ndarray:
+    def _render(self, t_s: float, spp: int, seed: int, req: list[str], rows: tuple[int, int] | None = None,
+                pattern: tuple[int, int] | None = None) -> np.ndarray:
         """The Mitsuba pass(es) of ``req`` at ``t_s``: the whole film, or its ``rows`` (a band)."""
         start = time.perf_counter()
         self._ensure_loaded()
         rows = (0, self.height) if rows is None else (int(rows[0]), int(rows[1]))
+        if pattern is None:
+            self._integrator.use_pattern(None)
+        else:
+            self._integrator.use_pattern(pattern[0], pattern[1], rows[0] * self.width)
         h = rows[1] - rows[0]
         out = np.zeros((len(req), h, self.width, 3), np.float32)
         lit = [g for g in req if self._group_emitters[g]]
@@ -835,6 +849,11 @@ class Renderer:
         return np.asarray(img, dtype=np.float32)[..., :3]
 
 
+def _pattern_key(pattern: tuple[int, int] | None) -> tuple[int, int] | None:
+    """``pattern`` (key, offset) as plain ints, or None."""
+    return None if pattern is None else (int(pattern[0]) & 0xFFFFFFFF, int(pattern[1]))
+
+
 class RenderRows:
     """Rows (first, end) of a :class:`Renderer`'s film, a run of whole bands: what
     :func:`mbcapture.integrate.integrate` asks of a renderer (``render``, the film size, the channels,
@@ -846,8 +865,9 @@ class RenderRows:
         self.width, self.height = renderer.width, self.rows[1] - self.rows[0]
         self.channels, self.groups, self.cache = renderer.channels, renderer.groups, renderer.cache
 
-    def render(self, t_s: float, spp: int, seed: int, groups: Sequence[str] | None = None) -> np.ndarray:
-        return self.renderer.render_rows(t_s, spp, seed, groups, self.rows)
+    def render(self, t_s: float, spp: int, seed: int, groups: Sequence[str] | None = None,
+               pattern: tuple[int, int] | None = None) -> np.ndarray:
+        return self.renderer.render_rows(t_s, spp, seed, groups, self.rows, pattern)
 
     def sample_count(self, spp: int) -> int:
         return self.renderer.sample_count(spp)
