@@ -167,9 +167,9 @@ class RenderSection(_Model):
         "strata of a capture draw them from one pattern per pixel (scrambled Sobol' pairs, "
         "mbcapture/render/pattern.py), stratum j taking the samples after the strata before it, so that a read, "
         "which sums the strata, is stratified as a whole; each half of the run's error estimate has a pattern "
-        "of its own. Unbiased (tested); the camera ray's position in the pixel, adaptive sampling's pixels and the "
-        "'difference' estimator stay render.sampler's. Measured on the default capture at 320x256 and equal "
-        "samples: J4's median 1.41x lower, its p95 and tail unchanged; the noise budget's pilot predicts the "
+        "of its own. Unbiased (tested); adaptive sampling's pixels, the 'difference' estimator and a spectral camera "
+        "ray stay render.sampler's. Measured on the default capture at 320x256 and equal samples: J4's median "
+        "1.41x lower, its p95 and tail unchanged (the mean over the lit pixels 2x lower); the noise budget's pilot predicts the "
         "median's gain and chooses fewer samples (docs/noise.md).",
     )
     max_motion_px: float = Field(

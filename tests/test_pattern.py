@@ -104,9 +104,9 @@ def test_each_half_takes_the_samples_after_the_strata_before_it():
 
 @pytest.mark.render
 def test_a_shared_pattern_render_is_keyed_by_its_pattern_and_bands_hold_the_film_rows(tmp_path):
-    """The same render with another pattern offset differs; the cache keys the pattern (a second
-    renderer on the same cache gives the first's render, not an own-pattern one); a film rendered in
-    bands equals the whole film's rows (the pattern is per image pixel)."""
+    """The same render with another pattern offset differs, with another sampler seed it does not; the
+    cache keys the pattern (a second renderer on the same cache gives the first's render, not an
+    own-pattern one); a film rendered in bands keys each band's pattern by the image's pixels."""
     from mbcapture.pipeline import prepare
     from mbcapture.render import Renderer
     from mbcapture.render.cache import open_cache
@@ -118,6 +118,9 @@ def test_a_shared_pattern_render_is_keyed_by_its_pattern_and_bands_hold_the_film
     a = r.render(t, 8, 3, plan.groups, pattern=(99, 0))
     assert not np.array_equal(a, r.render(t, 8, 3, plan.groups, pattern=(99, 8)))
     assert not np.array_equal(a, r.render(t, 8, 3, plan.groups))
+    # every dimension of an RGB render, the camera ray's position in the pixel too, is the pattern's:
+    # the sampler's seed no longer matters
+    np.testing.assert_array_equal(r.render(t, 8, 4, plan.groups, pattern=(99, 0)), a)
     again = Renderer.from_config(scene, cfg, cache=open_cache(str(tmp_path), 1.0))
     np.testing.assert_array_equal(again.render(t, 8, 3, plan.groups, pattern=(99, 0)), a)
     banded = Renderer.from_config(scene, load_config(ROOT / "configs" / "metronome_hdr.yaml",

@@ -57,6 +57,10 @@ from . import pattern
 #: Name under which the integrator is registered with ``mi.register_integrator``.
 PLUGIN_NAME = "mbcapture_groups"
 
+#: The shared pattern's pairs of dimensions for the camera ray's position in the pixel and on the lens
+#: (far from the paths', which count up from 0 by vertex).
+CAMERA_DIM = 0x7FFF0000
+
 
 def mis_power(pdf_a: Any, pdf_b: Any) -> Any:
     """Power heuristic (exponent 2) weight of strategy a; 0 where both pdfs are 0."""
@@ -112,21 +116,38 @@ def integrator_class(variant: str) -> type:
                 return []
             return [f"{g}.{c}" for g in self.group_names for c in "RGB"]
 
-        def _draws(self, sampler, ray) -> tuple[Any, Any]:
-            """``next_1d(dim, active)`` and ``next_2d(dim, active)`` for :meth:`sample`: Mitsuba's
-            sampler (which counts dimensions itself and ignores ``dim``) or the shared pattern."""
+        def _draws(self, scene, sampler, ray) -> tuple[Any, Any, Any]:
+            """``next_1d(sampler, dim, active)``, ``next_2d(...)`` and the camera ray for :meth:`sample`:
+            Mitsuba's sampler (which counts dimensions itself and ignores ``dim``) and ``ray`` as given,
+            or the shared pattern and a camera ray through the pattern's position in the pixel."""
             if self.pattern is None:
                 return (lambda sampler, dim, active: sampler.next_1d(active)), \
-                    (lambda sampler, dim, active: sampler.next_2d(active))
+                    (lambda sampler, dim, active: sampler.next_2d(active)), ray
             # mi.render's wavefront: sample_count() consecutive lanes per pixel, pixels row-major
             spp = sampler.sample_count()
             seed, offset, first = (mi.UInt32(v) for v in self.pattern)
             dr.make_opaque(seed, offset, first)  # literals would recompile the kernel for every stratum
             lane = dr.arange(mi.UInt32, dr.width(ray))
             index = lane % spp + offset
-            key = pattern.hash_u32(dr, lane // spp + first) ^ pattern.hash_u32(dr, seed)
-            return ((lambda sampler, dim, active: pattern.pair(dr, mi, index, key, dim).x),
-                    (lambda sampler, dim, active: pattern.pair(dr, mi, index, key, dim)))
+            pixel = lane // spp + first
+            key = pattern.hash_u32(dr, pixel) ^ pattern.hash_u32(dr, seed)
+
+            def next_2d(sampler, dim, active):
+                return pattern.pair(dr, mi, index, key, dim)
+
+            if not self.spectral:
+                # The camera ray again, through the pattern's point of the pixel (and of the lens): the film's
+                # box filter gives the sample to its pixel wherever in it mi.render's own ray fell, and the
+                # perspective and thin-lens cameras' ray weight is 1 in RGB, as the film assumed. (Spectral: the
+                # ray's wavelengths and their weight are the sampler's, so its ray is kept whole.)
+                sensor = scene.sensors()[0]
+                size = sensor.film().size()
+                y = pixel // size.x
+                pos = mi.Point2f(mi.Float(pixel - y * size.x), mi.Float(y)) + next_2d(sampler, mi.UInt32(CAMERA_DIM), True)
+                pos = pos * mi.ScalarVector2f(1.0 / size.x, 1.0 / size.y)
+                aperture = next_2d(sampler, mi.UInt32(CAMERA_DIM + 1), True) if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+                ray, _ = sensor.sample_ray(ray.time, mi.Float(0.5), pos, aperture)
+            return (lambda sampler, dim, active: next_2d(sampler, dim, active).x), next_2d, ray
 
         @dr.syntax
         def sample(self, scene, sampler, ray, medium=None, active=True):
@@ -152,7 +173,7 @@ def integrator_class(variant: str) -> type:
             valid_first = mi.Bool(False)
             result = tuple(mi.Spectrum(0.0) for _ in range(n_groups))
             n_emitters = sum(len(e) for e in emitters)
-            next_1d, next_2d = self._draws(sampler, ray)
+            next_1d, next_2d, ray = self._draws(scene, sampler, ray)
 
             while dr.hint(active, max_iterations=max_depth, label="mbcapture per-group path"):
                 si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0), active=active)
