@@ -159,18 +159,20 @@ class RenderSection(_Model):
         "quasi-Monte Carlo: unbiased, independent between seeds, and on the metronome at 128 spp 7.2x and 11x lower "
         "in Monte Carlo variance than 'independent' (uniform random numbers) on the mean pixel, but 4.8x and 5.6x on "
         "the median pixel, which the noise budget judges (indirect light): there ldsampler's power-of-4 counts cost "
-        "more samples than its lower variance saves (docs/noise.md).",
+        "more samples than its lower variance saves (docs/noise.md). With render.pattern 'shared' (the default) "
+        "the strata's renders draw from that pattern instead; this sampler draws the pilot's, the truths', "
+        "adaptive sampling's and spectral camera rays.",
     )
     pattern: Literal["own", "shared"] = Field(
-        "own",
-        description="'own': every render draws its paths from render.sampler's pattern of its own. 'shared': the "
-        "strata of a capture draw them from one pattern per pixel (scrambled Sobol' pairs, "
-        "mbcapture/render/pattern.py), stratum j taking the samples after the strata before it, so that a read, "
-        "which sums the strata, is stratified as a whole; each half of the run's error estimate has a pattern "
-        "of its own. Unbiased (tested); adaptive sampling's pixels, the 'difference' estimator and a spectral camera "
-        "ray stay render.sampler's. Measured on the default capture at 320x256 and equal samples: J4's median "
-        "1.41x lower, its p95 and tail unchanged (the mean over the lit pixels 2x lower); the noise budget's pilot predicts the "
-        "median's gain and chooses fewer samples (docs/noise.md).",
+        "shared",
+        description="'shared' (the default): the strata of a capture draw their samples from one pattern per "
+        "pixel (scrambled Sobol' pairs, mbcapture/render/pattern.py), stratum j taking the samples after the strata "
+        "before it, so that a read, which sums the strata, is stratified as a whole; each half of the run's error "
+        "estimate has a pattern of its own. 'own': every render draws them from render.sampler's pattern of its "
+        "own (before 2026-11-27 the only way). Unbiased (tested); adaptive sampling's pixels, the 'difference' "
+        "estimator and a spectral camera ray stay render.sampler's. Measured on the default capture at 320x256 "
+        "and equal samples: J4's median 1.41x lower, its p95 and tail unchanged (the mean over the lit pixels 2x "
+        "lower); the noise budget's pilot predicts the median's gain and chooses fewer samples (docs/noise.md).",
     )
     max_motion_px: float = Field(
         0.5, gt=0, description="Largest image motion, in pixels, of any moving point inside one time stratum (the paper's vT << p)."

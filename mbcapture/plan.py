@@ -78,7 +78,7 @@ class Plan:
     cost: dict | None = None
     estimator: str = "independent"
     #: render.pattern: 'own' (each render its sampler's pattern) or 'shared' (mbcapture.render.pattern)
-    pattern: str = "own"
+    pattern: str = "shared"
     base_spp_setting: int | None = None
     base_time_s: float = 0.0
     max_spp_per_render: int = 1024
