@@ -55,10 +55,27 @@ def test_aligned_blocks_of_the_pattern_are_nets(jit):
 
 
 @pytest.mark.render
+def test_the_sequence_is_sobols_first_two_dimensions(jit):
+    """sobol_pair's five-step transform gives what the direction numbers give (32 masked XORs)."""
+    from mbcapture.render import pattern
+
+    dr, mi = jit
+    idx = np.concatenate([np.arange(512), np.random.default_rng(3).integers(0, 2**32, 4096)]).astype(np.uint32)
+    x, y = pattern.sobol_pair(dr, mi.UInt32(idx))
+    want = np.zeros_like(idx)
+    for b, v in enumerate(pattern.SOBOL_DIM1):
+        want ^= np.where((idx >> np.uint32(b)) & 1, np.uint32(v), np.uint32(0)).astype(np.uint32)
+    np.testing.assert_array_equal(np.asarray(y, np.uint32), want)
+    np.testing.assert_array_equal(np.asarray(x, np.uint32)[:4], [0, 2**31, 2**30, 3 * 2**30])
+
+
+@pytest.mark.render
 def test_each_sample_is_uniform_over_keys_and_pairs_are_uncorrelated(jit):
     """One sample index over 2^18 keys (pixels): each coordinate uniform (16 bins, each within 5
-    standard errors of 1/16), mean 1/2 within 5 standard errors; two pairs of dimensions of the same
-    sample uncorrelated (|r| < 5 / sqrt(n))."""
+    standard errors of 1/16), mean 1/2 within 5 standard errors; the pair jointly uniform (4 x 4 cells,
+    the same bound); two pairs of dimensions of the same sample uncorrelated (|r| < 5 / sqrt(n)). (A
+    bias far below these bounds would pass: exact uniformity rests on the construction, see
+    mbcapture.render.pattern.)"""
     n = 1 << 18
     keys = (np.arange(n, dtype=np.uint64) * 2654435761 % 2**32).astype(np.uint32)
     for g in (0, 1, 131, 70000):
@@ -67,6 +84,8 @@ def test_each_sample_is_uniform_over_keys_and_pairs_are_uncorrelated(jit):
             share = np.histogram(u, 16, (0.0, 1.0))[0] / n
             assert np.all(np.abs(share - 1 / 16) < 5 * np.sqrt(1 / 16 * 15 / 16 / n))
             assert abs(u.mean() - 0.5) < 5 * np.sqrt(1 / 12 / n)
+        cells = np.histogram2d(x, y, 4, [[0.0, 1.0], [0.0, 1.0]])[0] / n
+        assert np.all(np.abs(cells - 1 / 16) < 5 * np.sqrt(1 / 16 * 15 / 16 / n))
         x2, _ = points(jit, np.full(n, g), keys, 6)
         assert abs(np.corrcoef(x, x2)[0, 1]) < 5 / np.sqrt(n)
 

@@ -15,14 +15,15 @@ The sequence, per pixel and per pair of dimensions (written here: no library dra
 * the shuffled index gives a point of the base-2 (0,2)-sequence (Sobol's first two dimensions:
   van der Corput, and the Pascal matrix), whose aligned blocks of 2^m points are (0,m,2)-nets;
 * each coordinate is scrambled by a nested scramble of its own, which keeps the nets and makes
-  every point uniform on [0, 1)^2 (the first step adds a uniform random integer mod 2^32, the
-  rest are bijections), so every estimate stays unbiased.
+  every point uniform on [0, 1)^2, so every estimate stays unbiased.
 
 The nested scrambles are hash-based, in the bit-reversed domain, where "depends only on the bits
-above" becomes "on the bits below": additions, multiplications by odd numbers and ``x ^= x * even``
-all have that property. They are far less random than a full Owen scramble, which draws a
-random bit per node of the binary tree; the tests check what the renderer relies on (uniform
-marginals, nets in aligned blocks, no correlation between pairs).
+above" becomes "on the bits below": additions and ``x ^= x * even`` have that property. The key
+enters only by the first addition and the rest is one fixed bijection F, so a coordinate is
+F(brev(x) + key): over a uniform key, uniform on the 2^32 values whatever x (a key-dependent
+multiplier after the addition would break that). They are far less random than a full Owen
+scramble, which draws a random bit per node of the binary tree; the tests check what the renderer
+relies on (uniform marginals, nets in aligned blocks, no correlation between pairs).
 """
 
 from __future__ import annotations
@@ -30,12 +31,16 @@ from __future__ import annotations
 from typing import Any
 
 #: The 32 direction numbers of Sobol's second dimension (primitive polynomial x + 1): column b of
-#: the upper-triangular Pascal matrix mod 2, v_0 = 2^31, v_b = v_{b-1} ^ (v_{b-1} >> 1).
+#: the upper-triangular Pascal matrix mod 2, v_0 = 2^31, v_b = v_{b-1} ^ (v_{b-1} >> 1) (the
+#: tests check :func:`sobol_pair` against them).
 _V = [0x80000000]
 for _b in range(1, 32):
     _V.append(_V[-1] ^ (_V[-1] >> 1))
 SOBOL_DIM1 = tuple(_V)
 del _b, _V
+
+#: Masks of the superset transform in :func:`sobol_pair`: the bit positions whose k-th bit is 0.
+_SUPERSET_MASKS = (0x55555555, 0x33333333, 0x0F0F0F0F, 0x00FF00FF, 0x0000FFFF)
 
 #: Even multipliers of the nested scramble: numpy.random.default_rng(20261127).integers(0, 2**32, 4)
 #: with the lowest bit cleared, kept literal so that the sequence does not depend on numpy.
@@ -60,21 +65,23 @@ def nested_scramble(dr: Any, x: Any, seed: Any) -> Any:
     aligned block of 2^m values is an aligned block; over a uniform random ``seed`` every output is
     uniform on 0 .. 2^32 - 1.
     """
-    y = dr.brev(x)
-    y = y + seed
-    y = y * (hash_u32(dr, seed) | 1)
+    y = dr.brev(x) + seed
     for c in _EVEN:
         y = y ^ (y * c)
     return dr.brev(y)
 
 
-def sobol_pair(dr: Any, mi: Any, i: Any) -> tuple[Any, Any]:
-    """The point ``i`` (UInt32) of the unscrambled (0,2)-sequence, as two UInt32 fractions."""
-    x = dr.brev(i)
-    y = mi.UInt32(0)
-    for b, v in enumerate(SOBOL_DIM1):
-        y = y ^ dr.select(((i >> b) & 1) != 0, mi.UInt32(v), mi.UInt32(0))
-    return x, y
+def sobol_pair(dr: Any, i: Any) -> tuple[Any, Any]:
+    """The point ``i`` (UInt32) of the unscrambled (0,2)-sequence, as two UInt32 fractions.
+
+    The second coordinate's digit r (from the top) is the XOR of the index bits c with C(c, r) odd,
+    which by Lucas' theorem are the c whose bits include r's: a superset transform over the 5 bits of
+    a position, five shift-and-XOR steps on the whole word instead of 32 masked XORs of
+    :data:`SOBOL_DIM1`."""
+    t = i
+    for k, mask in enumerate(_SUPERSET_MASKS):
+        t = t ^ ((t >> (1 << k)) & mask)
+    return dr.brev(i), dr.brev(t)
 
 
 def to_unit(dr: Any, mi: Any, u: Any) -> Any:
@@ -86,8 +93,7 @@ def pair(dr: Any, mi: Any, g: Any, key: Any, dim: Any) -> Any:
     """The 2D sample ``g`` (UInt32 global index) of the sequence keyed ``key`` (UInt32: pattern and
     pixel) for the pair of dimensions ``dim`` (UInt32): a ``Point2f`` in [0, 1)^2."""
     k = hash_u32(dr, key ^ hash_u32(dr, dim + 0x9E3779B9))
-    k1 = hash_u32(dr, k + 1)
-    k2 = hash_u32(dr, k + 2)
-    k3 = hash_u32(dr, k + 3)
-    x, y = sobol_pair(dr, mi, nested_scramble(dr, g, k1))
+    # three keys from one, each hashed on its own so that the three scrambles are unrelated
+    k1, k2, k3 = (hash_u32(dr, k + j) for j in (1, 2, 3))
+    x, y = sobol_pair(dr, nested_scramble(dr, g, k1))
     return mi.Point2f(to_unit(dr, mi, nested_scramble(dr, x, k2)), to_unit(dr, mi, nested_scramble(dr, y, k3)))
