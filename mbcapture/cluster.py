@@ -132,7 +132,7 @@ def render_on_cluster(client, cfg: CaptureConfig, plan: Plan, seed: np.random.Se
         return {"renders": 0, "note": f"render.estimator {plan.estimator!r}: rendered here (its strata depend on "
                                       "its base render)"}
     bands = renderer.band_span((0, renderer.height) if rows is None else rows)
-    requests = [(*req, b) for req in render_requests(plan, seed) for b in bands]
+    requests = [(*req, b) for req in render_requests(plan, seed, renderer.sample_count) for b in bands]
     hosts = topology(client)
     threads = {h: drjit_threads(c, w, w) for h, (c, w) in hosts.items()}
     start = time.perf_counter()

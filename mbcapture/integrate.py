@@ -45,12 +45,14 @@ def render_seeds(plan: Plan, seed: np.random.SeedSequence) -> np.ndarray:
     return np.random.default_rng(seed).integers(0, 2**31 - 1, size=(plan.passes, 2))
 
 
-def render_patterns(plan: Plan, seed: np.random.SeedSequence) -> list[list[tuple[int, int] | None]]:
+def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None) \
+        -> list[list[tuple[int, int] | None]]:
     """The shared pattern (key, offset) of each stratum's half-sample renders, [j][h], or None
     (render.pattern 'own', or the ``difference`` estimator): half h of every stratum draws from one
     pattern of its own, stratum j taking the samples after those of strata 0 .. j - 1, so that the
     halves stay independent (the run's error estimate is their difference) and each is stratified
-    over the strata together."""
+    over the strata together. ``count``: the samples the renderer's sampler takes for a request
+    (``Renderer.sample_count``: multijitter takes 132 for 128), so that no two strata share samples."""
     spp = np.asarray(plan.spp, dtype=np.int64)
     two = bool(np.all(spp >= 2)) and plan.passes > 0
     halves = [(int(n) // 2, int(n) - int(n) // 2) if two else (int(n),) for n in spp]
@@ -64,20 +66,20 @@ def render_patterns(plan: Plan, seed: np.random.SeedSequence) -> list[list[tuple
         row = []
         for h, n_h in enumerate(h_j):
             row.append((int(keys[h]), offset[h]))
-            offset[h] += n_h
+            offset[h] += int(count(n_h)) if count is not None else n_h
         out.append(row)
     return out
 
 
-def render_requests(plan: Plan, seed: np.random.SeedSequence) \
+def render_requests(plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None) \
         -> list[tuple[float, int, int, tuple[str, ...], tuple[int, int] | None]]:
     """Every render :func:`integrate` makes for ``plan`` with the ``independent`` estimator, in its
     order: (scene time s, samples per pixel, seed, groups, shared pattern or None). What a cluster
-    renders ahead of it (:mod:`mbcapture.cluster`)."""
+    renders ahead of it (:mod:`mbcapture.cluster`); ``count`` as in :func:`render_patterns`."""
     spp = np.asarray(plan.spp, dtype=np.int64)
     two = bool(np.all(spp >= 2)) and plan.passes > 0
     seeds = render_seeds(plan, seed)
-    patterns = render_patterns(plan, seed)
+    patterns = render_patterns(plan, seed, count)
     used = plan.weights_s.sum(axis=1) > 0
     times = plan.render_times
     out = []
@@ -233,7 +235,7 @@ def integrate(
     groups_out = np.zeros((n_buckets, G, H, W, C), dtype=np.float64) if per_group else None
     temporal = np.zeros((n_buckets, H, W, C), dtype=np.float64) if plan.passes >= 2 else None
     seeds = render_seeds(plan, seed)
-    patterns = render_patterns(plan, seed)
+    patterns = render_patterns(plan, seed, getattr(renderer, "sample_count", None))
     times = plan.render_times
     used = plan.weights_s.sum(axis=1) > 0  # (J, G): groups with weight in each stratum
     radiance64 = np.empty((G, H, W, C))  # each render widened to float64 for accumulate, made once

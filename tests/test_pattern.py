@@ -116,6 +116,13 @@ def test_each_half_takes_the_samples_after_the_strata_before_it():
         halves = [n // 2 if h == 0 else n - n // 2 for n in plan.spp]
         np.testing.assert_array_equal([row[h][1] for row in pats], np.concatenate([[0], np.cumsum(halves)[:-1]]))
     assert [r[4] for r in render_requests(plan, seeds[2])] == [p for row in pats for p in row]
+    # the offsets advance by what the sampler takes (multijitter takes 132 for 128): no shared samples
+    taken = [[row[h][1] for row in render_patterns(plan, seeds[2], lambda n: n + 1)] for h in range(2)]
+    for h in range(2):
+        halves = [n // 2 if h == 0 else n - n // 2 for n in plan.spp]
+        np.testing.assert_array_equal(taken[h], np.concatenate([[0], np.cumsum(np.add(halves, 1))[:-1]]))
+    assert [r[4] for r in render_requests(plan, seeds[2], lambda n: n + 1)] == \
+        [p for row in render_patterns(plan, seeds[2], lambda n: n + 1) for p in row]
     own = replace(plan, pattern="own")
     assert all(p is None for row in render_patterns(own, seeds[2]) for p in row)
     assert all(p is None for row in render_patterns(replace(plan, estimator="difference"), seeds[2]) for p in row)

@@ -18,10 +18,10 @@ Emitters of groups that are not requested are never sampled, and their emission 
 when a path hits them (they still occlude). Without any group requested the kernel would be
 empty; the renderer never asks for that.
 
-Random numbers: from the render's sampler (render.sampler), or, after :meth:`use_pattern`, the paths'
-dimensions from the pattern the strata of a capture share (:mod:`mbcapture.render.pattern`; the
-camera ray's position stays the sampler's). Either way through ``next_1d(sampler, dim, active)`` and
-``next_2d(...)``, which take the sampler as an argument: Dr.Jit's symbolic loop carries the sampler's
+Random numbers: from the render's sampler (render.sampler), or, after :meth:`use_pattern`, from the
+pattern the strata of a capture share (:mod:`mbcapture.render.pattern`): the paths' dimensions and,
+in RGB, the camera ray's position in the pixel and on the lens. Either way through
+``next_1d(sampler, dim, active)`` and ``next_2d(...)``, which take the sampler as an argument: Dr.Jit's symbolic loop carries the sampler's
 state from one vertex to the next only when the loop body names it (a closure calling
 ``sampler.next_2d`` would draw the same numbers at every vertex).
 
@@ -91,9 +91,9 @@ def integrator_class(variant: str) -> type:
             self.group_names: list[str] = []
             self.group_emitters: list[list[mi.Emitter]] = []
             self.spectral: bool = bool(mi.is_spectral)
-            #: None: every dimension from Mitsuba's sampler. Else (seed, offset, first pixel): the path's
-            #: dimensions from the shared pattern (mbcapture.render.pattern), the sample j of a pixel
-            #: being the pattern's sample offset + j (see :meth:`use_pattern`).
+            #: None: every dimension from Mitsuba's sampler. Else (seed, offset, first pixel): the dimensions
+            #: from the shared pattern (mbcapture.render.pattern), the sample j of a pixel being the
+            #: pattern's sample offset + j (see :meth:`use_pattern`).
             self.pattern: tuple[int, int, int] | None = None
 
         def set_groups(self, names: Sequence[str], emitters: Sequence[Sequence[Any]]) -> None:
@@ -106,8 +106,8 @@ def integrator_class(variant: str) -> type:
             self.group_emitters = [list(e) for e in emitters]
 
         def use_pattern(self, seed: int | None, offset: int = 0, first_pixel: int = 0) -> None:
-            """Draw the next renders' path dimensions from the pattern keyed ``seed`` (None: from
-            Mitsuba's sampler), sample j of a pixel being the pattern's ``offset + j``; the film's
+            """Draw the next renders' samples from the pattern keyed ``seed`` (None: from Mitsuba's
+            sampler), sample j of a pixel being the pattern's ``offset + j``; the film's
             pixel 0 is the image's pixel ``first_pixel`` (row-major: a band's first row x width)."""
             self.pattern = None if seed is None else (int(seed) & 0xFFFFFFFF, int(offset), int(first_pixel))
 
@@ -143,9 +143,11 @@ def integrator_class(variant: str) -> type:
                 sensor = scene.sensors()[0]
                 size = sensor.film().size()
                 y = pixel // size.x
-                pos = mi.Point2f(mi.Float(pixel - y * size.x), mi.Float(y)) + next_2d(sampler, mi.UInt32(CAMERA_DIM), True)
-                pos = pos * mi.ScalarVector2f(1.0 / size.x, 1.0 / size.y)
-                aperture = next_2d(sampler, mi.UInt32(CAMERA_DIM + 1), True) if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+                offset_in_pixel = next_2d(sampler, mi.UInt32(CAMERA_DIM), True)
+                pos = (mi.Point2f(mi.Float(pixel - y * size.x), mi.Float(y)) + offset_in_pixel) \
+                    * mi.ScalarVector2f(1.0 / size.x, 1.0 / size.y)
+                aperture = next_2d(sampler, mi.UInt32(CAMERA_DIM + 1), True) if sensor.needs_aperture_sample() \
+                    else mi.Point2f(0.5)
                 ray, _ = sensor.sample_ray(ray.time, mi.Float(0.5), pos, aperture)
             return (lambda sampler, dim, active: next_2d(sampler, dim, active).x), next_2d, ray
 
@@ -205,7 +207,8 @@ def integrator_class(variant: str) -> type:
                     acc = hit_terms[g]
                     for emitter in emitters[g]:
                         n_em += 1
-                        ds_em, em_weight = emitter.sample_direction(si, next_2d(sampler, depth * (n_emitters + 2) + n_em, active_em), active_em)
+                        u_em = next_2d(sampler, depth * (n_emitters + 2) + n_em, active_em)
+                        ds_em, em_weight = emitter.sample_direction(si, u_em, active_em)
                         ok = active_em & (ds_em.pdf != 0.0)
                         wo = si.to_local(ds_em.d)
                         bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, ok)
