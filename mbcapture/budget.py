@@ -356,7 +356,7 @@ def shared_pattern_gain(weights: np.ndarray, exponent: float) -> float:
     pattern, are stratified like one render of K times the samples; per-sample variance falls as
     spp^-(exponent - 1) (the exponent the pilot measured between its counts), so the read's variance is
     K^-(exponent - 1) times what independent patterns give. Applied to the median only: the median
-    sample is a static pixel lit by indirect light, which gains that much (measured: 1.41x on J4 of
+    sample is a static pixel lit by indirect light, which gains that much (measured: 1.39x on J4 of
     the default capture); the 95th percentile gained 1.01-1.07x (docs/noise.md)."""
     w = np.abs(np.asarray(weights, dtype=np.float64))
     if w.sum() <= 0:

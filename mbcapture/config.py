@@ -171,7 +171,7 @@ class RenderSection(_Model):
         "estimate has a pattern of its own. 'own': every render draws them from render.sampler's pattern of its "
         "own (before 2026-11-27 the only way). Unbiased (tested); adaptive sampling's pixels, the 'difference' "
         "estimator and a spectral camera ray stay render.sampler's. Measured on the default capture at 320x256 "
-        "and equal samples: J4's median 1.41x lower, its p95 and tail unchanged (the mean over the lit pixels 2x "
+        "and equal samples: J4's median 1.39x lower, its p95 unchanged, its tail not lower (the mean over the lit pixels 2x "
         "lower); the noise budget's pilot predicts the median's gain and chooses fewer samples (docs/noise.md).",
     )
     max_motion_px: float = Field(
