@@ -198,3 +198,23 @@ def test_a_shared_pattern_is_unbiased_and_lowers_a_static_reads_variance():
     lit = mean > 1e-3 * np.median(mean[mean > 0])
     ratio = np.median(shared.var(0, ddof=1)[lit] / mean[lit]) / np.median(own.var(0, ddof=1)[lit] / mean[lit])
     assert ratio < 0.85
+
+
+def test_every_module_the_pixels_depend_on_keys_the_render_cache():
+    """The render cache keys a renderer by the digests of the modules that make its pixels
+    (renderer._PIXEL_CODE): each module of mbcapture/render that the renderer or the integrator
+    imports is among them (pattern.py was missing at first: a change to the pattern would have
+    served stale renders), but for the cache itself and the LLVM set-up (its target is keyed apart)."""
+    import re
+
+    from mbcapture.render import renderer
+
+    render_dir = ROOT / "mbcapture" / "render"
+    imported = set()
+    for name in renderer._PIXEL_CODE:
+        text = (render_dir / name).read_text()
+        imported |= set(re.findall(r"^from \.(\w+) import", text, flags=re.M))
+        imported |= {m for group in re.findall(r"^from \. import ([\w, ]+)$", text, flags=re.M)
+                     for m in re.split(r",\s*", group)}
+    missing = {f"{m}.py" for m in imported} - set(renderer._PIXEL_CODE) - {"cache.py", "llvm.py"}
+    assert not missing and "pattern.py" in renderer._PIXEL_CODE

@@ -51,7 +51,8 @@ if TYPE_CHECKING:
 SAMPLERS = ("multijitter", "ldsampler", "independent")
 
 #: Modules whose code turns a scene description into pixels: part of every cache key.
-_PIXEL_CODE = ("renderer.py", "integrator.py", "build.py", "aov.py", "coverage.py", "bands.py", "tiles.py")
+_PIXEL_CODE = ("renderer.py", "integrator.py", "pattern.py", "build.py", "aov.py", "coverage.py", "bands.py",
+               "tiles.py")
 
 
 @lru_cache(maxsize=None)
@@ -657,10 +658,10 @@ class Renderer:
         Returns float32 (group, row, col, channel) = (len(groups), height, width, 3), box pixel
         filter (the mean radiance over each pixel), ``spp`` samples per pixel, deterministic
         for a given ``seed``. ``groups`` defaults to all of :attr:`groups`, in any order given;
-        groups not requested are not rendered at all. ``pattern`` (key, offset): the paths' dimensions
-        drawn from the shared pattern ``key``, this render's samples being its ``offset``, ``offset + 1``,
-        ... (:mod:`mbcapture.render.pattern`; ``seed`` then seeds the camera rays' positions only);
-        None: all from render.sampler, seeded by ``seed``.
+        groups not requested are not rendered at all. ``pattern`` (key, offset): the samples drawn
+        from the shared pattern ``key``, this render's being its ``offset``, ``offset + 1``, ...
+        (:mod:`mbcapture.render.pattern`; ``seed`` then matters only to a spectral variant's camera
+        rays); None: all from render.sampler, seeded by ``seed``.
         """
         return self.render_rows(t_s, spp, seed, groups, (0, self.height), pattern)
 
