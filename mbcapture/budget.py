@@ -455,10 +455,10 @@ def choose_spp(
                 gain = shared_pattern_gain(w[:, k].sum(axis=1), expo)
                 hi_q = hi_q * gain
             need.append(n_hi * (hi_q / target) ** (1.0 / expo) if hi_q > 0 else 0.0)
-        per_read.append({"shared_pattern_median_factor": round(gain, 4)} if shared else {})
-        per_read[-1].update({"median_at": {n_lo: round(q[n_lo][0], 4), n_hi: round(q[n_hi][0], 4)},
-                           "p95_at": {n_lo: round(q[n_lo][1], 4), n_hi: round(q[n_hi][1], 4)},
-                           "spp_for_median": round(need[0], 1), "spp_for_p95": round(need[1], 1)})
+        per_read.append({**({"shared_pattern_median_factor": round(gain, 4)} if shared else {}),
+                         "median_at": {n_lo: round(q[n_lo][0], 4), n_hi: round(q[n_hi][0], 4)},
+                         "p95_at": {n_lo: round(q[n_lo][1], 4), n_hi: round(q[n_hi][1], 4)},
+                         "spp_for_median": round(need[0], 1), "spp_for_p95": round(need[1], 1)})
         scale = max(scale, *need)
     # no stratum below the pilot's smaller count: there the ratio was measured, below it only extrapolated
     # (multijitter converges faster than spp^-2 on smooth scenes, so the clipped exponent under-predicts the

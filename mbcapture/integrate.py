@@ -45,6 +45,14 @@ def render_seeds(plan: Plan, seed: np.random.SeedSequence) -> np.ndarray:
     return np.random.default_rng(seed).integers(0, 2**31 - 1, size=(plan.passes, 2))
 
 
+def stratum_halves(plan: Plan) -> list[tuple[int, ...]]:
+    """Each stratum's samples as its two half-sample renders (n // 2, n - n // 2), or as one render of
+    n when any stratum has fewer than 2 (then there are no halves to difference)."""
+    spp = [int(n) for n in np.asarray(plan.spp, dtype=np.int64)]
+    two = all(n >= 2 for n in spp)
+    return [(n // 2, n - n // 2) if two else (n,) for n in spp]
+
+
 def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None) \
         -> list[list[tuple[int, int] | None]]:
     """The shared pattern (key, offset) of each stratum's half-sample renders, [j][h], or None
@@ -53,21 +61,18 @@ def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[i
     halves stay independent (the run's error estimate is their difference) and each is stratified
     over the strata together. ``count``: the samples the renderer's sampler takes for a request
     (``Renderer.sample_count``: multijitter takes 132 for 128), so that no two strata share samples."""
-    spp = np.asarray(plan.spp, dtype=np.int64)
-    two = bool(np.all(spp >= 2)) and plan.passes > 0
-    halves = [(int(n) // 2, int(n) - int(n) // 2) if two else (int(n),) for n in spp]
+    halves = stratum_halves(plan)
     if plan.pattern != "shared" or plan.estimator != "independent":
         return [[None] * len(h) for h in halves]
+    taken = count if count is not None else (lambda n: n)
     keys = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5A7E))) \
         .integers(0, 2**32, size=2)
     offset = [0, 0]
     out = []
     for h_j in halves:
-        row = []
+        out.append([(int(keys[h]), offset[h]) for h in range(len(h_j))])
         for h, n_h in enumerate(h_j):
-            row.append((int(keys[h]), offset[h]))
-            offset[h] += int(count(n_h)) if count is not None else n_h
-        out.append(row)
+            offset[h] += int(taken(n_h))
     return out
 
 
@@ -76,17 +81,14 @@ def render_requests(plan: Plan, seed: np.random.SeedSequence, count: Callable[[i
     """Every render :func:`integrate` makes for ``plan`` with the ``independent`` estimator, in its
     order: (scene time s, samples per pixel, seed, groups, shared pattern or None). What a cluster
     renders ahead of it (:mod:`mbcapture.cluster`); ``count`` as in :func:`render_patterns`."""
-    spp = np.asarray(plan.spp, dtype=np.int64)
-    two = bool(np.all(spp >= 2)) and plan.passes > 0
     seeds = render_seeds(plan, seed)
     patterns = render_patterns(plan, seed, count)
     used = plan.weights_s.sum(axis=1) > 0
     times = plan.render_times
     out = []
-    for j in range(plan.passes):
-        n = int(spp[j])
+    for j, halves in enumerate(stratum_halves(plan)):
         groups_j = tuple(plan.groups[g] for g in np.flatnonzero(used[j]))
-        for h, spp_h in enumerate((n // 2, n - n // 2) if two else (n,)):
+        for h, spp_h in enumerate(halves):
             out.append((float(times[j, h]), int(spp_h), int(seeds[j, h]), groups_j, patterns[j][h]))
     return out
 
@@ -228,7 +230,8 @@ def integrate(
     H, W, C = renderer.height, renderer.width, len(renderer.channels)
     G = len(plan.groups)
     spp = np.asarray(plan.spp, dtype=np.int64)
-    two = bool(np.all(spp >= 2)) and plan.passes > 0
+    halves_all = stratum_halves(plan)
+    two = plan.passes > 0 and len(halves_all[0]) == 2
     # parts[h] = sum_j w_j (n_hj / n_j) L_hj: exposure = parts[0] + parts[1] exactly
     parts = [np.zeros((n_buckets, H, W, C), dtype=np.float64) for _ in range(2 if two else 1)]
     r = spp // 2 / np.maximum(spp, 1)  # share of the first half, per stratum
@@ -252,7 +255,7 @@ def integrate(
             control.render_base(bar)
         for j in range(plan.passes):
             n = int(spp[j])
-            halves = (n // 2, n - n // 2) if two else (n,)
+            halves = halves_all[j]
             gsel = np.flatnonzero(used[j])
             groups_j = tuple(plan.groups[g] for g in gsel)
             w_j = plan.weights_s[j][:, gsel]

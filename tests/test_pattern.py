@@ -63,7 +63,10 @@ def test_the_sequence_is_sobols_first_two_dimensions(jit):
     idx = np.concatenate([np.arange(512), np.random.default_rng(3).integers(0, 2**32, 4096)]).astype(np.uint32)
     x, y = pattern.sobol_pair(dr, mi.UInt32(idx))
     want = np.zeros_like(idx)
-    for b, v in enumerate(pattern.SOBOL_DIM1):
+    v = 2**31  # the direction numbers of Sobol's second dimension (primitive polynomial x + 1)
+    for b in range(32):
+        if b:
+            v ^= v >> 1
         want ^= np.where((idx >> np.uint32(b)) & 1, np.uint32(v), np.uint32(0)).astype(np.uint32)
     np.testing.assert_array_equal(np.asarray(y, np.uint32), want)
     np.testing.assert_array_equal(np.asarray(x, np.uint32)[:4], [0, 2**31, 2**30, 3 * 2**30])

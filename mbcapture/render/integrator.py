@@ -130,7 +130,7 @@ def integrator_class(variant: str) -> type:
             lane = dr.arange(mi.UInt32, dr.width(ray))
             index = lane % spp + offset
             pixel = lane // spp + first
-            key = pattern.hash_u32(dr, pixel) ^ pattern.hash_u32(dr, seed)
+            key = pattern.hash_u32(pixel) ^ pattern.hash_u32(seed)
 
             def next_2d(sampler, dim, active):
                 return pattern.pair(dr, mi, index, key, dim)

@@ -30,15 +30,6 @@ from __future__ import annotations
 
 from typing import Any
 
-#: The 32 direction numbers of Sobol's second dimension (primitive polynomial x + 1): column b of
-#: the upper-triangular Pascal matrix mod 2, v_0 = 2^31, v_b = v_{b-1} ^ (v_{b-1} >> 1) (the
-#: tests check :func:`sobol_pair` against them).
-_V = [0x80000000]
-for _b in range(1, 32):
-    _V.append(_V[-1] ^ (_V[-1] >> 1))
-SOBOL_DIM1 = tuple(_V)
-del _b, _V
-
 #: Masks of the superset transform in :func:`sobol_pair`: the bit positions whose k-th bit is 0.
 _SUPERSET_MASKS = (0x55555555, 0x33333333, 0x0F0F0F0F, 0x00FF00FF, 0x0000FFFF)
 
@@ -49,7 +40,7 @@ _EVEN = (0xCAEDFD64, 0x5E80D61A, 0x51F0DA98, 0x28FD4F3E)
 _ODD = (0x7FEB352D, 0x846CA68B)
 
 
-def hash_u32(dr: Any, x: Any) -> Any:
+def hash_u32(x: Any) -> Any:
     """A 32-bit integer mix (xorshift-multiply rounds) of a ``UInt32`` array."""
     x = x ^ (x >> 16)
     x = x * _ODD[0]
@@ -76,15 +67,15 @@ def sobol_pair(dr: Any, i: Any) -> tuple[Any, Any]:
 
     The second coordinate's digit r (from the top) is the XOR of the index bits c with C(c, r) odd,
     which by Lucas' theorem are the c whose bits include r's: a superset transform over the 5 bits of
-    a position, five shift-and-XOR steps on the whole word instead of 32 masked XORs of
-    :data:`SOBOL_DIM1`."""
+    a position, five shift-and-XOR steps on the whole word instead of 32 masked XORs of the direction
+    numbers (v_0 = 2^31, v_b = v_{b-1} ^ (v_{b-1} >> 1); the tests compare the two)."""
     t = i
     for k, mask in enumerate(_SUPERSET_MASKS):
         t = t ^ ((t >> (1 << k)) & mask)
     return dr.brev(i), dr.brev(t)
 
 
-def to_unit(dr: Any, mi: Any, u: Any) -> Any:
+def to_unit(mi: Any, u: Any) -> Any:
     """A UInt32 fraction as a float in [0, 1): its 24 leading bits (exact in single precision)."""
     return mi.Float(u >> 8) * (1.0 / (1 << 24))
 
@@ -92,8 +83,8 @@ def to_unit(dr: Any, mi: Any, u: Any) -> Any:
 def pair(dr: Any, mi: Any, g: Any, key: Any, dim: Any) -> Any:
     """The 2D sample ``g`` (UInt32 global index) of the sequence keyed ``key`` (UInt32: pattern and
     pixel) for the pair of dimensions ``dim`` (UInt32): a ``Point2f`` in [0, 1)^2."""
-    k = hash_u32(dr, key ^ hash_u32(dr, dim + 0x9E3779B9))
+    k = hash_u32(key ^ hash_u32(dim + 0x9E3779B9))
     # three keys from one, each hashed on its own so that the three scrambles are unrelated
-    k1, k2, k3 = (hash_u32(dr, k + j) for j in (1, 2, 3))
+    k1, k2, k3 = (hash_u32(k + j) for j in (1, 2, 3))
     x, y = sobol_pair(dr, nested_scramble(dr, g, k1))
-    return mi.Point2f(to_unit(dr, mi, nested_scramble(dr, x, k2)), to_unit(dr, mi, nested_scramble(dr, y, k3)))
+    return mi.Point2f(to_unit(mi, nested_scramble(dr, x, k2)), to_unit(mi, nested_scramble(dr, y, k3)))
