@@ -39,6 +39,7 @@ same targets.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -322,15 +323,28 @@ PILOT_SPP = (4, 16)
 EXPONENT_RANGE = (1.0, 2.0)
 
 
-def _ladder(x: float) -> int:
-    """x rounded up to the ladder round(2^(i/4)) (steps of at most 19 %): strata get few distinct
-    sample counts, and Dr.Jit compiles one kernel per count."""
+#: Steps per octave of the ladder of sample counts (:func:`_ladder`): 9 % apart, so a stratum gets little
+#: more than the pilot asked for (19 % steps until 2026-11-27), while the strata of a capture share few counts.
+LADDER_STEPS = 8
+
+
+def _ladder(x: float, count: Callable[[int], int] | None = None) -> int:
+    """x rounded up to a count on the ladder round(2^(i / LADDER_STEPS)), each point moved down to the
+    nearest count the sampler takes as it is (``count(m) == m``; multijitter takes 99 when asked for
+    91, but 90 exactly), and not below x: strata get few distinct sample counts (Dr.Jit compiles one
+    kernel per count), and no sample is taken that the ladder did not ask for. ``count`` (what the
+    sampler takes when asked for m, ``Renderer.sample_count``) defaults to every count as it is."""
+    count = count or (lambda m: m)
     if x <= 4:
-        return max(int(np.ceil(x)), 1)
-    i = int(np.ceil(4 * np.log2(x) - 1e-9))
-    while round(2 ** (i / 4)) < x:
+        return count(max(int(np.ceil(x)), 1))
+    low = int(np.ceil(x - 1e-9))
+    i = int(np.ceil(LADDER_STEPS * np.log2(x) - 1e-9))
+    while True:
+        point = int(round(2 ** (i / LADDER_STEPS)))
+        exact = next((m for m in range(point, low - 1, -1) if count(m) == m), None)
+        if exact is not None:
+            return exact
         i += 1
-    return int(round(2 ** (i / 4)))
 
 
 def _pilot_ratios(diffs: list[np.ndarray], owner: np.ndarray, w: np.ndarray, alpha: np.ndarray,
@@ -465,7 +479,7 @@ def choose_spp(
     # noise of fewer samples: flutter_shutter 640x512 was given 2 + 2 spp and measured 0.175 > 0.1)
     n = np.maximum(scale * alpha, float(n_lo)) if scale > 0 else scale * alpha
     count = getattr(renderer, "sample_count", lambda m: m)  # what the sampler takes
-    half = np.array([count(_ladder(x / 2)) for x in n])
+    half = np.array([_ladder(x / 2, count) for x in n])
     cap = max(max_spp // 2, 1)
     spp = (2 * np.minimum(half, cap)).astype(np.int64)
     capped = int((n > 2 * cap).sum())

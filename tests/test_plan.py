@@ -403,13 +403,39 @@ def test_no_stratum_gets_fewer_samples_than_the_pilot_measured():
     assert clean.pilot["uncapped_spp_max"] == pytest.approx(2 * PILOT_SPP[0])
 
 
+def test_sample_count_ladder_takes_counts_the_sampler_keeps():
+    """The pilot's counts step along a ladder of 9 % steps, each point moved down to a count the sampler
+    takes as asked: multijitter rounds 91 up to 99 (9 x 11), so asking it for the ladder's 91 would
+    render 9 % more samples than the ladder meant; 90 (9 x 10) it takes as it is."""
+    from mbcapture.budget import LADDER_STEPS, _ladder
+
+    def multijitter(m: int) -> int:  # Mitsuba's rule: floor(sqrt(m)) columns, as many rows as m needs
+        cols = int(np.floor(np.sqrt(m)))
+        return cols * -(-m // cols)
+
+    assert multijitter(91) == 99 and multijitter(90) == 90 and multijitter(128) == 132  # the rule as Mitsuba has it
+    assert _ladder(86.3, multijitter) == 90
+    step = 2 ** (1 / LADDER_STEPS)
+    for x in np.geomspace(4.5, 5000, 400):
+        n = _ladder(x, multijitter)
+        assert multijitter(n) == n and n >= x, (x, n)
+        # at most two steps over x (the next ladder point, or the one after where no kept count lies
+        # between), or one over the first count the sampler keeps, where those are sparse (12 after 9)
+        first = next(m for m in range(int(np.ceil(x)), 10 * int(x)) if multijitter(m) == m)
+        assert n <= max(x * step**2, first * step) + 1, (x, n)
+    # few distinct counts: one per ladder point
+    values = {_ladder(x, multijitter) for x in np.geomspace(4.5, 5000, 4000)}
+    assert len(values) <= LADDER_STEPS * np.log2(5000 / 4.5) + 2
+    assert _ladder(86.3) == 91  # every count as it is: the ladder's own point
+
+
 def test_per_stratum_spp_follows_the_weights():
     """Neyman allocation per stratum. An accelerating point makes strata of very different lengths
     (the first, slow one ~7x the last), so their weights differ. With one group of per-sample
     sigma and mean mu everywhere, read k asks stratum j for n_jk = w_jk sigma^2 k_e / (f mu)
     samples, w_jk the read's weight (its buckets' sum) (the module's rule: sqrt(a_jk) sum_j sqrt(a_jk) / V_k,
     a_jk = w_jk^2 sigma^2 k_e^2 per sample, V_k = f k_e mu sum_j w_jk), and the stratum gets max_k n_jk, each half rounded up to the
-    sampler's ladder of counts (steps of at most 19 %). The buckets' totals differ (T, 2T, 4T, 8T), so
+    sampler's ladder of counts (steps of 9 %). The buckets' totals differ (T, 2T, 4T, 8T), so
     a rule that dropped V_k would over-sample the strata the short bucket weighs most. The
     pilot estimates sigma^2 from 2304 samples per pilot time: relative SE sqrt(2/2304) = 3 %, so
     5 SE = 15 %."""
@@ -430,7 +456,7 @@ def test_per_stratum_spp_follows_the_weights():
     assert n_true.min() > 100  # far above the floor of 2 samples: the rule, not the floor, decides
     from mbcapture.budget import _ladder
 
-    upper = np.array([2 * _ladder(1.15 * n / 2) for n in n_true])  # each half rounded up to the ladder (<= 19 %)
+    upper = np.array([2 * _ladder(1.15 * n / 2) for n in n_true])  # each half rounded up to the ladder (9 % steps)
     assert np.all(p.spp >= 0.85 * n_true) and np.all(p.spp <= upper), np.c_[p.spp, n_true]
     # the heaviest stratum gets several times the samples of the lightest
     assert p.spp[np.argmax(w)] > 3 * p.spp[np.argmin(w)]
