@@ -33,7 +33,10 @@ over the pilot times) is the cost model behind ``Plan.estimate``.
 
 The run's own estimate of its rendering error (:func:`render_error`, from the two half-sample
 renders of every stratum) and its one-line verdict (:func:`noise_verdict`) are judged against the
-same targets.
+same targets. It pools each sample's squared difference over the neighbours as bright as it
+(:func:`pooled_alike`), not over all of them: across a silhouette the dark side would otherwise take
+its edge's coverage noise, which put the tail several times too high. The pilot, which judges the
+median and the p95 only, pools over all of them, electrons and variance alike.
 """
 
 from __future__ import annotations
@@ -116,6 +119,48 @@ def pooled(v: np.ndarray) -> np.ndarray:
 
     size = [1] * (v.ndim - 3) + [POOL_PX, POOL_PX, 1]
     return uniform_filter(np.asarray(v, dtype=np.float64), size=size, mode="nearest")
+
+
+#: The neighbours :func:`pooled_alike` pools with a pixel: those whose expected electrons lie within this
+#: factor of the pixel's own.
+ALIKE_FACTOR = 1.5
+#: Rows :func:`pooled_alike` works on at once (its temporaries are a band's, not the film's).
+ALIKE_BAND_ROWS = 64
+
+
+def pooled_alike(v: np.ndarray, guide: np.ndarray, factor: float = ALIKE_FACTOR) -> np.ndarray:
+    """Per-pixel variance estimates ``v`` (H, W, C) averaged over the pixel and those of its POOL_PX x
+    POOL_PX neighbours whose ``guide`` (H, W, C: the expected electrons) lies within ``factor`` of its
+    own, channel by channel (the film's border repeated, as in :func:`pooled`).
+
+    Written here: an edge-preserving box mean (a bilateral filter whose range kernel is a box around the
+    centre's value), which scipy and OpenCV do not offer on float64 data. :func:`pooled` averages every
+    neighbour, which assumes the variance is smooth over 3x3; across a silhouette it is not. There a
+    pixel on the dark side took a share of its bright edge neighbour's variance (coverage noise, tens of
+    times its own) and divided it by its own few electrons. Pooled with the neighbours of its own
+    brightness, an edge pixel pools with the edge and a dark one with the dark: fewer neighbours at an
+    edge, so a noisier estimate there, but not one biased by another pixel's noise."""
+    v = np.asarray(v, np.float64)
+    H, W = v.shape[:2]
+    r = POOL_PX // 2
+    limit = np.log(factor)
+    out = np.empty_like(v)
+    for y0 in range(0, H, ALIKE_BAND_ROWS):
+        y1 = min(y0 + ALIKE_BAND_ROWS, H)
+        a, b = max(y0 - r, 0), min(y1 + r, H)  # the band and its halo, within the film
+        widths = ((r - (y0 - a), r - (b - y1)), (r, r), (0, 0))  # the rest of the halo: the border repeated
+        vp = np.pad(v[a:b], widths, mode="edge")
+        gp = np.log(np.maximum(np.pad(np.asarray(guide[a:b], np.float64), widths, mode="edge"), 1e-300))
+        rows = y1 - y0
+        centre = gp[r:r + rows, r:r + W]
+        total, count = np.zeros((rows, W, v.shape[2])), np.zeros((rows, W, v.shape[2]))
+        for dy in range(POOL_PX):
+            for dx in range(POOL_PX):
+                alike = np.abs(gp[dy:dy + rows, dx:dx + W] - centre) <= limit
+                np.add(total, vp[dy:dy + rows, dx:dx + W], out=total, where=alike)
+                count += alike
+        out[y0:y1] = total / count  # the centre is always alike: count >= 1
+    return out
 
 
 def chi2_median_factor(dof: float) -> float:
@@ -550,10 +595,11 @@ def read_squared_difference(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray
 def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
                      buckets, full_well_e: float, fd_full_well_e: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One read's ``(var_e, signal, use)``, each (H, W, C): its Monte Carlo variance in electrons^2 (the
-    square of its buckets' summed half-sample differences, pooled over 3x3 pixels), its expected
+    square of its buckets' summed half-sample differences, pooled over the alike of 3x3 pixels,
+    :func:`pooled_alike`), its expected
     electrons, and the samples that count (:func:`read_squared_difference`)."""
     squared, signal, use = read_squared_difference(mc_diff_exposure, buckets_e, buckets, full_well_e, fd_full_well_e)
-    var_e = pooled(squared)
+    var_e = pooled_alike(squared, signal)
     del squared
     var_e *= k_e**2
     return var_e, signal, use
@@ -589,8 +635,9 @@ def render_error(
     adds in variance; so the ratio grows with a read's exposure and the longest read usually decides.
     Per read, over its samples that hold light and whose buckets all stay below the full well (and
     the sum below the floating diffusion's): the ratio of Monte Carlo variance to photon shot-noise
-    variance (electrons^2) per sample, from squared half differences pooled over 3x3 pixels
-    (a single squared difference is a 1-degree-of-freedom chi-square variable; the median is
+    variance (electrons^2) per sample, from squared half differences pooled over the pixels of
+    each 3x3 neighbourhood as bright as its centre (:func:`pooled_alike`; a single squared
+    difference is a 1-degree-of-freedom chi-square variable; the median is
     :func:`deconvolved_median`'s, with the pooled estimates' :func:`effective_dof`, reported as
     ``estimate_dof``), its median, 95th and 99.9th percentiles (the tail: render.noise_budget_tail;
     pooled estimates are conservative there, as their own chi-square spread with 9 degrees of freedom
@@ -613,7 +660,7 @@ def render_error(
         if not use.any():
             continue
         dof = effective_dof(squared, use)  # measured before pooling
-        var_e = pooled(squared)
+        var_e = pooled_alike(squared, signal)
         del squared
         var_e *= k_e**2
         samples = int(use.sum())

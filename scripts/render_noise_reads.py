@@ -2,16 +2,19 @@
 differ only in the run seed (render samples, strata jitter, pilot), with the sensor's noise seed
 fixed and the render cache off. The difference of their noise-free expected electrons per read is
 Monte Carlo noise alone: per unsaturated sample, its variance (the squared difference over 2, pooled
-over 3x3 pixels like the run's own estimate) over the shot-noise variance (the electrons). Prints
+over the pixels of its 3x3 neighbourhood as bright as it, like the run's own estimate,
+:func:`mbcapture.budget.pooled_alike`) over the shot-noise variance (the electrons). Prints
 each read's median, p95, p99, p99.9 and max, the share above 10, and each run's own estimate, with
 whether the outside figure falls in the interval each run states for its median, p95 and p99.9.
 
     python scripts/render_noise_reads.py [CONFIG] [--size 640x512] [--set KEY=VALUE ...] [--map tail.png]
 
 ``--truth N``: the converged median as well, from N runs (the two and N - 2 more seeds; the samples per
-pixel must be fixed, ``--set render.spp=...``): each sample's variance over the N runs, pooled over 3x3
-pixels (9 (N - 1) degrees of freedom), its median over the samples unsaturated in every run, and each
-estimate (outside and own) over it.
+pixel must be fixed, ``--set render.spp=...``): each sample's variance over the N runs, pooled like the
+run's (up to 9 (N - 1) degrees of freedom), its median over the samples unsaturated in every run, and each
+estimate (outside and own) over it. And the tail from each sample's own variance over the N runs (N - 1
+degrees of freedom, no neighbour's noise in it) against the two runs' pooled estimates, alike and over
+every neighbour (how the runs estimated it before 2026-11-27).
 
 With adaptive sampling (``render.adaptive``) the second run refines the pixels the first run chose
 (its tiers, :func:`mbcapture.budget.tail_pixels`), so both runs are draws of one estimator: the first
@@ -34,7 +37,7 @@ from unittest import mock
 import numpy as np
 
 from mbcapture import load_config, pipeline
-from mbcapture.budget import budget_quantiles, deconvolved_median, effective_dof, pooled, tail_pixels
+from mbcapture.budget import budget_quantiles, deconvolved_median, effective_dof, pooled, pooled_alike, tail_pixels
 from mbcapture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
@@ -88,7 +91,7 @@ def main() -> None:
         full = below[0][i] & below[1][i]
         use = (mean > 1.0) & full & (mean < cfg.sensor.fd_full_well_e)
         squared = (e1 - e2) ** 2 / 2.0
-        var = pooled(squared[None])[0]
+        var = pooled_alike(squared, mean)
         ratio = var[use] / mean[use]
         med, p95 = budget_quantiles(ratio, effective_dof(squared, use))
         p99, p999 = np.percentile(ratio, [99, 99.9])
@@ -154,14 +157,25 @@ def converged(args, base: list[str], runs: list, below: list[np.ndarray], choice
     for i, read in enumerate(runs[0].timeline.reads):
         mean = E[:, i].mean(axis=0)
         use = (mean > 1.0) & ok[i] & (mean < cfg.sensor.fd_full_well_e)
-        ratio = pooled(E[:, i].var(axis=0, ddof=1)[None])[0][use] / mean[use]
+        var_n = E[:, i].var(axis=0, ddof=1)
+        ratio = pooled_alike(var_n, mean)[use] / mean[use]
         truth = deconvolved_median(ratio, 9.0 * (args.truth - 1))
         e1, e2 = E[0, i], E[1, i]  # the outside figure of the first two runs, on the samples unsaturated in all
         squared = (e1 - e2) ** 2 / 2.0
-        outside = budget_quantiles(pooled(squared[None])[0][use] / ((e1 + e2) / 2)[use], effective_dof(squared, use))[0]
+        pair_mean = (e1 + e2) / 2
+        outside = budget_quantiles(pooled_alike(squared, pair_mean)[use] / pair_mean[use], effective_dof(squared, use))[0]
         own = [r.report["render_error"]["reads"][read.name]["to_shot_noise_variance_median"] for r in runs]
         print(f"{read.name:6s} converged median {truth:.4g}; outside {outside / truth:.3f} of it, the runs' own "
               f"{own[0] / truth:.3f} and {own[1] / truth:.3f}")
+        # the tail: each sample's own variance over the N runs (N - 1 degrees of freedom, not pooled: no
+        # neighbour's noise in it), against the two runs' pooled estimates, alike (the run's) and box
+        own_tail = np.percentile(var_n[use] / mean[use], [95, 99, 99.9])
+        alike_tail = np.percentile(pooled_alike(squared, pair_mean)[use] / pair_mean[use], [95, 99, 99.9])
+        box_tail = np.percentile(pooled(squared[None])[0][use] / pair_mean[use], [95, 99, 99.9])
+        print(f"{'':6s} p95 / p99 / p99.9: each sample's own over {args.truth} runs "
+              f"{' / '.join(f'{x:.3g}' for x in own_tail)}; two runs pooled alike "
+              f"{' / '.join(f'{x:.3g}' for x in alike_tail)}, pooled over every neighbour "
+              f"{' / '.join(f'{x:.3g}' for x in box_tail)}")
 
 
 def tail_map(path: str, electrons: np.ndarray, ratio: np.ndarray, name: str) -> None:

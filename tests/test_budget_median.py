@@ -130,3 +130,52 @@ def test_the_runs_median_interval_holds_the_true_median():
         lo, hi = rep["to_shot_noise_variance_median_interval"]
         held += lo <= truth <= hi
     assert held >= 30 * 0.95 - 2 * np.sqrt(30 * 0.95 * 0.05)
+
+
+def _edge_field(width: int = 24):
+    """A bright wall (left), a dark object (right) and the column of pixels its edge crosses between:
+    expected electrons and each pixel's true Monte Carlo variance (ratio 0.1 on the wall and the object,
+    20 on the edge: coverage noise)."""
+    e = np.full((width, width, 1), 10_000.0)
+    e[:, width // 2 + 1:] = 20.0
+    e[:, width // 2] = 5_000.0
+    var = 0.1 * e
+    var[:, width // 2] = 20.0 * e[:, width // 2]
+    return e, var
+
+
+def test_pooling_alike_neighbours_reads_each_side_of_an_edge_without_the_other():
+    """Averaged over many draws of single squared differences (chi^2 with 1 degree of freedom times the
+    variance), the alike-pooled estimate of every pixel is its own variance, the dark pixels beside the
+    edge included; the box estimate gives those pixels a third of the edge's variance, 1600x theirs."""
+    from mbcapture.budget import pooled, pooled_alike
+
+    e, var = _edge_field()
+    rng = np.random.default_rng(3)
+    draws = 4000
+    alike, box = np.zeros_like(var), np.zeros_like(var)
+    for _ in range(draws):
+        s = var * rng.standard_normal(var.shape) ** 2
+        alike += pooled_alike(s, e)
+        box += pooled(s)
+    alike, box = alike / draws, box / draws
+    # each pixel's mean of >= 1 chi^2_1 draws per run: relative standard error <= sqrt(2 / draws); 5 of them
+    tol = 5 * np.sqrt(2 / draws)
+    assert np.all(np.abs(alike / var - 1) < tol), np.abs(alike / var - 1).max()
+    dark_beside = (slice(None), e.shape[1] // 2 + 1)
+    assert np.all(box[dark_beside] / var[dark_beside] > 100)  # the bias the alike pooling removes
+
+
+def test_pooling_alike_is_the_box_mean_where_every_neighbour_is_alike_and_band_by_band_the_same(monkeypatch):
+    from mbcapture import budget
+    from mbcapture.budget import pooled, pooled_alike
+
+    rng = np.random.default_rng(4)
+    v = rng.gamma(1.0, size=(40, 30, 3))
+    smooth = 1000.0 * (1 + 0.1 * rng.random((40, 30, 3)))  # within a factor 1.1 everywhere
+    np.testing.assert_allclose(pooled_alike(v, smooth), pooled(v), rtol=1e-12)
+    e, var = _edge_field()
+    s = var * rng.standard_normal(var.shape) ** 2
+    whole = pooled_alike(s, e)
+    monkeypatch.setattr(budget, "ALIKE_BAND_ROWS", 5)  # bands of 5 rows with their halos: the same numbers
+    np.testing.assert_array_equal(pooled_alike(s, e), whole)

@@ -182,11 +182,12 @@ def test_the_noise_report_holds_a_read_not_copies_of_every_bucket():
     whole = exposure * k_e
     report = render_error(mc_diff, BucketElectrons(exposure, k_e), k_e, reads, names, 1.9e3, 7e3)
     assert report == render_error(mc_diff, whole, k_e, reads, names, 1.9e3, 7e3)
-    # J4 by the formula on copies: summed differences squared, pooled over 3x3, against the summed electrons
-    from mbcapture.budget import pooled
+    # J4 by the formula on copies: summed differences squared, pooled over the alike of 3x3, against the
+    # summed electrons
+    from mbcapture.budget import pooled_alike
 
-    var_e = pooled(mc_diff.sum(axis=0) ** 2) * k_e**2
     signal = whole.sum(axis=0)
+    var_e = pooled_alike(mc_diff.sum(axis=0) ** 2, signal) * k_e**2
     use = (signal > 1.0) & (whole < 1.9e3).all(axis=0) & (signal < 7e3)
     assert report["reads"]["J4"]["to_shot_noise_variance_mean"] == float(var_e[use].sum() / signal[use].sum())
     assert 0 < report["reads"]["J4"]["samples"] == int(use.sum()) < use.size
