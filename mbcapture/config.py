@@ -111,9 +111,9 @@ class RenderSection(_Model):
     adaptive: bool = Field(
         False,
         description="With render.spp null: adaptive sampling (off by default: on the default capture at 640x512 it "
-        "brings every read under the median, p95 and tail targets (the longest read's 99.9th percentile from 6.0 "
-        "to 0.93, measured from two render seeds refining one choice of pixels) and takes 1.8x the time of the run without it; "
-        "docs/noise.md). After the budgeted "
+        "brings every read under the median, p95 and tail targets (the longest read's 99.9th percentile from 2.3 "
+        "to 0.85, measured from two render seeds refining one choice of pixels) and takes 2.6x the time of the run "
+        "without it; docs/noise.md). After the budgeted "
         "pass, the pixels where any read's estimated Monte Carlo / shot-noise ratio exceeds half of render.noise_budget_tail (and their neighbours) "
         "are rendered again, every stratum, with more samples, and that second pass replaces the first there. "
         "Every chosen pixel gets at least the factor that brings the chosen pixels' 99th percentile to that "
@@ -129,8 +129,8 @@ class RenderSection(_Model):
     adaptive_max_factor: int = Field(
         8, ge=2, le=256, description="Adaptive sampling's most samples at a refined pixel, as a multiple of its "
         "stratum's (the largest power of two up to it). 8 meets every target on the default capture at 640x512 "
-        "(the longest read's 99.9th percentile 0.93 from two render seeds refining one choice of pixels) in 0.72x "
-        "the time of 16 (docs/noise.md). Above 16 only the pixels whose estimate is further over the tail target get more (the "
+        "(the longest read's 99.9th percentile 0.85 from two render seeds refining one choice of pixels) in 0.72x "
+        "the time of 16 (measured before the estimate pooled alike neighbours only; docs/noise.md). Above 16 only the pixels whose estimate is further over the tail target get more (the "
         "short reads' lamp rim): report.json's adaptive.tiers and adaptive.added_samples say how many and what "
         "they cost.")
     max_spp: int = Field(1024, ge=2, le=1 << 16, description="Upper bound on the samples per pixel render.noise_budget may choose for one stratum.")
