@@ -103,7 +103,7 @@ class RenderSection(_Model):
         "render.noise_budget or render.noise_budget_p95 on any read (the pilot extrapolates from 8 and 32 samples "
         "and can fall short), render every stratum again, each half at a time of its own in the stratum, with the "
         "samples that close the gap with a 10 % margin, and combine the two passes with one inverse-variance weight "
-        "for the whole film (unbiased). Once, within render.max_spp (not applied where a stratum has no room); "
+        "for the whole film, from the figure (median or p95) that decided (unbiased). Once, within render.max_spp (not applied where a stratum has no room); "
         "report.json's top_up says what it added. A film in one tile, rendered in this process, no "
         "capture.gate_code, render.estimator independent, and room in free memory for a second set of the film's "
         "arrays.",

@@ -297,17 +297,19 @@ def _read_figures(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig
                         [r.name for r in reads], cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e).get("reads", {})
 
 
-def over_budget(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig) -> tuple[float, str | None, float]:
+def over_budget(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig) -> tuple[float, str | None, str, float]:
     """How far the run's own estimate of its rendering noise is over the budget's median and p95
     targets (render.noise_budget, render.noise_budget_p95) on its worst read: (max over reads of
-    median / target and p95 / target, that read, its median ratio); (0, None, 0) without an estimate."""
+    median / target and p95 / target, that read, the figure that decides it (render_error's
+    ``to_shot_noise_variance_median`` or ``_p95``), its value); (0, None, "", 0) without an estimate."""
     reads = _read_figures(integrated, timeline, cfg)
     if not reads:
-        return 0.0, None, 0.0
-    over = {n: max(v["to_shot_noise_variance_median"] / cfg.render.noise_budget,
-                   v["to_shot_noise_variance_p95"] / cfg.render.noise_budget_p95) for n, v in reads.items()}
-    worst = max(over, key=over.get)
-    return over[worst], worst, reads[worst]["to_shot_noise_variance_median"]
+        return 0.0, None, "", 0.0
+    targets = {"to_shot_noise_variance_median": cfg.render.noise_budget,
+               "to_shot_noise_variance_p95": cfg.render.noise_budget_p95}
+    over = {(n, k): v[k] / t for n, v in reads.items() for k, t in targets.items()}
+    worst, key = max(over, key=over.get)
+    return over[(worst, key)], worst, key, reads[worst][key]
 
 
 def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
@@ -327,14 +329,15 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     Its samples: a pass whose variance V2 satisfies 1 / (1 / V1 + 1 / V2) <= V1 / (F x
     :data:`TOP_UP_MARGIN`) for the first pass's V1 and its factor F over the budget (see
     :data:`TOP_UP_EXPONENT`), at most render.max_spp per stratum in all. The combination
-    ``(E1 + c E2) / (1 + c)`` with ``c = V1 / V2`` (the worst read's median ratio in each pass:
-    inverse-variance weights, one for the whole film) is unbiased whatever ``c`` (each pass is, and ``c`` is a property of the whole film's noise,
+    ``(E1 + c E2) / (1 + c)`` with ``c = V1 / V2`` (in each pass, the worst read's figure that
+    decided the top-up, its median or its p95 ratio: inverse-variance weights, one for the whole film,
+    where the budget is judged; a p95's pixels gain less from a smaller second pass than the median's) is unbiased whatever ``c`` (each pass is, and ``c`` is a property of the whole film's noise,
     not of any pixel's value), and so is its half-sample difference ``(d1 + c d2) / (1 + c)`` as an
     error estimate. Returns the plan with the summed samples, the combined render stage and what
     report.json keeps (None when the first pass met the budget)."""
     if integrated.mc_diff is None:
         return plan, integrated, None
-    factor, worst, v1 = over_budget(integrated, timeline, cfg)
+    factor, worst, figure, v1 = over_budget(integrated, timeline, cfg)
     if factor <= 1.0:
         return plan, integrated, None
     # the second pass holds a second set of the film's arrays while it renders (two float64 halves of
@@ -370,7 +373,7 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         second_plan = replace(plan, spp=extra, times_s=times[:, 0], half_times_s=times)
         second = integrate(renderer, second_plan, timeline.n_channels, child, per_group=per_group,
                            timer=timer, progress=progress, desc="top-up")
-        v2 = _read_figures(second, timeline, cfg, [worst]).get(worst, {}).get("to_shot_noise_variance_median", 0.0)
+        v2 = _read_figures(second, timeline, cfg, [worst]).get(worst, {}).get(figure, 0.0)
         c = v1 / v2 if v2 > 0 else float(extra.sum() / plan.spp.sum())
 
         def mix(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
@@ -386,7 +389,8 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         t1, w1 = plan.exposure_time_mix()
         plan = replace(plan, spp=plan.spp + extra, mix_times_s=np.concatenate([t1, times], axis=1),
                        mix_weights=np.concatenate([w1, c * second_plan.render_time_shares()], axis=1) / (1.0 + c))
-        info = {"applied": True, "before": round(factor, 4), "read": worst, "spp_added": extra.tolist(),
+        info = {"applied": True, "before": round(factor, 4), "read": worst,
+                "figure": figure.removeprefix("to_shot_noise_variance_"), "spp_added": extra.tolist(),
                 "weight": round(c, 4), "after": round(over_budget(integrated, timeline, cfg)[0], 4),
                 "seconds": round(time.perf_counter() - start, 3)}
     return plan, integrated, info

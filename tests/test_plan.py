@@ -238,14 +238,17 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     times, weights = p.exposure_time_mix()  # before a top-up: the two halves
     np.testing.assert_array_equal(times, p.render_times)
     np.testing.assert_array_equal(weights, p.render_time_shares())
-    # the first pass 2x over the budget on J1, whose median ratio reads 0.2 there and 0.1 in the second: c = 2
-    monkeypatch.setattr(pipeline, "over_budget", lambda integrated, timeline, cfg: (2.0, "J1", 0.2))
-    monkeypatch.setattr(pipeline, "_read_figures", lambda *a, **k: {"J1": {"to_shot_noise_variance_median": 0.1}})
+    # the first pass 2x over the budget on J1, whose p95 ratio reads 2.0 there and 1.0 in the second (its
+    # median 0.05 and 0.1): c = 2, from the figure that decided
+    monkeypatch.setattr(pipeline, "over_budget",
+                        lambda integrated, timeline, cfg: (2.0, "J1", "to_shot_noise_variance_p95", 2.0))
+    monkeypatch.setattr(pipeline, "_read_figures", lambda *a, **k: {"J1": {"to_shot_noise_variance_median": 0.1,
+                                                                           "to_shot_noise_variance_p95": 1.0}})
     cfg = SimpleNamespace(render=SimpleNamespace(max_spp=1024))
     r.calls.clear()
     topped_plan, topped, info = pipeline.top_up(cfg, r, p, tl, first, np.random.SeedSequence(2), StageStatus(False),
                                                 per_group=False, timer=None, progress=False, why_not=None)
-    assert info["applied"] and info["weight"] == 2.0
+    assert info["applied"] and info["weight"] == 2.0 and info["figure"] == "p95"
     t2 = np.array([c[0] for c in r.calls]).reshape(p.passes, 2)
     assert np.all(t2 >= p.bounds_s[:, :1]) and np.all(t2 < p.bounds_s[:, 1:])
     assert not np.isin(t2, p.render_times).any() and np.all(t2[:, 0] != t2[:, 1])
