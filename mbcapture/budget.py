@@ -729,7 +729,7 @@ def render_error(
 
 
 #: Adaptive sampling refines the pixels whose estimated ratio exceeds this share of the tail target
-#: (the estimate is noisy: pooled over 9 pixels, a pixel at the target reads below it half the time).
+#: (the estimate is noisy: pooled over at most 9 pixels, a pixel at the target reads below it half the time).
 ADAPTIVE_SELECT = 0.5
 #: log2 of the most that :func:`tail_pixels`' floor factor (every chosen pixel's least) may be.
 ADAPTIVE_FLOOR_MAX_LOG2 = 4
@@ -765,7 +765,8 @@ def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketEle
     top = int(np.log2(max_factor))  # tiers up to the largest power of two <= max_factor
     # every chosen pixel gets at least the factor that brings the 99th percentile of the chosen to the
     # level: the estimate is too noisy to trust a low one (a pixel read at 0.6 x the level may be at 5x)
-    floor = int(np.clip(np.ceil(np.log2(np.percentile(worst[chosen], 99) / level)), 1, min(top, ADAPTIVE_FLOOR_MAX_LOG2)))
+    floor = int(np.clip(np.ceil(np.log2(np.percentile(worst[chosen], 99) / level)), 1,
+                        min(top, ADAPTIVE_FLOOR_MAX_LOG2)))
     tier = np.zeros((H, W), np.int64)  # log2 of the factor; 0: not refined
     tier[chosen] = np.clip(np.ceil(np.log2(worst[chosen] / level)), floor, top).astype(np.int64)
     tier = grey_dilation(tier, size=(3, 3), mode="constant", cval=0)

@@ -103,7 +103,8 @@ class RenderSection(_Model):
         "render.noise_budget or render.noise_budget_p95 on any read (the pilot extrapolates from 8 and 32 samples "
         "and can fall short), render every stratum again, each half at a time of its own in the stratum, with the "
         "samples that close the gap with a 10 % margin, and combine the two passes with one inverse-variance weight "
-        "for the whole film, from the figure (median or p95) that decided (unbiased). Once, within render.max_spp (not applied where a stratum has no room); "
+        "for the whole film, from the figure (median or p95) that decided (unbiased). Once, within render.max_spp "
+        "(not applied where a stratum has no room); "
         "report.json's top_up says what it added. A film in one tile, rendered in this process, no "
         "capture.gate_code, render.estimator independent, and room in free memory for a second set of the film's "
         "arrays.",
@@ -130,7 +131,8 @@ class RenderSection(_Model):
         8, ge=2, le=256, description="Adaptive sampling's most samples at a refined pixel, as a multiple of its "
         "stratum's (the largest power of two up to it). 8 meets every target on the default capture at 640x512 "
         "(the longest read's 99.9th percentile 0.85 from two render seeds refining one choice of pixels) in 0.72x "
-        "the time of 16 (measured before the estimate pooled alike neighbours only; docs/noise.md). Above 16 only the pixels whose estimate is further over the tail target get more (the "
+        "the time of 16 (measured before the estimate pooled alike neighbours only; docs/noise.md). Above 16 only "
+        "the pixels whose estimate is further over the tail target get more (the "
         "short reads' lamp rim): report.json's adaptive.tiers and adaptive.added_samples say how many and what "
         "they cost.")
     max_spp: int = Field(1024, ge=2, le=1 << 16, description="Upper bound on the samples per pixel render.noise_budget may choose for one stratum.")

@@ -331,9 +331,10 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     :data:`TOP_UP_EXPONENT`), at most render.max_spp per stratum in all. The combination
     ``(E1 + c E2) / (1 + c)`` with ``c = V1 / V2`` (in each pass, the worst read's figure that
     decided the top-up, its median or its p95 ratio: inverse-variance weights, one for the whole film,
-    where the budget is judged; a p95's pixels gain less from a smaller second pass than the median's) is unbiased whatever ``c`` (each pass is, and ``c`` is a property of the whole film's noise,
-    not of any pixel's value), and so is its half-sample difference ``(d1 + c d2) / (1 + c)`` as an
-    error estimate. Returns the plan with the summed samples, the combined render stage and what
+    where the budget is judged; a p95's pixels gain less from a smaller second pass than the median's)
+    is unbiased whatever ``c`` (each pass is, and ``c`` is a property of the whole film's noise, not of
+    any pixel's value), and so is its half-sample difference ``(d1 + c d2) / (1 + c)`` as an error
+    estimate. Returns the plan with the summed samples, the combined render stage and what
     report.json keeps (None when the first pass met the budget)."""
     if integrated.mc_diff is None:
         return plan, integrated, None

@@ -147,7 +147,7 @@ def _edge_field(width: int = 24):
 def test_pooling_alike_neighbours_reads_each_side_of_an_edge_without_the_other():
     """Averaged over many draws of single squared differences (chi^2 with 1 degree of freedom times the
     variance), the alike-pooled estimate of every pixel is its own variance, the dark pixels beside the
-    edge included; the box estimate gives those pixels a third of the edge's variance, 1600x theirs."""
+    edge included; the box estimate gives those pixels a third of the edge's variance, about 17000x theirs."""
     from mbcapture.budget import pooled, pooled_alike
 
     e, var = _edge_field()
