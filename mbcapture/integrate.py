@@ -53,14 +53,16 @@ def stratum_halves(plan: Plan) -> list[tuple[int, ...]]:
     return [(n // 2, n - n // 2) if two else (n,) for n in spp]
 
 
-def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None) \
-        -> list[list[tuple[int, int] | None]]:
+def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None,
+                    after: Plan | None = None) -> list[list[tuple[int, int] | None]]:
     """The shared pattern (key, offset) of each stratum's half-sample renders, [j][h], or None
     (render.pattern 'own', or the ``difference`` estimator): half h of every stratum draws from one
     pattern of its own, stratum j taking the samples after those of strata 0 .. j - 1, so that the
     halves stay independent (the run's error estimate is their difference) and each is stratified
     over the strata together. ``count``: the samples the renderer's sampler takes for a request
-    (``Renderer.sample_count``: multijitter takes 132 for 128), so that no two strata share samples."""
+    (``Renderer.sample_count``: multijitter takes 132 for 128), so that no two strata share samples.
+    ``after``: a first pass rendered with the same ``seed``, whose patterns these continue: the same
+    keys, each half's samples after all of that pass's (the budget's top-up)."""
     halves = stratum_halves(plan)
     if plan.pattern != "shared" or plan.estimator != "independent":
         return [[None] * len(h) for h in halves]
@@ -68,6 +70,9 @@ def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[i
     keys = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5A7E))) \
         .integers(0, 2**32, size=2)
     offset = [0, 0]
+    for h_j in stratum_halves(after) if after is not None else []:
+        for h, n_h in enumerate(h_j):
+            offset[h] += int(taken(n_h))
     out = []
     for h_j in halves:
         out.append([(int(keys[h]), offset[h]) for h in range(len(h_j))])
@@ -215,6 +220,7 @@ def integrate(
     timer=None,
     progress: bool = False,
     desc: str = "render",
+    continues: tuple[Plan, np.random.SeedSequence] | None = None,
 ) -> Integrated:
     """Render every stratum of ``plan`` with ``renderer`` and accumulate the bucket exposures.
 
@@ -222,7 +228,9 @@ def integrate(
     own time (:attr:`Plan.render_times`), with only the groups that have weight in it. The halves
     give the Monte Carlo variance, the time sampling's included (exact when every stratum splits
     in the same ratio, as with even or uniform spp). Consecutive strata are paired to measure the
-    temporal error (see :class:`Integrated`).
+    temporal error (see :class:`Integrated`). ``continues``: a first pass (its plan and seed) whose
+    shared patterns this pass's samples continue (:func:`render_patterns`); ``seed`` still seeds this
+    pass's own renders (a spectral variant's camera rays).
     """
     if plan.spp is None:
         raise ValueError("plan.spp is not chosen yet: call mbcapture.budget.resolve_spp first")
@@ -238,7 +246,8 @@ def integrate(
     groups_out = np.zeros((n_buckets, G, H, W, C), dtype=np.float64) if per_group else None
     temporal = np.zeros((n_buckets, H, W, C), dtype=np.float64) if plan.passes >= 2 else None
     seeds = render_seeds(plan, seed)
-    patterns = render_patterns(plan, seed, getattr(renderer, "sample_count", None))
+    first_plan, pattern_seed = continues if continues is not None else (None, seed)
+    patterns = render_patterns(plan, pattern_seed, getattr(renderer, "sample_count", None), after=first_plan)
     times = plan.render_times
     used = plan.weights_s.sum(axis=1) > 0  # (J, G): groups with weight in each stratum
     radiance64 = np.empty((G, H, W, C))  # each render widened to float64 for accumulate, made once

@@ -326,16 +326,21 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     lower it. The returned plan says which times make up the combined exposure, with which weights
     (:meth:`Plan.exposure_time_mix`: the applications' truths of what the capture saw render there).
 
-    Its samples: a pass whose variance V2 satisfies 1 / (1 / V1 + 1 / V2) <= V1 / (F x
-    :data:`TOP_UP_MARGIN`) for the first pass's V1 and its factor F over the budget (see
-    :data:`TOP_UP_EXPONENT`), at most render.max_spp per stratum in all. The combination
-    ``(E1 + c E2) / (1 + c)`` with ``c = V1 / V2`` (in each pass, the worst read's figure that
-    decided the top-up, its median or its p95 ratio: inverse-variance weights, one for the whole film,
-    where the budget is judged; a p95's pixels gain less from a smaller second pass than the median's)
-    is unbiased whatever ``c`` (each pass is, and ``c`` is a property of the whole film's noise, not of
-    any pixel's value), and so is its half-sample difference ``(d1 + c d2) / (1 + c)`` as an error
-    estimate. Returns the plan with the summed samples, the combined render stage and what
-    report.json keeps (None when the first pass met the budget)."""
+    With render.pattern 'shared' the second pass continues the first pass's patterns: each half of
+    each pixel draws the samples of its sequence after all of the first pass's (the same keys), so
+    that the two passes, weighed by their samples (``c = n2 / n1``), are one pass of n1 + n2 samples,
+    stratified as a whole; its samples are ``n2 / n1 = F x`` :data:`TOP_UP_MARGIN` ``- 1`` for the
+    first pass's factor F over the budget (variance at least as 1 / spp). Otherwise (render.pattern
+    'own') the second pass is independent, with a variance V2 that satisfies 1 / (1 / V1 + 1 / V2) <=
+    V1 / (F x :data:`TOP_UP_MARGIN`) (see :data:`TOP_UP_EXPONENT`), and ``c = V1 / V2`` (in each pass,
+    the worst read's figure that decided the top-up, its median or its p95 ratio: inverse-variance
+    weights, one for the whole film, where the budget is judged; a p95's pixels gain less from a
+    smaller second pass than the median's). At most render.max_spp per stratum in all. The
+    combination ``(E1 + c E2) / (1 + c)`` is unbiased whatever ``c``: each pass is (every sample of a
+    scrambled sequence is uniform, wherever it starts), and ``c`` and the second pass's size depend on
+    the whole film's noise, not on any pixel's value. So is its half-sample difference ``(d1 + c d2) /
+    (1 + c)`` as an error estimate. Returns the plan with the summed samples, the combined render stage
+    and what report.json keeps (None when the first pass met the budget)."""
     if integrated.mc_diff is None:
         return plan, integrated, None
     factor, worst, figure, v1 = over_budget(integrated, timeline, cfg)
@@ -357,8 +362,13 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     with status.stage(f"top-up render (the estimate is {factor:.2f}x the noise budget)"):
         start = time.perf_counter()
         count = getattr(renderer, "sample_count", lambda m: m)
-        gap = factor * TOP_UP_MARGIN - 1.0  # V1 / V2 needed
-        share = max(gap ** (1.0 / TOP_UP_EXPONENT), gap)  # n2 / n1
+        # with the shared pattern the second pass continues each pixel's sequences after the first's, and
+        # the two weighed by their samples are one pass of n1 + n2: variance at least as 1 / spp, so
+        # (n1 + n2) / n1 = F x margin. An independent second pass needs V1 / V2 = F x margin - 1, and a
+        # smaller pass is dearer per sample (TOP_UP_EXPONENT)
+        extend = plan.pattern == "shared" and plan.estimator == "independent"
+        gap = factor * TOP_UP_MARGIN - 1.0
+        share = gap if extend else max(gap ** (1.0 / TOP_UP_EXPONENT), gap)  # n2 / n1
         extra = np.array([2 * count(max(int(np.ceil(share * n / 2)), 1)) for n in plan.spp], np.int64)
         room = np.maximum(cfg.render.max_spp - plan.spp, 0) // 2 * 2  # two halves of whole samples
         if (room < 2).any():
@@ -373,9 +383,12 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         times = plan.draw_times(rng)[:, :, 0]
         second_plan = replace(plan, spp=extra, times_s=times[:, 0], half_times_s=times)
         second = integrate(renderer, second_plan, timeline.n_channels, child, per_group=per_group,
-                           timer=timer, progress=progress, desc="top-up")
-        v2 = _read_figures(second, timeline, cfg, [worst]).get(worst, {}).get(figure, 0.0)
-        c = v1 / v2 if v2 > 0 else float(extra.sum() / plan.spp.sum())
+                           timer=timer, progress=progress, desc="top-up", continues=(plan, seed) if extend else None)
+        if extend:  # each sample alike: the passes by their samples
+            c = float(extra.sum() / plan.spp.sum())
+        else:
+            v2 = _read_figures(second, timeline, cfg, [worst]).get(worst, {}).get(figure, 0.0)
+            c = v1 / v2 if v2 > 0 else float(extra.sum() / plan.spp.sum())
 
         def mix(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
             if a is None or b is None:

@@ -148,8 +148,9 @@ def test_a_capture_with_adaptive_sampling_reports_its_tiers(tmp_path):
 @pytest.mark.render
 def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
     """render.top_up: a first pass at about half the samples the budget needs is over it; the top-up's
-    second pass, combined with it by inverse-variance weight, brings the estimate under it, and the
-    combination matches a brute-force render within its standard error."""
+    second pass, which continues the first pass's patterns (render.pattern 'shared', the default) and is
+    weighed with it by their samples, brings the estimate under it, and the combination matches a
+    brute-force render within its standard error."""
     from mbcapture.pipeline import over_budget, top_up
     from mbcapture.progress import StageStatus
 
@@ -161,9 +162,10 @@ def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
     first = integrate(r, low, timeline.n_buckets, seeds[2])
     before = over_budget(first, timeline, cfg)[0]
     assert 1.3 < before < 4
-    topped_plan, topped, info = top_up(cfg, r, low, timeline, first, np.random.SeedSequence(4), StageStatus(False),
+    topped_plan, topped, info = top_up(cfg, r, low, timeline, first, seeds[2], StageStatus(False),
                                        per_group=False, timer=None, progress=False, why_not=None)
     assert info["applied"] and info["before"] == pytest.approx(before, rel=1e-3)
+    assert info["weight"] == pytest.approx(sum(info["spp_added"]) / low.spp.sum())  # by their samples
     assert (topped_plan.spp == low.spp + np.array(info["spp_added"])).all()
     assert info["after"] < 1.0 and info["after"] == pytest.approx(over_budget(topped, timeline, cfg)[0], rel=1e-3)
     brute = integrate(r, replace(plan, spp=plan.spp * 4), timeline.n_buckets, np.random.SeedSequence(10))

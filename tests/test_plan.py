@@ -231,7 +231,9 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     from mbcapture.progress import StageStatus
 
     tl = timeline(periods=16)
-    p = plan(point_scene(100.0), tl, spp=4)
+    # render.pattern 'own': an independent second pass, weighed by inverse variance (the shared
+    # pattern's, which continues the first pass, is the next test's)
+    p = replace(plan(point_scene(100.0), tl, spp=4), pattern="own")
     mu = {g: 1.0 + i for i, g in enumerate(p.groups)}
     r = FakeRenderer(p.groups, mu, {g: 0.0 for g in p.groups}, height=2, width=8, slope=1e3)
     first = integrate(r, p, tl.n_buckets, np.random.SeedSequence(1))
@@ -271,6 +273,42 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     assert note["note"] == f"render.max_spp={p.spp.max() + 1} reached in {p.passes} of {p.passes} strata"
 
 
+def test_with_the_shared_pattern_the_top_up_continues_the_first_pass(monkeypatch):
+    """With render.pattern 'shared' the top-up's second pass draws, in each half, the samples of the first
+    pass's pattern after all of the first pass's (its keys, offsets from the first pass's totals on), so
+    that the two passes weighed by their samples (c = n2 / n1) are one pass of n1 + n2; its size is
+    n2 / n1 = F x margin - 1 (F: how far over the first pass was)."""
+    from types import SimpleNamespace
+
+    from mbcapture import pipeline
+    from mbcapture.integrate import integrate, render_patterns, stratum_halves
+    from mbcapture.progress import StageStatus
+
+    tl = timeline(periods=16)
+    p = plan(point_scene(100.0), tl, spp=8)
+    assert p.pattern == "shared"
+    mu = {g: 1.0 + i for i, g in enumerate(p.groups)}
+    r = FakeRenderer(p.groups, mu, {g: 1.0 for g in p.groups}, height=4, width=8)
+    seed = np.random.SeedSequence(1)
+    first = integrate(r, p, tl.n_buckets, seed)
+    monkeypatch.setattr(pipeline, "over_budget",
+                        lambda integrated, timeline, cfg: (2.0, "J1", "to_shot_noise_variance_median", 0.2))
+    cfg = SimpleNamespace(render=SimpleNamespace(max_spp=1024))
+    r.patterns.clear()
+    topped_plan, topped, info = pipeline.top_up(cfg, r, p, tl, first, seed, StageStatus(False),
+                                                per_group=False, timer=None, progress=False, why_not=None)
+    extra = np.array(info["spp_added"])
+    assert info["applied"] and np.all(extra == 2 * int(np.ceil((2.0 * pipeline.TOP_UP_MARGIN - 1) * 8 / 2)))
+    assert info["weight"] == pytest.approx(extra.sum() / p.spp.sum())
+    firsts = render_patterns(p, seed)
+    keys = [firsts[0][h][0] for h in range(2)]
+    ends = [sum(n[h] for n in stratum_halves(p)) for h in range(2)]  # each half's samples in the first pass
+    seconds = np.array(r.patterns).reshape(p.passes, 2, 2)  # (stratum, half, (key, offset))
+    assert (seconds[:, :, 0] == keys).all()
+    for h in range(2):
+        assert list(seconds[:, h, 1]) == [ends[h] + j * extra[0] // 2 for j in range(p.passes)]
+
+
 def test_max_strata_coarsens_and_says_so():
     p = plan(point_scene(500.0), timeline(periods=16), max_strata=8)
     assert p.passes == 8 and p.coarsened and "coarsened" in p.notes[0]
@@ -286,7 +324,7 @@ class FakeRenderer:
         self.groups, self.mu, self.sigma = tuple(groups), dict(mu), dict(sigma)
         self.height, self.width, self.slope = height, width, slope
         self.sigma_map = np.ones((height, width, 1)) if sigma_map is None else sigma_map[..., None]  # per-pixel factor
-        self.calls = []
+        self.calls, self.patterns = [], []
 
     def set_time(self, t_s, force=False):
         pass
@@ -294,6 +332,7 @@ class FakeRenderer:
     def render(self, t_s, spp, seed, groups=None, pattern=None):
         groups = tuple(self.groups if groups is None else groups)
         self.calls.append((t_s, spp, groups))
+        self.patterns.append(pattern)
         rng = np.random.default_rng(seed)
         shape = (self.height, self.width, 3)
         ramp = np.linspace(0, 1, self.width)[None, :, None] * self.slope * t_s  # an image that changes in time
