@@ -454,7 +454,7 @@ def choose_spp(
     # the budget is met on the reads the sensor outputs: a read's weights (and electrons) are its buckets'
     # sums, and its Monte Carlo errors add coherently (the same renders); one read per bucket without sets
     read_sets = plan.read_sets or tuple((b,) for b in plan.buckets_read)
-    shared = plan.pattern == "shared" and plan.estimator == "independent"
+    shared = plan.shares_pattern
     w_b = plan.weights_s  # (J, K, G)
     w = np.stack([w_b[:, list(r)].sum(axis=1) for r in read_sets], axis=1)  # (J, R, G)
     J, K, G = w.shape  # K: reads from here on

@@ -64,15 +64,13 @@ def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[i
     ``after``: a first pass rendered with the same ``seed``, whose patterns these continue: the same
     keys, each half's samples after all of that pass's (the budget's top-up)."""
     halves = stratum_halves(plan)
-    if plan.pattern != "shared" or plan.estimator != "independent":
+    if not plan.shares_pattern:
         return [[None] * len(h) for h in halves]
     taken = count if count is not None else (lambda n: n)
     keys = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5A7E))) \
         .integers(0, 2**32, size=2)
-    offset = [0, 0]
-    for h_j in stratum_halves(after) if after is not None else []:
-        for h, n_h in enumerate(h_j):
-            offset[h] += int(taken(n_h))
+    before = stratum_halves(after) if after is not None else []
+    offset = [sum(int(taken(h_j[h])) for h_j in before if h < len(h_j)) for h in range(2)]
     out = []
     for h_j in halves:
         out.append([(int(keys[h]), offset[h]) for h in range(len(h_j))])

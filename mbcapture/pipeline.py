@@ -366,7 +366,7 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         # the two weighed by their samples are one pass of n1 + n2: variance at least as 1 / spp, so
         # (n1 + n2) / n1 = F x margin. An independent second pass needs V1 / V2 = F x margin - 1, and a
         # smaller pass is dearer per sample (TOP_UP_EXPONENT)
-        extend = plan.pattern == "shared" and plan.estimator == "independent"
+        extend = plan.shares_pattern
         gap = factor * TOP_UP_MARGIN - 1.0
         share = gap if extend else max(gap ** (1.0 / TOP_UP_EXPONENT), gap)  # n2 / n1
         extra = np.array([2 * count(max(int(np.ceil(share * n / 2)), 1)) for n in plan.spp], np.int64)
@@ -384,11 +384,10 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         second_plan = replace(plan, spp=extra, times_s=times[:, 0], half_times_s=times)
         second = integrate(renderer, second_plan, timeline.n_channels, child, per_group=per_group,
                            timer=timer, progress=progress, desc="top-up", continues=(plan, seed) if extend else None)
-        if extend:  # each sample alike: the passes by their samples
-            c = float(extra.sum() / plan.spp.sum())
-        else:
+        c = float(extra.sum() / plan.spp.sum())  # by their samples: each sample alike when they continue
+        if not extend:
             v2 = _read_figures(second, timeline, cfg, [worst]).get(worst, {}).get(figure, 0.0)
-            c = v1 / v2 if v2 > 0 else float(extra.sum() / plan.spp.sum())
+            c = v1 / v2 if v2 > 0 else c
 
         def mix(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
             if a is None or b is None:

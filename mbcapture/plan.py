@@ -90,6 +90,12 @@ class Plan:
     mix_weights: np.ndarray | None = None
 
     @property
+    def shares_pattern(self) -> bool:
+        """Whether the strata draw their samples from one shared pattern (render.pattern 'shared' with the
+        ``independent`` estimator; the ``difference`` estimator's strata reuse its base render's numbers)."""
+        return self.pattern == "shared" and self.estimator == "independent"
+
+    @property
     def render_times(self) -> np.ndarray:
         """(J, 2) the scene time of each stratum's two half-sample renders.
 

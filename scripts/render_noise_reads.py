@@ -163,14 +163,15 @@ def converged(args, base: list[str], runs: list, below: list[np.ndarray], choice
         e1, e2 = E[0, i], E[1, i]  # the outside figure of the first two runs, on the samples unsaturated in all
         squared = (e1 - e2) ** 2 / 2.0
         pair_mean = (e1 + e2) / 2
-        outside = budget_quantiles(pooled_alike(squared, pair_mean)[use] / pair_mean[use], effective_dof(squared, use))[0]
+        pair_ratio = pooled_alike(squared, pair_mean)[use] / pair_mean[use]
+        outside = budget_quantiles(pair_ratio, effective_dof(squared, use))[0]
         own = [r.report["render_error"]["reads"][read.name]["to_shot_noise_variance_median"] for r in runs]
         print(f"{read.name:6s} converged median {truth:.4g}; outside {outside / truth:.3f} of it, the runs' own "
               f"{own[0] / truth:.3f} and {own[1] / truth:.3f}")
         # the tail: each sample's own variance over the N runs (N - 1 degrees of freedom, not pooled: no
         # neighbour's noise in it), against the two runs' pooled estimates, alike (the run's) and box
         own_tail = np.percentile(var_n[use] / mean[use], [95, 99, 99.9])
-        alike_tail = np.percentile(pooled_alike(squared, pair_mean)[use] / pair_mean[use], [95, 99, 99.9])
+        alike_tail = np.percentile(pair_ratio, [95, 99, 99.9])
         box_tail = np.percentile(pooled(squared[None])[0][use] / pair_mean[use], [95, 99, 99.9])
         print(f"{'':6s} p95 / p99 / p99.9: each sample's own over {args.truth} runs "
               f"{' / '.join(f'{x:.3g}' for x in own_tail)}; two runs pooled alike "
