@@ -287,7 +287,7 @@ def test_goldens_catch_a_changed_noise_model(golden, monkeypatch, change):
 
     if change == "numpy_poisson":  # the same law, drawn by numpy's rejection sampler
         monkeypatch.setattr(readout, "poisson_quantile_memo",
-                            lambda u, lam: np.random.default_rng(0).poisson(lam).astype(np.float64))
+                            lambda u, lam, u_key=None: np.random.default_rng(0).poisson(lam).astype(np.float64))
     else:
         base = golden_cases.sensor_config()
         update = {"read_noise_e": base.read_noise_e * 1.5} if change == "read_noise_x1.5" else {"transfer_inefficiency": 0.0}

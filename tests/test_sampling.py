@@ -255,6 +255,48 @@ def test_poisson_memo_returns_the_same_draw_and_only_for_the_same_field_and_mean
     assert POISSON_MEMO.misses == 3 + POISSON_MEMO.entries + 2
 
 
+def test_a_sweeps_memos_give_the_same_reads_and_share_the_fields(monkeypatch):
+    """With the memos on (a sweep's process), the sensor gives the same reads bit for bit as without
+    them; a second point of the same sensor seed takes its noise fields, fixed pattern and photons from
+    them (hits), read-only; a sensor with another PRNU draws its own maps, another noise seed its own fields."""
+    from mbcapture.sensor.readout import fixed_pattern
+    from mbcapture.sensor.sampling import FIELD_MEMO, POISSON_MEMO
+
+    cfg = SensorConfig(prnu=0.01, dsnu_e=2.0, read_noise_e=3.0, read_noise_row_e=0.5, transfer_inefficiency=1e-4,
+                       full_well_e=5000.0)
+    exp_e = np.random.default_rng(0).uniform(0.0, 6000.0, (3, 6, 7, 3))
+    reads = [(0,), (0, 1), (0, 1, 2)]
+
+    def sense(c=cfg, seed=11):
+        return simulate_reads(exp_e, reads, c, np.random.SeedSequence(seed))
+
+    off = sense()
+    for memo, n in ((FIELD_MEMO, 8), (POISSON_MEMO, 4)):
+        monkeypatch.setattr(memo, "entries", n)
+        memo.clear()
+    first = sense()
+    hits = FIELD_MEMO.hits
+    second = sense(cfg.model_copy(update={"read_noise_e": 6.0}))  # another point of a read-noise sweep
+    # shot and transfer uniforms, read and row normals, the fixed pattern; and the photons
+    assert FIELD_MEMO.hits - hits == 5 and POISSON_MEMO.hits == 1
+    for a, b in ((off, first), (first, second)):
+        np.testing.assert_array_equal(a.electrons, b.electrons)
+    np.testing.assert_array_equal(off.reads_dn, first.reads_dn)
+    assert not np.array_equal(first.reads_dn, second.reads_dn)  # its own read noise on the same field
+    np.testing.assert_array_equal(second.reads_dn, simulate_reads(exp_e, reads, cfg.model_copy(
+        update={"read_noise_e": 6.0}), np.random.SeedSequence(11)).reads_dn)
+    streams = NoiseStreams(np.random.SeedSequence(11))
+    u = streams.uniform("shot", exp_e.shape)
+    with pytest.raises(ValueError):
+        u[0, 0, 0, 0] = 0.5  # the memo's array is handed out read-only
+    np.testing.assert_array_equal(np.stack([r.copy() for r in streams.normal_runs("read", (3, 6, 7, 3))]),
+                                  streams.normal("read", (3, 6, 7, 3)))
+    misses = FIELD_MEMO.misses
+    fixed_pattern((6, 7, 3), cfg.model_copy(update={"prnu": 0.02}))
+    sense(seed=12)  # its four noise fields anew; the fixed pattern is the sensor's (sensor.fpn_seed), the same
+    assert FIELD_MEMO.misses - misses == 1 + 4
+
+
 @pytest.mark.parametrize("law", ["poisson", "binomial"])
 def test_inverting_in_chunks_gives_the_same_counts(monkeypatch, law):
     """The inversion is per lane: chunks of 7 lanes (CHUNK_LANES) give the counts of one pass, bit for

@@ -45,14 +45,14 @@ from __future__ import annotations
 
 from contextlib import contextmanager
 from contextvars import ContextVar
-from dataclasses import dataclass, replace
+from dataclasses import astuple, dataclass, replace
 from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
 from .cfa import demosaic, spread_to_footprint, to_mosaic
 from .config import SensorConfig
-from .sampling import BandedField, NoiseStreams, binomial_quantile, poisson_quantile_memo
+from .sampling import FIELD_MEMO, BandedField, NoiseStreams, binomial_quantile, poisson_quantile_memo
 
 __all__ = ["FixedPattern", "SensorReads", "develop_reads", "dn_to_electrons", "fixed_pattern", "join_rows",
            "sensor_stage_hook", "simulate_reads"]
@@ -121,7 +121,19 @@ def fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig, rows: tuple[in
 
     ``rows`` (r0, r1): those rows of the (H, W, C) maps, equal to the whole maps' rows; ``streams``
     keeps the pixel maps' stream position for the next band (:class:`~.sampling.BandedField`).
+    Whole maps come read-only from :data:`~.sampling.FIELD_MEMO` when it is on (a sweep).
     """
+    if rows is None and FIELD_MEMO.entries:  # the same sensor's maps at every point of a sweep: made once
+        key = repr(("fpn", tuple(int(n) for n in shape), cfg.fpn_seed, cfg.prnu, cfg.dsnu_e, cfg.prnu_row, cfg.prnu_col,
+                    cfg.dsnu_row_e, cfg.dsnu_col_e)).encode()
+        maps = FIELD_MEMO.fetch(key, lambda: np.stack(astuple(_fixed_pattern(shape, cfg))))
+        return FixedPattern(prnu_gain=maps[0], dsnu_offset_e=maps[1])
+    return _fixed_pattern(shape, cfg, rows, streams)
+
+
+def _fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig, rows: tuple[int, int] | None = None,
+                   streams: NoiseStreams | None = None) -> FixedPattern:
+    """:func:`fixed_pattern`, drawn."""
     seed = np.random.SeedSequence(cfg.fpn_seed)
     if rows is None:
         rng = np.random.default_rng(seed)
@@ -378,7 +390,8 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
         mean_e += (cfg.dark_current_e_per_s * storage)[:, None, None, None]
 
     # remembered: a sweep's points that differ only after this draw (read noise, full wells, ADC) reuse it
-    electrons = poisson_quantile_memo(field("uniform", "shot", mean_e.shape), mean_e)
+    electrons = poisson_quantile_memo(field("uniform", "shot", mean_e.shape), mean_e,
+                                      streams.field_key("shot", mean_e.shape, "uniform") if film is None else None)
     del mean_e
     bucket_saturated = electrons >= cfg.full_well_e
     np.minimum(electrons, cfg.full_well_e, out=electrons)

@@ -55,8 +55,8 @@ from typing import Callable, Iterator
 import numpy as np
 from scipy import special
 
-__all__ = ["BandedField", "DiscreteLaw", "NoiseStreams", "binomial_quantile", "invert_discrete", "poisson_pmf",
-           "poisson_quantile", "poisson_quantile_memo", "uniform_open"]
+__all__ = ["FIELD_MEMO", "POISSON_MEMO", "ArrayMemo", "BandedField", "DiscreteLaw", "NoiseStreams", "binomial_quantile",
+           "invert_discrete", "keep_sensor_work", "poisson_pmf", "poisson_quantile", "poisson_quantile_memo", "uniform_open"]
 
 #: Above this mean a Poisson count is no longer an exact float64 integer: the draw is the rounded
 #: Cornish-Fisher quantile (relative skewness 1/sqrt(mean) < 3e-8, below float64 use downstream).
@@ -172,16 +172,26 @@ class NoiseStreams:
             self._bands[k] = BandedField(seed, shape, kind)
         return self._bands[k]
 
+    def field_key(self, stage: str, shape: tuple[int, ...], kind: str) -> bytes:
+        """What identifies the whole field of ``stage``, ``shape`` and ``kind`` ('uniform' or 'normal'):
+        its seed and shape (the field is a function of them alone)."""
+        s = self._seed(stage)
+        return repr(("field", kind, s.entropy, tuple(s.spawn_key), tuple(int(n) for n in shape))).encode()
+
     def uniform(self, stage: str, shape: tuple[int, ...], rows: tuple[int, int] | None = None) -> np.ndarray:
-        """The stage's uniform field in (0, 1), float64 of ``shape`` (the same on every call), or its ``rows``."""
+        """The stage's uniform field in (0, 1), float64 of ``shape`` (the same on every call), or its ``rows``.
+        Read-only when it comes from :data:`FIELD_MEMO` (on in a sweep)."""
         if rows is None:
-            return uniform_open(self._rng(stage), shape)
+            return FIELD_MEMO.fetch(self.field_key(stage, shape, "uniform"),
+                                    lambda: uniform_open(self._rng(stage), shape))
         return self.banded(("stage", stage), self._seed(stage), shape, "uniform").rows(*rows)
 
     def normal(self, stage: str, shape: tuple[int, ...], rows: tuple[int, int] | None = None) -> np.ndarray:
-        """The stage's standard normal field, float64 of ``shape`` (the same on every call), or its ``rows``."""
+        """The stage's standard normal field, float64 of ``shape`` (the same on every call), or its ``rows``.
+        Read-only when it comes from :data:`FIELD_MEMO` (on in a sweep)."""
         if rows is None:
-            return self._rng(stage).standard_normal(shape)
+            return FIELD_MEMO.fetch(self.field_key(stage, shape, "normal"),
+                                    lambda: self._rng(stage).standard_normal(shape))
         return self.banded(("stage", stage), self._seed(stage), shape, "normal").rows(*rows)
 
     def normal_runs(self, stage: str, shape: tuple[int, ...],
@@ -190,6 +200,9 @@ class NoiseStreams:
         order, each drawn into the same array (valid until the next): the field's values without the
         whole field's memory, which is new memory the system must map and zero first (a 640x512
         capture's read noise: 31 MB, which took longer than the draw)."""
+        if rows is None and FIELD_MEMO.entries:  # the whole field, drawn once for the points of a sweep
+            yield from self.normal(stage, shape)
+            return
         out = np.empty(shape[1:] if rows is None else (rows[1] - rows[0], *shape[2:]))
         if rows is None:  # a normal is one or more 64-bit outputs, nothing buffered: draws continue the stream
             g = self._rng(stage)
@@ -487,24 +500,26 @@ def _binomial_lanes(u: np.ndarray, n: np.ndarray, p: float) -> np.ndarray:
     return out
 
 
-class _DrawMemo:
-    """The last few Poisson draws of this process, keyed by a digest of their uniform field and
-    means (SHA-256 of the bytes, which CPUs with SHA extensions hash at ~2 GB/s: ~35 ms for a
-    640x512 capture's four buckets, against ~1.3 s for the inversion). A draw is a deterministic function of the two, so a repeat is the same
-    counts. Thread-safe; entries beyond ``entries`` or ``max_bytes`` are dropped oldest first.
-    Off (``entries`` 0) unless a process that repeats draws turns it on (:meth:`keep`): a single
-    capture never draws twice, and would only pay the digest and hold the copies."""
+class ArrayMemo:
+    """The last few arrays this process computed, by key: a sweep's points repeat the same sensor work
+    (the same seed's noise fields, the same photons), which they take from here instead. Thread-safe;
+    entries beyond ``entries`` or ``max_bytes`` are dropped oldest first. Off (``entries`` 0) unless a
+    process that repeats work turns it on (:meth:`keep`): a single capture never draws twice, and would
+    only pay the keys and hold the copies. ``copies`` True: an array goes in and comes out as a copy
+    (the caller may change it); False: it is kept read-only and handed out as is."""
 
-    def __init__(self, entries: int = 0, max_bytes: int = 1 << 30):
-        self.entries, self.max_bytes = entries, max_bytes
-        self._draws: OrderedDict[bytes, np.ndarray] = OrderedDict()
+    def __init__(self, entries: int = 0, max_bytes: int = 1 << 30, *, copies: bool = True):
+        self.entries, self.max_bytes, self.copies = entries, max_bytes, copies
+        self._arrays: OrderedDict[bytes, np.ndarray] = OrderedDict()
         self._lock = threading.Lock()
         self.hits = self.misses = 0
 
     @staticmethod
-    def key(u: np.ndarray, lam: np.ndarray) -> bytes:
-        h = hashlib.sha256()
-        for a in (u, lam):
+    def key(*arrays: np.ndarray, prefix: bytes = b"") -> bytes:
+        """SHA-256 of ``prefix`` and the arrays' shapes and float64 bytes (CPUs with SHA extensions
+        hash at ~2 GB/s: ~35 ms for a 640x512 capture's four buckets)."""
+        h = hashlib.sha256(prefix)
+        for a in arrays:
             a = np.ascontiguousarray(a, dtype=np.float64)
             h.update(repr(a.shape).encode())
             h.update(memoryview(a).cast("B"))
@@ -512,49 +527,68 @@ class _DrawMemo:
 
     def get(self, key: bytes) -> np.ndarray | None:
         with self._lock:
-            out = self._draws.get(key)
+            out = self._arrays.get(key)
             if out is None:
                 self.misses += 1
                 return None
-            self._draws.move_to_end(key)
+            self._arrays.move_to_end(key)
             self.hits += 1
-            return out.copy()
+        return out.copy() if self.copies else out
 
-    def put(self, key: bytes, draw: np.ndarray) -> None:
-        if draw.nbytes > self.max_bytes:
+    def put(self, key: bytes, array: np.ndarray) -> None:
+        if self.entries == 0 or array.nbytes > self.max_bytes:
             return
+        kept = array.copy() if self.copies else array
+        kept.flags.writeable = False
         with self._lock:
-            self._draws[key] = draw.copy()
-            while len(self._draws) > self.entries or sum(d.nbytes for d in self._draws.values()) > self.max_bytes:
-                self._draws.popitem(last=False)
+            self._arrays[key] = kept
+            while len(self._arrays) > self.entries or sum(d.nbytes for d in self._arrays.values()) > self.max_bytes:
+                self._arrays.popitem(last=False)
+
+    def fetch(self, key: bytes, make: Callable[[], np.ndarray]) -> np.ndarray:
+        """The array kept under ``key``, else ``make()`` (kept when the memo is on)."""
+        if self.entries == 0:
+            return make()
+        out = self.get(key)
+        if out is None:
+            out = make()
+            self.put(key, out)
+        return out
 
     def keep(self, entries: int) -> None:
-        """Remember (at least) the last ``entries`` draws from now on."""
+        """Remember (at least) the last ``entries`` arrays from now on."""
         with self._lock:
             self.entries = max(self.entries, entries)
 
     def clear(self) -> None:
         with self._lock:
-            self._draws.clear()
+            self._arrays.clear()
             self.hits = self.misses = 0
 
 
-#: The process's memo of :func:`poisson_quantile_memo` (off until :meth:`_DrawMemo.keep`; a sweep's
-#: workers turn it on).
-POISSON_MEMO = _DrawMemo()
+#: The process's memo of :func:`poisson_quantile_memo`'s draws (a deterministic function of their uniform
+#: field and means; off until :meth:`ArrayMemo.keep`: a sweep's workers turn it on).
+POISSON_MEMO = ArrayMemo()
+#: The process's memo of whole noise fields (:class:`NoiseStreams`, by seed, stage and shape) and fixed
+#: patterns (:func:`mbcapture.sensor.readout.fixed_pattern`), handed out read-only; off until a sweep turns
+#: it on: a sweep over read noise, full wells or light draws the same fields at every point.
+FIELD_MEMO = ArrayMemo(copies=False)
 
 
-def poisson_quantile_memo(u: np.ndarray, lam: np.ndarray | float) -> np.ndarray:
+def keep_sensor_work(entries: int = 4) -> None:
+    """Turn both memos on in this process (a sweep's worker, whose points repeat the same sensor work)."""
+    POISSON_MEMO.keep(entries)
+    FIELD_MEMO.keep(2 * entries)
+
+
+def poisson_quantile_memo(u: np.ndarray, lam: np.ndarray | float, u_key: bytes | None = None) -> np.ndarray:
     """:func:`poisson_quantile`, remembered: the points of a sweep over read noise, full wells or
     the ADC draw the same photons from the same seed and means, and take them from the memo
-    instead of inverting again (a new array each call: the caller may change it)."""
+    instead of inverting again (a new array each call: the caller may change it). ``u_key``: what
+    identifies ``u`` (:meth:`NoiseStreams.field_key`), which then is not hashed."""
     if POISSON_MEMO.entries == 0:
         return poisson_quantile(u, lam)
     u = np.asarray(u, dtype=np.float64)
     lam = np.broadcast_to(np.asarray(lam, dtype=np.float64), u.shape)
-    key = POISSON_MEMO.key(u, lam)
-    out = POISSON_MEMO.get(key)
-    if out is None:
-        out = poisson_quantile(u, lam)
-        POISSON_MEMO.put(key, out)
-    return out
+    key = POISSON_MEMO.key(lam, prefix=u_key) if u_key is not None else POISSON_MEMO.key(u, lam)
+    return POISSON_MEMO.fetch(key, lambda: poisson_quantile(u, lam))

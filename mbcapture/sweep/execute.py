@@ -42,7 +42,7 @@ from ..config import config_from_dict
 from ..errors import one_line
 from ..io import staged_outputs
 from ..metrics import flat_items
-from ..sensor.sampling import POISSON_MEMO
+from ..sensor.sampling import keep_sensor_work
 from .groups import SweepPlan
 from .spec import Point, Sweep
 
@@ -100,7 +100,7 @@ def run_point(task: dict, leader: dict | None = None, *after: Any, keep_result: 
     Returns ``{"row": {...}, "rendered": Rendered | None, "result": CaptureResult (keep_result)}``;
     an exception becomes ``row["status"] = "failed"`` with ``row["error"]``."""
 
-    POISSON_MEMO.keep(4)  # the points of a render group draw the same photons unless light or seed differ
+    keep_sensor_work(4)  # a render group's points draw the same noise fields, and photons unless light or seed differ
     start = time.perf_counter()
     row: dict[str, Any] = {"status": "ok", "error": None, "worker": f"{socket.gethostname()}:{os.getpid()}"}
     kept: dict[str, Any] = {}
