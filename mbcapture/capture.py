@@ -8,6 +8,7 @@ previews, report.json and report.html.
 from __future__ import annotations
 
 import sys
+import time
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable
@@ -21,6 +22,7 @@ from .errors import ConfigError
 from .io import check_out_dir, staged_outputs
 from .pipeline import (  # noqa: F401  (the names a capture's callers have always imported from here)
     CaptureResult,
+    Prepared,
     Rendered,
     bucket_group_seconds,
     capture_in_memory,
@@ -45,14 +47,17 @@ def render_summary(report: dict) -> list[str]:
     return out
 
 
-def check_resources(cfg: CaptureConfig, out_dir: Path | None) -> resources.Resources:
+def check_resources(cfg: CaptureConfig, out_dir: Path | None) -> tuple[Prepared, resources.Resources, float]:
     """Plan the run's memory and disk and stop it, before any work, when it cannot fit
-    (:func:`mbcapture.resources.check`: one line, exit 2)."""
-    _, timeline, plan, _ = prepare(cfg)
-    need = resources.plan_resources(cfg, timeline, plan, cfg.app.resolve(cfg.capture.protocol)[0])
+    (:func:`mbcapture.resources.check`: one line, exit 2). Returns what it planned with: the
+    capture's :func:`prepare`, its resources, and the seconds the two took."""
+    start = time.perf_counter()
+    prepared = prepare(cfg)
+    need = resources.plan_resources(cfg, prepared.timeline, prepared.plan, cfg.app.resolve(cfg.capture.protocol)[0])
     cache = render_cache(cfg.render)
+    seconds = time.perf_counter() - start
     resources.check(need, cfg, out_dir, None if cache is None else cache.root)
-    return need
+    return prepared, need, seconds
 
 
 def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True,
@@ -66,7 +71,8 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     render the strata (mbcapture.cluster; not for videos)."""
     if out_dir is not None:
         check_out_dir(Path(out_dir))
-    need = check_resources(cfg, None if out_dir is None else Path(out_dir))
+    planned = check_resources(cfg, None if out_dir is None else Path(out_dir))
+    need = planned[1]
     if progress:
         print(f"mbcapture: this run {need.line()}", file=sys.stderr)
     if cfg.capture.frames > 1 and client is not None:
@@ -83,7 +89,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     stages = 4 + own_render * (1 + budget + (budget and cfg.render.adaptive)) + (out_dir is not None)
     with StageStatus(progress, stages=stages) as status:
         result = capture_in_memory(cfg, status, progress=progress, rendered=rendered, on_rendered=on_rendered,
-                                   client=client)
+                                   client=client, planned=planned)
         if out_dir is not None:
             with status.stage("write outputs and report"):
                 write_outputs(result, Path(out_dir))

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -196,7 +196,16 @@ def frame_period_check(cfg, timeline) -> float:
     return period
 
 
-def prepare(cfg: CaptureConfig) -> tuple[scenes.SceneModel, Timeline, Plan, list[np.random.SeedSequence]]:
+class Prepared(NamedTuple):
+    """What :func:`prepare` makes of a config (a tuple: ``scene, timeline, plan, seeds = prepare(cfg)``)."""
+
+    scene: scenes.SceneModel
+    timeline: Timeline
+    plan: Plan
+    seeds: list[np.random.SeedSequence]
+
+
+def prepare(cfg: CaptureConfig) -> Prepared:
     """Scene, timeline and render plan of a capture, and the run's seeds split per stage
     (0: plan jitter, 1: sensor noise, 2: render seeds, 3: the application's reference renders).
     Shared by ``run`` and ``plan``."""
@@ -206,7 +215,7 @@ def prepare(cfg: CaptureConfig) -> tuple[scenes.SceneModel, Timeline, Plan, list
     if cfg.capture.frames > 1:
         frame_period_check(cfg, timeline)  # a frame period shorter than capture + readout: before anything renders
     plan = make_plan(timeline, scene, cfg.render, np.random.default_rng(seeds[0]))
-    return scene, timeline, plan, seeds
+    return Prepared(scene, timeline, plan, seeds)
 
 
 def describe(cfg: CaptureConfig, timeline: Timeline, plan: Plan, need: resources.Resources | None = None) -> dict:
@@ -478,22 +487,29 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
 
 def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool = False,
                       rendered: Rendered | None = None, on_rendered: "Callable[[Rendered], None] | None" = None,
-                      renderer: Renderer | None = None, client: Any = None) -> CaptureResult:
+                      renderer: Renderer | None = None, client: Any = None,
+                      planned: "tuple[Prepared, resources.Resources, float] | None" = None) -> CaptureResult:
     """One capture, in the order of the data flow, nothing written: plan, render (or take
     ``rendered``), accumulate, the sensor stage (:func:`mbcapture.simulate.sense`), reconstruct.
     ``status``: the stage lines; ``progress``: a bar for the render passes; ``renderer``: a Renderer
     of this capture's scene to reuse (a video's frames), else one is made; ``on_rendered``: called
     with the render stage once it is done; ``client``: a Dask client whose workers render the strata
-    (:mod:`mbcapture.cluster`)."""
+    (:mod:`mbcapture.cluster`); ``planned``: :func:`prepare` and :func:`mbcapture.resources.plan_resources`
+    of ``cfg`` made already, and the seconds they took (:func:`mbcapture.capture.check_resources`),
+    else made here."""
     timer = _Timer()
     t_start = time.perf_counter()
     cluster_info = None  # what the cluster rendered (report.json "cluster"), with a client
     adaptive_info = None  # what adaptive sampling refined (report.json "adaptive")
     top_up_info = None  # the budget's second pass (report.json "top_up")
     with timer("plan"), status.stage("plan"):
-        scene, timeline, plan, seeds = prepare(cfg)
         app, app_params = cfg.app.resolve(cfg.capture.protocol)
-        need = resources.plan_resources(cfg, timeline, plan, app)
+        if planned is None:
+            scene, timeline, plan, seeds = prepare(cfg)
+            need = resources.plan_resources(cfg, timeline, plan, app)
+        else:
+            (scene, timeline, plan, seeds), need, seconds = planned
+            timer.stages["plan"] = seconds  # and this stage's own time added
     W, H = cfg.render.width, cfg.render.height
     t0_s, t1_s = timeline.seconds(timeline.start_tick), timeline.seconds(timeline.end_tick)
 

@@ -12,8 +12,10 @@ Keys set next to ``preset`` in the config win over the preset's.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
+from functools import lru_cache
 from pathlib import Path
 
 import yaml
@@ -43,8 +45,8 @@ def load_preset(ref: str) -> dict:
         if not path.is_file():
             raise ValueError(f"preset: file {ref} not found")
     try:
-        text = path.read_text()
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+        stat = path.stat()
+        data = copy.deepcopy(_parsed(str(path.resolve()), stat.st_mtime_ns, stat.st_size))
     except (OSError, ValueError, yaml.YAMLError) as exc:
         raise ValueError(f"preset: {path}: cannot read it as {'JSON' if path.suffix == '.json' else 'YAML'} ({exc})") from None
     if not isinstance(data, dict):
@@ -54,6 +56,14 @@ def load_preset(ref: str) -> dict:
     if "preset" in data:
         raise ValueError(f"preset: {path}: a preset may not name another preset")
     return data
+
+
+@lru_cache(maxsize=64)
+def _parsed(path: str, mtime_ns: int, size: int) -> object:
+    """The file ``path`` parsed (JSON or YAML by its suffix), once per version of it (its modification
+    time and size): a sweep loads the same preset for every point's config."""
+    text = Path(path).read_text()
+    return json.loads(text) if path.endswith(".json") else yaml.safe_load(text)
 
 
 def _figure(channels: dict, name: str, source: str, read: str = "bucket") -> list[float]:
