@@ -342,3 +342,32 @@ def test_an_application_that_says_it_renders_nothing_renders_nothing_on_shared_r
     again = run_capture(load_config(config, ["render.width=16", "render.height=12", "render.spp=4", "render.cache=off",
                                              "sensor.read_noise_e=7"]), progress=False, rendered=kept["rendered"])
     assert again.images
+
+
+def test_one_figure_redrawn_per_metric_is_the_figure_drawn_afresh():
+    """write_results draws every metric on one MetricGrid: each plot is pixel for pixel the plot a fresh
+    figure gives (no line, legend, colour or scale left from the metric before), log and linear alike."""
+    import itertools
+
+    import imageio.v3 as iio
+    import matplotlib
+    import pandas as pd
+
+    from mbcapture.sweep.results import MetricGrid, _png, plot
+
+    matplotlib.use("Agg")
+    grid = list(itertools.product([1.0, 2.0, 5.0, 10.0], [2500, 5000, 10000], ["a", "b"]))
+    df = pd.DataFrame(grid, columns=["sensor.read_noise_e", "sensor.full_well_e", "app.kind"])
+    df["status"] = "ok"
+    df["metrics.log"] = 1e-3 * df["sensor.read_noise_e"] ** 3 / df["sensor.full_well_e"] * 2500
+    df["metrics.lin"] = 0.5 + 0.01 * df["sensor.read_noise_e"] - 1e-5 * df["sensor.full_well_e"]
+    axes = ["sensor.read_noise_e", "sensor.full_well_e", "app.kind"]
+    figure = MetricGrid(df, axes)
+    try:
+        redrawn = {m: _png(figure.draw(m)) for m in ("metrics.log", "metrics.lin", "metrics.log")}
+    finally:
+        figure.close()
+    for metric, png in redrawn.items():
+        fresh = plot(df, metric, axes)
+        np.testing.assert_array_equal(iio.imread(png), iio.imread(_png(fresh)), err_msg=metric)
+        matplotlib.pyplot.close(fresh)

@@ -121,26 +121,65 @@ def _facets(ok, axis: str, axes: list[str]) -> tuple[str | None, list, list[str]
     return facet, panels, lines, structured
 
 
-def plot(df, metric: str, axes: list[str]):
-    """``metric`` against each axis (one row of panels per axis), faceted by the other axes."""
-    import matplotlib.pyplot as plt
+class MetricGrid:
+    """One figure of panels for a sweep's table: a row of panels per axis, each against that axis,
+    faceted by the other axes. :meth:`draw` puts one metric on it; the next call replaces it, so that
+    the plots of every metric share one figure, whose axes and ticks are made once (drawing a panel's
+    ticks anew is most of a plot's time: a fresh figure per metric took 0.38 s, a redrawn one 0.15 s)."""
 
-    ok = df[df["status"] == "ok"]
-    layout = {axis: _facets(ok, axis, axes) for axis in axes}
-    ncols = min(max(len(panels) for _, panels, _, _ in layout.values()), 4)
-    nrows = sum(-(-len(panels) // ncols) for _, panels, _, _ in layout.values())
-    # one metric: every panel on one scale (labelled on the first column); each row one x axis
-    fig, grid = plt.subplots(nrows, ncols, figsize=(3.4 * ncols + 0.6, 2.5 * nrows + 0.5), squeeze=False,
-                             sharex="row", sharey=True)
-    y_all = ok[metric].to_numpy(dtype=float, na_value=np.nan)
-    row = 0
-    for axis, (facet, panels, line_keys, structured) in layout.items():
-        xs = list(dict.fromkeys(ok[axis].tolist()))
-        numeric_x = _numeric(xs)
-        position = (lambda v: v) if numeric_x else {v: i for i, v in enumerate(xs)}.__getitem__
-        for n, panel in enumerate(panels):
-            ax = grid[row + n // ncols][n % ncols]
-            sub = ok if facet is None else ok[ok[facet] == panel]
+    def __init__(self, df, axes: list[str]):
+        import matplotlib.pyplot as plt
+        from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator
+
+        self.ok = ok = df[df["status"] == "ok"]
+        layout = {axis: _facets(ok, axis, axes) for axis in axes}
+        ncols = min(max(len(panels) for _, panels, _, _ in layout.values()), 4)
+        nrows = sum(-(-len(panels) // ncols) for _, panels, _, _ in layout.values())
+        # one metric: every panel on one scale (labelled on the first column); each row one x axis
+        self.fig, grid = plt.subplots(nrows, ncols, figsize=(3.4 * ncols + 0.6, 2.5 * nrows + 0.5), squeeze=False,
+                                      sharex="row", sharey=True)
+        #: per panel: (its axes, its rows of the table, the x axis, its position function, line keys, structured,
+        #: whether it is the first of its row, which has the legend)
+        self.panels: list[tuple] = []
+        row = 0
+        for axis, (facet, panels, line_keys, structured) in layout.items():
+            xs = list(dict.fromkeys(ok[axis].tolist()))
+            numeric_x = _numeric(xs)
+            position = (lambda v: v) if numeric_x else {v: i for i, v in enumerate(xs)}.__getitem__
+            for n, panel in enumerate(panels):
+                ax = grid[row + n // ncols][n % ncols]
+                sub = ok if facet is None else ok[ok[facet] == panel]
+                self.panels.append((ax, sub, axis, position, line_keys, structured, n == 0))
+                # a fixed title position: the automatic one measures every tick label of the panel (a third of the time)
+                ax.set_title(f"{facet} = {panel}" if facet is not None else "", fontsize=8, y=1.0)
+                if numeric_x and _log_scale(np.asarray(xs, dtype=float)):
+                    ax.set_xscale("log")
+                if numeric_x:  # the sweep's own values, labelled as they are
+                    ax.xaxis.set_major_locator(FixedLocator(sorted(float(v) for v in xs)))
+                    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+                    ax.xaxis.set_minor_locator(NullLocator())
+                else:
+                    ax.set_xticks(range(len(xs)), [str(v) for v in xs], rotation=20, fontsize=7, ha="right")
+                ax.set_xlabel(axis, fontsize=8)
+                ax.tick_params(labelsize=7)
+            for n in range(len(panels), -(-len(panels) // ncols) * ncols):
+                grid[row + n // ncols][n % ncols].set_visible(False)
+            row += -(-len(panels) // ncols)
+        # fixed margins in inches (tight_layout measures every label: half of the plot's time)
+        w, h = self.fig.get_size_inches()
+        self.fig.subplots_adjust(left=0.85 / w, right=1 - 0.2 / w, bottom=0.5 / h, top=1 - 0.45 / h, wspace=0.3,
+                                 hspace=0.45)
+
+    def draw(self, metric: str):
+        """The figure with ``metric`` on every panel (the metric drawn before it taken off)."""
+        y_all = self.ok[metric].to_numpy(dtype=float, na_value=np.nan)
+        log_y = _log_scale(y_all)
+        for ax, sub, axis, position, line_keys, structured, first in self.panels:
+            for artist in [*ax.lines, *ax.collections]:
+                artist.remove()
+            if ax.get_legend() is not None:
+                ax.get_legend().remove()
+            ax.set_prop_cycle(None)  # the lines' colours from the first again
             if structured:
                 groups = sub.groupby(line_keys, dropna=False, sort=False) if line_keys else [((), sub)]
                 for key, part in groups:
@@ -151,37 +190,31 @@ def plot(df, metric: str, axes: list[str]):
                             part[metric].to_numpy(dtype=float, na_value=np.nan)[order], "o-", ms=3.5, lw=1.2, label=label)
             else:
                 ax.scatter([position(v) for v in sub[axis]], sub[metric].to_numpy(dtype=float, na_value=np.nan), s=12)
-            # a fixed title position: the automatic one measures every tick label of the panel (a third of the time)
-            ax.set_title(f"{facet} = {panel}" if facet is not None else "", fontsize=8, y=1.0)
-            if numeric_x and _log_scale(np.asarray(xs, dtype=float)):
-                ax.set_xscale("log")
-                _major_only(ax.xaxis, np.asarray(xs, dtype=float))
-            if not numeric_x:
-                ax.set_xticks(range(len(xs)), [str(v) for v in xs], rotation=20, fontsize=7, ha="right")
-            if _log_scale(y_all):
-                ax.set_yscale("log")
+            ax.set_yscale("log" if log_y else "linear")  # the scale's own locators, whatever the last metric set
+            if log_y:
                 _major_only(ax.yaxis, y_all)
-            ax.set_xlabel(axis, fontsize=8)
-            ax.tick_params(labelsize=7)
             ax.grid(True, which="major", alpha=0.3)
-            if line_keys and n == 0:
+            ax.relim()
+            ax.autoscale_view()
+            if line_keys and first:
                 ax.legend(fontsize=6.5, frameon=False)
-        for n in range(len(panels), -(-len(panels) // ncols) * ncols):
-            grid[row + n // ncols][n % ncols].set_visible(False)
-        row += -(-len(panels) // ncols)
-    # fixed margins in inches (tight_layout measures every label: half of the plot's time)
-    w, h = fig.get_size_inches()
-    fig.suptitle(metric, fontsize=9)
-    fig.subplots_adjust(left=0.85 / w, right=1 - 0.2 / w, bottom=0.5 / h, top=1 - 0.45 / h, wspace=0.3, hspace=0.45)
-    return fig
+        self.fig.suptitle(metric, fontsize=9)
+        return self.fig
+
+    def close(self) -> None:
+        import matplotlib.pyplot as plt
+
+        plt.close(self.fig)
+
+
+def plot(df, metric: str, axes: list[str]):
+    """A figure of ``metric`` against each axis (one row of panels per axis), faceted by the other axes."""
+    return MetricGrid(df, axes).draw(metric)
 
 
 def _png(fig) -> bytes:
-    import matplotlib.pyplot as plt
-
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, metadata={"Software": None})
-    plt.close(fig)
     return buf.getvalue()
 
 
@@ -263,11 +296,16 @@ def write_results(out: Path, sweep, plan, rows: dict[int, dict], summary: dict) 
     with staged_outputs(out) as st:
         df.to_parquet(st.path("results.parquet"), index=False)
         df.to_csv(st.path("results.csv"), index=False)
-        if (df["status"] == "ok").any():
-            for metric in numeric_columns(df):
-                name = f"plot_{_slug(metric)}.png"
-                st.write_bytes(name, _png(plot(df, metric, sweep.axes)))
-                plots[metric] = name
+        metrics = numeric_columns(df) if (df["status"] == "ok").any() else []
+        if metrics:
+            grid = MetricGrid(df, sweep.axes)
+            try:
+                for metric in metrics:
+                    name = f"plot_{_slug(metric)}.png"
+                    st.write_bytes(name, _png(grid.draw(metric)))
+                    plots[metric] = name
+            finally:
+                grid.close()
         st.write_json("sweep.json", {
             "sweep": str(sweep.path), "base": str(sweep.base), "overrides": list(sweep.overrides),
             "spec": sweep.spec.model_dump(mode="json"), "summary": summary,
