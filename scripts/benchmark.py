@@ -17,7 +17,10 @@
 5. The noise budget and the render cache (`make capture`'s config at --budget-film, default
    640x512): the capture with an empty cache (targets: within the budget, at most 3 minutes on
    2 cores), the same again with a sensor change (target: at most 15 s, zero passes rendered),
-   and the cost split of each (renders rendered / reused, render seconds / the rest).
+   and the cost split of each (renders rendered / reused, render seconds / the rest). Against it,
+   in the same run: the same capture by the code whose budget judged buckets (BUCKET_BUDGET_COMMIT,
+   pilot included: issue 26's baseline, target: no more time), and today's code at that budget's
+   samples without a pilot (what the reads' extra samples cost).
 6. What meeting the budget costs with each sampler and estimator (--compare-film, default
    160x128): samples chosen, wall time and the measured Monte Carlo / shot-noise ratio, then a
    second capture of the same scene with another protocol (interleaved_hdr) on the warm cache.
@@ -40,6 +43,8 @@
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import time
 from pathlib import Path
 
@@ -49,8 +54,12 @@ from mbcapture import load_config, run_capture
 
 ROOT = Path(__file__).resolve().parents[1]
 #: [5] The samples per stratum the noise budget chose for the default capture at 640x512 when it judged
-#: buckets rather than reads (7 x 128-160 spp, README): the middle, the baseline of the issue's time target.
+#: buckets rather than reads (7 x 128-160 spp, README): their middle, for the same code at those samples.
 BUCKET_BUDGET_SPP = 144
+#: [5] The last commit whose noise budget judged buckets (the next, 0b8dee6, judges reads): issue 26's
+#: "today's 117 s for the weaker bucket budget" is its default capture, pilot included, which [5] times
+#: again beside today's (``git archive`` of it, run with this environment's packages).
+BUCKET_BUDGET_COMMIT = "d6127d5990b92553280f8bfc9d3bb47f28523980"
 
 
 def timed_capture(overrides: list[str]) -> tuple[float, dict]:
@@ -102,17 +111,55 @@ def budget_and_cache(args) -> None:
         print(f"[5] {w}x{h}, empty cache: {t_cold:.1f} s (target <= 180 s), {cold['plan']['passes']} passes x "
               f"{cold['plan']['spp_range']} spp; {_budget_line(cold)}")
         print(f"    cost split: {_split(t_cold, cold)}")
-        # the budget over buckets, before it judged reads, chose 7 x 128-160 spp for this capture (README);
-        # the same capture at their middle, 144, with an empty cache of its own: the issue's baseline, timed here
+        # the issue's baseline: the default capture of the code whose budget judged buckets, pilot included
+        t_old = bucket_budget_capture(w, h)
+        if t_old is not None:
+            print(f"[5] the bucket budget's code ({BUCKET_BUDGET_COMMIT[:7]}), the same capture cold in this run: "
+                  f"{t_old[0]:.1f} s ({t_old[1]}); today's over it: {t_cold / t_old[0]:.2f}x (target <= 1)")
+        # the same code at the samples the bucket budget chose (their middle), without a pilot: what the reads'
+        # extra samples cost
         with tempfile.TemporaryDirectory() as cache_b:
             t_bucket, bucket = timed_capture([f"render.width={w}", f"render.height={h}", f"render.cache={cache_b}",
                                               f"render.spp={BUCKET_BUDGET_SPP}"])
-        print(f"[5] the same at the bucket budget's samples (render.spp={BUCKET_BUDGET_SPP}, empty cache): "
-              f"{t_bucket:.1f} s; the read budget over it: {t_cold / t_bucket:.2f}x (target <= 1)")
+        print(f"[5] today's code at the bucket budget's samples without a pilot (render.spp={BUCKET_BUDGET_SPP}, "
+              f"empty cache): {t_bucket:.1f} s; the read budget over it: {t_cold / t_bucket:.2f}x")
         t_warm, warm = timed_capture([*film, "sensor.read_noise_e=5"])
         print(f"[5] the same with sensor.read_noise_e=5: {t_warm:.1f} s (target <= 15 s), "
               f"{warm['render_cache']['rendered']} renders rendered (target 0); ratio warm / cold {t_warm / t_cold:.3f}")
         print(f"    cost split: {_split(t_warm, warm)}")
+
+
+def bucket_budget_capture(w: int, h: int) -> tuple[float, str] | None:
+    """The default capture at ``w`` x ``h`` by :data:`BUCKET_BUDGET_COMMIT`'s code, in a child process with
+    this environment's packages, render cache off: (wall seconds of ``run_capture``, its samples); None,
+    with a line saying why, where the commit is not in this clone (a shallow one) or its capture fails."""
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", BUCKET_BUDGET_COMMIT], capture_output=True)
+        if archive.returncode != 0:
+            print(f"[5] the bucket budget's code: not timed (git archive {BUCKET_BUDGET_COMMIT[:7]}: "
+                  f"{archive.stderr.decode(errors='replace').strip() or 'failed'})")
+            return None
+        subprocess.run(["tar", "-x", "-C", tmp], input=archive.stdout, check=True)
+        code = ("import json, time\n"
+                "from mbcapture import load_config, run_capture\n"
+                f"cfg = load_config('configs/metronome_hdr.yaml', ['render.width={w}', 'render.height={h}', "
+                "'render.cache=off'])\n"
+                "t0 = time.perf_counter()\n"
+                "r = run_capture(cfg, progress=False)\n"
+                "plan = r.report['plan']\n"
+                "print(json.dumps([time.perf_counter() - t0, plan['passes'], plan.get('spp_range', plan['spp'])]))\n")
+        env = {**os.environ, "PYTHONPATH": tmp}
+        run = subprocess.run([sys.executable, "-c", code], cwd=tmp, env=env, capture_output=True, text=True)
+        if run.returncode != 0:
+            print(f"[5] the bucket budget's code: its capture failed ({run.stderr.strip().splitlines()[-1:]})")
+            return None
+        seconds, passes, spp = json.loads(run.stdout.strip().splitlines()[-1])
+        spp = spp if isinstance(spp, list) else [spp]
+        return seconds, f"{passes} passes x {min(spp)}-{max(spp)} spp"
 
 
 def compare(args) -> None:
@@ -144,7 +191,6 @@ def _timed_command(args: list[str]) -> float:
 
 
 def sweep_cost(args) -> None:
-    import json
     import tempfile
 
     import pandas as pd
@@ -202,7 +248,6 @@ def sweep_workers(args) -> None:
 def _child_capture(sets: list[str], workers: int | None) -> dict:
     """One capture of configs/sensor_12mp.yaml in a fresh process, outputs written: wall seconds, peak
     resident memory (VmHWM), planned memory, tiles, render seconds and samples rendered."""
-    import json
     import subprocess
     import sys
     import tempfile
