@@ -164,8 +164,8 @@ class RenderSection(_Model):
         "in Monte Carlo variance than 'independent' (uniform random numbers) on the mean pixel, but 4.8x and 5.6x on "
         "the median pixel, which the noise budget judges (indirect light): there ldsampler's power-of-4 counts cost "
         "more samples than its lower variance saves (docs/noise.md). With render.pattern 'shared' (the default) "
-        "the strata's renders draw from that pattern instead; this sampler draws the pilot's, the truths', "
-        "adaptive sampling's and spectral camera rays.",
+        "the strata's renders and adaptive sampling's draw from that pattern instead; this sampler draws the "
+        "pilot's, the truths' and spectral camera rays.",
     )
     pattern: Literal["own", "shared"] = Field(
         "shared",
@@ -173,8 +173,9 @@ class RenderSection(_Model):
         "pixel (scrambled Sobol' pairs, mbcapture/render/pattern.py), stratum j taking the samples after the strata "
         "before it, so that a read, which sums the strata, is stratified as a whole; each half of the run's error "
         "estimate has a pattern of its own. 'own': every render draws them from render.sampler's pattern of its "
-        "own (before 2026-11-27 the only way). Unbiased (tested); adaptive sampling's pixels, the 'difference' "
-        "estimator and a spectral camera ray stay render.sampler's. Measured on the default capture at 320x256 "
+        "own (before 2026-11-27 the only way). Unbiased (tested). Adaptive sampling's passes draw from patterns "
+        "of their own in the same way (its audit then measures the estimator the unrefined pixels have); the "
+        "'difference' estimator and a spectral camera ray stay render.sampler's. Measured on the default capture at 320x256 "
         "and equal samples: J4's median 1.39x lower, its p95 unchanged, its tail not lower (the mean over the lit pixels 2x "
         "lower); the noise budget's pilot predicts the median's gain and chooses fewer samples (docs/noise.md).",
     )

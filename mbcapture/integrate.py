@@ -53,6 +53,12 @@ def stratum_halves(plan: Plan) -> list[tuple[int, ...]]:
     return [(n // 2, n - n // 2) if two else (n,) for n in spp]
 
 
+def pattern_keys(seed: np.random.SeedSequence) -> np.ndarray:
+    """The two shared patterns' keys (one per half) of the renders seeded by ``seed``."""
+    return np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5A7E))) \
+        .integers(0, 2**32, size=2)
+
+
 def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None,
                     after: Plan | None = None) -> list[list[tuple[int, int] | None]]:
     """The shared pattern (key, offset) of each stratum's half-sample renders, [j][h], or None
@@ -67,8 +73,7 @@ def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[i
     if not plan.shares_pattern:
         return [[None] * len(h) for h in halves]
     taken = count if count is not None else (lambda n: n)
-    keys = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5A7E))) \
-        .integers(0, 2**32, size=2)
+    keys = pattern_keys(seed)
     before = stratum_halves(after) if after is not None else []
     offset = [sum(int(taken(h_j[h])) for h_j in before if h < len(h_j)) for h in range(2)]
     out = []
@@ -461,11 +466,21 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     stratum, its samples shared among them (:meth:`Plan.draw_times`). Where a moving edge crosses a
     pixel, its value changes within a stratum, and one time per half leaves that change as noise
     that more samples do not lower; ``points`` > 1 stratifies it. The halves' difference holds it
-    too, so the error estimate covers it. The temporal-error estimate stays the first pass's."""
+    too, so the error estimate covers it. The temporal-error estimate stays the first pass's.
+
+    Where the first pass drew from shared patterns (``plan.shares_pattern``), so does this pass: from two
+    patterns of its own (keys from ``seed``), each half of stratum j taking the samples after those of
+    the strata before it, as the first pass did. A pixel's second pass is then the first pass's
+    estimator at ``factor`` times the samples, stratified over the strata together; and an audit
+    (``factor`` 1) measures the variance of the estimator the unrefined pixels have (rendered from
+    render.sampler's own patterns, it read their median 1.5x high on a shaking capture)."""
     stage = timer if timer is not None else (lambda name: nullcontext())
     pix = np.asarray(pixels, dtype=np.int64).ravel()
     K, H, W, C = integrated.exposure.shape
     spp = np.asarray(plan.spp, dtype=np.int64) * int(factor)
+    keys = pattern_keys(seed) if plan.shares_pattern else None
+    taken = getattr(renderer, "sample_count", lambda n: n)
+    offset = [0, 0]  # per half: the pattern's samples taken so far
     points = max(1, min(int(points), int((spp // 2).min())))  # at least one sample at each time
     # times of their own: the first pass's time draws (a moving edge's positions) made its noise too
     rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x71AE)))
@@ -486,9 +501,12 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
                 # the half's samples shared among its times (each time's render an unbiased estimate at it)
                 counts = np.diff(np.linspace(0, spp_h, times.shape[2] + 1).round().astype(int))
                 for i, spp_hi in enumerate(counts):
+                    pattern = None if keys is None else (int(keys[h]), offset[h])
+                    if keys is not None:
+                        offset[h] += int(taken(int(spp_hi)))
                     with stage("refine"):
                         rad = renderer.render_pixels(float(times[j, h, i]), int(spp_hi), int(seeds[j, h, i]), groups_j,
-                                                     pix)
+                                                     pix, pattern=pattern)
                         share = spp_h / n / len(counts)
                         parts[h] += np.einsum("kg,gpc->kpc", w_j * share, rad.astype(np.float64), optimize=True)
                         if groups_out is not None:

@@ -68,6 +68,25 @@ def test_pixels_rendered_alone_are_the_full_render_whatever_came_before(setup):
 
 
 @pytest.mark.render
+def test_pixels_rendered_alone_from_a_shared_pattern_are_the_full_renders_pixels(setup):
+    """With the shared pattern (key, offset), render_pixels of any pixels, in any order, gives each the
+    value a whole-film render from that pattern gives it (to float32 rounding): the same samples, so
+    adaptive sampling's passes and its audit are the first pass's estimator. Another key, other values."""
+    cfg = setup[0]
+    r = Renderer.from_config(scene_of(cfg), cfg)
+    groups = ["ambient", "lamp"]
+    full = r.render(0.002, 24, 7, groups, pattern=(12345, 48)).reshape(len(groups), -1, 3)
+    pix = np.random.default_rng(0).permutation(64 * 48)[:500]
+    alone = r.render_pixels(0.002, 24, 7, groups, pix, pattern=(12345, 48))
+    np.testing.assert_allclose(alone, full[:, pix], rtol=1e-5, atol=1e-7)
+    other = r.render_pixels(0.002, 24, 7, groups, pix, pattern=(12346, 48))
+    assert np.abs(other - full[:, pix]).max() > 1e-3 * np.abs(full[:, pix]).max()
+    # and a film render right after is the film's again (the listed pixels are not left in the integrator)
+    np.testing.assert_allclose(r.render(0.002, 24, 7, groups, pattern=(12345, 48)).reshape(full.shape), full,
+                               rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.render
 def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_error(setup):
     cfg, timeline, plan, seeds, r = setup
     first = integrate(r, plan, timeline.n_buckets, seeds[2])

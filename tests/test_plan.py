@@ -182,7 +182,7 @@ def test_the_second_pass_renders_at_times_of_its_own():
     first = integrate(r, p, tl.n_buckets, np.random.SeedSequence(1))
     times = []
 
-    def render_pixels(t_s, spp, seed, groups, pixels):
+    def render_pixels(t_s, spp, seed, groups, pixels, pattern=None):
         times.append(t_s)
         return np.ones((len(groups), len(pixels), 3), np.float32)
 
@@ -200,10 +200,11 @@ def test_the_second_pass_renders_at_times_of_its_own():
     # at several times per half (a moving pixel's second pass): one time in each quarter of the stratum,
     # the half's samples shared among them, each time's render weighted alike
     times.clear()
-    counts = []
+    counts, patterns = [], []
 
-    def render_pixels_counted(t_s, spp, seed, groups, pixels):
+    def render_pixels_counted(t_s, spp, seed, groups, pixels, pattern=None):
         counts.append(spp)
+        patterns.append(pattern)
         return render_pixels(t_s, spp, seed, groups, pixels)
 
     r.render_pixels = render_pixels_counted
@@ -212,6 +213,16 @@ def test_the_second_pass_renders_at_times_of_its_own():
     part = (t - p.bounds_s[:, :1, None]) / (p.bounds_s[:, 1:, None] - p.bounds_s[:, :1, None]) * 4
     np.testing.assert_array_equal(np.floor(part), np.broadcast_to(np.arange(4), part.shape))
     assert np.array(counts).reshape(p.passes, 2, 4).sum(axis=(1, 2)).tolist() == (p.spp * 4).tolist()
+    # from shared patterns as the first pass (one per half, of their own): each half's renders take the
+    # pattern's samples one after another over the strata and their times, so they are one sequence
+    assert p.shares_pattern
+    keys = np.array([k for k, _ in patterns]).reshape(p.passes, 2, 4)
+    offsets = np.array([o for _, o in patterns]).reshape(p.passes, 2, 4)
+    c = np.array(counts).reshape(p.passes, 2, 4)
+    assert (keys[:, 0] == keys[0, 0, 0]).all() and (keys[:, 1] == keys[0, 1, 0]).all() and keys[0, 0, 0] != keys[0, 1, 0]
+    for h in range(2):
+        seq_offsets, seq_counts = offsets[:, h].ravel(), c[:, h].ravel()
+        assert seq_offsets[0] == 0 and (seq_offsets[1:] == np.cumsum(seq_counts)[:-1]).all()
     flat = out.exposure.reshape(K, -1, 3)
     np.testing.assert_allclose(flat[:, [3, 9]], np.broadcast_to(p.weights_s.sum(axis=(0, 2))[:, None, None], (K, 2, 3)))
     # jittered, not fixed: the same quarter's times differ between the strata's halves

@@ -95,6 +95,9 @@ def integrator_class(variant: str) -> type:
             #: from the shared pattern (mbcapture.render.pattern), the sample j of a pixel being the
             #: pattern's sample offset + j (see :meth:`use_pattern`).
             self.pattern: tuple[int, int, int] | None = None
+            #: With :attr:`pattern`, for a render of listed pixels: each pixel's flat film index (mi.UInt32),
+            #: its lanes being the sample_count() consecutive ones of its place in the list.
+            self.pattern_pixels: Any = None
 
         def set_groups(self, names: Sequence[str], emitters: Sequence[Sequence[Any]]) -> None:
             """Choose the groups to render: ``emitters[g]`` are the emitters of ``names[g]``."""
@@ -105,11 +108,14 @@ def integrator_class(variant: str) -> type:
             self.group_names = list(names)
             self.group_emitters = [list(e) for e in emitters]
 
-        def use_pattern(self, seed: int | None, offset: int = 0, first_pixel: int = 0) -> None:
+        def use_pattern(self, seed: int | None, offset: int = 0, first_pixel: int = 0, pixels: Any = None) -> None:
             """Draw the next renders' samples from the pattern keyed ``seed`` (None: from Mitsuba's
             sampler), sample j of a pixel being the pattern's ``offset + j``; the film's
-            pixel 0 is the image's pixel ``first_pixel`` (row-major: a band's first row x width)."""
+            pixel 0 is the image's pixel ``first_pixel`` (row-major: a band's first row x width).
+            ``pixels`` (mi.UInt32, flat film indices): the lanes are those pixels' samples in list order
+            (:meth:`mbcapture.render.Renderer.render_pixels`), not the film's rows."""
             self.pattern = None if seed is None else (int(seed) & 0xFFFFFFFF, int(offset), int(first_pixel))
+            self.pattern_pixels = None if seed is None else pixels
 
         def aov_names(self) -> list[str]:
             if self.spectral:
@@ -129,7 +135,8 @@ def integrator_class(variant: str) -> type:
             dr.make_opaque(seed, offset, first)  # literals would recompile the kernel for every stratum
             lane = dr.arange(mi.UInt32, dr.width(ray))
             index = lane % spp + offset
-            pixel = lane // spp + first
+            pixel = lane // spp + first if self.pattern_pixels is None else \
+                dr.gather(mi.UInt32, self.pattern_pixels, lane // spp)
             key = pattern.hash_u32(pixel) ^ pattern.hash_u32(seed)
 
             def next_2d(sampler, dim, active):

@@ -739,14 +739,17 @@ class Renderer:
         lens acting pixel by pixel (no distortion or diffraction, which mix neighbours)."""
         return not self.spectral and self._undistort is None and self._diffraction is None
 
-    def render_pixels(self, t_s: float, spp: int, seed: int, groups: Sequence[str], pixels: np.ndarray) -> np.ndarray:
+    def render_pixels(self, t_s: float, spp: int, seed: int, groups: Sequence[str], pixels: np.ndarray,
+                      pattern: tuple[int, int] | None = None) -> np.ndarray:
         """Radiance of each requested group at the film pixels ``pixels`` (flat indices y * W + x) only,
         ``spp`` samples each: float32 (len(groups), len(pixels), 3), the same estimator as :meth:`render`
         (box filter: the mean over each pixel's area; the lens's falloff and a mono mixture applied), at a
         cost in proportion to the pixels. Not cached. Written here because Mitsuba renders whole films
         (or crop rectangles): the camera rays of the listed pixels are generated as ``mi.render`` does
         (the sampler seeded over pixels x spp lanes, spp consecutive lanes per pixel, so its
-        stratification is per pixel) and each lane's per-group AOVs are summed into its pixel."""
+        stratification is per pixel) and each lane's per-group AOVs are summed into its pixel.
+        ``pattern`` (key, offset): the samples drawn from the shared pattern as :meth:`render` draws them,
+        so that a pixel's value is the one a whole-film render with that pattern gives it."""
         if not self.renders_pixels:
             raise ConfigError("render_pixels: needs an RGB variant and a lens without distortion or diffraction")
         req = list(groups)
@@ -759,8 +762,13 @@ class Renderer:
         self.set_time(t_s)
         self._set_rows(self._params, (0, self.height))  # the rays below address the whole film
         self._integrator.set_groups(lit, [self._group_emitters[g] for g in lit])
-        self._integrator.use_pattern(None)  # its lanes are not mi.render's: render.sampler's pattern
         mi, dr = self._mi, self._dr
+        pix_dr = mi.UInt32(pix)
+        if pattern is None:
+            self._integrator.use_pattern(None)
+        else:  # its lanes are the listed pixels', not the film's rows: the integrator is told which pixel each is
+            key, offset = _pattern_key(pattern)
+            self._integrator.use_pattern(key, offset, 0, pixels=pix_dr)
         n_spp = self.sample_count(spp)
         sensor = self._scene.sensors()[0]
         sampler = sensor.sampler().clone()
@@ -771,7 +779,7 @@ class Renderer:
         lanes = pix.size * n_spp
         sampler.seed(int(seed) & 0xFFFFFFFF, lanes)
         idx = dr.arange(mi.UInt32, lanes) // n_spp
-        pixel = dr.gather(mi.UInt32, mi.UInt32(pix), idx)
+        pixel = dr.gather(mi.UInt32, pix_dr, idx)
         y = pixel // self.width
         x = pixel - y * self.width
         pos = mi.Vector2f(mi.Float(x), mi.Float(y)) + sampler.next_2d()
