@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mbcapture import load_config
-from mbcapture.budget import tail_pixels
+from mbcapture.budget import ADAPTIVE_FLOOR_MAX_LOG2, tail_pixels
 from mbcapture.config import scene_of
 from mbcapture.integrate import integrate, refine
 from mbcapture.pipeline import prepare
@@ -91,12 +91,13 @@ def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_err
     cfg, timeline, plan, seeds, r = setup
     first = integrate(r, plan, timeline.n_buckets, seeds[2])
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
+    most = 2**ADAPTIVE_FLOOR_MAX_LOG2  # at most the floor: every chosen pixel at one factor
     tiers = tail_pixels(first.mc_diff, first.exposure * k_e, k_e, [x.buckets for x in timeline.reads],
-                        cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, 40.0, 8)  # a tail target that
+                        cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, 40.0, most)  # a tail target that
     # leaves most pixels alone at this small spp
-    assert len(tiers) == 1  # at most 8x: every chosen pixel at the one factor the most needy ask
+    assert len(tiers) == 1
     pixels, factor = tiers[0]
-    assert 0 < pixels.size < 64 * 48 and 2 <= factor <= 8
+    assert 0 < pixels.size < 64 * 48 and 2 <= factor <= most
     refined = refine(r, plan, first, pixels, factor, np.random.SeedSequence(9))
     brute = integrate(r, replace(plan, spp=plan.spp * 16), timeline.n_buckets, np.random.SeedSequence(10))
     K = first.exposure.shape[0]
@@ -115,8 +116,8 @@ def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_err
 def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
     """Tiers of factors, from each pixel's estimated ratio over half the tail target: a region far over
     the target gets more samples than one just over it, never fewer than the factor that brings the
-    chosen pixels' 99th percentile to the level, each pixel in one tier, neighbours included; at
-    render.adaptive_max_factor 16 one tier (every chosen pixel alike)."""
+    chosen pixels' 99th percentile to the level (at most 2^ADAPTIVE_FLOOR_MAX_LOG2), each pixel in one tier,
+    neighbours included; at render.adaptive_max_factor equal to that floor one tier (every chosen pixel alike)."""
     H = W = 24
     signal = np.full((1, H, W, 1), 1000.0)  # electrons, one bucket, one channel, below the full well
     diff = np.zeros((1, H, W, 1))
@@ -126,18 +127,19 @@ def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
     args = (diff, signal, k_e, [(0,)], 1e9, 1e9, 1.0)
     tiers = tail_pixels(*args, 256)
     factors = [f for _, f in tiers]
-    assert factors == sorted(set(factors)) and factors[0] == 16 and factors[-1] == 128  # 2^ceil(log2(100))
+    floor = 2 ** min(7, ADAPTIVE_FLOOR_MAX_LOG2)  # the 99th percentile of the chosen asks for 2^ceil(log2(100))
+    assert factors == sorted(set(factors)) and factors[0] == floor and factors[-1] == 128
     given = np.zeros(H * W, int)
     for p, f in tiers:
         assert (given[p] == 0).all()  # each pixel in one tier
         given[p] = f
     given = given.reshape(H, W)
-    assert given[5, 5] == 16 and given[17, 17] == 128  # the centres: the low region raised to the floor
-    assert given[1, 5] == 16 and given[13, 14] == 128  # outside each region, its neighbour's factor
+    assert given[5, 5] == floor and given[17, 17] == 128  # the centres: the low region raised to the floor
+    assert given[1, 5] == floor and given[13, 14] == 128  # outside each region, its neighbour's factor
     assert given[11, 11] == 0 and given[0, 23] == 0  # far from both: not refined
     low_high = set(np.flatnonzero(given).tolist())
-    one = tail_pixels(*args, 16)
-    assert len(one) == 1 and one[0][1] == 16 and set(one[0][0].tolist()) == low_high
+    one = tail_pixels(*args, floor)
+    assert len(one) == 1 and one[0][1] == floor and set(one[0][0].tolist()) == low_high
     assert tail_pixels(diff * 0, signal, k_e, [(0,)], 1e9, 1e9, 1.0, 256) == []
 
 
@@ -246,16 +248,21 @@ def test_quantile_intervals_cover_the_true_quantile_at_their_stated_rate():
         assert abs(mixed[q] - 0.95) < tol, (q, mixed[q])
 
 
-def test_the_audit_removes_the_bias_of_the_pixels_adaptive_sampling_left():
+@pytest.mark.parametrize("floor_log2", sorted({4, ADAPTIVE_FLOOR_MAX_LOG2}))
+def test_the_audit_removes_the_bias_of_the_pixels_adaptive_sampling_left(monkeypatch, floor_log2):
     """Adaptive sampling leaves the pixels whose estimate read low, so their first-pass estimates
     understate the film's tail; audit blocks rendered afresh measure it. A film of known per-pixel
     Monte Carlo / shot-noise ratios (a smooth field with a heavy tail), half-sample differences drawn
-    from it: after the choice and a fresh second pass at the chosen pixels, the unaudited estimate's
-    99.9th percentile lies below the interval of an outside measurement (fresh differences
-    everywhere); with the audit, the outside figure lies in the run's interval."""
+    from it: after the choice and a fresh second pass at the chosen pixels, with the audit, the outside
+    measurement (fresh differences everywhere) lies in the run's interval, at the floor of 16x the choice
+    had until 2026-11-27 and at today's. At 16x the refined pixels fall far below the rest, and the
+    unaudited estimate's 99.9th percentile lies below the outside interval: the bias the audit removes."""
     from scipy.ndimage import gaussian_filter
 
+    import mbcapture.budget as budget
     from mbcapture.budget import audit_blocks, audit_pixels, audit_sample, render_error
+
+    monkeypatch.setattr(budget, "ADAPTIVE_FLOOR_MAX_LOG2", floor_log2)
 
     rng = np.random.default_rng(5)
     H, W = 240, 320
@@ -283,7 +290,8 @@ def test_the_audit_removes_the_bias_of_the_pixels_adaptive_sampling_left():
     second = np.where(refined[None, :, :, None], diff(after), first)  # the refined pixels rendered afresh
     outside = err(diff(after))  # what two independent runs would show
     naive = err(second)
-    assert naive["to_shot_noise_variance_p999"] < outside["to_shot_noise_variance_p999_interval"][0]
+    if floor_log2 == 4:
+        assert naive["to_shot_noise_variance_p999"] < outside["to_shot_noise_variance_p999_interval"][0]
     centres = audit_blocks(refined, rng, 0.3)
     block = audit_pixels(refined, centres)
     assert not refined.ravel()[block].any() and np.unique(block).size == block.size
