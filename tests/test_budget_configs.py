@@ -4,7 +4,7 @@ at most ``render.noise_budget`` and its 95th percentile at most ``render.noise_b
 
 Marked ``budget`` and left out of ``make test``: its 16 captures take about 12 minutes one after
 another on 2 cores (scripts/readme_tables.py: 718 s; hdr_video's 16 frames 225 s of it), 10 minutes
-as ``make test-budget`` runs them, two at a time, and the suite must stay under 6. ``python scripts/readme_tables.py --only
+as ``make test-budget`` runs them, two at a time (2 min 20 s on the faster AMD EPYC of 2026-11-27), and the suite must stay under 6. ``python scripts/readme_tables.py --only
 budget`` runs the same captures and writes their figures into the README's table. The
 99.9th percentile target (``render.noise_budget_tail``) is not asserted: without adaptive sampling
 no config meets it (docs/noise.md), and each capture's tail is printed instead.
