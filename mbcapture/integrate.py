@@ -501,8 +501,9 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
                 # the half's samples shared among its times (each time's render an unbiased estimate at it)
                 counts = np.diff(np.linspace(0, spp_h, times.shape[2] + 1).round().astype(int))
                 for i, spp_hi in enumerate(counts):
-                    pattern = None if keys is None else (int(keys[h]), offset[h])
-                    if keys is not None:
+                    pattern = None
+                    if keys is not None:  # this render takes the half's next samples
+                        pattern = (int(keys[h]), offset[h])
                         offset[h] += int(taken(int(spp_hi)))
                     with stage("refine"):
                         rad = renderer.render_pixels(float(times[j, h, i]), int(spp_hi), int(seeds[j, h, i]), groups_j,
