@@ -18,6 +18,7 @@ from mbcapture.errors import EnvironmentProblem
 from mbcapture.render import llvm
 from mbcapture.render.build import (
     Light,
+    Material,
     SceneBuild,
     Shape,
     frame_towards,
@@ -232,6 +233,75 @@ def test_time_change_does_not_recompile_and_moves_the_needle(mitsuba_ready):
     for x, y in pts[:, :]:
         near[max(int(y) - 1, 0):int(y) + 2, max(int(x) - 1, 0):int(x) + 2] = True
     assert diff[near].mean() > 10 * diff[~near].mean()
+
+
+def _panels_scene() -> SceneModel:
+    """Two panels the camera sees from behind, one one-sided and one two-sided, and one it sees from the
+    front, on a floor; a light in front of the panels and one behind them (groups front, back)."""
+    away = frame_towards((0.0, 0.0, 0.0), (0.0, 0.0, -1.0))  # a rectangle facing -z, away from the camera
+    shapes = (
+        Shape("one_sided_back", "rectangle", translate(-0.12, 0.0, 0.0) @ away @ scale(0.05), Material((0.8, 0.5, 0.3))),
+        Shape("two_sided_back", "rectangle", translate(0.0, 0.0, 0.0) @ away @ scale(0.05),
+              Material((0.3, 0.7, 0.6), twosided=True)),
+        Shape("front", "rectangle", frame_towards((0.12, 0.0, 0.0), (0.12, 0.0, 1.0)) @ scale(0.05),
+              Material((0.6, 0.6, 0.6))),
+        Shape("floor", "rectangle", translate(0.0, -0.06, 0.0) @ rotate((1, 0, 0), -np.pi / 2) @ scale(0.4),
+              Material((0.5, 0.5, 0.5))),
+        Shape("light_front", "rectangle", frame_towards((0.0, 0.15, 0.3), (0.0, 0.0, 0.0)) @ scale(0.05), None,
+              Light("front", (20.0, 20.0, 20.0))),
+        Shape("light_back", "sphere", translate(0.0, 0.1, -0.25) @ scale(0.03), None, Light("back", (30.0, 25.0, 20.0))),
+    )
+    camera = Camera(origin=(0.0, 0.05, 0.6), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=40.0)
+    return SceneModel(name="panels", groups=("front", "back"), switchable=frozenset(), camera=camera,
+                      build=SceneBuild(shapes=shapes, parts={}), params=None, motion_points=lambda t: np.zeros((len(t), 0, 3)))
+
+
+@render
+@pytest.mark.parametrize("scene", ["panels", "metronome", "flash_toy"])
+def test_lambertian_shading_is_mitsubas(mitsuba_ready, scene):
+    """The integrator's own Lambertian evaluation and sampling (integrator.lambertian_shading) give the
+    images Mitsuba's BSDF calls give (general_shading), with the sampler's numbers and the shared
+    pattern's: a wrong side, cosine or pdf would move them by far more than float rounding. The panels
+    are seen from behind (a one-sided one black there, a two-sided one lit from behind)."""
+    from mbcapture.render import Renderer
+
+    sc = _panels_scene() if scene == "panels" else make_scene(scene, load_module(scene).Params())
+    r = Renderer(sc, 48, 36)
+    r._ensure_loaded()
+    assert r._integrator.lambertian
+    for pattern in (None, (77, 0)):
+        images = []
+        for lambertian in (True, False):
+            r._integrator.lambertian = lambertian
+            images.append(r.render(0.0, 8, seed=3, pattern=pattern))
+        fast, general = images
+        assert general.max() > 0
+        np.testing.assert_allclose(fast, general, rtol=2e-6, atol=2e-6 * float(general.max()))
+    if scene == "panels":  # the backs: the one-sided panel reflects nothing there, the two-sided one does
+        r._integrator.lambertian = True
+        img = r.render(0.0, 16, seed=4).sum(axis=0)
+        x_of = lambda wx: int(round(sc.camera.project(np.array([[wx, 0.0, 0.0]]), 48, 36)[0, 0]))  # noqa: E731
+        y = int(round(sc.camera.project(np.array([[0.0, 0.0, 0.0]]), 48, 36)[0, 1]))
+        assert img[y, x_of(-0.12)].max() == 0.0
+        assert img[y, x_of(0.0)].min() > 0.0 and img[y, x_of(0.12)].min() > 0.0
+
+
+def test_is_lambertian_knows_mitsubas_bsdfs(mitsuba_ready):
+    import mitsuba as mi
+
+    from mbcapture.render.integrator import is_lambertian
+
+    mi.set_variant("llvm_ad_rgb")
+
+    def scene(bsdf):
+        return mi.load_dict({"type": "scene", "a": {"type": "sphere", "bsdf": {"type": "diffuse"}},
+                             "b": {"type": "rectangle", "bsdf": bsdf}})
+
+    assert is_lambertian(scene({"type": "diffuse"}))
+    assert is_lambertian(scene({"type": "twosided", "material": {"type": "diffuse"}}))
+    assert not is_lambertian(scene({"type": "plastic"}))
+    assert not is_lambertian(scene({"type": "roughconductor"}))
+    assert not is_lambertian(scene({"type": "twosided", "material": {"type": "roughplastic"}}))
 
 
 def _marker_scene(camera: Camera) -> SceneModel:

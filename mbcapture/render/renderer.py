@@ -40,7 +40,7 @@ from .build import (
 )
 from .bands import band_seed, film_bands
 from .cache import RenderCache, digest
-from .integrator import PLUGIN_NAME, integrator_class
+from .integrator import PLUGIN_NAME, integrator_class, is_lambertian
 from .llvm import apply_target_from_env, ensure_llvm, llvm_target
 from .tiles import materialize, tile_table, tiles_description
 
@@ -321,6 +321,8 @@ class Renderer:
             if g is not None:
                 sc = self._load(d)
                 self._group_scenes[g] = (sc, mi.traverse(sc), self._collect_emitters(sc)[g])
+        self._integrator.lambertian = all(is_lambertian(sc) for sc in
+                                          [self._scene, *(v[0] for v in self._group_scenes.values())])
         self._loaded = True
 
     @classmethod
