@@ -496,7 +496,17 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
     with the render stage once it is done; ``client``: a Dask client whose workers render the strata
     (:mod:`mbcapture.cluster`); ``planned``: :func:`prepare` and :func:`mbcapture.resources.plan_resources`
     of ``cfg`` made already, and the seconds they took (:func:`mbcapture.capture.check_resources`),
-    else made here."""
+    else made here. BLAS runs on one thread throughout (:func:`mbcapture.resources.one_blas_thread`)."""
+    with resources.one_blas_thread():
+        return _capture_in_memory(cfg, status, progress=progress, rendered=rendered, on_rendered=on_rendered,
+                                  renderer=renderer, client=client, planned=planned)
+
+
+def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool = False,
+                       rendered: Rendered | None = None, on_rendered: "Callable[[Rendered], None] | None" = None,
+                       renderer: Renderer | None = None, client: Any = None,
+                       planned: "tuple[Prepared, resources.Resources, float] | None" = None) -> CaptureResult:
+    """:func:`capture_in_memory`'s work."""
     timer = _Timer()
     t_start = time.perf_counter()
     cluster_info = None  # what the cluster rendered (report.json "cluster"), with a client

@@ -36,8 +36,10 @@ from __future__ import annotations
 
 import resource
 import shutil
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 from .application import App
 from .config import CaptureConfig
@@ -347,3 +349,21 @@ def peak_rss_bytes() -> int:
 __all__ = ["Resources", "accumulated_channels", "anon_bytes", "bands_of", "check", "choose_layout", "choose_tiles",
            "estimate", "free_disk", "free_memory", "peak_rss_bytes", "plan_resources", "rss_bytes", "spill_folder",
            "spilled_per_bucket_sample", "tile_rows"]
+
+
+@contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """BLAS (OpenBLAS, as numpy and scipy ship it) on one thread inside the block; as it was after.
+
+    mbcapture's BLAS calls are thin products, pixels x a few channels (``integrate.accumulate``'s
+    exposures, colour matrices), bound by memory, not arithmetic. On more threads they gain nothing,
+    and OpenBLAS's workers spin for a while after each call, waiting for the next: a render that
+    starts then shares the cores with them. Measured at 640x512, 14 half-stratum renders with an
+    accumulation after each (``scripts/benchmark.py`` [2]'s capture, 2 cores): the renders took
+    5.31-5.43 s with two BLAS threads, 4.96-5.15 s with one, 4.90-5.03 s with no BLAS between them;
+    the accumulations 0.08-0.18 s and 0.033 s. Through threadpoolctl, which finds the BLAS libraries
+    loaded in the process."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield

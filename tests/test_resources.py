@@ -315,3 +315,29 @@ def test_the_free_memory_reads_a_cgroup_v1_or_v2_limit(tmp_path):
     (v2 / "memory.max").write_text("max\n")
     assert _cgroup_headroom(v2, own) is None
     assert _cgroup_headroom(tmp_path / "nothing", tmp_path / "missing") is None
+
+
+def _blas_threads() -> list[int]:
+    from scipy.linalg import blas  # noqa: F401  (scipy's OpenBLAS loaded, as integrate.accumulate loads it)
+    from threadpoolctl import threadpool_info
+
+    return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+
+def test_one_blas_thread_inside_the_block_and_as_before_after():
+    before = _blas_threads()
+    assert before, "no BLAS library found: numpy and scipy ship OpenBLAS"
+    with resources.one_blas_thread():
+        assert _blas_threads() == [1] * len(before)
+    assert _blas_threads() == before
+
+
+def test_a_capture_runs_blas_on_one_thread(monkeypatch):
+    """capture_in_memory's whole work runs inside one_blas_thread (its renders start while OpenBLAS's
+    workers would still spin after an accumulation: mbcapture.resources.one_blas_thread)."""
+    seen = []
+    monkeypatch.setattr(pipeline, "_capture_in_memory", lambda *a, **k: seen.append(_blas_threads()))
+    before = _blas_threads()
+    pipeline.capture_in_memory(None, None)
+    assert seen == [[1] * len(before)]
+    assert _blas_threads() == before
