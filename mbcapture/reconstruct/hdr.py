@@ -126,11 +126,12 @@ def _ramp_fit(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
     codes = np.zeros(n_pix, np.int64)  # bit i: read i usable
     for i in range(n_reads):
         codes[m.usable[i]] |= 1 << i
-    for code in np.unique(codes):
-        pix = np.flatnonzero(codes == code)
+    present = np.flatnonzero(np.bincount(codes, minlength=1 << n_reads))
+    for code in present:
+        pix = np.flatnonzero(codes == code) if present.size > 1 else None  # None: every sample
         reads = np.flatnonzero((int(code) >> np.arange(n_reads)) & 1)
         t = m.exposures_s[reads]
-        x = m.x_e[np.ix_(reads, pix)]  # (n, P_g)
+        x = m.x_e[reads] if pix is None else np.take(m.x_e[reads], pix, axis=1)  # (n, P_g)
         shared = np.minimum.outer(t, t) if m.cumulative else np.diag(t)
         d, v = np.linalg.eigh(shared)  # shared = v diag(d) v^T, d >= 0
         a = v.T @ t  # (n,)
@@ -141,8 +142,9 @@ def _ramp_fit(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
             fisher = _read_sum(a**2, w)
             lam = _read_sum(a, w * y) / fisher
         w = 1.0 / (np.maximum(lam, 0.0)[None, :] * d[:, None] + m.read_var_e2)
-        rate[pix] = lam
-        sigma[pix] = 1.0 / np.sqrt(_read_sum(a**2, w))
+        sel = slice(None) if pix is None else pix
+        rate[sel] = lam
+        sigma[sel] = 1.0 / np.sqrt(_read_sum(a**2, w))
     return rate, sigma
 
 
@@ -281,14 +283,15 @@ def _merge_samples(dn2: np.ndarray, sat2: np.ndarray, t: np.ndarray, cfg: Sensor
     rate = np.maximum((x_e / t[:, None]).max(axis=0), 0.0)
     sigma = np.full(rate.shape, np.inf)
     if np.any(valid):
+        sel = slice(None) if valid.all() else valid  # every sample: no copies
         m = MergeInput(
-            x_e=x_e[:, valid],
-            dn=dn2[:, valid],
+            x_e=x_e[:, sel],
+            dn=dn2[:, sel],
             exposures_s=t,
-            usable=usable[:, valid],
+            usable=usable[:, sel],
             read_var_e2=quantization_read_variance_e2(cfg),
             cumulative=cumulative,
             cfg=cfg,
         )
-        rate[valid], sigma[valid] = HDR_METHODS[method](m)
+        rate[sel], sigma[sel] = HDR_METHODS[method](m)
     return rate, sigma, valid, n_used
