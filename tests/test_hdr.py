@@ -275,3 +275,24 @@ def test_merging_in_chunks_gives_the_same_values(monkeypatch, method, cumulative
     for name in ("rate_e_per_s", "sigma_e_per_s", "valid", "n_used"):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name), err_msg=name)
     assert not whole.valid[0, 0].any() and whole.valid.any()
+
+
+@pytest.mark.parametrize("n_reads, cumulative", [(3, True), (20, False), (40, True)])
+def test_ramp_fit_groups_of_usable_reads_whatever_their_number(n_reads, cumulative):
+    """_ramp_fit fits each group of samples with the same usable reads on its own: merging the film
+    gives each sample the value it gets merged alone (then one group, fitted without a gather), with
+    up to 40 reads (their codes too many for a table of 2^R, so found by np.unique)."""
+    from mbcapture.reconstruct import hdr as module
+
+    cfg = SensorConfig()
+    rng = np.random.default_rng(n_reads)
+    t = 1e-3 * (np.arange(1, n_reads + 1) if cumulative else rng.uniform(0.5, 2.0, n_reads))
+    dn = np.round(rng.uniform(cfg.black_level_dn, cfg.adc_max_dn, size=(n_reads, 9, 5)))
+    sat = rng.random(dn.shape) < (0.02 if cumulative else 0.3)
+    whole = module.merge_hdr(dn, t, cfg, method="ramp_fit", cumulative=cumulative, saturated=sat)
+    assert len({tuple(col) for col in (~sat).reshape(n_reads, -1).T}) > 3  # several groups
+    for y, x in np.ndindex(9, 5):
+        alone = module.merge_hdr(dn[:, y:y + 1, x:x + 1], t, cfg, method="ramp_fit", cumulative=cumulative,
+                                 saturated=sat[:, y:y + 1, x:x + 1])
+        assert alone.rate_e_per_s[0, 0] == whole.rate_e_per_s[y, x]
+        assert alone.sigma_e_per_s[0, 0] == whole.sigma_e_per_s[y, x]

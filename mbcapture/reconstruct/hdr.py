@@ -126,7 +126,8 @@ def _ramp_fit(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
     codes = np.zeros(n_pix, np.int64)  # bit i: read i usable
     for i in range(n_reads):
         codes[m.usable[i]] |= 1 << i
-    present = np.flatnonzero(np.bincount(codes, minlength=1 << n_reads))
+    # the codes present: counted in a table of 2^R where that is small (np.unique sorts or hashes every sample)
+    present = np.flatnonzero(np.bincount(codes, minlength=1 << n_reads)) if n_reads <= 16 else np.unique(codes)
     for code in present:
         pix = np.flatnonzero(codes == code) if present.size > 1 else None  # None: every sample
         reads = np.flatnonzero((int(code) >> np.arange(n_reads)) & 1)
