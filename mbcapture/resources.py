@@ -36,10 +36,11 @@ from __future__ import annotations
 
 import resource
 import shutil
+import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 from .application import App
 from .config import CaptureConfig
@@ -351,9 +352,16 @@ __all__ = ["Resources", "accumulated_channels", "anon_bytes", "bands_of", "check
            "spilled_per_bucket_sample", "tile_rows"]
 
 
+#: :func:`one_blas_thread`'s state: how many blocks are open (in any thread), and the limit the first set.
+_BLAS_LOCK = threading.Lock()
+_BLAS_OPEN = 0
+_BLAS_LIMIT: Any = None
+
+
 @contextmanager
 def one_blas_thread() -> Iterator[None]:
-    """BLAS (OpenBLAS, as numpy and scipy ship it) on one thread inside the block; as it was after.
+    """BLAS (OpenBLAS, as numpy and scipy ship it) on one thread inside the block; as it was once the
+    last open block ends.
 
     mbcapture's BLAS calls are thin products, pixels x a few channels (``integrate.accumulate``'s
     exposures, colour matrices), bound by memory, not arithmetic. On more threads they gain nothing,
@@ -362,8 +370,40 @@ def one_blas_thread() -> Iterator[None]:
     accumulation after each (``scripts/benchmark.py`` [2]'s capture, 2 cores): the renders took
     5.31-5.43 s with two BLAS threads, 4.96-5.15 s with one, 4.90-5.03 s with no BLAS between them;
     the accumulations 0.08-0.18 s and 0.033 s. Through threadpoolctl, which finds the BLAS libraries
-    loaded in the process."""
-    from threadpoolctl import threadpool_limits
+    loaded in the process.
 
-    with threadpool_limits(limits=1, user_api="blas"):
+    The limit is the process's, so blocks are counted: the first to open sets it and the last to close
+    restores it, whatever the threads they run in (a sweep's points run side by side) and however they
+    nest; each block alone would restore what it found, which another thread may have set. threadpoolctl
+    (3.8) lets only the thread that first set OpenBLAS's limit change it again, and ignores the others
+    silently; the last block may close in another thread than the first opened, so each change here
+    frees that control before and after it (:func:`_free_blas_control`)."""
+    global _BLAS_OPEN, _BLAS_LIMIT
+    with _BLAS_LOCK:
+        if _BLAS_OPEN == 0:
+            from threadpoolctl import threadpool_limits
+
+            _free_blas_control()
+            _BLAS_LIMIT = threadpool_limits(limits=1, user_api="blas")
+            _free_blas_control()
+        _BLAS_OPEN += 1
+    try:
         yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_OPEN -= 1
+            if _BLAS_OPEN == 0:
+                _free_blas_control()
+                _BLAS_LIMIT.restore_original_limits()
+                _free_blas_control()
+                _BLAS_LIMIT = None
+
+
+def _free_blas_control() -> None:
+    """Let any thread set OpenBLAS's limit next (threadpoolctl >= 3.8 gives it to the first thread that
+    set it; earlier versions have no such control, and nothing to free)."""
+    import threadpoolctl
+
+    clear = getattr(getattr(threadpoolctl, "OpenBLASController", None), "clear_controlling_thread", None)
+    if clear is not None:
+        clear(force=True)

@@ -341,3 +341,40 @@ def test_a_capture_runs_blas_on_one_thread(monkeypatch):
     pipeline.capture_in_memory(None, None)
     assert seen == [[1] * len(before)]
     assert _blas_threads() == before
+
+
+def test_one_blas_thread_blocks_in_threads_restore_the_limit_once_all_end():
+    """A sweep's points run side by side, each in the block: however they open and close, BLAS has one
+    thread while any is open and its own count again once the last one ends (a block that restored what
+    it found would leave the limit another thread set)."""
+    import threading
+
+    before = _blas_threads()
+    first_in, second_in, first_out = threading.Event(), threading.Event(), threading.Event()
+    seen = {}
+
+    def first():
+        with resources.one_blas_thread():
+            first_in.set()
+            second_in.wait(10)
+        first_out.set()
+
+    def second():
+        first_in.wait(10)
+        with resources.one_blas_thread():
+            second_in.set()
+            first_out.wait(10)
+            seen["after the first left"] = _blas_threads()
+
+    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(20)
+    assert seen["after the first left"] == [1] * len(before)
+    assert _blas_threads() == before
+    with resources.one_blas_thread():  # nested: the inner block's end keeps the outer one's limit
+        with resources.one_blas_thread():
+            pass
+        assert _blas_threads() == [1] * len(before)
+    assert _blas_threads() == before
