@@ -72,7 +72,7 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     if out_dir is not None:
         check_out_dir(Path(out_dir))
     planned = check_resources(cfg, None if out_dir is None else Path(out_dir))
-    need = planned[1]
+    _, need, _ = planned
     if progress:
         print(f"mbcapture: this run {need.line()}", file=sys.stderr)
     if cfg.capture.frames > 1 and client is not None:

@@ -56,6 +56,7 @@ after ``mi.set_variant``.
 
 from __future__ import annotations
 
+import re
 from functools import lru_cache
 from typing import Any, Sequence
 
@@ -86,8 +87,6 @@ _TWOSIDED = "TwoSidedBRDF"
 def is_lambertian(scene: Any) -> bool:
     """Whether every shape of the Mitsuba ``scene`` has a Lambertian BSDF: ``diffuse``, or ``twosided``
     with ``diffuse`` on both sides (what :class:`mbcapture.render.build.Material` makes)."""
-    import re
-
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         name = bsdf.class_name()
