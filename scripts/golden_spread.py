@@ -122,7 +122,8 @@ def main() -> None:
         "measured": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "targets": {t: described[t] for t in targets},
         "hosts": [{"cpu": host["cpu"], "native_target": described.get("native"), "targets": targets,
-                   "measured": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}],
+                   "measured": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+                   **({} if set(cases) == set(all_cases()) else {"cases": cases})}],
         "golden_made": made,
         "cases": spread,
     }
@@ -151,9 +152,11 @@ def merge(doc: dict, old: dict, cases: list[str], *, carried: bool) -> None:
         for name, m in old.get("cases", {}).get(case, {}).items():
             cur = doc["cases"].setdefault(case, {}).setdefault(name, m)
             doc["cases"][case][name] = {k: max(cur.get(k, 0), m.get(k, 0)) for k in set(cur) | set(m)}
-    cpus = {h.get("cpu") for h in doc["hosts"]}
+    # a host is its CPU and its native target: virtual machines name different CPUs alike
+    # ("Intel(R) Xeon(R) Processor" was a Rocket Lake and a Sapphire Rapids)
+    measured = {(h.get("cpu"), h.get("native_target")) for h in doc["hosts"]}
     for h in old.get("hosts", []):
-        if h.get("cpu") in cpus:
+        if (h.get("cpu"), h.get("native_target")) in measured:
             continue
         if carried:
             h = {**h, "carried_over": {"cases": cases, "their_goldens_made": old.get("golden_made", {})}}

@@ -28,6 +28,7 @@ the other hosts' measurements, and commit both.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -139,6 +140,27 @@ def test_every_golden_image_has_a_measured_cross_target_spread():
         assert not missing, f"{path.name}: no measured spread for {missing}: run python scripts/golden_spread.py"
         assert spread["golden_made"][path.stem] == meta["made"], \
             f"{path.name} was regenerated after its spread was measured: run python scripts/golden_spread.py"
+
+
+def test_spreads_from_another_host_keep_the_larger_difference_and_name_the_host():
+    """scripts/golden_spread.py's merge: each image at the larger difference of the two files; a host is
+    its CPU and its native target (two virtual Xeons of one name were a Rocket Lake and a Sapphire
+    Rapids), so another target under the same name is kept and the same one is replaced."""
+    spec = importlib.util.spec_from_file_location("golden_spread", ROOT / "scripts" / "golden_spread.py")
+    gs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gs)
+    diff = {"rel_l2": 1e-5, "flips": 2, "nonfinite": 0, "nonfinite_kind": 0, "max_abs": 1.0}
+    xeon = "Intel(R) Xeon(R) Processor"
+    doc = {"hosts": [{"cpu": xeon, "native_target": "sapphirerapids 16", "targets": ["native", "haswell"]}],
+           "targets": {"native": "sapphirerapids 16"}, "cases": {"a": {"img": dict(diff)}}}
+    old = {"hosts": [{"cpu": xeon, "native_target": "rocketlake 16", "targets": ["native"]},
+                     {"cpu": xeon, "native_target": "sapphirerapids 16", "targets": ["native"]}],
+           "targets": {"haswell": "haswell 8"},
+           "cases": {"a": {"img": {**diff, "rel_l2": 3e-5, "flips": 1}}, "b": {"img": dict(diff)}}}
+    gs.merge(doc, old, ["a", "b"], carried=False)
+    assert doc["cases"]["a"]["img"]["rel_l2"] == 3e-5 and doc["cases"]["a"]["img"]["flips"] == 2
+    assert [h["native_target"] for h in doc["hosts"]] == ["sapphirerapids 16", "rocketlake 16"]
+    assert doc["targets"] == {"haswell": "haswell 8", "native": "sapphirerapids 16"}
 
 
 @pytest.mark.render

@@ -97,7 +97,7 @@ def test_preset_env_var_is_checked(tmp_path):
 def test_import_render_does_not_import_mitsuba():
     code = ("import sys, mbcapture.render, mbcapture.scenes; "
             "sys.exit(int('mitsuba' in sys.modules or 'drjit' in sys.modules))")
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]))
     assert subprocess.run([sys.executable, "-c", code], env=env, cwd=REPO).returncode == 0
 
 
