@@ -23,7 +23,8 @@ only that seed's renders with the truth from all the other seeds:
 Each rule refines the pixels it puts over tau (in units where the truth's median ratio is 0.1, the
 budget's median target) by 4x, or by the power of two that brings its estimate to tau / 2 (2x-8x,
 "tiers"); the table gives the truth's 99.9th percentile afterwards and the samples added, over the
-first pass's. Static film only; the moving region is another matter (docs/noise.md).
+first pass's. Static film only; the moving region is another matter. Built into the pipeline, B's
+choice did not pay on the default capture (docs/noise.md, "A selection that pays for itself?").
 
     python scripts/selection_study.py [CONFIG] [--size 320x256] [--spp 180] [--strata 7] [--seeds 30]
 
