@@ -5,8 +5,8 @@ fit, with one line saying what it needs, what is free and what to change.
 The model counts the arrays the pipeline holds, per sample of the film (row x column x channel):
 
 * memory: a fixed part (the interpreter, numpy/scipy, Mitsuba and Dr.Jit's LLVM backend with its
-  kernels: ``BASE_MEMORY_MB``, plus what an application's own libraries add,
-  ``App.libraries_mb``), and the working set: ``FLOAT64_PER_BUCKET_SAMPLE`` float64 values per
+  kernels: ``BASE_MEMORY_MB``, plus ``PER_THREAD_MB`` per render thread beyond two and what an
+  application's own libraries add, ``App.libraries_mb``), and the working set: ``FLOAT64_PER_BUCKET_SAMPLE`` float64 values per
   sample of each bucket (the exposures, their two halves and the per-group exposures held from
   the render stage, the sensor stage's noise fields and counts; the Poisson and binomial
   inversions work in chunks of bounded size), times ``App.memory_scale`` for an application that
@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from .application import App
+from .sensor.sampling import usable_cores
 from .config import CaptureConfig
 from .errors import ResourceProblem
 from .filmstore import default_scratch_dir
@@ -59,6 +60,12 @@ GB = 1 << 30
 #: installed long ago, the same code and packages, the same anonymous memory (measured at 320x256:
 #: RssFile 216 against 156 MB, RssAnon 223 MB both). 310 sits between the two.
 BASE_MEMORY_MB = 310.0
+#: Resident memory per render thread beyond the 2 of the machines ``BASE_MEMORY_MB`` was fitted on (their
+#: stacks, malloc arenas and Dr.Jit's per-thread state): on a 16-core Xeon (2026-11-27, the default
+#: capture at 320x256 under ``taskset``) the anonymous memory was 264, 256, 271 and 298 MiB with 2, 4, 8
+#: and 16 threads; least squares, 2.8 MiB a thread. Dr.Jit starts a thread per core this process may use.
+PER_THREAD_MB = 2.8
+FITTED_THREADS = 2
 #: Peak float64 values per sample of each bucket (fitted: the reads add nothing measurable).
 FLOAT64_PER_BUCKET_SAMPLE = 15.8
 #: Of those, the float64 values per bucket sample a tiled capture holds for the whole film, and the
@@ -137,6 +144,12 @@ def spilled_per_bucket_sample(timeline: Timeline, plan: Plan, app: App) -> float
     return 2.0 + groups + len(timeline.reads) * (2.0 + 1.0 / 8.0) / accumulated_channels(timeline)
 
 
+def fixed_memory_bytes() -> float:
+    """Resident memory before any array of a capture, on this machine: ``BASE_MEMORY_MB``, plus
+    ``PER_THREAD_MB`` for each render thread beyond ``FITTED_THREADS``."""
+    return (BASE_MEMORY_MB + PER_THREAD_MB * max(usable_cores() - FITTED_THREADS, 0)) * MB
+
+
 def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles: int = 1,
              spill: bool = False) -> Resources:
     """The resources of the capture ``cfg`` with its ``timeline``, render ``plan`` and application,
@@ -163,7 +176,7 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles
     per_frame = 8.0 * samples * per_sample * acc
     # a finished frame's arrays: exposures (float64) and their half-sample differences (float32), reads and truths
     held = 8.0 * samples * (1.5 * K + 2 * R) + 4.0 * px * app.output_channels
-    memory = (BASE_MEMORY_MB + app.libraries_mb) * MB + per_frame + (frames - 1) * held
+    memory = fixed_memory_bytes() + app.libraries_mb * MB + per_frame + (frames - 1) * held
 
     exr = 4.0 * px * (3 * (K + R) * EXR_RATIO_EXPECTED + 3 * R * EXR_RATIO_DN
                       + frames * app.output_channels * EXR_RATIO_APP)
@@ -348,8 +361,8 @@ def peak_rss_bytes() -> int:
 
 
 __all__ = ["Resources", "accumulated_channels", "anon_bytes", "bands_of", "check", "choose_layout", "choose_tiles",
-           "estimate", "free_disk", "free_memory", "peak_rss_bytes", "plan_resources", "rss_bytes", "spill_folder",
-           "spilled_per_bucket_sample", "tile_rows"]
+           "estimate", "fixed_memory_bytes", "free_disk", "free_memory", "peak_rss_bytes", "plan_resources",
+           "rss_bytes", "spill_folder", "spilled_per_bucket_sample", "tile_rows"]
 
 
 #: :func:`one_blas_thread`'s state: how many blocks are open (in any thread), and the limit the first set.

@@ -33,7 +33,7 @@ def test_the_plan_follows_the_film_buckets_reads_and_outputs():
     a = _need(["render.width=320", "render.height=256", "render.cache=off"])
     b = _need(["render.width=640", "render.height=512", "render.cache=off"])
     # everything but the fixed part scales with the pixels: 4x the pixels, 4x the variable part
-    fixed = resources.BASE_MEMORY_MB * resources.MB
+    fixed = resources.fixed_memory_bytes()
     assert (b.memory_bytes - fixed) == pytest.approx(4 * (a.memory_bytes - fixed), rel=1e-6)
     assert (b.output_bytes - resources.REPORT_BYTES) == pytest.approx(4 * (a.output_bytes - resources.REPORT_BYTES), rel=1e-6)
     assert a.cache_bytes == 0
@@ -69,6 +69,19 @@ def test_the_plan_is_within_20_percent_of_a_real_run(tiles):
     assert need.tiles == (8 if tiles else 1)
     assert rss == pytest.approx(need.memory_bytes, rel=0.2)
     assert 0.6 * need.output_bytes <= written <= 1.2 * need.output_bytes, (written, need.output_bytes)
+
+
+def test_the_fixed_memory_grows_with_the_render_threads(monkeypatch):
+    """Each render thread beyond the two the constants were fitted with adds PER_THREAD_MB (Dr.Jit starts
+    one per core the process may use), and the plan of a capture grows by as much."""
+    monkeypatch.setattr(resources, "usable_cores", lambda: 2)
+    two = _need(["render.width=320", "render.height=256", "render.cache=off"]).memory_bytes
+    assert resources.fixed_memory_bytes() == resources.BASE_MEMORY_MB * resources.MB
+    monkeypatch.setattr(resources, "usable_cores", lambda: 64)
+    many = _need(["render.width=320", "render.height=256", "render.cache=off"]).memory_bytes
+    assert many - two == pytest.approx(62 * resources.PER_THREAD_MB * resources.MB, abs=1)
+    monkeypatch.setattr(resources, "usable_cores", lambda: 1)
+    assert resources.fixed_memory_bytes() == resources.BASE_MEMORY_MB * resources.MB
 
 
 def test_a_film_that_cannot_fit_stops_before_any_work(monkeypatch, capsys):
