@@ -43,12 +43,12 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from .application import App
-from .sensor.sampling import usable_cores
 from .config import CaptureConfig
 from .errors import ResourceProblem
 from .filmstore import default_scratch_dir
 from .plan import Plan
 from .render.bands import film_bands, group_bands
+from .sensor.sampling import usable_cores
 from .timeline import Timeline
 
 MB = 1 << 20
