@@ -133,7 +133,7 @@ def main() -> None:
         doc["golden_made"] = {**old.get("golden_made", {}), **made}
     # the same goldens measured on another host: keep both, case by case
     same = [c for c in doc["cases"] if c in old.get("golden_made", {}) and old["golden_made"][c] == doc["golden_made"].get(c)]
-    merge(doc, old, same, carried=False)
+    merge(doc, old, same)
     write(doc, args.out)
     for case in cases:
         worst = max(spread[case].items(), key=lambda kv: kv[1]["rel_l2"])
@@ -141,11 +141,11 @@ def main() -> None:
         print(f"  {case:28s} largest relative L2 {worst[1]['rel_l2']:.2e} ({worst[0]}), samples differing {flips}")
 
 
-def merge(doc: dict, old: dict, cases: list[str], *, carried: bool) -> None:
+def merge(doc: dict, old: dict, cases: list[str], *, carried: list[str] = ()) -> None:
     """Into ``doc``: ``old``'s spreads of ``cases``, each image at the larger difference of the two, and
-    ``old``'s hosts that ``doc`` does not measure; a host that counts for some cases only says which.
-    ``carried``: ``old`` measured earlier goldens of some of those cases (the same code on images that
-    have changed since), which its hosts then say."""
+    ``old``'s hosts for the cases ``doc`` does not measure on them; a host that counts for some cases only
+    says which. ``carried``: the cases whose goldens ``old`` measured in an earlier version (the same code
+    on images that have changed since), which its hosts then say."""
     if not cases:
         return
     for case in cases:
@@ -153,15 +153,34 @@ def merge(doc: dict, old: dict, cases: list[str], *, carried: bool) -> None:
             cur = doc["cases"].setdefault(case, {}).setdefault(name, m)
             doc["cases"][case][name] = {k: max(cur.get(k, 0), m.get(k, 0)) for k in set(cur) | set(m)}
     # a host is its CPU and its native target: virtual machines name different CPUs alike
-    # ("Intel(R) Xeon(R) Processor" was a Rocket Lake and a Sapphire Rapids)
-    measured = {(h.get("cpu"), h.get("native_target")) for h in doc["hosts"]}
+    # ("Intel(R) Xeon(R) Processor" was a Rocket Lake and a Sapphire Rapids). A host that measured every case
+    # in doc replaces its old entry; one that measured some keeps its old entry for the others.
+    measured: dict[tuple, set | None] = {}  # each host's cases in doc; None: every case
+    for h in doc["hosts"]:
+        key = (h.get("cpu"), h.get("native_target"))
+        if "cases" not in h:
+            measured[key] = None
+        elif measured.get(key, set()) is not None:
+            measured[key] = measured.get(key, set()) | set(h["cases"])
     for h in old.get("hosts", []):
-        if (h.get("cpu"), h.get("native_target")) in measured:
+        key = (h.get("cpu"), h.get("native_target"))
+        theirs = set(h.get("cases") or old.get("cases", {})) | set(h.get("carried_over", {}).get("cases", ()))
+        relevant = [c for c in cases if c in theirs]
+        if key in measured:
+            if measured[key] is None:
+                continue
+            relevant = [c for c in relevant if c not in measured[key]]
+        if not relevant:
             continue
-        if carried:
-            h = {**h, "carried_over": {"cases": cases, "their_goldens_made": old.get("golden_made", {})}}
-        elif set(cases) != set(doc["cases"]):
-            h = {**h, "cases": cases}
+        # the cases it measured on earlier goldens than doc's: carried now, or carried before and not since measured
+        before = h.get("carried_over", {}).get("their_goldens_made", {})
+        made = {c: old.get("golden_made", {}).get(c) for c in relevant if c in carried}
+        made.update({c: before[c] for c in relevant if c in before and before[c] != doc["golden_made"].get(c)})
+        h = {k: v for k, v in h.items() if k not in ("cases", "carried_over")}
+        if set(relevant) != set(doc["cases"]):
+            h["cases"] = relevant
+        if made:
+            h["carried_over"] = {"cases": sorted(made), "their_goldens_made": made}
         doc["hosts"].append(h)
     doc["targets"] = {**old.get("targets", {}), **doc["targets"]}
 
@@ -182,7 +201,7 @@ def carry_over(out: Path, earlier: Path) -> None:
     Each image keeps the larger difference of the two, so no tolerance shrinks."""
     doc, old = json.loads(out.read_text()), json.loads(earlier.read_text())
     cases = sorted(c for c in old.get("cases", {}) if c in doc["cases"])
-    changed = any(old.get("golden_made", {}).get(c) != doc["golden_made"].get(c) for c in cases)
+    changed = [c for c in cases if old.get("golden_made", {}).get(c) != doc["golden_made"].get(c)]
     merge(doc, old, cases, carried=changed)
     write(doc, out)
 

@@ -157,10 +157,35 @@ def test_spreads_from_another_host_keep_the_larger_difference_and_name_the_host(
                      {"cpu": xeon, "native_target": "sapphirerapids 16", "targets": ["native"]}],
            "targets": {"haswell": "haswell 8"},
            "cases": {"a": {"img": {**diff, "rel_l2": 3e-5, "flips": 1}}, "b": {"img": dict(diff)}}}
-    gs.merge(doc, old, ["a", "b"], carried=False)
+    gs.merge(doc, old, ["a", "b"])
     assert doc["cases"]["a"]["img"]["rel_l2"] == 3e-5 and doc["cases"]["a"]["img"]["flips"] == 2
     assert [h["native_target"] for h in doc["hosts"]] == ["sapphirerapids 16", "rocketlake 16"]
     assert doc["targets"] == {"haswell": "haswell 8", "native": "sapphirerapids 16"}
+
+
+def test_a_partial_run_keeps_each_hosts_record_of_the_other_cases():
+    """Regenerated goldens of some cases, measured again on this host only: this host's earlier record of the
+    other cases stays, and another host's record of the regenerated ones says it was carried over from
+    their earlier goldens (its spreads kept), while its record of the others stays as it was."""
+    spec = importlib.util.spec_from_file_location("golden_spread", ROOT / "scripts" / "golden_spread.py")
+    gs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gs)
+    diff = {"rel_l2": 1e-5, "flips": 2, "nonfinite": 0, "nonfinite_kind": 0, "max_abs": 1.0}
+    amd, xeon = ("AMD EPYC", "znver5 16"), ("Intel(R) Xeon(R) Processor", "sapphirerapids 16")
+    host = lambda cpu, **kw: {"cpu": cpu[0], "native_target": cpu[1], "targets": ["native"], **kw}  # noqa: E731
+    committed = {"hosts": [host(amd, measured="then"), host(xeon, measured="then")], "targets": {},
+                 "golden_made": {"a": "old", "b": "old"},
+                 "cases": {"a": {"img": {**diff, "rel_l2": 3e-5}}, "b": {"img": dict(diff)}}}
+    # the partial run of case a (its golden regenerated) on the AMD host, as main() builds it
+    doc = {"hosts": [host(amd, measured="now", cases=["a"])], "targets": {}, "golden_made": {"a": "new", "b": "old"},
+           "cases": {"a": {"img": dict(diff)}, "b": dict(committed["cases"]["b"])}}
+    gs.merge(doc, committed, ["b"])  # main(): the cases whose goldens did not change
+    gs.merge(doc, committed, ["a", "b"], carried=["a"])  # --carry-over the committed file
+    records = {(h["cpu"], h["measured"], tuple(h.get("cases", ())), tuple(h.get("carried_over", {}).get("cases", ())))
+               for h in doc["hosts"]}
+    assert records == {("AMD EPYC", "now", ("a",), ()), ("AMD EPYC", "then", ("b",), ()),
+                       (xeon[0], "then", ("b",), ()), (xeon[0], "then", ("a",), ("a",))}, records
+    assert doc["cases"]["a"]["img"]["rel_l2"] == 3e-5  # the Xeon's spread of the earlier golden kept
 
 
 @pytest.mark.render
