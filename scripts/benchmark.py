@@ -8,7 +8,8 @@
    number of passes and samples (the per-group integrator splits 2 groups into their own
    channels, which 'path' cannot do), and the same at equal error: the per-pixel variance of
    each over 4 seeds (the per-group integrator estimates direct light from every emitter at each
-   vertex, 'path' from one chosen at random).
+   vertex, 'path' from one chosen at random); and what the scene's guides cost per sample
+   (render.guide_fraction: the same render with and without them).
 3. Sensor + reconstruction share of the total run time at the chosen film (4 buckets).
 4. Equal-error speed-up over naive per-slot rendering at capture.periods 64: the naive
    baseline (one render per slot, spp per slot in --naive-spp) against the planner's ladder
@@ -379,6 +380,22 @@ def main() -> None:
           f"(mean) and {median_gain:.1f}x at the median sample (relative variance); the cost at equal error, "
           f"pipeline over 'path': {t_pipe / t_raw / mean_gain:.2f} (mean variance), "
           f"{t_pipe / t_raw / median_gain:.2f} (median)")
+
+    # what the guides cost per sample (render.guide_fraction, the scene's guides): the same render with and
+    # without them, alternating, the fastest of each (the pipeline's figures above include them)
+    if renderer.guide_fraction:
+        renderer.render(t_mid, args.spp, 0)  # the guided kernel is compiled above; this compiles nothing
+        guided = renderer._integrator.guides
+        best = {"guided": float("inf"), "plain": float("inf")}
+        for _ in range(max(args.repeats, 3)):
+            for name, guides in (("plain", ()), ("guided", guided)):
+                renderer._integrator.guides = guides
+                t0 = time.perf_counter()
+                renderer.render(t_mid, 4 * args.spp, 1)
+                best[name] = min(best[name], time.perf_counter() - t0)
+        renderer._integrator.guides = guided
+        print(f"[2] guides (render.guide_fraction {renderer.guide_fraction}): a render {best['guided']:.2f} s with them, "
+              f"{best['plain']:.2f} s without: {best['guided'] / best['plain']:.3f}x")
 
     stages = r4["timings_s"]
     share = (stages["sensor"] + stages["reconstruct"]) / stages["total_before_write"]

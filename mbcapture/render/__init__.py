@@ -4,8 +4,8 @@
 does not crash Dr.Jit (>= 16) before Mitsuba is first imported.
 """
 
-from .build import Environment, Light, Material, SceneBuild, Shape
+from .build import Environment, Guide, Light, Material, SceneBuild, Shape
 from .llvm import ensure_llvm
 from .renderer import Renderer
 
-__all__ = ["ensure_llvm", "Renderer", "SceneBuild", "Shape", "Material", "Light", "Environment"]
+__all__ = ["ensure_llvm", "Renderer", "SceneBuild", "Shape", "Guide", "Material", "Light", "Environment"]

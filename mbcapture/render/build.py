@@ -205,6 +205,28 @@ class Projector:
 
 
 @dataclass(frozen=True)
+class Guide:
+    """A sphere around a small, brightly lit patch that is not an emitter (the top of a lamp's stand,
+    millimetres under the bulb): the path tracer sends a share of every diffuse bounce
+    (``render.guide_fraction``) into the cone of directions towards it, weighted by the mixture's
+    density, so the light it reflects is found often and with small weights instead of by a rare bounce
+    that carries it all (:func:`mbcapture.render.integrator.guided_lambertian`). Static, in world
+    coordinates (m). Guiding changes the noise, never the expected image."""
+
+    centre: tuple[float, float, float]
+    radius: float
+
+    def __post_init__(self) -> None:
+        c = np.asarray(self.centre, float)
+        if c.shape != (3,) or not np.all(np.isfinite(c)):
+            raise ValueError(f"Guide.centre: expected three finite coordinates (m), got {self.centre!r}")
+        if not (math.isfinite(self.radius) and self.radius > 0):
+            raise ValueError(f"Guide.radius: expected a positive radius (m), got {self.radius!r}")
+        object.__setattr__(self, "centre", tuple(map(float, c)))
+        object.__setattr__(self, "radius", float(self.radius))
+
+
+@dataclass(frozen=True)
 class SceneBuild:
     """Everything :class:`mbcapture.render.Renderer` needs besides the camera.
 
@@ -216,12 +238,16 @@ class SceneBuild:
         Optional constant environment light.
     projectors
         Pinhole projectors (:class:`Projector`), each in its own emitter group or sharing one.
+    guides
+        Spheres around bright patches that are not emitters (:class:`Guide`), towards which a share of
+        the bounces is sampled.
     """
 
     shapes: tuple[Shape, ...]
     parts: Mapping[str, Callable[[float], np.ndarray]] = field(default_factory=dict)
     environment: Environment | None = None
     projectors: tuple[Projector, ...] = ()
+    guides: tuple[Guide, ...] = ()
 
     def emitter_groups(self) -> tuple[str, ...]:
         """Groups that own at least one emitter, in first-appearance order."""

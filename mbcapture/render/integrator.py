@@ -13,6 +13,10 @@ its own three channels in one pass over the same paths:
 * BSDF-sampled rays that hit an emitter are attributed to that emitter's group, weighted by
   the power heuristic against that emitter's own ``pdf_direction`` (its selection probability
   is 1). Emitters seen directly from the camera get weight 1.
+* where the scene declares guides (spheres around small, brightly lit patches that are not
+  emitters, :class:`mbcapture.render.build.Guide`) and ``render.guide_fraction`` > 0, that share of
+  every Lambertian bounce goes into the cone towards a guide, weighted by the mixture's density
+  (:func:`guided_lambertian`), which the MIS weights above use too.
 
 Emitters of groups that are not requested are never sampled, and their emission is ignored
 when a path hits them (they still occlude). Without any group requested the kernel would be
@@ -99,9 +103,10 @@ def is_lambertian(scene: Any) -> bool:
     return True
 
 
-def general_shading(ctx, bsdf, flags, si, active):
+def general_shading(ctx, bsdf, flags, si, active, guides=()):
     """(eval_pdf(wo, ok) -> (value, pdf), sample(u1, u2, ok) -> (wo, pdf, weight, delta)) of the BSDFs
-    at ``si`` through Mitsuba's virtual calls: any BSDF (``flags`` unused)."""
+    at ``si`` through Mitsuba's virtual calls: any BSDF (``flags`` and ``guides`` unused: the renderer
+    gives guides to Lambertian scenes only)."""
     import mitsuba as mi
 
     def eval_pdf(wo, ok):
@@ -114,14 +119,15 @@ def general_shading(ctx, bsdf, flags, si, active):
     return eval_pdf, sample
 
 
-def lambertian_shading(ctx, bsdf, flags, si, active):
+def lambertian_shading(ctx, bsdf, flags, si, active, guides=()):
     """:func:`general_shading` for Lambertian BSDFs (``diffuse``, and ``twosided`` of it, whose
     ``flags`` hold BackSide), computed from the albedo: one virtual call per vertex instead of one per
     emitter (``eval_pdf``) and one to sample. The same numbers as Mitsuba's, operation for operation
     (diffuse.cpp, twosided.cpp): value albedo / pi cos(wo), pdf cos(wo) / pi, a cosine-weighted sample
     of weight albedo, all 0 where wi or wo is on the side the BSDF does not reflect (a one-sided one's
     back; a two-sided one mirrors its front). Written here because Mitsuba offers no batched
-    evaluation of one BSDF at several directions."""
+    evaluation of one BSDF at several directions. With ``guides``, the bounce is drawn from
+    :func:`guided_lambertian`'s mixture instead."""
     import drjit as dr
     import mitsuba as mi
 
@@ -142,6 +148,71 @@ def lambertian_shading(ctx, bsdf, flags, si, active):
         pdf = mi.warp.square_to_cosine_hemisphere_pdf(wo)
         weight = dr.select(ok & (side != 0.0) & (pdf > 0.0), albedo, 0.0)
         return mi.Vector3f(wo.x, wo.y, wo.z * side), pdf, weight, mi.Bool(False)
+
+    if not guides:
+        return eval_pdf, sample
+    return guided_lambertian(si, albedo, side, guides)
+
+
+def guided_lambertian(si, albedo, side, guides):
+    """:func:`lambertian_shading`'s pair for a scene with guides: the bounce drawn from a mixture of the
+    cosine lobe and, for each guide (centre, radius, share), the cone of directions towards its sphere
+    (uniform in solid angle), chosen by the first coordinate of the bounce's own pair so that each
+    strategy's samples stay stratified. Its weight is the value over the mixture's density, so it is
+    unbiased, and that density is the one the next-event estimation's MIS weights use.
+
+    A guide gets no share at a vertex inside its sphere, one whose sphere lies wholly below the reflecting
+    hemisphere, or one that sees it under less than 0.01 rad (the same rule in sampling and density). The
+    cone is drawn and tested by 1 - cos and the sine, not the cosine: near 1 a float32 cosine would put
+    some of the cone's own samples outside its test, and weigh them as if the cone had not drawn them.
+    Written here: Mitsuba has no mixture of a BSDF and a cone, and its cone warp works with the cosine."""
+    import drjit as dr
+    import mitsuba as mi
+
+    cones = []  # (axis in the local frame, sin^2 and 1 - cos of the half-angle, share at this vertex)
+    total = mi.Float(0.0)
+    for centre, radius, share in guides:
+        to = si.to_local(mi.Vector3f(*centre) - si.p)
+        dist2 = dr.squared_norm(to)
+        sin2 = dr.minimum(radius * radius / dr.maximum(dist2, 1e-30), 1.0)
+        one_minus = sin2 / (1.0 + dr.safe_sqrt(1.0 - sin2))
+        axis = to * dr.rsqrt(dr.maximum(dist2, 1e-30))
+        below = axis.z * side < -dr.safe_sqrt(sin2)
+        share_here = dr.select((sin2 >= 1.0) | (sin2 < 1e-4) | below | (side == 0.0), 0.0, share)
+        cones.append((axis, sin2, one_minus, share_here))
+        total = total + share_here
+
+    def density(wo):
+        """The mixture's density of local direction ``wo``."""
+        cos_o = mi.Frame3f.cos_theta(wo) * side  # on the reflecting side's hemisphere (twosided: mirrored)
+        pdf = (1.0 - total) * dr.select(cos_o > 0.0, cos_o * dr.inv_pi, 0.0)
+        for axis, sin2, one_minus, eps in cones:
+            inside = (dr.dot(wo, axis) > 0.0) & (dr.squared_norm(dr.cross(wo, axis)) <= sin2)
+            pdf = pdf + dr.select(inside & (eps > 0.0), eps / (dr.two_pi * one_minus), 0.0)
+        return pdf
+
+    def eval_pdf(wo, ok):
+        cos_o = mi.Frame3f.cos_theta(wo) * side
+        ok = ok & (side != 0.0) & (cos_o > 0.0)
+        value = albedo * dr.inv_pi * cos_o
+        return dr.select(ok, value, 0.0), dr.select(ok, density(wo), 0.0)
+
+    def sample(u1, u2, ok):
+        lo = mi.Float(0.0)
+        wo = mi.Vector3f(0.0)
+        for axis, sin2, one_minus, eps in cones:
+            pick = (u2.x >= lo) & (u2.x < lo + eps)
+            om = (u2.x - lo) / dr.maximum(eps, 1e-30) * one_minus  # 1 - cos, uniform in [0, 1 - cos max)
+            sin_t = dr.safe_sqrt(om * (2.0 - om))
+            sin_p, cos_p = dr.sincos(dr.two_pi * u2.y)
+            d = mi.Frame3f(axis).to_world(mi.Vector3f(cos_p * sin_t, sin_p * sin_t, 1.0 - om))
+            wo = dr.select(pick, d, wo)
+            lo = lo + eps
+        cosine = mi.warp.square_to_cosine_hemisphere(mi.Point2f((u2.x - lo) / (1.0 - lo), u2.y))
+        wo = dr.select(u2.x >= lo, mi.Vector3f(cosine.x, cosine.y, cosine.z * side), wo)
+        value, pdf = eval_pdf(wo, ok)
+        weight = dr.select(pdf > 0.0, value / dr.maximum(pdf, 1e-30), 0.0)
+        return wo, pdf, weight, mi.Bool(False)
 
     return eval_pdf, sample
 
@@ -177,6 +248,9 @@ def integrator_class(variant: str) -> type:
             #: BSDF is evaluated and sampled here from its albedo, one virtual call instead of one per emitter
             #: and one more to sample (:func:`lambertian_shading`). Set by the renderer once its scenes load.
             self.lambertian: bool = False
+            #: ((centre xyz, radius, share), ...): the spheres around bright reflectors that a share of the
+            #: bounces is sent towards (:func:`guided_lambertian`); Lambertian scenes only. Set by the renderer.
+            self.guides: tuple = ()
 
         def set_groups(self, names: Sequence[str], emitters: Sequence[Sequence[Any]]) -> None:
             """Choose the groups to render: ``emitters[g]`` are the emitters of ``names[g]``."""
@@ -263,6 +337,7 @@ def integrator_class(variant: str) -> type:
             n_emitters = sum(len(e) for e in emitters)
             next_1d, next_2d, ray = self._draws(scene, sampler, ray)
             shading = lambertian_shading if self.lambertian else general_shading
+            guides = self.guides
 
             while dr.hint(active, max_iterations=max_depth, label="mbcapture per-group path"):
                 si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=(depth == 0), active=active)
@@ -286,7 +361,7 @@ def integrator_class(variant: str) -> type:
                 active_next = active & si.is_valid() & (depth + 1 < max_depth)
                 bsdf = si.bsdf(ray)
                 flags = bsdf.flags()
-                eval_pdf, sample_bsdf = shading(ctx, bsdf, flags, si, active_next)
+                eval_pdf, sample_bsdf = shading(ctx, bsdf, flags, si, active_next, guides)
 
                 # Next-event estimation towards every emitter of every requested group.
                 active_em = active_next & mi.has_flag(flags, mi.BSDFFlags.Smooth)

@@ -189,7 +189,7 @@ class Renderer:
                  cache: RenderCache | None = None, sampler: str = "multijitter", vignetting: str = "none",
                  diffraction: bool = False, thin_lens: tuple[float, float] | None = None,
                  mono: np.ndarray | None = None, distortion: Sequence[float] | None = None,
-                 band_rows: int | None = None) -> None:
+                 band_rows: int | None = None, guide_fraction: float = 0.0) -> None:
         if thin_lens is not None and not (thin_lens[0] > 0 and thin_lens[1] > 0):
             raise ConfigError(f"thin lens: aperture radius and focus distance must be positive, got {thin_lens}")
         #: (aperture radius m, focus distance m) of Mitsuba's thinlens sensor; None: a pinhole
@@ -262,6 +262,10 @@ class Renderer:
         self.scene_model = scene
         self.width, self.height = int(width), int(height)
         self.max_depth = int(max_depth)
+        if not 0.0 <= guide_fraction <= 0.5:
+            raise ConfigError(f"render.guide_fraction: expected 0 to 0.5, got {guide_fraction}")
+        #: the share of every diffuse bounce sent towards the scene's guides (SceneBuild.guides)
+        self.guide_fraction = float(guide_fraction) if scene.build.guides else 0.0
         self.groups: tuple[str, ...] = tuple(scene.groups)
         build: SceneBuild = scene.build
         unknown = set(build.emitter_groups()) - set(self.groups)
@@ -323,7 +327,20 @@ class Renderer:
                 self._group_scenes[g] = (sc, mi.traverse(sc), self._collect_emitters(sc)[g])
         self._integrator.lambertian = all(is_lambertian(sc) for sc in
                                           [self._scene, *(v[0] for v in self._group_scenes.values())])
+        self._integrator.guides = self._guides()
         self._loaded = True
+
+    def _guides(self) -> tuple:
+        """The integrator's guides ((centre, radius, share), ...): the scene's spheres, render.guide_fraction
+        shared among them; none where the fraction is 0."""
+        guides = self._build.guides
+        if not guides or self.guide_fraction == 0.0:
+            return ()
+        if not self._integrator.lambertian:
+            raise ConfigError(f"render.guide_fraction: scene {self.scene_model.name!r} has guides, which only "
+                              "Lambertian materials sample towards; set render.guide_fraction: 0")
+        share = self.guide_fraction / len(guides)
+        return tuple((g.centre, g.radius, share) for g in guides)
 
     @classmethod
     def from_config(cls, scene: SceneModel, cfg: Any, *, cache: RenderCache | None = None, **overrides: Any) -> "Renderer":
@@ -335,7 +352,7 @@ class Renderer:
                               "sensor": cfg.sensor, "cache": cache, "vignetting": cfg.camera.vignetting,
                               "diffraction": cfg.camera.diffraction, "thin_lens": lens,
                               "mono": mono_weights(cfg.sensor, r.variant), "distortion": cfg.camera.distortion,
-                              "band_rows": r.band_rows}
+                              "band_rows": r.band_rows, "guide_fraction": r.guide_fraction}
         kw.update(overrides)
         return cls(scene, r.width, r.height, **kw)
 
@@ -550,6 +567,8 @@ class Renderer:
             "groups": list(self.groups),
             "variant": self.variant,
             "max_depth": self.max_depth,
+            "guides": [[*g.centre, g.radius] for g in self._build.guides] if self.guide_fraction else [],
+            "guide_fraction": self.guide_fraction,
             "code": code,
             "versions": {p: metadata.version(p) for p in ("mitsuba", "drjit")},
             "target": target,

@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mbcapture.pendulum import Pendulum
 from mbcapture.render.build import (
+    Guide,
     Light,
     Material,
     SceneBuild,
@@ -52,6 +53,14 @@ NEEDLE_Z_M = BODY_DEPTH_M / 2 + 0.006  # needle plane, in front of the body's fr
 CAMERA_ORIGIN = (0.0, 0.23, 1.15)
 CAMERA_TARGET = (0.02, 0.11, 0.0)
 FLASH_OFFSET_M = (0.05, 0.0, 0.0)  # LED position relative to the lens (camera frame: right, up, back)
+LAMP_X_M, LAMP_Z_M = 0.3, -0.2  # the lamp's stand (radius 4 mm, 0.2 m high) and bulb (radius 12 mm) above it
+STAND_TOP_M, STAND_RADIUS_M = 0.2, 0.004
+BULB_Y_M, BULB_RADIUS_M = 0.215, 0.012
+#: The stand's top centimetre lies 3-15 mm under the bulb: lit to a radiance of 2-12 W m^-2 sr^-1 (its rim
+#: to 1 cm down), 20-100x the wall's left half, a patch 8 mm wide that a bounce from there finds about once in
+#: 10^4. Those rare bounces were the wall's single-pixel fireflies (docs/noise.md, "The lamp's stand"), so
+#: the path tracer samples towards it (:class:`~mbcapture.render.build.Guide`).
+STAND_GUIDE = Guide((LAMP_X_M, STAND_TOP_M - 0.008, LAMP_Z_M), 0.01)
 
 
 class Params(BaseModel):
@@ -155,9 +164,9 @@ def _static_shapes(p: Params) -> list[Shape]:
         Shape("ball_black", "sphere", translate(0.1, 0.025, 0.17) @ scale(0.025), Material((0.02, 0.02, 0.02))),
         Shape("cube_white", "cube", translate(-0.32, 0.035, -0.15) @ scale(0.035), Material((0.85, 0.85, 0.85))),
         # Lamp: a thin stand and a small spherical bulb, in view at the right.
-        Shape("lamp_stand", "cylinder", translate(0.3, 0, -0.2) @ rotate((1, 0, 0), -math.pi / 2)
-              @ scale(0.004, 0.004, 0.2), Material((0.1, 0.1, 0.1))),
-        Shape("lamp_bulb", "sphere", translate(0.3, 0.215, -0.2) @ scale(0.012), None,
+        Shape("lamp_stand", "cylinder", translate(LAMP_X_M, 0, LAMP_Z_M) @ rotate((1, 0, 0), -math.pi / 2)
+              @ scale(STAND_RADIUS_M, STAND_RADIUS_M, STAND_TOP_M), Material((0.1, 0.1, 0.1))),
+        Shape("lamp_bulb", "sphere", translate(LAMP_X_M, BULB_Y_M, LAMP_Z_M) @ scale(BULB_RADIUS_M), None,
               Light("lamp", (lamp, lamp * 0.92, lamp * 0.8))),
         # Ambient: a 0.8 x 0.6 m soft box above and in front of the scene, aimed at it.
         Shape("ambient_softbox", "rectangle",
@@ -204,6 +213,7 @@ def make(params: Params) -> SceneModel:
     build = SceneBuild(
         shapes=tuple(_static_shapes(params) + _needle_shapes(params.needle_length_m)),
         parts={"needle": needle_to_world},
+        guides=(STAND_GUIDE,),
     )
     return SceneModel(
         name="metronome",
