@@ -730,7 +730,10 @@ def render_error(
 
 #: Adaptive sampling refines the pixels whose estimated ratio exceeds this share of the tail target
 #: (the estimate is noisy: pooled over at most 9 pixels, a pixel at the target reads below it half the time).
-ADAPTIVE_SELECT = 0.5
+#: 0.5 until the ninth session; with the lamp stand's fireflies sampled at their source
+#: (render.guide_fraction), on the default capture at 640x512 (two seeds, one choice of pixels) 0.5 met the
+#: tail at 0.74 in 105-109 s a run, 0.7 at 0.84 in 84 s, 1.0 at 0.96 in 76-78 s (docs/noise.md, "The lamp's stand").
+ADAPTIVE_SELECT = 0.7
 #: log2 of the most that :func:`tail_pixels`' floor factor (every chosen pixel's least) may be: 4x. On the
 #: default capture at 640x512 (two seeds, one choice of pixels) the floor at 8x met the tail at 0.85 in
 #: 2.7-3.2x the time without adaptive sampling, at 4x 0.92 in 1.9-2.0x, at 2x 0.97 in 1.6-1.7x

@@ -114,10 +114,10 @@ class RenderSection(_Model):
     adaptive: bool = Field(
         False,
         description="With render.spp null: adaptive sampling (off by default: on the default capture at 640x512 it "
-        "brings every read under the median, p95 and tail targets (the longest read's 99.9th percentile from 2.3 "
-        "to 0.92, measured from two render seeds refining one choice of pixels) and takes 1.9-2.0x the time of the "
-        "run without it; docs/noise.md). After the budgeted "
-        "pass, the pixels where any read's estimated Monte Carlo / shot-noise ratio exceeds half of render.noise_budget_tail (and their neighbours) "
+        "brings every read under the median, p95 and tail targets (the longest read's 99.9th percentile from 2.5 "
+        "to 0.84, measured from two render seeds refining one choice of pixels) and takes 1.3x the time of the "
+        "run without it, 84 s against 62-66 s on 2 cores; docs/noise.md). After the budgeted "
+        "pass, the pixels where any read's estimated Monte Carlo / shot-noise ratio exceeds 0.7 x render.noise_budget_tail (and their neighbours) "
         "are rendered again, every stratum, with more samples, and that second pass replaces the first there. "
         "Every chosen pixel gets at least the factor that brings the chosen pixels' 99th percentile to that "
         "level (at most 4, and at most render.adaptive_max_factor), and a pixel further over gets the power of two "
@@ -127,7 +127,7 @@ class RenderSection(_Model):
         "they were not chosen and read low, so the run's own error estimate takes them from the audit blocks "
         "(report.json adaptive.audit, render_error.method). RGB variants with a "
         "lens acting per pixel (no camera.distortion or camera.diffraction) and render.estimator independent; "
-        "elsewhere it is skipped and report.json says why. The tail lies on silhouettes (docs/noise.md).",
+        "elsewhere it is skipped and report.json says why. The tail lies on silhouettes and moving edges (docs/noise.md).",
     )
     adaptive_max_factor: int = Field(
         8, ge=2, le=256, description="Adaptive sampling's most samples at a refined pixel, as a multiple of its "

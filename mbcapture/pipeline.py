@@ -429,7 +429,7 @@ REFINE_TIME_POINTS = 4
 def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
                 seed: np.random.SeedSequence, status: StageStatus, *, moving: np.ndarray, per_group: bool, timer,
                 progress: bool, tiled: bool = False) -> tuple[Integrated, dict]:
-    """Adaptive sampling (render.adaptive): the pixels the first pass left over half the tail target
+    """Adaptive sampling (render.adaptive): the pixels the first pass left over budget.ADAPTIVE_SELECT x the tail target
     (:func:`mbcapture.budget.tail_pixels`) rendered again with more samples
     (:func:`mbcapture.integrate.refine`), those in ``moving`` (the pixels the moving parts cross) at
     :data:`REFINE_TIME_POINTS` times per half-stratum; then the audit (:func:`mbcapture.budget.audit_blocks`),

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mbcapture import load_config
-from mbcapture.budget import ADAPTIVE_FLOOR_MAX_LOG2, tail_pixels
+from mbcapture.budget import ADAPTIVE_FLOOR_MAX_LOG2, ADAPTIVE_SELECT, tail_pixels
 from mbcapture.config import scene_of
 from mbcapture.integrate import integrate, refine
 from mbcapture.pipeline import prepare
@@ -114,15 +114,16 @@ def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_err
 
 
 def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
-    """Tiers of factors, from each pixel's estimated ratio over half the tail target: a region far over
+    """Tiers of factors, from each pixel's estimated ratio over ADAPTIVE_SELECT x the tail target: a region far over
     the target gets more samples than one just over it, never fewer than the factor that brings the
     chosen pixels' 99th percentile to the level (at most 2^ADAPTIVE_FLOOR_MAX_LOG2), each pixel in one tier,
     neighbours included; at render.adaptive_max_factor equal to that floor one tier (every chosen pixel alike)."""
     H = W = 24
     signal = np.full((1, H, W, 1), 1000.0)  # electrons, one bucket, one channel, below the full well
     diff = np.zeros((1, H, W, 1))
-    diff[0, 2:9, 2:9] = np.sqrt(1000 * 0.9)  # ratio 0.9: just over the level (0.5 x tail target 1)
-    diff[0, 14:21, 14:21] = np.sqrt(1000 * 50.0)  # ratio 50: 100 x the level
+    diff[0, 2:9, 2:9] = np.sqrt(1000 * 1.2)  # ratio 1.2: just over the level (ADAPTIVE_SELECT x tail target 1; pooled
+    # over 3x3 its edge rows read 0.8)
+    diff[0, 14:21, 14:21] = np.sqrt(1000 * 50.0)  # ratio 50: 70-100 x the level
     k_e = np.ones(1)
     args = (diff, signal, k_e, [(0,)], 1e9, 1e9, 1.0)
     tiers = tail_pixels(*args, 256)
@@ -134,8 +135,10 @@ def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
         assert (given[p] == 0).all()  # each pixel in one tier
         given[p] = f
     given = given.reshape(H, W)
-    assert given[5, 5] == floor and given[17, 17] == 128  # the centres: the low region raised to the floor
-    assert given[1, 5] == floor and given[13, 14] == 128  # outside each region, its neighbour's factor
+    asks = lambda ratio: 2 ** int(np.ceil(np.log2(ratio / ADAPTIVE_SELECT)))  # noqa: E731  (the power of two a ratio asks)
+    assert given[5, 5] == floor and given[17, 17] == asks(50.0) == 128  # the centres: the low region raised to the floor
+    # outside each region, its neighbour's factor (the high region's edge pooled over 3x3: 6 of 9 at 50)
+    assert given[1, 5] == floor and given[13, 14] == asks(50.0 * 6 / 9)
     assert given[11, 11] == 0 and given[0, 23] == 0  # far from both: not refined
     low_high = set(np.flatnonzero(given).tolist())
     one = tail_pixels(*args, floor)
