@@ -24,6 +24,8 @@ from golden_cases import (
     within,
 )
 
+from mbcapture.errors import EnvironmentProblem
+from mbcapture.render import llvm
 from mbcapture.sensor.cfa import BAYER_PATTERNS, to_mosaic
 
 GOLDEN_DIR = Path(__file__).resolve().parent / "golden"
@@ -210,3 +212,12 @@ class Golden:
 @pytest.fixture(scope="session")
 def golden(request) -> Golden:
     return Golden(request.config.getoption("--regen-golden"))
+
+
+@pytest.fixture(scope="module")
+def mitsuba_ready():
+    """Skip a rendering test where no usable libLLVM is installed (mbcapture.render.llvm)."""
+    try:
+        llvm.ensure_llvm()
+    except EnvironmentProblem as exc:
+        pytest.skip(str(exc))

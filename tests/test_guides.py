@@ -5,20 +5,11 @@ reflects (integrator.guided_lambertian)."""
 import numpy as np
 import pytest
 
-from mbcapture.errors import ConfigError, EnvironmentProblem
-from mbcapture.render import llvm
+from mbcapture.errors import ConfigError
 from mbcapture.render.build import Guide, Light, Material, SceneBuild, Shape, frame_towards, rotate, scale, translate
 from mbcapture.scenes import Camera, SceneModel, load_module, make_scene
 
 W, H = 24, 16
-
-
-@pytest.fixture(scope="module")
-def mitsuba_ready():
-    try:
-        llvm.ensure_llvm()
-    except EnvironmentProblem as exc:
-        pytest.skip(str(exc))
 
 
 def _patch_scene(distance_m: float) -> SceneModel:

@@ -105,14 +105,6 @@ def test_import_render_does_not_import_mitsuba():
 render = pytest.mark.render
 
 
-@pytest.fixture(scope="module")
-def mitsuba_ready():
-    try:
-        llvm.ensure_llvm()
-    except EnvironmentProblem as exc:
-        pytest.skip(str(exc))
-
-
 def _metronome(**kw) -> SceneModel:
     mod = load_module("metronome")
     return make_scene("metronome", mod.Params(**kw))
