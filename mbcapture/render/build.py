@@ -32,6 +32,11 @@ frame, and ``SceneBuild.parts[name](t_s)`` gives the part's world-from-part matr
 time ``t_s`` (s). Non-emitting shapes of a part become one Mitsuba ``shapegroup`` + ``instance``;
 emitting shapes of a part (``rectangle``, ``disk``, ``sphere``, ``cylinder`` only) are moved
 through their own ``to_world``. Neither recompiles the render kernel.
+
+Guides: ``SceneBuild.guides`` are spheres (:class:`Guide`) around small, brightly lit patches that are
+not lights, such as the top of a lamp's stand just under its bulb; the path tracer sends
+``render.guide_fraction`` of every bounce towards them (unbiased), so their light stops arriving as rare
+fireflies. A scene declares them where it knows such a patch.
 """
 
 from __future__ import annotations
