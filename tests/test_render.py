@@ -133,8 +133,11 @@ def test_flatfield_is_exact(mitsuba_ready):
 
 
 @render
-def test_group_images_sum_to_path_traced_image(mitsuba_ready):
-    """Sum over groups of the one-pass integrator == Mitsuba's 'path' (unbiased, same depth).
+@pytest.mark.parametrize("guide_fraction", [0.0, 0.3])
+def test_group_images_sum_to_path_traced_image(mitsuba_ready, guide_fraction):
+    """Sum over groups of the one-pass integrator == Mitsuba's 'path' (unbiased, same depth), with and
+    without the metronome's guide (render.guide_fraction; 0.3, well above the default, so that a wrong
+    mixture density would show).
 
     K seeds of each; per 4x4-pixel block and channel, the difference of the replicate means
     is compared with its standard error: a Welch t statistic with about 2 (K - 1) degrees of
@@ -145,7 +148,7 @@ def test_group_images_sum_to_path_traced_image(mitsuba_ready):
 
     from mbcapture.render import Renderer
 
-    r = Renderer(_metronome(), 32, 24)
+    r = Renderer(_metronome(), 32, 24, guide_fraction=guide_fraction)
     k, spp = 12, 16
     mine = np.stack([r.render(0.05, spp, seed=100 + i).sum(axis=0) for i in range(k)])
     ref = np.stack([r.render_path(0.05, spp, seed=200 + i) for i in range(k)])
