@@ -384,7 +384,6 @@ def main() -> None:
     # what the guides cost per sample (render.guide_fraction, the scene's guides): the same render with and
     # without them, alternating, the fastest of each (the pipeline's figures above include them)
     if renderer.guide_fraction:
-        renderer.render(t_mid, args.spp, 0)  # the guided kernel is compiled above; this compiles nothing
         guided = renderer._integrator.guides
         best = {"guided": float("inf"), "plain": float("inf")}
         for _ in range(max(args.repeats, 3)):
