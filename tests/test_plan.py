@@ -351,6 +351,92 @@ class FakeRenderer:
                          for g in groups]).astype(np.float32)
 
 
+class BlockRenderer(FakeRenderer):
+    """:class:`FakeRenderer` that also renders listed pixels (the pilot's blocks): the same pixels' values
+    as its film, from the same seed."""
+
+    renders_pixels = True
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.pixel_calls = []
+
+    def render_pixels(self, t_s, spp, seed, groups, pixels, pattern=None, cached=False):
+        self.pixel_calls.append(np.asarray(pixels).copy())
+        film = FakeRenderer.render(self, t_s, spp, seed, groups, pattern)
+        self.calls.pop()  # counted as a render of pixels, not of the film
+        return film.reshape(len(groups), -1, 3)[:, np.asarray(pixels)]
+
+
+def test_the_block_mosaic_pools_each_block_at_its_centre():
+    """The pilot on blocks lays them side by side: the 3x3 window of each block's centre in the mosaic is
+    that block, so pooled() there is the block's mean, and the centres are the only samples it counts."""
+    from mbcapture.budget import block_mosaic, block_pixels, mosaic_centres, pooled
+
+    rng = np.random.default_rng(3)
+    H, W = 30, 40
+    film = rng.random((2, H, W, 3))
+    centres = np.array([1 * W + 1, 4 * W + 10, 25 * W + 37, 13 * W + 19])
+    px = block_pixels(centres, W)
+    assert px.shape == (4, 9)
+    mosaic = block_mosaic(film.reshape(2, -1, 3)[:, px.ravel()])
+    assert mosaic.shape == (2, 3, 12, 3)
+    centre = mosaic_centres(4)
+    assert centre.sum() == 4 and centre[1, [1, 4, 7, 10]].all()
+    for i, c in enumerate(centres):
+        y, x = divmod(int(c), W)
+        np.testing.assert_allclose(pooled(mosaic)[:, 1, 3 * i + 1], film[:, y - 1:y + 2, x - 1:x + 2].mean(axis=(1, 2)))
+
+
+def test_a_large_film_is_piloted_on_a_random_sample_of_its_blocks(monkeypatch):
+    """Above 2 x PILOT_BLOCKS lattice blocks the pilot renders PILOT_BLOCKS of them, whole, drawn at random
+    (each at most once), and never the film; the samples it chooses still meet the closed form of
+    test_noise_budget_spp_matches_the_closed_form. 600 blocks: the median of 600 pooled estimates of 9
+    degrees of freedom has a spread of about DECONV_REL_SD / sqrt(600) = 12 % (the deconvolution's own
+    scatter included); rounding up to the ladder adds up to 1.19x below."""
+    from mbcapture import budget
+
+    monkeypatch.setattr(budget, "PILOT_BLOCKS", 600)
+    mu, sigma, k_e, f = 2.0, 3.0, 1e5, 0.1
+    H, W = 72, 96  # 24 x 32 = 768 blocks: whole films up to 1200
+    p0 = plan(point_scene(50.0), timeline(periods=16), spp=None)
+    small = BlockRenderer(p0.groups, {g: mu for g in p0.groups}, {g: sigma for g in p0.groups}, H, W)
+    whole = budget.choose_spp(p0, small, np.full(3, k_e), 1e12, f, 1 << 14, np.random.SeedSequence(5))
+    assert small.pixel_calls == [] and whole.pilot["blocks"] is None and whole.pilot["film_share"] == 1.0
+
+    H, W = 150, 192  # 50 x 64 = 3200 blocks
+    r = BlockRenderer(p0.groups, {g: mu for g in p0.groups}, {g: sigma for g in p0.groups}, H, W)
+    p = budget.choose_spp(p0, r, np.full(3, k_e), 1e12, f, 1 << 14, np.random.SeedSequence(5))
+    assert r.calls == [] and len(r.pixel_calls) == p.pilot["renders"]
+    px = r.pixel_calls[0].reshape(-1, 9)
+    centres = px[:, 4]
+    assert all(np.array_equal(c, r.pixel_calls[0]) for c in r.pixel_calls)  # the same blocks at every count
+    assert p.pilot["blocks"] == 600 == np.unique(centres).size
+    assert p.pilot["film_share"] == pytest.approx(600 * 9 / (H * W), abs=1e-4)
+    y, x = np.divmod(centres, W)
+    assert np.all(y % 3 == 1) and np.all(x % 3 == 1) and y.max() <= H - 2 and x.max() <= W - 2  # the lattice
+    offsets = np.array([-W - 1, -W, -W + 1, -1, 0, 1, W - 1, W, W + 1])  # each block whole, row-major
+    np.testing.assert_array_equal(px - centres[:, None], np.broadcast_to(offsets, px.shape))
+    w = read_weights(p0)
+    ratio = max((k_e**2 * w[:, k] ** 2 * sigma**2 / p.spp).sum() / (k_e * (w[:, k] * mu).sum()) for k in range(4))
+    assert f * 0.88 / 1.19 <= ratio <= f * 1.12
+    # the cost model stands for a pass over the film: a sample of a pixel costs what the film's does
+    assert p.cost["c1_s_per_spp"] > 0
+
+    # a region 20x noisier over 10 % of the film: the 95th percentile binds (as in
+    # test_noise_budget_targets_the_median_and_the_95th_percentile), in the middle of the region's
+    # estimates, which the blocks sample as the film holds them
+    sigma_map = np.ones((H, W))
+    side = int(round(np.sqrt(0.10 * H * W)))
+    sigma_map[20:20 + side, 30:30 + side] = 20.0
+    mu = 20.0
+    r = BlockRenderer(p0.groups, {g: mu for g in p0.groups}, {g: sigma for g in p0.groups}, H, W, sigma_map=sigma_map)
+    p = budget.choose_spp(p0, r, np.full(3, k_e), 1e12, f, 1 << 14, np.random.SeedSequence(5))
+    assert r.calls == [] and p.pilot["blocks"] == 600
+    calm = max((k_e**2 * w[:, k] ** 2 * sigma**2 / p.spp).sum() / (k_e * (w[:, k] * mu).sum()) for k in range(4))
+    assert calm * 400 == pytest.approx(1.0, rel=0.3)
+
+
 def test_naive_plan_renders_every_slot_of_every_period():
     tl = timeline(periods=8)  # photon-efficient HDR: 4 slots per period, each to its own bucket
     scene = point_scene(50.0)

@@ -761,20 +761,37 @@ class Renderer:
         return not self.spectral and self._undistort is None and self._diffraction is None
 
     def render_pixels(self, t_s: float, spp: int, seed: int, groups: Sequence[str], pixels: np.ndarray,
-                      pattern: tuple[int, int] | None = None) -> np.ndarray:
+                      pattern: tuple[int, int] | None = None, cached: bool = False) -> np.ndarray:
         """Radiance of each requested group at the film pixels ``pixels`` (flat indices y * W + x) only,
         ``spp`` samples each: float32 (len(groups), len(pixels), 3), the same estimator as :meth:`render`
         (box filter: the mean over each pixel's area; the lens's falloff and a mono mixture applied), at a
-        cost in proportion to the pixels. Not cached. Written here because Mitsuba renders whole films
+        cost in proportion to the pixels. Written here because Mitsuba renders whole films
         (or crop rectangles): the camera rays of the listed pixels are generated as ``mi.render`` does
         (the sampler seeded over pixels x spp lanes, spp consecutive lanes per pixel, so its
         stratification is per pixel) and each lane's per-group AOVs are summed into its pixel.
         ``pattern`` (key, offset): the samples drawn from the shared pattern as :meth:`render` draws them,
-        so that a pixel's value is the one a whole-film render with that pattern gives it."""
+        so that a pixel's value is the one a whole-film render with that pattern gives it. ``cached``: kept
+        in the render cache under the pixels' digest, as :meth:`render` keeps a film (the pilot's renders,
+        which a run with a warm cache reuses; adaptive sampling's are chosen by the run's own noise)."""
         if not self.renders_pixels:
             raise ConfigError("render_pixels: needs an RGB variant and a lens without distortion or diffraction")
         req = list(groups)
         pix = np.ascontiguousarray(np.asarray(pixels, dtype=np.uint32).ravel())
+        if cached:
+            params = {"spp": int(self.sample_count(spp)), "seed": int(seed) & 0xFFFFFFFF, "groups": req,
+                      "pixels": hashlib.sha256(pix.tobytes()).hexdigest(), "n_pixels": int(pix.size)}
+            if pattern is not None:
+                params["pattern"] = list(_pattern_key(pattern))
+            out = self.cached("pixels", t_s, params, lambda: self._render_pixels(t_s, spp, seed, req, pix, pattern))
+        else:
+            out = self._render_pixels(t_s, spp, seed, req, pix, pattern)
+        if self._falloff is not None:
+            out = out * self._falloff.reshape(-1)[pix][None, :, None]
+        return self._mono_mixed(out)
+
+    def _render_pixels(self, t_s: float, spp: int, seed: int, req: list[str], pix: np.ndarray,
+                       pattern: tuple[int, int] | None) -> np.ndarray:
+        """:meth:`render_pixels` before the lens's falloff and a mono mixture."""
         out = np.zeros((len(req), pix.size, 3), np.float32)
         self._ensure_loaded()  # the emitters of each group are known once the scene is loaded
         lit = [g for g in req if self._group_emitters[g]]
@@ -817,9 +834,7 @@ class Renderer:
         sums = np.asarray(acc, dtype=np.float64).reshape(pix.size, len(lit), 3) / n_spp
         for i, g in enumerate(lit):
             out[req.index(g)] = sums[:, i]
-        if self._falloff is not None:
-            out = out * self._falloff.reshape(-1)[pix][None, :, None]
-        return self._mono_mixed(out)
+        return out
 
     def _set_rows(self, params: Any, rows: tuple[int, int]) -> None:
         """Make the film of the scene whose parameters are ``params`` render rows ``rows`` (a crop window)."""
