@@ -113,10 +113,11 @@ class RenderSection(_Model):
     )
     adaptive: bool = Field(
         False,
-        description="With render.spp null: adaptive sampling (off by default: on the default capture at 640x512 it "
-        "brings every read under the median, p95 and tail targets (the longest read's 99.9th percentile from 2.5 "
-        "to 0.84, measured from two render seeds refining one choice of pixels) and takes 1.3x the time of the "
-        "run without it, 84 s against 62-66 s on 2 cores; docs/noise.md). After the budgeted "
+        description="With render.spp null: adaptive sampling (off by default; on in the default capture, "
+        "configs/metronome_hdr.yaml, where at 640x512 it brings every read under the median, p95 and tail targets (the "
+        "longest read's 99.9th percentile from 2.3 to 0.84, measured from two render seeds refining one choice of "
+        "pixels) and takes 1.3x the time of the run without it, 79-81 s against 60 s on 2 cores; docs/noise.md). "
+        "After the budgeted "
         "pass, the pixels where any read's estimated Monte Carlo / shot-noise ratio exceeds 0.7 x render.noise_budget_tail (and their neighbours) "
         "are rendered again, every stratum, with more samples, and that second pass replaces the first there. "
         "Every chosen pixel gets at least the factor that brings the chosen pixels' 99th percentile to that "

@@ -507,7 +507,7 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
                         offset[h] += int(taken(int(spp_hi)))
                     with stage("refine"):
                         rad = renderer.render_pixels(float(times[j, h, i]), int(spp_hi), int(seeds[j, h, i]), groups_j,
-                                                     pix, pattern=pattern)
+                                                     pix, pattern=pattern, cached=True)
                         share = spp_h / n / len(counts)
                         parts[h] += np.einsum("kg,gpc->kpc", w_j * share, rad.astype(np.float64), optimize=True)
                         if groups_out is not None:

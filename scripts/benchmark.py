@@ -16,7 +16,7 @@
    (--ladder), both measured against a high-spp fine-strata reference (mbcapture.converge);
    the planner's time at the naive point's error is interpolated on its log-log ladder.
 5. The noise budget and the render cache (`make capture`'s config at --budget-film, default
-   640x512): the capture with an empty cache (targets: within the budget, at most 3 minutes on
+   640x512, with its adaptive sampling): the capture with an empty cache (targets: within the budget, at most 3 minutes on
    2 cores), the same again with a sensor change (target: at most 15 s, zero passes rendered),
    and the cost split of each (renders rendered / reused, render seconds / the rest). Against it,
    in the same run: the same capture by the code whose budget judged buckets (BUCKET_BUDGET_COMMIT,
@@ -90,9 +90,13 @@ def equal_error(args) -> None:
 def _budget_line(report: dict) -> str:
     e = report["render_error"]
     b = e.get("budget", {})
+    adaptive = report.get("adaptive") or {}
+    refined = f"; adaptive sampling refined {adaptive['pixels']} pixels" if adaptive.get("pixels") else ""
     return (f"Monte Carlo / shot variance median {e.get('to_shot_noise_variance_median', float('nan')):.3g}, "
             f"p95 {e.get('to_shot_noise_variance_p95', float('nan')):.3g}: {'within' if b.get('met') else 'NOT within'} "
-            f"the budget ({b.get('median_target')} / {b.get('p95_target')})")
+            f"the budget ({b.get('median_target')} / {b.get('p95_target')}); tail (p99.9) "
+            f"{e.get('to_shot_noise_variance_p999', float('nan')):.3g}: {'within' if b.get('tail_met') else 'NOT within'} "
+            f"its target {b.get('tail_target')}{refined}")
 
 
 def _split(seconds: float, report: dict) -> str:

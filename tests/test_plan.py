@@ -182,7 +182,7 @@ def test_the_second_pass_renders_at_times_of_its_own():
     first = integrate(r, p, tl.n_buckets, np.random.SeedSequence(1))
     times = []
 
-    def render_pixels(t_s, spp, seed, groups, pixels, pattern=None):
+    def render_pixels(t_s, spp, seed, groups, pixels, pattern=None, cached=False):
         times.append(t_s)
         return np.ones((len(groups), len(pixels), 3), np.float32)
 
@@ -202,7 +202,7 @@ def test_the_second_pass_renders_at_times_of_its_own():
     times.clear()
     counts, patterns = [], []
 
-    def render_pixels_counted(t_s, spp, seed, groups, pixels, pattern=None):
+    def render_pixels_counted(t_s, spp, seed, groups, pixels, pattern=None, cached=False):
         counts.append(spp)
         patterns.append(pattern)
         return render_pixels(t_s, spp, seed, groups, pixels)

@@ -771,8 +771,8 @@ class Renderer:
         stratification is per pixel) and each lane's per-group AOVs are summed into its pixel.
         ``pattern`` (key, offset): the samples drawn from the shared pattern as :meth:`render` draws them,
         so that a pixel's value is the one a whole-film render with that pattern gives it. ``cached``: kept
-        in the render cache under the pixels' digest, as :meth:`render` keeps a film (the pilot's renders,
-        which a run with a warm cache reuses; adaptive sampling's are chosen by the run's own noise)."""
+        in the render cache under the pixels' digest, as :meth:`render` keeps a film (the pilot's blocks and
+        adaptive sampling's passes, which a run on a warm cache with the same choice of pixels reuses)."""
         if not self.renders_pixels:
             raise ConfigError("render_pixels: needs an RGB variant and a lens without distortion or diffraction")
         req = list(groups)
