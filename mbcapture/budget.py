@@ -81,9 +81,10 @@ def _timed_render(renderer, t_s: float, spp: int, seed: int, groups) -> tuple[np
 
 #: The most of the film's 3x3 lattice blocks the pilot renders (:func:`pilot_blocks`): a film with more
 #: than twice as many is piloted on this many of them, drawn at random, whole films below. The pilot
-#: judges quantiles over the film, which a random sample of its blocks estimates as well as the film
-#: does: the deconvolved median's relative error is DECONV_REL_SD / sqrt(blocks), 3 % here. At 640x512
-#: (36 k blocks) this is a quarter of the film, and the pilot took 7.5 s of the default capture's 64 s.
+#: judges quantiles over the film, which a random sample of its blocks estimates without bias (the
+#: deconvolved median's relative error at most DECONV_REL_SD / sqrt(blocks), 3 % here). At 640x512
+#: (36 k blocks) this is a quarter of the film: the pilot took 7.5 s of the default capture's 64 s and
+#: takes 1.6 s, and the samples it asks for scatter twice as far (sd 5 % against 2.5 %; docs/noise.md).
 PILOT_BLOCKS = 8192
 
 

@@ -133,11 +133,14 @@ def test_flatfield_is_exact(mitsuba_ready):
 
 
 @render
-@pytest.mark.parametrize("guide_fraction", [0.0, 0.3])
-def test_group_images_sum_to_path_traced_image(mitsuba_ready, guide_fraction):
+@pytest.mark.parametrize("guide_fraction, max_depth", [(0.0, 4), (0.3, 4), (0.0, 2)])
+def test_group_images_sum_to_path_traced_image(mitsuba_ready, guide_fraction, max_depth):
     """Sum over groups of the one-pass integrator == Mitsuba's 'path' (unbiased, same depth), with and
     without the metronome's guide (render.guide_fraction; 0.3, well above the default, so that a wrong
-    mixture density would show).
+    mixture density would show). At max_depth 2 every path ends at its first vertex, whose light the
+    integrator then samples alone (the Lambertian scene's last vertex): there the soft box's light that
+    the BSDF's samples would have found under MIS is a large share, and weighting the light samples by
+    MIS without those BSDF samples would lose it.
 
     K seeds of each; per 4x4-pixel block and channel, the difference of the replicate means
     is compared with its standard error: a Welch t statistic with about 2 (K - 1) degrees of
@@ -148,7 +151,7 @@ def test_group_images_sum_to_path_traced_image(mitsuba_ready, guide_fraction):
 
     from mbcapture.render import Renderer
 
-    r = Renderer(_metronome(), 32, 24, guide_fraction=guide_fraction)
+    r = Renderer(_metronome(), 32, 24, guide_fraction=guide_fraction, max_depth=max_depth)
     k, spp = 12, 16
     mine = np.stack([r.render(0.05, spp, seed=100 + i).sum(axis=0) for i in range(k)])
     ref = np.stack([r.render_path(0.05, spp, seed=200 + i) for i in range(k)])

@@ -13,6 +13,12 @@ its own three channels in one pass over the same paths:
 * BSDF-sampled rays that hit an emitter are attributed to that emitter's group, weighted by
   the power heuristic against that emitter's own ``pdf_direction`` (its selection probability
   is 1). Emitters seen directly from the camera get weight 1.
+* in Lambertian scenes the path ends at its last vertex that samples light (segment
+  ``max_depth - 1``), whose light is then estimated by next-event estimation alone, with weight 1:
+  its BSDF-sampled continuation could only have collected emission, at the cost of one more
+  intersection per path, and for a Lambertian BSDF light sampling alone is unbiased and nearly as
+  good (measured on the metronome at 320x256, 8 pattern keys: the same per-pixel variance to 0.2 %
+  at every quantile, 0.914x the time). Other BSDFs keep that bounce (a mirror needs it).
 * where the scene declares guides (spheres around small, brightly lit patches that are not
   emitters, :class:`mbcapture.render.build.Guide`) and ``render.guide_fraction`` > 0, that share of
   every Lambertian bounce goes into the cone towards a guide, weighted by the mixture's density
@@ -251,6 +257,9 @@ def integrator_class(variant: str) -> type:
             #: ((centre xyz, radius, share), ...): the spheres around bright reflectors that a share of the
             #: bounces is sent towards (:func:`guided_lambertian`); Lambertian scenes only. Set by the renderer.
             self.guides: tuple = ()
+            #: Whether the path ends at its last vertex that samples light, estimated by light sampling alone
+            #: (Lambertian scenes; see the module doc). Set by the renderer with :attr:`lambertian`.
+            self.light_alone_at_last: bool = False
 
         def set_groups(self, names: Sequence[str], emitters: Sequence[Sequence[Any]]) -> None:
             """Choose the groups to render: ``emitters[g]`` are the emitters of ``names[g]``."""
@@ -359,6 +368,10 @@ def integrator_class(variant: str) -> type:
 
                 # the last vertex only collects emission
                 active_next = active & si.is_valid() & (depth + 1 < max_depth)
+                # The last vertex that samples light: its bounce could only collect emission, at a whole
+                # intersection's cost. With Lambertian BSDFs light sampling alone estimates that light (MIS
+                # weight 1) and the path ends there; a delta BSDF needs the bounce (general_shading).
+                last = (depth + 2 >= max_depth) if self.light_alone_at_last else mi.Bool(False)
                 bsdf = si.bsdf(ray)
                 flags = bsdf.flags()
                 eval_pdf, sample_bsdf = shading(ctx, bsdf, flags, si, active_next, guides)
@@ -381,7 +394,7 @@ def integrator_class(variant: str) -> type:
                         # 640x512 (three shadow rays per vertex are 40 % of the kernel's time)
                         ok &= dr.any(bsdf_val * em_weight != 0.0)
                         ok &= ~scene.ray_test(si.spawn_ray_to(ds_em.p), ok)
-                        w = dr.select(ds_em.delta, 1.0, mis_power(ds_em.pdf, bsdf_pdf))
+                        w = dr.select(ds_em.delta | last, 1.0, mis_power(ds_em.pdf, bsdf_pdf))
                         acc = acc + dr.select(ok, throughput * bsdf_val * em_weight * w, 0.0)
                     nee_terms.append(acc)
                 result = tuple(nee_terms)
@@ -396,7 +409,7 @@ def integrator_class(variant: str) -> type:
                 prev_si = si
                 prev_bsdf_pdf = pdf_bsdf
                 prev_bsdf_delta = delta_bsdf
-                active = active_next & (dr.max(throughput) > 0.0)
+                active = active_next & ~last & (dr.max(throughput) > 0.0)
                 depth += 1
 
             total = mi.Spectrum(0.0)

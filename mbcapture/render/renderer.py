@@ -327,6 +327,7 @@ class Renderer:
                 self._group_scenes[g] = (sc, mi.traverse(sc), self._collect_emitters(sc)[g])
         self._integrator.lambertian = all(is_lambertian(sc) for sc in
                                           [self._scene, *(v[0] for v in self._group_scenes.values())])
+        self._integrator.light_alone_at_last = self._integrator.lambertian
         self._integrator.guides = self._guides()
         self._loaded = True
 
