@@ -116,7 +116,7 @@ class RenderSection(_Model):
         description="With render.spp null: adaptive sampling (off by default; on in the default capture, "
         "configs/metronome_hdr.yaml, where at 640x512 it brings every read under the median, p95 and tail targets (the "
         "longest read's 99.9th percentile from 2.3 to 0.84, measured from two render seeds refining one choice of "
-        "pixels) and takes 1.3x the time of the run without it, 79-81 s against 60 s on 2 cores; docs/noise.md). "
+        "pixels) and takes 1.4x the time of the run without it, 73 s against 52 s on 2 cores; docs/noise.md). "
         "After the budgeted "
         "pass, the pixels where any read's estimated Monte Carlo / shot-noise ratio exceeds 0.7 x render.noise_budget_tail (and their neighbours) "
         "are rendered again, every stratum, with more samples, and that second pass replaces the first there. "
@@ -156,7 +156,8 @@ class RenderSection(_Model):
         description="'motion': time strata from image motion (one render per stratum); 'naive': one render per collecting slot of every period (the baseline of `mbcapture converge`).",
     )
     variant: str = Field("llvm_ad_rgb", description="Mitsuba variant: llvm_ad_rgb on CPU, cuda_ad_rgb where a GPU exists; llvm_ad_spectral / cuda_ad_spectral apply sensor.spectral_response exactly (spectral mode).")
-    max_depth: int = Field(4, ge=1, le=64, description="Path length limit of the per-group path tracer (1 = emitters seen directly only).")
+    max_depth: int = Field(4, ge=1, le=64, description="Path length limit of the per-group path tracer, in segments (1 = emitters seen directly only, 2 adds direct light, each more one more bounce). In Lambertian scenes a path ends at the vertex that ends its segment max_depth - 1, whose light it estimates by light sampling alone: the bounce from there could only have "
+        "collected emission (unbiased; 0.91x the time on the default capture, docs/noise.md).")
     sampler: Literal["multijitter", "ldsampler", "independent"] = Field(
         "multijitter",
         description="Mitsuba sample generator. 'multijitter' (correlated multi-jittered, Kensler 2013; any count) and "
