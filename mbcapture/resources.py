@@ -15,7 +15,8 @@ The model counts the arrays the pipeline holds, per sample of the film (row x co
   ``App.output_channels``) and the PNG previews, each at the compression ZIP and PNG reach on such
   images (``EXR_RATIO_*``, ``PNG_RATIO``).
 * render cache: one float32 (group, row, column, RGB) array per render (two halves per stratum,
-  and the pilot's), when the cache is on.
+  and the pilot's), when the cache is on; an upper bound, since a large film's pilot and adaptive
+  sampling's renders (cached too) hold only some of the film's pixels.
 
 Tiles (``render.tiles``, :func:`choose_tiles`): render, accumulation and the sensor stage go
 through the film a tile of rows at a time, so their working set scales with the largest tile
