@@ -157,6 +157,31 @@ def test_changes_downstream_of_the_render_render_nothing_and_give_the_same_image
 
 
 @pytest.mark.render
+def test_a_pilot_on_blocks_and_adaptive_sampling_are_cached_too(tmp_path, monkeypatch):
+    """The renders of listed pixels (the pilot's blocks, adaptive sampling's passes) are kept under
+    their pixels' digest: a sensor change on the warm cache renders nothing and gives the same exposure.
+    The pilot is on blocks at this film (20 of them) with PILOT_BLOCKS at 8; a tail target of 0.01
+    makes adaptive sampling refine pixels."""
+    from mbcapture import budget
+    from mbcapture.render import Renderer
+
+    monkeypatch.setattr(budget, "PILOT_BLOCKS", 8)
+    made = []  # every render of listed pixels this process makes, cached or not
+    render_pixels = Renderer._render_pixels
+    monkeypatch.setattr(Renderer, "_render_pixels", lambda self, *a: made.append(a) or render_pixels(self, *a))
+    budgeted = ["render.spp=null", "render.max_spp=32", "render.adaptive=true", "render.noise_budget_tail=0.01"]
+    first = _run(tmp_path, *budgeted)
+    kinds = first.report["render_cache"]["by_kind"]
+    assert first.report["plan"]["pilot"]["blocks"] == 8 and first.report["adaptive"]["pixels"] > 0
+    assert kinds["pixels"]["rendered"] == len(made) > first.report["plan"]["pilot"]["renders"]
+    made.clear()
+    again = _run(tmp_path, *budgeted, "sensor.read_noise_e=5")
+    assert again.report["render_cache"]["rendered"] == 0 and made == []
+    assert again.report["render_cache"]["by_kind"]["pixels"]["hits"] == kinds["pixels"]["rendered"]
+    np.testing.assert_array_equal(again.bucket_exposure, first.bucket_exposure)
+
+
+@pytest.mark.render
 @pytest.mark.parametrize("change", ["seed=2", "render.spp=6", "render.max_depth=2", "render.sampler=independent",
                                     "scene.amplitude_deg=25", "render.width=18"])
 def test_changes_that_determine_a_render_render_again(tmp_path, change):
