@@ -67,16 +67,21 @@ def _pilot_indices(plan: Plan) -> np.ndarray:
     return np.unique(np.linspace(0, plan.passes - 1, min(PILOT_TIMES, plan.passes)).round().astype(int))
 
 
-def _timed_render(renderer, t_s: float, spp: int, seed: int, groups) -> tuple[np.ndarray, float]:
-    """One render and its seconds, the scene update included: every pass of a run moves the
-    geometry (and rebuilds the acceleration structure) before it renders."""
+def _timed(renderer, t_s: float, make: Callable[[], np.ndarray]) -> tuple[np.ndarray, float]:
+    """``make()`` (a render at ``t_s``) as float64 and its seconds, the scene update included: every pass
+    of a run moves the geometry (and rebuilds the acceleration structure) before it renders."""
     t0 = time.perf_counter()
     renderer.set_time(float(t_s), force=True)
-    img = renderer.render(float(t_s), int(spp), int(seed), groups)
+    img = make()
     seconds = time.perf_counter() - t0
     if getattr(renderer, "last_cached", False):  # from the render cache: the seconds it took when made
         seconds = renderer.last_render_s
     return img.astype(np.float64), seconds
+
+
+def _timed_render(renderer, t_s: float, spp: int, seed: int, groups) -> tuple[np.ndarray, float]:
+    """One render of the film and its seconds (:func:`_timed`)."""
+    return _timed(renderer, t_s, lambda: renderer.render(float(t_s), int(spp), int(seed), groups))
 
 
 #: The most of the film's 3x3 lattice blocks the pilot renders (:func:`pilot_blocks`): a film with more
@@ -128,13 +133,9 @@ def mosaic_centres(blocks: int) -> np.ndarray:
 def _timed_pixels(renderer, t_s: float, spp: int, seed: int, groups, pixels: np.ndarray) -> tuple[np.ndarray, float]:
     """:func:`_timed_render` of the pilot's blocks (``pixels`` from :func:`block_pixels`): their
     :func:`block_mosaic` and its seconds."""
-    t0 = time.perf_counter()
-    renderer.set_time(float(t_s), force=True)
-    values = renderer.render_pixels(float(t_s), int(spp), int(seed), groups, pixels.ravel(), cached=True)
-    seconds = time.perf_counter() - t0
-    if getattr(renderer, "last_cached", False):
-        seconds = renderer.last_render_s
-    return block_mosaic(values.astype(np.float64)), seconds
+    values, seconds = _timed(renderer, t_s, lambda: renderer.render_pixels(float(t_s), int(spp), int(seed), groups,
+                                                                           pixels.ravel(), cached=True))
+    return block_mosaic(values), seconds
 
 
 def _cost_model(pairs: list[tuple[float, float]], first_s: float, accumulate_s: float,

@@ -142,13 +142,19 @@ def test_every_golden_image_has_a_measured_cross_target_spread():
             f"{path.name} was regenerated after its spread was measured: run python scripts/golden_spread.py"
 
 
+def _golden_spread():
+    """scripts/golden_spread.py as a module (scripts are not a package)."""
+    spec = importlib.util.spec_from_file_location("golden_spread", ROOT / "scripts" / "golden_spread.py")
+    gs = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gs)
+    return gs
+
+
 def test_spreads_from_another_host_keep_the_larger_difference_and_name_the_host():
     """scripts/golden_spread.py's merge: each image at the larger difference of the two files; a host is
     its CPU and its native target (two virtual Xeons of one name were a Rocket Lake and a Sapphire
     Rapids), so another target under the same name is kept and the same one is replaced."""
-    spec = importlib.util.spec_from_file_location("golden_spread", ROOT / "scripts" / "golden_spread.py")
-    gs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gs)
+    gs = _golden_spread()
     diff = {"rel_l2": 1e-5, "flips": 2, "nonfinite": 0, "nonfinite_kind": 0, "max_abs": 1.0}
     xeon = "Intel(R) Xeon(R) Processor"
     doc = {"hosts": [{"cpu": xeon, "native_target": "sapphirerapids 16", "targets": ["native", "haswell"]}],
@@ -167,9 +173,7 @@ def test_a_partial_run_keeps_each_hosts_record_of_the_other_cases():
     """Regenerated goldens of some cases, measured again on this host only: this host's earlier record of the
     other cases stays, and another host's record of the regenerated ones says it was carried over from
     their earlier goldens (its spreads kept), while its record of the others stays as it was."""
-    spec = importlib.util.spec_from_file_location("golden_spread", ROOT / "scripts" / "golden_spread.py")
-    gs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gs)
+    gs = _golden_spread()
     diff = {"rel_l2": 1e-5, "flips": 2, "nonfinite": 0, "nonfinite_kind": 0, "max_abs": 1.0}
     amd, xeon = ("AMD EPYC", "znver5 16"), ("Intel(R) Xeon(R) Processor", "sapphirerapids 16")
     host = lambda cpu, **kw: {"cpu": cpu[0], "native_target": cpu[1], "targets": ["native"], **kw}  # noqa: E731

@@ -206,11 +206,11 @@ def guided_lambertian(si, albedo, side, guides):
     def sample(u1, u2, ok):
         lo = mi.Float(0.0)
         wo = mi.Vector3f(0.0)
+        sin_p, cos_p = dr.sincos(dr.two_pi * u2.y)  # the azimuth about every cone's axis
         for axis, sin2, one_minus, eps in cones:
             pick = (u2.x >= lo) & (u2.x < lo + eps)
             om = (u2.x - lo) / dr.maximum(eps, 1e-30) * one_minus  # 1 - cos, uniform in [0, 1 - cos max)
             sin_t = dr.safe_sqrt(om * (2.0 - om))
-            sin_p, cos_p = dr.sincos(dr.two_pi * u2.y)
             d = mi.Frame3f(axis).to_world(mi.Vector3f(cos_p * sin_t, sin_p * sin_t, 1.0 - om))
             wo = dr.select(pick, d, wo)
             lo = lo + eps

@@ -745,15 +745,21 @@ class Renderer:
         diffraction and mono mixture (what :meth:`give` takes)."""
         req = list(groups)
         n = self.sample_count(spp)
-        params = {"spp": int(n), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
-        if pattern is not None:  # without one, the key renders have always had
-            params["pattern"] = list(_pattern_key(pattern))
+        params = self._cache_params(n, seed, req, pattern)
         if len(self.bands) == 1:  # the whole film: the key it has always had
             return self.cached("radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), req, None, pattern))
         rows = self.bands[band]
         params["rows"] = list(rows)
         return self.cached("radiance", t_s, params,
                            lambda: self._render(t_s, int(n), band_seed(seed, band), req, rows, pattern))
+
+    @staticmethod
+    def _cache_params(n: int, seed: int, req: list[str], pattern: tuple[int, int] | None) -> dict[str, Any]:
+        """The part of a render's cache key its call gives: samples taken, seed, groups and pattern."""
+        params: dict[str, Any] = {"spp": int(n), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
+        if pattern is not None:  # without one, the key renders have always had
+            params["pattern"] = list(_pattern_key(pattern))
+        return params
 
     @property
     def renders_pixels(self) -> bool:
@@ -779,10 +785,8 @@ class Renderer:
         req = list(groups)
         pix = np.ascontiguousarray(np.asarray(pixels, dtype=np.uint32).ravel())
         if cached:
-            params = {"spp": int(self.sample_count(spp)), "seed": int(seed) & 0xFFFFFFFF, "groups": req,
+            params = {**self._cache_params(self.sample_count(spp), seed, req, pattern),
                       "pixels": hashlib.sha256(pix.tobytes()).hexdigest(), "n_pixels": int(pix.size)}
-            if pattern is not None:
-                params["pattern"] = list(_pattern_key(pattern))
             out = self.cached("pixels", t_s, params, lambda: self._render_pixels(t_s, spp, seed, req, pix, pattern))
         else:
             out = self._render_pixels(t_s, spp, seed, req, pix, pattern)
