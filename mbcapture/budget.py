@@ -54,7 +54,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .integrate import ErrorSample, accumulate
+from .integrate import accumulate
 from .plan import Plan
 from .sensor import electrons_per_render_second
 
@@ -313,9 +313,9 @@ DECONV_RANGE_VALUES = 1 << 20
 DECONV_REL_SD = 3.0
 
 
-def deconvolved_median(ratio: np.ndarray, dof: float, weight: np.ndarray | None = None) -> float:
-    """The median of the true ratios behind noisy pooled estimates ``ratio`` (1-D, >= 0; ``weight``
-    per value, None: 1 each), each the true ratio times an independent chi^2_dof / dof.
+def deconvolved_median(ratio: np.ndarray, dof: float) -> float:
+    """The median of the true ratios behind noisy pooled estimates ``ratio`` (1-D, >= 0), each the true
+    ratio times an independent chi^2_dof / dof.
 
     Dividing the estimates' median by :func:`chi2_median_factor` is right only where every estimate
     has the same true ratio. Over a film the true ratios spread (walls, edges, shadows), and the
@@ -329,12 +329,10 @@ def deconvolved_median(ratio: np.ndarray, dof: float, weight: np.ndarray | None 
     from scipy.stats import chi2
 
     r = np.asarray(ratio, dtype=np.float64).ravel()
-    w = None if weight is None else np.asarray(weight, dtype=np.float64).ravel()
-    total = float(r.size if w is None else w.sum())
-    if r.size == 0 or not total > 0:
+    if r.size == 0:
         raise ValueError("deconvolved_median: no values")
     pos = r > 0.0
-    zero_share = float((~pos).sum() if w is None else w[~pos].sum()) / total
+    zero_share = float((~pos).sum()) / r.size
     if zero_share >= 0.5 or not pos.any():
         return 0.0
     # the histogram spans the middle 99.8 % of the positive estimates (what lies beyond is put in its end
@@ -351,7 +349,7 @@ def deconvolved_median(ratio: np.ndarray, dof: float, weight: np.ndarray | None 
         sel = pos[a:a + DECONV_RANGE_VALUES]
         lr = np.log(np.clip(r[a:a + DECONV_RANGE_VALUES][sel], np.exp(lo), np.exp(hi)))
         idx = np.clip(((lr - edges[0]) / step).astype(np.int64), 0, centres.size - 1)
-        h += np.bincount(idx, weights=None if w is None else w[a:a + DECONV_RANGE_VALUES][sel], minlength=centres.size)
+        h += np.bincount(idx, minlength=centres.size)
     h /= h.sum()
     # kernel[i, j]: the chance that an estimate falls in bin i when its true ratio is at centre j
     kernel = np.diff(chi2.cdf(dof * np.exp(edges[:, None] - centres[None, :]), dof), axis=0)
@@ -382,23 +380,20 @@ def interval_z() -> float:
     return float(norm.ppf(0.5 + INTERVAL_COVERAGE / 2))
 
 
-def effective_count(n: int, weight: np.ndarray | None = None, design: "np.ndarray | float" = 1.0) -> float:
-    """Kish's effective count of ``n`` values with weights ``weight`` (None: 1 each) and ``design`` d the
-    number of values that share their data: (sum w)^2 / sum(w^2 d)."""
+def effective_count(n: int, design: "np.ndarray | float" = 1.0) -> float:
+    """Kish's effective count of ``n`` values with ``design`` d the number of values that share their
+    data: n^2 / sum(d)."""
     d = np.broadcast_to(np.asarray(design, np.float64), (n,))
-    if weight is None:
-        return n**2 / float(d.sum())
-    w = np.asarray(weight, np.float64).ravel()
-    return float(w.sum() ** 2 / (w**2 * d).sum())
+    return n**2 / float(d.sum())
 
 
-def quantiles_with_intervals(values: np.ndarray, percents: "list[float]", weight: np.ndarray | None = None,
+def quantiles_with_intervals(values: np.ndarray, percents: "list[float]",
                              design: "np.ndarray | float" = 1.0) -> list[tuple[float, float, float]]:
-    """(estimate, low, high) of each percentile in ``percents`` of ``values`` (1-D), weighted by
-    ``weight`` (None: 1 each), with an :data:`INTERVAL_COVERAGE` interval from the order statistics.
+    """(estimate, low, high) of each percentile in ``percents`` of ``values`` (1-D), with an
+    :data:`INTERVAL_COVERAGE` interval from the order statistics.
 
     The share of the values below a point is a mean of indicators, so its standard error is
-    sqrt(p (1 - p) / n_eff), with Kish's effective count n_eff = (sum w)^2 / sum(w^2 d) and ``design``
+    sqrt(p (1 - p) / n_eff), with Kish's effective count n_eff = n^2 / sum(d) and ``design``
     d the number of values that share their data (a pooled 3x3 estimate shares its renders with its
     neighbours, a pixel's channels their paths): the interval is the values at p -/+ z x that error.
     The estimate is the inverted empirical CDF (the smallest value whose share reaches p). What it
@@ -410,19 +405,12 @@ def quantiles_with_intervals(values: np.ndarray, percents: "list[float]", weight
         raise ValueError("quantiles_with_intervals: no values")
     z = interval_z()
     probs = np.asarray(percents, np.float64) / 100.0
-    n_eff = effective_count(v.size, weight, design)
-    w = None if weight is None else np.asarray(weight, np.float64).ravel()
+    n_eff = effective_count(v.size, design)
     se = np.sqrt(probs * (1 - probs) / n_eff)
     wanted = np.clip(np.stack([probs, probs - z * se, probs + z * se], -1), 0.0, 1.0)  # (len(percents), 3)
-    if weight is None:  # rank of the inverted CDF: O(n) by partition (a 12 MP film's read is 36 M values)
-        ranks = np.clip(np.ceil(wanted * v.size).astype(np.int64) - 1, 0, v.size - 1)
-        part = np.partition(v, np.unique(ranks))
-        picked = part[ranks]
-    else:
-        order = np.argsort(v, kind="stable")
-        cw = np.cumsum(w[order])
-        idx = np.clip(np.searchsorted(cw, wanted * cw[-1], side="left"), 0, v.size - 1)
-        picked = v[order][idx]
+    # rank of the inverted CDF: O(n) by partition (a 12 MP film's read is 36 M values)
+    ranks = np.clip(np.ceil(wanted * v.size).astype(np.int64) - 1, 0, v.size - 1)
+    picked = np.partition(v, np.unique(ranks))[ranks]
     return [(float(e), float(lo), float(hi)) for e, lo, hi in picked]
 
 
@@ -706,7 +694,7 @@ def render_error(
     mc_diff_exposure: np.ndarray | None, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
     reads: list[tuple[int, ...]], read_names: list[str], full_well_e: float, fd_full_well_e: float | None = None,
     *, plan: Plan | None = None, noise_budget: float = 0.1, noise_budget_p95: float = 1.0,
-    noise_budget_tail: float = 1.0, sample: ErrorSample | None = None,
+    noise_budget_tail: float = 1.0,
 ) -> dict:
     """The run's own estimate of its Monte Carlo rendering error on every read the sensor outputs,
     from two half-sample renders, and whether it is within the noise budget.
@@ -724,9 +712,7 @@ def render_error(
     pooled estimates are conservative there, as their own chi-square spread with 9 degrees of freedom
     alone puts the 99.9th percentile of a uniform ratio at 3.1 x its value) and the share of samples
     above 10. Each quantile comes with its :data:`INTERVAL_COVERAGE` interval
-    (:func:`quantiles_with_intervals`; ``*_interval``). After adaptive sampling (``sample``, an
-    :class:`~mbcapture.integrate.ErrorSample`) the refined pixels count once each and the unrefined
-    ones through their audit blocks, weighted. ``reads``: each read's figures; ``deciding_read``: the read furthest over (or
+    (:func:`quantiles_with_intervals`; ``*_interval``). ``reads``: each read's figures; ``deciding_read``: the read furthest over (or
     closest to) its targets, whose figures are repeated at the top level. ``budget``: the targets,
     whether each is met on every read, and if the median or p95 is not, the samples per pixel that
     would meet them (scaled as 1/spp, which randomized quasi-Monte Carlo beats: an upper bound).
@@ -746,42 +732,30 @@ def render_error(
         var_e *= k_e**2
         samples = int(use.sum())
         channels = use.shape[-1]
-        weight, design = None, float(POOL_PX**2 * channels)  # a pooled estimate shares its renders with 3x3 x C
-        if sample is not None:
-            w = np.broadcast_to(sample.weight[..., None], use.shape)
-            use = use & (w > 0)
-            if not use.any():
-                continue
-            weight = w[use]
-            design = np.where(np.broadcast_to(sample.independent[..., None], use.shape)[use], channels, design)
+        design = float(POOL_PX**2 * channels)  # a pooled estimate shares its renders with 3x3 x C
         var_e, signal = var_e[use], signal[use]  # the samples that count, the read's whole arrays let go
         ratio = var_e / signal
         (median, *median_iv), (p95, *p95_iv), (tail, *tail_iv) = quantiles_with_intervals(
-            ratio, [50.0, 95.0, TAIL_QUANTILE], weight, design)
+            ratio, [50.0, 95.0, TAIL_QUANTILE], design)
         # the median of the true ratios behind the noisy estimates (deconvolved_median); its interval is
         # the estimates' median's, moved by the same factor
-        true_median = deconvolved_median(ratio, dof, weight)
+        true_median = deconvolved_median(ratio, dof)
         factor = median / true_median if median > 0 and true_median > 0 else chi2_median_factor(dof)
         median, median_iv = median / factor, [m / factor for m in median_iv]
         # the deconvolution's own scatter (DECONV_REL_SD), which the order statistics do not hold
-        half = interval_z() * DECONV_REL_SD / np.sqrt(
-            effective_count(ratio.size, weight, design))
+        half = interval_z() * DECONV_REL_SD / np.sqrt(effective_count(ratio.size, design))
         median_iv = [min(median_iv[0], median * (1.0 - half)), max(median_iv[1], median * (1.0 + half))]
-
-        def mean(a: np.ndarray) -> float:  # over the film: weighted after adaptive sampling
-            return float(np.average(a, weights=weight))
-
         per_read[name] = {
             "samples": samples,
-            "rel_rms": float(np.sqrt(mean(var_e)) / mean(signal)),
-            "to_shot_noise_variance_mean": mean(var_e) / mean(signal),
+            "rel_rms": float(np.sqrt(var_e.mean()) / signal.mean()),
+            "to_shot_noise_variance_mean": float(var_e.mean() / signal.mean()),
             "to_shot_noise_variance_median": median,
             "to_shot_noise_variance_p95": p95,
             "to_shot_noise_variance_p999": tail,
             "to_shot_noise_variance_median_interval": median_iv,
             "to_shot_noise_variance_p95_interval": p95_iv,
             "to_shot_noise_variance_p999_interval": tail_iv,
-            "share_above_10": mean(ratio > 10.0),
+            "share_above_10": float((ratio > 10.0).mean()),
             "estimate_dof": round(dof, 3),
         }
         factors[name] = (max(median / noise_budget, p95 / noise_budget_p95), tail / noise_budget_tail)
@@ -798,8 +772,7 @@ def render_error(
         budget["spp_that_would_meet"] = int(2 * np.ceil(float(plan.spp.max()) * body / 2))
     return {
         "method": "two independent half-sample renders per stratum, summed over each read's buckets; squared "
-                  "differences pooled over 3x3 pixels" + ("; after adaptive sampling: the refined pixels and "
-                                                          "audit blocks of the others" if sample is not None else ""),
+                  "differences pooled over 3x3 pixels",
         "interval": f"{INTERVAL_COVERAGE:.0%} interval of each quantile over the estimates it is taken from "
                     "(order statistics, effective count with pooled neighbours and channels sharing renders)",
         **per_read[deciding],
@@ -809,34 +782,49 @@ def render_error(
     }
 
 
-#: Adaptive sampling refines the pixels whose estimated ratio exceeds this share of the tail target
-#: (the estimate is noisy: pooled over at most 9 pixels, a pixel at the target reads below it half the time).
-#: 0.5 until the ninth session; with the lamp stand's fireflies sampled at their source
-#: (render.guide_fraction), on the default capture at 640x512 (two seeds, one choice of pixels) 0.5 met the
-#: tail at 0.74 in 105-109 s a run, 0.7 at 0.84 in 84 s, 1.0 at 0.96 in 76-78 s (docs/noise.md, "The lamp's stand").
-ADAPTIVE_SELECT = 0.7
-#: log2 of the most that :func:`tail_pixels`' floor factor (every chosen pixel's least) may be: 4x. On the
-#: default capture at 640x512 (two seeds, one choice of pixels) the floor at 8x met the tail at 0.85 in
-#: 2.7-3.2x the time without adaptive sampling, at 4x 0.92 in 1.9-2.0x, at 2x 0.97 in 1.6-1.7x
-#: (docs/noise.md, "The floor").
-ADAPTIVE_FLOOR_MAX_LOG2 = 2
+#: Adaptive sampling chooses its pixels from a scout: the capture's strata rendered again, with seeds of their
+#: own, at about 1 / SCOUT_DIVISOR of the first pass's samples (:func:`scout_spp`), whose half-sample
+#: differences are independent of the first pass's. A choice made from the first pass's own differences
+#: conditions the pixels it leaves: where the errors are heavy-tailed, a pixel left alone is one whose first
+#: pass drew no rare bright path, and its value sits low (scripts/adaptive_selection_bias.py: -0.26 shot-noise
+#: sigma with 78 % of a small film chosen). Chosen from the scout, every pixel keeps its first pass, unbiased,
+#: and the refined ones add a second pass to it. On the default capture at 640x512 the scout at 1/16 (12
+#: samples per stratum) took 4.7 s of the first pass's 49 s; at 1/8 it chose a third as many pixels for
+#: 8.1 s, at 1/32 three times as many for 2.8 s (docs/noise.md, "The scout").
+SCOUT_DIVISOR = 16
 
 
+def scout_spp(spp: np.ndarray, count: Callable[[int], int] | None = None) -> np.ndarray:
+    """The scout's samples per stratum: each stratum's over :data:`SCOUT_DIVISOR`, as two halves of at
+    least 2 on :func:`_ladder` (``count``: what the sampler takes, ``Renderer.sample_count``)."""
+    return np.array([2 * max(2, _ladder(int(n) / SCOUT_DIVISOR / 2, count)) for n in np.asarray(spp)], np.int64)
+
+
+#: Adaptive sampling refines the pixels whose predicted ratio exceeds this share of the tail target. The
+#: prediction is the scout's ratio scaled to the first pass's samples as 1 / spp, which the quasi-Monte
+#: Carlo samplers beat (the scout's 99th percentile fell as spp^-1.19 to the first pass's, its median as
+#: spp^-1.24): an upper bound, so the level is the target itself. On the default capture at 640x512 (the
+#: first pass's ratios after each choice, docs/noise.md "The scout") 1.0 chose 8.8 % of the pixels and left
+#: the tail at 0.92, 0.7 chose 25 % for 0.78.
+ADAPTIVE_SELECT = 1.0
 def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
                 reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float, tail_target: float,
-                max_factor: int) -> list[tuple[np.ndarray, int]]:
-    """Adaptive sampling's choice, from the first pass's half-sample differences: tiers of pixels
-    (flat indices) and the factor of samples each tier gets, from the most any read's pooled Monte
-    Carlo / shot-noise ratio, in any channel, reaches at the pixel.
+                max_factor: int, scale: float = 1.0) -> list[tuple[np.ndarray, int]]:
+    """Adaptive sampling's choice, from a scout's half-sample differences and electrons: tiers of pixels
+    (flat indices) and the factor of the first pass's samples each tier is to have in all, from the most
+    any read's pooled Monte Carlo / shot-noise ratio, in any channel, reaches at the pixel, times
+    ``scale`` (the ratio the first pass has over the one these renders measure: the scout's samples
+    over the first pass's, :data:`ADAPTIVE_SELECT`).
 
     A pixel is chosen where that ratio exceeds :data:`ADAPTIVE_SELECT` x ``tail_target``; its factor
     is the ratio over that level (variance ~ 1/spp: conservative for the quasi-Monte Carlo samplers),
-    rounded up to a power of two in [2, ``max_factor``], and at least the factor that brings the
-    chosen pixels' 99th percentile to the level (at most 16): a factor for the few pixels far over
-    the level (the lamp's rim in a short read) without trusting a low one to the many near it.
-    A pixel's neighbours within 3x3 get at least its factor (the estimate is pooled over them).
-    Returns [(pixels, factor)] by increasing factor, every pixel in one tier at most; [] when no
-    pixel needs it."""
+    rounded up to a power of two in [2, ``max_factor``]. A pixel's neighbours within 3x3 get at least
+    its factor (the estimate is pooled over them). Until the eleventh session every chosen pixel also
+    got at least the factor that brought the chosen pixels' 99th percentile to the level (up to 4x:
+    an estimate from the first pass's own noise was too noisy to trust a low factor); chosen from the
+    scout with the first pass kept, 2x met the tail at the default capture (docs/noise.md, "The
+    scout"). Returns [(pixels, factor)] by increasing factor, every pixel in one tier at most; [] when
+    no pixel needs it."""
     from scipy.ndimage import grey_dilation
 
     K, H, W, C = buckets_e.shape
@@ -845,60 +833,16 @@ def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketEle
         var_e, signal, use = read_noise_ratio(mc_diff_exposure, buckets_e, k_e, buckets, full_well_e, fd_full_well_e)
         ratio = np.where(use, var_e / np.maximum(signal, 1e-300), 0.0)
         worst = np.maximum(worst, ratio.max(axis=-1))
+    worst *= scale
     level = ADAPTIVE_SELECT * tail_target
     chosen = worst > level
     if not chosen.any():
         return []
     top = int(np.log2(max_factor))  # tiers up to the largest power of two <= max_factor
-    # every chosen pixel gets at least the factor that brings the 99th percentile of the chosen to the
-    # level: the estimate is too noisy to trust a low one (a pixel read at 0.6 x the level may be at 5x)
-    floor = int(np.clip(np.ceil(np.log2(np.percentile(worst[chosen], 99) / level)), 1,
-                        min(top, ADAPTIVE_FLOOR_MAX_LOG2)))
     tier = np.zeros((H, W), np.int64)  # log2 of the factor; 0: not refined
-    tier[chosen] = np.clip(np.ceil(np.log2(worst[chosen] / level)), floor, top).astype(np.int64)
+    tier[chosen] = np.clip(np.ceil(np.log2(worst[chosen] / level)), 1, top).astype(np.int64)
     tier = grey_dilation(tier, size=(3, 3), mode="constant", cval=0)
     return [(np.flatnonzero(tier == t), 1 << int(t)) for t in np.unique(tier[tier > 0])]
-
-
-#: Adaptive sampling's audit: this share of the unrefined film's 3x3 blocks is rendered again at the
-#: first pass's samples, so that the run's own error estimate sees the unrefined pixels through
-#: estimates the choice of pixels did not see (:class:`~mbcapture.integrate.ErrorSample`).
-AUDIT_SHARE = 0.1
-
-
-def audit_blocks(refined: np.ndarray, rng: np.random.Generator, share: float = AUDIT_SHARE) -> np.ndarray:
-    """Centres (flat indices) of audit blocks: the 3x3 blocks of the film's 3-pixel lattice whose
-    centre was left unrefined (``refined`` (H, W) bool), ``share`` of them (at least one) drawn at
-    random without replacement; empty when there is none. A block's unrefined pixels are rendered
-    again; its refined ones are fresh already. Blocks next to refined pixels are not left out: the
-    film around the refined regions is noisier than elsewhere, and leaving it out would bias the
-    audit low."""
-    H, W = refined.shape
-    rows, cols = np.arange(1, H - 1, POOL_PX), np.arange(1, W - 1, POOL_PX)
-    r, c = np.meshgrid(rows, cols, indexing="ij")
-    centres = (r * W + c)[~refined[r, c]]
-    if centres.size == 0:
-        return centres.astype(np.int64)
-    n = max(1, int(np.ceil(share * centres.size)))
-    return np.sort(rng.choice(centres, size=n, replace=False)).astype(np.int64)
-
-
-def audit_pixels(refined: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """The pixels (flat indices, sorted) an audit renders again: its blocks' unrefined pixels."""
-    block = block_pixels(centres, refined.shape[1]).ravel()
-    return np.sort(block[~refined.ravel()[block]])
-
-
-def audit_sample(refined: np.ndarray, centres: np.ndarray) -> ErrorSample:
-    """The :class:`~mbcapture.integrate.ErrorSample` of an adaptive run: refined pixels count once,
-    each audit block's centre for (unrefined pixels) / (blocks)."""
-    H, W = refined.shape
-    weight = refined.astype(np.float64).ravel()
-    independent = np.zeros(H * W, bool)
-    if centres.size:
-        weight[centres] = (H * W - refined.sum()) / centres.size  # each centre stands for its share of the unrefined
-        independent[centres] = True
-    return ErrorSample(weight.reshape(H, W), independent.reshape(H, W))
 
 
 def noise_verdict(render_error: dict, *, adaptive_hint: bool = False) -> str:

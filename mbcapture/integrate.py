@@ -101,27 +101,6 @@ def render_requests(plan: Plan, seed: np.random.SeedSequence, count: Callable[[i
     return out
 
 
-@dataclass(frozen=True)
-class ErrorSample:
-    """The pixels whose pooled half-sample estimates make the run's own error estimate, with weights.
-
-    After adaptive sampling, a pixel that was not refined kept the first pass's estimate, and that
-    estimate is why it was not refined: it read below the selection level, so the unrefined pixels'
-    estimates understate their noise (the 99.9th percentile read 0.46 against 0.75 measured from
-    outside, at 640x512). Their share is measured instead on audit blocks: 3x3 blocks of unrefined
-    pixels chosen at random and rendered again at the first pass's samples (fresh halves, fresh
-    times), whose centres' estimates are independent of the choice.
-
-    weight (H, W) float64: 1 at refined pixels (their estimate is the second pass's, independent of
-    the choice), (unrefined pixels) / (audit blocks) at an audit block's centre, 0 elsewhere.
-    independent (H, W) bool: the pixel's pooled estimate shares no render with another counted
-    pixel's (an audit block's centre); the others share theirs with their 3x3 neighbours.
-    """
-
-    weight: np.ndarray
-    independent: np.ndarray
-
-
 @dataclass
 class Integrated:
     """exposure (K, H, W, C); group_exposure (K, G, H, W, C) or None.
@@ -146,8 +125,6 @@ class Integrated:
     mc_diff: np.ndarray | None
     group_exposure: np.ndarray | None = None
     temporal_diff: np.ndarray | None = None
-    #: which pixels the run's own error estimate counts, after adaptive sampling (None: all, once each)
-    error_sample: "ErrorSample | None" = None
 
     @property
     def mc_var(self) -> np.ndarray | None:
@@ -168,8 +145,7 @@ class Integrated:
         if self.group_exposure is not None:  # (S, G, H, W, C): route with the pixels on axes 1, 2
             groups = np.moveaxis(timeline.route(np.moveaxis(self.group_exposure, 1, 3)), 3, 1)
         return Integrated(exposure=timeline.route(self.exposure), mc_diff=timeline.route(self.mc_diff),
-                          group_exposure=groups, temporal_diff=timeline.route(self.temporal_diff),
-                          error_sample=self.error_sample)
+                          group_exposure=groups, temporal_diff=timeline.route(self.temporal_diff))
 
 
 def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray,
@@ -453,31 +429,33 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
            seed: np.random.SeedSequence, *, points: int = 1, per_group: bool = False, timer=None,
            progress: bool = False, desc: str = "refine") -> Integrated:
     """Adaptive sampling's second pass: every stratum again at ``pixels`` (flat indices) only, with
-    ``factor`` times its samples (two halves, for the error estimate), through
-    :meth:`mbcapture.render.Renderer.render_pixels`.
+    ``factor`` - 1 times its samples (two halves, for the error estimate), through
+    :meth:`mbcapture.render.Renderer.render_pixels`, added to the first pass there: those pixels end with
+    ``factor`` times the first pass's samples.
 
-    Unbiased: the pixels were chosen from the first pass's noise, so the first pass's values there
-    are not an unbiased estimate any more (a pixel is chosen because its estimate strayed); the
-    second pass is independent of that choice, and at those pixels it replaces the first (its
-    exposure, its half-sample difference, its per-group exposures). The first pass's samples there
-    are spent on the choice. Independent in time too: each half of each stratum is rendered at
-    times of its own, drawn afresh inside the stratum (the first pass's draws are part of the noise
-    that chose the pixels): ``points`` times per half, one in each of ``points`` equal parts of the
-    stratum, its samples shared among them (:meth:`Plan.draw_times`). Where a moving edge crosses a
-    pixel, its value changes within a stratum, and one time per half leaves that change as noise
-    that more samples do not lower; ``points`` > 1 stratifies it. The halves' difference holds it
-    too, so the error estimate covers it. The temporal-error estimate stays the first pass's.
+    Unbiased where the pixels were chosen independently of the first pass (adaptive sampling chooses
+    from a scout of its own, :func:`mbcapture.budget.scout_spp`): then the first pass at them is an
+    unbiased estimate, so is the second pass, and so is their mean weighted by their samples, 1 : factor - 1
+    (exposure, signed half-sample difference and per-group exposures alike: the combined difference's
+    square estimates the combined variance, the passes being independent). Independent in time too:
+    each half of each stratum is rendered at times of its own, drawn afresh inside the stratum:
+    ``points`` times per half, one in each of ``points`` equal parts of the stratum, its samples shared
+    among them (:meth:`Plan.draw_times`). Where a moving edge crosses a pixel, its value changes within a
+    stratum, and one time per half leaves that change as noise that more samples do not lower; ``points``
+    > 1 stratifies it. The halves' difference holds it too, so the error estimate covers it. The
+    temporal-error estimate stays the first pass's.
 
     Where the first pass drew from shared patterns (``plan.shares_pattern``), so does this pass: from two
     patterns of its own (keys from ``seed``), each half of stratum j taking the samples after those of
-    the strata before it, as the first pass did. A pixel's second pass is then the first pass's
-    estimator at ``factor`` times the samples, stratified over the strata together; and an audit
-    (``factor`` 1) measures the variance of the estimator the unrefined pixels have (rendered from
-    render.sampler's own patterns, it read their median 1.5x high on a shaking capture)."""
+    the strata before it, as the first pass did: a pixel's second pass is the first pass's estimator at
+    ``factor`` - 1 times the samples, stratified over the strata together."""
+    if int(factor) < 2:
+        raise ValueError(f"refine: factor {factor} adds no samples (the pixels end with factor x the first pass's)")
     stage = timer if timer is not None else (lambda name: nullcontext())
     pix = np.asarray(pixels, dtype=np.int64).ravel()
     K, H, W, C = integrated.exposure.shape
-    spp = np.asarray(plan.spp, dtype=np.int64) * int(factor)
+    extra = int(factor) - 1
+    spp = np.asarray(plan.spp, dtype=np.int64) * extra
     keys = pattern_keys(seed) if plan.shares_pattern else None
     taken = getattr(renderer, "sample_count", lambda n: n)
     offset = [0, 0]  # per half: the pattern's samples taken so far
@@ -514,16 +492,21 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
                             groups_out[:, gsel] += w_j[:, :, None, None] * (rad.astype(np.float64) * share)[None]
             bar.update(1)
     r = float((spp // 2 / np.maximum(spp, 1)).mean())
-    exposure = integrated.exposure.copy()
-    flat = exposure.reshape(K, H * W, C)
-    flat[:, pix] = parts[0] + parts[1]
+
+    def combined(first: np.ndarray, second: np.ndarray, pixel_axis: int) -> np.ndarray:
+        """``first`` with its pixels' values the passes' mean by their samples (1 : extra)."""
+        out = first.copy()
+        flat = out.reshape(*first.shape[:pixel_axis], H * W, C)
+        at = (slice(None),) * pixel_axis + (pix,)
+        flat[at] = (flat[at] + extra * second) / factor
+        return out
+
+    exposure = combined(integrated.exposure, parts[0] + parts[1], 1)
     mc_diff = None
     if integrated.mc_diff is not None:
-        mc_diff = integrated.mc_diff.copy()
-        mc_diff.reshape(K, H * W, C)[:, pix] = (parts[0] / r - parts[1] / (1 - r)) * np.sqrt(r * (1 - r))
+        mc_diff = combined(integrated.mc_diff, (parts[0] / r - parts[1] / (1 - r)) * np.sqrt(r * (1 - r)), 1)
     group_exposure = integrated.group_exposure
     if groups_out is not None:
-        group_exposure = group_exposure.copy()
-        group_exposure.reshape(K, len(plan.groups), H * W, C)[:, :, pix] = groups_out
+        group_exposure = combined(group_exposure, groups_out, 2)
     return Integrated(exposure=exposure, mc_diff=mc_diff, group_exposure=group_exposure,
-                      temporal_diff=integrated.temporal_diff, error_sample=integrated.error_sample)
+                      temporal_diff=integrated.temporal_diff)

@@ -26,12 +26,10 @@ from . import camera_motion, protocols, resources, scenes
 from .application import AppOutput, CaptureData
 from .budget import (
     BucketElectrons,
-    audit_blocks,
-    audit_pixels,
-    audit_sample,
     noise_verdict,
     render_error,
     resolve_spp,
+    scout_spp,
     tail_pixels,
 )
 from .cluster import render_on_cluster
@@ -137,8 +135,7 @@ def _error_estimates(rendered: Rendered, integrated: Integrated, channels: Integ
     out = {
         **render_error(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, reads, names,
                        s.full_well_e, s.fd_full_well_e, plan=plan, noise_budget=r.noise_budget,
-                       noise_budget_p95=r.noise_budget_p95, noise_budget_tail=r.noise_budget_tail,
-                       sample=integrated.error_sample),
+                       noise_budget_p95=r.noise_budget_p95, noise_budget_tail=r.noise_budget_tail),
         **temporal_error(channels, k_e, list(plan.buckets_read), s.full_well_e),
     }
     if key is not None:
@@ -429,14 +426,15 @@ REFINE_TIME_POINTS = 4
 def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
                 seed: np.random.SeedSequence, status: StageStatus, *, moving: np.ndarray, per_group: bool, timer,
                 progress: bool, tiled: bool = False) -> tuple[Integrated, dict]:
-    """Adaptive sampling (render.adaptive): the pixels the first pass left over budget.ADAPTIVE_SELECT x the tail target
-    (:func:`mbcapture.budget.tail_pixels`) rendered again with more samples
-    (:func:`mbcapture.integrate.refine`), those in ``moving`` (the pixels the moving parts cross) at
-    :data:`REFINE_TIME_POINTS` times per half-stratum; then the audit (:func:`mbcapture.budget.audit_blocks`),
-    whose blocks of unrefined pixels give the run's own error estimate the unrefined film
-    (:class:`~mbcapture.integrate.ErrorSample`). Returns the refined render stage and what
-    report.json keeps. Not in a tiled run (``tiled``): its choice of pixels and their second pass are
-    the whole film's."""
+    """Adaptive sampling (render.adaptive): a scout, the strata rendered again with seeds of their own at
+    about a sixteenth of the first pass's samples (:func:`mbcapture.budget.scout_spp`), chooses the pixels
+    whose predicted ratio exceeds budget.ADAPTIVE_SELECT x the tail target (:func:`mbcapture.budget.tail_pixels`);
+    they are rendered again with more samples and added to the first pass (:func:`mbcapture.integrate.refine`),
+    those in ``moving`` (the pixels the moving parts cross) at :data:`REFINE_TIME_POINTS` times per
+    half-stratum. The choice is independent of the first pass, so every pixel's estimate, and the run's
+    own estimate of its error, is unbiased. Returns the refined render stage and what report.json keeps.
+    Not in a tiled run (``tiled``): the scout, the choice of pixels and their second pass are the whole
+    film's."""
     why = ("a film in one tile (render.tiles; the choice of pixels and their second pass are the whole film's)"
            if tiled else
            "an RGB render.variant and a lens acting per pixel (no camera.distortion, camera.diffraction)"
@@ -447,14 +445,25 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
             return integrated, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}
         start = time.perf_counter()
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
-        tiers = tail_pixels(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e,
+        spp = np.asarray(plan.spp, np.int64)
+        scout_plan = replace(plan, spp=scout_spp(spp, getattr(renderer, "sample_count", None)))
+        with timer("scout"):
+            scout = integrate(renderer, scout_plan, timeline.n_channels,
+                              np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5C0)),
+                              progress=progress, desc="scout")
+        scout_s = time.perf_counter() - start
+        scale = float((scout_plan.spp / np.maximum(spp, 1)).max())  # the first pass's ratio over the scout's, as 1/spp
+        tiers = tail_pixels(scout.mc_diff, BucketElectrons(scout.exposure, k_e), k_e,
                             list(plan.read_sets), cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
-                            cfg.render.noise_budget_tail, cfg.render.adaptive_max_factor)
+                            cfg.render.noise_budget_tail, cfg.render.adaptive_max_factor, scale)
+        del scout
         n_pix = sum(p.size for p, _ in tiers)
-        info = {"pixels": int(n_pix), "share": round(n_pix / (cfg.render.width * cfg.render.height), 6),
+        film = cfg.render.width * cfg.render.height
+        info = {"scout": {"spp": scout_plan.spp.tolist(), "seconds": round(scout_s, 3)},
+                "pixels": int(n_pix), "share": round(n_pix / film, 6),
                 "tiers": [{"factor": f, "pixels": int(p.size)} for p, f in tiers],
                 # the second pass's samples over the first pass's, on the whole film
-                "added_samples": round(sum(p.size * f for p, f in tiers) / (cfg.render.width * cfg.render.height), 4)}
+                "added_samples": round(sum(p.size * (f - 1) for p, f in tiers) / film, 4)}
         on_moving = moving.ravel()
         for i, (pixels, factor) in enumerate(tiers):
             info["tiers"][i]["moving_pixels"] = int(on_moving[pixels].sum())
@@ -464,23 +473,6 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
                     integrated = refine(renderer, plan, integrated, part, factor, child, points=points,
                                         per_group=per_group, timer=timer, progress=progress,
                                         desc=f"refine {part.size} px x{factor}" + (" moving" if points > 1 else ""))
-        if tiers:
-            # the audit: blocks of unrefined pixels rendered again at the first pass's samples (factor 1) and,
-            # like it, at one time per half (there, drawn afresh), for an error estimate of the unrefined film
-            # that the choice did not see (mbcapture.integrate.ErrorSample)
-            refined = np.zeros(on_moving.size, bool)
-            for pixels, _ in tiers:
-                refined[pixels] = True
-            refined = refined.reshape(moving.shape)
-            centres = audit_blocks(refined, np.random.default_rng(
-                np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xA0D))))
-            block = audit_pixels(refined, centres)
-            if block.size:
-                child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA, len(tiers), 1))
-                integrated = refine(renderer, plan, integrated, block, 1, child, points=1, per_group=per_group,
-                                    timer=timer, progress=progress, desc=f"audit {block.size} px")
-                info["audit"] = {"blocks": int(centres.size), "pixels": int(block.size)}
-            integrated = replace(integrated, error_sample=audit_sample(refined, centres))
         info["seconds"] = round(time.perf_counter() - start, 3)
     return integrated, info
 

@@ -1,30 +1,35 @@
 """Does adaptive sampling's choice bias the pixels it leaves unrefined?
 
-Adaptive sampling replaces the first pass at the pixels it chooses with a second pass that is
-independent of the choice, so those pixels are unbiased. The pixels it leaves keep their first
-pass, and the choice was made from that pass's own noise (its half-sample differences): where the
-errors are heavy-tailed (a rare bright path raises a pixel's value and its difference together), a
-pixel left unrefined is one whose first pass drew no such path, so its value may sit low.
+Every pixel keeps its first pass, and the pixels adaptive sampling chooses add a second. Were the
+choice made from the first pass's own noise (its half-sample differences), as it was until
+2026-11-27, the pixels it leaves would be conditioned by it: where the errors are heavy-tailed (a
+rare bright path raises a pixel's value and its difference together), a pixel left unrefined is one
+whose first pass drew no such path, so its value may sit low. Adaptive sampling chooses from a scout
+instead, renders of its own at a sixteenth of the samples (``budget.scout_spp``), which the first
+pass does not see.
 
 This renders the first pass of a config SEEDS times (render seeds differing, everything else fixed),
-makes adaptive sampling's choice (``budget.tail_pixels``) in each, and compares, at the pixels chosen
-in some seed but not all, the longest read's expected electrons of the seeds that left the pixel
-unrefined with the pixel's mean over all seeds, in units of its shot noise (one estimate per sample:
-pixel and channel). The mean over all seeds is the pixel's unbiased first-pass estimate, so the
-difference is the choice's doing alone. The selected share follows the tail target: smaller targets
-choose more pixels.
+makes adaptive sampling's choice (``budget.tail_pixels``) in each, from the first pass itself
+(``--chooser first``) or from a scout of its own (``--chooser scout``, what a capture does), and
+compares, at the pixels chosen in some seed but not all, the longest read's expected electrons of the
+seeds that left the pixel unrefined with the pixel's mean over all seeds, in units of its shot noise
+(one estimate per sample: pixel and channel). The mean over all seeds is the pixel's unbiased
+first-pass estimate, so the difference is the choice's doing alone. The selected share follows the
+tail target: smaller targets choose more pixels.
 
     python scripts/adaptive_selection_bias.py [CONFIG] [--size 64x48] [--spp 32] [--seeds 40] [--tail-target 200]
+                                              [--chooser first|scout]
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import numpy as np
 
 from mbcapture import load_config
-from mbcapture.budget import tail_pixels
+from mbcapture.budget import scout_spp, tail_pixels
 from mbcapture.config import scene_of
 from mbcapture.integrate import integrate
 from mbcapture.pipeline import prepare
@@ -41,6 +46,8 @@ def main() -> None:
     ap.add_argument("--tail-target", type=float, default=200.0,
                     help="render.noise_budget_tail for the choice (the default capture's 1 chooses most of a "
                          "small film at few samples; 200 chooses about 4 %% here, as the default capture does)")
+    ap.add_argument("--chooser", choices=("first", "scout"), default="scout",
+                    help="choose from the first pass's own differences, or from a scout of its own (a capture's way)")
     args = ap.parse_args()
     w, h = (int(x) for x in args.size.split("x"))
     cfg = load_config(args.config, [f"render.width={w}", f"render.height={h}", f"render.spp={args.spp}",
@@ -53,8 +60,13 @@ def main() -> None:
     values, chosen = [], []
     for s in range(args.seeds):
         first = integrate(renderer, plan, timeline.n_buckets, np.random.SeedSequence(1000 + s))
-        tiers = tail_pixels(first.mc_diff, first.exposure * k_e, k_e, reads, cfg.sensor.full_well_e,
-                            cfg.sensor.fd_full_well_e, args.tail_target, cfg.render.adaptive_max_factor)
+        chooser, scale = first, 1.0
+        if args.chooser == "scout":
+            scout_plan = replace(plan, spp=scout_spp(plan.spp, renderer.sample_count))
+            chooser = integrate(renderer, scout_plan, timeline.n_buckets, np.random.SeedSequence(5000 + s))
+            scale = float((scout_plan.spp / plan.spp).max())
+        tiers = tail_pixels(chooser.mc_diff, chooser.exposure * k_e, k_e, reads, cfg.sensor.full_well_e,
+                            cfg.sensor.fd_full_well_e, args.tail_target, cfg.render.adaptive_max_factor, scale)
         mask = np.zeros(w * h, bool)
         for pixels, _ in tiers:
             mask[pixels] = True
@@ -66,7 +78,8 @@ def main() -> None:
     some = c.any(axis=0) & ~c.all(axis=0)  # where the choice varied between seeds
     left = (~c & some[None])[..., None] & np.ones_like(z, bool)
     taken = (c & some[None])[..., None] & np.ones_like(z, bool)
-    print(f"{args.config} at {args.size}, {args.spp} spp per stratum, {args.seeds} render seeds, tail target "
+    print(f"{args.config} at {args.size}, {args.spp} spp per stratum, {args.seeds} render seeds, chosen from "
+          f"{'a scout' if args.chooser == 'scout' else 'the first pass'}, tail target "
           f"{args.tail_target}: {c.mean():.1%} of the pixels chosen on average, {some.mean():.1%} chosen in some "
           "seeds but not all")
     for name, m in (("left unrefined", left), ("chosen", taken)):

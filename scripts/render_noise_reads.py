@@ -16,10 +16,13 @@ estimate (outside and own) over it. And the tail from each sample's own variance
 degrees of freedom, no neighbour's noise in it) against the two runs' pooled estimates, alike and over
 every neighbour (how the runs estimated it before 2026-11-27).
 
-With adaptive sampling (``render.adaptive``) the second run refines the pixels the first run chose
+The second run renders the samples per stratum the first run's pilot chose (every run's pilot still
+renders), and with adaptive sampling (``render.adaptive``) it refines the pixels the first run chose
 (its tiers, :func:`mbcapture.budget.tail_pixels`), so both runs are draws of one estimator: the first
-run's, whose error its own figures estimate. Each run choosing its own pixels (``--own-choices``, how
-this was measured before 2026-11-27) measures something else: at 640x512 the two choices share 10111
+run's, whose error its own figures estimate (until the eleventh session each run rendered its own
+pilot's samples, and the outside figure was the mean of two estimators' variances). Each run choosing
+its own samples and pixels (``--own-choices``, how this was measured before 2026-11-27) measures
+something else: at 640x512 the two choices share 10111
 of about 27000 pixels, and the two-run difference then averages a field refined in one place with a
 field refined in another, whose upper quantiles lie below either run's (J4's p99.9 0.85 that way,
 0.93 with one choice; the runs' own 1.10-1.18).
@@ -32,12 +35,14 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from unittest import mock
 
 import numpy as np
 
 from mbcapture import load_config, pipeline
-from mbcapture.budget import budget_quantiles, deconvolved_median, effective_dof, pooled, pooled_alike, tail_pixels
+from mbcapture.budget import (budget_quantiles, deconvolved_median, effective_dof, pooled, pooled_alike, resolve_spp,
+                              tail_pixels)
 from mbcapture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
@@ -63,10 +68,10 @@ def main() -> None:
         raise SystemExit("--truth: fix the samples per pixel (--set render.spp=N): the runs must share them")
     base = [f"render.width={w}", f"render.height={h}", "render.cache=off", "sensor.noise_seed=7", *args.sets]
     runs, seconds = [], []
-    choice = FirstChoice(share=not args.own_choices)
+    choice, samples = FirstChoice(share=not args.own_choices), FirstSamples(share=not args.own_choices)
     for s in seeds:
         t0 = time.perf_counter()
-        with mock.patch.object(pipeline, "tail_pixels", choice):
+        with mock.patch.object(pipeline, "tail_pixels", choice), mock.patch.object(pipeline, "resolve_spp", samples):
             runs.append(capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False)))
         seconds.append(time.perf_counter() - t0)
     cfg = runs[0].config
@@ -126,6 +131,22 @@ class FirstChoice:
         if self.tiers is None or not self.share:
             self.tiers = tail_pixels(*args, **kwargs)
         return self.tiers
+
+
+class FirstSamples:
+    """Stands in for :func:`mbcapture.budget.resolve_spp` in the runs: every run's pilot renders, and the
+    first run's samples per stratum are kept; later runs render those (``share``) or their own pilot's."""
+
+    def __init__(self, share: bool):
+        self.share, self.spp = share, None
+
+    def __call__(self, plan, *args, **kwargs):
+        out = resolve_spp(plan, *args, **kwargs)
+        if self.spp is None or not self.share:
+            self.spp = None if out.spp is None else np.asarray(out.spp).copy()
+        elif out.spp is not None:
+            out = replace(out, spp=self.spp.copy())
+        return out
 
 
 def below_full_well(run, full_well_e: float) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Adaptive sampling (render.adaptive): pixels rendered alone (Renderer.render_pixels) are the full
-render's estimator, and the refined capture's exposure at the pixels the first pass chose matches a
-brute-force high-spp render within its standard error (the second pass replaces the first there, so
-the choice, made from the first pass's noise, biases nothing)."""
+render's estimator; the pixels are chosen from a scout of their own, so the first pass is unbiased
+everywhere, and the refined capture's exposure at the chosen pixels (first and second pass combined)
+matches a brute-force high-spp render within its standard error."""
 
 from dataclasses import replace
 from pathlib import Path
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mbcapture import load_config
-from mbcapture.budget import ADAPTIVE_FLOOR_MAX_LOG2, ADAPTIVE_SELECT, tail_pixels
+from mbcapture.budget import ADAPTIVE_SELECT, tail_pixels
 from mbcapture.config import scene_of
 from mbcapture.integrate import integrate, refine
 from mbcapture.pipeline import prepare
@@ -90,15 +90,18 @@ def test_pixels_rendered_alone_from_a_shared_pattern_are_the_full_renders_pixels
 def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_error(setup):
     cfg, timeline, plan, seeds, r = setup
     first = integrate(r, plan, timeline.n_buckets, seeds[2])
+    scout = integrate(r, replace(plan, spp=plan.spp // 4), timeline.n_buckets, np.random.SeedSequence(8))
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
-    most = 2**ADAPTIVE_FLOOR_MAX_LOG2  # at most the floor: every chosen pixel at one factor
-    tiers = tail_pixels(first.mc_diff, first.exposure * k_e, k_e, [x.buckets for x in timeline.reads],
-                        cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, 40.0, most)  # a tail target that
-    # leaves most pixels alone at this small spp
+    most = 2  # every chosen pixel at one factor
+    tiers = tail_pixels(scout.mc_diff, scout.exposure * k_e, k_e, [x.buckets for x in timeline.reads],
+                        cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, 40.0, most, 0.25)  # a tail target
+    # that leaves most pixels alone at this small spp
     assert len(tiers) == 1
     pixels, factor = tiers[0]
     assert 0 < pixels.size < 64 * 48 and 2 <= factor <= most
     refined = refine(r, plan, first, pixels, factor, np.random.SeedSequence(9))
+    with pytest.raises(ValueError, match="adds no samples"):
+        refine(r, plan, first, pixels, 1, np.random.SeedSequence(9))
     brute = integrate(r, replace(plan, spp=plan.spp * 16), timeline.n_buckets, np.random.SeedSequence(10))
     K = first.exposure.shape[0]
     flat = lambda x: x.reshape(K, -1, 3)  # noqa: E731
@@ -109,34 +112,35 @@ def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_err
         var = flat(refined.mc_var)[k, pixels] + flat(brute.mc_var)[k, pixels]
         se = np.sqrt(var.sum()) / d.size
         assert abs(d.mean()) < 5 * se, (k, d.mean(), se)
-    # the refined pixels are less noisy than the first pass made them: their estimated variance fell
-    assert flat(refined.mc_var)[:, pixels].mean() < flat(first.mc_var)[:, pixels].mean() / 2
+    # the refined pixels are less noisy than the first pass made them: their estimated variance fell to
+    # about 1 / factor of it (the first pass there is a fair draw: the scout chose them)
+    fell = flat(refined.mc_var)[:, pixels].mean() / flat(first.mc_var)[:, pixels].mean()
+    assert 0.5 / factor < fell < 1.4 / factor, (fell, factor)
 
 
 def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
     """Tiers of factors, from each pixel's estimated ratio over ADAPTIVE_SELECT x the tail target: a region far over
-    the target gets more samples than one just over it, never fewer than the factor that brings the
-    chosen pixels' 99th percentile to the level (at most 2^ADAPTIVE_FLOOR_MAX_LOG2), each pixel in one tier,
-    neighbours included; at render.adaptive_max_factor equal to that floor one tier (every chosen pixel alike)."""
+    the target gets more samples than one just over it, which gets 2x, each pixel in one tier, neighbours
+    included; at render.adaptive_max_factor 2 one tier (every chosen pixel alike)."""
     H = W = 24
     signal = np.full((1, H, W, 1), 1000.0)  # electrons, one bucket, one channel, below the full well
     diff = np.zeros((1, H, W, 1))
-    diff[0, 2:9, 2:9] = np.sqrt(1000 * 1.2)  # ratio 1.2: just over the level (ADAPTIVE_SELECT x tail target 1; pooled
-    # over 3x3 its edge rows read 0.8)
+    diff[0, 2:9, 2:9] = np.sqrt(1000 * 1.6)  # ratio 1.6: just over the level (ADAPTIVE_SELECT x tail target 1; pooled
+    # over 3x3 its edge rows read 1.07)
     diff[0, 14:21, 14:21] = np.sqrt(1000 * 50.0)  # ratio 50: 70-100 x the level
     k_e = np.ones(1)
     args = (diff, signal, k_e, [(0,)], 1e9, 1e9, 1.0)
     tiers = tail_pixels(*args, 256)
     factors = [f for _, f in tiers]
-    floor = 2 ** min(7, ADAPTIVE_FLOOR_MAX_LOG2)  # the 99th percentile of the chosen asks for 2^ceil(log2(100))
-    assert factors == sorted(set(factors)) and factors[0] == floor and factors[-1] == 128
+    floor = 2  # the least factor: the first pass and as many samples again
+    asks = lambda ratio: 2 ** int(np.ceil(np.log2(ratio / ADAPTIVE_SELECT)))  # noqa: E731  (the power of two a ratio asks)
+    assert factors == sorted(set(factors)) and factors[0] == floor and factors[-1] == asks(50.0) >= 64
     given = np.zeros(H * W, int)
     for p, f in tiers:
         assert (given[p] == 0).all()  # each pixel in one tier
         given[p] = f
     given = given.reshape(H, W)
-    asks = lambda ratio: 2 ** int(np.ceil(np.log2(ratio / ADAPTIVE_SELECT)))  # noqa: E731  (the power of two a ratio asks)
-    assert given[5, 5] == floor and given[17, 17] == asks(50.0) == 128  # the centres: the low region raised to the floor
+    assert given[5, 5] == asks(1.6) == floor and given[17, 17] == asks(50.0)  # the centres
     # outside each region, its neighbour's factor (the high region's edge pooled over 3x3: 6 of 9 at 50)
     assert given[1, 5] == floor and given[13, 14] == asks(50.0 * 6 / 9)
     assert given[11, 11] == 0 and given[0, 23] == 0  # far from both: not refined
@@ -144,6 +148,9 @@ def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
     one = tail_pixels(*args, floor)
     assert len(one) == 1 and one[0][1] == floor and set(one[0][0].tolist()) == low_high
     assert tail_pixels(diff * 0, signal, k_e, [(0,)], 1e9, 1e9, 1.0, 256) == []
+    # a scout's differences at a sixteenth of the samples (16x the variance), scaled back: the same choice
+    scouted = tail_pixels(diff * 4, signal, k_e, [(0,)], 1e9, 1e9, 1.0, 256, 1 / 16)
+    assert [(p.tolist(), f) for p, f in scouted] == [(p.tolist(), f) for p, f in tiers]
 
 
 @pytest.mark.render
@@ -165,7 +172,8 @@ def test_a_capture_with_adaptive_sampling_reports_its_tiers(tmp_path):
     assert len(tiers) >= 2 and info["pixels"] == sum(t["pixels"] for t in tiers) < 32 * 24
     factors = [t["factor"] for t in tiers]
     assert factors == sorted(set(factors)) and all(2 <= f <= 64 and f & (f - 1) == 0 for f in factors)
-    assert info["added_samples"] == pytest.approx(sum(t["pixels"] * t["factor"] for t in tiers) / (32 * 24), abs=1e-4)
+    assert info["added_samples"] == pytest.approx(sum(t["pixels"] * (t["factor"] - 1) for t in tiers) / (32 * 24),
+                                                  abs=1e-4)
     assert undocumented_keys(result.report, [r.name for r in result.timeline.reads]) == []
 
 
@@ -212,8 +220,7 @@ def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
 
 def test_quantile_intervals_cover_the_true_quantile_at_their_stated_rate():
     """The stated 95 % intervals hold the population's quantile in 95 % of trials, within the binomial
-    error of the trial count; weighted (a subsample standing for the rest) and with values that share
-    their data (each repeated ``design`` times) too. Without the design factor the repeated values'
+    error of the trial count; with values that share their data (each repeated ``design`` times) too. Without the design factor the repeated values'
     interval is too narrow and misses far more often."""
     from scipy.stats import expon
 
@@ -227,109 +234,108 @@ def test_quantile_intervals_cover_the_true_quantile_at_their_stated_rate():
     def coverage(draw) -> dict:
         hits = {q: 0 for q in truth}
         for _ in range(trials):
-            values, weight, design = draw()
-            for q, (_, lo, hi) in zip(truth, quantiles_with_intervals(values, list(truth), weight, design)):
+            values, design = draw()
+            for q, (_, lo, hi) in zip(truth, quantiles_with_intervals(values, list(truth), design)):
                 hits[q] += lo <= truth[q] <= hi
         return {q: h / trials for q, h in hits.items()}
 
-    plain = coverage(lambda: (rng.exponential(size=n), None, 1.0))
-    # a part of the population measured on a tenth, each value standing for 10 (the audit's weights),
-    # the rest measured whole; both parts exponential, so the mixture's quantiles are the truth above
-    def weighted():
-        part = rng.exponential(size=n // 10)
-        rest = rng.exponential(size=n // 5)
-        return np.concatenate([part, rest]), np.concatenate([np.full(part.size, 10.0), np.ones(rest.size)]), 1.0
-
-    shared = lambda d: (np.repeat(rng.exponential(size=n // 4), 4), None, d)  # noqa: E731
+    plain = coverage(lambda: (rng.exponential(size=n), 1.0))
+    shared = lambda d: (np.repeat(rng.exponential(size=n // 4), 4), d)  # noqa: E731
     with_design, without = coverage(lambda: shared(4.0)), coverage(lambda: shared(1.0))
     for q in truth:
         assert abs(plain[q] - 0.95) < tol, (q, plain[q])
         assert abs(with_design[q] - 0.95) < tol, (q, with_design[q])
     assert min(without.values()) < 0.95 - tol  # too narrow without the design factor
-    mixed = coverage(weighted)
-    for q in truth:
-        assert abs(mixed[q] - 0.95) < tol, (q, mixed[q])
 
 
-@pytest.mark.parametrize("floor_log2", sorted({4, ADAPTIVE_FLOOR_MAX_LOG2}))
-def test_the_audit_removes_the_bias_of_the_pixels_adaptive_sampling_left(monkeypatch, floor_log2):
-    """Adaptive sampling leaves the pixels whose estimate read low, so their first-pass estimates
-    understate the film's tail; audit blocks rendered afresh measure it. A film of known per-pixel
-    Monte Carlo / shot-noise ratios (a smooth field with a heavy tail), half-sample differences drawn
-    from it: after the choice and a fresh second pass at the chosen pixels, with the audit, the outside
-    measurement (fresh differences everywhere) lies in the run's interval, at the floor of 16x the choice
-    had until 2026-11-27 and at today's. At 16x the refined pixels fall far below the rest, and the
-    unaudited estimate's 99.9th percentile lies below the outside interval: the bias the audit removes."""
+def _ratio_field(rng: np.random.Generator, H: int = 240, W: int = 320) -> np.ndarray:
+    """(1, H, W, 1) known per-sample Monte Carlo / shot-noise ratios: a smooth field with a heavy tail
+    (median 0.05, 7 % of the film over 0.5)."""
     from scipy.ndimage import gaussian_filter
 
-    import mbcapture.budget as budget
-    from mbcapture.budget import audit_blocks, audit_pixels, audit_sample, render_error
+    g = gaussian_filter(rng.standard_normal((H, W)), 6)
+    return (0.05 * np.exp(1.5 * g / g.std()))[None, :, :, None]
 
-    monkeypatch.setattr(budget, "ADAPTIVE_FLOOR_MAX_LOG2", floor_log2)
+
+@pytest.mark.parametrize("chooser", ["scout", "first pass"])
+def test_a_choice_from_a_scout_leaves_the_runs_own_estimate_unbiased(chooser):
+    """A film of known per-pixel ratios, half-sample differences drawn from it (heavy-tailed: Student's t
+    with 3 degrees of freedom, scaled to the variance). Chosen from a scout of its own (a sixteenth of the
+    samples: 16x the ratio, scale 1/16), the pixels adaptive sampling leaves keep first-pass estimates
+    whose squared differences average their true variance, and the run's own quantiles, refined pixels
+    combined with their first pass, hold the outside measurement (a second draw of the same estimator) in
+    their intervals. Chosen from the first pass's own differences, the pixels left read low (why they were
+    left): the bias the scout removes."""
+    from mbcapture.budget import render_error
 
     rng = np.random.default_rng(5)
-    H, W = 240, 320
-    g = gaussian_filter(rng.standard_normal((H, W)), 6)
-    field = 0.05 * np.exp(1.5 * g / g.std())  # median 0.05, 7 % of the film over 0.5
-    ratio = field[None, :, :, None]  # (K=1, H, W, C=1): the true ratio of every sample
-    signal = np.full((1, H, W, 1), 5000.0)
+    ratio = _ratio_field(rng)
+    H, W = ratio.shape[1:3]
+    signal = np.full(ratio.shape, 5000.0)
     k_e = np.ones(1)
 
-    def diff(r=ratio) -> np.ndarray:  # a half-sample difference whose square estimates var = r x signal
-        return np.sqrt(r * signal) * rng.standard_normal(r.shape)
+    def diff(r) -> np.ndarray:  # a half-sample difference whose square averages var = r x signal, heavy-tailed
+        return np.sqrt(r * signal / 3.0) * rng.standard_t(3, size=r.shape)
 
-    def err(d, sample=None):
-        return render_error(d, signal, k_e, [(0,)], ["J"], 1e12, None, sample=sample)["reads"]["J"]
+    def err(d):
+        return render_error(d, signal, k_e, [(0,)], ["J"], 1e12, None)["reads"]["J"]
 
-    first = diff()
-    tiers = tail_pixels(first, signal, k_e, [(0,)], 1e12, 1e12, 1.0, 16)
-    refined = np.zeros(H * W, bool)
-    after = ratio.copy().reshape(1, H * W, 1)  # the true ratio after the second pass: over its factor
+    first = diff(ratio)
+    scout, scale = (diff(16 * ratio), 1 / 16) if chooser == "scout" else (first, 1.0)
+    tiers = tail_pixels(scout, signal, k_e, [(0,)], 1e12, 1e12, 1.0, 16, scale)
+    factor = np.ones(H * W)
     for p, f in tiers:
-        refined[p] = True
-        after[:, p] /= f
-    refined, after = refined.reshape(H, W), after.reshape(ratio.shape)
+        factor[p] = f
+    factor = factor.reshape(ratio.shape)
+    refined = factor > 1
     assert 0.02 < refined.mean() < 0.5
-    second = np.where(refined[None, :, :, None], diff(after), first)  # the refined pixels rendered afresh
-    outside = err(diff(after))  # what two independent runs would show
-    naive = err(second)
-    if floor_log2 == 4:
-        assert naive["to_shot_noise_variance_p999"] < outside["to_shot_noise_variance_p999_interval"][0]
-    centres = audit_blocks(refined, rng, 0.3)
-    block = audit_pixels(refined, centres)
-    assert not refined.ravel()[block].any() and np.unique(block).size == block.size
-    fresh = diff().reshape(1, H * W, 1)
-    audited = second.reshape(1, H * W, 1).copy()
-    audited[:, block] = fresh[:, block]
-    own = err(audited.reshape(1, H, W, 1), audit_sample(refined, centres))
+    left = ~refined
+    # the pixels left: their first-pass squared differences against their true variance (mean 1 if unbiased)
+    z = first[left] ** 2 / (ratio * signal)[left]
+    se = z.std() / np.sqrt(z.size)
+    if chooser == "first pass":
+        assert z.mean() < 1 - 5 * se, (z.mean(), se)
+        return
+    assert abs(z.mean() - 1) < 5 * se, (z.mean(), se)
+    # the refined pixels: the first pass and a second of factor - 1 times its samples, by their samples
+    second = diff(ratio / np.maximum(factor - 1, 1))
+    combined = np.where(refined, (first + (factor - 1) * second) / factor, first)
+    own, outside = err(combined), err(diff(ratio / factor))
     for q in ("median", "p95", "p999"):
         lo, hi = own[f"to_shot_noise_variance_{q}_interval"]
         assert lo <= outside[f"to_shot_noise_variance_{q}"] <= hi, (q, lo, outside[f"to_shot_noise_variance_{q}"], hi)
 
 
-def test_audit_blocks_lie_on_the_lattice_at_unrefined_centres():
-    from mbcapture.budget import audit_blocks, audit_pixels, audit_sample
+@pytest.mark.render
+def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatch):
+    """The pixels adaptive sampling refines are chosen from the scout's renders (seeds of their own, a
+    sixteenth of the samples), never from the first pass's differences."""
+    from mbcapture import pipeline
+    from mbcapture.budget import scout_spp
+    from mbcapture.progress import StageStatus
 
-    refined = np.zeros((30, 31), bool)
-    refined[10:14, 5:20] = True  # covers the lattice centres of block row 3 and 4 (rows 10, 13), columns 7..19
-    rng = np.random.default_rng(0)
-    centres = audit_blocks(refined, rng, 1.0)
-    r, c = np.divmod(centres, 31)
-    assert np.all(r % 3 == 1) and np.all(c % 3 == 1) and r.max() <= 28 and c.max() <= 28
-    assert not refined.ravel()[centres].any()
-    assert centres.size == 10 * 10 - 2 * 5  # the 10 x 10 lattice less 2 rows x 5 covered centres (x = 7..19)
-    assert (10 * 31 + 4) in centres  # a block whose right column is refined: kept (leaving such out biases the audit low)
-    pix = audit_pixels(refined, centres)
-    expected = {(y + dy) * 31 + x + dx for y, x in zip(r, c) for dy in (-1, 0, 1) for dx in (-1, 0, 1)
-                if not refined[y + dy, x + dx]}
-    assert pix.tolist() == sorted(expected)  # the blocks' unrefined pixels, once each
-    assert (10 * 31 + 3) in pix and (10 * 31 + 5) not in pix  # that block's unrefined pixels rendered, not its refined ones
-    some = audit_blocks(refined, rng, 0.1)
-    assert some.size == 9 and set(some) <= set(centres)
-    s = audit_sample(refined, some)
-    assert s.weight[refined].tolist() == [1.0] * refined.sum() and s.independent.sum() == 9
-    np.testing.assert_allclose(s.weight.ravel()[some], (30 * 31 - refined.sum()) / 9)
-    assert s.weight.sum() == pytest.approx(30 * 31)  # the weights stand for the whole film
+    made, seen = [], []
+
+    def integrate_recorded(*args, **kwargs):
+        made.append((kwargs.get("desc", "render"), args[1], integrate(*args, **kwargs)))
+        return made[-1][2]
+
+    def choose(mc_diff, *args, **kwargs):
+        seen.append(mc_diff)
+        return tail_pixels(mc_diff, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "integrate", integrate_recorded)
+    monkeypatch.setattr(pipeline, "tail_pixels", choose)
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
+                      ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.cache=off",
+                       "render.adaptive=true", "render.noise_budget_tail=10"])
+    run = pipeline.capture_in_memory(cfg, StageStatus(False))
+    (desc, plan, scout), = [m for m in made if m[0] == "scout"]
+    assert len(seen) == 1 and seen[0] is scout.mc_diff
+    first_spp = np.asarray(run.plan.spp)
+    assert (plan.spp == scout_spp(first_spp, Renderer.from_config(scene_of(cfg), cfg).sample_count)).all()
+    assert plan.spp.sum() * 8 < first_spp.sum()
+    assert run.report["adaptive"]["scout"]["spp"] == plan.spp.tolist()
 
 
 @pytest.mark.render

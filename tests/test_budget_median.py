@@ -54,7 +54,7 @@ def test_the_deconvolved_median_recovers_a_smooth_field_that_the_chi_square_fact
         old.append(np.median(est) / chi2_median_factor(9) / truth)
     # the mean of 8 independent films: within 3 of its standard errors (DECONV_REL_SD over the film's
     # effective count, pooled estimates sharing their data with 9 neighbours)
-    tol = 3 * DECONV_REL_SD / np.sqrt(effective_count(H * W, None, 9.0)) / np.sqrt(8)
+    tol = 3 * DECONV_REL_SD / np.sqrt(effective_count(H * W, 9.0)) / np.sqrt(8)
     assert np.mean(new) == pytest.approx(1.0, abs=tol)
     assert np.mean(old) < 0.98  # measured 0.962: the estimates' median over 0.926 reads the field's median low
 
@@ -72,7 +72,7 @@ def test_where_neighbours_differ_the_effective_dof_takes_it_in():
         est = pooled(sq[None, :, :, None])[0, :, :, 0].ravel()
         new.append(deconvolved_median(est, effective_dof(sq[:, :, None], np.ones((H, W, 1), bool))) / truth)
         old.append(np.median(est) / chi2_median_factor(9) / truth)
-    tol = 3 * DECONV_REL_SD / np.sqrt(effective_count(H * W, None, 9.0)) / np.sqrt(6)
+    tol = 3 * DECONV_REL_SD / np.sqrt(effective_count(H * W, 9.0)) / np.sqrt(6)
     assert np.mean(new) == pytest.approx(1.0, abs=tol)
     assert np.mean(old) < 0.92
 
@@ -80,7 +80,7 @@ def test_where_neighbours_differ_the_effective_dof_takes_it_in():
 def test_a_field_of_one_ratio_reads_that_ratio():
     rng = np.random.default_rng(12)
     est = pooled_estimates(np.full((H, W), 0.2), rng.standard_normal((H, W))).ravel()
-    tol = 3 * DECONV_REL_SD / np.sqrt(effective_count(H * W, None, 9.0))
+    tol = 3 * DECONV_REL_SD / np.sqrt(effective_count(H * W, 9.0))
     assert deconvolved_median(est, 9) == pytest.approx(0.2, rel=tol)
     # estimates at 0 count below the median: with 60 % of them 0 it is 0
     assert deconvolved_median(np.concatenate([np.zeros(600), np.full(400, 0.2)]), 9) == 0.0
