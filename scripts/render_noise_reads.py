@@ -55,7 +55,8 @@ def main() -> None:
     ap.add_argument("--seeds", default="1,2", help="the two run seeds, comma-separated")
     ap.add_argument("--map", default=None, help="PNG of where the longest read's tail lies")
     ap.add_argument("--own-choices", action="store_true",
-                    help="with render.adaptive: each run chooses its own pixels to refine (default: the first run's choice)")
+                    help="each run renders its own pilot's samples and, with render.adaptive, refines its own choice of pixels "
+                         "(default: the first run's samples and choice)")
     ap.add_argument("--truth", type=int, default=0, help="runs for the converged median (0: none; at least 3)")
     args = ap.parse_args()
     w, h = args.size.split("x")

@@ -341,8 +341,8 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
 @pytest.mark.render
 def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monkeypatch):
     """scripts/render_noise_reads.py: with adaptive sampling both runs refine the pixels the first run
-    chose (one estimator, the one whose error the first run's own figures estimate); --own-choices
-    lets each choose."""
+    chose and render the samples the first run's pilot chose (one estimator, the one whose error the first
+    run's own figures estimate); --own-choices lets each choose both."""
     import importlib.util
 
     from mbcapture import pipeline
@@ -353,22 +353,32 @@ def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monk
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     sets = ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.cache=off", "render.max_spp=32",
-            "render.adaptive=true", "render.noise_budget_tail=10"]
+            "render.adaptive=true", "render.noise_budget_tail=10", "render.top_up=false"]
+    real_resolve = script.resolve_spp
     for share in (True, False):
-        calls = []
+        calls, pilots = [], []
 
         def choose(*args, **kwargs):
             calls.append(tail_pixels(*args, **kwargs))
             return calls[-1]
 
+        def pilot(plan, *args, **kwargs):  # each run's pilot asks for other samples: 8 more per stratum each time
+            out = real_resolve(plan, *args, **kwargs)
+            pilots.append(out.spp + 8 * len(pilots))
+            return replace(out, spp=pilots[-1])
+
         monkeypatch.setattr(script, "tail_pixels", choose)  # what FirstChoice calls to choose
-        choice = script.FirstChoice(share=share)
-        used = []
+        monkeypatch.setattr(script, "resolve_spp", pilot)  # what FirstSamples calls
+        choice, samples = script.FirstChoice(share=share), script.FirstSamples(share=share)
+        used, spp = [], []
         for seed in (1, 2):
             monkeypatch.setattr(pipeline, "tail_pixels", choice)
+            monkeypatch.setattr(pipeline, "resolve_spp", samples)
             run = capture_in_memory(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*sets, f"seed={seed}"]),
                                     StageStatus(False))
             used.append(choice.tiers)
+            spp.append(np.asarray(run.plan.spp))
             assert run.report["adaptive"]["pixels"] == sum(p.size for p, _ in choice.tiers) > 0
-        assert len(calls) == (1 if share else 2)
+        assert len(calls) == (1 if share else 2) and len(pilots) == 2  # every run's pilot renders
         assert (used[1] is used[0]) == share
+        assert np.array_equal(spp[1], pilots[0]) == share and np.array_equal(spp[0], pilots[0])
