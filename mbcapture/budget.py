@@ -803,18 +803,20 @@ def scout_spp(spp: np.ndarray, count: Callable[[int], int] | None = None) -> np.
 #: Adaptive sampling refines the pixels whose predicted ratio exceeds this share of the tail target. The
 #: prediction is the scout's ratio scaled to the first pass's samples as 1 / spp, which the quasi-Monte
 #: Carlo samplers beat (the scout's 99th percentile fell as spp^-1.19 to the first pass's, its median as
-#: spp^-1.24): an upper bound, so the level is the target itself. On the default capture at 640x512 (the
+#: spp^-1.24): an upper bound, so the level is the target itself. Where the moving parts cross, the ratio is
+#: not scaled: both passes draw one time per half-stratum, so their time noise is alike. On the default capture at 640x512 (the
 #: first pass's ratios after each choice, docs/noise.md "The scout") 1.0 chose 8.8 % of the pixels and left
 #: the tail at 0.92, 0.7 chose 25 % for 0.78.
 ADAPTIVE_SELECT = 1.0
 def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
                 reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float, tail_target: float,
-                max_factor: int, scale: float = 1.0) -> list[tuple[np.ndarray, int]]:
+                max_factor: int, scale: "float | np.ndarray" = 1.0) -> list[tuple[np.ndarray, int]]:
     """Adaptive sampling's choice, from a scout's half-sample differences and electrons: tiers of pixels
     (flat indices) and the factor of the first pass's samples each tier is to have in all, from the most
     any read's pooled Monte Carlo / shot-noise ratio, in any channel, reaches at the pixel, times
-    ``scale`` (the ratio the first pass has over the one these renders measure: the scout's samples
-    over the first pass's, :data:`ADAPTIVE_SELECT`).
+    ``scale`` (the ratio the first pass has over the one these renders measure, one or (H, W): the scout's
+    samples over the first pass's where only samples differ, :data:`ADAPTIVE_SELECT`; 1 where the moving
+    parts cross, :func:`mbcapture.pipeline.refine_tail`).
 
     A pixel is chosen where that ratio exceeds :data:`ADAPTIVE_SELECT` x ``tail_target``; its factor
     is the ratio over that level (variance ~ 1/spp: conservative for the quasi-Monte Carlo samplers),

@@ -428,7 +428,8 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
                 progress: bool, tiled: bool = False) -> tuple[Integrated, dict]:
     """Adaptive sampling (render.adaptive): a scout, the strata rendered again with seeds of their own at
     about a sixteenth of the first pass's samples (:func:`mbcapture.budget.scout_spp`), chooses the pixels
-    whose predicted ratio exceeds budget.ADAPTIVE_SELECT x the tail target (:func:`mbcapture.budget.tail_pixels`);
+    whose predicted ratio (the scout's, scaled as 1/spp where nothing moves, as it is in ``moving``)
+    exceeds budget.ADAPTIVE_SELECT x the tail target (:func:`mbcapture.budget.tail_pixels`);
     they are rendered again with more samples and added to the first pass (:func:`mbcapture.integrate.refine`),
     those in ``moving`` (the pixels the moving parts cross) at :data:`REFINE_TIME_POINTS` times per
     half-stratum. The choice is independent of the first pass, so every pixel's estimate, and the run's
@@ -452,7 +453,9 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
                               np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5C0)),
                               progress=progress, desc="scout")
         scout_s = time.perf_counter() - start
-        scale = float((scout_plan.spp / np.maximum(spp, 1)).max())  # the first pass's ratio over the scout's, as 1/spp
+        # the first pass's ratio over the scout's: as 1/spp where nothing moves; 1 where the moving parts cross,
+        # as there both passes draw one time per half-stratum, and their time noise does not fall with samples
+        scale = np.where(moving, 1.0, float((scout_plan.spp / np.maximum(spp, 1)).max()))
         tiers = tail_pixels(scout.mc_diff, BucketElectrons(scout.exposure, k_e), k_e,
                             list(plan.read_sets), cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
                             cfg.render.noise_budget_tail, cfg.render.adaptive_max_factor, scale)

@@ -151,6 +151,12 @@ def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
     # a scout's differences at a sixteenth of the samples (16x the variance), scaled back: the same choice
     scouted = tail_pixels(diff * 4, signal, k_e, [(0,)], 1e9, 1e9, 1.0, 256, 1 / 16)
     assert [(p.tolist(), f) for p, f in scouted] == [(p.tolist(), f) for p, f in tiers]
+    # a scale per pixel: left unscaled, the low region (scout ratio 16 x 1.6) asks for the most
+    per_pixel = np.full((H, W), 1 / 16)
+    per_pixel[:12] = 1.0
+    mixed = dict((f, set(p.tolist())) for f, p in ((f, p) for p, f in tail_pixels(diff * 4, signal, k_e, [(0,)], 1e9, 1e9,
+                                                                                  1.0, 256, per_pixel)))
+    assert 5 * W + 5 in mixed[asks(16 * 1.6)] and 17 * W + 17 in mixed[asks(50.0)]
 
 
 @pytest.mark.render
@@ -321,7 +327,7 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
         return made[-1][2]
 
     def choose(mc_diff, *args, **kwargs):
-        seen.append(mc_diff)
+        seen.append((mc_diff, args[-1]))
         return tail_pixels(mc_diff, *args, **kwargs)
 
     monkeypatch.setattr(pipeline, "integrate", integrate_recorded)
@@ -331,10 +337,15 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
                        "render.adaptive=true", "render.noise_budget_tail=10"])
     run = pipeline.capture_in_memory(cfg, StageStatus(False))
     (desc, plan, scout), = [m for m in made if m[0] == "scout"]
-    assert len(seen) == 1 and seen[0] is scout.mc_diff
+    assert len(seen) == 1 and seen[0][0] is scout.mc_diff
     first_spp = np.asarray(run.plan.spp)
     assert (plan.spp == scout_spp(first_spp, Renderer.from_config(scene_of(cfg), cfg).sample_count)).all()
     assert plan.spp.sum() * 8 < first_spp.sum()
+    # its ratios scaled to the first pass's samples as 1/spp where nothing moves, not at all where the
+    # moving parts cross (both passes draw one time per half-stratum there: the time noise stays)
+    moving = run.moving_mask
+    assert 0 < moving.mean() < 1
+    np.testing.assert_array_equal(seen[0][1], np.where(moving, 1.0, (plan.spp / first_spp).max()))
     assert run.report["adaptive"]["scout"]["spp"] == plan.spp.tolist()
 
 
