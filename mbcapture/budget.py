@@ -308,8 +308,9 @@ DECONV_RANGE_VALUES = 1 << 20
 #: values (:func:`effective_count`): its scatter, the estimates' own sampling noise included. Measured
 #: on lognormal fields (log sd 1.5) under chi^2_1 noise pooled over 3x3 on a 240x320 film: 2.1-2.3
 #: (16 fields; 2000 and 20000 values drawn from the film), 1.5 on the whole film, 2.9 on adaptive
-#: sampling's audited sample with its weights (20 fields, tests/test_adaptive.py's film); on the
-#: metronome's own runs 0.7-0.8 (12 runs at 320x256, 24 at 160x128). The largest, rounded up.
+#: sampling's audited sample with its weights (20 fields, tests/test_adaptive.py's film; the audit is gone
+#: since the eleventh session, and the constant kept); on the metronome's own runs 0.7-0.8 (12 runs at
+#: 320x256, 24 at 160x128). The largest, rounded up.
 DECONV_REL_SD = 3.0
 
 
@@ -804,10 +805,12 @@ def scout_spp(spp: np.ndarray, count: Callable[[int], int] | None = None) -> np.
 #: prediction is the scout's ratio scaled to the first pass's samples as 1 / spp, which the quasi-Monte
 #: Carlo samplers beat (the scout's 99th percentile fell as spp^-1.19 to the first pass's, its median as
 #: spp^-1.24): an upper bound, so the level is the target itself. Where the moving parts cross, the ratio is
-#: not scaled: both passes draw one time per half-stratum, so their time noise is alike. On the default capture at 640x512 (the
-#: first pass's ratios after each choice, docs/noise.md "The scout") 1.0 chose 8.8 % of the pixels and left
-#: the tail at 0.92, 0.7 chose 25 % for 0.78.
+#: not scaled: both passes draw one time per half-stratum, so their time noise is alike. On the default
+#: capture at 640x512 (the first pass's ratios after each choice, docs/noise.md "The scout") 1.0 chose 8.8 %
+#: of the pixels and left the tail at 0.92, 0.7 chose 25 % for 0.78.
 ADAPTIVE_SELECT = 1.0
+
+
 def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
                 reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float, tail_target: float,
                 max_factor: int, scale: "float | np.ndarray" = 1.0) -> list[tuple[np.ndarray, int]]:

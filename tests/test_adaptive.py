@@ -154,8 +154,7 @@ def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
     # a scale per pixel: left unscaled, the low region (scout ratio 16 x 1.6) asks for the most
     per_pixel = np.full((H, W), 1 / 16)
     per_pixel[:12] = 1.0
-    mixed = dict((f, set(p.tolist())) for f, p in ((f, p) for p, f in tail_pixels(diff * 4, signal, k_e, [(0,)], 1e9, 1e9,
-                                                                                  1.0, 256, per_pixel)))
+    mixed = {f: set(p.tolist()) for p, f in tail_pixels(diff * 4, signal, k_e, [(0,)], 1e9, 1e9, 1.0, 256, per_pixel)}
     assert 5 * W + 5 in mixed[asks(16 * 1.6)] and 17 * W + 17 in mixed[asks(50.0)]
 
 
