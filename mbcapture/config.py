@@ -124,8 +124,9 @@ class RenderSection(_Model):
         "first pass's samples its ratio asks for, at least 2x and at most render.adaptive_max_factor; the moving "
         "parts' pixels at 4 times per half-stratum. Unbiased: the choice comes from renders the image does not "
         "use, so it conditions no pixel's first pass (report.json adaptive). RGB variants with a "
-        "lens acting per pixel (no camera.distortion or camera.diffraction) and render.estimator independent; "
-        "elsewhere it is skipped and report.json says why. The tail lies on silhouettes and moving edges (docs/noise.md).",
+        "lens acting per pixel (no camera.distortion or camera.diffraction), render.estimator independent, a film in "
+        "one tile, and room in free memory for the scout's second set of the film's arrays; elsewhere it is skipped "
+        "and report.json says why. The tail lies on silhouettes and moving edges (docs/noise.md).",
     )
     adaptive_max_factor: int = Field(
         8, ge=2, le=256, description="Adaptive sampling's most samples at a refined pixel, its first pass's and its "

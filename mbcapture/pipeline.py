@@ -318,6 +318,21 @@ def over_budget(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig) 
     return over[(worst, key)], worst, key, reads[worst][key]
 
 
+def no_room_for_another_pass(integrated: Integrated) -> str | None:
+    """Why another render pass over the film cannot run here, or None: it holds a second set of the
+    film's arrays while it renders (two float64 halves of each, its per-group and temporal sums), which
+    must fit in free memory beside what the run holds (the top-up's second pass, adaptive sampling's
+    scout)."""
+    arrays = [a for a in (integrated.exposure, integrated.mc_diff, integrated.group_exposure,
+                          integrated.temporal_diff) if a is not None]
+    need = 3 * sum(a.size * 8 for a in arrays)
+    free, where = resources.free_memory()
+    if need <= free - resources.rss_bytes():
+        return None
+    return (f"room for a second set of the film's arrays ({need / 1e9:.2f} GB; "
+            f"{max(free - resources.rss_bytes(), 0) / 1e9:.2f} GB free by {where})")
+
+
 def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
            seed: np.random.SeedSequence, status: StageStatus, *, per_group: bool, timer, progress: bool,
            why_not: str | None) -> tuple[Plan, Integrated, dict | None]:
@@ -352,15 +367,7 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     factor, worst, figure, v1 = over_budget(integrated, timeline, cfg)
     if factor <= 1.0:
         return plan, integrated, None
-    # the second pass holds a second set of the film's arrays while it renders (two float64 halves of
-    # each, its per-group and temporal sums): not where they would not fit beside what the run holds
-    arrays = [a for a in (integrated.exposure, integrated.mc_diff, integrated.group_exposure,
-                          integrated.temporal_diff) if a is not None]
-    need = 3 * sum(a.size * 8 for a in arrays)
-    free, where = resources.free_memory()
-    if why_not is None and need > free - resources.rss_bytes():
-        why_not = (f"room for a second set of the film's arrays ({need / 1e9:.2f} GB; "
-                   f"{max(free - resources.rss_bytes(), 0) / 1e9:.2f} GB free by {where})")
+    why_not = why_not or no_room_for_another_pass(integrated)
     if why_not is not None:
         return plan, integrated, {"applied": False, "before": round(factor, 4),
                                   "note": f"not applied: a top-up needs {why_not}"}
@@ -440,7 +447,8 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Ti
            if tiled else
            "an RGB render.variant and a lens acting per pixel (no camera.distortion, camera.diffraction)"
            if not renderer.renders_pixels else "render.estimator independent" if plan.estimator != "independent"
-           else "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None else None)
+           else "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None
+           else no_room_for_another_pass(integrated))  # the scout renders the film again
     with status.stage("adaptive sampling"):
         if why is not None:
             return integrated, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}

@@ -396,3 +396,22 @@ def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monk
         assert len(calls) == (1 if share else 2) and len(pilots) == 2  # every run's pilot renders
         assert (used[1] is used[0]) == share
         assert np.array_equal(spp[1], pilots[0]) == share and np.array_equal(spp[0], pilots[0])
+
+
+@pytest.mark.render
+def test_adaptive_sampling_is_skipped_where_its_scout_would_not_fit_in_memory(setup, monkeypatch):
+    """The scout renders the film again, holding a second set of its arrays: where free memory cannot
+    take them, adaptive sampling is not applied and report.json's note says why (as the top-up does)."""
+    from contextlib import nullcontext
+
+    from mbcapture import resources
+    from mbcapture.pipeline import refine_tail
+    from mbcapture.progress import StageStatus
+
+    cfg, timeline, plan, seeds, r = setup
+    first = integrate(r, plan, timeline.n_buckets, seeds[2])
+    monkeypatch.setattr(resources, "free_memory", lambda: (resources.rss_bytes() + 1000, "a test"))
+    same, info = refine_tail(cfg, r, plan, timeline, first, seeds[2], StageStatus(False),
+                             moving=np.zeros((48, 64), bool), per_group=False, timer=lambda name: nullcontext(),
+                             progress=False)
+    assert same is first and info["pixels"] == 0 and "free by a test" in info["note"]
