@@ -811,41 +811,54 @@ def scout_spp(spp: np.ndarray, count: Callable[[int], int] | None = None) -> np.
 ADAPTIVE_SELECT = 1.0
 
 
-def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
-                reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float, tail_target: float,
-                max_factor: int, scale: "float | np.ndarray" = 1.0) -> list[tuple[np.ndarray, int]]:
-    """Adaptive sampling's choice, from a scout's half-sample differences and electrons: tiers of pixels
-    (flat indices) and the factor of the first pass's samples each tier is to have in all, from the most
-    any read's pooled Monte Carlo / shot-noise ratio, in any channel, reaches at the pixel, times
-    ``scale`` (the ratio the first pass has over the one these renders measure, one or (H, W): the scout's
-    samples over the first pass's where only samples differ, :data:`ADAPTIVE_SELECT`; 1 where the moving
-    parts cross, :func:`mbcapture.pipeline.refine_tail`).
-
-    A pixel is chosen where that ratio exceeds :data:`ADAPTIVE_SELECT` x ``tail_target``; its factor
-    is the ratio over that level (variance ~ 1/spp: conservative for the quasi-Monte Carlo samplers),
-    rounded up to a power of two in [2, ``max_factor``]. A pixel's neighbours within 3x3 get at least
-    its factor (the estimate is pooled over them). Until the eleventh session every chosen pixel also
-    got at least the factor that brought the chosen pixels' 99th percentile to the level (up to 4x:
-    an estimate from the first pass's own noise was too noisy to trust a low factor); chosen from the
-    scout with the first pass kept, 2x met the tail at the default capture (docs/noise.md, "The
-    scout"). Returns [(pixels, factor)] by increasing factor, every pixel in one tier at most; [] when
-    no pixel needs it."""
-    from scipy.ndimage import grey_dilation
-
+def scout_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
+                reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float) -> np.ndarray:
+    """(H, W): the most any read's pooled Monte Carlo / shot-noise ratio (:func:`read_noise_ratio`), in any
+    channel, reaches at each pixel, from a render's half-sample differences and electrons (0 where no read
+    counts the pixel): what :func:`tail_pixels` chooses from, before its scale."""
     K, H, W, C = buckets_e.shape
     worst = np.zeros((H, W))
     for buckets in reads:
         var_e, signal, use = read_noise_ratio(mc_diff_exposure, buckets_e, k_e, buckets, full_well_e, fd_full_well_e)
         ratio = np.where(use, var_e / np.maximum(signal, 1e-300), 0.0)
         worst = np.maximum(worst, ratio.max(axis=-1))
+    return worst
+
+
+def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
+                reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float, tail_target: float,
+                max_factor: int, scale: "float | np.ndarray" = 1.0) -> list[tuple[np.ndarray, int]]:
+    """Adaptive sampling's choice, from a scout's half-sample differences and electrons: tiers of pixels
+    (flat indices) and the factor of the first pass's samples each tier is to have in all, from
+    :func:`scout_ratio` times ``scale`` (the ratio the first pass has over the one these renders measure,
+    one or (H, W): the scout's samples over the first pass's where only samples differ, :data:`ADAPTIVE_SELECT`;
+    1 where the moving parts cross, :func:`mbcapture.pipeline.refine_tail`); :func:`factor_tiers` from there."""
+    worst = scout_ratio(mc_diff_exposure, buckets_e, k_e, reads, full_well_e, fd_full_well_e)
     worst *= scale
-    level = ADAPTIVE_SELECT * tail_target
-    chosen = worst > level
+    return factor_tiers(worst, ADAPTIVE_SELECT * tail_target, max_factor)
+
+
+def factor_tiers(predicted: np.ndarray, level: float, max_factor: int) -> list[tuple[np.ndarray, int]]:
+    """The tiers of :func:`tail_pixels` from the predicted ratio of each pixel (H, W).
+
+    A pixel is chosen where that ratio exceeds ``level``; its factor is the ratio over the level
+    (variance ~ 1/spp: conservative for the quasi-Monte Carlo samplers), rounded up to a power of two in
+    [2, ``max_factor``]. A pixel's neighbours within 3x3 get at least its factor (the estimate is pooled
+    over them). Until the eleventh session every chosen pixel also got at least the factor that brought
+    the chosen pixels' 99th percentile to the level (up to 4x: an estimate from the first pass's own noise
+    was too noisy to trust a low factor); chosen from the scout with the first pass kept, 2x met the tail
+    at the default capture (docs/noise.md, "The scout"). Other rules (a lower level, a smaller
+    neighbourhood, factors to a lower target) cost more for the same tail or leave a higher tail for
+    less (scripts/adaptive_frontier.py; docs/noise.md, "The frontier"). Returns [(pixels, factor)] by
+    increasing factor, every pixel in one tier at most; [] when no pixel needs it."""
+    from scipy.ndimage import grey_dilation
+
+    chosen = predicted > level
     if not chosen.any():
         return []
     top = int(np.log2(max_factor))  # tiers up to the largest power of two <= max_factor
-    tier = np.zeros((H, W), np.int64)  # log2 of the factor; 0: not refined
-    tier[chosen] = np.clip(np.ceil(np.log2(worst[chosen] / level)), 1, top).astype(np.int64)
+    tier = np.zeros(predicted.shape, np.int64)  # log2 of the factor; 0: not refined
+    tier[chosen] = np.clip(np.ceil(np.log2(predicted[chosen] / level)), 1, top).astype(np.int64)
     tier = grey_dilation(tier, size=(3, 3), mode="constant", cval=0)
     return [(np.flatnonzero(tier == t), 1 << int(t)) for t in np.unique(tier[tier > 0])]
 

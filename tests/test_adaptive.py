@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from script_modules import load_script
 
 from mbcapture import load_config
 from mbcapture.budget import ADAPTIVE_SELECT, tail_pixels
@@ -357,15 +358,11 @@ def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monk
     """scripts/render_noise_reads.py: with adaptive sampling both runs refine the pixels the first run
     chose and render the samples the first run's pilot chose (one estimator, the one whose error the first
     run's own figures estimate); --own-choices lets each choose both."""
-    import importlib.util
-
     from mbcapture import pipeline
     from mbcapture.pipeline import capture_in_memory
     from mbcapture.progress import StageStatus
 
-    spec = importlib.util.spec_from_file_location("render_noise_reads", ROOT / "scripts" / "render_noise_reads.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("render_noise_reads")
     sets = ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.cache=off", "render.max_spp=32",
             "render.adaptive=true", "render.noise_budget_tail=10", "render.top_up=false"]
     real_resolve = script.resolve_spp
@@ -415,3 +412,54 @@ def test_adaptive_sampling_is_skipped_where_its_scout_would_not_fit_in_memory(se
                              moving=np.zeros((48, 64), bool), per_group=False, timer=lambda name: nullcontext(),
                              progress=False)
     assert same is first and info["pixels"] == 0 and "free by a test" in info["note"]
+
+
+def test_the_frontier_scripts_rule_in_use_is_the_budgets():
+    """scripts/adaptive_frontier.py: its rule 'level 1, target 1, box, from 1' gives every pixel the factor
+    budget.factor_tiers gives it (the script checks this on every run too), and the other rules differ from it
+    the way they say: the four sides spread to fewer pixels, no spread to none, a lower level chooses more."""
+    from mbcapture.budget import factor_tiers
+
+    script = load_script("adaptive_frontier")
+    rng = np.random.default_rng(3)
+    predicted = rng.lognormal(-1.5, 1.5, (40, 56))
+    expected = np.ones(predicted.size)
+    for pixels, f in factor_tiers(predicted, ADAPTIVE_SELECT * 2.0, 8):
+        expected[pixels] = f
+    in_use = script.factors(predicted, 2.0, ADAPTIVE_SELECT, ADAPTIVE_SELECT, "box", 1, 8)
+    np.testing.assert_array_equal(in_use.ravel(), expected)
+    chosen = predicted > 2.0
+    none = script.factors(predicted, 2.0, 1.0, 1.0, "none", 1, 8)
+    cross = script.factors(predicted, 2.0, 1.0, 1.0, "cross", 1, 8)
+    assert np.array_equal(none > 1, chosen)
+    assert (none <= cross).all() and (cross <= in_use).all() and (cross > 1).sum() < (in_use > 1).sum()
+    assert (script.factors(predicted, 2.0, 0.7, 0.7, "none", 1, 8) > 1).sum() > chosen.sum()
+    # the factor: the predicted ratio over target x tail, up to a power of two in [2, 8]
+    f = none[chosen]
+    assert set(np.unique(f)) <= {2.0, 4.0, 8.0}
+    assert (predicted[chosen] / f <= 2.0 + 1e-12)[f < 8].all()
+    with pytest.raises(SystemExit, match="dilation one of"):
+        script.parse_rule("1,1,star,1")
+    with pytest.raises(SystemExit, match="target <= level"):
+        script.parse_rule("0.7,1,box,1")
+
+
+def test_the_frontier_script_predicts_a_refined_variance_as_the_first_passes_over_the_factor():
+    """A factor f everywhere divides every predicted quantile by f (the variance falls as 1/f), and f = 1 is
+    the two first passes' own outside figure, pooled as render_noise_reads.py pools it."""
+    from mbcapture.budget import pooled_alike
+
+    script = load_script("adaptive_frontier")
+    rng = np.random.default_rng(5)
+    mean = rng.uniform(50.0, 5000.0, (1, 24, 32, 3))
+    e1, e2 = mean + rng.normal(0, 1, mean.shape) * np.sqrt(mean), mean + rng.normal(0, 1, mean.shape) * np.sqrt(mean)
+    below = np.ones(mean.shape, bool)
+    data = {"e1": e1, "e2": e2, "below1": below, "below2": below, "fd_full_well_e": 1e9}
+    one = script.predict(data, np.ones((24, 32)))[0]
+    four = script.predict(data, np.full((24, 32), 4.0))[0]
+    np.testing.assert_allclose(np.array(four), np.array(one) / 4.0, rtol=1e-9)
+    m = (e1[0] + e2[0]) / 2
+    direct = pooled_alike((e1[0] - e2[0]) ** 2 / 2, m) / m
+    assert one[2] == pytest.approx(float(np.percentile(direct, 99.9)), rel=1e-12)
+    # shot-noise-sized differences: the ratio's middle near 1
+    assert 0.6 < one[0] < 1.4

@@ -28,7 +28,6 @@ the other hosts' measurements, and commit both.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -51,6 +50,7 @@ from golden_cases import (
     tolerance,
     within,
 )
+from script_modules import load_script
 
 from mbcapture.portability import (
     EMULATED_TARGETS,
@@ -144,10 +144,7 @@ def test_every_golden_image_has_a_measured_cross_target_spread():
 
 def _golden_spread():
     """scripts/golden_spread.py as a module (scripts are not a package)."""
-    spec = importlib.util.spec_from_file_location("golden_spread", ROOT / "scripts" / "golden_spread.py")
-    gs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gs)
-    return gs
+    return load_script("golden_spread")
 
 
 def test_spreads_from_another_host_keep_the_larger_difference_and_name_the_host():

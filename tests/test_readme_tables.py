@@ -2,20 +2,17 @@
 with docs/measured.json, a rewrite touches only the lines between the markers, and a row is what
 `mbcapture run` reports."""
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
+from script_modules import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("readme_tables", ROOT / "scripts" / "readme_tables.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("readme_tables")
 
 
 def test_readme_tables_are_those_of_the_measured_data():

@@ -1,0 +1,188 @@
+"""Adaptive sampling's rules for choosing pixels, each against what it costs, without rendering them.
+
+What a rule leaves in the tail can be predicted from renders it does not need: two first passes of one
+config that differ only in the run seed (their difference is Monte Carlo noise alone, as in
+scripts/render_noise_reads.py) and a scout of its own (the one adaptive sampling chooses from,
+:func:`mbcapture.budget.scout_ratio`). A rule gives each pixel a factor f of the first pass's samples;
+where nothing moves a pixel's variance then falls as 1/f (an upper bound for the quasi-Monte Carlo
+samplers), so the outside measurement after refinement is predicted by the same estimator on the two
+first passes' squared differences divided by f: pooled over the alike of 3x3 pixels, over the
+electrons. Where the moving parts cross, the refinement renders four times per half-stratum and the
+time noise falls faster than 1/f: 1/f is kept there too (conservative).
+
+Checked against a real refinement on the default capture at 640x512 (seeds 1 and 2): the rule in use
+predicted J4's 99.9th percentile at 0.878 and render_noise_reads.py measured 0.877 from outside; the four
+sides in place of the 3x3 box (a rule never run before) predicted 0.915 and measured 0.906, the runs' own
+0.918 and 0.910 (docs/noise.md, "The frontier").
+
+The rules: a pixel is chosen where the scout's predicted ratio exceeds ``level`` x the tail target, its
+factor the ratio over ``target`` x the tail target rounded up to a power of two in [2, max factor],
+and the factors of the pixels at ``--dilate-from`` or more spread to their neighbours (``box``: 3x3,
+``cross``: the four sides, ``none``). ``level 1 target 1 box from 2`` is
+:func:`mbcapture.budget.factor_tiers`, the rule in use (checked each run).
+
+    python scripts/adaptive_frontier.py                       # the default capture at 640x512, a grid of rules
+    python scripts/adaptive_frontier.py --size 160x128 --cache /tmp/f160.npz
+    python scripts/adaptive_frontier.py --rule 1,1,cross,2 --rule 0.7,0.7,none,2
+
+Renders three captures once (about 3 minutes at 640x512; ``--cache`` keeps them); each rule then takes
+seconds. Prints, per rule, the samples it adds (over the first pass's, on the whole film, as report.json's
+``adaptive.added_samples``), the pixels it refines and each read's predicted median, p95 and 99.9th
+percentile.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+import time
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+from scipy.ndimage import grey_dilation
+
+from mbcapture import load_config, pipeline
+from mbcapture.budget import (ADAPTIVE_SELECT, budget_quantiles, effective_dof, factor_tiers, pooled_alike,
+                              resolve_spp, scout_ratio)
+from mbcapture.pipeline import capture_in_memory
+from mbcapture.progress import StageStatus
+
+FOOTPRINTS = {"box": np.ones((3, 3), bool), "cross": np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool), "none": None}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("config", nargs="?", default="metronome_hdr")
+    ap.add_argument("--size", default="640x512")
+    ap.add_argument("--set", action="append", default=[], dest="sets")
+    ap.add_argument("--seeds", default="1,2", help="the two run seeds, comma-separated (the first one's scout chooses)")
+    ap.add_argument("--cache", default=None, help="NPZ of the renders: read when it exists, written when not")
+    ap.add_argument("--rule", action="append", default=[],
+                    help="level,target,dilation,dilate-from (e.g. 1,1,box,1); default: a grid around the rule in use")
+    args = ap.parse_args()
+    seeds = [int(s) for s in args.seeds.split(",")]
+    if len(seeds) != 2:
+        raise SystemExit(f"--seeds: two comma-separated run seeds expected, got {args.seeds!r}")
+    if args.cache and Path(args.cache).exists():
+        data = dict(np.load(args.cache))
+    else:
+        data = render_inputs(args.config, args.size, seeds, args.sets)
+        if args.cache:
+            np.savez(args.cache, **data)
+    rules = [parse_rule(r) for r in args.rule] or [
+        (level, target, dil, start)
+        for level, target, dil, start in itertools.product((0.7, 1.0, 1.2), (0.7, 1.0), ("box", "cross", "none"), (1, 2))
+        if target <= level and not (dil == "none" and start == 2)]
+    predicted = data["scout_worst"] * data["scale"]
+    tail = float(data["tail_target"])
+    in_use = factors(predicted, tail, 1.0, 1.0, "box", 1, int(data["max_factor"]))
+    tiers = factor_tiers(predicted, ADAPTIVE_SELECT * tail, int(data["max_factor"]))
+    expected = np.ones(predicted.size)
+    for pixels, f in tiers:
+        expected[pixels] = f
+    if not np.array_equal(in_use.ravel(), expected):
+        raise SystemExit("the rule 1,1,box,1 no longer reproduces budget.factor_tiers: update factors() here")
+    names = [str(n) for n in data["names"]]
+    print(f"{args.config} at {args.size}: first passes of seeds {seeds[0]} and {seeds[1]}, the scout of seed {seeds[0]}; "
+          f"the rule in use is level {ADAPTIVE_SELECT:g},target {ADAPTIVE_SELECT:g},box,1")
+    print(f"{'level,target,dilation,from':28s} {'added':>7s} {'pixels':>7s}   " +
+          "   ".join(f"{n} median/p95/p99.9" for n in names))
+    rows = [("first pass alone", np.ones(predicted.shape))]
+    rows += [(",".join(f"{x:g}" if isinstance(x, float) else str(x) for x in rule),
+              factors(predicted, tail, *rule, int(data["max_factor"]))) for rule in rules]
+    for label, f in rows:
+        figures = predict(data, f)
+        added = float((f - 1.0).sum() / f.size)
+        print(f"{label:28s} {added:7.3f} {int((f > 1).sum()):7d}   " +
+              "   ".join(f"{m:.3f}/{p:.3f}/{t:.3f}" for m, p, t in figures))
+
+
+def parse_rule(text: str) -> tuple[float, float, str, int]:
+    """'level,target,dilation,from' -> the rule's tuple; a clear error naming what is wrong."""
+    parts = text.split(",")
+    if len(parts) != 4 or parts[2] not in FOOTPRINTS:
+        raise SystemExit(f"--rule {text!r}: expected level,target,dilation,from with dilation one of "
+                         f"{sorted(FOOTPRINTS)}, e.g. 1,1,box,1")
+    level, target, start = float(parts[0]), float(parts[1]), int(parts[3])
+    if not (0 < target <= level) or start < 1:
+        raise SystemExit(f"--rule {text!r}: expected 0 < target <= level and from >= 1")
+    return level, target, parts[2], start
+
+
+def factors(predicted: np.ndarray, tail_target: float, level: float, target: float, dilation: str, start: int,
+            max_factor: int) -> np.ndarray:
+    """(H, W) factor of each pixel under a rule (module doc): 1 where it is not refined."""
+    chosen = predicted > level * tail_target
+    tier = np.zeros(predicted.shape, np.int64)
+    top = int(np.log2(max_factor))
+    tier[chosen] = np.clip(np.ceil(np.log2(predicted[chosen] / (target * tail_target))), 1, top)
+    if FOOTPRINTS[dilation] is not None:
+        spread = grey_dilation(np.where(tier >= start, tier, 0), footprint=FOOTPRINTS[dilation], mode="constant", cval=0)
+        tier = np.maximum(tier, spread)
+    return np.where(tier > 0, 2.0 ** tier, 1.0)
+
+
+def predict(data: dict, f: np.ndarray) -> list[tuple[float, float, float]]:
+    """Each read's predicted outside (median, p95, p99.9) after refining by the factors ``f`` (H, W): the two
+    first passes' squared differences over 2, divided by f, pooled as the run's own estimate pools them
+    (:func:`mbcapture.budget.pooled_alike`), over the mean electrons; the median deconvolved as
+    render_noise_reads.py's (:func:`mbcapture.budget.budget_quantiles`)."""
+    e1, e2 = data["e1"], data["e2"]
+    out = []
+    for r in range(e1.shape[0]):
+        mean = (e1[r] + e2[r]) / 2
+        use = (mean > 1.0) & data["below1"][r] & data["below2"][r] & (mean < float(data["fd_full_well_e"]))
+        squared = (e1[r] - e2[r]) ** 2 / 2.0 / f[:, :, None]
+        ratio = pooled_alike(squared, mean)[use] / mean[use]
+        median, p95 = budget_quantiles(ratio, effective_dof(squared, use))
+        out.append((median, p95, float(np.percentile(ratio, 99.9))))
+    return out
+
+
+class Scout:
+    """Stands in for :func:`mbcapture.budget.tail_pixels` in a run: keeps the scout's predicted ratio, its
+    scale and the rule's parameters, and refines nothing (the run's image is then its first pass alone)."""
+
+    def __init__(self):
+        self.kept: dict | None = None
+
+    def __call__(self, mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e, tail_target, max_factor,
+                 scale=1.0):
+        worst = scout_ratio(mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e)
+        self.kept = {"scout_worst": worst, "scale": np.broadcast_to(np.asarray(scale, np.float64), worst.shape).copy(),
+                     "tail_target": float(tail_target), "max_factor": int(max_factor)}
+        return []
+
+
+def render_inputs(config: str, size: str, seeds: list[int], sets: list[str]) -> dict:
+    """The renders a rule is judged on: the first passes of two runs (the second at the first's samples per
+    stratum) and the first run's scout."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from render_noise_reads import FirstSamples, below_full_well  # noqa: PLC0415  (a script beside this one)
+
+    w, h = size.split("x")
+    base = [f"render.width={w}", f"render.height={h}", "render.cache=off", "sensor.noise_seed=7", *sets]
+    samples, scout = FirstSamples(share=True), Scout()
+    runs = []
+    for i, s in enumerate(seeds):
+        t0 = time.perf_counter()
+        # the first run scouts (and refines nothing); the second renders its first pass alone
+        overrides = [*base, f"seed={s}", f"render.adaptive={'true' if i == 0 else 'false'}"]
+        with mock.patch.object(pipeline, "tail_pixels", scout), mock.patch.object(pipeline, "resolve_spp", samples):
+            runs.append(capture_in_memory(load_config(config, overrides), StageStatus(False)))
+        print(f"seed {s}: {time.perf_counter() - t0:.0f} s, spp {runs[-1].plan.spp_label()}", flush=True)
+    if scout.kept is None:
+        raise SystemExit(f"{config}: the first run made no scout (render.spp must be null and adaptive sampling apply: "
+                         f"{runs[0].report.get('adaptive')})")
+    cfg = runs[0].config
+    return {"e1": np.asarray(runs[0].reads_expected_e, np.float64), "e2": np.asarray(runs[1].reads_expected_e, np.float64),
+            "below1": below_full_well(runs[0], cfg.sensor.full_well_e),
+            "below2": below_full_well(runs[1], cfg.sensor.full_well_e),
+            "fd_full_well_e": float(cfg.sensor.fd_full_well_e),
+            "names": np.array([rd.name for rd in runs[0].timeline.reads]), **scout.kept}
+
+
+if __name__ == "__main__":
+    main()
