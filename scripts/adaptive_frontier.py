@@ -17,8 +17,8 @@ sides in place of the 3x3 box (a rule never run before) predicted 0.915 and meas
 
 The rules: a pixel is chosen where the scout's predicted ratio exceeds ``level`` x the tail target, its
 factor the ratio over ``target`` x the tail target rounded up to a power of two in [2, max factor],
-and the factors of the pixels at ``--dilate-from`` or more spread to their neighbours (``box``: 3x3,
-``cross``: the four sides, ``none``). ``1,1,box,1`` (level, target, dilation, from) is
+and the factors of the pixels at 2^``from`` or more (1: every chosen pixel, 2: those at 4x and up) spread
+to their neighbours (``box``: 3x3, ``cross``: the four sides, ``none``). ``1,1,box,1`` (level, target, dilation, from) is
 :func:`mbcapture.budget.factor_tiers`, the rule in use (checked each run).
 
     python scripts/adaptive_frontier.py                       # the default capture at 640x512, a grid of rules
