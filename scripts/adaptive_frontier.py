@@ -45,9 +45,12 @@ from scipy.ndimage import grey_dilation
 
 from mbcapture import load_config, pipeline
 from mbcapture.budget import (ADAPTIVE_SELECT, budget_quantiles, effective_dof, factor_tiers, pooled_alike,
-                              resolve_spp, scout_ratio)
+                              scout_ratio)
 from mbcapture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # render_noise_reads.py, a script beside this one
+from render_noise_reads import FirstSamples, below_full_well  # noqa: E402
 
 FOOTPRINTS = {"box": np.ones((3, 3), bool), "cross": np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool), "none": None}
 
@@ -77,13 +80,14 @@ def main() -> None:
         if target <= level and not (dil == "none" and start == 2)]
     predicted = data["scout_worst"] * data["scale"]
     tail = float(data["tail_target"])
-    in_use = factors(predicted, tail, 1.0, 1.0, "box", 1, int(data["max_factor"]))
+    in_use = factors(predicted, tail, ADAPTIVE_SELECT, ADAPTIVE_SELECT, "box", 1, int(data["max_factor"]))
     tiers = factor_tiers(predicted, ADAPTIVE_SELECT * tail, int(data["max_factor"]))
     expected = np.ones(predicted.size)
     for pixels, f in tiers:
         expected[pixels] = f
     if not np.array_equal(in_use.ravel(), expected):
-        raise SystemExit("the rule 1,1,box,1 no longer reproduces budget.factor_tiers: update factors() here")
+        raise SystemExit(f"the rule {ADAPTIVE_SELECT:g},{ADAPTIVE_SELECT:g},box,1 no longer reproduces "
+                         "budget.factor_tiers: update factors() here")
     names = [str(n) for n in data["names"]]
     print(f"{args.config} at {args.size}: first passes of seeds {seeds[0]} and {seeds[1]}, the scout of seed {seeds[0]}; "
           f"the rule in use is level {ADAPTIVE_SELECT:g},target {ADAPTIVE_SELECT:g},box,1")
@@ -159,9 +163,6 @@ class Scout:
 def render_inputs(config: str, size: str, seeds: list[int], sets: list[str]) -> dict:
     """The renders a rule is judged on: the first passes of two runs (the second at the first's samples per
     stratum) and the first run's scout."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from render_noise_reads import FirstSamples, below_full_well  # noqa: PLC0415  (a script beside this one)
-
     w, h = size.split("x")
     base = [f"render.width={w}", f"render.height={h}", "render.cache=off", "sensor.noise_seed=7", *sets]
     samples, scout = FirstSamples(share=True), Scout()
