@@ -351,3 +351,19 @@ def test_normal_runs_are_the_fields_leading_slices_bit_for_bit():
         band = np.stack([r.copy() for r in streams.normal_runs("read", shape, (r0, r1))])
         np.testing.assert_array_equal(band, whole[:, r0:r1])
     assert not np.array_equal(np.stack(runs), NoiseStreams(10).normal("read", shape))
+
+
+def test_the_poisson_start_is_the_general_cornish_fisher_start_with_poissons_moments():
+    """_poisson_start is _start's expansion reduced for skewness 1/sd and excess kurtosis 1/lam: the
+    same integer starts (both sides of the variance below which the plain normal quantile is used),
+    so the walks stay as short as they were. A wrong reduction would move the starts by counts."""
+    from mbcapture.sensor.sampling import _CF_MIN_VAR, _poisson_start, _start
+
+    rng = np.random.default_rng(7)
+    lam = np.concatenate([10.0 ** rng.uniform(-2, 7, 200_000), [_CF_MIN_VAR * (1 - 1e-12), _CF_MIN_VAR]])
+    z = special.ndtri(rng.uniform(1e-9, 1 - 1e-9, lam.size))
+    general = _start(z, lam, lam, 1.0 / np.sqrt(lam), 1.0 / lam)
+    fast = _poisson_start(z, lam)
+    # the two orders of the same arithmetic may round across a half-integer: at most one count, rarely
+    assert np.abs(fast - general).max() <= 1.0
+    assert np.count_nonzero(fast != general) <= lam.size * 1e-5
