@@ -54,7 +54,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .integrate import accumulate
+from .integrate import accumulate, sample_counter
 from .plan import Plan
 from .sensor import electrons_per_render_second
 
@@ -423,9 +423,12 @@ PILOT_SPP = (4, 16)
 EXPONENT_RANGE = (1.0, 2.0)
 
 
-#: Steps per octave of the ladder of sample counts (:func:`_ladder`): 9 % apart, so a stratum gets little
-#: more than the pilot asked for (19 % steps until 2026-11-27), while the strata of a capture share few counts.
-LADDER_STEPS = 8
+#: Steps per octave of the ladder of sample counts (:func:`_ladder`): 2.2 % apart, so a stratum gets little
+#: more than the pilot asked for (19 % steps until 2026-11-27, then 9 %), while the strata of a capture share
+#: few counts. Distinct counts cost a kernel each where the sampler's count is a literal of it (multijitter:
+#: about 0.25 s each at 640x512); the renders that draw from the shared pattern take their count opaque
+#: and compile once for all counts.
+LADDER_STEPS = 32
 
 
 def _ladder(x: float, count: Callable[[int], int] | None = None) -> int:
@@ -588,7 +591,7 @@ def choose_spp(
     # (multijitter converges faster than spp^-2 on smooth scenes, so the clipped exponent under-predicts the
     # noise of fewer samples: flutter_shutter 640x512 was given 2 + 2 spp and measured 0.175 > 0.1)
     n = np.maximum(scale * alpha, float(n_lo)) if scale > 0 else scale * alpha
-    count = getattr(renderer, "sample_count", lambda m: m)  # what the sampler takes
+    count = sample_counter(renderer, plan)  # what the renders take
     half = np.array([_ladder(x / 2, count) for x in n])
     cap = max(max_spp // 2, 1)
     spp = (2 * np.minimum(half, cap)).astype(np.int64)

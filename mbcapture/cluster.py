@@ -27,7 +27,7 @@ import numpy as np
 
 from .config import CaptureConfig, scene_of
 from .errors import ConfigError, one_line
-from .integrate import render_requests
+from .integrate import render_requests, sample_counter
 from .plan import Plan
 from .render import Renderer
 from .render.cache import open_cache
@@ -132,7 +132,7 @@ def render_on_cluster(client, cfg: CaptureConfig, plan: Plan, seed: np.random.Se
         return {"renders": 0, "note": f"render.estimator {plan.estimator!r}: rendered here (its strata depend on "
                                       "its base render)"}
     bands = renderer.band_span((0, renderer.height) if rows is None else rows)
-    requests = [(*req, b) for req in render_requests(plan, seed, renderer.sample_count) for b in bands]
+    requests = [(*req, b) for req in render_requests(plan, seed, sample_counter(renderer, plan)) for b in bands]
     hosts = topology(client)
     threads = {h: drjit_threads(c, w, w) for h, (c, w) in hosts.items()}
     start = time.perf_counter()

@@ -59,6 +59,14 @@ def pattern_keys(seed: np.random.SeedSequence) -> np.ndarray:
         .integers(0, 2**32, size=2)
 
 
+def sample_counter(renderer, plan: Plan) -> Callable[[int], int]:
+    """What ``renderer``'s renders of ``plan`` take when asked for a count (``Renderer.counter``: the count
+    itself where they draw from the shared pattern in an RGB variant, else the sampler's: multijitter takes
+    132 for 128); every count as it is for a stand-in renderer without one."""
+    counter = getattr(renderer, "counter", None)
+    return counter(plan.shares_pattern) if counter is not None else (lambda n: n)
+
+
 def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None,
                     after: Plan | None = None) -> list[list[tuple[int, int] | None]]:
     """The shared pattern (key, offset) of each stratum's half-sample renders, [j][h], or None
@@ -66,7 +74,7 @@ def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[i
     pattern of its own, stratum j taking the samples after those of strata 0 .. j - 1, so that the
     halves stay independent (the run's error estimate is their difference) and each is stratified
     over the strata together. ``count``: the samples the renderer's sampler takes for a request
-    (``Renderer.sample_count``: multijitter takes 132 for 128), so that no two strata share samples.
+    (:func:`sample_counter`), so that no two strata share samples.
     ``after``: a first pass rendered with the same ``seed``, whose patterns these continue: the same
     keys, each half's samples after all of that pass's (the budget's top-up)."""
     halves = stratum_halves(plan)
@@ -226,7 +234,7 @@ def integrate(
     temporal = np.zeros((n_buckets, H, W, C), dtype=np.float64) if plan.passes >= 2 else None
     seeds = render_seeds(plan, seed)
     first_plan, pattern_seed = continues if continues is not None else (None, seed)
-    patterns = render_patterns(plan, pattern_seed, getattr(renderer, "sample_count", None), after=first_plan)
+    patterns = render_patterns(plan, pattern_seed, sample_counter(renderer, plan), after=first_plan)
     times = plan.render_times
     used = plan.weights_s.sum(axis=1) > 0  # (J, G): groups with weight in each stratum
     radiance64 = np.empty((G, H, W, C))  # each render widened to float64 for accumulate, made once
@@ -343,7 +351,7 @@ class _Control:
         self.crn_seeds = rng.integers(0, 2**31 - 1, size=2)
         n_base = int(plan.base_spp) // 2
         chunk = max(int(plan.max_spp_per_render) // 2, 1)
-        count = getattr(renderer, "sample_count", lambda n: n)  # what the sampler takes
+        count = sample_counter(renderer, plan)  # what the sampler takes
         self.base_chunks = [count(min(chunk, n_base - i)) for i in range(0, n_base, chunk)]
         self.base_seeds = rng.integers(0, 2**31 - 1, size=(2, len(self.base_chunks)))
         self.t0 = float(plan.base_time_s)
@@ -425,13 +433,13 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
     return out
 
 
-def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, factor: int,
+def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, factor: "int | np.ndarray",
            seed: np.random.SeedSequence, *, points: int = 1, per_group: bool = False, timer=None,
            progress: bool = False, desc: str = "refine") -> Integrated:
-    """Adaptive sampling's second pass: every stratum again at ``pixels`` (flat indices) only, with
-    ``factor`` - 1 times its samples (two halves, for the error estimate), through
-    :meth:`mbcapture.render.Renderer.render_pixels`, added to the first pass there: those pixels end with
-    ``factor`` times the first pass's samples.
+    """Adaptive sampling's second pass: every stratum again at ``pixels`` (flat indices) only, each with
+    ``factor`` - 1 times its samples (one factor for all, or one per pixel; two halves, for the error
+    estimate), through :meth:`mbcapture.render.Renderer.render_pixels`, added to the first pass there: each
+    pixel ends with its ``factor`` times the first pass's samples.
 
     Unbiased where the pixels were chosen independently of the first pass (adaptive sampling chooses
     from a scout of its own, :func:`mbcapture.budget.scout_spp`): then the first pass at them is an
@@ -448,57 +456,64 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     Where the first pass drew from shared patterns (``plan.shares_pattern``), so does this pass: from two
     patterns of its own (keys from ``seed``), each half of stratum j taking the samples after those of
     the strata before it, as the first pass did: a pixel's second pass is the first pass's estimator at
-    ``factor`` - 1 times the samples, stratified over the strata together."""
-    if int(factor) < 2:
-        raise ValueError(f"refine: factor {factor} adds no samples (the pixels end with factor x the first pass's)")
-    stage = timer if timer is not None else (lambda name: nullcontext())
+    ``factor`` - 1 times the samples, stratified over the strata together. Then every pixel, whatever its
+    factor, is in one render per half-stratum and time (each takes its own count and offset of the pattern).
+    Otherwise (render.pattern 'own': the sampler's sequences need one count a render) the pixels of each
+    factor render together, each set with seeds of its own."""
     pix = np.asarray(pixels, dtype=np.int64).ravel()
+    fac = np.broadcast_to(np.asarray(factor, dtype=np.int64), pix.shape)
+    if pix.size and fac.min() < 2:
+        raise ValueError(f"refine: factor {fac.min()} adds no samples (the pixels end with factor x the first pass's)")
+    stage = timer if timer is not None else (lambda name: nullcontext())
     K, H, W, C = integrated.exposure.shape
-    extra = int(factor) - 1
-    spp = np.asarray(plan.spp, dtype=np.int64) * extra
+    extra = fac - 1  # (P,)
+    first_spp = np.asarray(plan.spp, dtype=np.int64)
+    halves = np.stack([first_spp // 2, first_spp - first_spp // 2], axis=1)  # (J, 2): the first pass's halves
     keys = pattern_keys(seed) if plan.shares_pattern else None
-    taken = getattr(renderer, "sample_count", lambda n: n)
-    offset = [0, 0]  # per half: the pattern's samples taken so far
-    points = max(1, min(int(points), int((spp // 2).min())))  # at least one sample at each time
+    # the pixels rendered together: all of them with a pattern (counts and offsets per pixel), else by factor
+    batches = [np.arange(pix.size)] if keys is not None else [np.flatnonzero(extra == e) for e in np.unique(extra)]
+    offset = [np.zeros(pix.size, np.int64), np.zeros(pix.size, np.int64)]  # per half: the pattern's samples taken
+    points = max(1, min(int(points), int(halves.min() * (extra.min() if pix.size else 1))))  # a sample at each time
     # times of their own: the first pass's time draws (a moving edge's positions) made its noise too
     rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x71AE)))
     times = plan.draw_times(rng, points=points)
-    seeds = render_seeds(plan, seed)[:, :, None] if times.shape[2] == 1 else np.random.default_rng(
-        np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5EED))).integers(0, 2**31 - 1, times.shape)
+    seeds = [_refine_seeds(plan, seed if b == 0 else np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, b)),
+                           times.shape) for b in range(len(batches))]
     used = plan.weights_s.sum(axis=1) > 0
     parts = [np.zeros((K, pix.size, C)) for _ in range(2)]
     groups_out = np.zeros((K, len(plan.groups), pix.size, C)) if per_group and integrated.group_exposure is not None \
         else None
+    edges = np.arange(points + 1) / points
     with _progress(plan.passes, progress, desc) as bar:
         for j in range(plan.passes):
-            n = int(spp[j])
             gsel = np.flatnonzero(used[j])
             groups_j = [plan.groups[g] for g in gsel]
             w_j = plan.weights_s[j][:, gsel]
-            for h, spp_h in enumerate((n // 2, n - n // 2)):
-                # the half's samples shared among its times (each time's render an unbiased estimate at it)
-                counts = np.diff(np.linspace(0, spp_h, times.shape[2] + 1).round().astype(int))
-                for i, spp_hi in enumerate(counts):
-                    pattern = None
-                    if keys is not None:  # this render takes the half's next samples
-                        pattern = (int(keys[h]), offset[h])
-                        offset[h] += int(taken(int(spp_hi)))
-                    with stage("refine"):
-                        rad = renderer.render_pixels(float(times[j, h, i]), int(spp_hi), int(seeds[j, h, i]), groups_j,
-                                                     pix, pattern=pattern, cached=True)
-                        share = spp_h / n / len(counts)
-                        parts[h] += np.einsum("kg,gpc->kpc", w_j * share, rad.astype(np.float64), optimize=True)
-                        if groups_out is not None:
-                            groups_out[:, gsel] += w_j[:, :, None, None] * (rad.astype(np.float64) * share)[None]
+            for h in range(2):
+                # each pixel's samples of this half, shared among its times (each time's render an unbiased
+                # estimate at it, weighed alike)
+                counts = np.diff(np.round(np.outer(extra * halves[j, h], edges)).astype(np.int64), axis=1)
+                share = halves[j, h] / first_spp[j] / points
+                for i in range(points):
+                    for b, batch in enumerate(batches):
+                        pattern = None if keys is None else (int(keys[h]), offset[h][batch])
+                        with stage("refine"):
+                            rad = renderer.render_pixels(float(times[j, h, i]), counts[batch, i], int(seeds[b][j, h, i]),
+                                                         groups_j, pix[batch], pattern=pattern,
+                                                         cached=True).astype(np.float64)
+                            parts[h][:, batch] += np.einsum("kg,gpc->kpc", w_j * share, rad, optimize=True)
+                            if groups_out is not None:
+                                groups_out[:, gsel[:, None], batch[None, :]] += w_j[:, :, None, None] * (rad * share)[None]
+                    offset[h] += counts[:, i]
             bar.update(1)
-    r = float((spp // 2 / np.maximum(spp, 1)).mean())
+    r = float((halves[:, 0] / np.maximum(first_spp, 1)).mean())
 
     def combined(first: np.ndarray, second: np.ndarray, pixel_axis: int) -> np.ndarray:
         """``first`` with its pixels' values the passes' mean by their samples (1 : extra)."""
         out = first.copy()
         flat = out.reshape(*first.shape[:pixel_axis], H * W, C)
         at = (slice(None),) * pixel_axis + (pix,)
-        flat[at] = (flat[at] + extra * second) / factor
+        flat[at] = (flat[at] + extra[:, None] * second) / fac[:, None]
         return out
 
     exposure = combined(integrated.exposure, parts[0] + parts[1], 1)
@@ -510,3 +525,12 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
         group_exposure = combined(group_exposure, groups_out, 2)
     return Integrated(exposure=exposure, mc_diff=mc_diff, group_exposure=group_exposure,
                       temporal_diff=integrated.temporal_diff)
+
+
+def _refine_seeds(plan: Plan, seed: np.random.SeedSequence, shape: tuple[int, int, int]) -> np.ndarray:
+    """(J, 2, points) seeds of a second pass's renders: the strata's seeds from ``seed`` at one time a half,
+    seeds of their own per time otherwise."""
+    if shape[2] == 1:
+        return render_seeds(plan, seed)[:, :, None]
+    child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5EED))
+    return np.random.default_rng(child).integers(0, 2**31 - 1, shape)

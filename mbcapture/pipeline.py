@@ -36,7 +36,7 @@ from .cluster import render_on_cluster
 from .config import CaptureConfig, scene_of
 from .errors import ConfigError
 from .filmstore import IN_MEMORY, FilmStore
-from .integrate import Integrated, integrate, integrate_tiles, refine, temporal_error
+from .integrate import Integrated, integrate, integrate_tiles, refine, sample_counter, temporal_error
 from .plan import Plan, make_plan
 from .progress import StageStatus
 from .render import Renderer, ensure_llvm
@@ -335,10 +335,15 @@ def no_room_for_another_pass(integrated: Integrated) -> str | None:
 
 def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
            seed: np.random.SeedSequence, status: StageStatus, *, per_group: bool, timer, progress: bool,
-           why_not: str | None) -> tuple[Plan, Integrated, dict | None]:
+           why_not: str | None, planned: list[tuple[np.ndarray, int]] | None = None) \
+        -> tuple[Plan, Integrated, dict | None]:
     """render.top_up: when the pilot's choice left the run's own estimate over the median or p95 target
     (:func:`over_budget` > 1; the pilot extrapolates from 8 and 32 samples, and its exponent can be
     too steep for the count it reaches), a second pass of every stratum, combined with the first.
+    ``planned``: adaptive sampling's tiers (:func:`scout_tail`), still to be rendered: the budget is judged
+    on the image they will give (:func:`with_planned_refinement`), the one the run returns. (Judged before
+    them, a first pass a hair over the median target, 1.008x, took a top-up of 12 % more samples on the
+    default capture, which its refined pixels would have brought under the target anyway.)
 
     The second pass renders each half of each stratum at a time of its own, drawn afresh in the
     stratum (:meth:`Plan.draw_times`). Where a moving edge crosses a pixel, where in the stratum a
@@ -364,7 +369,7 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     and what report.json keeps (None when the first pass met the budget)."""
     if integrated.mc_diff is None:
         return plan, integrated, None
-    factor, worst, figure, v1 = over_budget(integrated, timeline, cfg)
+    factor, worst, figure, _ = over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg)
     if factor <= 1.0:
         return plan, integrated, None
     why_not = why_not or no_room_for_another_pass(integrated)
@@ -374,7 +379,7 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     status.add_stage()
     with status.stage(f"top-up render (the estimate is {factor:.2f}x the noise budget)"):
         start = time.perf_counter()
-        count = getattr(renderer, "sample_count", lambda m: m)
+        count = sample_counter(renderer, plan)
         # with the shared pattern the second pass continues each pixel's sequences after the first's, and
         # the two weighed by their samples are one pass of n1 + n2: variance at least as 1 / spp, so
         # (n1 + n2) / n1 = F x margin. An independent second pass needs V1 / V2 = F x margin - 1, and a
@@ -398,8 +403,9 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         second = integrate(renderer, second_plan, timeline.n_channels, child, per_group=per_group,
                            timer=timer, progress=progress, desc="top-up", continues=(plan, seed) if extend else None)
         c = float(extra.sum() / plan.spp.sum())  # by their samples: each sample alike when they continue
-        if not extend:
-            v2 = _read_figures(second, timeline, cfg, [worst]).get(worst, {}).get(figure, 0.0)
+        if not extend:  # the two passes' figures as rendered (the planned refinement adds to both alike)
+            v1, v2 = (_read_figures(x, timeline, cfg, [worst]).get(worst, {}).get(figure, 0.0)
+                      for x in (integrated, second))
             c = v1 / v2 if v2 > 0 else c
 
         def mix(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
@@ -417,7 +423,9 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
                        mix_weights=np.concatenate([w1, c * second_plan.render_time_shares()], axis=1) / (1.0 + c))
         info = {"applied": True, "before": round(factor, 4), "read": worst,
                 "figure": figure.removeprefix("to_shot_noise_variance_"), "spp_added": extra.tolist(),
-                "weight": round(c, 4), "after": round(over_budget(integrated, timeline, cfg)[0], 4),
+                "weight": round(c, 4),
+                "after": round(over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg)[0], 4),
+                "judged_with_refinement": bool(planned),
                 "seconds": round(time.perf_counter() - start, 3)}
     return plan, integrated, info
 
@@ -430,61 +438,88 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
 REFINE_TIME_POINTS = 4
 
 
-def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
-                seed: np.random.SeedSequence, status: StageStatus, *, moving: np.ndarray, per_group: bool, timer,
-                progress: bool, tiled: bool = False) -> tuple[Integrated, dict]:
-    """Adaptive sampling (render.adaptive): a scout, the strata rendered again with seeds of their own at
-    about a sixteenth of the first pass's samples (:func:`mbcapture.budget.scout_spp`), chooses the pixels
-    whose predicted ratio (the scout's, scaled as 1/spp where nothing moves, as it is in ``moving``)
-    exceeds budget.ADAPTIVE_SELECT x the tail target (:func:`mbcapture.budget.tail_pixels`);
-    they are rendered again with more samples and added to the first pass (:func:`mbcapture.integrate.refine`),
-    those in ``moving`` (the pixels the moving parts cross) at :data:`REFINE_TIME_POINTS` times per
-    half-stratum. The choice is independent of the first pass, so every pixel's estimate, and the run's
-    own estimate of its error, is unbiased. Returns the refined render stage and what report.json keeps.
-    Not in a tiled run (``tiled``): the scout, the choice of pixels and their second pass are the whole
-    film's."""
+def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
+               seed: np.random.SeedSequence, status: StageStatus, *, moving: np.ndarray, timer, progress: bool,
+               tiled: bool = False) -> tuple[list[tuple[np.ndarray, int]] | None, dict]:
+    """Adaptive sampling's choice (render.adaptive): a scout, the strata rendered again with seeds of their own
+    at about a sixteenth of the first pass's samples (:func:`mbcapture.budget.scout_spp`), chooses the pixels
+    whose predicted ratio (the scout's, scaled as 1/spp where nothing moves, as it is in ``moving``) exceeds
+    budget.ADAPTIVE_SELECT x the tail target (:func:`mbcapture.budget.tail_pixels`), each with the factor of the
+    first pass's samples it is to have. The choice is independent of the first pass, so every pixel's
+    estimate, and the run's own estimate of its error, is unbiased. Made before the top-up, which judges the
+    budget on the image these factors will give (:func:`top_up`), and rendered after it (:func:`refine_tail`).
+    Returns the tiers (None where adaptive sampling cannot apply) and what report.json keeps. Not in a tiled
+    run (``tiled``): the scout, the choice of pixels and their second pass are the whole film's."""
     why = ("a film in one tile (render.tiles; the choice of pixels and their second pass are the whole film's)"
            if tiled else
            "an RGB render.variant and a lens acting per pixel (no camera.distortion, camera.diffraction)"
            if not renderer.renders_pixels else "render.estimator independent" if plan.estimator != "independent"
            else "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None
            else no_room_for_another_pass(integrated))  # the scout renders the film again
-    with status.stage("adaptive sampling"):
-        if why is not None:
-            return integrated, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}
+    if why is not None:
+        return None, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}
+    with status.stage("adaptive sampling: scout"):
         start = time.perf_counter()
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
         spp = np.asarray(plan.spp, np.int64)
-        scout_plan = replace(plan, spp=scout_spp(spp, getattr(renderer, "sample_count", None)))
+        scout_plan = replace(plan, spp=scout_spp(spp, sample_counter(renderer, plan)))
         with timer("scout"):
             scout = integrate(renderer, scout_plan, timeline.n_channels,
                               np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5C0)),
                               progress=progress, desc="scout")
-        scout_s = time.perf_counter() - start
         # the first pass's ratio over the scout's: as 1/spp where nothing moves; 1 where the moving parts cross,
         # as there both passes draw one time per half-stratum, and their time noise does not fall with samples
         scale = np.where(moving, 1.0, float((scout_plan.spp / np.maximum(spp, 1)).max()))
         tiers = tail_pixels(scout.mc_diff, BucketElectrons(scout.exposure, k_e), k_e,
                             list(plan.read_sets), cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
                             cfg.render.noise_budget_tail, cfg.render.adaptive_max_factor, scale)
-        del scout
         n_pix = sum(p.size for p, _ in tiers)
         film = cfg.render.width * cfg.render.height
-        info = {"scout": {"spp": scout_plan.spp.tolist(), "seconds": round(scout_s, 3)},
+        on_moving = moving.ravel()
+        info = {"scout": {"spp": scout_plan.spp.tolist(), "seconds": round(time.perf_counter() - start, 3)},
                 "pixels": int(n_pix), "share": round(n_pix / film, 6),
-                "tiers": [{"factor": f, "pixels": int(p.size)} for p, f in tiers],
+                "tiers": [{"factor": f, "pixels": int(p.size), "moving_pixels": int(on_moving[p].sum())}
+                          for p, f in tiers],
                 # the second pass's samples over the first pass's, on the whole film
                 "added_samples": round(sum(p.size * (f - 1) for p, f in tiers) / film, 4)}
-        on_moving = moving.ravel()
-        for i, (pixels, factor) in enumerate(tiers):
-            info["tiers"][i]["moving_pixels"] = int(on_moving[pixels].sum())
-            for part, points in ((pixels[~on_moving[pixels]], 1), (pixels[on_moving[pixels]], REFINE_TIME_POINTS)):
-                if part.size:
-                    child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA, i, points))
-                    integrated = refine(renderer, plan, integrated, part, factor, child, points=points,
-                                        per_group=per_group, timer=timer, progress=progress,
-                                        desc=f"refine {part.size} px x{factor}" + (" moving" if points > 1 else ""))
-        info["seconds"] = round(time.perf_counter() - start, 3)
+    return tiers, info
+
+
+def with_planned_refinement(integrated: Integrated, tiers: list[tuple[np.ndarray, int]]) -> Integrated:
+    """``integrated`` with the error estimate it will have once adaptive sampling has given each pixel of
+    ``tiers`` its factor f of the samples: the half-sample differences over sqrt(f) there (variance ~ 1/spp,
+    as :func:`mbcapture.budget.factor_tiers` assumes; scripts/adaptive_frontier.py measured the tail so
+    predicted within 1 %). What the top-up judges the budget on, as the image the run returns will have it."""
+    if not tiers or integrated.mc_diff is None:
+        return integrated
+    K, H, W, C = integrated.mc_diff.shape
+    shrink = np.ones(H * W, np.float32)
+    for pixels, factor in tiers:
+        shrink[pixels] = 1.0 / np.sqrt(factor)
+    return replace(integrated, mc_diff=integrated.mc_diff * shrink.reshape(1, H, W, 1))
+
+
+def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, integrated: Integrated,
+                tiers: list[tuple[np.ndarray, int]], info: dict, seed: np.random.SeedSequence, status: StageStatus,
+                *, moving: np.ndarray, per_group: bool, timer, progress: bool) -> tuple[Integrated, dict]:
+    """Adaptive sampling's second pass (render.adaptive): the pixels of :func:`scout_tail`'s ``tiers`` rendered
+    again with more samples and added to the first pass (:func:`mbcapture.integrate.refine`), those in
+    ``moving`` (the pixels the moving parts cross) at :data:`REFINE_TIME_POINTS` times per half-stratum. A
+    top-up between the two keeps the tiers (chosen for the first pass's samples, they then give a little more
+    than they need: the top-up lowered every pixel's ratio). Returns the refined render stage and what
+    report.json keeps (``info``, the scout's, completed)."""
+    with status.stage("adaptive sampling: refine"):
+        start = time.perf_counter()
+        pixels = np.concatenate([p for p, _ in tiers])
+        factors = np.concatenate([np.full(p.size, f, np.int64) for p, f in tiers])
+        on_moving = moving.ravel()[pixels]
+        for part, points in ((~on_moving, 1), (on_moving, REFINE_TIME_POINTS)):  # every tier at once
+            if part.any():
+                child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA, points))
+                integrated = refine(renderer, plan, integrated, pixels[part], factors[part], child, points=points,
+                                    per_group=per_group, timer=timer, progress=progress,
+                                    desc=f"refine {int(part.sum())} px" + (" moving" if points > 1 else ""))
+        info["seconds"] = round(info["scout"]["seconds"] + time.perf_counter() - start, 3)
     return integrated, info
 
 
@@ -554,6 +589,11 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
                                          timer=timer, progress=progress, before_tile=on_cluster, store=store)
         if client is not None:
             cluster_info = merge_cluster_info(infos)
+        moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
+        tiers = None  # adaptive sampling's choice of pixels, made before the top-up judges the budget
+        if cfg.render.spp is None and cfg.render.adaptive:
+            tiers, adaptive_info = scout_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
+                                              moving=moving, timer=timer, progress=progress, tiled=len(tiles) > 1)
         if cfg.render.spp is None and cfg.render.top_up:
             why_not = ("a film in one tile (render.tiles)" if len(tiles) > 1 else
                        "renders in this process (no cluster)" if client is not None else
@@ -561,12 +601,12 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
                        "render.estimator independent" if plan.estimator != "independent" else None)
             plan, integrated, top_up_info = top_up(cfg, renderer, plan, timeline, integrated, seeds[2], status,
                                                    per_group=app.per_group, timer=timer, progress=progress,
-                                                   why_not=why_not)
-        moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
-        if cfg.render.spp is None and cfg.render.adaptive:
-            integrated, adaptive_info = refine_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
-                                                    moving=moving, per_group=app.per_group, timer=timer,
-                                                    progress=progress, tiled=len(tiles) > 1)
+                                                   why_not=why_not, planned=tiers)
+        if tiers:
+            status.add_stage()  # the scout's stage was counted at the start, its second pass is one more
+            integrated, adaptive_info = refine_tail(cfg, renderer, plan, integrated, tiers, adaptive_info, seeds[2],
+                                                    status, moving=moving, per_group=app.per_group, timer=timer,
+                                                    progress=progress)
         rendered = Rendered(plan, integrated, moving)
         if on_rendered is not None:
             on_rendered(rendered)

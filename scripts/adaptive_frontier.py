@@ -16,7 +16,8 @@ sides in place of the 3x3 box (a rule never run before) predicted 0.915 and meas
 0.918 and 0.910 (docs/noise.md, "The frontier").
 
 The rules: a pixel is chosen where the scout's predicted ratio exceeds ``level`` x the tail target, its
-factor the ratio over ``target`` x the tail target rounded up to a power of two in [2, max factor],
+factor the ratio over ``target`` x the tail target rounded up to a power of two in [2, max factor] (or,
+with a fifth field ``int``, to an integer: adaptive sampling renders every factor in the same renders),
 and the factors of the pixels at 2^``from`` or more (1: every chosen pixel, 2: those at 4x and up) spread
 to their neighbours (``box``: 3x3, ``cross``: the four sides, ``none``). ``1,1,box,1`` (level, target, dilation, from) is
 :func:`mbcapture.budget.factor_tiers`, the rule in use (checked each run).
@@ -77,7 +78,9 @@ def main() -> None:
     rules = [parse_rule(r) for r in args.rule] or [
         (level, target, dil, start)
         for level, target, dil, start in itertools.product((0.7, 1.0, 1.2), (0.7, 1.0), ("box", "cross", "none"), (1, 2))
-        if target <= level and not (dil == "none" and start == 2)]
+        if target <= level and not (dil == "none" and start == 2)] + [
+        (level, target, dil, 1, "int") for level, target, dil in itertools.product((0.7, 1.0), (0.7, 1.0), ("box", "cross"))
+        if target <= level]
     predicted = data["scout_worst"] * data["scale"]
     tail = float(data["tail_target"])
     in_use = factors(predicted, tail, ADAPTIVE_SELECT, ADAPTIVE_SELECT, "box", 1, int(data["max_factor"]))
@@ -91,7 +94,7 @@ def main() -> None:
     names = [str(n) for n in data["names"]]
     print(f"{args.config} at {args.size}: first passes of seeds {seeds[0]} and {seeds[1]}, the scout of seed {seeds[0]}; "
           f"the rule in use is level {ADAPTIVE_SELECT:g},target {ADAPTIVE_SELECT:g},box,1")
-    print(f"{'level,target,dilation,from':28s} {'added':>7s} {'pixels':>7s}   " +
+    print(f"{'level,target,dilation,from,steps':32s} {'added':>7s} {'pixels':>7s}   " +
           "   ".join(f"{n} median/p95/p99.9" for n in names))
     rows = [("first pass alone", np.ones(predicted.shape))]
     rows += [(",".join(f"{x:g}" if isinstance(x, float) else str(x) for x in rule),
@@ -99,33 +102,43 @@ def main() -> None:
     for label, f in rows:
         figures = predict(data, f)
         added = float((f - 1.0).sum() / f.size)
-        print(f"{label:28s} {added:7.3f} {int((f > 1).sum()):7d}   " +
+        print(f"{label:32s} {added:7.3f} {int((f > 1).sum()):7d}   " +
               "   ".join(f"{m:.3f}/{p:.3f}/{t:.3f}" for m, p, t in figures))
 
 
-def parse_rule(text: str) -> tuple[float, float, str, int]:
-    """'level,target,dilation,from' -> the rule's tuple; a clear error naming what is wrong."""
+def parse_rule(text: str) -> tuple:
+    """'level,target,dilation,from[,steps]' -> the rule's tuple; a clear error naming what is wrong."""
     parts = text.split(",")
-    if len(parts) != 4 or parts[2] not in FOOTPRINTS:
-        raise SystemExit(f"--rule {text!r}: expected level,target,dilation,from with dilation one of "
-                         f"{sorted(FOOTPRINTS)}, e.g. 1,1,box,1")
+    if len(parts) not in (4, 5) or parts[2] not in FOOTPRINTS or (len(parts) == 5 and parts[4] not in STEPS):
+        raise SystemExit(f"--rule {text!r}: expected level,target,dilation,from[,steps] with dilation one of "
+                         f"{sorted(FOOTPRINTS)} and steps one of {list(STEPS)}, e.g. 1,1,box,1 or 1,1,cross,1,int")
     level, target, start = float(parts[0]), float(parts[1]), int(parts[3])
     if not (0 < target <= level) or start < 1:
         raise SystemExit(f"--rule {text!r}: expected 0 < target <= level and from >= 1")
-    return level, target, parts[2], start
+    return (level, target, parts[2], start) + ((parts[4],) if len(parts) == 5 else ())
+
+
+#: How a chosen pixel's factor is rounded up from its ratio over the target: to a power of two, or to an integer.
+STEPS = ("pow2", "int")
 
 
 def factors(predicted: np.ndarray, tail_target: float, level: float, target: float, dilation: str, start: int,
-            max_factor: int) -> np.ndarray:
-    """(H, W) factor of each pixel under a rule (module doc): 1 where it is not refined."""
+            max_factor: int, steps: str = "pow2") -> np.ndarray:
+    """(H, W) factor of each pixel under a rule (module doc): 1 where it is not refined. The factors at
+    2^``start`` or more spread to the neighbours of ``dilation``."""
     chosen = predicted > level * tail_target
-    tier = np.zeros(predicted.shape, np.int64)
-    top = int(np.log2(max_factor))
-    tier[chosen] = np.clip(np.ceil(np.log2(predicted[chosen] / (target * tail_target))), 1, top)
+    fac = np.ones(predicted.shape)
+    need = predicted[chosen] / (target * tail_target)
+    if steps == "pow2":
+        top = 2.0 ** int(np.log2(max_factor))
+        fac[chosen] = np.clip(2.0 ** np.ceil(np.log2(need)), 2, top)
+    else:
+        fac[chosen] = np.clip(np.ceil(need), 2, max_factor)
     if FOOTPRINTS[dilation] is not None:
-        spread = grey_dilation(np.where(tier >= start, tier, 0), footprint=FOOTPRINTS[dilation], mode="constant", cval=0)
-        tier = np.maximum(tier, spread)
-    return np.where(tier > 0, 2.0 ** tier, 1.0)
+        spread = grey_dilation(np.where(fac >= 2 ** start, fac, 0), footprint=FOOTPRINTS[dilation], mode="constant",
+                               cval=0)
+        fac = np.maximum(fac, spread)
+    return fac
 
 
 def predict(data: dict, f: np.ndarray) -> list[tuple[float, float, float]]:

@@ -88,6 +88,31 @@ def test_pixels_rendered_alone_from_a_shared_pattern_are_the_full_renders_pixels
 
 
 @pytest.mark.render
+def test_pixels_with_samples_and_offsets_of_their_own_are_the_full_renders_pixels(setup):
+    """render_pixels with one count and one pattern offset per pixel (adaptive sampling's tiers in one render)
+    gives each pixel the value of a whole-film render at its count and offset: pixel i takes the pattern's
+    samples offset[i] .. offset[i] + spp[i] - 1 whatever its neighbours in the list take. Without a pattern
+    the counts must be equal (the sampler's sequences are spp consecutive lanes a pixel)."""
+    cfg = setup[0]
+    r = Renderer.from_config(scene_of(cfg), cfg)
+    groups = ["ambient", "lamp"]
+    films = {(n, o): r.render(0.002, n, 7, groups, pattern=(12345, o)).reshape(len(groups), -1, 3)
+             for n, o in ((24, 48), (12, 100), (5, 0))}
+    rng = np.random.default_rng(1)
+    pix = rng.permutation(64 * 48)[:600]
+    which = rng.integers(0, 3, pix.size)
+    choice = list(films)
+    counts = np.array([choice[w][0] for w in which])
+    offsets = np.array([choice[w][1] for w in which])
+    alone = r.render_pixels(0.002, counts, 7, groups, pix, pattern=(12345, offsets))
+    for w, key in enumerate(choice):
+        sel = which == w
+        np.testing.assert_allclose(alone[:, sel], films[key][:, pix[sel]], rtol=1e-5, atol=1e-7, err_msg=str(key))
+    with pytest.raises(ValueError, match="need a pattern"):
+        r.render_pixels(0.002, counts, 7, groups, pix)
+
+
+@pytest.mark.render
 def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_error(setup):
     cfg, timeline, plan, seeds, r = setup
     first = integrate(r, plan, timeline.n_buckets, seeds[2])
@@ -342,8 +367,10 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
     run = pipeline.capture_in_memory(cfg, StageStatus(False))
     (desc, plan, scout), = [m for m in made if m[0] == "scout"]
     assert len(seen) == 1 and seen[0][0] is scout.mc_diff
-    first_spp = np.asarray(run.plan.spp)
-    assert (plan.spp == scout_spp(first_spp, Renderer.from_config(scene_of(cfg), cfg).sample_count)).all()
+    top = run.report["top_up"] or {}  # the scout comes before a top-up: the first pass's samples alone
+    first_spp = np.asarray(run.plan.spp) - (np.asarray(top["spp_added"]) if top.get("applied") else 0)
+    assert run.plan.shares_pattern  # the scout draws from the pattern too: it takes the counts it asks for
+    assert (plan.spp == scout_spp(first_spp, Renderer.from_config(scene_of(cfg), cfg).counter(True))).all()
     assert plan.spp.sum() * 8 < first_spp.sum()
     # its ratios scaled to the first pass's samples as 1/spp where nothing moves, not at all where the
     # moving parts cross (both passes draw one time per half-stratum there: the time noise stays)
@@ -402,16 +429,15 @@ def test_adaptive_sampling_is_skipped_where_its_scout_would_not_fit_in_memory(se
     from contextlib import nullcontext
 
     from mbcapture import resources
-    from mbcapture.pipeline import refine_tail
+    from mbcapture.pipeline import scout_tail
     from mbcapture.progress import StageStatus
 
     cfg, timeline, plan, seeds, r = setup
     first = integrate(r, plan, timeline.n_buckets, seeds[2])
     monkeypatch.setattr(resources, "free_memory", lambda: (resources.rss_bytes() + 1000, "a test"))
-    same, info = refine_tail(cfg, r, plan, timeline, first, seeds[2], StageStatus(False),
-                             moving=np.zeros((48, 64), bool), per_group=False, timer=lambda name: nullcontext(),
-                             progress=False)
-    assert same is first and info["pixels"] == 0 and "free by a test" in info["note"]
+    tiers, info = scout_tail(cfg, r, plan, timeline, first, seeds[2], StageStatus(False),
+                             moving=np.zeros((48, 64), bool), timer=lambda name: nullcontext(), progress=False)
+    assert tiers is None and info["pixels"] == 0 and "free by a test" in info["note"]
 
 
 def test_the_frontier_scripts_rule_in_use_is_the_budgets():
@@ -463,3 +489,35 @@ def test_the_frontier_script_predicts_a_refined_variance_as_the_first_passes_ove
     assert one[2] == pytest.approx(float(np.percentile(direct, 99.9)), rel=1e-12)
     # shot-noise-sized differences: the ratio's middle near 1
     assert 0.6 < one[0] < 1.4
+
+
+def test_the_top_up_judges_the_budget_on_the_image_adaptive_sampling_will_give(monkeypatch):
+    """with_planned_refinement divides the half-sample differences of each tier's pixels by sqrt(factor) (their
+    variance by the factor) and leaves the others and its input alone; top_up judges the budget on that."""
+    from mbcapture import pipeline
+    from mbcapture.integrate import Integrated
+    from mbcapture.progress import StageStatus
+
+    rng = np.random.default_rng(5)
+    diff = rng.normal(size=(2, 4, 5, 3)).astype(np.float32)
+    first = Integrated(exposure=np.ones((2, 4, 5, 3)), mc_diff=diff.copy())
+    tiers = [(np.array([0, 7]), 2), (np.array([19]), 8)]
+    planned = pipeline.with_planned_refinement(first, tiers)
+    np.testing.assert_array_equal(first.mc_diff, diff)
+    want = diff.reshape(2, 20, 3).copy()
+    want[:, [0, 7]] /= np.sqrt(2.0)
+    want[:, 19] /= np.sqrt(8.0)
+    np.testing.assert_allclose(planned.mc_diff, want.reshape(diff.shape), rtol=1e-6)
+    assert pipeline.with_planned_refinement(first, []) is first
+
+    judged = []
+
+    def over(integrated, timeline, cfg):
+        judged.append(integrated.mc_diff)
+        return 0.5, "J1", "to_shot_noise_variance_median", 0.05
+
+    monkeypatch.setattr(pipeline, "over_budget", over)
+    out = pipeline.top_up(None, None, None, None, first, None, StageStatus(False), per_group=False, timer=None,
+                          progress=False, why_not=None, planned=tiers)
+    assert out == (None, first, None)
+    np.testing.assert_array_equal(judged[0], planned.mc_diff)

@@ -205,8 +205,11 @@ def test_the_second_pass_renders_at_times_of_its_own():
     counts, patterns = [], []
 
     def render_pixels_counted(t_s, spp, seed, groups, pixels, pattern=None, cached=False):
-        counts.append(spp)
-        patterns.append(pattern)
+        # one count and one pattern offset per pixel: alike here (one factor)
+        spp, offset = np.broadcast_to(spp, len(pixels)), np.broadcast_to(pattern[1], len(pixels))
+        assert (spp == spp[0]).all() and (offset == offset[0]).all()
+        counts.append(int(spp[0]))
+        patterns.append((pattern[0], int(offset[0])))
         return render_pixels(t_s, spp, seed, groups, pixels)
 
     r.render_pixels = render_pixels_counted
@@ -229,6 +232,26 @@ def test_the_second_pass_renders_at_times_of_its_own():
     np.testing.assert_allclose(flat[:, [3, 9]], (before[:, [3, 9]] + 3 * second) / 4)
     # jittered, not fixed: the same quarter's times differ between the strata's halves
     assert np.all(t[:, 0] != t[:, 1])
+
+    # pixels of different factors in the same renders, each with its own count and its own run of the pattern
+    calls = []
+
+    def render_pixels_mixed(t_s, spp, seed, groups, pixels, pattern=None, cached=False):
+        calls.append((np.asarray(pixels).copy(), np.broadcast_to(spp, len(pixels)).copy(),
+                      np.broadcast_to(pattern[1], len(pixels)).copy()))
+        return np.ones((len(groups), len(pixels), 3), np.float32)
+
+    r.render_pixels = render_pixels_mixed
+    out = refine(r, p, first, np.array([3, 9]), np.array([2, 8]), np.random.SeedSequence(4))
+    assert len(calls) == p.passes * 2 and all(c[0].tolist() == [3, 9] for c in calls)
+    c = np.array([c[1] for c in calls]).reshape(p.passes, 2, 2)
+    assert c.sum(axis=(1,)).T.tolist() == [(p.spp * 1).tolist(), (p.spp * 7).tolist()]
+    offsets = np.array([c[2] for c in calls]).reshape(p.passes, 2, 2)
+    for h in range(2):
+        assert (offsets[1:, h] == np.cumsum(c[:, h], axis=0)[:-1]).all() and (offsets[0, h] == 0).all()
+    flat = out.exposure.reshape(K, -1, 3)
+    np.testing.assert_allclose(flat[:, 3], (before[:, 3] + second[:, 0]) / 2)
+    np.testing.assert_allclose(flat[:, 9], (before[:, 9] + 7 * second[:, 0]) / 8)
 
 
 def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
@@ -257,8 +280,10 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     # median 0.05 and 0.1): c = 2, from the figure that decided
     monkeypatch.setattr(pipeline, "over_budget",
                         lambda integrated, timeline, cfg: (2.0, "J1", "to_shot_noise_variance_p95", 2.0))
-    monkeypatch.setattr(pipeline, "_read_figures", lambda *a, **k: {"J1": {"to_shot_noise_variance_median": 0.1,
-                                                                           "to_shot_noise_variance_p95": 1.0}})
+    monkeypatch.setattr(pipeline, "_read_figures",
+                        lambda integrated, *a, **k: {"J1": {"to_shot_noise_variance_median": 0.05, "to_shot_noise_variance_p95": 2.0}
+                                                     if integrated is first else
+                                                     {"to_shot_noise_variance_median": 0.1, "to_shot_noise_variance_p95": 1.0}})
     cfg = SimpleNamespace(render=SimpleNamespace(max_spp=1024))
     r.calls.clear()
     topped_plan, topped, info = pipeline.top_up(cfg, r, p, tl, first, np.random.SeedSequence(2), StageStatus(False),
@@ -545,7 +570,7 @@ def test_no_stratum_gets_fewer_samples_than_the_pilot_measured():
 
 
 def test_sample_count_ladder_takes_counts_the_sampler_keeps():
-    """The pilot's counts step along a ladder of 9 % steps, each point moved down to a count the sampler
+    """The pilot's counts step along a ladder of 2.2 % steps, each point moved down to a count the sampler
     takes as asked: multijitter rounds 91 up to 99 (9 x 11), so asking it for the ladder's 91 would
     render 9 % more samples than the ladder meant; 90 (9 x 10) it takes as it is."""
     from mbcapture.budget import LADDER_STEPS, _ladder
@@ -567,7 +592,7 @@ def test_sample_count_ladder_takes_counts_the_sampler_keeps():
     # few distinct counts: one per ladder point
     values = {_ladder(x, multijitter) for x in np.geomspace(4.5, 5000, 4000)}
     assert len(values) <= LADDER_STEPS * np.log2(5000 / 4.5) + 2
-    assert _ladder(86.3) == 91  # every count as it is: the ladder's own point
+    assert _ladder(86.3) == 87  # every count as it is (the shared pattern's renders): the ladder's own point
 
 
 def test_per_stratum_spp_follows_the_weights():

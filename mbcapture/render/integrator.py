@@ -247,9 +247,9 @@ def integrator_class(variant: str) -> type:
             #: from the shared pattern (mbcapture.render.pattern), the sample j of a pixel being the
             #: pattern's sample offset + j (see :meth:`use_pattern`).
             self.pattern: tuple[int, int, int] | None = None
-            #: With :attr:`pattern`, for a render of listed pixels: each pixel's flat film index (mi.UInt32),
-            #: its lanes being the sample_count() consecutive ones of its place in the list.
-            self.pattern_pixels: Any = None
+            #: With :attr:`pattern`, for a render of listed pixels: (film pixel, pattern sample) of each lane
+            #: (two mi.UInt32 of the wavefront's width), any number of lanes a pixel, the offset included.
+            self.pattern_lanes: Any = None
             #: Whether every BSDF of the scenes rendered is Lambertian (:func:`is_lambertian`): then a vertex's
             #: BSDF is evaluated and sampled here from its albedo, one virtual call instead of one per emitter
             #: and one more to sample (:func:`lambertian_shading`). Set by the renderer once its scenes load.
@@ -270,14 +270,14 @@ def integrator_class(variant: str) -> type:
             self.group_names = list(names)
             self.group_emitters = [list(e) for e in emitters]
 
-        def use_pattern(self, seed: int | None, offset: int = 0, first_pixel: int = 0, pixels: Any = None) -> None:
+        def use_pattern(self, seed: int | None, offset: int = 0, first_pixel: int = 0, lanes: Any = None) -> None:
             """Draw the next renders' samples from the pattern keyed ``seed`` (None: from Mitsuba's
             sampler), sample j of a pixel being the pattern's ``offset + j``; the film's
             pixel 0 is the image's pixel ``first_pixel`` (row-major: a band's first row x width).
-            ``pixels`` (mi.UInt32, flat film indices): the lanes are those pixels' samples in list order
-            (:meth:`mbcapture.render.Renderer.render_pixels`), not the film's rows."""
+            ``lanes`` (film pixel, pattern sample) of each lane, two mi.UInt32: the lanes are those samples
+            (:meth:`mbcapture.render.Renderer.render_pixels`), not mi.render's wavefront of the film's rows."""
             self.pattern = None if seed is None else (int(seed) & 0xFFFFFFFF, int(offset), int(first_pixel))
-            self.pattern_pixels = None if seed is None else pixels
+            self.pattern_lanes = None if seed is None else lanes
 
         def aov_names(self) -> list[str]:
             if self.spectral:
@@ -292,13 +292,14 @@ def integrator_class(variant: str) -> type:
                 return (lambda sampler, dim, active: sampler.next_1d(active)), \
                     (lambda sampler, dim, active: sampler.next_2d(active)), ray
             # mi.render's wavefront: sample_count() consecutive lanes per pixel, pixels row-major
-            spp = sampler.sample_count()
+            spp = mi.UInt32(sampler.sample_count())
             seed, offset, first = (mi.UInt32(v) for v in self.pattern)
-            dr.make_opaque(seed, offset, first)  # literals would recompile the kernel for every stratum
+            dr.make_opaque(spp, seed, offset, first)  # literals would recompile the kernel for every stratum and count
             lane = dr.arange(mi.UInt32, dr.width(ray))
-            index = lane % spp + offset
-            pixel = lane // spp + first if self.pattern_pixels is None else \
-                dr.gather(mi.UInt32, self.pattern_pixels, lane // spp)
+            if self.pattern_lanes is None:
+                index, pixel = lane % spp + offset, lane // spp + first
+            else:
+                pixel, index = (dr.gather(mi.UInt32, a, lane) for a in self.pattern_lanes)
             key = pattern.hash_u32(pixel) ^ pattern.hash_u32(seed)
 
             def next_2d(sampler, dim, active):
