@@ -119,10 +119,11 @@ class RenderSection(_Model):
         "After the budgeted pass, a scout renders every stratum again with seeds of its own at a sixteenth of its "
         "samples, and the pixels where any read's Monte Carlo / shot-noise ratio, as the scout measures it scaled to "
         "the first pass's samples (as 1/spp, an upper bound, where nothing moves; unscaled where the moving parts "
-        "cross, as both passes draw one time per half-stratum), exceeds render.noise_budget_tail (and their neighbours) "
-        "are rendered again, every stratum, and added to the first pass: each ends with the power of two of the "
-        "first pass's samples its ratio asks for, at least 2x and at most render.adaptive_max_factor; the moving "
-        "parts' pixels at 4 times per half-stratum. Unbiased: the choice comes from renders the image does not "
+        "cross, as both passes draw one time per half-stratum), exceeds render.noise_budget_tail (and their four side "
+        "neighbours) are rendered again, every stratum, and added to the first pass: each ends with the power of two "
+        "of the first pass's samples its ratio asks for, at least 2x and at most render.adaptive_max_factor; the "
+        "moving parts' pixels at 4 times per half-stratum and at most 4x. The top-up (render.top_up) judges the budget "
+        "on the image these factors will give. Unbiased: the choice comes from renders the image does not "
         "use, so it conditions no pixel's first pass (report.json adaptive). RGB variants with a "
         "lens acting per pixel (no camera.distortion or camera.diffraction), render.estimator independent, a film in "
         "one tile, and room in free memory for the scout's second set of the film's arrays; elsewhere it is skipped "
@@ -165,8 +166,9 @@ class RenderSection(_Model):
         "in Monte Carlo variance than 'independent' (uniform random numbers) on the mean pixel, but 4.8x and 5.6x on "
         "the median pixel, which the noise budget judges (indirect light): there ldsampler's power-of-4 counts cost "
         "more samples than its lower variance saves (docs/noise.md). With render.pattern 'shared' (the default) "
-        "the strata's renders and adaptive sampling's draw from that pattern instead; this sampler draws the "
-        "pilot's, the truths' and spectral camera rays.",
+        "the strata's renders and adaptive sampling's draw from that pattern instead, and take exactly the samples "
+        "asked for (in RGB variants a second camera with Mitsuba's 'independent' sampler lays out their lanes: "
+        "multijitter took 90 when asked for 85); this sampler draws the pilot's, the truths' and spectral camera rays.",
     )
     pattern: Literal["own", "shared"] = Field(
         "shared",

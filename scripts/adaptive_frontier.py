@@ -10,17 +10,17 @@ first passes' squared differences divided by f: pooled over the alike of 3x3 pix
 electrons. Where the moving parts cross, the refinement renders four times per half-stratum and the
 time noise falls faster than 1/f: 1/f is kept there too (conservative).
 
-Checked against a real refinement on the default capture at 640x512 (seeds 1 and 2): the rule in use
-predicted J4's 99.9th percentile at 0.878 and render_noise_reads.py measured 0.877 from outside; the four
-sides in place of the 3x3 box (a rule never run before) predicted 0.915 and measured 0.906, the runs' own
-0.918 and 0.910 (docs/noise.md, "The frontier").
+Checked against real refinements on the default capture at 640x512 (seeds 1 and 2; twelfth session): the
+3x3 box predicted J4's 99.9th percentile at 0.878 and render_noise_reads.py measured 0.877 from outside; the
+four sides in place of the box (never run before then) predicted 0.915 and measured 0.906, the runs' own
+0.918 and 0.910 (docs/noise.md, "The frontier"). The four sides are the rule in use since the thirteenth.
 
 The rules: a pixel is chosen where the scout's predicted ratio exceeds ``level`` x the tail target, its
 factor the ratio over ``target`` x the tail target rounded up to a power of two in [2, max factor] (or,
 with a fifth field ``int``, to an integer: adaptive sampling renders every factor in the same renders),
 and the factors of the pixels at 2^``from`` or more (1: every chosen pixel, 2: those at 4x and up) spread
-to their neighbours (``box``: 3x3, ``cross``: the four sides, ``none``). ``1,1,box,1`` (level, target, dilation, from) is
-:func:`mbcapture.budget.factor_tiers`, the rule in use (checked each run).
+to their neighbours (``box``: 3x3, ``cross``: the four sides, ``none``). ``1,1,cross,1`` (level, target, dilation,
+from) is :func:`mbcapture.budget.factor_tiers`, the rule in use (checked each run).
 
     python scripts/adaptive_frontier.py                       # the default capture at 640x512, a grid of rules
     python scripts/adaptive_frontier.py --size 160x128 --cache /tmp/f160.npz
@@ -45,8 +45,8 @@ import numpy as np
 from scipy.ndimage import grey_dilation
 
 from mbcapture import load_config, pipeline
-from mbcapture.budget import (ADAPTIVE_SELECT, budget_quantiles, effective_dof, factor_tiers, pooled_alike,
-                              scout_ratio)
+from mbcapture.budget import (ADAPTIVE_FOOTPRINT, ADAPTIVE_SELECT, budget_quantiles, effective_dof, factor_tiers, pooled_alike,
+                              scout_ratio, tail_pixels)
 from mbcapture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
@@ -54,6 +54,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # render_noise_reads.p
 from render_noise_reads import FirstSamples, below_full_well  # noqa: E402
 
 FOOTPRINTS = {"box": np.ones((3, 3), bool), "cross": np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool), "none": None}
+#: The dilation of the rule in use (budget.ADAPTIVE_FOOTPRINT) by its name here.
+IN_USE = next(name for name, f in FOOTPRINTS.items() if f is not None and np.array_equal(f, ADAPTIVE_FOOTPRINT))
 
 
 def main() -> None:
@@ -83,22 +85,22 @@ def main() -> None:
         if target <= level]
     predicted = data["scout_worst"] * data["scale"]
     tail = float(data["tail_target"])
-    in_use = factors(predicted, tail, ADAPTIVE_SELECT, ADAPTIVE_SELECT, "box", 1, int(data["max_factor"]))
+    in_use = factors(predicted, tail, ADAPTIVE_SELECT, ADAPTIVE_SELECT, IN_USE, 1, max_factor=int(data["max_factor"]))
     tiers = factor_tiers(predicted, ADAPTIVE_SELECT * tail, int(data["max_factor"]))
     expected = np.ones(predicted.size)
     for pixels, f in tiers:
         expected[pixels] = f
     if not np.array_equal(in_use.ravel(), expected):
-        raise SystemExit(f"the rule {ADAPTIVE_SELECT:g},{ADAPTIVE_SELECT:g},box,1 no longer reproduces "
+        raise SystemExit(f"the rule {ADAPTIVE_SELECT:g},{ADAPTIVE_SELECT:g},{IN_USE},1 no longer reproduces "
                          "budget.factor_tiers: update factors() here")
     names = [str(n) for n in data["names"]]
     print(f"{args.config} at {args.size}: first passes of seeds {seeds[0]} and {seeds[1]}, the scout of seed {seeds[0]}; "
-          f"the rule in use is level {ADAPTIVE_SELECT:g},target {ADAPTIVE_SELECT:g},box,1")
+          f"the rule in use is level {ADAPTIVE_SELECT:g},target {ADAPTIVE_SELECT:g},{IN_USE},1")
     print(f"{'level,target,dilation,from,steps':32s} {'added':>7s} {'pixels':>7s}   " +
           "   ".join(f"{n} median/p95/p99.9" for n in names))
     rows = [("first pass alone", np.ones(predicted.shape))]
     rows += [(",".join(f"{x:g}" if isinstance(x, float) else str(x) for x in rule),
-              factors(predicted, tail, *rule, int(data["max_factor"]))) for rule in rules]
+              factors(predicted, tail, *rule, max_factor=int(data["max_factor"]))) for rule in rules]
     for label, f in rows:
         figures = predict(data, f)
         added = float((f - 1.0).sum() / f.size)
@@ -123,7 +125,7 @@ STEPS = ("pow2", "int")
 
 
 def factors(predicted: np.ndarray, tail_target: float, level: float, target: float, dilation: str, start: int,
-            max_factor: int, steps: str = "pow2") -> np.ndarray:
+            steps: str = "pow2", *, max_factor: int) -> np.ndarray:
     """(H, W) factor of each pixel under a rule (module doc): 1 where it is not refined. The factors at
     2^``start`` or more spread to the neighbours of ``dilation``."""
     chosen = predicted > level * tail_target
@@ -159,18 +161,29 @@ def predict(data: dict, f: np.ndarray) -> list[tuple[float, float, float]]:
 
 
 class Scout:
-    """Stands in for :func:`mbcapture.budget.tail_pixels` in a run: keeps the scout's predicted ratio, its
-    scale and the rule's parameters, and refines nothing (the run's image is then its first pass alone)."""
+    """Stands in for :func:`mbcapture.budget.tail_pixels` in the runs: the first call keeps the scout's predicted
+    ratio, its scale and the rule's parameters, and every call returns the first one's choice by the rule in use
+    (what the top-up judges the budget on, as a real run's does); the runs refine nothing
+    (:func:`refine_nothing`), so their images are their first passes (and a top-up where a real run has one)."""
 
     def __init__(self):
         self.kept: dict | None = None
+        self.tiers: list | None = None
 
     def __call__(self, mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e, tail_target, max_factor,
                  scale=1.0):
-        worst = scout_ratio(mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e)
-        self.kept = {"scout_worst": worst, "scale": np.broadcast_to(np.asarray(scale, np.float64), worst.shape).copy(),
-                     "tail_target": float(tail_target), "max_factor": int(max_factor)}
-        return []
+        if self.tiers is None:
+            worst = scout_ratio(mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e)
+            self.kept = {"scout_worst": worst, "scale": np.broadcast_to(np.asarray(scale, np.float64), worst.shape).copy(),
+                         "tail_target": float(tail_target), "max_factor": int(max_factor)}
+            self.tiers = tail_pixels(mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e, tail_target, max_factor,
+                                     scale)
+        return self.tiers
+
+
+def refine_nothing(cfg, renderer, plan, integrated, tiers, info, *args, **kwargs):
+    """Stands in for :func:`mbcapture.pipeline.refine_tail`: the first pass as it is."""
+    return integrated, info
 
 
 def render_inputs(config: str, size: str, seeds: list[int], sets: list[str]) -> dict:
@@ -182,9 +195,10 @@ def render_inputs(config: str, size: str, seeds: list[int], sets: list[str]) -> 
     runs = []
     for i, s in enumerate(seeds):
         t0 = time.perf_counter()
-        # the first run scouts (and refines nothing); the second renders its first pass alone
-        overrides = [*base, f"seed={s}", f"render.adaptive={'true' if i == 0 else 'false'}"]
-        with mock.patch.object(pipeline, "tail_pixels", scout), mock.patch.object(pipeline, "resolve_spp", samples):
+        # both scout (the top-up judges the budget on the first run's choice, as a real run's does) and refine nothing
+        overrides = [*base, f"seed={s}", "render.adaptive=true"]
+        with mock.patch.object(pipeline, "tail_pixels", scout), mock.patch.object(pipeline, "resolve_spp", samples), \
+                mock.patch.object(pipeline, "refine_tail", refine_nothing):
             runs.append(capture_in_memory(load_config(config, overrides), StageStatus(False)))
         print(f"seed {s}: {time.perf_counter() - t0:.0f} s, spp {runs[-1].plan.spp_label()}", flush=True)
     if scout.kept is None:

@@ -171,8 +171,10 @@ def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
         given[p] = f
     given = given.reshape(H, W)
     assert given[5, 5] == asks(1.6) == floor and given[17, 17] == asks(50.0)  # the centres
-    # outside each region, its neighbour's factor (the high region's edge pooled over 3x3: 6 of 9 at 50)
-    assert given[1, 5] == floor and given[13, 14] == asks(50.0 * 6 / 9)
+    # outside each region, its side neighbours' factor (budget.ADAPTIVE_FOOTPRINT): (13, 14) has the high region's
+    # corner below it (pooled over 3x3: 4 of 9 at 50) and (13, 15) beside it (3 of 9); the edge pixel (14, 15)
+    # (6 of 9) is a diagonal neighbour, which the four sides leave out
+    assert given[1, 5] == floor and given[13, 14] == asks(50.0 * 4 / 9) < asks(50.0 * 6 / 9)
     assert given[11, 11] == 0 and given[0, 23] == 0  # far from both: not refined
     low_high = set(np.flatnonzero(given).tolist())
     one = tail_pixels(*args, floor)
@@ -441,9 +443,9 @@ def test_adaptive_sampling_is_skipped_where_its_scout_would_not_fit_in_memory(se
 
 
 def test_the_frontier_scripts_rule_in_use_is_the_budgets():
-    """scripts/adaptive_frontier.py: its rule 'level 1, target 1, box, from 1' gives every pixel the factor
+    """scripts/adaptive_frontier.py: its rule 'level 1, target 1, cross, from 1' gives every pixel the factor
     budget.factor_tiers gives it (the script checks this on every run too), and the other rules differ from it
-    the way they say: the four sides spread to fewer pixels, no spread to none, a lower level chooses more."""
+    the way they say: the 3x3 box spreads to more pixels, no spread to none, a lower level chooses more."""
     from mbcapture.budget import factor_tiers
 
     script = load_script("adaptive_frontier")
@@ -452,14 +454,18 @@ def test_the_frontier_scripts_rule_in_use_is_the_budgets():
     expected = np.ones(predicted.size)
     for pixels, f in factor_tiers(predicted, ADAPTIVE_SELECT * 2.0, 8):
         expected[pixels] = f
-    in_use = script.factors(predicted, 2.0, ADAPTIVE_SELECT, ADAPTIVE_SELECT, "box", 1, 8)
+    assert script.IN_USE == "cross"
+    in_use = script.factors(predicted, 2.0, ADAPTIVE_SELECT, ADAPTIVE_SELECT, script.IN_USE, 1, max_factor=8)
     np.testing.assert_array_equal(in_use.ravel(), expected)
     chosen = predicted > 2.0
-    none = script.factors(predicted, 2.0, 1.0, 1.0, "none", 1, 8)
-    cross = script.factors(predicted, 2.0, 1.0, 1.0, "cross", 1, 8)
+    none = script.factors(predicted, 2.0, 1.0, 1.0, "none", 1, max_factor=8)
+    box = script.factors(predicted, 2.0, 1.0, 1.0, "box", 1, max_factor=8)
     assert np.array_equal(none > 1, chosen)
-    assert (none <= cross).all() and (cross <= in_use).all() and (cross > 1).sum() < (in_use > 1).sum()
-    assert (script.factors(predicted, 2.0, 0.7, 0.7, "none", 1, 8) > 1).sum() > chosen.sum()
+    assert (none <= in_use).all() and (in_use <= box).all() and (in_use > 1).sum() < (box > 1).sum()
+    # integer factors: never above the power of two, the ratio over the target rounded up to an integer
+    ints = script.factors(predicted, 2.0, 1.0, 1.0, "none", 1, "int", max_factor=8)
+    assert (ints <= none).all() and (ints[chosen] == np.clip(np.ceil(predicted[chosen] / 2.0), 2, 8)).all()
+    assert (script.factors(predicted, 2.0, 0.7, 0.7, "none", 1, max_factor=8) > 1).sum() > chosen.sum()
     # the factor: the predicted ratio over target x tail, up to a power of two in [2, 8]
     f = none[chosen]
     assert set(np.unique(f)) <= {2.0, 4.0, 8.0}
@@ -521,3 +527,17 @@ def test_the_top_up_judges_the_budget_on_the_image_adaptive_sampling_will_give(m
                           progress=False, why_not=None, planned=tiers)
     assert out == (None, first, None)
     np.testing.assert_array_equal(judged[0], planned.mc_diff)
+
+
+def test_cap_tiers_lowers_only_the_pixels_it_is_given_to_the_cap():
+    """budget.cap_tiers (the moving parts' pixels at most pipeline.MOVING_MAX_FACTOR): the pixels in the mask keep
+    their factor up to the cap and take the cap above it, the others keep theirs, every pixel in one tier."""
+    from mbcapture.budget import cap_tiers
+
+    tiers = [(np.array([0, 1, 2]), 2), (np.array([3, 4]), 4), (np.array([5, 6, 7]), 8)]
+    where = np.zeros(10, bool)
+    where[[1, 4, 6, 9]] = True
+    capped = cap_tiers(tiers, where, 4)
+    assert [(p.tolist(), f) for p, f in capped] == [([0, 1, 2], 2), ([3, 4, 6], 4), ([5, 7], 8)]
+    assert [(p.tolist(), f) for p, f in cap_tiers(tiers, where, 2)] == [([0, 1, 2, 4, 6], 2), ([3], 4), ([5, 7], 8)]
+    assert cap_tiers([], where, 4) == []
