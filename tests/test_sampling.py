@@ -367,3 +367,15 @@ def test_the_poisson_start_is_the_general_cornish_fisher_start_with_poissons_mom
     # the two orders of the same arithmetic may round across a half-integer: at most one count, rarely
     assert np.abs(fast - general).max() <= 1.0
     assert np.count_nonzero(fast != general) <= lam.size * 1e-5
+
+
+@pytest.mark.parametrize("n, p", [(14_057_673, 0.3), (10**9, 1e-3), (2_000_000, 0.5)])
+def test_binomial_quantile_is_exact_where_the_variance_is_large(n, p):
+    """Variances of 1e5 to 3.5e6 (a full well of millions of electrons with a large transfer loss): the tails come
+    from betainc there (bdtr's error reached 2.4 pmfs at a variance of 1e6, and the walks never settled). Against
+    scipy.stats.binom.ppf (Boost), u including a relative 1e-9 either side of CDF steps near the mean."""
+    rng = np.random.default_rng(11)
+    sd = np.sqrt(n * p * (1 - p))
+    ks = np.floor(n * p + sd * np.linspace(-4, 4, 41))
+    u = _u_with_steps(stats.binom.cdf(ks, n, p), rng, 400)
+    np.testing.assert_array_equal(binomial_quantile(u, np.full(u.size, float(n)), p), stats.binom.ppf(u, n, p))
