@@ -957,7 +957,7 @@ class Renderer:
 def _aligned(a: np.ndarray) -> np.ndarray:
     """``a``'s values in memory aligned to 64 bytes. Dr.Jit reads a numpy array where it lies, and its kernel
     declares the loads aligned or not by the address: an array from wherever numpy put it compiled the same
-    render again (0.19 s at 640x512) every time its alignment changed, a third of adaptive sampling's renders."""
+    render again (0.19 s at 640x512) whenever its alignment differed from the last's (Dr.Jit's kernel log)."""
     a = np.ascontiguousarray(a)
     buf = np.empty(a.nbytes + 64, np.uint8)
     start = (-buf.ctypes.data) % 64
