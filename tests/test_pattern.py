@@ -170,6 +170,27 @@ def test_a_shared_pattern_render_is_keyed_by_its_pattern_and_bands_hold_the_film
 
 
 @pytest.mark.render
+def test_a_shared_pattern_render_is_the_same_through_either_sensor(monkeypatch):
+    """The renders that draw from the shared pattern go through the scene's second sensor (EXACT_SENSOR, Mitsuba's
+    independent sampler, which takes any count); through the first (the config's multijitter), at a count it takes
+    as asked, they are the same image: the sampler only lays out the lanes and the box filter keeps each sample
+    in its pixel. And a count multijitter would round (85 -> 90) is taken exactly."""
+    from mbcapture.pipeline import prepare
+    from mbcapture.render import Renderer
+
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", ["render.width=40", "render.height=32", "render.cache=off"])
+    scene, _, plan, _ = prepare(cfg)
+    t = float(plan.times_s[0])
+    r = Renderer.from_config(scene, cfg)
+    assert r.sampler == "multijitter" and r.sample_count(12) == 12 and r.sample_count(85) == 90
+    assert r.sample_count(85, pattern=True) == 85
+    exact = r.render(t, 12, 3, plan.groups, pattern=(7, 24))
+    monkeypatch.setattr(r, "_sensor_index", lambda pattern: 0)
+    through_first = r.render(t, 12, 3, plan.groups, pattern=(7, 24))
+    np.testing.assert_allclose(through_first, exact, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.render
 def test_a_shared_pattern_is_unbiased_and_lowers_a_static_reads_variance():
     """K = 6 strata of one static time, their mean, over 10 seeds at 80x64 and 64 spp: with the shared
     pattern (stratum k at offset k x 64) against each its own. Over 8x8-pixel blocks the means agree:
