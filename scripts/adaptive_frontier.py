@@ -51,7 +51,7 @@ from mbcapture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # render_noise_reads.py, a script beside this one
-from render_noise_reads import FirstSamples, below_full_well  # noqa: E402
+from render_noise_reads import FirstSamples, below_full_well, two_seeds  # noqa: E402
 
 FOOTPRINTS = {"box": np.ones((3, 3), bool), "cross": np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool), "none": None}
 #: The dilation of the rule in use (budget.ADAPTIVE_FOOTPRINT) by its name here.
@@ -66,11 +66,10 @@ def main() -> None:
     ap.add_argument("--seeds", default="1,2", help="the two run seeds, comma-separated (the first one's scout chooses)")
     ap.add_argument("--cache", default=None, help="NPZ of the renders: read when it exists, written when not")
     ap.add_argument("--rule", action="append", default=[],
-                    help="level,target,dilation,dilate-from (e.g. 1,1,box,1); default: a grid around the rule in use")
+                    help="level,target,dilation,dilate-from[,steps] (e.g. 1,1,cross,1 or 1,1,box,1,int); "
+                         "default: a grid around the rule in use")
     args = ap.parse_args()
-    seeds = [int(s) for s in args.seeds.split(",")]
-    if len(seeds) != 2:
-        raise SystemExit(f"--seeds: two comma-separated run seeds expected, got {args.seeds!r}")
+    seeds = two_seeds(args.seeds)
     if args.cache and Path(args.cache).exists():
         data = dict(np.load(args.cache))
     else:

@@ -60,9 +60,7 @@ def main() -> None:
     ap.add_argument("--truth", type=int, default=0, help="runs for the converged median (0: none; at least 3)")
     args = ap.parse_args()
     w, h = args.size.split("x")
-    seeds = [int(s) for s in args.seeds.split(",")]
-    if len(seeds) != 2:
-        raise SystemExit(f"--seeds: two comma-separated run seeds expected, got {args.seeds!r}")
+    seeds = two_seeds(args.seeds)
     if args.truth and args.truth < 3:
         raise SystemExit(f"--truth: at least 3 runs, got {args.truth}")
     if args.truth and not any(sv.startswith("render.spp=") and sv != "render.spp=null" for sv in args.sets):
@@ -148,6 +146,17 @@ class FirstSamples:
         elif out.spp is not None:
             out = replace(out, spp=self.spp.copy())
         return out
+
+
+def two_seeds(text: str) -> list[int]:
+    """``--seeds``: two comma-separated run seeds, or a clear error."""
+    try:
+        seeds = [int(s) for s in text.split(",")]
+    except ValueError:
+        seeds = []
+    if len(seeds) != 2:
+        raise SystemExit(f"--seeds: two comma-separated run seeds expected, got {text!r}")
+    return seeds
 
 
 def below_full_well(run, full_well_e: float) -> np.ndarray:

@@ -775,11 +775,14 @@ class Renderer:
                            lambda: self._render(t_s, int(n), band_seed(seed, band), req, rows, pattern))
 
     @staticmethod
-    def _cache_params(n: int, seed: int, req: list[str], pattern: tuple[int, int] | None) -> dict[str, Any]:
-        """The part of a render's cache key its call gives: samples taken, seed, groups and pattern."""
-        params: dict[str, Any] = {"spp": int(n), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
+    def _cache_params(n: "int | np.ndarray", seed: int, req: list[str],
+                      pattern: "tuple[int, int | np.ndarray] | None") -> dict[str, Any]:
+        """The part of a render's cache key its call gives: samples taken, seed, groups and pattern. The
+        samples and the pattern's offset may be one per pixel (:meth:`render_pixels`): one value where they
+        are all alike (the key such a render has always had), else the digest of them all."""
+        params: dict[str, Any] = {"spp": _one_or_digest(n), "seed": int(seed) & 0xFFFFFFFF, "groups": req}
         if pattern is not None:  # without one, the key renders have always had
-            params["pattern"] = list(_pattern_key(pattern))
+            params["pattern"] = [int(pattern[0]) & 0xFFFFFFFF, _one_or_digest(pattern[1])]
         return params
 
     @property
@@ -820,13 +823,8 @@ class Renderer:
             if counts.size and (counts.min() < 1 or offsets.min() < 0 or (offsets + counts).max() > 2**32):
                 raise ValueError("render_pixels: expected samples >= 1 a pixel and pattern samples within 0 .. 2^32")
         if cached:
-            digest_of = lambda a: hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()  # noqa: E731
-            params = {"spp": int(counts.flat[0]) if counts.size and counts.min() == counts.max() else digest_of(counts),
-                      "seed": int(seed) & 0xFFFFFFFF, "groups": req,
-                      "pixels": digest_of(pix), "n_pixels": int(pix.size)}
-            if pattern is not None:
-                params["pattern"] = [int(pattern[0]) & 0xFFFFFFFF, int(offsets.flat[0])
-                                     if offsets.size and offsets.min() == offsets.max() else digest_of(offsets)]
+            params = {**self._cache_params(counts, seed, req, None if pattern is None else (pattern[0], offsets)),
+                      "pixels": hashlib.sha256(pix.tobytes()).hexdigest(), "n_pixels": int(pix.size)}
             out = self.cached("pixels", t_s, params,
                               lambda: self._render_pixels(t_s, counts, seed, req, pix, pattern, offsets))
         else:
@@ -964,6 +962,15 @@ def _aligned(a: np.ndarray) -> np.ndarray:
     out = buf[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
     out[...] = a
     return out
+
+
+def _one_or_digest(values: "int | np.ndarray") -> "int | str":
+    """A cache key's value for a count or an offset: the int where all of ``values`` are alike (or it is one),
+    else the SHA-256 of them all."""
+    a = np.asarray(values, np.int64)
+    if a.size and a.min() == a.max():
+        return int(a.flat[0])
+    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
 
 
 def _pattern_key(pattern: tuple[int, int] | None) -> tuple[int, int] | None:
