@@ -112,32 +112,37 @@ class RenderSection(_Model):
         "arrays.",
     )
     adaptive: bool = Field(
-        False,
-        description="With render.spp null: adaptive sampling (off by default; on in the default capture, "
-        "configs/metronome_hdr.yaml, where at 640x512 it brings every read under the median, p95 and tail targets: "
-        "the longest read's 99.9th percentile from 2.3 to about 0.9, measured from two render seeds; docs/noise.md). "
+        True,
+        description="With render.spp null: adaptive sampling (on by default since the fourteenth session; off, "
+        "the tail target render.noise_budget_tail is reported, not met). On the default capture at 640x512 it brings "
+        "every read under the median, p95 and tail targets: the longest read's 99.9th percentile from 2.3 to about "
+        "0.93, measured from two render seeds (docs/noise.md). "
         "After the budgeted pass, a scout renders every stratum again with seeds of its own at a sixteenth of its "
         "samples, and the pixels where any read's Monte Carlo / shot-noise ratio, as the scout measures it scaled to "
         "the first pass's samples (as 1/spp, an upper bound, where nothing moves; unscaled where the moving parts "
-        "cross, as both passes draw one time per half-stratum), exceeds render.noise_budget_tail (and their four side "
-        "neighbours) are rendered again, every stratum, and added to the first pass: each ends with the power of two "
-        "of the first pass's samples its ratio asks for, at least 2x and at most render.adaptive_max_factor; the "
-        "moving parts' pixels at 4 times per half-stratum and at most 4x. The top-up (render.top_up) judges the budget "
-        "on the image these factors will give. Unbiased: the choice comes from renders the image does not "
-        "use, so it conditions no pixel's first pass (report.json adaptive). RGB variants with a "
+        "cross, as both passes draw one time per half-stratum), exceeds a level x render.noise_budget_tail (and their "
+        "four side neighbours) are rendered again, every stratum, and added to the first pass: each ends with the "
+        "power of two of the first pass's samples its ratio over the level asks for, at least 2x and at most a most "
+        "factor up to render.adaptive_max_factor; the moving parts' pixels at 4 times per half-stratum and at most 4x. "
+        "The level (1 down to 0.25) and the most factor are the cheapest rule whose factors bring the run's own "
+        "estimate of the tail under its target, judged on the first pass with each pixel's noise divided by its "
+        "factor. Where no rule does (a first pass of few samples whose rare paths the scout did not see), the "
+        "costliest is rendered and the top-up (render.top_up) adds samples to the whole film for the tail too. The "
+        "top-up judges the budget on the image the chosen factors will give. Unbiased: which pixels are chosen comes "
+        "from renders the image does not use, and the rule is one choice from the whole film's estimate, so neither "
+        "conditions any pixel's first pass (report.json adaptive). RGB variants with a "
         "lens acting per pixel (no camera.distortion or camera.diffraction), render.estimator independent, a film in "
         "one tile, and room in free memory for the scout's second set of the film's arrays; elsewhere it is skipped "
         "and report.json says why. The tail lies on silhouettes and moving edges (docs/noise.md).",
     )
     adaptive_max_factor: int = Field(
-        8, ge=2, le=256, description="Adaptive sampling's most samples at a refined pixel, its first pass's and its "
-        "second's together, as a multiple of its stratum's (the largest power of two up to it). 8 met every target on "
-        "the default capture at 640x512 (the longest read's 99.9th percentile 0.85 from two render seeds refining one "
-        "choice of pixels) in 0.72x the time of 16 (measured before the estimate pooled alike neighbours only, and "
-        "before the scout; docs/noise.md). Above 16 only "
-        "the pixels whose estimate is further over the tail target get more (the "
-        "short reads' lamp rim): report.json's adaptive.tiers and adaptive.added_samples say how many and what "
-        "they cost.")
+        64, ge=2, le=256, description="Adaptive sampling's most samples at a refined pixel, its first pass's and its "
+        "second's together, as a multiple of its stratum's (the largest power of two up to it): the rules it chooses "
+        "among have most factors of 2 up to this, and it keeps the cheapest that meets the tail, so a larger bound only "
+        "adds choices (64 by default since the fourteenth session, 8 before). The default capture keeps 8, which met "
+        "every target at 640x512 (the longest read's 99.9th percentile 0.85 from two render seeds, in 0.72x the time of "
+        "16; docs/noise.md). report.json's adaptive.tiers and adaptive.added_samples say how many pixels got what and "
+        "what they cost.")
     max_spp: int = Field(1024, ge=2, le=1 << 16, description="Upper bound on the samples per pixel render.noise_budget may choose for one stratum.")
     estimator: Literal["independent", "difference"] = Field(
         "independent",

@@ -26,6 +26,7 @@ from . import camera_motion, protocols, resources, scenes
 from .application import AppOutput, CaptureData
 from .budget import (
     BucketElectrons,
+    TailModel,
     cap_tiers,
     noise_verdict,
     render_error,
@@ -295,25 +296,33 @@ TOP_UP_MARGIN = 1.1
 TOP_UP_EXPONENT = 1.5
 
 
-def _read_figures(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig, names: list[str] | None = None) -> dict:
+def _read_figures(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig, names: list[str] | None = None,
+                  plan: Plan | None = None) -> dict:
     """The run's own estimate of each read's rendering noise (render_error's ``reads``), of the reads
-    ``names`` (default: all)."""
+    ``names`` (default: all); with ``plan``, of the channel sets it reads (:attr:`Plan.read_sets`: a coded
+    capture's render stage holds sub-frames, not buckets), else of the timeline's reads' buckets."""
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
-    reads = [r for r in timeline.reads if names is None or r.name in names]
-    return render_error(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, [r.buckets for r in reads],
-                        [r.name for r in reads], cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e).get("reads", {})
+    sets = (list(zip(plan.read_names, plan.read_sets)) if plan is not None else
+            [(r.name, r.buckets) for r in timeline.reads])
+    sets = [(n, b) for n, b in sets if names is None or n in names]
+    return render_error(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, [b for _, b in sets],
+                        [n for n, _ in sets], cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e).get("reads", {})
 
 
-def over_budget(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig) -> tuple[float, str | None, str, float]:
-    """How far the run's own estimate of its rendering noise is over the budget's median and p95
-    targets (render.noise_budget, render.noise_budget_p95) on its worst read: (max over reads of
-    median / target and p95 / target, that read, the figure that decides it (render_error's
-    ``to_shot_noise_variance_median`` or ``_p95``), its value); (0, None, "", 0) without an estimate."""
-    reads = _read_figures(integrated, timeline, cfg)
+def over_budget(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig,
+                reads: dict | None = None, *, tail: bool = False) -> tuple[float, str | None, str, float]:
+    """How far the run's own estimate of its rendering noise is over the budget's median and p95 targets
+    (render.noise_budget, render.noise_budget_p95), and with ``tail`` its tail target too
+    (render.noise_budget_tail), on its worst read: (max over reads of each figure over its target, that
+    read, the figure that decides it (render_error's ``to_shot_noise_variance_median``, ``_p95`` or
+    ``_p999``), its value); (0, None, "", 0) without an estimate. ``reads``: :func:`_read_figures` of
+    ``integrated`` where they are at hand."""
+    reads = _read_figures(integrated, timeline, cfg) if reads is None else reads
     if not reads:
         return 0.0, None, "", 0.0
     targets = {"to_shot_noise_variance_median": cfg.render.noise_budget,
-               "to_shot_noise_variance_p95": cfg.render.noise_budget_p95}
+               "to_shot_noise_variance_p95": cfg.render.noise_budget_p95,
+               **({"to_shot_noise_variance_p999": cfg.render.noise_budget_tail} if tail else {})}
     over = {(n, k): v[k] / t for n, v in reads.items() for k, t in targets.items()}
     worst, key = max(over, key=over.get)
     return over[(worst, key)], worst, key, reads[worst][key]
@@ -336,13 +345,16 @@ def no_room_for_another_pass(integrated: Integrated) -> str | None:
 
 def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
            seed: np.random.SeedSequence, status: StageStatus, *, per_group: bool, timer, progress: bool,
-           why_not: str | None, planned: list[tuple[np.ndarray, int]] | None = None) \
-        -> tuple[Plan, Integrated, dict | None]:
+           why_not: str | None, planned: list[tuple[np.ndarray, int]] | None = None,
+           planned_reads: dict | None = None) -> tuple[Plan, Integrated, dict | None]:
     """render.top_up: when the pilot's choice left the run's own estimate over the median or p95 target
     (:func:`over_budget` > 1; the pilot extrapolates from 8 and 32 samples, and its exponent can be
-    too steep for the count it reaches), a second pass of every stratum, combined with the first.
+    too steep for the count it reaches), or, after adaptive sampling's choice, over the tail target (where
+    none of its rules brings the tail under it: a first pass of few samples whose rare paths the scout,
+    at fewer still, did not see), a second pass of every stratum, combined with the first.
     ``planned``: adaptive sampling's tiers (:func:`scout_tail`), still to be rendered: the budget is judged
-    on the image they will give (:func:`with_planned_refinement`), the one the run returns. (Judged before
+    on the image they will give (:func:`with_planned_refinement`; ``planned_reads``: its :func:`_read_figures`,
+    where :func:`scout_tail` made them), the one the run returns. (Judged before
     them, a first pass a hair over the median target, 1.008x, took a top-up of 12 % more samples on the
     default capture, which its refined pixels would have brought under the target anyway.)
 
@@ -370,7 +382,9 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     and what report.json keeps (None when the first pass met the budget)."""
     if integrated.mc_diff is None:
         return plan, integrated, None
-    factor, worst, figure, _ = over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg)
+    tail = planned is not None  # after adaptive sampling's choice: what its rules could not bring under the tail
+    factor, worst, figure, _ = over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg,
+                                           planned_reads, tail=tail)
     if factor <= 1.0:
         return plan, integrated, None
     why_not = why_not or no_room_for_another_pass(integrated)
@@ -425,7 +439,8 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         info = {"applied": True, "before": round(factor, 4), "read": worst,
                 "figure": figure.removeprefix("to_shot_noise_variance_"), "spp_added": extra.tolist(),
                 "weight": round(c, 4),
-                "after": round(over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg)[0], 4),
+                "after": round(over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg,
+                                           tail=tail)[0], 4),
                 "judged_with_refinement": bool(planned),
                 "seconds": round(time.perf_counter() - start, 3)}
     return plan, integrated, info
@@ -450,16 +465,20 @@ MOVING_MAX_FACTOR = 4
 
 def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
                seed: np.random.SeedSequence, status: StageStatus, *, moving: np.ndarray, timer, progress: bool,
-               tiled: bool = False) -> tuple[list[tuple[np.ndarray, int]] | None, dict]:
+               tiled: bool = False) -> tuple[list[tuple[np.ndarray, int]] | None, dict, dict | None]:
     """Adaptive sampling's choice (render.adaptive): a scout, the strata rendered again with seeds of their own
     at about a sixteenth of the first pass's samples (:func:`mbcapture.budget.scout_spp`), chooses the pixels
     whose predicted ratio (the scout's, scaled as 1/spp where nothing moves, as it is in ``moving``) exceeds
-    budget.ADAPTIVE_SELECT x the tail target (:func:`mbcapture.budget.tail_pixels`), each with the factor of the
-    first pass's samples it is to have. The choice is independent of the first pass, so every pixel's
-    estimate, and the run's own estimate of its error, is unbiased. Made before the top-up, which judges the
-    budget on the image these factors will give (:func:`top_up`), and rendered after it (:func:`refine_tail`).
-    Returns the tiers (None where adaptive sampling cannot apply) and what report.json keeps. Not in a tiled
-    run (``tiled``): the scout, the choice of pixels and their second pass are the whole film's."""
+    a level x the tail target (:func:`mbcapture.budget.tail_pixels`), each with the factor of the first pass's
+    samples it is to have. The level is the first of budget.ADAPTIVE_LEVELS whose factors bring the run's own
+    estimate of the tail, on the first pass as these factors will leave it (:func:`with_planned_refinement`),
+    under render.noise_budget_tail. Which pixels are chosen is independent of the first pass, and the level is
+    one number from the whole film's estimate, so every pixel's estimate, and the run's own estimate of its
+    error, is unbiased. Made before the top-up, which judges the budget on the image these factors will give
+    (:func:`top_up`), and rendered after it (:func:`refine_tail`). Returns the tiers (None where adaptive
+    sampling cannot apply), what report.json keeps and the chosen tiers' :func:`_read_figures` (what the top-up
+    judges on). Not in a tiled run (``tiled``): the scout, the choice of pixels and their second pass are the
+    whole film's."""
     why = ("a film in one tile (render.tiles; the choice of pixels and their second pass are the whole film's)"
            if tiled else
            "an RGB render.variant and a lens acting per pixel (no camera.distortion, camera.diffraction)"
@@ -467,7 +486,7 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
            else "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None
            else no_room_for_another_pass(integrated))  # the scout renders the film again
     if why is not None:
-        return None, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}
+        return None, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}, None
     with status.stage("adaptive sampling: scout"):
         start = time.perf_counter()
         k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
@@ -480,20 +499,36 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
         # the first pass's ratio over the scout's: as 1/spp where nothing moves; 1 where the moving parts cross,
         # as there both passes draw one time per half-stratum, and their time noise does not fall with samples
         scale = np.where(moving, 1.0, float((scout_plan.spp / np.maximum(spp, 1)).max()))
+        on_moving = moving.ravel()
+        buckets_e = BucketElectrons(integrated.exposure, k_e)
+        with timer("adaptive_rule"):  # the tail each rule would leave, from the first pass's own estimate
+            model = TailModel(integrated.mc_diff, buckets_e, k_e, list(plan.read_sets), cfg.sensor.full_well_e,
+                              cfg.sensor.fd_full_well_e, cfg.render.noise_budget_tail)
+        tried = []
+
+        def meets(factors: np.ndarray) -> bool:
+            tried.append(model.meets(factors))
+            return tried[-1]
+
         tiers = tail_pixels(scout.mc_diff, BucketElectrons(scout.exposure, k_e), k_e,
                             list(plan.read_sets), cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
-                            cfg.render.noise_budget_tail, cfg.render.adaptive_max_factor, scale)
-        tiers = cap_tiers(tiers, moving.ravel(), MOVING_MAX_FACTOR)
+                            cfg.render.noise_budget_tail, cfg.render.adaptive_max_factor, scale, meets=meets,
+                            capped=on_moving, cap=MOVING_MAX_FACTOR)
+        tiers = cap_tiers(tiers, on_moving, MOVING_MAX_FACTOR)  # as chosen (a stand-in for tail_pixels may not cap)
+        with timer("adaptive_rule"):  # the run's own estimate on the image the tiers will give: the top-up's too
+            planned = _read_figures(with_planned_refinement(integrated, tiers), timeline, cfg, plan=plan)
         n_pix = sum(p.size for p, _ in tiers)
         film = cfg.render.width * cfg.render.height
-        on_moving = moving.ravel()
         info = {"scout": {"spp": scout_plan.spp.tolist(), "seconds": round(time.perf_counter() - start, 3)},
                 "pixels": int(n_pix), "share": round(n_pix / film, 6),
                 "tiers": [{"factor": f, "pixels": int(p.size), "moving_pixels": int(on_moving[p].sum())}
                           for p, f in tiers],
                 # the second pass's samples over the first pass's, on the whole film
                 "added_samples": round(sum(p.size * (f - 1) for p, f in tiers) / film, 4)}
-    return tiers, info
+        # how many rules were judged, and the tail the run's own estimate predicts for the one kept
+        info.update(rules_judged=len(tried), tail_met_by_rule=bool(tried and tried[-1]),
+                    predicted_tail=round(max((v["to_shot_noise_variance_p999"] for v in planned.values()), default=0.0), 4))
+    return tiers, info, planned
 
 
 def with_planned_refinement(integrated: Integrated, tiers: list[tuple[np.ndarray, int]]) -> Integrated:
@@ -602,8 +637,9 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
             cluster_info = merge_cluster_info(infos)
         moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
         tiers = None  # adaptive sampling's choice of pixels, made before the top-up judges the budget
+        planned_reads = None  # the run's own estimate on the image those tiers will give
         if cfg.render.spp is None and cfg.render.adaptive:
-            tiers, adaptive_info = scout_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
+            tiers, adaptive_info, planned_reads = scout_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
                                               moving=moving, timer=timer, progress=progress, tiled=len(tiles) > 1)
         if cfg.render.spp is None and cfg.render.top_up:
             why_not = ("a film in one tile (render.tiles)" if len(tiles) > 1 else
@@ -612,7 +648,7 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
                        "render.estimator independent" if plan.estimator != "independent" else None)
             plan, integrated, top_up_info = top_up(cfg, renderer, plan, timeline, integrated, seeds[2], status,
                                                    per_group=app.per_group, timer=timer, progress=progress,
-                                                   why_not=why_not, planned=tiers)
+                                                   why_not=why_not, planned=tiers, planned_reads=planned_reads)
         if tiers:
             status.add_stage()  # the scout's stage was counted at the start, its second pass is one more
             integrated, adaptive_info = refine_tail(cfg, renderer, plan, integrated, tiers, adaptive_info, seeds[2],

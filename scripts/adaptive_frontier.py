@@ -170,13 +170,13 @@ class Scout:
         self.tiers: list | None = None
 
     def __call__(self, mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e, tail_target, max_factor,
-                 scale=1.0):
+                 scale=1.0, **kwargs):
         if self.tiers is None:
             worst = scout_ratio(mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e)
             self.kept = {"scout_worst": worst, "scale": np.broadcast_to(np.asarray(scale, np.float64), worst.shape).copy(),
                          "tail_target": float(tail_target), "max_factor": int(max_factor)}
             self.tiers = tail_pixels(mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e, tail_target, max_factor,
-                                     scale)
+                                     scale, **kwargs)
         return self.tiers
 
 

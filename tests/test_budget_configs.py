@@ -5,9 +5,13 @@ at most ``render.noise_budget`` and its 95th percentile at most ``render.noise_b
 Marked ``budget`` and left out of ``make test``: its 16 captures take about 12 minutes one after
 another on 2 cores (scripts/readme_tables.py: 718 s; hdr_video's 16 frames 225 s of it), 10 minutes
 as ``make test-budget`` runs them, two at a time (2 min 20 s on the faster AMD EPYC of 2026-11-27), and the suite must stay under 6. ``python scripts/readme_tables.py --only
-budget`` runs the same captures and writes their figures into the README's table. The
-99.9th percentile target (``render.noise_budget_tail``) is not asserted: without adaptive sampling
-no config meets it (docs/noise.md), and each capture's tail is printed instead.
+budget`` runs the same captures and writes their figures into the README's table.
+
+The 99.9th percentile target (``render.noise_budget_tail``) is asserted too, on every config but those of
+:data:`TAIL_NOT_MET`, where it is asserted to be missed (so that the list stays the record of what is not
+yet met: a config that meets it fails here until it leaves the list). Adaptive sampling (on by default since
+the fourteenth session) chooses the cheapest of its rules that brings the run's own estimate of the tail under
+the target.
 """
 
 from pathlib import Path
@@ -22,6 +26,21 @@ ROOT = Path(__file__).resolve().parents[1]
 FILM = ["render.width=160", "render.height=128", "render.cache=off"]  # cold: no reused renders
 
 
+#: The shipped configs whose tail the run does not yet bring under render.noise_budget_tail at 160x128, and why
+#: (fourteenth session, Intel Xeon; the run's own 99.9th percentile of the worst read in brackets).
+TAIL_NOT_MET = {
+    "camera_full": "camera.distortion and camera.diffraction mix neighbouring pixels, which render_pixels cannot "
+                   "render alone: no adaptive sampling (4.8)",
+    "metronome_spectral": "a spectral variant (render_pixels needs an RGB one): no adaptive sampling (3.2)",
+    "rgb_illumination": "a spectral variant: no adaptive sampling (6.5)",
+    "coded_multi_flash": "a coded capture: no top-up after the costliest rule missed (1.25)",
+    "metronome_shake": "the refinement's own estimate lies over what the costliest rule predicted: the shaken "
+                       "camera's pixels all move, and get at most 4x (2.5)",
+    "multi_flash": "a first pass of few samples whose rare flash paths neither the scout nor the top-up's 1/spp "
+                   "sizing foresee (3.5)",
+}
+
+
 def budgeted_configs() -> list[str]:
     """The shipped configs whose samples the noise budget chooses."""
     return [p.stem for p in sorted((ROOT / "configs").glob("*.yaml"))
@@ -33,6 +52,7 @@ def test_the_budgeted_configs_are_found():
     would make that test pass vacuously)."""
     names = budgeted_configs()
     assert len(names) >= 10 and "metronome_hdr" in names and "flatfield_ptc" in names
+    assert set(TAIL_NOT_MET) <= set(names)  # every config the list excuses is one the test runs
 
 
 @pytest.mark.budget
@@ -47,8 +67,16 @@ def test_every_budgeted_config_meets_the_noise_budget_at_160x128(name):
     budget = error["budget"]
     lines = [f"{n}: median {v['to_shot_noise_variance_median']:.3g}, p95 {v['to_shot_noise_variance_p95']:.3g}, "
              f"p99.9 {v['to_shot_noise_variance_p999']:.3g}" for n, v in reads.items()]
-    print(f"{name} (top-up: {report.get('top_up')}):\n  " + "\n  ".join(lines))
+    adaptive = {k: v for k, v in (report.get("adaptive") or {}).items() if k != "tiers"}
+    adaptive["factors"] = [t["factor"] for t in (report.get("adaptive") or {}).get("tiers", [])]
+    print(f"{name} (top-up: {report.get('top_up')}; adaptive: {adaptive}):\n  " + "\n  ".join(lines))
     over = {n: v for n, v in reads.items()
             if v["to_shot_noise_variance_median"] > budget["median_target"]
             or v["to_shot_noise_variance_p95"] > budget["p95_target"]}
     assert not over and budget["met"], f"{name} misses the noise budget on {sorted(over)}: " + "; ".join(lines)
+    if name in TAIL_NOT_MET:
+        assert not budget["tail_met"], f"{name} now meets the tail target: take it out of TAIL_NOT_MET"
+    else:
+        tail = {n: v["to_shot_noise_variance_p999"] for n, v in reads.items()
+                if v["to_shot_noise_variance_p999"] > budget["tail_target"]}
+        assert not tail and budget["tail_met"], f"{name} misses the tail target on {tail}"

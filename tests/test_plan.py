@@ -279,7 +279,7 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     # the first pass 2x over the budget on J1, whose p95 ratio reads 2.0 there and 1.0 in the second (its
     # median 0.05 and 0.1): c = 2, from the figure that decided
     monkeypatch.setattr(pipeline, "over_budget",
-                        lambda integrated, timeline, cfg: (2.0, "J1", "to_shot_noise_variance_p95", 2.0))
+                        lambda integrated, timeline, cfg, *a, **k: (2.0, "J1", "to_shot_noise_variance_p95", 2.0))
     monkeypatch.setattr(pipeline, "_read_figures",
                         lambda integrated, *a, **k: {"J1": {"to_shot_noise_variance_median": 0.05, "to_shot_noise_variance_p95": 2.0}
                                                      if integrated is first else
@@ -330,7 +330,7 @@ def test_with_the_shared_pattern_the_top_up_continues_the_first_pass(monkeypatch
     seed = np.random.SeedSequence(1)
     first = integrate(r, p, tl.n_buckets, seed)
     monkeypatch.setattr(pipeline, "over_budget",
-                        lambda integrated, timeline, cfg: (2.0, "J1", "to_shot_noise_variance_median", 0.2))
+                        lambda integrated, timeline, cfg, *a, **k: (2.0, "J1", "to_shot_noise_variance_median", 0.2))
     cfg = SimpleNamespace(render=SimpleNamespace(max_spp=1024))
     r.patterns.clear()
     topped_plan, topped, info = pipeline.top_up(cfg, r, p, tl, first, seed, StageStatus(False),
