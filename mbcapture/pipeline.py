@@ -346,7 +346,7 @@ def no_room_for_another_pass(integrated: Integrated) -> str | None:
 def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
            seed: np.random.SeedSequence, status: StageStatus, *, per_group: bool, timer, progress: bool,
            why_not: str | None, planned: list[tuple[np.ndarray, int]] | None = None,
-           planned_reads: dict | None = None) -> tuple[Plan, Integrated, dict | None]:
+           planned_reads: dict | None = None, tail: bool = False) -> tuple[Plan, Integrated, dict | None]:
     """render.top_up: when the pilot's choice left the run's own estimate over the median or p95 target
     (:func:`over_budget` > 1; the pilot extrapolates from 8 and 32 samples, and its exponent can be
     too steep for the count it reaches), or, after adaptive sampling's choice, over the tail target (where
@@ -354,7 +354,8 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     at fewer still, did not see), a second pass of every stratum, combined with the first.
     ``planned``: adaptive sampling's tiers (:func:`scout_tail`), still to be rendered: the budget is judged
     on the image they will give (:func:`with_planned_refinement`; ``planned_reads``: its :func:`_read_figures`,
-    where :func:`scout_tail` made them), the one the run returns. (Judged before
+    where :func:`scout_tail` made them), the one the run returns; ``tail``: the tail target judged too (where
+    adaptive sampling judged its rules and none met it). (Judged before
     them, a first pass a hair over the median target, 1.008x, took a top-up of 12 % more samples on the
     default capture, which its refined pixels would have brought under the target anyway.)
 
@@ -382,7 +383,6 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     and what report.json keeps (None when the first pass met the budget)."""
     if integrated.mc_diff is None:
         return plan, integrated, None
-    tail = planned is not None  # after adaptive sampling's choice: what its rules could not bring under the tail
     factor, worst, figure, _ = over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg,
                                            planned_reads, tail=tail)
     if factor <= 1.0:
@@ -648,7 +648,9 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
                        "render.estimator independent" if plan.estimator != "independent" else None)
             plan, integrated, top_up_info = top_up(cfg, renderer, plan, timeline, integrated, seeds[2], status,
                                                    per_group=app.per_group, timer=timer, progress=progress,
-                                                   why_not=why_not, planned=tiers, planned_reads=planned_reads)
+                                                   why_not=why_not, planned=tiers, planned_reads=planned_reads,
+                                                   tail=bool(adaptive_info and adaptive_info.get("rules_judged")
+                                                             and not adaptive_info["tail_met_by_rule"]))
         if tiers:
             status.add_stage()  # the scout's stage was counted at the start, its second pass is one more
             integrated, adaptive_info = refine_tail(cfg, renderer, plan, integrated, tiers, adaptive_info, seeds[2],

@@ -521,14 +521,19 @@ def test_the_top_up_judges_the_budget_on_the_image_adaptive_sampling_will_give(m
     judged = []
 
     def over(integrated, timeline, cfg, reads=None, *, tail=False):
-        judged.append(integrated.mc_diff)
+        judged.append((integrated.mc_diff, reads, tail))
         return 0.5, "J1", "to_shot_noise_variance_median", 0.05
 
     monkeypatch.setattr(pipeline, "over_budget", over)
     out = pipeline.top_up(None, None, None, None, first, None, StageStatus(False), per_group=False, timer=None,
                           progress=False, why_not=None, planned=tiers)
     assert out == (None, first, None)
-    np.testing.assert_array_equal(judged[0], planned.mc_diff)
+    np.testing.assert_array_equal(judged[0][0], planned.mc_diff)
+    assert judged[0][1:] == (None, False)  # the tail is not judged unless asked: a rule met it
+    figures = {"J1": {}}
+    pipeline.top_up(None, None, None, None, first, None, StageStatus(False), per_group=False, timer=None,
+                    progress=False, why_not=None, planned=tiers, planned_reads=figures, tail=True)
+    assert judged[1][1] is figures and judged[1][2] is True  # scout_tail's figures reused, the tail judged
 
 
 def test_cap_tiers_lowers_only_the_pixels_it_is_given_to_the_cap():
