@@ -470,11 +470,11 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
     at about a sixteenth of the first pass's samples (:func:`mbcapture.budget.scout_spp`), chooses the pixels
     whose predicted ratio (the scout's, scaled as 1/spp where nothing moves, as it is in ``moving``) exceeds
     a level x the tail target (:func:`mbcapture.budget.tail_pixels`), each with the factor of the first pass's
-    samples it is to have. The level is the first of budget.ADAPTIVE_LEVELS whose factors bring the run's own
-    estimate of the tail, on the first pass as these factors will leave it (:func:`with_planned_refinement`),
-    under render.noise_budget_tail. Which pixels are chosen is independent of the first pass, and the level is
-    one number from the whole film's estimate, so every pixel's estimate, and the run's own estimate of its
-    error, is unbiased. Made before the top-up, which judges the budget on the image these factors will give
+    samples it is to have. The rule, a level of budget.ADAPTIVE_LEVELS and a most factor, is the cheapest whose
+    factors bring the run's own estimate of the tail, on the first pass as they will leave it
+    (:func:`with_planned_refinement`; :class:`mbcapture.budget.TailModel`), under render.noise_budget_tail.
+    Which pixels are chosen is independent of the first pass, and the rule is one choice from the whole film's
+    estimate, so every pixel's estimate, and the run's own estimate of its error, is unbiased. Made before the top-up, which judges the budget on the image these factors will give
     (:func:`top_up`), and rendered after it (:func:`refine_tail`). Returns the tiers (None where adaptive
     sampling cannot apply), what report.json keeps and the chosen tiers' :func:`_read_figures` (what the top-up
     judges on). Not in a tiled run (``tiled``): the scout, the choice of pixels and their second pass are the
