@@ -13,7 +13,7 @@ test: setup
 	.venv/bin/python scripts/warm_numba.py
 	.venv/bin/python -m pytest -q -n auto --maxprocesses 4
 
-# every shipped config whose samples the noise budget chooses, at 160x128, meets the budget (2.5-10 minutes
-# on 2 cores, two captures at a time, by the machine: not part of `make test`)
+# every shipped config whose samples the noise budget chooses, at 160x128, meets the budget (about 9 minutes
+# on 2 cores, two captures at a time, on the Intel Xeon of 2026-11-28: not part of `make test`)
 test-budget: setup
 	.venv/bin/python -m pytest -q -m budget -n 2 -rP tests/test_budget_configs.py
