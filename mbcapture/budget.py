@@ -816,8 +816,8 @@ ADAPTIVE_SELECT = 1.0
 #: The levels :func:`tail_pixels` chooses among (as shares of the tail target), each with every most factor
 #: up to render.adaptive_max_factor: the cheapest rule whose planned factors bring the run's own estimate of the
 #: tail under its target (:class:`TailModel`). One rule does not serve every film: the default capture met the
-#: tail at level 1 and at most 8x at 640x512 (0.143 of the first pass's samples added, J4 99.9th percentile 0.931
-#: from outside), while at 160x128 the same rule left 1.22 and level 0.5 was needed, for 0.57 of the samples
+#: tail at level 1 and at most 8x at 640x512 (0.127 of the first pass's samples added in a run, J4 99.9th
+#: percentile 0.931 from outside; four rules judged, the cheaper three missed), while at 160x128 the same rule left 1.22 and level 0.5 was needed, for 0.57 of the samples
 #: (scripts/adaptive_frontier.py, thirteenth session): a small film's pixel spans more of the scene's edges. The
 #: rule is one choice for the whole film, from the whole film's estimate (as the top-up's size is), so it
 #: conditions no pixel's value.
