@@ -500,10 +500,9 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
         # as there both passes draw one time per half-stratum, and their time noise does not fall with samples
         scale = np.where(moving, 1.0, float((scout_plan.spp / np.maximum(spp, 1)).max()))
         on_moving = moving.ravel()
-        buckets_e = BucketElectrons(integrated.exposure, k_e)
         with timer("adaptive_rule"):  # the tail each rule would leave, from the first pass's own estimate
-            model = TailModel(integrated.mc_diff, buckets_e, k_e, list(plan.read_sets), cfg.sensor.full_well_e,
-                              cfg.sensor.fd_full_well_e, cfg.render.noise_budget_tail)
+            model = TailModel(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, list(plan.read_sets),
+                              cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, cfg.render.noise_budget_tail)
         tried = []
 
         def meets(factors: np.ndarray) -> bool:
