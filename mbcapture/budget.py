@@ -846,31 +846,42 @@ def scout_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketEle
 def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
                 reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float, tail_target: float,
                 max_factor: int, scale: "float | np.ndarray" = 1.0, *, meets: "Callable[[np.ndarray], bool] | None" = None,
-                capped: "np.ndarray | None" = None, cap: int | None = None) -> list[tuple[np.ndarray, int]]:
+                changing: "np.ndarray | None" = None) -> list[tuple[np.ndarray, int]]:
     """Adaptive sampling's choice, from a scout's half-sample differences and electrons: tiers of pixels
     (flat indices) and the factor of the first pass's samples each tier is to have in all, from
     :func:`scout_ratio` times ``scale`` (the ratio the first pass has over the one these renders measure,
     one or (H, W): the scout's samples over the first pass's where only samples differ; 1 where the moving
     parts cross, :func:`mbcapture.pipeline.refine_tail`).
 
+    ``changing`` (a flat mask): the pixels where a render's time within its stratum is noise (the moving parts and
+    their shadows), which the second pass renders at several times per half-stratum: there the first pass's noise,
+    mostly that of its time, keeps the share 1 / f of the combination, so its variance falls nearly as 1 / f^2
+    (multi_flash at 160x128, fifteenth session: the shadow's pixels given 4x fell from 40 to 2.4, 17-fold), and a
+    pixel's factor is the square root of what its ratio over the level asks for. Until the fifteenth session those
+    pixels took the factor their ratio asked for, capped at 4x. The rules are still judged with every pixel's
+    variance as 1 / f (:class:`TailModel`): between the limits 1 / f (noise all of the samples) and 1 / f^2 (all of
+    the render's time), the first is an upper bound; judged by the second, four of the shipped configs chose rules
+    that left their tail at 1.04-1.78 and their median up to 0.112 (``make test-budget``, fifteenth session).
+
     Without ``meets``: :func:`factor_tiers` at the level :data:`ADAPTIVE_SELECT` x the tail target. With
     ``meets(factors)`` (the flat factor of every pixel; whether they would bring the tail under its target,
     :meth:`TailModel.meets`): the cheapest rule that does, among every level of :data:`ADAPTIVE_LEVELS` with
-    every most factor, a power of two up to ``max_factor`` (``capped``, a flat mask of pixels, at most ``cap``),
-    and no refinement at all; the costliest when none does (the most the rules offer). Cost: the samples added,
-    the sum of (factor - 1)."""
+    every most factor, a power of two up to ``max_factor``, and no refinement at all; the costliest when none does
+    (the most the rules offer). Cost: the samples added, the sum of (factor - 1)."""
     worst = scout_ratio(mc_diff_exposure, buckets_e, k_e, reads, full_well_e, fd_full_well_e)
     worst *= scale
+    on = np.zeros(worst.shape, bool) if changing is None else np.asarray(changing, bool).reshape(worst.shape)
+
+    def asked(level: float) -> np.ndarray:  # the ratio whose power of two over the level is each pixel's factor
+        return np.where(on, np.sqrt(np.maximum(worst, 0.0) * level), worst)
+
     if meets is None:
-        return factor_tiers(worst, ADAPTIVE_SELECT * tail_target, max_factor)
+        return factor_tiers(asked(ADAPTIVE_SELECT * tail_target), ADAPTIVE_SELECT * tail_target, max_factor)
     top = int(np.log2(max_factor))
-    low = top if cap is None else int(np.log2(cap))  # the capped pixels' most
     rules = [np.zeros(worst.size, np.int64)]  # log2 of each pixel's factor; first, no refinement
     for level in ADAPTIVE_LEVELS:
-        tier = tier_exponents(worst, level * tail_target, top).ravel()
-        if capped is not None:
-            tier = np.where(capped, np.minimum(tier, low), tier)
-        rules += [np.minimum(tier, m) for m in range(1, top + 1)]  # the dilation commutes with the cap
+        tier = tier_exponents(asked(level * tail_target), level * tail_target, top).ravel()
+        rules += [np.minimum(tier, m) for m in range(1, top + 1)]
     cost = [int((np.left_shift(1, r) - 1).sum()) for r in rules]
     best = rules[int(np.argmax(cost))]
     for i in np.argsort(cost, kind="stable"):
@@ -971,19 +982,6 @@ class TailModel:
         f = np.asarray(factors, np.float64).ravel()
         return all(int(((t / f[w]).sum(axis=1) > self.target).sum()) <= a
                    for t, w, a in zip(self.terms, self.neighbours, self.allowed))
-
-
-def cap_tiers(tiers: list[tuple[np.ndarray, int]], where: np.ndarray, cap: int) -> list[tuple[np.ndarray, int]]:
-    """``tiers`` (:func:`factor_tiers`) with the factor of every pixel in ``where`` (a flat boolean mask of the
-    film) at most ``cap``: the same pixels, by increasing factor, each in one tier."""
-    out: dict[int, list[np.ndarray]] = {}
-    for pixels, factor in tiers:
-        capped = where[pixels]
-        if (~capped).any():
-            out.setdefault(factor, []).append(pixels[~capped])
-        if capped.any():
-            out.setdefault(min(factor, cap), []).append(pixels[capped])
-    return [(np.sort(np.concatenate(parts)), f) for f, parts in sorted(out.items())]
 
 
 def noise_verdict(render_error: dict, *, adaptive_hint: bool = False) -> str:

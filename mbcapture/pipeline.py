@@ -27,7 +27,6 @@ from .application import AppOutput, CaptureData
 from .budget import (
     BucketElectrons,
     TailModel,
-    cap_tiers,
     noise_verdict,
     render_error,
     resolve_spp,
@@ -45,6 +44,7 @@ from .render import Renderer, ensure_llvm
 from .render.bands import group_bands
 from .render.cache import open_cache
 from .render.llvm import llvm_target
+from .render.shadows import moving_shadows
 from .sensor import electrons_per_render_second
 from .simulate import sense
 from .timeline import Timeline
@@ -310,14 +310,15 @@ def _read_figures(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig
 
 
 def over_budget(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig,
-                reads: dict | None = None, *, tail: bool = False) -> tuple[float, str | None, str, float]:
+                reads: dict | None = None, *, tail: bool = False,
+                plan: Plan | None = None) -> tuple[float, str | None, str, float]:
     """How far the run's own estimate of its rendering noise is over the budget's median and p95 targets
     (render.noise_budget, render.noise_budget_p95), and with ``tail`` its tail target too
     (render.noise_budget_tail), on its worst read: (max over reads of each figure over its target, that
     read, the figure that decides it (render_error's ``to_shot_noise_variance_median``, ``_p95`` or
     ``_p999``), its value); (0, None, "", 0) without an estimate. ``reads``: :func:`_read_figures` of
-    ``integrated`` where they are at hand."""
-    reads = _read_figures(integrated, timeline, cfg) if reads is None else reads
+    ``integrated`` where they are at hand, else made here (with ``plan``, on its channel sets: a coded capture's)."""
+    reads = _read_figures(integrated, timeline, cfg, plan=plan) if reads is None else reads
     if not reads:
         return 0.0, None, "", 0.0
     targets = {"to_shot_noise_variance_median": cfg.render.noise_budget,
@@ -384,7 +385,7 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     if integrated.mc_diff is None:
         return plan, integrated, None
     factor, worst, figure, _ = over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg,
-                                           planned_reads, tail=tail)
+                                           planned_reads, tail=tail, plan=plan)
     if factor <= 1.0:
         return plan, integrated, None
     why_not = why_not or no_room_for_another_pass(integrated)
@@ -419,7 +420,7 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
                            timer=timer, progress=progress, desc="top-up", continues=(plan, seed) if extend else None)
         c = float(extra.sum() / plan.spp.sum())  # by their samples: each sample alike when they continue
         if not extend:  # the two passes' figures as rendered (the planned refinement adds to both alike)
-            v1, v2 = (_read_figures(x, timeline, cfg, [worst]).get(worst, {}).get(figure, 0.0)
+            v1, v2 = (_read_figures(x, timeline, cfg, [worst], plan=plan).get(worst, {}).get(figure, 0.0)
                       for x in (integrated, second))
             c = v1 / v2 if v2 > 0 else c
 
@@ -440,35 +441,25 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
                 "figure": figure.removeprefix("to_shot_noise_variance_"), "spp_added": extra.tolist(),
                 "weight": round(c, 4),
                 "after": round(over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg,
-                                           tail=tail)[0], 4),
+                                           tail=tail, plan=plan)[0], 4),
                 "judged_with_refinement": bool(planned),
                 "seconds": round(time.perf_counter() - start, 3)}
     return plan, integrated, info
 
 
 #: Adaptive sampling renders each half of a stratum at this many times (one in each equal part of the
-#: stratum) at the pixels the moving parts cross, where the value changes within a stratum and one
+#: stratum) at the pixels the moving parts cross or shadow, where the value changes within a stratum and one
 #: time per half leaves that change as noise more samples do not lower (jittered, its variance falls
 #: as 1 / points^3 for an edge moving at constant speed); elsewhere at one time, which keeps each
 #: render's samples together (the quasi-Monte Carlo samplers stratify within a render).
 REFINE_TIME_POINTS = 4
-
-#: The most samples adaptive sampling gives a pixel the moving parts cross, its first pass's and its own
-#: (:func:`mbcapture.budget.cap_tiers`): their scout's ratio is not scaled down (its time noise is the first
-#: pass's), and the second pass's four times per half-stratum take that time noise away faster than 1 / spp,
-#: so the factor the ratio asks for overshoots. Measured from outside on the default capture at 640x512 (two
-#: seeds, the thirteenth session): the 1340 moving pixels given 8x ended with J4 ratios of median 0.017, 99th
-#: percentile 0.39 and max 0.65, none among the 794 samples over the film's 99.9th percentile (0.918); given 4x,
-#: median 0.031 and 99th percentile 1.02, 50 of those 794, the film's 99.9th percentile 0.931, for 1.1 s less.
-MOVING_MAX_FACTOR = 4
-
 
 def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
                seed: np.random.SeedSequence, status: StageStatus, *, moving: np.ndarray, timer, progress: bool,
                tiled: bool = False) -> tuple[list[tuple[np.ndarray, int]] | None, dict, dict | None]:
     """Adaptive sampling's choice (render.adaptive): a scout, the strata rendered again with seeds of their own
     at about a sixteenth of the first pass's samples (:func:`mbcapture.budget.scout_spp`), chooses the pixels
-    whose predicted ratio (the scout's, scaled as 1/spp where nothing moves, as it is in ``moving``) exceeds
+    whose predicted ratio (the scout's, scaled as 1/spp where nothing moves, as it is in ``moving``: the moving parts and their hard shadows) exceeds
     a level x the tail target (:func:`mbcapture.budget.tail_pixels`), each with the factor of the first pass's
     samples it is to have. The rule, a level of budget.ADAPTIVE_LEVELS and a most factor, is the cheapest whose
     factors bring the run's own estimate of the tail, on the first pass as they will leave it
@@ -512,8 +503,7 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
         tiers = tail_pixels(scout.mc_diff, BucketElectrons(scout.exposure, k_e), k_e,
                             list(plan.read_sets), cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
                             cfg.render.noise_budget_tail, cfg.render.adaptive_max_factor, scale, meets=meets,
-                            capped=on_moving, cap=MOVING_MAX_FACTOR)
-        tiers = cap_tiers(tiers, on_moving, MOVING_MAX_FACTOR)  # as chosen (a stand-in for tail_pixels may not cap)
+                            changing=on_moving)
         with timer("adaptive_rule"):  # the run's own estimate on the image the tiers will give: the top-up's too
             planned = _read_figures(with_planned_refinement(integrated, tiers), timeline, cfg, plan=plan)
         n_pix = sum(p.size for p, _ in tiers)
@@ -549,7 +539,7 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, integrated: 
                 *, moving: np.ndarray, per_group: bool, timer, progress: bool) -> tuple[Integrated, dict]:
     """Adaptive sampling's second pass (render.adaptive): the pixels of :func:`scout_tail`'s ``tiers`` rendered
     again with more samples and added to the first pass (:func:`mbcapture.integrate.refine`), those in
-    ``moving`` (the pixels the moving parts cross) at :data:`REFINE_TIME_POINTS` times per half-stratum. A
+    ``moving`` (the pixels the moving parts cross or cast their hard shadows on, :func:`mbcapture.render.shadows.moving_shadows`) at :data:`REFINE_TIME_POINTS` times per half-stratum. A
     top-up between the two keeps the tiers (chosen for the first pass's samples, they then give a little more
     than they need: the top-up lowered every pixel's ratio). Returns the refined render stage and what
     report.json keeps (``info``, the scout's, completed)."""
@@ -637,13 +627,16 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
         moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
         tiers = None  # adaptive sampling's choice of pixels, made before the top-up judges the budget
         planned_reads = None  # the run's own estimate on the image those tiers will give
+        # where a render's time within its stratum is noise: the moving parts and their hard shadows
+        changing = moving
         if cfg.render.spp is None and cfg.render.adaptive:
+            with timer("adaptive_rule"):
+                changing = moving | moving_shadows(renderer, float(t0_s), float(t1_s), W, H)
             tiers, adaptive_info, planned_reads = scout_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
-                                              moving=moving, timer=timer, progress=progress, tiled=len(tiles) > 1)
+                                              moving=changing, timer=timer, progress=progress, tiled=len(tiles) > 1)
         if cfg.render.spp is None and cfg.render.top_up:
             why_not = ("a film in one tile (render.tiles)" if len(tiles) > 1 else
                        "renders in this process (no cluster)" if client is not None else
-                       "an uncoded capture (no capture.gate_code)" if timeline.code is not None else
                        "render.estimator independent" if plan.estimator != "independent" else None)
             plan, integrated, top_up_info = top_up(cfg, renderer, plan, timeline, integrated, seeds[2], status,
                                                    per_group=app.per_group, timer=timer, progress=progress,
@@ -653,7 +646,7 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
         if tiers:
             status.add_stage()  # the scout's stage was counted at the start, its second pass is one more
             integrated, adaptive_info = refine_tail(cfg, renderer, plan, integrated, tiers, adaptive_info, seeds[2],
-                                                    status, moving=moving, per_group=app.per_group, timer=timer,
+                                                    status, moving=changing, per_group=app.per_group, timer=timer,
                                                     progress=progress)
         rendered = Rendered(plan, integrated, moving)
         if on_rendered is not None:

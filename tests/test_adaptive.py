@@ -16,6 +16,7 @@ from mbcapture.config import scene_of
 from mbcapture.integrate import integrate, refine
 from mbcapture.pipeline import prepare
 from mbcapture.render import Renderer
+from mbcapture.render.shadows import moving_shadows
 from mbcapture.sensor import electrons_per_render_second
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -377,10 +378,13 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
     assert (plan.spp == scout_spp(first_spp, Renderer.from_config(scene_of(cfg), cfg).counter(True))).all()
     assert plan.spp.sum() * 8 < first_spp.sum()
     # its ratios scaled to the first pass's samples as 1/spp where nothing moves, not at all where the
-    # moving parts cross (both passes draw one time per half-stratum there: the time noise stays)
+    # moving parts cross or cast their hard shadows (both passes draw one time per half-stratum there: the time
+    # noise stays)
     moving = run.moving_mask
-    assert 0 < moving.mean() < 1
-    np.testing.assert_array_equal(seen[0][1], np.where(moving, 1.0, (plan.spp / first_spp).max()))
+    span = [float(run.timeline.seconds(t)) for t in (run.timeline.start_tick, run.timeline.end_tick)]
+    changing = moving | moving_shadows(Renderer.from_config(scene_of(cfg), cfg), *span, 32, 24)
+    assert 0 < moving.mean() < changing.mean() < 1
+    np.testing.assert_array_equal(seen[0][1], np.where(changing, 1.0, (plan.spp / first_spp).max()))
     assert run.report["adaptive"]["scout"]["spp"] == plan.spp.tolist()
 
 
@@ -520,7 +524,7 @@ def test_the_top_up_judges_the_budget_on_the_image_adaptive_sampling_will_give(m
 
     judged = []
 
-    def over(integrated, timeline, cfg, reads=None, *, tail=False):
+    def over(integrated, timeline, cfg, reads=None, *, tail=False, plan=None):
         judged.append((integrated.mc_diff, reads, tail))
         return 0.5, "J1", "to_shot_noise_variance_median", 0.05
 
@@ -534,20 +538,6 @@ def test_the_top_up_judges_the_budget_on_the_image_adaptive_sampling_will_give(m
     pipeline.top_up(None, None, None, None, first, None, StageStatus(False), per_group=False, timer=None,
                     progress=False, why_not=None, planned=tiers, planned_reads=figures, tail=True)
     assert judged[1][1] is figures and judged[1][2] is True  # scout_tail's figures reused, the tail judged
-
-
-def test_cap_tiers_lowers_only_the_pixels_it_is_given_to_the_cap():
-    """budget.cap_tiers (the moving parts' pixels at most pipeline.MOVING_MAX_FACTOR): the pixels in the mask keep
-    their factor up to the cap and take the cap above it, the others keep theirs, every pixel in one tier."""
-    from mbcapture.budget import cap_tiers
-
-    tiers = [(np.array([0, 1, 2]), 2), (np.array([3, 4]), 4), (np.array([5, 6, 7]), 8)]
-    where = np.zeros(10, bool)
-    where[[1, 4, 6, 9]] = True
-    capped = cap_tiers(tiers, where, 4)
-    assert [(p.tolist(), f) for p, f in capped] == [([0, 1, 2], 2), ([3, 4, 6], 4), ([5, 7], 8)]
-    assert [(p.tolist(), f) for p, f in cap_tiers(tiers, where, 2)] == [([0, 1, 2, 4, 6], 2), ([3], 4), ([5, 7], 8)]
-    assert cap_tiers([], where, 4) == []
 
 
 def test_the_tail_model_agrees_with_the_runs_own_estimate_of_a_planned_refinement():
@@ -579,8 +569,9 @@ def test_the_tail_model_agrees_with_the_runs_own_estimate_of_a_planned_refinemen
 
 def test_adaptive_sampling_renders_the_cheapest_rule_that_meets_the_tail():
     """tail_pixels with ``meets``: among no refinement and every level x most factor, the rule with the fewest added
-    samples that meets is kept; where none meets, the costliest; the capped pixels never above the cap."""
-    from mbcapture.budget import ADAPTIVE_LEVELS, factor_tiers, scout_ratio
+    samples that meets is kept; where none meets, the costliest; where a render's time is noise, factors from the
+    square root of the ratio."""
+    from mbcapture.budget import ADAPTIVE_LEVELS, factor_tiers, scout_ratio, tier_exponents, tiers_of
 
     H, W = 24, 32
     rng = np.random.default_rng(5)
@@ -602,7 +593,13 @@ def test_adaptive_sampling_renders_the_cheapest_rule_that_meets_the_tail():
     assert tail_pixels(*args, meets=lambda f: True) == []  # the first pass alone meets it: nothing refined
     costliest = tail_pixels(*args, meets=lambda f: False)
     assert cost(costliest) == costs[-1]
-    capped = np.zeros(H * W, bool)
-    capped[: H * W // 2] = True
-    for pixels, f in tail_pixels(*args, meets=lambda f: False, capped=capped, cap=4):
-        assert f <= 4 or not capped[pixels].any()
+    # where a render's time is noise (the upper half), a pixel's factor is the power of two the square root of its
+    # ratio over the level asks for: the costliest rule is the lowest level's at the most factor
+    changing = np.zeros((H, W), bool)
+    changing[: H // 2] = True
+    level = min(ADAPTIVE_LEVELS) * 1.0
+    asked = np.where(changing, np.sqrt(pooled * level), pooled)
+    want = tiers_of(tier_exponents(asked, level, 4))
+    got = tail_pixels(*args, meets=lambda f: False, changing=changing.ravel())
+    assert [(p.tolist(), f) for p, f in got] == [(p.tolist(), f) for p, f in want]
+    assert cost(got) < costs[-1]  # the changing pixels ask for less
