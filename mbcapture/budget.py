@@ -820,8 +820,11 @@ ADAPTIVE_SELECT = 1.0
 #: percentile 0.931 from outside; four rules judged, the cheaper three missed), while at 160x128 the same rule left 1.22 and level 0.5 was needed, for 0.57 of the samples
 #: (scripts/adaptive_frontier.py, thirteenth session): a small film's pixel spans more of the scene's edges. The
 #: rule is one choice for the whole film, from the whole film's estimate (as the top-up's size is), so it
-#: conditions no pixel's value.
-ADAPTIVE_LEVELS = (ADAPTIVE_SELECT, 0.8, 0.64, 0.5, 0.4, 0.32, 0.25)
+#: conditions no pixel's value. The levels above 1 (since the fifteenth session) serve the pixels whose scout ratio
+#: is not scaled to the first pass's samples (where a render's time is noise): there the scout over-predicts by
+#: up to the first pass's samples over its own (16x) wherever sample noise dominates, and a shaken camera makes
+#: every pixel such a pixel (:func:`mbcapture.render.shadows.changing_region`).
+ADAPTIVE_LEVELS = (16.0, 8.0, 4.0, 2.0, 1.6, 1.25, ADAPTIVE_SELECT, 0.8, 0.64, 0.5, 0.4, 0.32, 0.25)
 
 #: The neighbours a chosen pixel's factor spreads to (:func:`factor_tiers`): the four sides. On the default capture
 #: at 640x512 (scripts/adaptive_frontier.py, thirteenth session) the 3x3 box added 0.182 of the first pass's samples

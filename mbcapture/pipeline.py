@@ -44,7 +44,7 @@ from .render import Renderer, ensure_llvm
 from .render.bands import group_bands
 from .render.cache import open_cache
 from .render.llvm import llvm_target
-from .render.shadows import moving_shadows
+from .render.shadows import changing_region
 from .sensor import electrons_per_render_second
 from .simulate import sense
 from .timeline import Timeline
@@ -448,8 +448,8 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
 
 
 #: Adaptive sampling renders each half of a stratum at this many times (one in each equal part of the
-#: stratum) at the pixels the moving parts cross or shadow, where the value changes within a stratum and one
-#: time per half leaves that change as noise more samples do not lower (jittered, its variance falls
+#: stratum) where a render's time is noise (the moving parts, their shadows, a moving camera's film): the value
+#: changes within a stratum there, and one time per half leaves that change as noise more samples do not lower (jittered, its variance falls
 #: as 1 / points^3 for an edge moving at constant speed); elsewhere at one time, which keeps each
 #: render's samples together (the quasi-Monte Carlo samplers stratify within a render).
 REFINE_TIME_POINTS = 4
@@ -459,7 +459,8 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
                tiled: bool = False) -> tuple[list[tuple[np.ndarray, int]] | None, dict, dict | None]:
     """Adaptive sampling's choice (render.adaptive): a scout, the strata rendered again with seeds of their own
     at about a sixteenth of the first pass's samples (:func:`mbcapture.budget.scout_spp`), chooses the pixels
-    whose predicted ratio (the scout's, scaled as 1/spp where nothing moves, as it is in ``moving``: the moving parts and their hard shadows) exceeds
+    whose predicted ratio (the scout's, scaled as 1/spp except in ``moving``, where a render's time is noise:
+    :func:`mbcapture.render.shadows.changing_region`) exceeds
     a level x the tail target (:func:`mbcapture.budget.tail_pixels`), each with the factor of the first pass's
     samples it is to have. The rule, a level of budget.ADAPTIVE_LEVELS and a most factor, is the cheapest whose
     factors bring the run's own estimate of the tail, on the first pass as they will leave it
@@ -487,7 +488,7 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
             scout = integrate(renderer, scout_plan, timeline.n_channels,
                               np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5C0)),
                               progress=progress, desc="scout")
-        # the first pass's ratio over the scout's: as 1/spp where nothing moves; 1 where the moving parts cross,
+        # the first pass's ratio over the scout's: as 1/spp where nothing moves; 1 where a render's time is noise,
         # as there both passes draw one time per half-stratum, and their time noise does not fall with samples
         scale = np.where(moving, 1.0, float((scout_plan.spp / np.maximum(spp, 1)).max()))
         on_moving = moving.ravel()
@@ -539,7 +540,8 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, integrated: 
                 *, moving: np.ndarray, per_group: bool, timer, progress: bool) -> tuple[Integrated, dict]:
     """Adaptive sampling's second pass (render.adaptive): the pixels of :func:`scout_tail`'s ``tiers`` rendered
     again with more samples and added to the first pass (:func:`mbcapture.integrate.refine`), those in
-    ``moving`` (the pixels the moving parts cross or cast their hard shadows on, :func:`mbcapture.render.shadows.moving_shadows`) at :data:`REFINE_TIME_POINTS` times per half-stratum. A
+    ``moving`` (where a render's time is noise, :func:`mbcapture.render.shadows.changing_region`) at
+    :data:`REFINE_TIME_POINTS` times per half-stratum. A
     top-up between the two keeps the tiers (chosen for the first pass's samples, they then give a little more
     than they need: the top-up lowered every pixel's ratio). Returns the refined render stage and what
     report.json keeps (``info``, the scout's, completed)."""
@@ -627,11 +629,10 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
         moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
         tiers = None  # adaptive sampling's choice of pixels, made before the top-up judges the budget
         planned_reads = None  # the run's own estimate on the image those tiers will give
-        # where a render's time within its stratum is noise: the moving parts and their hard shadows
-        changing = moving
+        changing = moving  # where a render's time within its stratum is noise
         if cfg.render.spp is None and cfg.render.adaptive:
             with timer("adaptive_rule"):
-                changing = moving | moving_shadows(renderer, float(t0_s), float(t1_s), W, H)
+                changing = changing_region(renderer, float(t0_s), float(t1_s), W, H)
             tiers, adaptive_info, planned_reads = scout_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
                                               moving=changing, timer=timer, progress=progress, tiled=len(tiles) > 1)
         if cfg.render.spp is None and cfg.render.top_up:

@@ -16,7 +16,7 @@ from mbcapture.config import scene_of
 from mbcapture.integrate import integrate, refine
 from mbcapture.pipeline import prepare
 from mbcapture.render import Renderer
-from mbcapture.render.shadows import moving_shadows
+from mbcapture.render.shadows import changing_region
 from mbcapture.sensor import electrons_per_render_second
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -382,7 +382,7 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
     # noise stays)
     moving = run.moving_mask
     span = [float(run.timeline.seconds(t)) for t in (run.timeline.start_tick, run.timeline.end_tick)]
-    changing = moving | moving_shadows(Renderer.from_config(scene_of(cfg), cfg), *span, 32, 24)
+    changing = changing_region(Renderer.from_config(scene_of(cfg), cfg), *span, 32, 24)
     assert 0 < moving.mean() < changing.mean() < 1
     np.testing.assert_array_equal(seen[0][1], np.where(changing, 1.0, (plan.spp / first_spp).max()))
     assert run.report["adaptive"]["scout"]["spp"] == plan.spp.tolist()

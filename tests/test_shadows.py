@@ -10,7 +10,7 @@ from mbcapture import load_config
 from mbcapture.camera_motion import moving_region
 from mbcapture.pipeline import prepare
 from mbcapture.render import Renderer
-from mbcapture.render.shadows import moving_shadows
+from mbcapture.render.shadows import changing_region, moving_shadows
 
 ROOT = Path(__file__).resolve().parents[1]
 W, H = 80, 64
@@ -51,3 +51,19 @@ def test_a_still_scene_and_a_shaken_camera():
     assert scene.is_static and not moving_shadows(r, t0, t1, W, H).any()
     scene, r, (t0, t1) = renderer_of("metronome_shake", width=640, height=512)
     assert moving_shadows(r, t0, t1, 640, 512).all()
+
+
+@pytest.mark.render
+def test_where_the_time_is_noise():
+    """changing_region: the moving region and the moving shadows together; every pixel where the camera moves at all,
+    even by less than camera_motion.FRAME_MOTION_PX (metronome_shake at 160x128 moves its frame by 0.246 px: the
+    applications' moving region is then the needle alone, but every edge in the image moves)."""
+    from mbcapture.camera_motion import FRAME_MOTION_PX, frame_motion_px
+
+    scene, r, (t0, t1) = renderer_of("multi_flash")
+    np.testing.assert_array_equal(changing_region(r, t0, t1, W, H),
+                                  moving_region(scene, t0, t1, W, H) | moving_shadows(r, t0, t1, W, H))
+    scene, r, (t0, t1) = renderer_of("metronome_shake", width=160, height=128)
+    assert 0 < frame_motion_px(scene, np.linspace(t0, t1, 64), 160, 128) < FRAME_MOTION_PX
+    assert not moving_region(scene, t0, t1, 160, 128).all()
+    assert changing_region(r, t0, t1, 160, 128).all()
