@@ -435,7 +435,7 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
 
 def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, factor: "int | np.ndarray",
            seed: np.random.SeedSequence, *, points: int = 1, per_group: bool = False, timer=None,
-           progress: bool = False, desc: str = "refine") -> Integrated:
+           progress: bool = False, desc: str = "refine", have: "int | np.ndarray" = 1) -> Integrated:
     """Adaptive sampling's second pass: every stratum again at ``pixels`` (flat indices) only, each with
     ``factor`` - 1 times its samples (one factor for all, or one per pixel; two halves, for the error
     estimate), through :meth:`mbcapture.render.Renderer.render_pixels`, added to the first pass there: each
@@ -459,14 +459,20 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     ``factor`` - 1 times the samples, stratified over the strata together. Then every pixel, whatever its
     factor, is in one render per half-stratum and time (each takes its own count and offset of the pattern).
     Otherwise (render.pattern 'own': the sampler's sequences need one count a render) the pixels of each
-    factor render together, each set with seeds of its own."""
+    factor render together, each set with seeds of its own.
+
+    ``have`` (one, or one per pixel): the factor of the first pass's samples ``integrated`` already holds at each
+    pixel (a second round of adaptive sampling, :func:`mbcapture.pipeline.refine_tail`): the pass then adds
+    ``factor`` - ``have`` times the first pass's samples, weighed ``have`` : ``factor`` - ``have``."""
     pix = np.asarray(pixels, dtype=np.int64).ravel()
     fac = np.broadcast_to(np.asarray(factor, dtype=np.int64), pix.shape)
-    if pix.size and fac.min() < 2:
-        raise ValueError(f"refine: factor {fac.min()} adds no samples (the pixels end with factor x the first pass's)")
+    held = np.broadcast_to(np.asarray(have, dtype=np.int64), pix.shape)
+    if pix.size and (fac - held).min() < 1:
+        raise ValueError(f"refine: factor {fac[np.argmin(fac - held)]} adds no samples to the "
+                         f"{held[np.argmin(fac - held)]} x the first pass's the pixel holds")
     stage = timer if timer is not None else (lambda name: nullcontext())
     K, H, W, C = integrated.exposure.shape
-    extra = fac - 1  # (P,)
+    extra = fac - held  # (P,)
     first_spp = np.asarray(plan.spp, dtype=np.int64)
     halves = np.stack([first_spp // 2, first_spp - first_spp // 2], axis=1)  # (J, 2): the first pass's halves
     keys = pattern_keys(seed) if plan.shares_pattern else None
@@ -509,11 +515,11 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     r = float((halves[:, 0] / np.maximum(first_spp, 1)).mean())
 
     def combined(first: np.ndarray, second: np.ndarray, pixel_axis: int) -> np.ndarray:
-        """``first`` with its pixels' values the passes' mean by their samples (1 : extra)."""
+        """``first`` with its pixels' values the passes' mean by their samples (have : extra)."""
         out = first.copy()
         flat = out.reshape(*first.shape[:pixel_axis], H * W, C)
         at = (slice(None),) * pixel_axis + (pix,)
-        flat[at] = (flat[at] + extra[:, None] * second) / fac[:, None]
+        flat[at] = (held[:, None] * flat[at] + extra[:, None] * second) / fac[:, None]
         return out
 
     exposure = combined(integrated.exposure, parts[0] + parts[1], 1)

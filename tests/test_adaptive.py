@@ -147,6 +147,19 @@ def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_err
     after, before = flat(refined.mc_var)[:, pixels].ravel(), flat(first.mc_var)[:, pixels].ravel()
     rel_se = sum(v.std() / v.mean() / np.sqrt(v.size) for v in (after, before))
     assert abs(after.mean() / before.mean() * factor - 1) < 5 * rel_se, (after.mean() / before.mean(), rel_se)
+    # a second round (pipeline.second_round): the same pixels to 4x from the 2x they hold, the passes weighed 2 : 2;
+    # unbiased, and their variance a quarter of the first pass's
+    again = refine(r, plan, refined, pixels, 2 * factor, np.random.SeedSequence(11), have=factor)
+    with pytest.raises(ValueError, match="adds no samples"):
+        refine(r, plan, refined, pixels, factor, np.random.SeedSequence(11), have=factor)
+    np.testing.assert_array_equal(flat(again.exposure)[:, others], flat(first.exposure)[:, others])
+    for k in range(K):
+        d = flat(again.exposure)[k, pixels] - flat(brute.exposure)[k, pixels]
+        se = np.sqrt((flat(again.mc_var)[k, pixels] + flat(brute.mc_var)[k, pixels]).sum()) / d.size
+        assert abs(d.mean()) < 5 * se, (k, d.mean(), se)
+    twice = flat(again.mc_var)[:, pixels].ravel()
+    rel_se = sum(v.std() / v.mean() / np.sqrt(v.size) for v in (twice, before))
+    assert abs(twice.mean() / before.mean() * 2 * factor - 1) < 5 * rel_se, (twice.mean() / before.mean(), rel_se)
 
 
 def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
@@ -603,3 +616,36 @@ def test_adaptive_sampling_renders_the_cheapest_rule_that_meets_the_tail():
     got = tail_pixels(*args, meets=lambda f: False, changing=changing.ravel())
     assert [(p.tolist(), f) for p, f in got] == [(p.tolist(), f) for p, f in want]
     assert cost(got) < costs[-1]  # the changing pixels ask for less
+
+
+def test_a_second_round_runs_only_where_the_refined_estimate_is_over_and_starts_from_what_each_pixel_holds(
+        monkeypatch):
+    """pipeline.second_round: nothing where the refined render stage's own estimate meets every target; else a scout
+    and a refinement again, from the factor each pixel holds (the first round's tiers), at most
+    SECOND_ROUND_MAX_FACTOR more, reported under adaptive.second_round with how far over the stage was."""
+    from types import SimpleNamespace
+
+    from mbcapture import pipeline
+    from mbcapture.progress import StageStatus
+
+    cfg = SimpleNamespace(render=SimpleNamespace(width=4, height=2))
+    tiers = [(np.array([1, 2]), 2), (np.array([5]), 8)]
+    calls = []
+    monkeypatch.setattr(pipeline, "scout_tail", lambda *a, **k: (calls.append(("scout", k)) or
+                                                                ([(np.array([5]), 2)], {"pixels": 1}, None)))
+    monkeypatch.setattr(pipeline, "refine_tail", lambda cfg, r, plan, integrated, more, info, *a, **k: (
+        calls.append(("refine", more, k)) or ("refined", {**info, "seconds": 1.0})))
+    for over, runs in ((0.99, False), (1.3, True)):
+        calls.clear()
+        monkeypatch.setattr(pipeline, "over_budget", lambda *a, **k: (over, "J4", "to_shot_noise_variance_p999", 0.0))
+        out, info = pipeline.second_round(cfg, None, None, None, "first", tiers, {"pixels": 3}, None,
+                                          StageStatus(False), moving=np.zeros((2, 4), bool), per_group=False,
+                                          timer=None, progress=False)
+        if not runs:
+            assert out == "first" and info == {"pixels": 3} and not calls
+            continue
+        assert out == "refined" and info["second_round"] == {"pixels": 1, "before": 1.3, "seconds": 1.0}
+        (_, scout), (_, more, refine_kwargs) = calls
+        np.testing.assert_array_equal(scout["have"], [1, 2, 2, 1, 1, 8, 1, 1])
+        assert scout["max_factor"] == pipeline.SECOND_ROUND_MAX_FACTOR
+        np.testing.assert_array_equal(refine_kwargs["have"], scout["have"])

@@ -34,8 +34,6 @@ TAIL_NOT_MET = {
                    "render alone: no adaptive sampling (4.8)",
     "metronome_spectral": "a spectral variant (render_pixels needs an RGB one): no adaptive sampling (3.2)",
     "rgb_illumination": "a spectral variant: no adaptive sampling (6.5)",
-    "multi_flash": "the rule the tail model judged to meet (0.95) left the run's own estimate over it: a first pass "
-                   "of 30 samples per stratum, the scout's 4 (1.13)",
 }
 
 
