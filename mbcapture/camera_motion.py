@@ -387,6 +387,10 @@ def frame_motion_px(scene: "SceneModel", times_s: np.ndarray, width: int, height
     return float(np.linalg.norm(px.max(axis=0) - px.min(axis=0), axis=-1).max())
 
 
+#: The times in a capture's span at which :func:`moving_region` (and the moving parts' shadows) are drawn.
+MOVING_REGION_TIMES = 64
+
+
 def moving_region(scene, t0_s: float, t1_s: float, width: int, height: int) -> np.ndarray:
     """(H, W) bool: pixels the moving parts cover at some time in [t0, t1].
 
@@ -406,14 +410,10 @@ def moving_region(scene, t0_s: float, t1_s: float, width: int, height: int) -> n
     return hull_mask(scene.project(np.asarray(scene.motion_points(times)), times, width, height), width, height)
 
 
-#: The times in a capture's span at which :func:`moving_region` (and the moving parts' shadows) are drawn.
-MOVING_REGION_TIMES = 64
-
-
 def hull_mask(point_sets, width: int, height: int) -> np.ndarray:
     """(H, W) bool: the union of the convex hulls of ``point_sets`` (each (M, 2) pixel positions, x right and y
-    down; fewer than 3 points or collinear ones: their bounding box), each grown so that a pixel whose centre lies
-    within 3 px of it is in."""
+    down; fewer than 3 points or collinear ones: their bounding box), each grown by about 1.5 px (matplotlib's
+    ``contains_points`` with radius 3, a stroke of that width, in either orientation), at pixel centres."""
     from matplotlib.path import Path as PolyPath
     from scipy.spatial import ConvexHull, QhullError
 
@@ -424,28 +424,6 @@ def hull_mask(point_sets, width: int, height: int) -> np.ndarray:
         pts = np.asarray(pts, float)
         if len(pts) == 0:
             continue
-        try:
-            poly = pts[ConvexHull(pts).vertices]
-        except (QhullError, ValueError):  # fewer than 3 points or collinear: use the points' bounding box
-            lo, hi = pts.min(axis=0), pts.max(axis=0)
-            poly = np.array([lo, [hi[0], lo[1]], hi, [lo[0], hi[1]]])
-        lo, hi = poly.min(axis=0) - 2, poly.max(axis=0) + 2
-        near = (centres[:, 0] >= lo[0]) & (centres[:, 0] <= hi[0]) & (centres[:, 1] >= lo[1]) & (centres[:, 1] <= hi[1])
-        if near.any():
-            inside = PolyPath(poly).contains_points(centres[near], radius=3.0) | PolyPath(poly[::-1]).contains_points(
-                centres[near], radius=3.0
-            )
-            mask.ravel()[np.flatnonzero(near)[inside]] = True
-    return mask
-    times = np.linspace(t0_s, t1_s, 64)
-    if frame_motion_px(scene, times, width, height) > FRAME_MOTION_PX:
-        return np.ones((height, width), dtype=bool)
-    if scene.motion_points is None:
-        return mask
-    px = scene.project(np.asarray(scene.motion_points(times)), times, width, height)  # (T, M, 2)
-    yy, xx = np.mgrid[0:height, 0:width]
-    centres = np.stack([xx.ravel() + 0.5, yy.ravel() + 0.5], axis=1)
-    for pts in px:
         try:
             poly = pts[ConvexHull(pts).vertices]
         except (QhullError, ValueError):  # fewer than 3 points or collinear: use the points' bounding box

@@ -587,12 +587,13 @@ SECOND_ROUND_MAX_FACTOR = 4
 def second_round(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
                  tiers: list[tuple[np.ndarray, int]], info: dict, seed: np.random.SeedSequence, status: StageStatus,
                  *, moving: np.ndarray, per_group: bool, timer, progress: bool) -> tuple[Integrated, dict]:
-    """Adaptive sampling's second round (:data:`ADAPTIVE_ROUNDS`), where the refined render stage's own estimate is
-    still over the median, p95 or tail target (:func:`over_budget`): :func:`scout_tail` and :func:`refine_tail` again,
-    from what each pixel holds. Unbiased as the first round is: its pixels come from a scout of its own, its rule
-    from the whole film's estimate, and whether it runs from the whole film's. Returns the render stage and
-    ``info`` with ``second_round`` (the round's own, or why it did not run)."""
-    factor = over_budget(integrated, timeline, cfg, tail=True, plan=plan)[0]
+    """Adaptive sampling's second round (:data:`ADAPTIVE_ROUNDS`), where the refined render stage's own estimate of
+    the tail is still over render.noise_budget_tail on some read (the median and p95 are the top-up's):
+    :func:`scout_tail` and :func:`refine_tail` again, from what each pixel holds. Unbiased as the first round is: its
+    pixels come from a scout of its own, its rule from the whole film's estimate, and whether it runs from the whole
+    film's. Returns the render stage and ``info``, with ``second_round`` where one ran."""
+    reads = _read_figures(integrated, timeline, cfg, plan=plan)
+    factor = max((v["to_shot_noise_variance_p999"] for v in reads.values()), default=0.0) / cfg.render.noise_budget_tail
     if ADAPTIVE_ROUNDS < 2 or factor <= 1.0:
         return integrated, info
     film = cfg.render.width * cfg.render.height

@@ -70,6 +70,7 @@ def main() -> None:
     choice, samples = FirstChoice(share=not args.own_choices), FirstSamples(share=not args.own_choices)
     for s in seeds:
         t0 = time.perf_counter()
+        choice.start_run()
         with mock.patch.object(pipeline, "tail_pixels", choice), mock.patch.object(pipeline, "resolve_spp", samples):
             runs.append(capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False)))
         seconds.append(time.perf_counter() - t0)
@@ -120,16 +121,31 @@ def main() -> None:
 
 
 class FirstChoice:
-    """Stands in for :func:`mbcapture.budget.tail_pixels` in the runs: the first call chooses as the
-    run would and keeps its tiers; later calls return those (``share``) or choose afresh."""
+    """Stands in for :func:`mbcapture.budget.tail_pixels` in the runs: the first run's calls (adaptive sampling's
+    first round, and a second where its own estimate of the tail was still over) choose as the run would, and
+    later runs' calls return those in order (``share``) or choose afresh. A later run that calls more often than
+    the first (a second round the first did not need) chooses its extra rounds itself."""
 
     def __init__(self, share: bool):
-        self.share, self.tiers = share, None
+        self.share, self.choices, self.calls = share, [], 0
+
+    def start_run(self) -> None:
+        """Before each run: its calls count from the first round again (each run its own, without ``share``)."""
+        self.calls = 0
+        if not self.share:
+            self.choices = []
+
+    @property
+    def tiers(self):
+        """The first round's choice (the last run's without ``share``), None before any."""
+        return self.choices[0] if self.choices else None
 
     def __call__(self, *args, **kwargs):
-        if self.tiers is None or not self.share:
-            self.tiers = tail_pixels(*args, **kwargs)
-        return self.tiers
+        i, self.calls = self.calls, self.calls + 1
+        if i < len(self.choices):
+            return self.choices[i]
+        self.choices.append(tail_pixels(*args, **kwargs))
+        return self.choices[-1]
 
 
 class FirstSamples:
@@ -177,6 +193,7 @@ def converged(args, base: list[str], runs: list, below: list[np.ndarray], choice
     full = list(below)
     t0 = time.perf_counter()
     for s in more:
+        choice.start_run()
         with mock.patch.object(pipeline, "tail_pixels", choice):
             r = capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False))
         reads.append(r.reads_expected_e)

@@ -429,8 +429,9 @@ def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monk
         monkeypatch.setattr(script, "tail_pixels", choose)  # what FirstChoice calls to choose
         monkeypatch.setattr(script, "resolve_spp", pilot)  # what FirstSamples calls
         choice, samples = script.FirstChoice(share=share), script.FirstSamples(share=share)
-        used, spp = [], []
+        used, spp, rounds = [], [], []
         for seed in (1, 2):
+            choice.start_run()
             monkeypatch.setattr(pipeline, "tail_pixels", choice)
             monkeypatch.setattr(pipeline, "resolve_spp", samples)
             run = capture_in_memory(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*sets, f"seed={seed}"]),
@@ -438,9 +439,30 @@ def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monk
             used.append(choice.tiers)
             spp.append(np.asarray(run.plan.spp))
             assert run.report["adaptive"]["pixels"] == sum(p.size for p, _ in choice.tiers) > 0
-        assert len(calls) == (1 if share else 2) and len(pilots) == 2  # every run's pilot renders
+            rounds.append(1 + ("second_round" in run.report["adaptive"]))
+        # every round of the first run chooses; the second run's rounds choose only without sharing
+        assert len(calls) == (rounds[0] if share else sum(rounds)) and len(pilots) == 2  # every run's pilot renders
         assert (used[1] is used[0]) == share
         assert np.array_equal(spp[1], pilots[0]) == share and np.array_equal(spp[0], pilots[0])
+
+
+def test_the_outside_measurement_gives_each_round_of_the_second_run_the_first_runs_choice_for_it(monkeypatch):
+    """scripts/render_noise_reads.FirstChoice: the first run's calls (adaptive sampling's first round, then a second)
+    are kept, and a later run's calls get them in order; a round the first run did not need is chosen afresh; each
+    run chooses all its own without sharing."""
+    script = load_script("render_noise_reads")
+    made = iter(range(100))
+    monkeypatch.setattr(script, "tail_pixels", lambda *a, **k: f"choice {next(made)}")
+    shared, own = script.FirstChoice(share=True), script.FirstChoice(share=False)
+    assert shared.tiers is None
+    got = []
+    for calls in (2, 3):  # the second run needed a third round
+        for c in (shared, own):
+            c.start_run()
+        got.append(([shared() for _ in range(calls)], [own() for _ in range(calls)]))
+    assert got[0] == (["choice 0", "choice 1"], ["choice 2", "choice 3"])
+    assert got[1] == (["choice 0", "choice 1", "choice 4"], ["choice 5", "choice 6", "choice 7"])
+    assert shared.tiers == "choice 0" and own.tiers == "choice 5"
 
 
 @pytest.mark.render
@@ -620,15 +642,15 @@ def test_adaptive_sampling_renders_the_cheapest_rule_that_meets_the_tail():
 
 def test_a_second_round_runs_only_where_the_refined_estimate_is_over_and_starts_from_what_each_pixel_holds(
         monkeypatch):
-    """pipeline.second_round: nothing where the refined render stage's own estimate meets every target; else a scout
-    and a refinement again, from the factor each pixel holds (the first round's tiers), at most
+    """pipeline.second_round: nothing where the refined render stage's own estimate meets the tail target on every read
+    (a median over its target is the top-up's); else a scout and a refinement again, from the factor each pixel holds (the first round's tiers), at most
     SECOND_ROUND_MAX_FACTOR more, reported under adaptive.second_round with how far over the stage was."""
     from types import SimpleNamespace
 
     from mbcapture import pipeline
     from mbcapture.progress import StageStatus
 
-    cfg = SimpleNamespace(render=SimpleNamespace(width=4, height=2))
+    cfg = SimpleNamespace(render=SimpleNamespace(width=4, height=2, noise_budget_tail=1.0))
     tiers = [(np.array([1, 2]), 2), (np.array([5]), 8)]
     calls = []
     monkeypatch.setattr(pipeline, "scout_tail", lambda *a, **k: (calls.append(("scout", k)) or
@@ -637,7 +659,9 @@ def test_a_second_round_runs_only_where_the_refined_estimate_is_over_and_starts_
         calls.append(("refine", more, k)) or ("refined", {**info, "seconds": 1.0})))
     for over, runs in ((0.99, False), (1.3, True)):
         calls.clear()
-        monkeypatch.setattr(pipeline, "over_budget", lambda *a, **k: (over, "J4", "to_shot_noise_variance_p999", 0.0))
+        monkeypatch.setattr(pipeline, "_read_figures", lambda *a, **k: {
+            "J1": {"to_shot_noise_variance_p999": 0.5, "to_shot_noise_variance_median": 7.0},  # the median: the top-up's
+            "J4": {"to_shot_noise_variance_p999": over, "to_shot_noise_variance_median": 0.0}})
         out, info = pipeline.second_round(cfg, None, None, None, "first", tiers, {"pixels": 3}, None,
                                           StageStatus(False), moving=np.zeros((2, 4), bool), per_group=False,
                                           timer=None, progress=False)
