@@ -131,7 +131,7 @@ class RenderSection(_Model):
         "estimate of the tail under its target, judged on the first pass with each pixel's noise divided by its "
         "factor. Where no rule does (a first pass of few samples whose rare paths the scout did not see), the "
         "costliest is rendered and the top-up (render.top_up) adds samples to the whole film for the tail too. Where the "
-        "refined image's own estimate is still over a target, a second round (a scout of its own, at most 4x what "
+        "refined image's own estimate of the tail is still over its target, a second round (a scout of its own, at most 4x what "
         "each pixel holds) refines it again. The "
         "top-up judges the budget on the image the chosen factors will give. Unbiased: which pixels are chosen comes "
         "from renders the image does not use, and the rule is one choice from the whole film's estimate, so neither "
