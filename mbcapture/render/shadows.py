@@ -11,7 +11,8 @@ first pass's samples at one time per half-stratum (their first pass's ratio abou
 No library does this: it casts rays from points of each light through the moving parts' motion points onto the
 scene's static shapes (Mitsuba's ray tracer, in the renderer's variant) and rasterizes the convex hull of
 where they land, per light and time (:func:`mbcapture.camera_motion.hull_mask`). Hard shadows of convex parts
-are covered; what is left out is said in :func:`moving_shadows`.
+are covered; what is left out is said in :func:`moving_shadows`. :func:`changing_region`, what adaptive sampling
+takes, adds the moving region and, where the camera moves at all, the whole film.
 """
 
 from __future__ import annotations
