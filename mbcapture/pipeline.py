@@ -685,7 +685,7 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
         changing = moving  # where a render's time within its stratum is noise
         if cfg.render.spp is None and cfg.render.adaptive:
             with timer("adaptive_rule"):
-                changing = changing_region(renderer, float(t0_s), float(t1_s), W, H)
+                changing = changing_region(renderer, float(t0_s), float(t1_s), W, H, moving=moving)
             tiers, adaptive_info, planned_reads = scout_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
                                               moving=changing, timer=timer, progress=progress, tiled=len(tiles) > 1)
         if cfg.render.spp is None and cfg.render.top_up:

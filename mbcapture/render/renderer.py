@@ -490,16 +490,8 @@ class Renderer:
         return film
 
     def _shape_dict(self, s: Shape, to_world: np.ndarray) -> dict[str, Any]:
-        mi = self._mi
-        if s.kind == "tiles":  # one mesh, one BSDF (mbcapture.render.tiles)
-            return tiles_description(s.tiles, to_world, self._bsdf_dict(s))
-        out: dict[str, Any] = {"type": s.kind, "to_world": mi.ScalarTransform4f(to_world)}
-        if s.kind == "mesh":
-            out["type"] = "ply" if str(s.mesh).lower().endswith(".ply") else "obj"
-            out["filename"] = str(s.mesh)
-            out["face_normals"] = True
-        out["bsdf"] = self._bsdf_dict(s)
-        if s.light is not None:
+        out = shape_description(self._mi, s, to_world, self._bsdf_dict(s))
+        if s.light is not None and s.kind != "tiles":
             out["emitter"] = {"type": "area",
                               "radiance": self._emission_dict(s.light.radiance, s.light.group == self._flat_group)}
         return out
@@ -950,6 +942,22 @@ class Renderer:
                                     "rr_depth": max(self.max_depth + 1, 5)})
         img = self._mi.render(self._scene, integrator=integ, spp=int(spp), seed=int(seed))
         return np.asarray(img, dtype=np.float32)[..., :3]
+
+
+def shape_description(mi: Any, s: Shape, to_world: np.ndarray, bsdf: dict[str, Any]) -> dict[str, Any]:
+    """The scene-description entry of shape ``s``'s geometry at ``to_world`` with ``bsdf`` (no emitter): a tiles
+    shape as one mesh (:func:`mbcapture.render.tiles.tiles_description`), a mesh from its .ply or .obj file, else
+    Mitsuba's shape of its kind. The renderer's scenes and the moving shadows' static scene
+    (:mod:`mbcapture.render.shadows`) are made of these."""
+    if s.kind == "tiles":  # one mesh, one BSDF (mbcapture.render.tiles)
+        return tiles_description(s.tiles, to_world, bsdf)
+    out: dict[str, Any] = {"type": s.kind, "to_world": mi.ScalarTransform4f(np.asarray(to_world, float))}
+    if s.kind == "mesh":
+        out["type"] = "ply" if str(s.mesh).lower().endswith(".ply") else "obj"
+        out["filename"] = str(s.mesh)
+        out["face_normals"] = True
+    out["bsdf"] = bsdf
+    return out
 
 
 def _aligned(a: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ import numpy as np
 from ..camera_motion import FRAME_MOTION_PX, MOVING_REGION_TIMES, frame_motion_px, hull_mask, moving_region
 from ..projective import frame
 from .build import Shape
-from .tiles import tiles_description
+from .renderer import shape_description
 
 #: Points of each canonical shape (Mitsuba's: a rectangle and a disk span [-1, 1]^2 in z = 0, a sphere and a cube
 #: [-1, 1]^3, a cylinder the unit circle from z = 0 to 1) from which a light's shadows are cast: its centre and
@@ -53,18 +53,8 @@ def _light_points(shape: Shape, part_to_world: np.ndarray | None) -> np.ndarray:
 
 def _static_scene(mi, shapes: list[Shape]):
     """A Mitsuba scene of ``shapes`` alone (their geometry; what they look like does not matter here)."""
-    d: dict = {"type": "scene"}
-    for i, s in enumerate(shapes):
-        bsdf = {"type": "diffuse"}
-        if s.kind == "tiles":
-            d[f"s{i}"] = tiles_description(s.tiles, s.to_world, bsdf)
-            continue
-        entry = {"type": s.kind, "to_world": mi.ScalarTransform4f(np.asarray(s.to_world, float)), "bsdf": bsdf}
-        if s.kind == "mesh":
-            entry.update(type="ply" if str(s.mesh).lower().endswith(".ply") else "obj", filename=str(s.mesh),
-                         face_normals=True)
-        d[f"s{i}"] = entry
-    return mi.load_dict(d)
+    return mi.load_dict({"type": "scene", **{f"s{i}": shape_description(mi, s, s.to_world, {"type": "diffuse"})
+                                             for i, s in enumerate(shapes)}})
 
 
 def moving_shadows(renderer, t0_s: float, t1_s: float, width: int, height: int) -> np.ndarray:
@@ -136,7 +126,8 @@ def moving_shadows(renderer, t0_s: float, t1_s: float, width: int, height: int) 
     return hull_mask((px[owner == k] for k in np.unique(owner)), width, height)
 
 
-def changing_region(renderer, t0_s: float, t1_s: float, width: int, height: int) -> np.ndarray:
+def changing_region(renderer, t0_s: float, t1_s: float, width: int, height: int,
+                    moving: np.ndarray | None = None) -> np.ndarray:
     """(H, W) bool: the pixels where a render's time within its stratum is noise, which adaptive sampling refines at
     several times per half-stratum (:func:`mbcapture.pipeline.scout_tail`): the moving region
     (:func:`mbcapture.camera_motion.moving_region`), the moving parts' hard shadows (:func:`moving_shadows`), and
@@ -144,9 +135,10 @@ def changing_region(renderer, t0_s: float, t1_s: float, width: int, height: int)
     frame moves by :data:`mbcapture.camera_motion.FRAME_MOTION_PX`, but every edge in the image moves with it:
     metronome_shake at 160x128, whose frame moves 0.246 px over the capture, kept its J4 ratio at 1.9 on the
     silhouettes of the balls, the cube and the lamp's stand after 8x the first pass's samples at one time per
-    half-stratum (fifteenth session)."""
+    half-stratum (fifteenth session). ``moving``: the moving region where the caller has it already."""
     scene = renderer.scene_model
     times = np.linspace(t0_s, t1_s, MOVING_REGION_TIMES)
     if frame_motion_px(scene, times, width, height) > 0.0:
         return np.ones((height, width), dtype=bool)
-    return moving_region(scene, t0_s, t1_s, width, height) | moving_shadows(renderer, t0_s, t1_s, width, height)
+    moving = moving_region(scene, t0_s, t1_s, width, height) if moving is None else moving
+    return moving | moving_shadows(renderer, t0_s, t1_s, width, height)
