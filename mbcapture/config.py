@@ -135,8 +135,8 @@ class RenderSection(_Model):
         "each pixel holds) refines it again. The "
         "top-up judges the budget on the image the chosen factors will give. Unbiased: which pixels are chosen comes "
         "from renders the image does not use, and the rule is one choice from the whole film's estimate, so neither "
-        "conditions any pixel's first pass (report.json adaptive). RGB variants with a "
-        "lens acting per pixel (no camera.distortion or camera.diffraction), render.estimator independent, a film in "
+        "conditions any pixel's first pass (report.json adaptive). RGB and spectral variants (since the sixteenth "
+        "session) with a lens acting per pixel (no camera.distortion or camera.diffraction), render.estimator independent, a film in "
         "one tile, and room in free memory for the scout's second set of the film's arrays; elsewhere it is skipped "
         "and report.json says why. The tail lies on silhouettes and moving edges (docs/noise.md).",
     )
@@ -187,8 +187,8 @@ class RenderSection(_Model):
         "before it, so that a read, which sums the strata, is stratified as a whole; each half of the run's error "
         "estimate has a pattern of its own. 'own': every render draws them from render.sampler's pattern of its "
         "own (before 2026-11-27 the only way). Unbiased (tested). Adaptive sampling's passes draw from patterns "
-        "of their own in the same way; the "
-        "'difference' estimator and a spectral camera ray stay render.sampler's. Measured on the default capture at 320x256 "
+        "of their own in the same way (in spectral variants their camera rays and wavelengths too); the "
+        "'difference' estimator and a spectral whole-film render's camera ray stay render.sampler's. Measured on the default capture at 320x256 "
         "and equal samples: J4's median 1.39x lower, its p95 unchanged, its tail not lower (the mean over the lit pixels 2x "
         "lower); the noise budget's pilot predicts the median's gain and chooses fewer samples (docs/noise.md).",
     )

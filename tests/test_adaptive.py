@@ -114,6 +114,33 @@ def test_pixels_with_samples_and_offsets_of_their_own_are_the_full_renders_pixel
 
 
 @pytest.mark.render
+def test_spectral_pixels_rendered_alone_are_the_full_render_and_its_estimator(setup):
+    """A spectral variant: render_pixels renders one pass a group, each group in its own scene, and weighs each
+    sample's wavelengths by the film's curves as Mitsuba's specfilm does (written in the renderer). Every pixel in
+    order from the sampler is the full render at the same seed, to float32 rounding (the same camera rays,
+    wavelengths and film weights: a wrong curve, density or wavelength order would not be); from a shared
+    pattern, whose camera rays and wavelengths are the pattern's (the full render's stay the sampler's), the mean
+    over the film is the 512-spp render's within 5 standard errors, per group. An RGB renderer made before still
+    renders after them (each renderer makes its variant Mitsuba's current one: mi.render refused the RGB scene)."""
+    cfg = load_config(ROOT / "configs" / "rgb_illumination.yaml", ["render.width=40", "render.height=30",
+                                                                    "render.cache=off", "render.spp=16"])
+    r = Renderer.from_config(scene_of(cfg), cfg)
+    groups = list(r.groups)
+    assert r.spectral and r.renders_pixels and len(groups) == 4
+    pix = np.arange(40 * 30)
+    full = r.render(0.002, 16, 7, groups).reshape(len(groups), -1, 3)
+    np.testing.assert_allclose(r.render_pixels(0.002, 16, 7, groups, pix), full, rtol=1e-5, atol=1e-6 * full.max())
+    ref = r.render(0.002, 512, 1, groups).reshape(len(groups), -1, 3).astype(np.float64)
+    a, b = (r.render_pixels(0.002, 64, 7, groups, pix, pattern=(key, 0)).astype(np.float64) for key in (11, 12))
+    for g in range(len(groups)):
+        se = np.std(a[g] - b[g]) / np.sqrt(2) / np.sqrt(a[g].size)
+        assert se > 0 and abs((a[g] - ref[g]).mean()) < 5 * se, groups[g]
+    rgb = setup[4]
+    assert rgb.render_pixels(0.002, 4, 1, ["lamp"], np.arange(10)).shape == (1, 10, 3)
+    assert rgb.render(0.002, 4, 1, ["lamp"]).shape == (1, 48, 64, 3)
+
+
+@pytest.mark.render
 def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_error(setup):
     cfg, timeline, plan, seeds, r = setup
     first = integrate(r, plan, timeline.n_buckets, seeds[2])

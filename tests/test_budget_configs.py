@@ -32,8 +32,6 @@ FILM = ["render.width=160", "render.height=128", "render.cache=off"]  # cold: no
 TAIL_NOT_MET = {
     "camera_full": "camera.distortion and camera.diffraction mix neighbouring pixels, which render_pixels cannot "
                    "render alone: no adaptive sampling (4.8)",
-    "metronome_spectral": "a spectral variant (render_pixels needs an RGB one): no adaptive sampling (3.2)",
-    "rgb_illumination": "a spectral variant: no adaptive sampling (6.5)",
 }
 
 

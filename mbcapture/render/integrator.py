@@ -300,7 +300,7 @@ def integrator_class(variant: str) -> type:
                 index, pixel = lane % spp + offset, lane // spp + first
             else:
                 pixel, index = (dr.gather(mi.UInt32, a, lane) for a in self.pattern_lanes)
-            key = pattern.hash_u32(pixel) ^ pattern.hash_u32(seed)
+            key = pattern.pixel_key(pixel, seed)
 
             def next_2d(sampler, dim, active):
                 return pattern.pair(dr, mi, index, key, dim)

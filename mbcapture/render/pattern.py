@@ -80,6 +80,11 @@ def to_unit(mi: Any, u: Any) -> Any:
     return mi.Float(u >> 8) * (1.0 / (1 << 24))
 
 
+def pixel_key(pixel: Any, seed: Any) -> Any:
+    """The key of a pixel's sequences (UInt32) in the pattern keyed ``seed`` (UInt32): :func:`pair`'s ``key``."""
+    return hash_u32(pixel) ^ hash_u32(seed)
+
+
 def pair(dr: Any, mi: Any, g: Any, key: Any, dim: Any) -> Any:
     """The 2D sample ``g`` (UInt32 global index) of the sequence keyed ``key`` (UInt32: pattern and
     pixel) for the pair of dimensions ``dim`` (UInt32): a ``Point2f`` in [0, 1)^2."""

@@ -40,7 +40,8 @@ from .build import (
 )
 from .bands import band_seed, film_bands
 from .cache import RenderCache, digest
-from .integrator import PLUGIN_NAME, integrator_class, is_lambertian
+from .integrator import CAMERA_DIM, PLUGIN_NAME, integrator_class, is_lambertian
+from .pattern import pair as pattern_pair, pixel_key
 from .llvm import apply_target_from_env, ensure_llvm, llvm_target
 from .tiles import materialize, tile_table, tiles_description
 
@@ -320,9 +321,15 @@ class Renderer:
         self.identity = self._identity(list(self._dicts.values())) if cache is not None else None
         self._sampler_probe = None
         self._sample_counts: dict[int, int] = {}
+        #: each spectral film's channel curves, by group (None: the main scene's film), loaded when first needed
+        self._film_curves: dict[str | None, list[Any]] = {}
 
     def _ensure_loaded(self) -> None:
-        """Load the Mitsuba scene(s) from their descriptions (once)."""
+        """Make this renderer's variant Mitsuba's current one (a process may hold renderers of several: ``mi.render``
+        and the module's types are the current variant's), and load the Mitsuba scene(s) from their descriptions
+        (once)."""
+        if self._mi.variant() != self.variant:
+            self._mi.set_variant(self.variant)
         if self._loaded:
             return
         mi = self._mi
@@ -780,8 +787,9 @@ class Renderer:
     @property
     def renders_pixels(self) -> bool:
         """Whether :meth:`render_pixels` works here: an RGB variant (the per-group channels are AOVs) and a
-        lens acting pixel by pixel (no distortion or diffraction, which mix neighbours)."""
-        return not self.spectral and self._undistort is None and self._diffraction is None
+        lens acting pixel by pixel (no distortion or diffraction, which mix neighbours). Spectral variants too
+        (one pass a group, as :meth:`render`)."""
+        return self._undistort is None and self._diffraction is None
 
     def render_pixels(self, t_s: float, spp: "int | np.ndarray", seed: int, groups: Sequence[str], pixels: np.ndarray,
                       pattern: "tuple[int, int | np.ndarray] | None" = None, cached: bool = False) -> np.ndarray:
@@ -800,7 +808,7 @@ class Renderer:
         pilot's blocks and adaptive sampling's passes, which a run on a warm cache with the same choice of
         pixels reuses)."""
         if not self.renders_pixels:
-            raise ConfigError("render_pixels: needs an RGB variant and a lens without distortion or diffraction")
+            raise ConfigError("render_pixels: needs a lens without distortion or diffraction")
         req = list(groups)
         pix = np.ascontiguousarray(np.asarray(pixels, dtype=np.uint32).ravel())
         counts = np.broadcast_to(np.asarray(spp, np.int64), pix.shape)
@@ -828,19 +836,44 @@ class Renderer:
     def _render_pixels(self, t_s: float, counts: np.ndarray, seed: int, req: list[str], pix: np.ndarray,
                        pattern: "tuple[int, int | np.ndarray] | None", offsets: np.ndarray | None) -> np.ndarray:
         """:meth:`render_pixels` before the lens's falloff and a mono mixture: ``counts`` samples at each of
-        ``pix``, from the pattern's samples ``offsets`` on (with a pattern) or the sampler's (equal counts)."""
+        ``pix``, from the pattern's samples ``offsets`` on (with a pattern) or the sampler's (equal counts).
+        RGB: every group in one pass (its AOVs); spectral: one pass a group, in the scene whose film samples
+        the group's wavelengths (as :meth:`_render`)."""
         out = np.zeros((len(req), pix.size, 3), np.float32)
         self._ensure_loaded()  # the emitters of each group are known once the scene is loaded
         lit = [g for g in req if self._group_emitters[g]]
         if not lit or pix.size == 0:
             return out
         self.set_time(t_s)
-        self._set_rows(self._params, (0, self.height))  # the rays below address the whole film
-        self._integrator.set_groups(lit, [self._group_emitters[g] for g in lit])
+        passes = [[g] for g in lit] if self.spectral else [lit]
+        for groups in passes:
+            scene, params, emitters = self._scene_of(groups[0]) if self.spectral else \
+                (self._scene, self._params, [self._group_emitters[g] for g in groups])
+            self._set_rows(params, (0, self.height))  # the rays below address the whole film
+            self._integrator.set_groups(groups, emitters)
+            sums = self._pixel_sums(scene, groups[0] if self.spectral else None, counts, seed, pix, pattern, offsets)
+            for i, g in enumerate(groups):
+                out[req.index(g)] = sums[:, i]
+        return out
+
+    def _scene_of(self, group: str) -> tuple[Any, Any, list[list[Any]]]:
+        """A spectral group's (scene, its parameters, [its emitters]): its own scene where its emitters share
+        one spectral shape (:meth:`_group_spectral_shape`), else the main one."""
+        if group in self._group_scenes:
+            scene, params, emitters = self._group_scenes[group]
+            return scene, params, [emitters]
+        return self._scene, self._params, [self._group_emitters[group]]
+
+    def _pixel_sums(self, scene: Any, group: str | None, counts: np.ndarray, seed: int, pix: np.ndarray,
+                    pattern: "tuple[int, int | np.ndarray] | None", offsets: np.ndarray | None) -> np.ndarray:
+        """One pass of :meth:`_render_pixels` in ``scene`` (the integrator's groups set): float64 (pixels,
+        groups, 3), each pixel's mean over its samples. ``group``: the spectral group rendered (its scene's film
+        curves weigh the wavelengths), None in RGB."""
         mi, dr = self._mi, self._dr
         lanes = int(counts.sum())
-        sensor = self._scene.sensors()[self._sensor_index(pattern)]
+        sensor = scene.sensors()[self._sensor_index(pattern)]
         sampler = sensor.sampler().clone()
+        key = index = None
         if pattern is None:  # the sampler's sequences: n consecutive lanes a pixel
             n = int(counts[0])
             sampler.set_sample_count(n)
@@ -855,28 +888,61 @@ class Renderer:
         else:  # the pattern draws every dimension: each lane is told its pixel and its sample of the pattern
             slots = np.repeat(np.arange(pix.size, dtype=np.uint32), counts)
             starts = np.cumsum(counts) - counts
-            index = (np.arange(lanes, dtype=np.int64) - np.repeat(starts - offsets, counts)).astype(np.uint32)
-            slot, pixel = mi.UInt32(_aligned(slots)), mi.UInt32(_aligned(pix[slots]))
-            self._integrator.use_pattern(int(pattern[0]) & 0xFFFFFFFF, 0, 0, lanes=(pixel, mi.UInt32(_aligned(index))))
+            lane_index = (np.arange(lanes, dtype=np.int64) - np.repeat(starts - offsets, counts)).astype(np.uint32)
+            slot, pixel, index = mi.UInt32(_aligned(slots)), mi.UInt32(_aligned(pix[slots])), \
+                mi.UInt32(_aligned(lane_index))
+            self._integrator.use_pattern(int(pattern[0]) & 0xFFFFFFFF, 0, 0, lanes=(pixel, index))
+            key = mi.UInt32(int(pattern[0]) & 0xFFFFFFFF)
+            dr.make_opaque(key)
         sampler.seed(int(seed) & 0xFFFFFFFF, lanes)
         y = pixel // self.width
         x = pixel - y * self.width
-        pos = mi.Vector2f(mi.Float(x), mi.Float(y)) + sampler.next_2d()
-        pos = pos * mi.ScalarVector2f(1.0 / self.width, 1.0 / self.height)
-        aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.5)
-        ray, weight = sensor.sample_ray_differential(sensor.shutter_open(), mi.Float(0.0), pos, aperture)
-        _, _, aovs = self._integrator.sample(self._scene, sampler, ray, None, mi.Bool(True))
-        C = len(aovs)
+        if self.spectral and pattern is not None:
+            # mi.render's spectral camera ray is its sampler's (the integrator cannot redraw its wavelengths and
+            # their weight); these lanes have no sampler sequence of their own, so the ray's point in the pixel,
+            # the aperture and the wavelengths are the pattern's: the same estimator, stratified across the strata
+            draw = lambda d: pattern_pair(dr, mi, index, pixel_key(pixel, key), mi.UInt32(CAMERA_DIM + d))  # noqa: E731
+            in_pixel, aperture = draw(0), (draw(1) if sensor.needs_aperture_sample() else mi.Point2f(0.5))
+            wavelength = draw(2).x
+        else:  # mi.render's order: the point in the pixel, the aperture, the wavelengths (spectral)
+            in_pixel = sampler.next_2d()
+            aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+            wavelength = sampler.next_1d() if self.spectral else mi.Float(0.0)
+        pos = (mi.Point2f(mi.Float(x), mi.Float(y)) + in_pixel) * mi.ScalarVector2f(1.0 / self.width, 1.0 / self.height)
+        ray, weight = sensor.sample_ray_differential(sensor.shutter_open(), wavelength, pos, aperture)
+        spec, _, aovs = self._integrator.sample(scene, sampler, ray, None, mi.Bool(True))
+        if self.spectral:
+            values = self._film_values(sensor.film(), group, ray.wavelengths, weight * spec)
+        else:
+            values = [value * weight[0] for value in aovs]
+        C = len(values)
         # the sums' array at a power of two of the pixels (at least 1024): a scatter's kernel holds its target's
         # size as a literal, so a size of its own for every choice of pixels compiled the render anew each call
         acc = dr.zeros(mi.Float, (1 << max(10, int(np.ceil(np.log2(pix.size))))) * C)
-        w = weight[0]
-        for c, value in enumerate(aovs):
-            dr.scatter_reduce(dr.ReduceOp.Add, acc, value * w, slot * C + c)
+        for c, value in enumerate(values):
+            dr.scatter_reduce(dr.ReduceOp.Add, acc, value, slot * C + c)
         dr.eval(acc)
-        sums = np.asarray(acc, dtype=np.float64)[:pix.size * C].reshape(pix.size, len(lit), 3) / counts[:, None, None]
-        for i, g in enumerate(lit):
-            out[req.index(g)] = sums[:, i]
+        return np.asarray(acc, dtype=np.float64)[:pix.size * C].reshape(pix.size, C // 3, 3) / counts[:, None, None]
+
+    def _film_values(self, film: Any, group: str, wavelengths: Any, spec: Any) -> list[Any]:
+        """What ``specfilm`` stores of one sample (its channels), written here because Mitsuba 3.9.1's Python
+        binding of ``Film.prepare_sample`` corrupts memory (measured: a segmentation fault). As the film
+        does: the sample's value at each wavelength (``spec``, the ray's weight included) over the sum of the
+        film's curves there (its wavelength-sampling density; 1 where that is 0), times each channel's
+        curve, averaged over the wavelengths. The curves are the film's own (the scene's film description)."""
+        mi, dr = self._mi, self._dr
+        if group not in self._film_curves:
+            film_dict = self._dicts[group if group in self._dicts else None]["sensor"]["film"]
+            self._film_curves[group] = [mi.load_dict(film_dict[c]) for c in self.channels]
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.wavelengths = wavelengths
+        total = film.sensor_response_function().eval(si)
+        scaled = spec * dr.select(total != 0.0, dr.rcp(total), 1.0)
+        n = dr.size_v(mi.Spectrum)
+        out = []
+        for curve in self._film_curves[group]:
+            weights = curve.eval(si)
+            out.append(sum(weights[i] * scaled[i] for i in range(n)) * (1.0 / n))
         return out
 
     def _sensor_index(self, pattern: tuple[int, int] | None) -> int:
