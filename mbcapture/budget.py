@@ -511,7 +511,7 @@ def choose_spp(
     rng = np.random.default_rng(seed)
     seeds = rng.integers(0, 2**31 - 1, size=(len(idx), len(PILOT_SPP), 2))
     # a large film: a random sample of its blocks, side by side (block_mosaic), whose centres alone count
-    sparse = getattr(renderer, "renders_pixels", False)
+    sparse = getattr(renderer, "renders_pixels_alone", False)
     centres = pilot_blocks(renderer.height, renderer.width, rng) if sparse else None
     if centres is None:
         only, film_share = True, 1.0

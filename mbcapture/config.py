@@ -135,8 +135,9 @@ class RenderSection(_Model):
         "each pixel holds) refines it again. The "
         "top-up judges the budget on the image the chosen factors will give. Unbiased: which pixels are chosen comes "
         "from renders the image does not use, and the rule is one choice from the whole film's estimate, so neither "
-        "conditions any pixel's first pass (report.json adaptive). RGB and spectral variants (since the sixteenth "
-        "session) with a lens acting per pixel (no camera.distortion or camera.diffraction), render.estimator independent, a film in "
+        "conditions any pixel's first pass (report.json adaptive). Any render.variant and lens (since the sixteenth "
+        "session: spectral variants, and camera.distortion or camera.diffraction, whose refined pixels' neighbourhoods "
+        "are rendered with them), render.estimator independent, a film in "
         "one tile, and room in free memory for the scout's second set of the film's arrays; elsewhere it is skipped "
         "and report.json says why. The tail lies on silhouettes and moving edges (docs/noise.md).",
     )

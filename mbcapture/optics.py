@@ -46,14 +46,14 @@ PAD_PX = 16
 
 
 def apply_diffraction(image: np.ndarray, pixel_pitch_um: float, f_number: float,
-                      wavelength_nm: list[float] | np.ndarray) -> np.ndarray:
+                      wavelength_nm: list[float] | np.ndarray, clamp: bool = True) -> np.ndarray:
     """``image`` (..., H, W, C) filtered by each channel's diffraction OTF (channel c at
     ``wavelength_nm[c]``), the borders mirrored; float64. A flat image stays flat (OTF(0) = 1).
 
     The filter treats the image as band-limited (the OTF is applied at the frequencies the pixel
     grid holds), which gives the right contrast at each of them; around a source sharper than a
     pixel (a lamp's rim), whose content the grid aliases, it rings below zero by a small fraction of
-    the source: those samples are set to 0, as irradiance cannot be negative."""
+    the source: those samples are set to 0, as irradiance cannot be negative (``clamp``; off, the linear filter)."""
     from scipy import fft
 
     img = np.asarray(image, dtype=np.float64)
@@ -72,7 +72,42 @@ def apply_diffraction(image: np.ndarray, pixel_pitch_um: float, f_number: float,
     for c in range(C):
         spectrum = fft.rfft2(padded[..., c], axes=(-2, -1))
         out[..., c] = fft.irfft2(spectrum * diffraction_otf(f, lam[c], f_number), s=(Hp, Wp), axes=(-2, -1))
-    return np.maximum(out[..., PAD_PX:PAD_PX + H, PAD_PX:PAD_PX + W, :], 0.0)
+    out = out[..., PAD_PX:PAD_PX + H, PAD_PX:PAD_PX + W, :]
+    return np.maximum(out, 0.0) if clamp else out
+
+
+#: The half-width (pixels) of :func:`diffraction_reach`'s window.
+REACH_PX = 8
+
+
+def diffraction_reach(pixel_pitch_um: float, f_number: float, wavelength_nm: list[float] | np.ndarray,
+                      radius: int = REACH_PX) -> np.ndarray:
+    """(2 radius + 1, 2 radius + 1) how much a pixel at each offset weighs in :func:`apply_diffraction`'s value of
+    the centre pixel, over the centre's own weight: the linear filter's absolute weights, the most over the
+    channels (the filter is radially symmetric). Its weights fall slowly (about 2 % of the total beyond 4 pixels at
+    f/2.8 and 5.6 um), so no window holds all of them: what reads a pixel's neighbours must reach them all
+    (:meth:`mbcapture.render.Renderer.render_pixels` gives each render pixel samples in proportion to this)."""
+    n = 2 * radius + 1
+    delta = np.zeros((n + 2 * PAD_PX, n + 2 * PAD_PX, len(wavelength_nm)))
+    c = delta.shape[0] // 2
+    delta[c, c] = 1.0
+    k = np.abs(apply_diffraction(delta, pixel_pitch_um, f_number, wavelength_nm, clamp=False))
+    k = (k / k[c, c]).max(axis=-1)
+    return k[c - radius:c + radius + 1, c - radius:c + radius + 1]
+
+
+def bilinear_taps(map_x: np.ndarray, map_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The four pixels of the (H', W') render that :func:`apply_distortion` interpolates each sensor pixel from,
+    and their weights: ((4, H, W) flat indices, (4, H, W) bilinear weights), the indices clamped to the render as
+    cv2.remap's BORDER_REPLICATE clamps them."""
+    h, w = map_x.shape
+    x0, y0 = np.floor(map_x).astype(np.int64), np.floor(map_y).astype(np.int64)
+    fx, fy = map_x - x0, map_y - y0
+    xs = [np.clip(x0 + d, 0, w - 1) for d in (0, 1)]
+    ys = [np.clip(y0 + d, 0, h - 1) for d in (0, 1)]
+    index = np.stack([y * w + x for y in ys for x in xs])
+    weight = np.stack([wy * wx for wy in (1 - fy, fy) for wx in (1 - fx, fx)])
+    return index, weight
 
 
 # ----------------------------------------------------------------------------- depth of field

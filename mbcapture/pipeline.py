@@ -479,8 +479,7 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
     render.adaptive_max_factor)."""
     why = ("a film in one tile (render.tiles; the choice of pixels and their second pass are the whole film's)"
            if tiled else
-           "a lens acting per pixel (no camera.distortion, camera.diffraction)"
-           if not renderer.renders_pixels else "render.estimator independent" if plan.estimator != "independent"
+           "render.estimator independent" if plan.estimator != "independent"
            else "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None
            else no_room_for_another_pass(integrated))  # the scout renders the film again
     if why is not None:

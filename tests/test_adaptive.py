@@ -43,10 +43,6 @@ def test_pixels_rendered_alone_are_the_full_renders_estimator(setup):
     for g in range(len(groups)):
         se = np.std(a[g] - b[g]) / np.sqrt(2) / np.sqrt(a[g].size)
         assert abs((a[g] - ref[g]).mean()) < 5 * se + 1e-6, groups[g]
-    with pytest.raises(Exception, match="render_pixels"):
-        Renderer.from_config(scene_of(cfg), load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                                                        [*SMALL, "camera.diffraction=true"])).render_pixels(
-            0.0, 4, 1, groups, pix)
 
 
 @pytest.mark.render
@@ -114,6 +110,36 @@ def test_pixels_with_samples_and_offsets_of_their_own_are_the_full_renders_pixel
 
 
 @pytest.mark.render
+@pytest.mark.parametrize("pattern", [True, False])
+def test_pixels_through_a_lens_that_mixes_neighbours_are_the_full_renders_estimator(pattern):
+    """camera.distortion and camera.diffraction make a sensor pixel read pinhole pixels around it: render_pixels then
+    renders the whole pinhole film, the listed pixels' neighbourhoods with their samples in proportion to their
+    weight and the rest with one, through the lens. Over 12 renders of 200 listed pixels each, against 12 full
+    renders at the same count: the summed difference is within 5 standard errors per group (unbiased; a
+    neighbourhood left out would bias the pixels by the weight it has, up to 15 % beside the lamp), and the listed
+    pixels' variance is at most 2x the full render's (measured 1.0-1.7x: the allocation gives them about the count
+    they ask for), for about 1.4x the listed pixels' samples where they lie apart."""
+    cfg = load_config(ROOT / "configs" / "camera_full.yaml", ["render.width=48", "render.height=36",
+                                                               "render.cache=off", "render.spp=16"])
+    r = Renderer.from_config(scene_of(cfg), cfg)
+    assert not r.renders_pixels_alone
+    groups = list(r.groups)
+    pix = np.random.default_rng(0).permutation(48 * 36)[:200]
+    reps, n = 12, 24
+    alone = np.array([r.render_pixels(0.002, n, 5 + k, groups, pix, pattern=(100 + k, 0) if pattern else None)
+                      for k in range(reps)], np.float64)
+    full = np.array([r.render(0.002, n, 70 + k, groups, pattern=(200 + k, 0)).reshape(len(groups), -1, 3)[:, pix]
+                     for k in range(reps)], np.float64)
+    for g in range(len(groups)):
+        d = alone[:, g].mean(axis=0) - full[:, g].mean(axis=0)
+        var_alone, var_full = (x[:, g].var(axis=0, ddof=1) for x in (alone, full))
+        assert abs(d.sum()) < 5 * np.sqrt((var_alone + var_full).sum() / reps), groups[g]
+        assert var_alone.sum() < 2.0 * var_full.sum(), groups[g]
+    asked, _ = r._lens_samples(pix.astype(np.uint32), np.full(pix.size, 1000), np.zeros(pix.size, np.int64))
+    assert 1000 * pix.size < asked.sum() < 2.5 * 1000 * pix.size
+
+
+@pytest.mark.render
 def test_spectral_pixels_rendered_alone_are_the_full_render_and_its_estimator(setup):
     """A spectral variant: render_pixels renders one pass a group, each group in its own scene, and weighs each
     sample's wavelengths by the film's curves as Mitsuba's specfilm does (written in the renderer). Every pixel in
@@ -126,7 +152,7 @@ def test_spectral_pixels_rendered_alone_are_the_full_render_and_its_estimator(se
                                                                     "render.cache=off", "render.spp=16"])
     r = Renderer.from_config(scene_of(cfg), cfg)
     groups = list(r.groups)
-    assert r.spectral and r.renders_pixels and len(groups) == 4
+    assert r.spectral and r.renders_pixels_alone and len(groups) == 4
     pix = np.arange(40 * 30)
     full = r.render(0.002, 16, 7, groups).reshape(len(groups), -1, 3)
     np.testing.assert_allclose(r.render_pixels(0.002, 16, 7, groups, pix), full, rtol=1e-5, atol=1e-6 * full.max())

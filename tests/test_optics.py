@@ -180,6 +180,32 @@ def test_a_spot_lands_where_the_distortion_polynomial_sends_its_ray(k):
         assert abs(got[0] - want[0]) < 0.05 and abs(got[1] - want[1]) < 0.05, (got, want)
 
 
+def test_the_taps_and_the_reach_are_the_lens_filters_own():
+    """What render_pixels reaches through the lens: bilinear_taps' four pixels and weights give apply_distortion's
+    value of every sensor pixel (to cv2.remap's 1/32 fixed-point weights); diffraction_reach is the linear filter's
+    weight of each neighbour over the centre's (a delta through apply_diffraction without its clamp), symmetric."""
+    from dataclasses import dataclass
+
+    from mbcapture.optics import apply_distortion, bilinear_taps, diffraction_reach, undistortion_maps
+
+    @dataclass
+    class Cam:
+        fov_deg: float = 40.0
+
+    mx, my, _ = undistortion_maps(Cam(), 40, 30, (-0.2, 0.05))
+    img = np.random.default_rng(0).random((30, 40, 3)).astype(np.float32)
+    index, weight = bilinear_taps(mx, my)
+    np.testing.assert_allclose(weight.sum(axis=0), 1.0, atol=1e-6)
+    by_taps = (img[..., 0].ravel()[index] * weight).sum(axis=0)
+    np.testing.assert_allclose(apply_distortion(img, mx, my)[..., 0], by_taps, atol=1.0 / 32)
+    k = diffraction_reach(5.6, 2.8, [610.0, 540.0, 465.0], radius=4)
+    delta = np.zeros((129, 129, 3))
+    delta[64, 64] = 1.0
+    linear = np.abs(apply_diffraction(delta, 5.6, 2.8, [610.0, 540.0, 465.0], clamp=False))[60:69, 60:69]
+    np.testing.assert_allclose(k, (linear / linear[4, 4]).max(axis=-1), rtol=0.05, atol=1e-4)
+    assert k[4, 4] == 1.0 and k.max() == 1.0 and np.allclose(k, k.T) and np.allclose(k, k[::-1])
+
+
 def test_no_distortion_is_the_identity_and_a_fold_is_refused():
     from dataclasses import dataclass
 

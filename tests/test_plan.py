@@ -382,7 +382,7 @@ class BlockRenderer(FakeRenderer):
     """:class:`FakeRenderer` that also renders listed pixels (the pilot's blocks): the same pixels' values
     as its film, from the same seed."""
 
-    renders_pixels = True
+    renders_pixels_alone = True
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)

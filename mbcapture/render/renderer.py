@@ -19,6 +19,8 @@ from ..errors import ConfigError
 from ..optics import (
     apply_diffraction,
     apply_distortion,
+    bilinear_taps,
+    diffraction_reach,
     focus_distance_m,
     natural_vignetting,
     thin_lens_aperture_m,
@@ -223,6 +225,19 @@ class Renderer:
         if diffraction and sensor is None:
             raise ConfigError("camera.diffraction: needs the sensor (f-number, pixel pitch, wavelengths)")
         self._diffraction = sensor if diffraction else None  # the sensor's f-number, pitch and wavelengths
+        # what render_pixels needs to reach every render pixel a sensor pixel reads: the four each is interpolated
+        # from (distortion) and the log of how much its neighbours weigh in it (diffraction; mbcapture.optics)
+        self._taps = None
+        if self._undistort is not None:  # each tap's samples: its weight b over sum b^2 of the sensor pixel's count
+            index, weight = bilinear_taps(*self._undistort)
+            self._taps = (index.reshape(4, -1), (weight / (weight * weight).sum(axis=0)).reshape(4, -1))
+        self._log_reach = None
+        if diffraction:
+            # a pixel's samples in proportion to its weight k in a sensor pixel, scaled by sum k / sum k^2: the sensor
+            # pixel's variance is then what the first pass's would be at the count it asks for (every pinhole pixel at
+            # it), at about sum k (sum k / sum k^2) = 2.0 times the count instead of the window's 289 times
+            k = diffraction_reach(sensor.pixel_pitch_um, sensor.f_number, sensor.wavelength_nm)
+            self._log_reach = np.log(np.maximum(k * (k.sum() / (k * k).sum()), 1e-300))
         #: renders made elsewhere (a cluster's workers, mbcapture.cluster), by (t, spp, seed, groups, band): used once
         self._given: dict[tuple[float, int, int, tuple[str, ...], int], np.ndarray] = {}
         # a monochrome sensor's mixture of the channels (mbcapture.sensor.mono_weights), or None
@@ -736,6 +751,11 @@ class Renderer:
         # the lens (mbcapture.optics): relative illumination, distortion, then diffraction (a blur in the sensor
         # plane), on every render alike (exposures, truths, the pilot), after the cache: a render is cached as
         # the pinhole sees it. Distortion and diffraction make the film one band (whole).
+        return self._mono_mixed(self._lens(img, r0, r1))
+
+    def _lens(self, img: np.ndarray, r0: int, r1: int) -> np.ndarray:
+        """The lens on the pinhole's rows ``r0`` .. ``r1`` (group, row, col, channel): relative illumination, then
+        (on the whole film) distortion and diffraction."""
         if self._falloff is not None:
             img = img * self._falloff[:, r0:r1]
         if self._undistort is not None:  # the lens bends each pixel's ray: resample the pinhole render
@@ -743,7 +763,7 @@ class Renderer:
         if self._diffraction is not None:
             s = self._diffraction
             img = apply_diffraction(img, s.pixel_pitch_um, s.f_number, s.wavelength_nm).astype(np.float32)
-        return self._mono_mixed(img)
+        return img
 
     def _mono_mixed(self, img: np.ndarray) -> np.ndarray:
         """``img`` (..., 3) as a monochrome sensor sees it (its one response in every channel); as is otherwise."""
@@ -785,21 +805,27 @@ class Renderer:
         return params
 
     @property
-    def renders_pixels(self) -> bool:
-        """Whether :meth:`render_pixels` works here: an RGB variant (the per-group channels are AOVs) and a
-        lens acting pixel by pixel (no distortion or diffraction, which mix neighbours). Spectral variants too
-        (one pass a group, as :meth:`render`)."""
+    def renders_pixels_alone(self) -> bool:
+        """Whether :meth:`render_pixels` renders the listed pixels alone, at a cost in proportion to them: a lens
+        acting pixel by pixel. A lens that mixes neighbours (camera.distortion, camera.diffraction) makes it render
+        the whole film, the listed pixels' neighbourhoods at their samples and the rest at one."""
         return self._undistort is None and self._diffraction is None
 
     def render_pixels(self, t_s: float, spp: "int | np.ndarray", seed: int, groups: Sequence[str], pixels: np.ndarray,
                       pattern: "tuple[int, int | np.ndarray] | None" = None, cached: bool = False) -> np.ndarray:
         """Radiance of each requested group at the film pixels ``pixels`` (flat indices y * W + x) only,
         ``spp`` samples each: float32 (len(groups), len(pixels), 3), the same estimator as :meth:`render`
-        (box filter: the mean over each pixel's area; the lens's falloff and a mono mixture applied), at a
-        cost in proportion to the pixels. Written here because Mitsuba renders whole films
+        (box filter: the mean over each pixel's area; the lens and a mono mixture applied), at a
+        cost in proportion to the pixels where the lens acts pixel by pixel (:attr:`renders_pixels_alone`).
+        Written here because Mitsuba renders whole films
         (or crop rectangles): the camera rays of the listed pixels are generated as ``mi.render`` does
         (the sampler seeded over pixels x spp lanes, spp consecutive lanes per pixel, so its
-        stratification is per pixel) and each lane's per-group AOVs are summed into its pixel.
+        stratification is per pixel) and each lane's per-group AOVs (spectral: the film's channels of the
+        sample, one pass a group) are summed into its pixel. A lens that mixes neighbours (distortion,
+        diffraction) reads pinhole pixels around each listed one: the whole pinhole film is rendered, each
+        pixel with the listed pixels' samples in proportion to its weight in them and the rest with one
+        (:meth:`_lens_samples`), and put through the lens as a film is, so the value is unbiased and costs
+        about one sample of the whole film more.
         ``pattern`` (key, offset): the samples drawn from the shared pattern as :meth:`render` draws them,
         so that a pixel's value is the one a whole-film render with that pattern gives it. With a pattern,
         ``spp`` and the offset may be one per pixel (arrays of the pixels' length): pixel i takes the pattern's
@@ -807,8 +833,6 @@ class Renderer:
         ``cached``: kept in the render cache under the pixels' digest, as :meth:`render` keeps a film (the
         pilot's blocks and adaptive sampling's passes, which a run on a warm cache with the same choice of
         pixels reuses)."""
-        if not self.renders_pixels:
-            raise ConfigError("render_pixels: needs a lens without distortion or diffraction")
         req = list(groups)
         pix = np.ascontiguousarray(np.asarray(pixels, dtype=np.uint32).ravel())
         counts = np.broadcast_to(np.asarray(spp, np.int64), pix.shape)
@@ -822,16 +846,69 @@ class Renderer:
             offsets = np.broadcast_to(np.asarray(pattern[1], np.int64), pix.shape)
             if counts.size and (counts.min() < 1 or offsets.min() < 0 or (offsets + counts).max() > 2**32):
                 raise ValueError("render_pixels: expected samples >= 1 a pixel and pattern samples within 0 .. 2^32")
-        if cached:
-            params = {**self._cache_params(counts, seed, req, None if pattern is None else (pattern[0], offsets)),
-                      "pixels": hashlib.sha256(pix.tobytes()).hexdigest(), "n_pixels": int(pix.size)}
-            out = self.cached("pixels", t_s, params,
-                              lambda: self._render_pixels(t_s, counts, seed, req, pix, pattern, offsets))
-        else:
-            out = self._render_pixels(t_s, counts, seed, req, pix, pattern, offsets)
-        if self._falloff is not None:
-            out = out * self._falloff.reshape(-1)[pix][None, :, None]
-        return self._mono_mixed(out)
+
+        def rendered(at: np.ndarray, n: np.ndarray, first: np.ndarray | None, s: int) -> np.ndarray:
+            """``_render_pixels`` of pixels ``at`` (the pinhole's, before the lens), kept in the cache if asked."""
+            pat = None if pattern is None else (pattern[0], first)
+            if not cached:
+                return self._render_pixels(t_s, n, s, req, at, pat, first)
+            params = {**self._cache_params(n, s, req, pat),
+                      "pixels": hashlib.sha256(at.tobytes()).hexdigest(), "n_pixels": int(at.size)}
+            return self.cached("pixels", t_s, params, lambda: self._render_pixels(t_s, n, s, req, at, pat, first))
+
+        if self.renders_pixels_alone:
+            out = rendered(pix, counts, offsets, seed)
+            if self._falloff is not None:
+                out = out * self._falloff.reshape(-1)[pix][None, :, None]
+            return self._mono_mixed(out)
+        # a lens that mixes neighbours: the whole pinhole film, each pixel with the samples that what reads it asks for
+        # (its share of them), the rest with one, through the lens as :meth:`render`'s films are
+        film = np.arange(self.width * self.height, dtype=np.uint32)
+        asked, first = self._lens_samples(pix, counts, offsets)
+        if pattern is not None:  # one render: a pixel nothing asks for takes one sample at a place of its own
+            start = int(np.random.default_rng(int(seed) & 0xFFFFFFFF).integers(0, 2**31))
+            img = rendered(film, np.maximum(asked, 1), np.where(asked > 0, first, start), seed)
+        else:  # the sampler's sequences take one count a render: the reached pixels at it, the rest at one
+            reached = asked > 0
+            img = np.zeros((len(req), film.size, 3), np.float32)
+            img[:, reached] = rendered(film[reached], np.full(int(reached.sum()), int(counts.flat[0])), None, seed)
+            img[:, ~reached] = rendered(film[~reached], np.ones(int((~reached).sum()), np.int64), None,
+                                        band_seed(seed, 0x5A))
+        img = self._lens(img.reshape(len(req), self.height, self.width, 3), 0, self.height)
+        return self._mono_mixed(img.reshape(len(req), -1, 3)[:, pix])
+
+    def _lens_samples(self, pix: np.ndarray, counts: np.ndarray, offsets: np.ndarray | None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """(flat, per pinhole pixel) the samples :meth:`render_pixels` renders each pinhole pixel with (0: none asked;
+        it then takes one) and the pattern offset they start at, where sensor pixels ``pix`` ask for ``counts`` from
+        ``offsets``: through diffraction, each sensor pixel's count in proportion to how much each neighbour weighs in
+        it (:func:`mbcapture.optics.diffraction_reach`; rounded, the most over what reaches a pixel), which for a
+        given variance costs the fewest samples; through distortion, the four pixels it is interpolated from, its
+        count over the sum of their squared weights times each one's weight (the same rule). Unbiased whatever they are (every pixel is rendered); they set the
+        variance and the cost."""
+        from scipy.ndimage import grey_dilation
+
+        n = np.zeros(self.height * self.width)
+        n[pix] = counts
+        o = np.zeros(self.height * self.width, np.int64)
+        if offsets is not None:
+            o[pix] = offsets
+        n, o = n.reshape(self.height, self.width), o.reshape(self.height, self.width)
+        if self._log_reach is not None:
+            none = -1e300
+            log_n = grey_dilation(np.where(n > 0, np.log(np.maximum(n, 1.0)), none), structure=self._log_reach,
+                                  mode="constant", cval=none)
+            n = np.where(log_n > none / 2, np.rint(np.exp(np.minimum(log_n, 700.0))), 0.0)
+            o = grey_dilation(o, size=self._log_reach.shape, mode="constant", cval=0)
+        n, o = n.ravel(), o.ravel()
+        if self._taps is not None:
+            on = np.flatnonzero(n > 0)
+            reach_n, reach_o = np.zeros_like(n), np.zeros_like(o)
+            for taps, share in zip(*self._taps):
+                np.maximum.at(reach_n, taps[on], np.rint(n[on] * share[on]))
+                np.maximum.at(reach_o, taps[on], o[on])
+            n, o = reach_n, reach_o
+        return n.astype(np.int64), o
 
     def _render_pixels(self, t_s: float, counts: np.ndarray, seed: int, req: list[str], pix: np.ndarray,
                        pattern: "tuple[int, int | np.ndarray] | None", offsets: np.ndarray | None) -> np.ndarray:
