@@ -3,14 +3,14 @@ at 160x128 (issue 26): the run's own estimate of its rendering noise, on every r
 at most ``render.noise_budget`` and its 95th percentile at most ``render.noise_budget_p95``.
 
 Marked ``budget`` and left out of ``make test``, which must stay under 6 minutes: with adaptive sampling
-on, ``make test-budget`` runs its 16 captures two at a time in 8 min 50 s on the Intel Xeon of 2026-11-28
-(scripts/readme_tables.py, one after another in processes of their own: 550 s). ``python
+on, ``make test-budget`` runs its 16 captures two at a time in 8 min 25 s on the Intel Xeon of the sixteenth
+session (2026-11-28; scripts/readme_tables.py, one after another in processes of their own: 527 s the session before). ``python
 scripts/readme_tables.py --only budget`` runs the same captures and writes their figures into the README's
 table.
 
 The 99.9th percentile target (``render.noise_budget_tail``) is asserted too, on every config but those of
-:data:`TAIL_NOT_MET`, where it is asserted to be missed (so that the list stays the record of what is not
-yet met: a config that meets it fails here until it leaves the list). Adaptive sampling (on by default since
+:data:`TAIL_NOT_MET` (none since the sixteenth session), where it is asserted to be missed (so that the list stays
+the record of what is not yet met: a config that meets it fails here until it leaves the list). Adaptive sampling (on by default since
 the fourteenth session) chooses the cheapest of its rules that brings the run's own estimate of the tail under
 the target.
 """
