@@ -235,7 +235,7 @@ class Renderer:
         if diffraction:
             # a pixel's samples in proportion to its weight k in a sensor pixel, scaled by sum k / sum k^2: the sensor
             # pixel's variance is then what the first pass's would be at the count it asks for (every pinhole pixel at
-            # it), at about sum k (sum k / sum k^2) = 2.0 times the count instead of the window's 289 times
+            # it), at about sum k (sum k / sum k^2) = 1.46 times the count (f/2.8, 5.6 um) instead of the window's 289
             k = diffraction_reach(sensor.pixel_pitch_um, sensor.f_number, sensor.wavelength_nm)
             self._log_reach = np.log(np.maximum(k * (k.sum() / (k * k).sum()), 1e-300))
         #: renders made elsewhere (a cluster's workers, mbcapture.cluster), by (t, spp, seed, groups, band): used once
@@ -884,8 +884,8 @@ class Renderer:
         ``offsets``: through diffraction, each sensor pixel's count in proportion to how much each neighbour weighs in
         it (:func:`mbcapture.optics.diffraction_reach`; rounded, the most over what reaches a pixel), which for a
         given variance costs the fewest samples; through distortion, the four pixels it is interpolated from, its
-        count over the sum of their squared weights times each one's weight (the same rule). Unbiased whatever they are (every pixel is rendered); they set the
-        variance and the cost."""
+        count over the sum of their squared weights times each one's weight (the same rule). Unbiased whatever they
+        are (every pixel is rendered); they set the variance and the cost."""
         from scipy.ndimage import grey_dilation
 
         n = np.zeros(self.height * self.width)
