@@ -1008,16 +1008,17 @@ class Renderer:
         film's curves there (its wavelength-sampling density; 1 where that is 0), times each channel's
         curve, averaged over the wavelengths. The curves are the film's own (the scene's film description)."""
         mi, dr = self._mi, self._dr
-        if group not in self._film_curves:
-            film_dict = self._dicts[group if group in self._dicts else None]["sensor"]["film"]
-            self._film_curves[group] = [mi.load_dict(film_dict[c]) for c in self.channels]
+        key = group if group in self._dicts else None  # the groups of the main scene share its film
+        if key not in self._film_curves:
+            film_dict = self._dicts[key]["sensor"]["film"]
+            self._film_curves[key] = [mi.load_dict(film_dict[c]) for c in self.channels]
         si = dr.zeros(mi.SurfaceInteraction3f)
         si.wavelengths = wavelengths
         total = film.sensor_response_function().eval(si)
         scaled = spec * dr.select(total != 0.0, dr.rcp(total), 1.0)
         n = dr.size_v(mi.Spectrum)
         out = []
-        for curve in self._film_curves[group]:
+        for curve in self._film_curves[key]:
             weights = curve.eval(si)
             out.append(sum(weights[i] * scaled[i] for i in range(n)) * (1.0 / n))
         return out
@@ -1055,10 +1056,9 @@ class Renderer:
         if lit and self.spectral:
             self.set_time(t_s)
             for g in lit:
-                scene, emitters = (self._group_scenes[g][0], self._group_scenes[g][2]) if g in self._group_scenes \
-                    else (self._scene, self._group_emitters[g])
-                self._set_rows(self._group_scenes[g][1] if g in self._group_scenes else self._params, rows)
-                self._integrator.set_groups([g], [emitters])
+                scene, params, emitters = self._scene_of(g)
+                self._set_rows(params, rows)
+                self._integrator.set_groups([g], emitters)
                 img = self._mi.render(scene, integrator=self._integrator, spp=int(spp),
                                       seed=int(seed) & 0xFFFFFFFF)
                 out[req.index(g)] = np.asarray(img, dtype=np.float32)[..., :3]
