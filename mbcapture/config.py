@@ -206,6 +206,17 @@ class RenderSection(_Model):
     max_motion_px: float = Field(
         0.5, gt=0, description="Largest image motion, in pixels, of any moving point inside one time stratum (the paper's vT << p)."
     )
+    min_strata: int = Field(
+        4, ge=1,
+        description="Fewest time strata of a capture whose image moves (shared among its collecting intervals), "
+        "however little it moves. A stratum's two half-sample renders are each at one time drawn in the stratum, "
+        "the same for every pixel, so its time noise (a moving edge's change within the stratum) and the run's own "
+        "estimate of it rest on that one pair of times: with one stratum the estimate is a lottery. Measured on "
+        "rgb_illumination at 160x128 (one stratum at render.max_motion_px 0.5; scripts/render_noise_reads.py, seeds "
+        "1 and 2): the runs' own median and p95 missed the outside measurement's on every read, and only one run's "
+        "estimate called for a top-up (160 samples against 48); with four strata both runs' intervals held it on "
+        "every colour read, in 0.6x the time (docs/noise.md). 1: strata by motion alone.",
+    )
     max_strata: int = Field(
         2048, ge=1, description="Upper bound on render passes; a plan that needs more is coarsened with a warning in the report."
     )

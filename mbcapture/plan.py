@@ -253,8 +253,10 @@ def _period_of(tl: Timeline, a: int, b: int) -> tuple[int, int] | None:
     return None
 
 
-def _split_interval(scene, tl: Timeline, a: int, b: int, render: RenderSection) -> tuple[list[int], float]:
-    """Boundaries inside [a, b] so that each piece moves at most max_motion_px.
+def _split_interval(scene, tl: Timeline, a: int, b: int, render: RenderSection,
+                    fewest: int = 1) -> tuple[list[int], float]:
+    """Boundaries inside [a, b] so that each piece moves at most max_motion_px, and where the image moves at all,
+    at least ``fewest`` pieces (render.min_strata, shared among the capture's intervals).
 
     Where the gate pattern repeats and one period moves the image by less than a quarter of
     max_motion_px, the cuts fall on period boundaries: every stratum then holds whole periods,
@@ -276,7 +278,7 @@ def _split_interval(scene, tl: Timeline, a: int, b: int, render: RenderSection) 
         per_period = float(reach.max())
         if per_period < budget / 4:
             snap, budget = periodic, budget - per_period
-    n = max(1, int(np.ceil(total / budget - 1e-9)))
+    n = max(1, int(np.ceil(total / budget - 1e-9)), fewest if total > 0 else 1)
     n = min(n, len(ticks) - 1)
     targets = np.linspace(0.0, total, n + 1)[1:-1]
     inner = np.interp(targets, s, ticks.astype(np.float64)) if n > 1 else np.array([])
@@ -305,8 +307,11 @@ def make_plan(
         notes.append("static scene: one stratum")
     else:
         edges = []
+        # render.min_strata: each stratum's two halves draw a time each, so a stratum's time noise (a moving
+        # edge's change) and the run's own estimate of it rest on one pair of times, the same for every pixel
+        fewest = int(np.ceil(render.min_strata / len(intervals)))
         for a, b in intervals:
-            cuts, moved = _split_interval(scene, timeline, a, b, render)
+            cuts, moved = _split_interval(scene, timeline, a, b, render, fewest)
             motion_total += moved
             edges.extend(cuts if not edges or edges[-1] != cuts[0] else cuts[1:])
     edges = np.unique(np.asarray(edges, dtype=np.int64))

@@ -212,7 +212,7 @@ def test_coverage_of_a_disk_is_its_projected_area():
 
 @pytest.mark.render
 def test_tiny_capture_interleaved_beats_sequential():
-    common = ["render.width=80", "render.height=64", "render.spp=4", "render.max_motion_px=1.0", "app.truth_spp=4",
+    common = ["render.width=80", "render.height=64", "render.spp=4", "render.max_motion_px=1.0", "render.min_strata=1", "app.truth_spp=4",
               "scene.wave_hz=4"]
     from mbcapture import run_capture
 

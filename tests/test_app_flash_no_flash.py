@@ -297,7 +297,7 @@ def test_reconstruction_needs_one_flash_read():
 def test_tiny_render_interleaved_beats_sequential():
     from mbcapture import run_capture
 
-    over = ["render.width=64", "render.height=48", "render.spp=2", "render.max_motion_px=2.0"]
+    over = ["render.width=64", "render.height=48", "render.spp=2", "render.max_motion_px=2.0", "render.min_strata=1"]
     res = {}
     for seq in (False, True):
         cfg = load_config(CONFIG, over + [f"capture.sequential={str(seq).lower()}"])

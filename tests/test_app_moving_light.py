@@ -123,7 +123,7 @@ def test_shadow_points_lie_on_the_table_along_rays_from_the_lamp():
 class TestTinyCapture:
     """One interleaved and one sequential capture at 64 x 48, 2 spp."""
 
-    SETS = ["render.width=64", "render.height=48", "render.spp=2", "render.max_motion_px=1.0"]
+    SETS = ["render.width=64", "render.height=48", "render.spp=2", "render.max_motion_px=1.0", "render.min_strata=1"]
 
     @pytest.fixture(scope="class")
     @classmethod

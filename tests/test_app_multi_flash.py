@@ -223,7 +223,7 @@ def test_config_keys_are_validated():
 
 
 # ---------------------------------------------------------------- tiny renders
-TINY = ["render.width=80", "render.height=64", "render.spp=4", "app.truth_spp=8", "render.max_motion_px=1.0"]
+TINY = ["render.width=80", "render.height=64", "render.spp=4", "app.truth_spp=8", "render.max_motion_px=1.0", "render.min_strata=1"]
 
 
 @pytest.mark.render

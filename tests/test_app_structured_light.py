@@ -182,7 +182,7 @@ def test_interleaved_beats_sequential_and_the_ambient_bucket_helps_gray_code():
     from mbcapture import run_capture
 
     # 40x32 pixels average a lot of slanted surface: 30 mm is the tolerance of this size
-    tiny = ["render.width=40", "render.height=32", "render.spp=4", "render.max_motion_px=1.0", "app.depth_tolerance_mm=30"]
+    tiny = ["render.width=40", "render.height=32", "render.spp=4", "render.max_motion_px=1.0", "render.min_strata=1", "app.depth_tolerance_mm=30"]
     inter = run_capture(load_config(CONFIG, tiny), progress=False).report["metrics"]
     seq = run_capture(load_config(CONFIG, tiny + ["capture.sequential=true"]), progress=False).report["metrics"]
     a, b = inter["depth"]["ambient_subtracted"]["all"], seq["depth"]["ambient_subtracted"]["all"]

@@ -37,7 +37,7 @@ def test_shipped_config_runs_at_tiny_size(path, tmp_path):
     with its outputs and report.html."""
     from report_checks import check_report_folder, undocumented_keys
 
-    cfg = load_config(path, ["render.width=16", "render.height=12", "render.max_motion_px=4"])
+    cfg = load_config(path, ["render.width=16", "render.height=12", "render.max_motion_px=4", "render.min_strata=1"])
     assert cfg.render.spp is None or path.name == "tiny_hdr.yaml"
     result = run_capture(cfg, tmp_path, progress=False)
     if cfg.render.spp is None:
@@ -87,7 +87,7 @@ CFA_RUNS = [("burst", "RGGB"), ("flash_matting", "GRBG"), ("flash_no_flash", "RG
 @pytest.mark.parametrize("config,cfa", CFA_RUNS, ids=[f"{c}-{p}" for c, p in CFA_RUNS])
 def test_every_application_runs_on_a_cfa_sensor(config, cfa, tmp_path):
     """Each application reconstructs from a mosaic (sensor.cfa) and writes the mosaic as its raw files."""
-    over = ["render.width=16", "render.height=12", "render.spp=2", "render.max_motion_px=4", f"sensor.cfa={cfa}"]
+    over = ["render.width=16", "render.height=12", "render.spp=2", "render.max_motion_px=4", "render.min_strata=1", f"sensor.cfa={cfa}"]
     if config == "rgb_illumination":
         # its separate ordinary Bayer camera (app.bayer) is not the sensor's mosaic under test, and costs
         # half of the run (a second spectral renderer); the shipped config runs it in the tests above

@@ -28,7 +28,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 DEFAULT_CONFIG = ROOT / "configs" / "metronome_hdr.yaml"
-TINY = "render.width=16 render.height=12 render.spp=1 render.max_motion_px=4"
+TINY = "render.width=16 render.height=12 render.spp=1 render.max_motion_px=4 render.min_strata=1"
 SHELL_BLOCKS = {"sh", "bash", "shell", "console"}
 
 #: Commands shown that are not run as shown: the reason, and what runs instead (None: nothing).

@@ -139,7 +139,7 @@ def test_plan_and_scenes_commands():
 
 def test_render_error_estimate_is_calibrated():
     """The half-sample variance estimate predicts the actual error against a high-spp render."""
-    base = ["render.width=32", "render.height=24", "render.max_motion_px=50", "scene.lamp_scale=0"]
+    base = ["render.width=32", "render.height=24", "render.max_motion_px=50", "render.min_strata=1", "scene.lamp_scale=0"]
     ref = run_capture(load_config(TINY, base + ["render.spp=512"]), progress=False)
     run = run_capture(load_config(TINY, base + ["render.spp=8", "seed=11"]), progress=False)
     assert ref.plan.passes == run.plan.passes == 1

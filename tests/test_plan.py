@@ -53,6 +53,22 @@ def test_doubling_speed_doubles_strata():
     assert abs(n2 / n1 - 2) < 0.15
 
 
+def test_a_moving_image_gets_at_least_min_strata():
+    """render.min_strata: an image that moves less than render.max_motion_px is still cut into that many strata
+    (each stratum's halves draw one time each, the same for every pixel), shared among the collecting intervals
+    of a sequential capture; a static scene stays one stratum, and 1 restores the motion rule alone."""
+    tl = timeline(periods=16)
+    slow = point_scene(0.5)  # far under half a pixel over the capture
+    assert plan(slow, tl, min_strata=1).passes == 1
+    assert plan(slow, tl).passes == RenderSection().min_strata == 4
+    assert plan(slow, tl, min_strata=7).passes == 7
+    assert plan(point_scene(None), tl, min_strata=7).passes == 1
+    fast = plan(point_scene(100.0), tl)  # motion asks for more than the minimum: the minimum changes nothing
+    assert fast.passes == plan(point_scene(100.0), tl, min_strata=1).passes > 4
+    seq = timeline(periods=4, sequential=True)  # four frames: at least one stratum each
+    assert plan(slow, seq, min_strata=1).passes == 4 and plan(slow, seq, min_strata=8).passes == 8
+
+
 def test_strata_respect_max_motion():
     tl = timeline(periods=16)
     scene = point_scene(100.0)
