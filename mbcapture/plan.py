@@ -284,8 +284,11 @@ def _split_interval(scene, tl: Timeline, a: int, b: int, render: RenderSection,
     inner = np.interp(targets, s, ticks.astype(np.float64)) if n > 1 else np.array([])
     if snap is not None and inner.size:
         start, period = snap
-        inner = start + np.round((inner - start) / period) * period
-        inner = inner[(inner > a) & (inner < b)]
+        snapped = start + np.round((inner - start) / period) * period
+        snapped = np.unique(snapped[(snapped > a) & (snapped < b)])
+        # too few periods to hold render.min_strata's strata (a capture of one or two periods): cuts off the periods
+        if snapped.size + 1 >= min(n, fewest if total > 0 else 1):
+            inner = snapped
     inner = np.unique(np.round(inner).astype(np.int64))
     return [a, *inner.tolist(), b], total
 

@@ -67,6 +67,8 @@ def test_a_moving_image_gets_at_least_min_strata():
     assert fast.passes == plan(point_scene(100.0), tl, min_strata=1).passes > 4
     seq = timeline(periods=4, sequential=True)  # four frames: at least one stratum each
     assert plan(slow, seq, min_strata=1).passes == 4 and plan(slow, seq, min_strata=8).passes == 8
+    # two or three periods: too few boundaries to cut four strata on, so the cuts fall inside the periods
+    assert plan(slow, timeline(periods=2)).passes == plan(slow, timeline(periods=3)).passes == 4
 
 
 def test_strata_respect_max_motion():
