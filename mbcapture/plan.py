@@ -286,7 +286,7 @@ def _split_interval(scene, tl: Timeline, a: int, b: int, render: RenderSection,
         start, period = snap
         snapped = start + np.round((inner - start) / period) * period
         snapped = np.unique(snapped[(snapped > a) & (snapped < b)])
-        # too few periods to hold render.min_strata's strata (a capture of one or two periods): cuts off the periods
+        # fewer periods than render.min_strata asks strata (a capture of two or three periods): cuts inside them
         if snapped.size + 1 >= min(n, fewest if total > 0 else 1):
             inner = snapped
     inner = np.unique(np.round(inner).astype(np.int64))
