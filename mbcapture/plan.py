@@ -278,7 +278,8 @@ def _split_interval(scene, tl: Timeline, a: int, b: int, render: RenderSection,
         per_period = float(reach.max())
         if per_period < budget / 4:
             snap, budget = periodic, budget - per_period
-    n = max(1, int(np.ceil(total / budget - 1e-9)), fewest if total > 0 else 1)
+    least = fewest if total > 0 else 1  # render.min_strata's share, where the image moves at all
+    n = max(int(np.ceil(total / budget - 1e-9)), least)
     n = min(n, len(ticks) - 1)
     targets = np.linspace(0.0, total, n + 1)[1:-1]
     inner = np.interp(targets, s, ticks.astype(np.float64)) if n > 1 else np.array([])
@@ -287,7 +288,7 @@ def _split_interval(scene, tl: Timeline, a: int, b: int, render: RenderSection,
         snapped = start + np.round((inner - start) / period) * period
         snapped = np.unique(snapped[(snapped > a) & (snapped < b)])
         # fewer periods than render.min_strata asks strata (a capture of two or three periods): cuts inside them
-        if snapped.size + 1 >= min(n, fewest if total > 0 else 1):
+        if snapped.size + 1 >= min(n, least):  # n may be fewer: the interval's ticks
             inner = snapped
     inner = np.unique(np.round(inner).astype(np.int64))
     return [a, *inner.tolist(), b], total

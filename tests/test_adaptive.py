@@ -268,8 +268,8 @@ def test_a_capture_with_adaptive_sampling_reports_its_tiers(tmp_path):
     # at most 32 spp and a tail target of 10: tiers of factors, chosen among the rules by what they leave in the
     # tail (at 32x24 one read's 0.1 % is two samples: the rule may refine most of the film)
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.min_strata=1", "render.cache=off",
-                       "render.max_spp=32", "render.adaptive=true", "render.adaptive_max_factor=64",
+                      ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.min_strata=1",
+                       "render.cache=off", "render.max_spp=32", "render.adaptive=true", "render.adaptive_max_factor=64",
                        "render.noise_budget_tail=10"])
     result = run_capture(cfg, tmp_path, progress=False)
     info = result.report["adaptive"]
@@ -433,8 +433,8 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
     monkeypatch.setattr(pipeline, "integrate", integrate_recorded)
     monkeypatch.setattr(pipeline, "tail_pixels", choose)
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.min_strata=1", "render.cache=off",
-                       "render.adaptive=true", "render.noise_budget_tail=10"])
+                      ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.min_strata=1",
+                       "render.cache=off", "render.adaptive=true", "render.noise_budget_tail=10"])
     run = pipeline.capture_in_memory(cfg, StageStatus(False))
     (desc, plan, scout), = [m for m in made if m[0] == "scout"]
     assert len(seen) == 1 and seen[0][0] is scout.mc_diff
@@ -464,8 +464,8 @@ def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monk
     from mbcapture.progress import StageStatus
 
     script = load_script("render_noise_reads")
-    sets = ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.min_strata=1", "render.cache=off", "render.max_spp=32",
-            "render.adaptive=true", "render.noise_budget_tail=10", "render.top_up=false"]
+    sets = ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.min_strata=1", "render.cache=off",
+            "render.max_spp=32", "render.adaptive=true", "render.noise_budget_tail=10", "render.top_up=false"]
     real_resolve = script.resolve_spp
     for share in (True, False):
         calls, pilots = [], []
