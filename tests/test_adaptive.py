@@ -293,9 +293,9 @@ def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
     from mbcapture.progress import StageStatus
 
     _, timeline, plan, seeds, r = setup
-    # a budget that 64 spp misses by about 2x at this film (the default's takes ~1500 spp here)
+    # a budget that 64 spp misses by about 1.7x at this film
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      [*SMALL, "render.noise_budget=2", "render.noise_budget_p95=100"])
+                      [*SMALL, "render.noise_budget=1.5", "render.noise_budget_p95=100"])
     low = plan  # 64 spp
     first = integrate(r, low, timeline.n_buckets, seeds[2])
     before = over_budget(first, timeline, cfg)[0]
@@ -726,3 +726,24 @@ def test_a_second_round_runs_only_where_the_refined_estimate_is_over_and_starts_
         np.testing.assert_array_equal(scout["have"], [1, 2, 2, 1, 1, 8, 1, 1])
         assert scout["max_factor"] == pipeline.SECOND_ROUND_MAX_FACTOR
         np.testing.assert_array_equal(refine_kwargs["have"], scout["have"])
+
+
+def test_with_adaptive_sampling_the_pilot_aims_the_first_passes_p95_under_the_tail(monkeypatch):
+    """The first pass's 95th percentile target: render.noise_budget_p95, lowered with adaptive sampling to
+    ADAPTIVE_FIRST_P95 x render.noise_budget_tail (never raised), and that is what the pilot is given."""
+    from mbcapture import budget
+    from mbcapture.budget import ADAPTIVE_FIRST_P95, first_pass_p95_target, resolve_spp
+
+    def render_cfg(*sets):
+        return load_config("metronome_hdr", list(sets)).render
+
+    assert first_pass_p95_target(render_cfg()) == pytest.approx(ADAPTIVE_FIRST_P95 * 1.0)
+    assert first_pass_p95_target(render_cfg("render.noise_budget_tail=3")) == pytest.approx(1.0)  # the p95's own
+    assert first_pass_p95_target(render_cfg("render.noise_budget_p95=0.2")) == pytest.approx(0.2)
+    assert first_pass_p95_target(render_cfg("render.adaptive=false")) == pytest.approx(1.0)
+    seen = {}
+    monkeypatch.setattr(budget, "choose_spp", lambda plan, *a, **k: seen.update(k) or plan)
+    cfg = load_config("metronome_hdr", [*SMALL, "render.noise_budget_tail=0.8"])
+    plan = replace(prepare(cfg)[2], spp=None)
+    resolve_spp(plan, None, cfg, np.random.SeedSequence(1))
+    assert seen["noise_budget_p95"] == pytest.approx(ADAPTIVE_FIRST_P95 * 0.8)

@@ -28,7 +28,7 @@ def _patch_scene(distance_m: float) -> SceneModel:
     )
     camera = Camera(origin=(0.0, 0.0, 0.9), target=(0.0, 0.0, -0.3), up=(0.0, 1.0, 0.0), fov_deg=30.0)
     return SceneModel(name="patch", groups=("lamp", "fill"), switchable=frozenset(), camera=camera,
-                      build=SceneBuild(shapes=shapes, guides=(Guide(tuple(patch), 0.022),)), params=None,
+                      build=SceneBuild(shapes=shapes, guides=(Guide(tuple(patch), 0.022, 0.02),)), params=None,
                       motion_points=lambda t: np.zeros((len(t), 0, 3)))
 
 
@@ -68,12 +68,30 @@ def test_guided_bounces_keep_the_image_and_lower_the_patch_light_noise(mitsuba_r
     assert gain > 2.0, gain
 
 
-def test_a_guide_checks_its_sphere():
+def test_a_guide_checks_its_sphere_and_share():
     with pytest.raises(ValueError, match="radius"):
-        Guide((0.0, 0.0, 0.0), 0.0)
+        Guide((0.0, 0.0, 0.0), 0.0, 0.02)
     with pytest.raises(ValueError, match="centre"):
-        Guide((0.0, np.nan, 0.0), 0.1)
-    assert Guide((0, 1, 2), 1).centre == (0.0, 1.0, 2.0)
+        Guide((0.0, np.nan, 0.0), 0.1, 0.02)
+    for share in (0.0, -0.1, 0.6, np.nan):
+        with pytest.raises(ValueError, match="Guide.share"):
+            Guide((0.0, 0.0, 0.0), 0.1, share)
+    assert Guide((0, 1, 2), 1, 0.5).centre == (0.0, 1.0, 2.0)
+    with pytest.raises(ValueError, match="add up to 0.6"):
+        SceneBuild(shapes=(), guides=(Guide((0, 0, 0), 0.1, 0.3), Guide((1, 0, 0), 0.1, 0.3)))
+
+
+def test_the_fraction_scales_the_scenes_shares_together():
+    from mbcapture.render.renderer import guide_shares
+
+    guides = (Guide((0, 0, 0), 0.1, 0.02), Guide((1, 0, 0), 0.2, 0.1), Guide((2, 0, 0), 0.1, 0.03))
+    assert guide_shares(guides, None) == (0.02, 0.1, 0.03)
+    assert guide_shares(guides, 0.3) == pytest.approx((0.04, 0.2, 0.06))
+    assert guide_shares(guides, 0.0) == (0.0, 0.0, 0.0)
+    assert guide_shares((), None) == () and guide_shares((), 0.2) == ()
+    for bad in (-0.01, 0.51):
+        with pytest.raises(ConfigError, match="render.guide_fraction"):
+            guide_shares(guides, bad)
 
 
 @pytest.mark.render
@@ -82,15 +100,18 @@ def test_the_fraction_is_part_of_the_render_identity_and_needs_lambertian_materi
     from mbcapture.render.cache import RenderCache
 
     scene = make_scene("metronome", load_module("metronome").Params())
-    assert scene.build.guides, "the metronome declares its lamp stand's guide"
+    own = tuple(g.share for g in scene.build.guides)
+    assert len(own) == 3, "the metronome declares its lamp stand's guide and the bulb's two spots"
     cache = RenderCache(tmp_path, 1 << 20)
-    ids = {f: Renderer(scene, W, H, cache=cache, guide_fraction=f).identity for f in (0.0, 0.02, 0.05)}
-    assert len(set(ids.values())) == 3
+    ids = {f: Renderer(scene, W, H, cache=cache, guide_fraction=f).identity for f in (0.0, 0.02, 0.05, None)}
+    assert len(set(ids.values())) == 4
+    assert Renderer(scene, W, H, cache=cache, guide_fraction=sum(own)).identity == ids[None]
     with pytest.raises(ConfigError, match="render.guide_fraction"):
         Renderer(scene, W, H, guide_fraction=0.6)
-    r = Renderer(scene, W, H, guide_fraction=0.02)
+    r = Renderer(scene, W, H, guide_fraction=None)
     r._ensure_loaded()
-    assert r._integrator.guides and r._integrator.guides[0][2] == pytest.approx(0.02)
+    assert [g[2] for g in r._integrator.guides] == list(own)
+    assert [g[:2] for g in r._integrator.guides] == [(g.centre, g.radius) for g in scene.build.guides]
     r._integrator.lambertian = False
     with pytest.raises(ConfigError, match="Lambertian"):
         r._guides()

@@ -33,10 +33,12 @@ time ``t_s`` (s). Non-emitting shapes of a part become one Mitsuba ``shapegroup`
 emitting shapes of a part (``rectangle``, ``disk``, ``sphere``, ``cylinder`` only) are moved
 through their own ``to_world``. Neither recompiles the render kernel.
 
-Guides: ``SceneBuild.guides`` are spheres (:class:`Guide`) around small, brightly lit patches that are
-not lights, such as the top of a lamp's stand just under its bulb; the path tracer sends
-``render.guide_fraction`` of every bounce towards them (unbiased), so their light stops arriving as rare
-fireflies. A scene declares them where it knows such a patch.
+Guides: ``SceneBuild.guides`` are spheres (:class:`Guide`) around brightly lit patches that are not
+lights, such as the top of a lamp's stand just under its bulb or the spots its bulb lights on the wall
+behind it and the table under it; the path tracer sends each guide's share of every bounce towards it
+(unbiased; ``render.guide_fraction`` scales the shares together), so their light stops arriving in rare
+bounces that carry it all. A scene declares them where it knows such a patch, with the shares its
+measurements chose.
 """
 
 from __future__ import annotations
@@ -209,17 +211,28 @@ class Projector:
         return m
 
 
+#: The most of every diffuse bounce that a scene's guides may take together (the cosine lobe keeps the rest).
+MAX_GUIDE_SHARE = 0.5
+
+
 @dataclass(frozen=True)
 class Guide:
-    """A sphere around a small, brightly lit patch that is not an emitter (the top of a lamp's stand,
-    millimetres under the bulb): the path tracer sends a share of every diffuse bounce
-    (``render.guide_fraction``) into the cone of directions towards it, weighted by the mixture's
-    density, so the light it reflects is found often and with small weights instead of by a rare bounce
-    that carries it all (:func:`mbcapture.render.integrator.guided_lambertian`). Static, in world
-    coordinates (m). Guiding changes the noise, never the expected image."""
+    """A sphere around a brightly lit patch that is not an emitter (the top of a lamp's stand, millimetres
+    under the bulb; the spot the bulb lights on the wall behind it): the path tracer sends ``share`` of every
+    diffuse bounce into the cone of directions towards it, weighted by the mixture's density, so the light
+    it reflects is found often and with small weights instead of by a rare bounce that carries it all
+    (:func:`mbcapture.render.integrator.guided_lambertian`). ``render.guide_fraction`` may scale the shares
+    of a scene's guides together. Static, in world coordinates (m). Guiding changes the noise, never the
+    expected image.
+
+    Keep the centre off every surface (a centimetre in front of the wall it guides to): from the vertices of a
+    surface through the centre, half of the cone lies under their horizon, and a bounce drawn along it continues
+    or ends by the last bit of its direction, which differs between CPUs (measured: a golden's sensor input
+    differed between two CPU targets by 7.7e-4 relative, against 1e-6 with the centres 1 cm off)."""
 
     centre: tuple[float, float, float]
     radius: float
+    share: float
 
     def __post_init__(self) -> None:
         c = np.asarray(self.centre, float)
@@ -227,8 +240,12 @@ class Guide:
             raise ValueError(f"Guide.centre: expected three finite coordinates (m), got {self.centre!r}")
         if not (math.isfinite(self.radius) and self.radius > 0):
             raise ValueError(f"Guide.radius: expected a positive radius (m), got {self.radius!r}")
+        if not (math.isfinite(self.share) and 0 < self.share <= MAX_GUIDE_SHARE):
+            raise ValueError(f"Guide.share: expected a share of the bounces above 0 and at most {MAX_GUIDE_SHARE}, "
+                             f"got {self.share!r}")
         object.__setattr__(self, "centre", tuple(map(float, c)))
         object.__setattr__(self, "radius", float(self.radius))
+        object.__setattr__(self, "share", float(self.share))
 
 
 @dataclass(frozen=True)
@@ -245,7 +262,7 @@ class SceneBuild:
         Pinhole projectors (:class:`Projector`), each in its own emitter group or sharing one.
     guides
         Spheres around bright patches that are not emitters (:class:`Guide`), towards which a share of
-        the bounces is sampled.
+        the bounces is sampled; their shares add up to at most :data:`MAX_GUIDE_SHARE`.
     """
 
     shapes: tuple[Shape, ...]
@@ -253,6 +270,12 @@ class SceneBuild:
     environment: Environment | None = None
     projectors: tuple[Projector, ...] = ()
     guides: tuple[Guide, ...] = ()
+
+    def __post_init__(self) -> None:
+        total = sum(g.share for g in self.guides)
+        if total > MAX_GUIDE_SHARE:
+            raise ValueError(f"SceneBuild.guides: their shares add up to {total:g}, above {MAX_GUIDE_SHARE}: the "
+                             "cosine lobe needs the rest of every bounce")
 
     def emitter_groups(self) -> tuple[str, ...]:
         """Groups that own at least one emitter, in first-appearance order."""

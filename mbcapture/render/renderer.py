@@ -30,7 +30,9 @@ from ..scenes import SceneModel
 from ..sensor.photons import mono_weights
 from ..sensor.spectral import film_sensitivity
 from .build import (
+    MAX_GUIDE_SHARE,
     MOVABLE_EMITTER_KINDS,
+    Guide,
     Material,
     PerTile,
     SceneBuild,
@@ -102,6 +104,18 @@ def _canonical(obj: Any, mi: Any) -> Any:
     # anything else would be hashed by its repr, which need not show its content: refuse, so that
     # two different scenes can never share a cache key
     raise TypeError(f"render cache key: cannot hash a {type(obj).__name__} in the scene description")
+
+
+def guide_shares(guides: Sequence[Guide], fraction: float | None) -> tuple[float, ...]:
+    """The share of every diffuse bounce sent towards each of ``guides``: their own shares (``fraction``
+    None), or ``fraction`` of every bounce split among them in proportion to their shares (0: none,
+    all zeros). ConfigError (render.guide_fraction) outside 0 to :data:`~mbcapture.render.build.MAX_GUIDE_SHARE`."""
+    if fraction is None:
+        return tuple(g.share for g in guides)
+    if not 0.0 <= fraction <= MAX_GUIDE_SHARE:
+        raise ConfigError(f"render.guide_fraction: expected null or 0 to {MAX_GUIDE_SHARE}, got {fraction}")
+    total = sum(g.share for g in guides)  # each share is positive (Guide)
+    return tuple(float(fraction) * g.share / total for g in guides)
 
 
 def thin_lens_of(scene: SceneModel, cfg: Any) -> tuple[float, float] | None:
@@ -200,7 +214,7 @@ class Renderer:
                  cache: RenderCache | None = None, sampler: str = "multijitter", vignetting: str = "none",
                  diffraction: bool = False, thin_lens: tuple[float, float] | None = None,
                  mono: np.ndarray | None = None, distortion: Sequence[float] | None = None,
-                 band_rows: int | None = None, guide_fraction: float = 0.0) -> None:
+                 band_rows: int | None = None, guide_fraction: float | None = 0.0) -> None:
         if thin_lens is not None and not (thin_lens[0] > 0 and thin_lens[1] > 0):
             raise ConfigError(f"thin lens: aperture radius and focus distance must be positive, got {thin_lens}")
         #: (aperture radius m, focus distance m) of Mitsuba's thinlens sensor; None: a pinhole
@@ -286,10 +300,11 @@ class Renderer:
         self.scene_model = scene
         self.width, self.height = int(width), int(height)
         self.max_depth = int(max_depth)
-        if not 0.0 <= guide_fraction <= 0.5:
-            raise ConfigError(f"render.guide_fraction: expected 0 to 0.5, got {guide_fraction}")
-        #: the share of every diffuse bounce sent towards the scene's guides (SceneBuild.guides)
-        self.guide_fraction = float(guide_fraction) if scene.build.guides else 0.0
+        #: the share of every diffuse bounce sent towards each of the scene's guides (SceneBuild.guides), in their
+        #: order: their own shares (``guide_fraction`` None), or ``guide_fraction`` split in their proportions
+        self.guide_shares = guide_shares(scene.build.guides, guide_fraction)
+        #: the share of every diffuse bounce sent towards the scene's guides together (0: none)
+        self.guide_fraction = float(sum(self.guide_shares))
         self.groups: tuple[str, ...] = tuple(scene.groups)
         build: SceneBuild = scene.build
         unknown = set(build.emitter_groups()) - set(self.groups)
@@ -362,16 +377,14 @@ class Renderer:
         self._loaded = True
 
     def _guides(self) -> tuple:
-        """The integrator's guides ((centre, radius, share), ...): the scene's spheres, render.guide_fraction
-        shared among them; none where the fraction is 0."""
-        guides = self._build.guides
-        if not guides or self.guide_fraction == 0.0:
+        """The integrator's guides ((centre, radius, share), ...): the scene's spheres with
+        :attr:`guide_shares`; none where those are 0."""
+        if not self.guide_fraction:
             return ()
         if not self._integrator.lambertian:
             raise ConfigError(f"render.guide_fraction: scene {self.scene_model.name!r} has guides, which only "
                               "Lambertian materials sample towards; set render.guide_fraction: 0")
-        share = self.guide_fraction / len(guides)
-        return tuple((g.centre, g.radius, share) for g in guides)
+        return tuple((g.centre, g.radius, share) for g, share in zip(self._build.guides, self.guide_shares))
 
     @classmethod
     def from_config(cls, scene: SceneModel, cfg: Any, *, cache: RenderCache | None = None, **overrides: Any) -> "Renderer":
@@ -592,8 +605,8 @@ class Renderer:
             "groups": list(self.groups),
             "variant": self.variant,
             "max_depth": self.max_depth,
-            "guides": [[*g.centre, g.radius] for g in self._build.guides] if self.guide_fraction else [],
-            "guide_fraction": self.guide_fraction,
+            "guides": [[*g.centre, g.radius, share] for g, share in zip(self._build.guides, self.guide_shares)]
+            if self.guide_fraction else [],
             "code": code,
             "versions": {p: metadata.version(p) for p in ("mitsuba", "drjit")},
             "target": target,

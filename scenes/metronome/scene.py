@@ -56,11 +56,22 @@ FLASH_OFFSET_M = (0.05, 0.0, 0.0)  # LED position relative to the lens (camera f
 LAMP_X_M, LAMP_Z_M = 0.3, -0.2  # the lamp's stand (radius 4 mm, 0.2 m high) and bulb (radius 12 mm) above it
 STAND_TOP_M, STAND_RADIUS_M = 0.2, 0.004
 BULB_Y_M, BULB_RADIUS_M = 0.215, 0.012
+WALL_Z_M = -0.4  # the back wall's plane; the table top is the plane y = 0
 #: The stand's top centimetre lies 3-15 mm under the bulb: lit to a radiance of 2-12 W m^-2 sr^-1 (its rim
 #: to 1 cm down), 20-100x the wall's left half, a patch 8 mm wide that a bounce from there finds about once in
 #: 10^4. Those rare bounces were the wall's single-pixel fireflies (docs/noise.md, "The lamp's stand"), so
 #: the path tracer samples towards it (:class:`~mbcapture.render.build.Guide`).
-STAND_GUIDE = Guide((LAMP_X_M, STAND_TOP_M - 0.008, LAMP_Z_M), 0.01)
+STAND_GUIDE = Guide((LAMP_X_M, STAND_TOP_M - 0.008, LAMP_Z_M), 0.01, 0.02)
+#: The spots the bulb lights on the wall 0.2 m behind it and on the table 0.215 m under it (irradiance falling
+#: as the cube of the distance from the bulb: within 0.2 m of the foot of the perpendicular lies 30 % of the
+#: light the bulb sends to the wall's plane). A bounce from the rest of the scene finds them rarely, and the
+#: bounces that do carry most of the image's rendering noise: in the median pixels of the default capture,
+#: 1 % of the one-bounce samples (80 % of them on the table's spot) held 38 % of their second moment, and 1 %
+#: of the two-bounce samples (90 % on the wall's spot) 73 %. Radii and shares chosen by measurement
+#: (docs/noise.md, "The lamp's spots"): J4's median 0.60x and its p95 0.80x at equal samples. Their centres lie
+#: 1 cm off the wall and the table (:class:`~mbcapture.render.build.Guide` says why).
+WALL_SPOT_GUIDE = Guide((LAMP_X_M, BULB_Y_M, WALL_Z_M + 0.01), 0.25, 0.1)
+TABLE_SPOT_GUIDE = Guide((LAMP_X_M, 0.01, LAMP_Z_M), 0.1, 0.03)
 
 
 class Params(BaseModel):
@@ -146,7 +157,7 @@ def _static_shapes(p: Params) -> list[Shape]:
         # Table top (0.9 x 0.7 m) and back wall.
         Shape("table", "rectangle", translate(0, 0, 0.2) @ rot_x @ scale(0.9, 0.6, 1),
               Material((0.55, 0.40, 0.25))),
-        Shape("wall", "rectangle", translate(0, 0.4, -0.4) @ scale(1.2, 0.6, 1),
+        Shape("wall", "rectangle", translate(0, 0.4, WALL_Z_M) @ scale(1.2, 0.6, 1),
               Material((0.62, 0.64, 0.66))),
         # Metronome body: a stepped wedge of three boxes, and a dark front plate behind the needle.
         Shape("body_base", "cube", box((0, 0.02, 0), (0.07, 0.02, BODY_DEPTH_M / 2)), body),
@@ -213,7 +224,7 @@ def make(params: Params) -> SceneModel:
     build = SceneBuild(
         shapes=tuple(_static_shapes(params) + _needle_shapes(params.needle_length_m)),
         parts={"needle": needle_to_world},
-        guides=(STAND_GUIDE,),
+        guides=(STAND_GUIDE, WALL_SPOT_GUIDE, TABLE_SPOT_GUIDE),
     )
     return SceneModel(
         name="metronome",
