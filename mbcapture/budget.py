@@ -626,7 +626,7 @@ def choose_spp(
 #: With adaptive sampling (``render.adaptive``), the first pass brings every read's 95th percentile to this share
 #: of the tail target (``render.noise_budget_tail``) where ``render.noise_budget_p95`` asks for less: adaptive
 #: sampling is cheap where the pixels it refines are few, and a first pass whose 95th percentile sits at the tail
-#: target leaves some per cent of the samples over it, a third to a half of the film with their neighbours and the
+#: target leaves some per cent of the samples over it, more than half of the film with their neighbours and the
 #: scout's noise. Measured on the default capture at 640x512 (docs/noise.md, "The lamp's spots"): first passes of
 #: 7 x 74 (the p95 at 1), 121 and 166 spp refined 56 %, 19 % and 4 % of the film, for 169, 164 and 189 samples a
 #: pixel and stratum in all (first pass, scout and second pass, whose samples cost about 1.1x); 0.5 asks for about 121.

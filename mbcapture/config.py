@@ -87,7 +87,7 @@ class RenderSection(_Model):
     noise_budget_p95: float = Field(
         1.0,
         gt=0,
-        description="With render.spp null: the same ratio's 95th percentile (1.0: in 95% of the samples rendering adds at most as much variance as the photons). With render.adaptive, the pilot chooses the first pass for at most half of render.noise_budget_tail here (budget.ADAPTIVE_FIRST_P95): adaptive sampling then refines a fifth of the default capture's film instead of half, for fewer samples in all (docs/noise.md).",
+        description="With render.spp null: the same ratio's 95th percentile (1.0: in 95% of the samples rendering adds at most as much variance as the photons). With render.adaptive, the pilot chooses the first pass for at most half of render.noise_budget_tail here (budget.ADAPTIVE_FIRST_P95): adaptive sampling then refines a sixth of the default capture's film instead of more than half, for fewer samples in all (docs/noise.md).",
     )
     noise_budget_tail: float = Field(
         1.0,
