@@ -7,6 +7,7 @@ import pytest
 
 from mbcapture.errors import ConfigError
 from mbcapture.render.build import Guide, Light, Material, SceneBuild, Shape, frame_towards, rotate, scale, translate
+from mbcapture.render.renderer import guide_shares
 from mbcapture.scenes import Camera, SceneModel, load_module, make_scene
 
 W, H = 24, 16
@@ -82,8 +83,6 @@ def test_a_guide_checks_its_sphere_and_share():
 
 
 def test_the_fraction_scales_the_scenes_shares_together():
-    from mbcapture.render.renderer import guide_shares
-
     guides = (Guide((0, 0, 0), 0.1, 0.02), Guide((1, 0, 0), 0.2, 0.1), Guide((2, 0, 0), 0.1, 0.03))
     assert guide_shares(guides, None) == (0.02, 0.1, 0.03)
     assert guide_shares(guides, 0.3) == pytest.approx((0.04, 0.2, 0.06))
