@@ -36,6 +36,7 @@ from . import camera_motion, protocols, scenes
 from .camera_motion import CameraSection
 from .errors import ConfigError, ConfigNotice
 from .optics import fov_deg_for
+from .render.build import MAX_GUIDE_SHARE
 from .sensor.config import SensorConfig
 from .sensor.spectral import EFFECTIVE_WAVELENGTH, is_spectral_variant
 
@@ -194,7 +195,7 @@ class RenderSection(_Model):
         "lower); the noise budget's pilot predicts the median's gain and chooses fewer samples (docs/noise.md).",
     )
     guide_fraction: float | None = Field(
-        None, ge=0.0, le=0.5,
+        None, ge=0.0, le=MAX_GUIDE_SHARE,
         description="Share of every diffuse bounce the path tracer sends towards the scene's guides: spheres around "
         "brightly lit patches that are not lights, each declared by its scene with a share of its own (the metronome's: "
         "the top of its lamp's stand, 3 mm under the bulb, 0.02; the spot the bulb lights on the wall behind it, 0.1; "

@@ -121,6 +121,8 @@ def budget_and_cache(args) -> None:
         if t_old is not None:
             print(f"[5] the bucket budget's code ({BUCKET_BUDGET_COMMIT[:7]}), the same capture cold in this run: "
                   f"{t_old[0]:.1f} s ({t_old[1]}); today's over it: {t_cold / t_old[0]:.2f}x (target <= 1)")
+            if args.budget_pairs > 1:
+                budget_pairs(args.budget_pairs, w, h, (t_cold, t_old[0]))
         # the same code at the samples the bucket budget chose (their middle), without a pilot: what the reads'
         # extra samples cost
         with tempfile.TemporaryDirectory() as cache_b:
@@ -134,15 +136,45 @@ def budget_and_cache(args) -> None:
         print(f"    cost split: {_split(t_warm, warm)}")
 
 
+def budget_pairs(n: int, w: int, h: int, first: tuple[float, float]) -> None:
+    """[5] with --budget-pairs n: n pairs of (today's capture, the bucket budget's) cold, the first being the
+    pair above, the order alternating (today's first in even pairs, the old code's first in odd ones: a
+    machine that slows or speeds up during the run then tilts the pairs both ways); prints each pair's
+    ratio and the ratio of the medians."""
+    import tempfile
+
+    pairs = [first]
+    for i in range(1, n):
+        with tempfile.TemporaryDirectory() as cache:
+            def today() -> float:
+                return timed_capture([f"render.width={w}", f"render.height={h}", f"render.cache={cache}"])[0]
+
+            if i % 2:
+                t_old = bucket_budget_capture(w, h)
+                t_new = today()
+            else:
+                t_new = today()
+                t_old = bucket_budget_capture(w, h)
+        if t_old is None:
+            return
+        pairs.append((t_new, t_old[0]))
+        print(f"[5] pair {i + 1} ({'old' if i % 2 else 'today'}'s first): today's {t_new:.1f} s, the bucket "
+              f"budget's {t_old[0]:.1f} s: {t_new / t_old[0]:.2f}x")
+    new, old = np.median([p[0] for p in pairs]), np.median([p[1] for p in pairs])
+    print(f"[5] {n} pairs, order alternating: today's median {new:.1f} s, the bucket budget's {old:.1f} s: "
+          f"{new / old:.2f}x (target <= 1); the pairs' ratios {', '.join(f'{a / b:.2f}' for a, b in pairs)}")
+
+
 def bucket_budget_capture(w: int, h: int) -> tuple[float, str] | None:
     """The default capture at ``w`` x ``h`` by :data:`BUCKET_BUDGET_COMMIT`'s code, in a child process with
-    this environment's packages, render cache off: (wall seconds of ``run_capture``, its samples); None,
+    this environment's packages, an empty render cache of its own like today's cold capture (both write their
+    renders to it, as the default capture does): (wall seconds of ``run_capture``, its samples); None,
     with a line saying why, where the commit is not in this clone (a shallow one) or its capture fails."""
     import subprocess
     import sys
     import tempfile
 
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as cache:
         archive = subprocess.run(["git", "-C", str(ROOT), "archive", BUCKET_BUDGET_COMMIT], capture_output=True)
         if archive.returncode != 0:
             print(f"[5] the bucket budget's code: not timed (git archive {BUCKET_BUDGET_COMMIT[:7]}: "
@@ -152,7 +184,7 @@ def bucket_budget_capture(w: int, h: int) -> tuple[float, str] | None:
         code = ("import json, time\n"
                 "from mbcapture import load_config, run_capture\n"
                 f"cfg = load_config('configs/metronome_hdr.yaml', ['render.width={w}', 'render.height={h}', "
-                "'render.cache=off'])\n"
+                f"'render.cache={cache}'])\n"
                 "t0 = time.perf_counter()\n"
                 "r = run_capture(cfg, progress=False)\n"
                 "plan = r.report['plan']\n"
@@ -314,6 +346,8 @@ def main() -> None:
     ap.add_argument("--naive-spp", default="1,2", help="[4] naive spp per slot")
     ap.add_argument("--ref-spp", type=int, default=256, help="[4] reference spp")
     ap.add_argument("--budget-film", default="640x512", help="[5] film, WxH")
+    ap.add_argument("--budget-pairs", type=int, default=1,
+                    help="[5] pairs of (today's capture, the bucket budget's) in alternating order; their medians' ratio")
     ap.add_argument("--compare-film", default="160x128", help="[6] film, WxH")
     ap.add_argument("--sweep-film", default="320x256", help="[7], [8] film, WxH")
     ap.add_argument("--sweep-workers", type=int, default=None,
