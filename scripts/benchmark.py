@@ -431,7 +431,7 @@ def main() -> None:
                 renderer.render(t_mid, 4 * args.spp, 1)
                 best[name] = min(best[name], time.perf_counter() - t0)
         renderer._integrator.guides = guided
-        print(f"[2] guides (render.guide_fraction {renderer.guide_fraction}): a render {best['guided']:.2f} s with them, "
+        print(f"[2] guides (render.guide_fraction {renderer.guide_fraction:.3g}): a render {best['guided']:.2f} s with them, "
               f"{best['plain']:.2f} s without: {best['guided'] / best['plain']:.3f}x")
 
     stages = r4["timings_s"]
