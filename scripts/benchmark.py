@@ -20,8 +20,9 @@
    2 cores), the same again with a sensor change (target: at most 15 s, zero passes rendered),
    and the cost split of each (renders rendered / reused, render seconds / the rest). Against it,
    in the same run: the same capture by the code whose budget judged buckets (BUCKET_BUDGET_COMMIT,
-   pilot included: issue 26's baseline, target: no more time), and today's code at that budget's
-   samples without a pilot (what the reads' extra samples cost).
+   pilot included: issue 26's baseline, target: no more time; both with an empty render cache of their
+   own; --budget-pairs N times N such pairs in alternating order and prints the ratio of the medians),
+   and today's code at that budget's samples without a pilot (what the reads' extra samples cost).
 6. What meeting the budget costs with each sampler and estimator (--compare-film, default
    160x128): samples chosen, wall time and the measured Monte Carlo / shot-noise ratio, then a
    second capture of the same scene with another protocol (interleaved_hdr) on the warm cache.
