@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..metrics import REC709_LUMA, pu21_psnr, relative_mse
-from ..reconstruct.hdr import merge_hdr, resolve_method
-from ..sensor.cfa import spread_to_footprint
+from ..reconstruct.hdr import merge_hdr, quantization_read_variance_e2, resolve_method
+from ..sensor.cfa import demosaic, demosaic_hdr, spread_to_footprint, to_mosaic
 from . import AppOutput, CaptureData, register
 
 #: lm/W at 555 nm: radiance (W m^-2 sr^-1) -> luminance (cd m^-2) for PU21, treating the RGB
@@ -53,6 +53,17 @@ def motion_check(normalized: np.ndarray, names: list[str], truth: np.ndarray, ma
     return {"moving_pixels": int(mask.sum()), "rel_rms_vs_truth": per_read, "max_pairwise_rel_rms": pair}
 
 
+def demosaic_floor(sensor, k_e: np.ndarray, exposure_s: np.ndarray) -> np.ndarray:
+    """(3,) radiance per channel below which a merge's radiance is demosaiced linearly (:func:`demosaic_hdr`):
+    the merge's noise at zero light, one read's read and quantization noise (``sensor``) over the longest of
+    the ``exposure_s``, through the electrons per unit radiance and second ``k_e``. Lower than the reads'
+    floor (:data:`~mbcapture.sensor.cfa.LOG_DEMOSAIC_FLOOR_E`): a merge's darkest pixels sit beside its
+    brightest, and within a linear range of 100 e- Menon's colour differences still pulled 6 of them below
+    zero on the metronome at 128x96 (none with this floor; relMSE 0.0089 against 0.0092).
+    ``python scripts/cfa_hdr_order.py --size 128x96 --spp 8`` measures the merge with it."""
+    return np.sqrt(quantization_read_variance_e2(sensor)) / (np.asarray(k_e) * float(np.max(exposure_s)))
+
+
 def merge_mosaic(data: CaptureData, method: str, cumulative: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A Bayer sensor: merge each photosite's reads (with its own saturation flags), then demosaic the
     radiance. Returns radiance, sigma, valid (H, W, 3).
@@ -61,16 +72,19 @@ def merge_mosaic(data: CaptureData, method: str, cumulative: bool) -> tuple[np.n
     photosite into its neighbours, so every pixel within the demosaicing's reach of it must drop that
     read (the sensor stage flags them), and the merge falls back to shorter, noisier reads around
     every highlight. Merging each photosite first keeps its best reads, and demosaicing then works on
-    unclipped linear radiance. Measured (``python scripts/cfa_hdr_order.py``: metronome_hdr, 320x256,
-    16 spp, RGGB): relMSE 0.100 merging first against 0.181 demosaicing first with menon2007, 0.148
-    against 0.218 with malvar2004, equal with bilinear (0.156); PU21-PSNR equal within 0.13 dB.
-    ``sigma`` is the merged photosites' sigma interpolated by the same demosaicing, not the
-    demosaiced value's own (averaging lowers it, Malvar's negative weights raise it)."""
+    unclipped radiance, in a logarithmic domain (:func:`mbcapture.sensor.cfa.demosaic_hdr` says why).
+    Measured (``python scripts/cfa_hdr_order.py --size 128x96 --spp 8``: metronome_hdr, RGGB): relMSE 0.0092
+    merging first against 0.43 demosaicing first with menon2007, 0.017 against 0.53 with malvar2004,
+    0.071 against 0.40 with bilinear.
+    ``sigma`` is the merged photosites' sigma interpolated bilinearly, not the demosaiced value's own
+    (averaging lowers it)."""
     hdr = merge_hdr(data.mosaic_dn, data.exposure_s, data.cfg.sensor, method=method, cumulative=cumulative,
                     saturated=data.mosaic_saturated)
     k = data.k_e[data.photosite_channels()]
-    radiance = data.demosaic(hdr.rate_e_per_s / k)
-    sigma = data.demosaic(np.where(hdr.valid, hdr.sigma_e_per_s / k, 0.0))
+    floor = demosaic_floor(data.cfg.sensor, data.k_e, data.exposure_s)
+    radiance = demosaic_hdr(hdr.rate_e_per_s / k, data.cfg.sensor.cfa, data.cfg.sensor.demosaic, floor)
+    # an uncertainty interpolated with non-negative weights (Malvar's and Menon's negative ones made it < 0)
+    sigma = demosaic(np.where(hdr.valid, hdr.sigma_e_per_s / k, 0.0), data.cfg.sensor.cfa, "bilinear")
     valid = ~spread_to_footprint(~hdr.valid, data.cfg.sensor.demosaic)
     return radiance, np.where(valid, sigma, np.inf), valid
 
@@ -87,8 +101,10 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
     cfg, tl = data.cfg, data.timeline
     cumulative = not data.sequential and any(len(r.buckets) > 1 for r in tl.reads)
     method = resolve_method(cfg.hdr.method, cumulative)
+    floor = None
     if data.bayer:
         radiance, sigma, valid = merge_mosaic(data, method, cumulative)
+        floor = demosaic_floor(data.cfg.sensor, data.k_e, data.exposure_s)
     else:
         hdr = merge_hdr(data.reads_dn, data.exposure_s, cfg.sensor, method=method, cumulative=cumulative,
                         saturated=data.saturated)
@@ -108,6 +124,12 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
         "hdr_valid_fraction": float(valid.mean()),
         "motion_check": motion_check(normalized, data.read_names, truth, mask),
     }
+    if data.bayer:  # the mosaic's own share: the noise-free truth through the same mosaic and demosaicing
+        alone = demosaic_hdr(to_mosaic(truth, cfg.sensor.cfa), cfg.sensor.cfa, cfg.sensor.demosaic, floor)
+        metrics["demosaic_rel_mse"] = relative_mse(alone, truth, eps=REL_MSE_EPS_RADIANCE)
+        if mask.any():
+            metrics["demosaic_rel_mse_moving"] = relative_mse(alone, truth, mask=mask[..., None].repeat(n_ch, -1),
+                                                              eps=REL_MSE_EPS_RADIANCE)
     if mask.any():
         metrics["hdr_rel_mse_moving"] = relative_mse(
             radiance, truth, mask=mask[..., None].repeat(n_ch, -1), eps=REL_MSE_EPS_RADIANCE

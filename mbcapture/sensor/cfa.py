@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["BAYER_PATTERNS", "DEMOSAIC_METHODS", "channel_map", "demosaic", "footprint_radius", "spread_to_footprint",
-           "to_mosaic"]
+__all__ = ["BAYER_PATTERNS", "DEMOSAIC_METHODS", "LOG_DEMOSAIC_FLOOR_E", "channel_map", "demosaic", "demosaic_hdr", "footprint_radius",
+           "spread_to_footprint", "to_mosaic"]
 
 #: Bayer layouts by name: the channel (0 R, 1 G, 2 B) of each photosite of the 2x2 tile, row by row.
 BAYER_PATTERNS: dict[str, tuple[int, int, int, int]] = {
@@ -40,6 +40,15 @@ DEMOSAIC_METHODS: dict[str, tuple[str, int]] = {
     "malvar2004": ("demosaicing_CFA_Bayer_Malvar2004", 2),
     "menon2007": ("demosaicing_CFA_Bayer_Menon2007", 8),
 }
+
+#: The photo-electrons below which :func:`demosaic_hdr` is linear, as a signal's floor. In the logarithm an
+#: interpolated value is a weighted geometric mean, which lies under the arithmetic one by about half the
+#: values' relative variance; a count of N electrons has a relative shot-noise variance of 1 / N, so above 100
+#: electrons that bias is under 0.5 %, and below it the values are demosaiced as they are. Measured on
+#: flash_no_flash at 128x96, RGGB (``python scripts/cfa_apps.py flash_no_flash``): with the floor at the read
+#: noise (3 e-) the enhanced image's PSNR fell from 37.5 dB (linear) to 36.3, with 100 e- it rose to 38.1; both
+#: cut the moving flash-only image's relMSE from 0.51 to 0.045.
+LOG_DEMOSAIC_FLOOR_E = 100.0
 
 #: The mirrored margin around a mosaic while it is demosaiced (even: the pattern keeps its name).
 _MARGIN = 10
@@ -90,6 +99,38 @@ def demosaic(mosaic: np.ndarray, pattern: str, method: str) -> np.ndarray:
     for i, plane in enumerate(flat):
         out[i] = fn(np.pad(plane, pad, mode="reflect"), pattern)[pad:pad + H, pad:pad + W]
     return out.reshape(*m.shape, 3)
+
+
+def demosaic_hdr(mosaic: np.ndarray, pattern: str, method: str, floor: np.ndarray | float) -> np.ndarray:
+    """Demosaic high-dynamic-range linear values (an HDR merge's radiance) in a logarithmic domain:
+    ``floor * sinh(demosaic(asinh(mosaic / floor)))``, with ``floor`` the value of each photosite's channel
+    (a scalar, or one per channel R, G, B) below which the transform is linear.
+
+    Why: demosaicing methods interpolate a photosite's missing channels from its neighbours, Malvar's and
+    Menon's from their colour differences. That assumption (a colour difference varies slowly) holds on
+    images of a few hundred to one, the range the methods were designed on; an HDR merge spans 10^5 (a lamp
+    at 2000 W m^-2 sr^-1 next to a wall at 0.01), where a bright neighbour's difference lands on a dark
+    pixel as a value of the bright one's size and either sign: the metronome's merge at 128x96 had 206
+    negative radiance samples and a relMSE of 0.26, as much as demosaicing its noise-free truth gave (0.37).
+    In the logarithm a colour difference is a colour ratio (the constant-hue assumption of ratio-based
+    demosaicing), which does vary slowly across such an edge, and an interpolated value is a weighted
+    geometric mean, which a bright neighbour cannot pull below zero. Measured on that capture
+    (``python scripts/cfa_hdr_order.py --size 128x96 --spp 8``): the merge's relMSE 0.258 -> 0.0092 with
+    menon2007, 0.376 -> 0.017 with malvar2004, 0.395 -> 0.071 with bilinear, each now that of its
+    noise-free truth demosaiced alike (0.0089, 0.018, 0.10). ``asinh`` rather than ``log`` keeps values at and below
+    zero (noise around black) defined and unbiased: within ``floor`` of zero it is linear, where a logarithm
+    would skew the noise (:data:`LOG_DEMOSAIC_FLOOR_E` chooses it)."""
+    floor = np.asarray(floor, dtype=np.float64)
+    floor = floor.reshape(()) if floor.size == 1 else floor
+    if np.any(~np.isfinite(floor)) or np.any(floor <= 0):
+        raise ValueError(f"demosaic_hdr: floor must be positive and finite, got {floor!r}")
+    if floor.ndim not in (0, 1) or floor.size not in (1, 3):
+        raise ValueError(f"demosaic_hdr: floor must be one number or one per channel R, G, B, got {floor!r}")
+    m = np.asarray(mosaic, dtype=np.float64)
+    if m.ndim >= 3 and m.shape[-1] == 1:
+        m = m[..., 0]
+    per_site = floor[channel_map(pattern, *m.shape[-2:])] if floor.ndim == 1 else floor
+    return np.sinh(demosaic(np.arcsinh(m / per_site), pattern, method)) * floor
 
 
 def footprint_radius(method: str) -> int:

@@ -50,7 +50,7 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from .cfa import demosaic, spread_to_footprint, to_mosaic
+from .cfa import LOG_DEMOSAIC_FLOOR_E, demosaic_hdr, spread_to_footprint, to_mosaic
 from .config import SensorConfig
 from .sampling import FIELD_MEMO, BandedField, NoiseStreams, binomial_quantile, poisson_quantile_memo
 
@@ -323,9 +323,10 @@ def develop_reads(photosites: SensorReads, cfg: SensorConfig) -> SensorReads:
         return replace(out, reads_dn=np.repeat(out.reads_dn, 3, axis=-1), reads_e_expected=mono,
                        saturated=np.repeat(out.saturated, 3, axis=-1), mosaic_dn=out.reads_dn[..., 0],
                        mosaic_saturated=out.saturated[..., 0], cfa="mono")
-    # demosaic the signal above black (Malvar's and the bilinear kernels are linear, so this only matters
-    # for Menon's direction decision), not rounded again: the reads are the ISP's output from here on
-    signal = demosaic(out.reads_dn[..., 0] - cfg.black_level_dn, cfg.cfa, cfg.demosaic) + cfg.black_level_dn
+    # demosaic the signal above black in a logarithmic domain (demosaic_hdr: a read spans its ADC's range,
+    # thousands to one), linear below LOG_DEMOSAIC_FLOOR_E; not rounded again: the reads are the ISP's output
+    floor = LOG_DEMOSAIC_FLOOR_E * cfg.gain_dn_per_e
+    signal = demosaic_hdr(out.reads_dn[..., 0] - cfg.black_level_dn, cfg.cfa, cfg.demosaic, floor) + cfg.black_level_dn
     return replace(out, reads_dn=signal, saturated=spread_to_footprint(out.saturated, cfg.demosaic),
                    mosaic_dn=out.reads_dn[..., 0], mosaic_saturated=out.saturated[..., 0], cfa=cfg.cfa)
 
