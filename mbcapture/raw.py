@@ -1,5 +1,5 @@
-"""DNG raw files of the simulated reads (``output.dng``), for the raw tools photographers already use
-(LibRaw/rawpy, dcraw, Lightroom, darktable, RawTherapee).
+"""DNG raw files of the simulated reads (``output.dng``), for the raw tools photographers already use.
+LibRaw (through rawpy) is the reader the tests open and develop them with; other readers are not tested.
 
 A DNG is a TIFF with the DNG tags; tifffile (well kept, already a dependency of scikit-image and
 imageio) writes TIFF with any extra tags, so the DNG tags are written through it rather than with a
@@ -43,11 +43,33 @@ _BLACK_LEVEL, _WHITE_LEVEL = 50714, 50717
 _COLOR_MATRIX_1, _AS_SHOT_NEUTRAL, _CALIBRATION_ILLUMINANT_1 = 50721, 50728, 50778
 _PHOTOMETRIC_CFA, _PHOTOMETRIC_LINEAR_RAW, _PHOTOMETRIC_BLACK_IS_ZERO = 32803, 34892, 1
 _D65 = 21
+#: The finest denominator of a written RATIONAL or SRATIONAL: six decimals, where the numerator fits.
 _DENOMINATOR = 1_000_000
 
 
+def _rational(values, signed: bool) -> tuple[int, ...]:
+    """(numerator, denominator) pairs of ``values`` as TIFF (S)RATIONALs: 32-bit numerators, so each value's
+    denominator is the largest power of ten up to 10^6 that keeps its numerator in range (a black level of
+    5000 DN at 10^6 would be 5 x 10^9, over the 4.29 x 10^9 an unsigned 32-bit integer holds)."""
+    top = 2**31 - 1 if signed else 2**32 - 1
+    out = []
+    for x in values:
+        x = float(x)
+        if not np.isfinite(x) or (x < 0 and not signed) or abs(x) > top:
+            raise ValueError(f"DNG {'SRATIONAL' if signed else 'RATIONAL'}: {x} cannot be written")
+        den = _DENOMINATOR
+        while den > 1 and abs(round(x * den)) > top:
+            den //= 10
+        out += [int(round(x * den)), den]
+    return tuple(out)
+
+
 def _srational(values) -> tuple[int, ...]:
-    return tuple(v for x in values for v in (int(round(float(x) * _DENOMINATOR)), _DENOMINATOR))
+    return _rational(values, signed=True)
+
+
+def _urational(values) -> tuple[int, ...]:
+    return _rational(values, signed=False)
 
 
 def colour_tags(channel_gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,22 +104,22 @@ def write_dng(path: str | Path, codes: np.ndarray, *, black_level: float, white_
     ]
     if cfa != "mono":
         tags += [(_COLOR_MATRIX_1, "2i", 9, _srational(matrix.ravel()), True),
-                 (_AS_SHOT_NEUTRAL, "2I", 3, _srational(neutral), True),
+                 (_AS_SHOT_NEUTRAL, "2I", 3, _urational(neutral), True),
                  (_CALIBRATION_ILLUMINANT_1, "H", 1, (_D65,), True)]
     else:  # one colour plane: XYZ -> its value is Y (a 1x3 matrix), its neutral 1
         tags += [(_COLOR_MATRIX_1, "2i", 3, _srational([0.0, 1.0, 0.0]), True),
-                 (_AS_SHOT_NEUTRAL, "2I", 1, _srational([1.0]), True),
+                 (_AS_SHOT_NEUTRAL, "2I", 1, _urational([1.0]), True),
                  (_CALIBRATION_ILLUMINANT_1, "H", 1, (_D65,), True)]
     if cfa == "mono":
         if data.ndim != 2:
             raise ValueError(f"codes: expected an (H, W) image of a monochrome sensor, got {data.shape}")
         photometric = _PHOTOMETRIC_BLACK_IS_ZERO  # written so, then made LinearRaw (below)
-        tags.append((_BLACK_LEVEL, "2I", 1, _srational([black_level]), True))
+        tags.append((_BLACK_LEVEL, "2I", 1, _urational([black_level]), True))
     elif cfa is None:
         if data.ndim != 3 or data.shape[-1] != 3:
             raise ValueError(f"codes: expected (H, W, 3) without a CFA, got {data.shape}")
         photometric = _PHOTOMETRIC_LINEAR_RAW
-        tags.append((_BLACK_LEVEL, "2I", 3, _srational([black_level] * 3), True))
+        tags.append((_BLACK_LEVEL, "2I", 3, _urational([black_level] * 3), True))
     else:
         if cfa not in CFA_PATTERNS:
             raise ValueError(f"cfa: expected one of {sorted(CFA_PATTERNS)}, got {cfa!r}")
@@ -106,7 +128,7 @@ def write_dng(path: str | Path, codes: np.ndarray, *, black_level: float, white_
         photometric = _PHOTOMETRIC_CFA
         tags += [(_CFA_REPEAT_PATTERN_DIM, "H", 2, (2, 2), True), (_CFA_PATTERN, "B", 4, CFA_PATTERNS[cfa], True),
                  (_CFA_PLANE_COLOR, "B", 3, (0, 1, 2), True), (_CFA_LAYOUT, "H", 1, (1,), True),
-                 (_BLACK_LEVEL, "2I", 1, _srational([black_level]), True)]
+                 (_BLACK_LEVEL, "2I", 1, _urational([black_level]), True)]
     tifffile.imwrite(path, data.astype(np.uint16), photometric=photometric, planarconfig="contig", subfiletype=0,
                      extratags=tags, metadata=None, software="mbcapture")
     if cfa == "mono":
