@@ -108,9 +108,8 @@ class RenderSection(_Model):
         "they are combined with one inverse-variance weight for the whole film, from the figure (median or p95) that "
         "decided (unbiased either way). Once, within render.max_spp "
         "(not applied where a stratum has no room); "
-        "report.json's top_up says what it added. A film in one tile, rendered in this process, no "
-        "capture.gate_code, render.estimator independent, and room in free memory for a second set of the film's "
-        "arrays.",
+        "report.json's top_up says what it added. Needs render.estimator independent and room in free memory for "
+        "the pass (about 3x one tile's share of the film's arrays).",
     )
     adaptive: bool = Field(
         True,
@@ -136,10 +135,11 @@ class RenderSection(_Model):
         "each pixel holds) refines it again. The "
         "top-up judges the budget on the image the chosen factors will give. Unbiased: which pixels are chosen comes "
         "from renders the image does not use, and the rule is one choice from the whole film's estimate, so neither "
-        "conditions any pixel's first pass (report.json adaptive). Any render.variant and lens (since the sixteenth "
-        "session: spectral variants, and camera.distortion or camera.diffraction, whose refined pixels' neighbourhoods "
-        "are rendered with them), render.estimator independent, a film in "
-        "one tile, and room in free memory for the scout's second set of the film's arrays; elsewhere it is skipped "
+        "conditions any pixel's first pass (report.json adaptive). Any render.variant and lens (spectral variants, "
+        "and camera.distortion or camera.diffraction, whose refined pixels' neighbourhoods "
+        "are rendered with them), render.estimator independent, "
+        "and room in free memory for the scout's pass (about 3x one tile's share of the film's arrays); elsewhere it "
+        "is skipped "
         "and report.json says why. The tail lies on silhouettes and moving edges (docs/noise.md).",
     )
     adaptive_max_factor: int = Field(
@@ -409,7 +409,7 @@ class OutputSection(_Model):
         False, description="Also write each read as a DNG raw file, read_<name>.dng: its ADC codes (16-bit; the "
         "photosites' mosaic with its CFA pattern on a Bayer sensor (sensor.cfa), one sample per pixel on a mono "
         "one, else a linear DNG with R, G, B per pixel), black and white levels, and the colour matrix and as-shot "
-        "neutral of the sensor's per-channel response, so raw developers (rawpy/LibRaw, darktable, Lightroom) open "
+        "neutral of the sensor's per-channel response, so LibRaw (rawpy; tested) opens "
         "and colour it. Needs sensor.adc_bits <= 16, and an RGB render.variant unless the sensor is mono.",
     )
 

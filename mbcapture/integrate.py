@@ -305,7 +305,8 @@ def integrate(
 def integrate_tiles(renderer, plan: Plan, n_buckets: int, seed: np.random.SeedSequence,
                     tiles: tuple[tuple[int, int], ...], *, per_group: bool = False, timer=None,
                     progress: bool = False, before_tile: Callable[[tuple[int, int]], None] | None = None,
-                    store: FilmStore = IN_MEMORY) -> Integrated:
+                    store: FilmStore = IN_MEMORY, desc: str = "render",
+                    continues: tuple[Plan, np.random.SeedSequence] | None = None) -> Integrated:
     """:func:`integrate` tile by tile: each tile (rows first, end; runs of whole render bands,
     :mod:`mbcapture.render.bands`) rendered through :class:`~mbcapture.render.renderer.RenderRows`
     and accumulated alone, so that the renders, the two halves, the pairs of strata and the
@@ -314,18 +315,19 @@ def integrate_tiles(renderer, plan: Plan, n_buckets: int, seed: np.random.SeedSe
     result is :func:`integrate`'s on the whole film, bit for bit (tests/test_tiles.py).
     ``before_tile(rows)``: called before each tile is integrated (a cluster renders its bands then).
     ``store``: where the whole-film results of several tiles are made (in memory, or on disk:
-    :mod:`mbcapture.filmstore`)."""
+    :mod:`mbcapture.filmstore`); ``desc`` and ``continues`` as for :func:`integrate`."""
     if len(tiles) == 1 and tuple(tiles[0]) == (0, renderer.height):
         if before_tile is not None:
             before_tile(tuple(tiles[0]))
-        return integrate(renderer, plan, n_buckets, seed, per_group=per_group, timer=timer, progress=progress)
-    H, W, C = renderer.height, renderer.width, len(renderer.channels)
+        return integrate(renderer, plan, n_buckets, seed, per_group=per_group, timer=timer, progress=progress,
+                         desc=desc, continues=continues)
+    H = renderer.height
     out: dict[str, np.ndarray | None] = {}
     for i, (r0, r1) in enumerate(tiles):
         if before_tile is not None:
             before_tile((r0, r1))
         part = integrate(RenderRows(renderer, (r0, r1)), plan, n_buckets, seed, per_group=per_group, timer=timer,
-                         progress=progress, desc=f"render tile {i + 1}/{len(tiles)}")
+                         progress=progress, desc=f"{desc} tile {i + 1}/{len(tiles)}", continues=continues)
         for name in ("exposure", "mc_diff", "group_exposure", "temporal_diff"):
             value = getattr(part, name)
             if value is None:
@@ -435,7 +437,8 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
 
 def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, factor: "int | np.ndarray",
            seed: np.random.SeedSequence, *, points: int = 1, per_group: bool = False, timer=None,
-           progress: bool = False, desc: str = "refine", have: "int | np.ndarray" = 1) -> Integrated:
+           progress: bool = False, desc: str = "refine", have: "int | np.ndarray" = 1,
+           store: FilmStore = IN_MEMORY) -> Integrated:
     """Adaptive sampling's second pass: every stratum again at ``pixels`` (flat indices) only, each with
     ``factor`` - 1 times its samples (one factor for all, or one per pixel; two halves, for the error
     estimate), through :meth:`mbcapture.render.Renderer.render_pixels`, added to the first pass there: each
@@ -463,7 +466,8 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
 
     ``have`` (one, or one per pixel): the factor of the first pass's samples ``integrated`` already holds at each
     pixel (a second round of adaptive sampling, :func:`mbcapture.pipeline.refine_tail`): the pass then adds
-    ``factor`` - ``have`` times the first pass's samples, weighed ``have`` : ``factor`` - ``have``."""
+    ``factor`` - ``have`` times the first pass's samples, weighed ``have`` : ``factor`` - ``have``. ``store``: where
+    the refined whole-film arrays are made (a tiled capture's may be on disk, :mod:`mbcapture.filmstore`)."""
     pix = np.asarray(pixels, dtype=np.int64).ravel()
     fac = np.broadcast_to(np.asarray(factor, dtype=np.int64), pix.shape)
     held = np.broadcast_to(np.asarray(have, dtype=np.int64), pix.shape)
@@ -516,7 +520,8 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
 
     def combined(first: np.ndarray, second: np.ndarray, pixel_axis: int) -> np.ndarray:
         """``first`` with its pixels' values the passes' mean by their samples (have : extra)."""
-        out = first.copy()
+        out = store.empty(first.shape, first.dtype)
+        np.copyto(out, first)
         flat = out.reshape(*first.shape[:pixel_axis], H * W, C)
         at = (slice(None),) * pixel_axis + (pix,)
         flat[at] = (held[:, None] * flat[at] + extra[:, None] * second) / fac[:, None]

@@ -37,7 +37,7 @@ from .cluster import render_on_cluster
 from .config import CaptureConfig, scene_of
 from .errors import ConfigError
 from .filmstore import IN_MEMORY, FilmStore
-from .integrate import Integrated, integrate, integrate_tiles, refine, sample_counter, temporal_error
+from .integrate import Integrated, integrate_tiles, refine, sample_counter, temporal_error
 from .plan import Plan, make_plan
 from .progress import StageStatus
 from .render import Renderer, ensure_llvm
@@ -288,6 +288,40 @@ def merge_cluster_info(infos: list[dict]) -> dict:
     return out
 
 
+@dataclass(frozen=True)
+class FilmLayout:
+    """How a capture's render passes go through its film: in ``tiles`` of rows (None: the whole film at once),
+    with whole-film results made by ``store`` (in memory, or scratch files on disk: render.spill). Every pass
+    (the first, adaptive sampling's scout, the top-up) renders tile by tile as the first does, and a tile gives
+    the whole film's values bit for bit (:func:`mbcapture.integrate.integrate_tiles`), so the budget's choices,
+    made on the whole film's arrays, are those of an untiled run."""
+
+    tiles: tuple[tuple[int, int], ...] | None = None
+    store: FilmStore = IN_MEMORY
+
+    def integrate(self, renderer, plan: Plan, n_buckets: int, seed: np.random.SeedSequence, **kw) -> Integrated:
+        """:func:`mbcapture.integrate.integrate_tiles` over this layout's tiles (``kw`` passed on)."""
+        return integrate_tiles(renderer, plan, n_buckets, seed, self.tiles or ((0, renderer.height),),
+                               store=self.store, **kw)
+
+    def tile_share(self, height: int) -> float:
+        """The largest tile's share of the film's ``height`` rows: what a pass holds of the film at once."""
+        return 1.0 if not self.tiles else max(r1 - r0 for r0, r1 in self.tiles) / height
+
+    def mix(self, a: np.ndarray, b: np.ndarray, c: float) -> np.ndarray:
+        """``(a + c b) / (1 + c)`` in ``a``'s dtype, made by the store a tile of rows at a time (the film's rows
+        are the axis before the last two), so that no whole-film float64 temporary is held."""
+        out = self.store.empty(a.shape, a.dtype)
+        for r0, r1 in self.tiles or ((0, a.shape[-3]),):
+            rows = (..., slice(r0, r1), slice(None), slice(None))
+            out[rows] = ((a[rows].astype(np.float64) + c * b[rows]) / (1.0 + c)).astype(a.dtype)
+        return out
+
+
+#: The whole film at once, in memory.
+WHOLE_FILM = FilmLayout()
+
+
 #: The top-up aims this far under the budget (the run's own estimate scatters from seed to seed), and
 #: sizes its pass for the less favourable of variance ~ 1/spp and ~ spp^-TOP_UP_EXPONENT (the steep
 #: end of what the pilot sees): a pass with fewer samples than the first is dearer per sample with
@@ -329,14 +363,17 @@ def over_budget(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig,
     return over[(worst, key)], worst, key, reads[worst][key]
 
 
-def no_room_for_another_pass(integrated: Integrated) -> str | None:
+def no_room_for_another_pass(integrated: Integrated, layout: FilmLayout = WHOLE_FILM) -> str | None:
     """Why another render pass over the film cannot run here, or None: it holds a second set of the
     film's arrays while it renders (two float64 halves of each, its per-group and temporal sums), which
     must fit in free memory beside what the run holds (the top-up's second pass, adaptive sampling's
-    scout)."""
+    scout). In tiles (``layout``) the pass holds that for its largest tile, and its results are whole-film
+    arrays beside them unless they go to scratch files."""
     arrays = [a for a in (integrated.exposure, integrated.mc_diff, integrated.group_exposure,
                           integrated.temporal_diff) if a is not None]
-    need = 3 * sum(a.size * 8 for a in arrays)
+    share = layout.tile_share(integrated.exposure.shape[-3])
+    results = 0.0 if share == 1.0 or layout.store.spills else 1.0
+    need = int((3 * share + results) * sum(a.size * 8 for a in arrays))
     free, where = resources.free_memory()
     if need <= free - resources.rss_bytes():
         return None
@@ -347,7 +384,8 @@ def no_room_for_another_pass(integrated: Integrated) -> str | None:
 def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
            seed: np.random.SeedSequence, status: StageStatus, *, per_group: bool, timer, progress: bool,
            why_not: str | None, planned: list[tuple[np.ndarray, int]] | None = None,
-           planned_reads: dict | None = None, tail: bool = False) -> tuple[Plan, Integrated, dict | None]:
+           planned_reads: dict | None = None, tail: bool = False,
+           layout: FilmLayout = WHOLE_FILM) -> tuple[Plan, Integrated, dict | None]:
     """render.top_up: when the pilot's choice left the run's own estimate over the median or p95 target
     (:func:`over_budget` > 1; the pilot extrapolates from 8 and 32 samples, and its exponent can be
     too steep for the count it reaches), or, after adaptive sampling's choice, over the tail target (where
@@ -380,7 +418,8 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     combination ``(E1 + c E2) / (1 + c)`` is unbiased whatever ``c``: each pass is (every sample of a
     scrambled sequence is uniform, wherever it starts), and ``c`` and the second pass's size depend on
     the whole film's noise, not on any pixel's value. So is its half-sample difference ``(d1 + c d2) /
-    (1 + c)`` as an error estimate. Returns the plan with the summed samples, the combined render stage
+    (1 + c)`` as an error estimate. The second pass goes through the film as the first did (``layout``: its
+    tiles, and where its results are made). Returns the plan with the summed samples, the combined render stage
     and what report.json keeps (None when the first pass met the budget)."""
     if integrated.mc_diff is None:
         return plan, integrated, None
@@ -388,7 +427,7 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
                                            planned_reads, tail=tail, plan=plan)
     if factor <= 1.0:
         return plan, integrated, None
-    why_not = why_not or no_room_for_another_pass(integrated)
+    why_not = why_not or no_room_for_another_pass(integrated, layout)
     if why_not is not None:
         return plan, integrated, {"applied": False, "before": round(factor, 4),
                                   "note": f"not applied: a top-up needs {why_not}"}
@@ -416,8 +455,9 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x70F, 0x7)))
         times = plan.draw_times(rng)[:, :, 0]
         second_plan = replace(plan, spp=extra, times_s=times[:, 0], half_times_s=times)
-        second = integrate(renderer, second_plan, timeline.n_channels, child, per_group=per_group,
-                           timer=timer, progress=progress, desc="top-up", continues=(plan, seed) if extend else None)
+        second = layout.integrate(renderer, second_plan, timeline.n_channels, child, per_group=per_group,
+                                  timer=timer, progress=progress, desc="top-up",
+                                  continues=(plan, seed) if extend else None)
         c = float(extra.sum() / plan.spp.sum())  # by their samples: each sample alike when they continue
         if not extend:  # the two passes' figures as rendered (the planned refinement adds to both alike)
             v1, v2 = (_read_figures(x, timeline, cfg, [worst], plan=plan).get(worst, {}).get(figure, 0.0)
@@ -425,9 +465,7 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
             c = v1 / v2 if v2 > 0 else c
 
         def mix(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
-            if a is None or b is None:
-                return None
-            return ((a.astype(np.float64) + c * b) / (1.0 + c)).astype(a.dtype)
+            return None if a is None or b is None else layout.mix(a, b, c)
 
         integrated = Integrated(exposure=mix(integrated.exposure, second.exposure),
                                 mc_diff=mix(integrated.mc_diff, second.mc_diff),
@@ -456,7 +494,7 @@ REFINE_TIME_POINTS = 4
 
 def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
                seed: np.random.SeedSequence, status: StageStatus, *, moving: np.ndarray, timer, progress: bool,
-               tiled: bool = False, have: np.ndarray | None = None,
+               layout: FilmLayout = WHOLE_FILM, have: np.ndarray | None = None,
                max_factor: int | None = None) -> tuple[list[tuple[np.ndarray, int]] | None, dict, dict | None]:
     """Adaptive sampling's choice (render.adaptive): a scout, the strata rendered again with seeds of their own
     at about a sixteenth of the first pass's samples (:func:`mbcapture.budget.scout_spp`), chooses the pixels
@@ -470,18 +508,16 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
     estimate, so every pixel's estimate, and the run's own estimate of its error, is unbiased. Made before the top-up, which judges the budget on the image these factors will give
     (:func:`top_up`), and rendered after it (:func:`refine_tail`). Returns the tiers (None where adaptive
     sampling cannot apply), what report.json keeps and the chosen tiers' :func:`_read_figures` (what the top-up
-    judges on). Not in a tiled run (``tiled``): the scout, the choice of pixels and their second pass are the
-    whole film's.
+    judges on). The scout goes through the film as the first pass did (``layout``); the choice is made on the
+    whole film's arrays.
 
     ``have`` (flat, per pixel): a second round (:data:`ADAPTIVE_ROUNDS`), on a render stage already refined to these
     factors of the first pass's samples: the scout (seeds of its own again) is scaled to them, the rule judged on
     that stage's own estimate, and the tiers are factors of what each pixel holds, at most ``max_factor`` (default
     render.adaptive_max_factor)."""
-    why = ("a film in one tile (render.tiles; the choice of pixels and their second pass are the whole film's)"
-           if tiled else
-           "render.estimator independent" if plan.estimator != "independent"
+    why = ("render.estimator independent" if plan.estimator != "independent"
            else "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None
-           else no_room_for_another_pass(integrated))  # the scout renders the film again
+           else no_room_for_another_pass(integrated, layout))  # the scout renders the film again
     if why is not None:
         return None, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}, None
     with status.stage("adaptive sampling: scout"):
@@ -491,9 +527,9 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
         scout_plan = replace(plan, spp=scout_spp(spp, sample_counter(renderer, plan)))
         again = () if have is None else (0x2D,)  # a second round's scout: seeds of its own again
         with timer("scout"):
-            scout = integrate(renderer, scout_plan, timeline.n_channels,
-                              np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5C0, *again)),
-                              progress=progress, desc="scout" if have is None else "scout again")
+            scout = layout.integrate(renderer, scout_plan, timeline.n_channels,
+                                     np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5C0, *again)),
+                                     progress=progress, desc="scout" if have is None else "scout again")
         # the first pass's ratio over the scout's: as 1/spp where nothing moves; 1 where a render's time is noise,
         # as there both passes draw one time per half-stratum, and their time noise does not fall with samples
         scale = np.where(moving, 1.0, float((scout_plan.spp / np.maximum(spp, 1)).max()))
@@ -547,7 +583,7 @@ def with_planned_refinement(integrated: Integrated, tiers: list[tuple[np.ndarray
 def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, integrated: Integrated,
                 tiers: list[tuple[np.ndarray, int]], info: dict, seed: np.random.SeedSequence, status: StageStatus,
                 *, moving: np.ndarray, per_group: bool, timer, progress: bool,
-                have: np.ndarray | None = None) -> tuple[Integrated, dict]:
+                have: np.ndarray | None = None, layout: FilmLayout = WHOLE_FILM) -> tuple[Integrated, dict]:
     """Adaptive sampling's second pass (render.adaptive): the pixels of :func:`scout_tail`'s ``tiers`` rendered
     again with more samples and added to the first pass (:func:`mbcapture.integrate.refine`), those in
     ``moving`` (where a render's time is noise, :func:`mbcapture.render.shadows.changing_region`) at
@@ -568,7 +604,8 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, integrated: 
                 child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA, points, *again))
                 integrated = refine(renderer, plan, integrated, pixels[part], factors[part], child, points=points,
                                     per_group=per_group, timer=timer, progress=progress, have=held[part],
-                                    desc=f"refine {int(part.sum())} px" + (" moving" if points > 1 else ""))
+                                    desc=f"refine {int(part.sum())} px" + (" moving" if points > 1 else ""),
+                                    store=layout.store)
         info["seconds"] = round(info["scout"]["seconds"] + time.perf_counter() - start, 3)
     return integrated, info
 
@@ -585,7 +622,8 @@ SECOND_ROUND_MAX_FACTOR = 4
 
 def second_round(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
                  tiers: list[tuple[np.ndarray, int]], info: dict, seed: np.random.SeedSequence, status: StageStatus,
-                 *, moving: np.ndarray, per_group: bool, timer, progress: bool) -> tuple[Integrated, dict]:
+                 *, moving: np.ndarray, per_group: bool, timer, progress: bool,
+                 layout: FilmLayout = WHOLE_FILM) -> tuple[Integrated, dict]:
     """Adaptive sampling's second round (:data:`ADAPTIVE_ROUNDS`), where the refined render stage's own estimate of
     the tail is still over render.noise_budget_tail on some read (the median and p95 are the top-up's):
     :func:`scout_tail` and :func:`refine_tail` again, from what each pixel holds. Unbiased as the first round is: its
@@ -601,13 +639,14 @@ def second_round(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: T
         have[pixels] = f
     status.add_stage()
     more, round_info, _ = scout_tail(cfg, renderer, plan, timeline, integrated, seed, status, moving=moving,
-                                     timer=timer, progress=progress, have=have, max_factor=SECOND_ROUND_MAX_FACTOR)
+                                     timer=timer, progress=progress, have=have, max_factor=SECOND_ROUND_MAX_FACTOR,
+                                     layout=layout)
     round_info["before"] = round(factor, 4)
     if more:
         status.add_stage()
         integrated, round_info = refine_tail(cfg, renderer, plan, integrated, more, round_info, seed, status,
                                              moving=moving, per_group=per_group, timer=timer, progress=progress,
-                                             have=have)
+                                             have=have, layout=layout)
     info["second_round"] = round_info
     return integrated, info
 
@@ -659,6 +698,9 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
     tiles = group_bands(renderer.bands, need.tiles)
     # a tiled film's whole-film results in scratch files on disk when the plan says so (render.spill)
     store = FilmStore(resources.spill_folder(cfg)) if need.spill_bytes and len(tiles) > 1 else IN_MEMORY
+    # every render pass through the film in those tiles; on a cluster only the first pass renders on the workers,
+    # adaptive sampling's scout, top-up and refinement in this process (the same renders: the same values)
+    layout = FilmLayout(tuple(tuple(t) for t in tiles), store)
     if rendered is None:
         pilot = status.stage("pilot render (spp from render.noise_budget)") if cfg.render.spp is None else nullcontext()
         with timer("pilot"), pilot:
@@ -686,24 +728,23 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
             with timer("adaptive_rule"):
                 changing = changing_region(renderer, float(t0_s), float(t1_s), W, H, moving=moving)
             tiers, adaptive_info, planned_reads = scout_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
-                                              moving=changing, timer=timer, progress=progress, tiled=len(tiles) > 1)
+                                              moving=changing, timer=timer, progress=progress, layout=layout)
         if cfg.render.spp is None and cfg.render.top_up:
-            why_not = ("a film in one tile (render.tiles)" if len(tiles) > 1 else
-                       "renders in this process (no cluster)" if client is not None else
-                       "render.estimator independent" if plan.estimator != "independent" else None)
+            why_not = "render.estimator independent" if plan.estimator != "independent" else None
             plan, integrated, top_up_info = top_up(cfg, renderer, plan, timeline, integrated, seeds[2], status,
                                                    per_group=app.per_group, timer=timer, progress=progress,
                                                    why_not=why_not, planned=tiers, planned_reads=planned_reads,
                                                    tail=bool(adaptive_info and adaptive_info.get("rules_judged")
-                                                             and not adaptive_info["tail_met_by_rule"]))
+                                                             and not adaptive_info["tail_met_by_rule"]),
+                                                   layout=layout)
         if tiers:
             status.add_stage()  # the scout's stage was counted at the start, its second pass is one more
             integrated, adaptive_info = refine_tail(cfg, renderer, plan, integrated, tiers, adaptive_info, seeds[2],
                                                     status, moving=changing, per_group=app.per_group, timer=timer,
-                                                    progress=progress)
+                                                    progress=progress, layout=layout)
             integrated, adaptive_info = second_round(cfg, renderer, plan, timeline, integrated, tiers, adaptive_info,
                                                      seeds[2], status, moving=changing, per_group=app.per_group,
-                                                     timer=timer, progress=progress)
+                                                     timer=timer, progress=progress, layout=layout)
         rendered = Rendered(plan, integrated, moving)
         if on_rendered is not None:
             on_rendered(rendered)

@@ -13,7 +13,7 @@ from script_modules import load_script
 from mbcapture import load_config
 from mbcapture.budget import ADAPTIVE_SELECT, tail_pixels
 from mbcapture.config import scene_of
-from mbcapture.integrate import integrate, refine
+from mbcapture.integrate import integrate, integrate_tiles, refine
 from mbcapture.pipeline import prepare
 from mbcapture.render import Renderer
 from mbcapture.render.shadows import changing_region
@@ -422,15 +422,15 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
 
     made, seen = [], []
 
-    def integrate_recorded(*args, **kwargs):
-        made.append((kwargs.get("desc", "render"), args[1], integrate(*args, **kwargs)))
+    def integrate_recorded(*args, **kwargs):  # every pass through the film, in its tiles (FilmLayout)
+        made.append((kwargs.get("desc", "render"), args[1], integrate_tiles(*args, **kwargs)))
         return made[-1][2]
 
     def choose(mc_diff, *args, **kwargs):
         seen.append((mc_diff, args[-1]))
         return tail_pixels(mc_diff, *args, **kwargs)
 
-    monkeypatch.setattr(pipeline, "integrate", integrate_recorded)
+    monkeypatch.setattr(pipeline, "integrate_tiles", integrate_recorded)
     monkeypatch.setattr(pipeline, "tail_pixels", choose)
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
                       ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.min_strata=1",
