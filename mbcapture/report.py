@@ -61,10 +61,20 @@ FILE_NOTES = {
 CFA_LINES = {"none": "none: R, G and B at every pixel (three stacked photosites)",
              "mono": "monochrome: one spectral response, the sum of the bands' (the reads' R, G, B are equal)"}
 
-def read_scales(reads_dn: np.ndarray, black_level_dn: float) -> tuple[float, list[float]]:
-    """White levels (DN above black) of the read previews: the common one (the
+def white_balanced(reads_dn: np.ndarray, black_level_dn: float, k_e: np.ndarray) -> np.ndarray:
+    """Reads in DN above black, white-balanced: each channel times max(k_e) / k_e[c], the sensor's response to
+    the render's linear sRGB channel c over the strongest (``k_e``: electrons per unit radiance and second), so
+    that a white surface is grey, as in the previews of radiance (truth.png). The camera's raw values weigh the
+    channels by the filters' response instead (the green one about twice the blue)."""
+    above = np.asarray(reads_dn, dtype=np.float64) - black_level_dn
+    k = np.asarray(k_e, dtype=np.float64)
+    return above * (k.max() / k) if k.shape == (above.shape[-1],) and (k > 0).all() else above
+
+
+def read_scales(balanced: np.ndarray) -> tuple[float, list[float]]:
+    """White levels of the read previews, from the reads :func:`white_balanced`: the common one (the
     ``COMMON_SCALE_PERCENTILE`` of the brightest read's luminance) and each read's own maximum."""
-    lum = luminance(np.asarray(reads_dn, dtype=np.float64) - black_level_dn)  # (R, H, W)
+    lum = luminance(balanced)  # (R, H, W)
     common = max(float(np.percentile(l, COMMON_SCALE_PERCENTILE)) for l in lum)
     own = [float(l.max()) for l in lum]
     return (common if common > 0 else 1.0), [o if o > 0 else 1.0 for o in own]
@@ -72,22 +82,22 @@ def read_scales(reads_dn: np.ndarray, black_level_dn: float) -> tuple[float, lis
 
 def write_read_previews(st: "Staging", result: "CaptureResult") -> dict:
     """``read_<J>_common_scale.png`` (one white for every read: exposure ratios visible) and
-    ``read_<J>_own_scale.png`` (each read's maximum is white), sRGB; returns their scales for
-    report.json."""
-    black = result.config.sensor.black_level_dn
+    ``read_<J>_own_scale.png`` (each read's maximum is white), white-balanced (:func:`white_balanced`), with
+    the sRGB curve; returns their scales for report.json."""
     names = [r.name for r in result.timeline.reads]
-    common, own = read_scales(result.reads_dn, black)
+    balanced = white_balanced(result.reads_dn, result.config.sensor.black_level_dn, result.k_e)
+    common, own = read_scales(balanced)
     for i, n in enumerate(names):
-        above = result.reads_dn[i] - black
-        st.write_png(f"read_{n}_common_scale.png", above / common, None)
-        st.write_png(f"read_{n}_own_scale.png", above / own[i], None)
+        st.write_png(f"read_{n}_common_scale.png", balanced[i] / common, None)
+        st.write_png(f"read_{n}_own_scale.png", balanced[i] / own[i], None)
+    how = "DN above black level, white-balanced by the sensor's response per channel (a white surface is grey)"
     return {
         "read_common_scale_white_dn": common,
-        "read_common_scale": f"read_<name>_common_scale.png: DN above black level / {common:.6g} (the "
+        "read_common_scale": f"read_<name>_common_scale.png: {how}, / {common:.6g} (the "
                              f"{COMMON_SCALE_PERCENTILE:g}th percentile luminance of the brightest read), "
-                             "clipped, sRGB: the same DN is the same grey in every read",
+                             "clipped, sRGB curve: the same DN is the same grey in every read",
         "read_own_scale_white_dn": dict(zip(names, own)),
-        "read_own_scale": "read_<name>_own_scale.png: DN above black level / that read's largest luminance, sRGB",
+        "read_own_scale": f"read_<name>_own_scale.png: {how}, / that read's largest luminance, sRGB curve",
     }
 
 
@@ -250,7 +260,7 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
     sections.append(
         "<h2 id='reads'>Reads</h2><p>Top row: every read on one DN scale (black level removed; white = the "
         f"{COMMON_SCALE_PERCENTILE:g}th percentile luminance of the brightest read), so exposure ratios are visible. "
-        "Bottom row: each read scaled to its own maximum. sRGB.</p>"
+        "Bottom row: each read scaled to its own maximum. White-balanced DN above black, sRGB curve.</p>"
         f"<div class='grid' style='grid-template-columns:repeat({len(names)},minmax(0,300px))'>" + "".join(cells)
         + "</div>")
     # ---- application images
@@ -291,8 +301,8 @@ def write_report(st: "Staging", result: "CaptureResult") -> None:
     notes = {**FILE_NOTES, f"{result.app}.exr": "the application's images as linear layers",
              "report.html": "this page"}
     for n in names:
-        notes[f"read_{n}_common_scale.png"] = f"read {n}, sRGB, on the scale common to all reads"
-        notes[f"read_{n}_own_scale.png"] = f"read {n}, sRGB, its own maximum white"
+        notes[f"read_{n}_common_scale.png"] = f"read {n}, white-balanced, on the scale common to all reads"
+        notes[f"read_{n}_own_scale.png"] = f"read {n}, white-balanced, its own maximum white"
         notes[f"read_{n}.dng"] = f"read {n} as a DNG raw file (output.dng): ADC codes, black and white levels, colour matrix"
     for stem, (image, pct) in app_out.png.items():
         notes.setdefault(f"{stem}.png", f"preview of {image} ({_preview_scale(pct)})")

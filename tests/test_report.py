@@ -172,3 +172,15 @@ def test_colour_map_and_its_scale():
     assert scale == {**scale, "min": 1.0, "max": 100.0, "log": True}
     # 10 is half-way on a log scale from 1 to 100: its colour is the middle stop's
     assert "#%02x%02x%02x" % tuple(rgb[0, 1]) == scale["stops"][5]
+
+
+def test_read_previews_are_white_balanced_so_a_white_surface_is_grey():
+    """A read is camera DN: channel c of a white surface is black + g x k_e[c]. Its preview divides by the
+    sensor's response per channel, so it is grey; the raw DN are not (the test can fail)."""
+    from mbcapture.report import white_balanced
+
+    k_e = np.array([2.0, 4.0, 1.0])
+    reads = 64.0 + 10.0 * np.ones((2, 3, 5, 3)) * k_e
+    out = white_balanced(reads, 64.0, k_e)
+    np.testing.assert_allclose(out, 40.0)
+    assert not np.allclose(reads - 64.0, (reads - 64.0).mean(axis=-1, keepdims=True))
