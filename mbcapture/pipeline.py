@@ -292,27 +292,30 @@ def merge_cluster_info(infos: list[dict]) -> dict:
 class FilmLayout:
     """How a capture's render passes go through its film: in ``tiles`` of rows (None: the whole film at once),
     with whole-film results made by ``store`` (in memory, or scratch files on disk: render.spill). Every pass
-    (the first, adaptive sampling's scout, the top-up) renders tile by tile as the first does, and a tile gives
-    the whole film's values bit for bit (:func:`mbcapture.integrate.integrate_tiles`), so the budget's choices,
+    (the first, adaptive sampling's scout, the top-up) renders tile by tile as the first does, and a tile's
+    renders are the whole film's rows (:func:`mbcapture.integrate.integrate_tiles`), so the budget's choices,
     made on the whole film's arrays, are those of an untiled run."""
 
     tiles: tuple[tuple[int, int], ...] | None = None
     store: FilmStore = IN_MEMORY
 
+    def rows(self, height: int) -> tuple[tuple[int, int], ...]:
+        """The tiles (first row, end) of a film of ``height`` rows."""
+        return self.tiles or ((0, height),)
+
     def integrate(self, renderer, plan: Plan, n_buckets: int, seed: np.random.SeedSequence, **kw) -> Integrated:
         """:func:`mbcapture.integrate.integrate_tiles` over this layout's tiles (``kw`` passed on)."""
-        return integrate_tiles(renderer, plan, n_buckets, seed, self.tiles or ((0, renderer.height),),
-                               store=self.store, **kw)
+        return integrate_tiles(renderer, plan, n_buckets, seed, self.rows(renderer.height), store=self.store, **kw)
 
     def tile_share(self, height: int) -> float:
         """The largest tile's share of the film's ``height`` rows: what a pass holds of the film at once."""
-        return 1.0 if not self.tiles else max(r1 - r0 for r0, r1 in self.tiles) / height
+        return max(r1 - r0 for r0, r1 in self.rows(height)) / height
 
     def mix(self, a: np.ndarray, b: np.ndarray, c: float) -> np.ndarray:
         """``(a + c b) / (1 + c)`` in ``a``'s dtype, made by the store a tile of rows at a time (the film's rows
         are the axis before the last two), so that no whole-film float64 temporary is held."""
         out = self.store.empty(a.shape, a.dtype)
-        for r0, r1 in self.tiles or ((0, a.shape[-3]),):
+        for r0, r1 in self.rows(a.shape[-3]):
             rows = (..., slice(r0, r1), slice(None), slice(None))
             out[rows] = ((a[rows].astype(np.float64) + c * b[rows]) / (1.0 + c)).astype(a.dtype)
         return out

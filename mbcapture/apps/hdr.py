@@ -73,9 +73,9 @@ def merge_mosaic(data: CaptureData, method: str, cumulative: bool) -> tuple[np.n
     read (the sensor stage flags them), and the merge falls back to shorter, noisier reads around
     every highlight. Merging each photosite first keeps its best reads, and demosaicing then works on
     unclipped radiance, in a logarithmic domain (:func:`mbcapture.sensor.cfa.demosaic_hdr` says why).
-    Measured (``python scripts/cfa_hdr_order.py --size 128x96 --spp 8``: metronome_hdr, RGGB): relMSE 0.0092
-    merging first against 0.43 demosaicing first with menon2007, 0.017 against 0.53 with malvar2004,
-    0.071 against 0.40 with bilinear.
+    Measured (``python scripts/cfa_hdr_order.py --size 128x96 --spp 8``: metronome_hdr, RGGB): relMSE 0.0089
+    merging first against 0.0109 demosaicing first with menon2007, 0.0159 against 0.0171 with malvar2004,
+    0.0685 against 0.0714 with bilinear (both in the logarithmic domain; demosaicing linearly, 0.26 to 0.53).
     ``sigma`` is the merged photosites' sigma interpolated bilinearly, not the demosaiced value's own
     (averaging lowers it)."""
     hdr = merge_hdr(data.mosaic_dn, data.exposure_s, data.cfg.sensor, method=method, cumulative=cumulative,
@@ -101,10 +101,8 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
     cfg, tl = data.cfg, data.timeline
     cumulative = not data.sequential and any(len(r.buckets) > 1 for r in tl.reads)
     method = resolve_method(cfg.hdr.method, cumulative)
-    floor = None
     if data.bayer:
         radiance, sigma, valid = merge_mosaic(data, method, cumulative)
-        floor = demosaic_floor(data.cfg.sensor, data.k_e, data.exposure_s)
     else:
         hdr = merge_hdr(data.reads_dn, data.exposure_s, cfg.sensor, method=method, cumulative=cumulative,
                         saturated=data.saturated)
@@ -125,7 +123,8 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
         "motion_check": motion_check(normalized, data.read_names, truth, mask),
     }
     if data.bayer:  # the mosaic's own share: the noise-free truth through the same mosaic and demosaicing
-        alone = demosaic_hdr(to_mosaic(truth, cfg.sensor.cfa), cfg.sensor.cfa, cfg.sensor.demosaic, floor)
+        alone = demosaic_hdr(to_mosaic(truth, cfg.sensor.cfa), cfg.sensor.cfa, cfg.sensor.demosaic,
+                             demosaic_floor(cfg.sensor, data.k_e, data.exposure_s))
         metrics["demosaic_rel_mse"] = relative_mse(alone, truth, eps=REL_MSE_EPS_RADIANCE)
         if mask.any():
             metrics["demosaic_rel_mse_moving"] = relative_mse(alone, truth, mask=mask[..., None].repeat(n_ch, -1),

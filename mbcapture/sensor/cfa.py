@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["BAYER_PATTERNS", "DEMOSAIC_METHODS", "LOG_DEMOSAIC_FLOOR_E", "channel_map", "demosaic", "demosaic_hdr", "footprint_radius",
-           "spread_to_footprint", "to_mosaic"]
+__all__ = ["BAYER_PATTERNS", "DEMOSAIC_METHODS", "LOG_DEMOSAIC_FLOOR_E", "channel_map", "demosaic", "demosaic_hdr",
+           "footprint_radius", "spread_to_footprint", "to_mosaic"]
 
 #: Bayer layouts by name: the channel (0 R, 1 G, 2 B) of each photosite of the 2x2 tile, row by row.
 BAYER_PATTERNS: dict[str, tuple[int, int, int, int]] = {
@@ -115,11 +115,12 @@ def demosaic_hdr(mosaic: np.ndarray, pattern: str, method: str, floor: np.ndarra
     In the logarithm a colour difference is a colour ratio (the constant-hue assumption of ratio-based
     demosaicing), which does vary slowly across such an edge, and an interpolated value is a weighted
     geometric mean, which a bright neighbour cannot pull below zero. Measured on that capture
-    (``python scripts/cfa_hdr_order.py --size 128x96 --spp 8``): the merge's relMSE 0.258 -> 0.0092 with
-    menon2007, 0.376 -> 0.017 with malvar2004, 0.395 -> 0.071 with bilinear, each now that of its
-    noise-free truth demosaiced alike (0.0089, 0.018, 0.10). ``asinh`` rather than ``log`` keeps values at and below
-    zero (noise around black) defined and unbiased: within ``floor`` of zero it is linear, where a logarithm
-    would skew the noise (:data:`LOG_DEMOSAIC_FLOOR_E` chooses it)."""
+    (``python scripts/cfa_hdr_order.py --size 128x96 --spp 8``): the merge's relMSE 0.258 -> 0.0089 with
+    menon2007, 0.376 -> 0.016 with malvar2004, 0.395 -> 0.069 with bilinear, each now that of its
+    noise-free truth demosaiced alike (0.0087, 0.018, 0.098). ``asinh`` rather than ``log`` keeps values at
+    and below zero (noise around black) defined and unbiased: within ``floor`` of zero it is linear, where a
+    logarithm would skew the noise (:data:`LOG_DEMOSAIC_FLOOR_E` and :func:`mbcapture.apps.hdr.demosaic_floor`
+    choose it)."""
     floor = np.asarray(floor, dtype=np.float64)
     floor = floor.reshape(()) if floor.size == 1 else floor
     if np.any(~np.isfinite(floor)) or np.any(floor <= 0):
