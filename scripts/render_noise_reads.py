@@ -66,14 +66,7 @@ def main() -> None:
     if args.truth and not any(sv.startswith("render.spp=") and sv != "render.spp=null" for sv in args.sets):
         raise SystemExit("--truth: fix the samples per pixel (--set render.spp=N): the runs must share them")
     base = [f"render.width={w}", f"render.height={h}", "render.cache=off", "sensor.noise_seed=7", *args.sets]
-    runs, seconds = [], []
-    choice, samples = FirstChoice(share=not args.own_choices), FirstSamples(share=not args.own_choices)
-    for s in seeds:
-        t0 = time.perf_counter()
-        choice.start_run()
-        with mock.patch.object(pipeline, "tail_pixels", choice), mock.patch.object(pipeline, "resolve_spp", samples):
-            runs.append(capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False)))
-        seconds.append(time.perf_counter() - t0)
+    runs, seconds, choice = two_runs(args.config, base, seeds, share=not args.own_choices)
     cfg = runs[0].config
     print(f"{args.config} at {args.size}: spp {runs[0].plan.spp_label()} and {runs[1].plan.spp_label()}; "
           f"{seconds[0]:.0f} s and {seconds[1]:.0f} s (render cache off)")
@@ -90,34 +83,65 @@ def main() -> None:
     print(f"{'read':6s} {'median':>8s} {'p95':>8s} {'p99':>8s} {'p99.9':>8s} {'max':>9s} {'>10x':>7s}   run's own "
           f"median / p95 / p99.9 (seed {seeds[0]}, seed {seeds[1]})")
     below = [below_full_well(r, cfg.sensor.full_well_e) for r in runs]  # (R, H, W, C) each
-    for i, read in enumerate(runs[0].timeline.reads):
-        e1, e2 = (r.reads_expected_e[i] for r in runs)
-        mean = (e1 + e2) / 2
-        full = below[0][i] & below[1][i]
-        use = (mean > 1.0) & full & (mean < cfg.sensor.fd_full_well_e)
-        squared = (e1 - e2) ** 2 / 2.0
-        var = pooled_alike(squared, mean)
-        ratio = var[use] / mean[use]
-        med, p95 = budget_quantiles(ratio, effective_dof(squared, use))
-        p99, p999 = np.percentile(ratio, [99, 99.9])
-        own = [r.report["render_error"].get("reads", {}).get(read.name, {}) for r in runs]
+    for name, row in outside_figures(runs).items():
+        own = row["own"]
         own_text = ", ".join(f"{o.get('to_shot_noise_variance_median', float('nan')):.3g} / "
                              f"{o.get('to_shot_noise_variance_p95', float('nan')):.3g} / "
                              f"{o.get('to_shot_noise_variance_p999', float('nan')):.3g}" for o in own)
-        print(f"{read.name:6s} {med:8.3g} {p95:8.3g} {p99:8.3g} {p999:8.3g} {ratio.max():9.3g} "
-              f"{100 * (ratio > 10).mean():6.2f}%   {own_text}")
+        print(f"{name:6s} {row['median']:8.3g} {row['p95']:8.3g} {row['p99']:8.3g} {row['p999']:8.3g} "
+              f"{row['max']:9.3g} {100 * row['over_10']:6.2f}%   {own_text}")
         # does the outside measurement fall in each run's stated 95 % interval?
-        for q, key, outside in (("median", "median", med), ("p95", "p95", p95), ("p99.9", "p999", p999)):
+        for q, key in (("median", "median"), ("p95", "p95"), ("p99.9", "p999")):
+            outside = row[key]
             ivs = [o.get(f"to_shot_noise_variance_{key}_interval") for o in own]
             text = "; ".join("no interval" if iv is None else
                              f"[{iv[0]:.3g}, {iv[1]:.3g}] {'holds' if iv[0] <= outside <= iv[1] else 'MISSES'} it"
                              for iv in ivs)
             print(f"{'':6s} {q:>6s}: outside {outside:.3g}; the runs' intervals {text}")
-        full_ratio = np.where(use, var / np.maximum(mean, 1e-300), 0.0)
+        mean, full_ratio = row["mean"], row["ratio_map"]
     if args.map:
-        tail_map(args.map, mean, full_ratio, read.name)
+        tail_map(args.map, mean, full_ratio, name)
     if args.truth:
         converged(args, base, runs, below, choice)
+
+
+def two_runs(config, base: list[str], seeds: list[int], share: bool = True) -> tuple[list, list[float], "FirstChoice"]:
+    """Two captures of ``config`` with ``base`` overrides at the run seeds ``seeds``, the second rendering the first
+    run's samples and refining its choice of pixels (``share``; else each its own). Returns the runs, their
+    seconds and the choice."""
+    runs, seconds = [], []
+    choice, samples = FirstChoice(share=share), FirstSamples(share=share)
+    for s in seeds:
+        t0 = time.perf_counter()
+        choice.start_run()
+        with mock.patch.object(pipeline, "tail_pixels", choice), mock.patch.object(pipeline, "resolve_spp", samples):
+            runs.append(capture_in_memory(load_config(config, [*base, f"seed={s}"]), StageStatus(False)))
+        seconds.append(time.perf_counter() - t0)
+    return runs, seconds, choice
+
+
+def outside_figures(runs: list) -> dict[str, dict]:
+    """Per read of two :func:`two_runs`: the rendering noise measured from outside, its variance over the shot
+    noise's in every sample below the full wells (median and p95 as the budget takes them, p99, p99.9, max, the
+    share over 10), the runs' own figures (``own``, each run's render_error entry), and for a map the mean
+    electrons and the ratio per sample (0 where not judged)."""
+    cfg = runs[0].config
+    below = [below_full_well(r, cfg.sensor.full_well_e) for r in runs]  # (R, H, W, C) each
+    out = {}
+    for i, read in enumerate(runs[0].timeline.reads):
+        e1, e2 = (r.reads_expected_e[i] for r in runs)
+        mean = (e1 + e2) / 2
+        use = (mean > 1.0) & below[0][i] & below[1][i] & (mean < cfg.sensor.fd_full_well_e)
+        squared = (e1 - e2) ** 2 / 2.0
+        var = pooled_alike(squared, mean)
+        ratio = var[use] / mean[use]
+        med, p95 = budget_quantiles(ratio, effective_dof(squared, use))
+        p99, p999 = np.percentile(ratio, [99, 99.9])
+        out[read.name] = {"median": float(med), "p95": float(p95), "p99": float(p99), "p999": float(p999),
+                          "max": float(ratio.max()), "over_10": float((ratio > 10).mean()),
+                          "own": [r.report["render_error"].get("reads", {}).get(read.name, {}) for r in runs],
+                          "mean": mean, "ratio_map": np.where(use, var / np.maximum(mean, 1e-300), 0.0)}
+    return out
 
 
 class FirstChoice:

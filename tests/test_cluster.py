@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from golden_cases import RENDER_REPEAT_RTOL, count_differences
 
 from mbcapture import load_config, run_capture
 from mbcapture.cluster import start_client
@@ -52,6 +53,26 @@ def test_a_tiled_capture_on_two_workers_is_the_local_untiled_capture(client):
     np.testing.assert_array_equal(spread.reads_dn, local.reads_dn)
     for name, img in local.images.items():
         np.testing.assert_array_equal(spread.images[name], img, err_msg=name)
+
+
+@pytest.mark.render
+def test_a_capture_with_the_noise_budget_on_two_workers_makes_the_local_choices(client):
+    """render.spp null: the first pass renders on the workers; adaptive sampling's scout and refinement and the
+    top-up render in this process. The choices (samples, refined pixels, the top-up's samples) are the local
+    run's, and the values as close as two local runs are (RENDER_REPEAT_RTOL; the reads as counts)."""
+    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", [*SMALL, "render.spp=null", "render.noise_budget=0.02"])
+    local = run_capture(cfg, progress=False)
+    spread = run_capture(cfg, progress=False, client=client)
+    assert spread.report["cluster"]["renders"] > 0
+    adaptive, top_up = local.report["adaptive"], local.report["top_up"]
+    assert adaptive["pixels"] > 0 and top_up is not None and top_up["applied"], (adaptive, top_up)
+    assert spread.report["adaptive"]["tiers"] == adaptive["tiers"]
+    assert spread.report["top_up"]["spp_added"] == top_up["spp_added"]
+    np.testing.assert_array_equal(spread.plan.spp, local.plan.spp)
+    np.testing.assert_allclose(spread.bucket_exposure, local.bucket_exposure, rtol=RENDER_REPEAT_RTOL, atol=0)
+    reads = [r.buckets for r in local.timeline.reads]
+    assert count_differences(spread.reads_dn, local.reads_dn, spread.buckets_e, local.buckets_e, reads,
+                             cfg.sensor.gain_dn_per_e) == []
 
 
 @pytest.mark.render

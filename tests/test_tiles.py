@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from golden_cases import count_differences
+from golden_cases import RENDER_REPEAT_RTOL, count_differences
 
 from mbcapture import load_config, run_capture
 from mbcapture.capture import check_resources
@@ -135,13 +135,6 @@ def test_a_tiled_capture_is_the_untiled_capture(config, extra, tiles, tmp_path):
         assert list(scratch.iterdir()) == []
     else:
         assert not isinstance(_root(tiled.bucket_exposure), mmap.mmap)
-
-
-#: How far two renders of the same request may differ at hundreds of samples per pixel: the renderer sums a
-#: pixel's samples with float32 atomic adds from several threads, in an order of the threads' making, so two
-#: untiled runs on one machine differed in 184 of 36864 exposure samples by at most 2e-10 (relative 3e-8)
-#: at 300 spp. At a few samples per pixel one thread sums each pixel and runs agree bit for bit.
-RENDER_REPEAT_RTOL = 1e-6
 
 
 @pytest.mark.render
