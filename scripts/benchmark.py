@@ -1,6 +1,12 @@
 """Benchmarks that print ratios measured within one run (the machines are shared and noisy).
 
     python scripts/benchmark.py [--width 160 --height 128 --spp 16]
+    python scripts/benchmark.py --only 7 --sweep-film 640x512
+    python scripts/benchmark.py --write-docs      # docs/benchmarks.md from docs/benchmarks.json, nothing run
+
+Each measure's printed lines are also recorded in docs/benchmarks.json with the date, the CPU, its cores, the
+commit and the command (a measure run again replaces its entry: older results are in git history), and
+docs/benchmarks.md is written from that file (--no-record: print only).
 
 1. Cost against interleaving frequency: the metronome HDR capture at capture.periods 4 and
    1024 (the ratio of wall times; a per-slot renderer would scale with the 256x more slots).
@@ -45,9 +51,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import os
+import platform
+import re
+import subprocess
+import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -337,6 +350,98 @@ def big_sensor(args) -> None:
           f"{runs['tiled']['peak_bytes'] / runs['untiled']['peak_bytes']:.2f}")
 
 
+#: Each measure's name in docs/benchmarks.md (the docstring above says what it does and its target).
+TITLES = {
+    1: "Cost against interleaving frequency (capture.periods 1024 over 4)",
+    2: "The pipeline's rendering against Mitsuba's 'path', at equal samples and at equal error",
+    3: "The sensor stage's and the reconstruction's share of a run",
+    4: "Equal-error speed-up over naive per-slot rendering",
+    5: "The noise budget and the render cache (the default capture, cold and warm)",
+    6: "Meeting the budget with each sampler and estimator",
+    7: "A 64-point sensor sweep against one capture",
+    8: "2 sweep workers against 1 on a render-bound sweep",
+    9: "A 4096x3072 sensor: memory and time, tiled and on a cluster",
+}
+RECORD = ROOT / "docs" / "benchmarks.json"
+PAGE = ROOT / "docs" / "benchmarks.md"
+
+
+class _Tee(io.TextIOBase):
+    """Writes to the terminal and keeps a copy (the measures' printed lines)."""
+
+    def __init__(self, out):
+        self.out, self.kept = out, io.StringIO()
+
+    def write(self, text: str) -> int:
+        self.kept.write(text)
+        return self.out.write(text)
+
+    def flush(self) -> None:
+        self.out.flush()
+
+
+def by_measure(text: str) -> dict[int, list[str]]:
+    """The printed lines of a run, per measure: a line starting ``[n]`` is measure n's, an indented line
+    belongs to the measure before it, anything else (film and versions) to none."""
+    out: dict[int, list[str]] = {}
+    current = None
+    for line in text.splitlines():
+        m = re.match(r"\[(\d+)\]", line)
+        if m:
+            current = int(m.group(1))
+        elif not line.startswith(" "):
+            current = None
+        if current is not None and line.strip():
+            out.setdefault(current, []).append(line.rstrip())
+    return out
+
+
+def machine() -> dict:
+    """Where a measure ran: the date (UTC), the CPU model, its cores and the commit (with a mark when the tree
+    differs from it)."""
+    cpu = platform.processor() or platform.machine()
+    with contextlib.suppress(OSError):
+        names = [ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                 if ln.startswith("model name")]
+        cpu = names[0] if names else cpu
+    def git(*args: str) -> str:
+        run = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True)
+        return run.stdout.strip() if run.returncode == 0 else ""
+    commit = git("rev-parse", "--short", "HEAD") or "unknown"
+    if git("status", "--porcelain", "--untracked-files=no"):
+        commit += " (with uncommitted changes)"
+    return {"date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "cpu": cpu, "cores": os.cpu_count(),
+            "commit": commit}
+
+
+def record(lines: dict[int, list[str]], command: str, path: Path = RECORD) -> dict:
+    """Each measure's ``lines`` into the record at ``path`` (replacing that measure's older entry); returns it."""
+    data = json.loads(path.read_text()) if path.is_file() else {}
+    where = machine()
+    for n, text in lines.items():
+        data[str(n)] = {**where, "command": command, "lines": text}
+    path.write_text(json.dumps(dict(sorted(data.items(), key=lambda kv: int(kv[0]))), indent=1) + "\n")
+    return data
+
+
+def page(data: dict) -> str:
+    """docs/benchmarks.md from the record: each measure's latest run, where and how it ran, what it printed."""
+    out = ["# Benchmarks", "",
+           "Written by `python scripts/benchmark.py` from `docs/benchmarks.json`: the latest run of each measure,",
+           "ratios measured within one run (the machines are shared and noisy). What each measure does and its",
+           "target are in the script's docstring; older runs are in git history. Run a measure again to replace",
+           "its entry; `--write-docs` rewrites this page from the record without running anything.", ""]
+    for n, title in TITLES.items():
+        out += [f"## [{n}] {title}", ""]
+        entry = data.get(str(n))
+        if entry is None:
+            out += [f"Not recorded yet: `python scripts/benchmark.py --only {n}`.", ""]
+            continue
+        out += [f"{entry['date']}, {entry['cpu']}, {entry['cores']} cores, commit {entry['commit']}: "
+                f"`{entry['command']}`", "", "```text", *entry["lines"], "```", ""]
+    return "\n".join(out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--width", type=int, default=160)
@@ -357,7 +462,26 @@ def main() -> None:
     ap.add_argument("--big-motion-px", type=float, default=2.0, help="[9] render.max_motion_px at 4096x3072")
     ap.add_argument("--big-tiles", type=int, default=12, help="[9] render.tiles of the tiled runs")
     ap.add_argument("--only", default="1,2,3,4,5,6,7,8", help="which benchmarks to run, e.g. 4 ([9] only when named)")
+    ap.add_argument("--no-record", action="store_true", help="print only: leave docs/benchmarks.json and .md alone")
+    ap.add_argument("--write-docs", action="store_true", help="write docs/benchmarks.md from docs/benchmarks.json, "
+                    "run nothing")
     args = ap.parse_args()
+    if args.write_docs:
+        PAGE.write_text(page(json.loads(RECORD.read_text()) if RECORD.is_file() else {}))
+        return
+    tee = _Tee(sys.stdout)
+    try:
+        with contextlib.redirect_stdout(tee):
+            measure(args)
+    finally:  # what finished is recorded even when a later measure fails
+        if not args.no_record:
+            lines = by_measure(tee.kept.getvalue())
+            if lines:
+                PAGE.write_text(page(record(lines, "python scripts/benchmark.py " + " ".join(sys.argv[1:]))))
+
+
+def measure(args) -> None:
+    """Run the measures ``args.only`` names, printing their results."""
     only = {int(x) for x in args.only.split(",")}
     if 9 in only:
         big_sensor(args)

@@ -104,3 +104,10 @@ def test_every_application_runs_on_a_cfa_sensor(config, cfa, tmp_path):
     for name, img in result.images.items():
         assert img.shape[:2] == (12, 16) and (np.isfinite(img) | invalid).all(), name
     assert len(list(tmp_path.glob("read_*.dng"))) == (len(result.timeline.reads) if dng else 0)
+
+
+def test_the_scene_guide_shows_its_example_scene_as_it_is():
+    """docs/scenes.md shows docs/examples/rolling_ball/scene.py, which its runnable example captures: the file
+    and the page must not drift apart."""
+    scene = (ROOT / "docs" / "examples" / "rolling_ball" / "scene.py").read_text().rstrip()
+    assert f"```python\n{scene}\n```" in (ROOT / "docs" / "scenes.md").read_text()

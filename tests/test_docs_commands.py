@@ -15,6 +15,7 @@ A new command in a fenced block needs nothing here: it runs at the tiny size aut
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
 import shutil
@@ -162,6 +163,8 @@ def run_command(cmd: str, ws: Path, capsys) -> None:
 def test_fenced_command_runs(where, lang, cmd, workspace, monkeypatch, capsys):
     monkeypatch.chdir(workspace)
     monkeypatch.setenv("MBCAPTURE_SET", TINY)
+    # a block may add scene folders (docs/scenes.md): undone after it, as monkeypatch restores what it set
+    monkeypatch.setenv("MBCAPTURE_SCENE_PATH", os.environ.get("MBCAPTURE_SCENE_PATH", ""))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the $MBCAPTURE_SET notice
         if lang == "python":
