@@ -308,8 +308,8 @@ DECONV_RANGE_VALUES = 1 << 20
 #: values (:func:`effective_count`): its scatter, the estimates' own sampling noise included. Measured
 #: on lognormal fields (log sd 1.5) under chi^2_1 noise pooled over 3x3 on a 240x320 film: 2.1-2.3
 #: (16 fields; 2000 and 20000 values drawn from the film), 1.5 on the whole film, 2.9 on adaptive
-#: sampling's audited sample with its weights (20 fields, tests/test_adaptive.py's film; the audit is gone
-#: since the eleventh session, and the constant kept); on the metronome's own runs 0.7-0.8 (12 runs at
+#: sampling's audited sample with its weights (20 fields, tests/test_adaptive.py's film; that audit no longer
+#: exists and the constant is kept); on the metronome's own runs 0.7-0.8 (12 runs at
 #: 320x256, 24 at 160x128). The largest, rounded up.
 DECONV_REL_SD = 3.0
 
@@ -836,16 +836,16 @@ ADAPTIVE_SELECT = 1.0
 #: tail under its target (:class:`TailModel`). One rule does not serve every film: the default capture met the
 #: tail at level 1 and at most 8x at 640x512 (0.127 of the first pass's samples added in a run, J4 99.9th
 #: percentile 0.931 from outside; four rules judged, the cheaper three missed), while at 160x128 the same rule left 1.22 and level 0.5 was needed, for 0.57 of the samples
-#: (scripts/adaptive_frontier.py, thirteenth session): a small film's pixel spans more of the scene's edges. The
+#: (scripts/adaptive_frontier.py): a small film's pixel spans more of the scene's edges. The
 #: rule is one choice for the whole film, from the whole film's estimate (as the top-up's size is), so it
-#: conditions no pixel's value. The levels above 1 (since the fifteenth session) serve the pixels whose scout ratio
+#: conditions no pixel's value. The levels above 1 serve the pixels whose scout ratio
 #: is not scaled to the first pass's samples (where a render's time is noise): there the scout over-predicts by
 #: up to the first pass's samples over its own (16x) wherever sample noise dominates, and a shaken camera makes
 #: every pixel such a pixel (:func:`mbcapture.render.shadows.changing_region`).
 ADAPTIVE_LEVELS = (16.0, 8.0, 4.0, 2.0, 1.6, 1.25, ADAPTIVE_SELECT, 0.8, 0.64, 0.5, 0.4, 0.32, 0.25)
 
 #: The neighbours a chosen pixel's factor spreads to (:func:`factor_tiers`): the four sides. On the default capture
-#: at 640x512 (scripts/adaptive_frontier.py, thirteenth session) the 3x3 box added 0.182 of the first pass's samples
+#: at 640x512 (scripts/adaptive_frontier.py) the 3x3 box added 0.182 of the first pass's samples
 #: for a predicted J4 99.9th percentile of 0.899, the four sides 0.143 for 0.931 (docs/noise.md, "The frontier").
 ADAPTIVE_FOOTPRINT = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
 
@@ -877,12 +877,12 @@ def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketEle
     ``changing`` (a flat mask): the pixels where a render's time within its stratum is noise (the moving parts and
     their shadows), which the second pass renders at several times per half-stratum: there the first pass's noise,
     mostly that of its time, keeps the share 1 / f of the combination, so its variance falls nearly as 1 / f^2
-    (multi_flash at 160x128, fifteenth session: the shadow's pixels given 4x fell from 40 to 2.4, 17-fold), and a
-    pixel's factor is the square root of what its ratio over the level asks for. Until the fifteenth session those
-    pixels took the factor their ratio asked for, capped at 4x. The rules are still judged with every pixel's
+    (multi_flash at 160x128: the shadow's pixels given 4x fell from 40 to 2.4, 17-fold), and a
+    pixel's factor is the square root of what its ratio over the level asks for (the factor the ratio itself asks
+    for, capped at 4x, left those pixels over the tail). The rules are still judged with every pixel's
     variance as 1 / f (:class:`TailModel`): between the limits 1 / f (noise all of the samples) and 1 / f^2 (all of
     the render's time), the first is an upper bound; judged by the second, four of the shipped configs chose rules
-    that left their tail at 1.04-1.78 and their median up to 0.112 (``make test-budget``, fifteenth session).
+    that left their tail at 1.04-1.78 and their median up to 0.112 (``make test-budget``).
 
     Without ``meets``: :func:`factor_tiers` at the level :data:`ADAPTIVE_SELECT` x the tail target. With
     ``meets(factors)`` (the flat factor of every pixel; whether they would bring the tail under its target,
@@ -936,13 +936,11 @@ def factor_tiers(predicted: np.ndarray, level: float, max_factor: int) -> list[t
     A pixel is chosen where that ratio exceeds ``level``; its factor is the ratio over the level
     (variance ~ 1/spp: conservative for the quasi-Monte Carlo samplers), rounded up to a power of two in
     [2, ``max_factor``]. A pixel's four side neighbours get at least its factor (:data:`ADAPTIVE_FOOTPRINT`:
-    the estimate is pooled over them). Until the eleventh session every chosen pixel also got at least the factor that brought
-    the chosen pixels' 99th percentile to the level (up to 4x: an estimate from the first pass's own noise
-    was too noisy to trust a low factor); chosen from the scout with the first pass kept, 2x met the tail
+    the estimate is pooled over them). Chosen from the scout with the first pass kept, 2x meets the tail
     at the default capture (docs/noise.md, "The scout"). Other rules (a lower level, a smaller
     neighbourhood, factors to a lower target) cost more for the same tail or leave a higher tail for
     less (scripts/adaptive_frontier.py; docs/noise.md, "The frontier"); the four sides rather than the 3x3 box
-    since the thirteenth session, a point of that frontier with a fifth fewer samples for a tail 0.03 higher.
+    are a point of that frontier with a fifth fewer samples for a tail 0.03 higher.
     Returns [(pixels, factor)] by
     increasing factor, every pixel in one tier at most; [] when no pixel needs it."""
     return tiers_of(tier_exponents(predicted, level, int(np.log2(max_factor))))

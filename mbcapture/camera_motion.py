@@ -126,13 +126,10 @@ class CameraSection(BaseModel):
     )
 
     lens: Literal["pinhole", "thin"] = Field(
-        "pinhole", description="'thin': a thin lens with depth of field (Mitsuba's thinlens sensor): aperture radius "
-        "f / (2 sensor.f_number), f the focal length that maps the scene's field of view onto the sensor's width "
-        "(render.width x sensor.pixel_pitch_um, or camera.focal_length_mm), focused at camera.focus_distance_m; a "
-        "point at depth z spreads over a disk of radius r |1/s_f - 1/z| in angle. 'pinhole' (default): everything "
-        "sharp, the geometry the scenes' ground truths (depth, motion, projections) are computed with; at the shipped "
-        "configs' f/2.8 and 5.6 um a thin lens blurs the scenes by a radius under 1 pixel (0.65 px at the metronome's "
-        "nearest surface, 640x512). The depth AOV stays a pinhole's (through each pixel centre).",
+        "pinhole", description="'pinhole' (default): everything sharp, the geometry of the scenes' ground truths. 'thin': a thin "
+        "lens with depth of field (Mitsuba's thinlens), aperture radius f / (2 sensor.f_number), focused at "
+        "camera.focus_distance_m; at the shipped configs' f/2.8 and 5.6 um it blurs by under a pixel. The "
+        "depth AOV stays a pinhole's (docs/camera.md).",
     )
     focus_distance_m: float | None = Field(
         None, gt=0, description="Distance in metres at which the thin lens (camera.lens: thin) is sharp; null: the "
@@ -145,12 +142,10 @@ class CameraSection(BaseModel):
     )
 
     distortion: list[float] | None = Field(
-        None, description="Radial lens distortion, Brown-Conrady coefficients [k1] to [k1, k2, k3]: the ray of "
-        "normalized pinhole position (x, y) lands at (x, y) (1 + k1 r^2 + k2 r^4 + k3 r^6), r^2 = x^2 + y^2 (k1 < 0 "
-        "barrel, > 0 pincushion). Every render is a pinhole render (widened to cover the rays the corners see) "
-        "resampled bilinearly onto the sensor's pixels; radiance is conserved along rays, so photometry holds. "
-        "The scene's field of view stays the sensor's horizontal extent in distorted coordinates. null: none. "
-        "Applications whose truths are pinhole geometry (multi_flash, structured_light, flash_matting) refuse it.",
+        None, description="Radial lens distortion, Brown-Conrady coefficients [k1] to [k1, k2, k3]: normalized pinhole "
+        "position (x, y) lands at (x, y)(1 + k1 r^2 + k2 r^4 + k3 r^6) (k1 < 0 barrel, > 0 pincushion), "
+        "resampled from a wider pinhole render, photometry kept. null: none. multi_flash, structured_light "
+        "and flash_matting refuse it: their truths are pinhole geometry (docs/camera.md).",
     )
 
     @field_validator("distortion")

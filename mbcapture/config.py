@@ -101,55 +101,23 @@ class RenderSection(_Model):
     top_up: bool = Field(
         True,
         description="With render.spp null: when the run's own estimate of its rendering noise is over "
-        "render.noise_budget or render.noise_budget_p95 on any read (the pilot extrapolates from 8 and 32 samples "
-        "and can fall short), render every stratum again, each half at a time of its own in the stratum, with the "
-        "samples that close the gap with a 10 % margin: with render.pattern 'shared' the second pass continues each "
-        "pixel's sequences after the first's and the two are weighed by their samples (one pass of both); with 'own' "
-        "they are combined with one inverse-variance weight for the whole film, from the figure (median or p95) that "
-        "decided (unbiased either way). Once, within render.max_spp "
-        "(not applied where a stratum has no room); "
-        "report.json's top_up says what it added. Needs render.estimator independent and room in free memory for "
-        "the pass (about 3x one tile's share of the film's arrays).",
+        "render.noise_budget or render.noise_budget_p95 on any read, render every stratum once more with the "
+        "samples that close the gap (10 % margin, within render.max_spp) and combine the two passes without "
+        "bias. true: on; report.json top_up says what it added. How and why: docs/noise.md.",
     )
     adaptive: bool = Field(
         True,
-        description="With render.spp null: adaptive sampling (on by default since the fourteenth session; off, "
-        "the tail target render.noise_budget_tail is reported, not met). On the default capture at 640x512 it brings "
-        "every read under the median, p95 and tail targets: the longest read's 99.9th percentile from 2.3 to about "
-        "0.93, measured from two render seeds (docs/noise.md). "
-        "After the budgeted pass, a scout renders every stratum again with seeds of its own at a sixteenth of its "
-        "samples, and the pixels where any read's Monte Carlo / shot-noise ratio, as the scout measures it scaled to "
-        "the first pass's samples (as 1/spp, an upper bound, where nothing moves; unscaled where the moving parts "
-        "cross or cast their hard shadows, and everywhere when the camera moves, as both passes draw one time per "
-        "half-stratum), exceeds a level x render.noise_budget_tail (and their "
-        "four side neighbours) are rendered again, every stratum, and added to the first pass: each ends with the "
-        "power of two of the first pass's samples its ratio over the level asks for, at least 2x and at most a most "
-        "factor up to render.adaptive_max_factor; those unscaled pixels at 4 times per "
-        "half-stratum, with the power of two the square root of their ratio over the level asks for (the first pass's "
-        "time noise keeps the share 1/factor of the combination). "
-        "The level (16 down to 0.25) and the most factor are the cheapest rule whose factors bring the run's own "
-        "estimate of the tail under its target, judged on the first pass with each pixel's noise divided by its "
-        "factor. Where no rule does (a first pass of few samples whose rare paths the scout did not see), the "
-        "costliest is rendered and the top-up (render.top_up) adds samples to the whole film for the tail too. Where the "
-        "refined image's own estimate of the tail is still over its target, a second round (a scout of its own, at most 4x what "
-        "each pixel holds) refines it again. The "
-        "top-up judges the budget on the image the chosen factors will give. Unbiased: which pixels are chosen comes "
-        "from renders the image does not use, and the rule is one choice from the whole film's estimate, so neither "
-        "conditions any pixel's first pass (report.json adaptive). Any render.variant and lens (spectral variants, "
-        "and camera.distortion or camera.diffraction, whose refined pixels' neighbourhoods "
-        "are rendered with them), render.estimator independent, "
-        "and room in free memory for the scout's pass (about 3x one tile's share of the film's arrays); elsewhere it "
-        "is skipped "
-        "and report.json says why. The tail lies on silhouettes and moving edges (docs/noise.md).",
+        description="With render.spp null: adaptive sampling, which renders again the pixels where rendering noise would "
+        "otherwise exceed render.noise_budget_tail times the shot noise's variance at the 99.9th percentile "
+        "(silhouettes, moving edges), chosen from a scout the image does not use, so unbiased. true: on; "
+        "false: the tail is reported, not met. docs/noise.md explains the method and its cost; report.json "
+        "adaptive says what it refined.",
     )
     adaptive_max_factor: int = Field(
-        64, ge=2, le=256, description="Adaptive sampling's most samples at a refined pixel, its first pass's and its "
-        "second's together, as a multiple of its stratum's (the largest power of two up to it): the rules it chooses "
-        "among have most factors of 2 up to this, and it keeps the cheapest that meets the tail, so a larger bound only "
-        "adds choices (64 by default since the fourteenth session, 8 before). The default capture keeps 8, which met "
-        "every target at 640x512 (the longest read's 99.9th percentile 0.85 from two render seeds, in 0.72x the time of "
-        "16; docs/noise.md). report.json's adaptive.tiers and adaptive.added_samples say how many pixels got what and "
-        "what they cost.")
+        64, ge=2, le=256, description="Most samples a refined pixel may end with, as a multiple of its stratum's first-pass samples "
+        "(rounded down to a power of two). Adaptive sampling keeps the cheapest rule that meets the tail, so "
+        "a larger bound only adds choices; 64: the default capture chooses 8. report.json adaptive.tiers "
+        "says how many pixels got what (docs/noise.md).")
     max_spp: int = Field(1024, ge=2, le=1 << 16, description="Upper bound on the samples per pixel render.noise_budget may choose for one stratum.")
     estimator: Literal["independent", "difference"] = Field(
         "independent",
@@ -172,53 +140,35 @@ class RenderSection(_Model):
         "collected emission (unbiased; 0.91x the time on the default capture, docs/noise.md).")
     sampler: Literal["multijitter", "ldsampler", "independent"] = Field(
         "multijitter",
-        description="Mitsuba sample generator. 'multijitter' (correlated multi-jittered, Kensler 2013; any count) and "
-        "'ldsampler' (a scrambled low-discrepancy sequence; counts rounded up to powers of 4) are randomized "
-        "quasi-Monte Carlo: unbiased, independent between seeds, and on the metronome at 128 spp 7.2x and 11x lower "
-        "in Monte Carlo variance than 'independent' (uniform random numbers) on the mean pixel, but 4.8x and 5.6x on "
-        "the median pixel, which the noise budget judges (indirect light): there ldsampler's power-of-4 counts cost "
-        "more samples than its lower variance saves (docs/noise.md). With render.pattern 'shared' (the default) "
-        "the strata's renders and adaptive sampling's draw from that pattern instead, and take exactly the samples "
-        "asked for (in RGB variants a second camera with Mitsuba's 'independent' sampler lays out their lanes: "
-        "multijitter took 90 when asked for 85); this sampler draws the pilot's, the truths' and spectral camera rays.",
+        description="Mitsuba's sample generator for the pilot, the truths and spectral camera rays: 'multijitter' "
+        "(correlated multi-jittered; any count), 'ldsampler' (scrambled low-discrepancy; counts rounded up "
+        "to powers of 4), 'independent' (uniform random numbers). The two quasi-Monte Carlo ones are "
+        "unbiased and several times lower in variance; the strata draw from render.pattern instead "
+        "(docs/noise.md).",
     )
     pattern: Literal["own", "shared"] = Field(
         "shared",
-        description="'shared' (the default): the strata of a capture draw their samples from one pattern per "
-        "pixel (scrambled Sobol' pairs, mbcapture/render/pattern.py), stratum j taking the samples after the strata "
-        "before it, so that a read, which sums the strata, is stratified as a whole; each half of the run's error "
-        "estimate has a pattern of its own. 'own': every render draws them from render.sampler's pattern of its "
-        "own (before 2026-11-27 the only way). Unbiased (tested). Adaptive sampling's passes draw from patterns "
-        "of their own in the same way (in spectral variants their camera rays and wavelengths too); the "
-        "'difference' estimator and a spectral whole-film render's camera ray stay render.sampler's. Measured on the default capture at 320x256 "
-        "and equal samples: J4's median 1.39x lower, its p95 unchanged, its tail not lower (the mean over the lit pixels 2x "
-        "lower); the noise budget's pilot predicts the median's gain and chooses fewer samples (docs/noise.md).",
+        description="Where the strata's samples come from. 'shared': one scrambled Sobol' pattern per pixel and half, "
+        "each stratum taking the samples after the previous ones', so that a read, which sums strata, is "
+        "stratified as a whole (the default capture's median 1.39x lower at equal samples). 'own': each "
+        "render its own render.sampler pattern. Both unbiased (docs/noise.md).",
     )
     guide_fraction: float | None = Field(
         None, ge=0.0, le=MAX_GUIDE_SHARE,
-        description="Share of every diffuse bounce the path tracer sends towards the scene's guides: spheres around "
-        "brightly lit patches that are not lights, each declared by its scene with a share of its own (the metronome's: "
-        "the top of its lamp's stand, 3 mm under the bulb, 0.02; the spot the bulb lights on the wall behind it, 0.1; "
-        "the spot under it on the table, 0.03). A guided bounce is drawn uniformly in the cone of the guide's sphere "
-        "and weighted by the mixture's density: unbiased, the same expected image. null: each guide its scene's share; "
-        "a number: that share in all, split among the guides in the proportions of theirs; 0: off. No effect in a "
-        "scene without guides. Measured on the default capture (docs/noise.md): the stand's guide removes the wall's "
-        "single-pixel fireflies (a bounce found that patch once in 10^4); with the two spots' guides J4's median "
-        "is 0.60x and its p95 0.80x at equal samples, for about 3 % more time per sample.",
+        description="Share of every diffuse bounce sent towards the scene's guides (brightly lit patches that are not "
+        "lights, declared by the scene), weighted by the mixture's density so the image's expectation is "
+        "unchanged. null: each guide its scene's share; a number: that share in all, split in the scene's "
+        "proportions; 0: off. Removes rare fireflies at about 3 % more time per sample (docs/noise.md).",
     )
     max_motion_px: float = Field(
         0.5, gt=0, description="Largest image motion, in pixels, of any moving point inside one time stratum (the paper's vT << p)."
     )
     min_strata: int = Field(
         4, ge=1,
-        description="Fewest time strata of a capture whose image moves (shared among its collecting intervals), "
-        "however little it moves. A stratum's two half-sample renders are each at one time drawn in the stratum, "
-        "the same for every pixel, so its time noise (a moving edge's change within the stratum) and the run's own "
-        "estimate of it rest on that one pair of times: with one stratum the estimate is a lottery. Measured on "
-        "rgb_illumination at 160x128 (one stratum at render.max_motion_px 0.5; scripts/render_noise_reads.py, seeds "
-        "1 and 2): the runs' own median and p95 missed the outside measurement's on every read, and only one run's "
-        "estimate called for a top-up (160 samples against 48); with four strata both runs' intervals held it on "
-        "every colour read, in 0.6x the time (docs/noise.md). 1: strata by motion alone.",
+        description="Fewest time strata of a capture whose image moves at all, however little. Each stratum's time "
+        "noise, and the run's own estimate of it, rests on one pair of render times shared by every pixel, "
+        "so one stratum makes that estimate unreliable. 4: at least four; 1: strata from motion alone "
+        "(render.max_motion_px). docs/noise.md.",
     )
     max_strata: int = Field(
         2048, ge=1, description="Upper bound on render passes; a plan that needs more is coarsened with a warning in the report."
@@ -237,27 +187,24 @@ class RenderSection(_Model):
     )
     band_rows: int | None = Field(
         None, ge=2, le=16384, multiple_of=2,
-        description="Rows of each render band (even): every film is rendered as fixed row bands, each a crop window "
-        "with a sampler seed of its own (the first band keeps the render seed), so that tiles of whole bands hold "
-        "exactly the pixels of the untiled run. null: about one megapixel per band (1048576 / render.width rows, "
-        "even): films up to 1 Mpx (640x512 and smaller) are one band. Changing it changes the render's random "
-        "numbers, as a new seed would. camera.distortion and camera.diffraction make the film one band.",
+        description="Rows of each render band (even). Every film renders as fixed row bands, each with a sampler seed of "
+        "its own, so that tiles of whole bands hold exactly the untiled run's pixels. null: about a "
+        "megapixel per band (640x512 is one band). Changing it changes the renders' random numbers, as a new "
+        "seed would (docs/resources.md).",
     )
     tiles: int | None = Field(
         None, ge=1,
-        description="Tiles (runs of whole render bands) in which render, accumulation and the sensor stage go "
-        "through the film, to bound memory: the result is the untiled run's, bit for bit (docs/resources.md). "
-        "null: one tile when the capture fits in memory (render.max_memory_gb, else the free memory), otherwise "
-        "the fewest that fit; more tiles than bands give one band per tile.",
+        description="Tiles (runs of whole render bands) in which render, accumulation, the noise budget's passes and the "
+        "sensor stage go through the film, to bound memory; the result is the untiled run's "
+        "(docs/resources.md says how close). null: one tile when the capture fits in memory, otherwise the "
+        "fewest that fit.",
     )
     spill: bool | None = Field(
         None,
-        description="Keep a tiled capture's whole-film results (the exposures and their error estimates, per-group "
-        "exposures, the reads, their truths and saturation) in scratch files on disk, memory-mapped, so that memory "
-        "holds the working set and not the film (the kernel keeps the files' pages while memory is free and writes "
-        "them back when it is not); the same values bit for bit. null: only when the film does not fit in memory in "
-        "tiles alone; true: whenever the film goes in more than one tile; false: never. Not for a video's frames "
-        "(docs/resources.md).",
+        description="Keep a tiled capture's whole-film results (exposures, reads, truths, flags) in memory-mapped "
+        "scratch files, so that memory holds the working set and not the film; the same values. null: only "
+        "when tiles alone do not fit in memory; true: whenever the film is in more than one tile; false: "
+        "never. Not for a video's frames (docs/resources.md).",
     )
     spill_dir: str | None = Field(
         None,
@@ -406,11 +353,10 @@ class OutputSection(_Model):
         99.5, gt=0, le=100, description="Tone mapping of PNG previews: this luminance percentile maps to white before the sRGB curve."
     )
     dng: bool = Field(
-        False, description="Also write each read as a DNG raw file, read_<name>.dng: its ADC codes (16-bit; the "
-        "photosites' mosaic with its CFA pattern on a Bayer sensor (sensor.cfa), one sample per pixel on a mono "
-        "one, else a linear DNG with R, G, B per pixel), black and white levels, and the colour matrix and as-shot "
-        "neutral of the sensor's per-channel response, so LibRaw (rawpy; tested) opens "
-        "and colour it. Needs sensor.adc_bits <= 16, and an RGB render.variant unless the sensor is mono.",
+        False, description="Also write each read as a DNG raw file, read_<name>.dng: its 16-bit ADC codes (a Bayer sensor's "
+        "mosaic with its CFA pattern, a mono sensor's one sample, else R, G, B per pixel), black and white "
+        "levels, colour matrix and as-shot neutral. rawpy (LibRaw) opens and develops it (tested). Needs "
+        "sensor.adc_bits <= 16 and an RGB render.variant unless mono (docs/characterize.md).",
     )
 
 

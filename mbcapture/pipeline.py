@@ -616,8 +616,7 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, integrated: 
 #: The most rounds of adaptive sampling: a second where the first's refined render stage still has its own estimate
 #: of the tail over its target (the rule is judged on the first pass's estimate divided by the factors, and the pixels that draw
 #: rare paths of their own in the second pass are not in it), with a scout of its own, at most
-#: :data:`SECOND_ROUND_MAX_FACTOR` times what each pixel holds. Measured on multi_flash at 160x128 (fifteenth
-#: session): a rule judged to leave 0.95 left 1.13, the 68 samples over the target (61 allowed) at static
+#: :data:`SECOND_ROUND_MAX_FACTOR` times what each pixel holds. Measured on multi_flash at 160x128: a rule judged to leave 0.95 left 1.13, the 68 samples over the target (61 allowed) at static
 #: silhouettes given 16-32x and at the rim of the changing region.
 ADAPTIVE_ROUNDS = 2
 SECOND_ROUND_MAX_FACTOR = 4

@@ -10,10 +10,10 @@ first passes' squared differences divided by f: pooled over the alike of 3x3 pix
 electrons. Where the moving parts cross, the refinement renders four times per half-stratum and the
 time noise falls faster than 1/f: 1/f is kept there too (conservative).
 
-Checked against real refinements on the default capture at 640x512 (seeds 1 and 2; twelfth session): the
+Checked against real refinements on the default capture at 640x512 (seeds 1 and 2, 2026-11-27): the
 3x3 box predicted J4's 99.9th percentile at 0.878 and render_noise_reads.py measured 0.877 from outside; the
 four sides in place of the box (never run before then) predicted 0.915 and measured 0.906, the runs' own
-0.918 and 0.910 (docs/noise.md, "The frontier"). The four sides are the rule in use since the thirteenth.
+0.918 and 0.910 (docs/noise.md, "The frontier"). The four sides are the rule in use.
 
 The rules: a pixel is chosen where the scout's predicted ratio exceeds ``level`` x the tail target, its
 factor the ratio over ``target`` x the tail target rounded up to a power of two in [2, max factor] (or,

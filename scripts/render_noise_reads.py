@@ -19,9 +19,9 @@ every neighbour (how the runs estimated it before 2026-11-27).
 The second run renders the samples per stratum the first run's pilot chose (every run's pilot still
 renders), and with adaptive sampling (``render.adaptive``) it refines the pixels the first run chose
 (its tiers, :func:`mbcapture.budget.tail_pixels`), so both runs are draws of one estimator: the first
-run's, whose error its own figures estimate (until the eleventh session each run rendered its own
-pilot's samples, and the outside figure was the mean of two estimators' variances). Each run choosing
-its own samples and pixels (``--own-choices``, how this was measured before 2026-11-27) measures
+run's, whose error its own figures estimate (were each run to render its own pilot's samples, the outside
+figure would be the mean of two estimators' variances). Each run choosing
+its own samples and pixels (``--own-choices``) measures
 something else: at 640x512 the two choices share 10111
 of about 27000 pixels, and the two-run difference then averages a field refined in one place with a
 field refined in another, whose upper quantiles lie below either run's (J4's p99.9 0.85 that way,

@@ -1,5 +1,6 @@
 """Every config key is documented, and every shipped config loads, plans and (tiny) runs."""
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -111,3 +112,40 @@ def test_the_scene_guide_shows_its_example_scene_as_it_is():
     and the page must not drift apart."""
     scene = (ROOT / "docs" / "examples" / "rolling_ball" / "scene.py").read_text().rstrip()
     assert f"```python\n{scene}\n```" in (ROOT / "docs" / "scenes.md").read_text()
+
+
+#: Words that tell the project's history as a diary of working sessions; the project speaks of releases,
+#: commits, machines and dates, and history goes in commit messages.
+HISTORY = re.compile(r"\bsessions?\b", re.IGNORECASE)
+#: Where users read: every text file of these.
+PROSE = ["README.md", "docs", "configs", "mbcapture", "scripts"]
+
+
+def test_no_session_history_in_what_users_read():
+    found = []
+    for top in PROSE:
+        path = ROOT / top
+        files = [path] if path.is_file() else [p for p in path.rglob("*") if p.suffix in (".md", ".py", ".yaml", ".txt")]
+        for f in files:
+            for n, line in enumerate(f.read_text(errors="replace").splitlines(), 1):
+                if HISTORY.search(line):
+                    found.append(f"{f.relative_to(ROOT)}:{n}: {line.strip()[:100]}")
+    assert not found, "history in the docs or code (say it in a commit message):\n" + "\n".join(found)
+
+
+def test_the_history_check_finds_what_it_looks_for():
+    assert HISTORY.search("measured in the fifteenth session") and HISTORY.search("Sessions")
+    assert not HISTORY.search("a sixteenth of the samples") and not HISTORY.search("obsession-free")
+
+
+#: The longest a config key's description may be: it defines the key (what, unit, the default's meaning) and
+#: links to the document that explains the mechanism.
+MOST_DESCRIPTION_WORDS = 80
+
+
+def test_every_config_description_is_a_definition_of_at_most_80_words():
+    rows = [line for line in (ROOT / "docs" / "config.md").read_text().splitlines() if line.startswith("| `")]
+    assert len(rows) > 200
+    long = {row.split(" | ")[0]: len(row.strip("| ").split(" | ")[-1].split()) for row in rows}
+    long = {key: n for key, n in long.items() if n > MOST_DESCRIPTION_WORDS}
+    assert not long, long

@@ -4,7 +4,7 @@ a light and the static scene.
 Adaptive sampling treats the pixels the moving parts cross apart (:func:`mbcapture.pipeline.scout_tail`):
 there a render's time within its stratum is noise that more samples at that time do not lower, so they are
 refined at several times per half-stratum. A moving part's hard shadow is such a pixel too, though nothing
-in it moves: measured on multi_flash at 160x128 (fifteenth session), the pixels beside the sliding box, where
+in it moves: measured on multi_flash at 160x128, the pixels beside the sliding box, where
 the right LED's shadow of it sweeps over the wall, kept a run's own 99.9th percentile of 3.5 after 64 x the
 first pass's samples at one time per half-stratum (their first pass's ratio about 4; 1/64 of it predicted).
 
@@ -135,7 +135,7 @@ def changing_region(renderer, t0_s: float, t1_s: float, width: int, height: int,
     frame moves by :data:`mbcapture.camera_motion.FRAME_MOTION_PX`, but every edge in the image moves with it:
     metronome_shake at 160x128, whose frame moves 0.246 px over the capture, kept its J4 ratio at 1.9 on the
     silhouettes of the balls, the cube and the lamp's stand after 8x the first pass's samples at one time per
-    half-stratum (fifteenth session). ``moving``: the moving region where the caller has it already."""
+    half-stratum. ``moving``: the moving region where the caller has it already."""
     scene = renderer.scene_model
     times = np.linspace(t0_s, t1_s, MOVING_REGION_TIMES)
     if frame_motion_px(scene, times, width, height) > 0.0:

@@ -74,14 +74,11 @@ class SensorConfig(BaseModel):
     )
     spectral_response: str = Field(
         "effective_wavelength",
-        description="Per-channel spectral response. 'effective_wavelength': one wavelength (wavelength_nm) and one "
-        "QE per channel, the RGB rendering mode's model. Otherwise a camera name from colour-science's "
-        "colour.MSDS_CAMERA_SENSITIVITIES (e.g. 'Nikon 5100 (NPL)'), applied exactly by a spectral variant "
-        "(render.variant *_spectral, required): each relative curve is scaled so that its peak equals the "
-        "channel's quantum_efficiency (assumption: the datasets give shapes, not absolute QE). In spectral mode "
-        "the scene's RGB colours are upsampled by Mitsuba to spectra (emission in W m^-2 sr^-1 nm^-1) and the "
-        "reported HDR 'radiance' is the camera-response-weighted film value, integral QE_c(lambda) lambda/(hc) "
-        "L(lambda) d lambda, in photo-electrons per (m^2 sr s) before the optics.",
+        description="Per-channel spectral response. 'effective_wavelength': one wavelength (sensor.wavelength_nm) and "
+        "one quantum efficiency per channel, the RGB variants' model. Otherwise a camera of colour-science's "
+        "colour.MSDS_CAMERA_SENSITIVITIES (e.g. 'Nikon 5100 (NPL)'), each curve scaled to peak at the "
+        "channel's quantum_efficiency, applied exactly by a *_spectral render.variant (required). "
+        "docs/camera.md.",
     )
     full_well_e: float = Field(
         10_000.0, gt=0,
@@ -151,20 +148,18 @@ class SensorConfig(BaseModel):
     )
     cfa: Literal["none", "RGGB", "BGGR", "GRBG", "GBRG", "mono"] = Field(
         "none",
-        description="Colour filter array. none: every pixel sees R, G and B (three stacked photosites; the paper's "
-        "channel-by-channel model). RGGB, BGGR, GRBG, GBRG: a Bayer mosaic named by its 2x2 tile row by row; each "
-        "photosite collects one channel, with its own shot noise, full well and read noise, and every read is "
-        "demosaiced (sensor.demosaic) before the application; raw files keep the mosaic. mono: a monochrome "
-        "sensor whose one response is the sum of the channels' (quantum_efficiency over each band); renders, "
-        "truths and reads are grey.",
+        description="Colour filter array. none: R, G and B at every pixel (three stacked photosites, the paper's model). "
+        "RGGB, BGGR, GRBG, GBRG: a Bayer mosaic named by its 2x2 tile, each photosite one channel with its "
+        "own noise and full well, every read demosaiced (sensor.demosaic) and DNGs keeping the mosaic. mono: "
+        "one response, the channels' sum; everything grey. docs/camera.md.",
     )
     demosaic: Literal["bilinear", "malvar2004", "menon2007"] = Field(
         "menon2007",
-        description="Demosaicing of a Bayer sensor's reads (colour-demosaicing): bilinear; malvar2004, Malvar, He "
-        "and Cutler's gradient-corrected linear kernels (linear: the black level and read noise pass through "
-        "unchanged); menon2007, Menon, Andriani and Calvagno's directional filtering with a posteriori decision "
-        "(the fewest colour fringes at hard edges: figure camera_cfa; not linear). A demosaiced pixel is flagged "
-        "saturated when a photosite it depends on is (within 1, 2 and 8 photosites for the three).",
+        description="Demosaicing of a Bayer sensor's reads and HDR merges (colour-demosaicing): bilinear; malvar2004, "
+        "gradient-corrected linear kernels; menon2007, directional filtering (the fewest colour fringes: "
+        "figure camera_cfa). Applied in a logarithmic domain, so a bright neighbour cannot push a dark pixel "
+        "negative. A demosaiced pixel is flagged saturated when a photosite within 1, 2 or 8 photosites is "
+        "(docs/camera.md).",
     )
     transfer_inefficiency: float = Field(
         0.0, ge=0, lt=1,

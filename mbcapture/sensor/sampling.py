@@ -25,7 +25,7 @@ only those walk. Measured on the default capture's 3.9 M bucket samples at 640x5
 1.4e7, median 1.6e3; AMD EPYC, 2 cores): 0.62 s on one core, about 0.43 s of it scipy's incomplete
 gamma (the tails, ~100 ns a lane), 0.31 s on the two threads; numpy's rejection sampler takes 0.10 s.
 Each tail is evaluated on its own lanes, gathered by index: the ufuncs' ``where=`` masks cost a sixth
-more per lane (132 against 112 ms per million lanes; on the machine of an earlier session the masks
+more per lane (132 against 112 ms per million lanes; on another machine of the same kind the masks
 had been the faster, so measure again before changing it back). The Cornish-Fisher start has a
 Poisson form (:func:`_poisson_start`) with a third of the general one's arithmetic; together with the
 gathered tails these took the inversion from 0.75 to 0.62 s on one core, with the same counts. A
