@@ -7,9 +7,12 @@ setup:
 capture: setup
 	.venv/bin/mbcapture run configs/metronome_hdr.yaml --out out/metronome_hdr
 
-# two or more worker processes (pytest-xdist), at most 4: renders are multi-threaded already;
+# style first (ruff: lint and format, pyproject.toml), then two or more worker processes (pytest-xdist), at most 4:
+# renders are multi-threaded already;
 # pymatting's numba code compiled once per CPU target first (scripts/warm_numba.py says why)
 test: setup
+	.venv/bin/ruff check mbcapture scripts tests scenes docs/examples
+	.venv/bin/ruff format --check mbcapture scripts tests scenes docs/examples
 	.venv/bin/python scripts/warm_numba.py
 	.venv/bin/python -m pytest -q -n auto --maxprocesses 4
 

@@ -11,7 +11,6 @@ Reconstructions are pure numpy on ``CaptureData``, so that they can be tested on
 inputs with known answers, without Mitsuba.
 """
 
-
 from __future__ import annotations
 
 import importlib
@@ -150,9 +149,20 @@ APPS_DIR = Path(__file__).resolve().parent / "apps"
 _loaded = False
 
 
-def register(name: str, *, params: type[BaseModel] = NoParams, per_group: bool = False, description: str = "",
-             output_channels: int = 36, previews: int = 8, libraries_mb: float = 0.0, memory_scale: float = 1.0,
-             pinhole_truth: str = "", coded_gates: bool = False, renders: bool = True):
+def register(
+    name: str,
+    *,
+    params: type[BaseModel] = NoParams,
+    per_group: bool = False,
+    description: str = "",
+    output_channels: int = 36,
+    previews: int = 8,
+    libraries_mb: float = 0.0,
+    memory_scale: float = 1.0,
+    pinhole_truth: str = "",
+    coded_gates: bool = False,
+    renders: bool = True,
+):
     """Decorator: ``fn(data: CaptureData, params) -> AppOutput`` is application ``name``.
     ``per_group``: the reconstruction or its metrics need ``CaptureData.group_exposure``.
     ``output_channels``, ``previews``, ``libraries_mb``, ``memory_scale``: what its outputs, libraries
@@ -160,9 +170,20 @@ def register(name: str, *, params: type[BaseModel] = NoParams, per_group: bool =
     it demultiplexes per-pixel coded reads; ``renders``: its reconstruction may render (see :class:`App`)."""
 
     def deco(fn):
-        _REGISTRY[name] = App(name, fn, params, per_group, description or (fn.__doc__ or "").strip().split("\n")[0],
-                              output_channels, previews, libraries_mb, memory_scale, pinhole_truth, coded_gates,
-                              renders)
+        _REGISTRY[name] = App(
+            name,
+            fn,
+            params,
+            per_group,
+            description or (fn.__doc__ or "").strip().split("\n")[0],
+            output_channels,
+            previews,
+            libraries_mb,
+            memory_scale,
+            pinhole_truth,
+            coded_gates,
+            renders,
+        )
         return fn
 
     return deco

@@ -126,20 +126,24 @@ def block_mosaic(values: np.ndarray) -> np.ndarray:
 def mosaic_centres(blocks: int) -> np.ndarray:
     """(POOL_PX, blocks x POOL_PX) bool: the centres of a :func:`block_mosaic` of ``blocks`` blocks."""
     out = np.zeros((POOL_PX, blocks * POOL_PX), bool)
-    out[POOL_PX // 2, POOL_PX // 2::POOL_PX] = True
+    out[POOL_PX // 2, POOL_PX // 2 :: POOL_PX] = True
     return out
 
 
 def _timed_pixels(renderer, t_s: float, spp: int, seed: int, groups, pixels: np.ndarray) -> tuple[np.ndarray, float]:
     """:func:`_timed_render` of the pilot's blocks (``pixels`` from :func:`block_pixels`): their
     :func:`block_mosaic` and its seconds."""
-    values, seconds = _timed(renderer, t_s, lambda: renderer.render_pixels(float(t_s), int(spp), int(seed), groups,
-                                                                           pixels.ravel(), cached=True))
+    values, seconds = _timed(
+        renderer,
+        t_s,
+        lambda: renderer.render_pixels(float(t_s), int(spp), int(seed), groups, pixels.ravel(), cached=True),
+    )
     return block_mosaic(values), seconds
 
 
-def _cost_model(pairs: list[tuple[float, float]], first_s: float, accumulate_s: float,
-                spp_pair: tuple[int, int] = (1, 4)) -> dict:
+def _cost_model(
+    pairs: list[tuple[float, float]], first_s: float, accumulate_s: float, spp_pair: tuple[int, int] = (1, 4)
+) -> dict:
     """c0 + c1 x spp from (seconds at spp_pair[0], seconds at spp_pair[1]) pairs; medians over pairs."""
     lo, hi = spp_pair
     t1 = float(np.median([a for a, _ in pairs]))
@@ -218,12 +222,12 @@ def pooled_alike(v: np.ndarray, guide: np.ndarray, factor: float = ALIKE_FACTOR)
         vp = np.pad(v[a:b], widths, mode="edge")
         gp = np.log(np.maximum(np.pad(np.asarray(guide[a:b], np.float64), widths, mode="edge"), 1e-300))
         rows = y1 - y0
-        centre = gp[r:r + rows, r:r + W]
+        centre = gp[r : r + rows, r : r + W]
         total, count = np.zeros((rows, W, v.shape[2])), np.zeros((rows, W, v.shape[2]))
         for dy in range(POOL_PX):
             for dx in range(POOL_PX):
-                alike = np.abs(gp[dy:dy + rows, dx:dx + W] - centre) <= limit
-                np.add(total, vp[dy:dy + rows, dx:dx + W], out=total, where=alike)
+                alike = np.abs(gp[dy : dy + rows, dx : dx + W] - centre) <= limit
+                np.add(total, vp[dy : dy + rows, dx : dx + W], out=total, where=alike)
                 count += alike
         out[y0:y1] = total / count  # the centre is always alike: count >= 1
     return out
@@ -275,10 +279,10 @@ def effective_dof(unpooled: np.ndarray, use: np.ndarray) -> float:
     step = max(1, int(np.ceil(v.size / DOF_MAX_VALUES)))
     logs = []
     for r0 in range(0, H, DOF_BAND_ROWS * step):
-        band = np.asarray(v[..., r0:r0 + DOF_BAND_ROWS, :, :], dtype=np.float64)
+        band = np.asarray(v[..., r0 : r0 + DOF_BAND_ROWS, :, :], dtype=np.float64)
         a = convolve(band, ((1.0 - odd) / n_even).reshape(shape), mode="nearest")
         b = convolve(band, (odd / n_odd).reshape(shape), mode="nearest")
-        ok = use[..., r0:r0 + DOF_BAND_ROWS, :, :] & (a > 0.0) & (b > 0.0)
+        ok = use[..., r0 : r0 + DOF_BAND_ROWS, :, :] & (a > 0.0) & (b > 0.0)
         logs.append(np.log(a[ok] / b[ok]))
     ratios = np.concatenate(logs)
     if ratios.size < DOF_MIN_PAIRS:
@@ -347,8 +351,8 @@ def deconvolved_median(ratio: np.ndarray, dof: float) -> float:
     centres = 0.5 * (edges[1:] + edges[:-1])
     h = np.zeros(centres.size)
     for a in range(0, r.size, DECONV_RANGE_VALUES):  # in chunks: a 12 MP read holds 36 M estimates
-        sel = pos[a:a + DECONV_RANGE_VALUES]
-        lr = np.log(np.clip(r[a:a + DECONV_RANGE_VALUES][sel], np.exp(lo), np.exp(hi)))
+        sel = pos[a : a + DECONV_RANGE_VALUES]
+        lr = np.log(np.clip(r[a : a + DECONV_RANGE_VALUES][sel], np.exp(lo), np.exp(hi)))
         idx = np.clip(((lr - edges[0]) / step).astype(np.int64), 0, centres.size - 1)
         h += np.bincount(idx, minlength=centres.size)
     h /= h.sum()
@@ -388,8 +392,9 @@ def effective_count(n: int, design: "np.ndarray | float" = 1.0) -> float:
     return n**2 / float(d.sum())
 
 
-def quantiles_with_intervals(values: np.ndarray, percents: "list[float]",
-                             design: "np.ndarray | float" = 1.0) -> list[tuple[float, float, float]]:
+def quantiles_with_intervals(
+    values: np.ndarray, percents: "list[float]", design: "np.ndarray | float" = 1.0
+) -> list[tuple[float, float, float]]:
     """(estimate, low, high) of each percentile in ``percents`` of ``values`` (1-D), with an
     :data:`INTERVAL_COVERAGE` interval from the order statistics.
 
@@ -424,7 +429,7 @@ EXPONENT_RANGE = (1.0, 2.0)
 
 
 #: Steps per octave of the ladder of sample counts (:func:`_ladder`): 2.2 % apart, so a stratum gets little
-#: more than the pilot asked for (19 % steps until 2026-11-27, then 9 %), while the strata of a capture share
+#: more than the pilot asked for (19 % or 9 % steps cost that much more), while the strata of a capture share
 #: few counts. Distinct counts cost a kernel each where the sampler's count is a literal of it (multijitter:
 #: about 0.25 s each at 640x512); the renders that draw from the shared pattern take their count opaque
 #: and compile once for all counts.
@@ -450,8 +455,15 @@ def _ladder(x: float, count: Callable[[int], int] | None = None) -> int:
         i += 1
 
 
-def _pilot_ratios(diffs: list[np.ndarray], owner: np.ndarray, w: np.ndarray, alpha: np.ndarray,
-                  electrons: np.ndarray, lit: np.ndarray, k: int) -> tuple[np.ndarray, float]:
+def _pilot_ratios(
+    diffs: list[np.ndarray],
+    owner: np.ndarray,
+    w: np.ndarray,
+    alpha: np.ndarray,
+    electrons: np.ndarray,
+    lit: np.ndarray,
+    k: int,
+) -> tuple[np.ndarray, float]:
     """Per-sample ratio of bucket k's Monte Carlo variance to its shot noise, for strata rendered
     at alpha_j times the pilot's count, over the lit samples: diffs[p] (G, H, W, C) are one pilot
     time's differences of two independent renders (electrons per second), whose square over 4
@@ -546,8 +558,12 @@ def choose_spp(
     bucket_e = pooled(np.einsum("pkg,pghwc->khwc", wp, np.stack(means), optimize=True) * k_e)
     electrons = np.stack([bucket_e[list(r)].sum(axis=0) for r in read_sets])  # (R, H, W, C)
     # a read's sample counts where it holds light and none of its buckets (nor their sum) is full
-    lit = np.stack([(bucket_e[list(r)] < full_well_e).all(axis=0) for r in read_sets]) \
-        & (electrons > 1.0) & (electrons < fd_full) & only
+    lit = (
+        np.stack([(bucket_e[list(r)] < full_well_e).all(axis=0) for r in read_sets])
+        & (electrons > 1.0)
+        & (electrons < fd_full)
+        & only
+    )
     # Neyman shape of n_j: sqrt of each stratum's summed variance, max over buckets
     hi = diffs[PILOT_SPP[-1]]
     a_jk = np.zeros((J, K))
@@ -572,8 +588,10 @@ def choose_spp(
         if not lit[k].any():
             per_read.append(None)
             continue
-        q = {n: budget_quantiles(*_pilot_ratios(diffs[s], owner, w, alpha, electrons, lit, k))
-             for n, s in ((n_lo, PILOT_SPP[0]), (n_hi, PILOT_SPP[-1]))}
+        q = {
+            n: budget_quantiles(*_pilot_ratios(diffs[s], owner, w, alpha, electrons, lit, k))
+            for n, s in ((n_lo, PILOT_SPP[0]), (n_hi, PILOT_SPP[-1]))
+        }
         need, gain = [], 1.0
         for i, target in enumerate((noise_budget, p95_target)):
             lo, hi_q = q[n_lo][i], q[n_hi][i]
@@ -582,10 +600,15 @@ def choose_spp(
                 gain = shared_pattern_gain(w[:, k].sum(axis=1), expo)
                 hi_q = hi_q * gain
             need.append(n_hi * (hi_q / target) ** (1.0 / expo) if hi_q > 0 else 0.0)
-        per_read.append({**({"shared_pattern_median_factor": round(gain, 4)} if shared else {}),
-                         "median_at": {n_lo: round(q[n_lo][0], 4), n_hi: round(q[n_hi][0], 4)},
-                         "p95_at": {n_lo: round(q[n_lo][1], 4), n_hi: round(q[n_hi][1], 4)},
-                         "spp_for_median": round(need[0], 1), "spp_for_p95": round(need[1], 1)})
+        per_read.append(
+            {
+                **({"shared_pattern_median_factor": round(gain, 4)} if shared else {}),
+                "median_at": {n_lo: round(q[n_lo][0], 4), n_hi: round(q[n_hi][0], 4)},
+                "p95_at": {n_lo: round(q[n_lo][1], 4), n_hi: round(q[n_hi][1], 4)},
+                "spp_for_median": round(need[0], 1),
+                "spp_for_p95": round(need[1], 1),
+            }
+        )
         scale = max(scale, *need)
     # no stratum below the pilot's smaller count: there the ratio was measured, below it only extrapolated
     # (multijitter converges faster than spp^-2 on smooth scenes, so the clipped exponent under-predicts the
@@ -603,8 +626,9 @@ def choose_spp(
     # the cost model takes medians, and the compile time is what the first renders took beyond it
     pairs = list(zip(seconds[PILOT_SPP[0]], seconds[PILOT_SPP[-1]]))
     model = _cost_model(pairs, 0.0, acc, spp_pair=PILOT_SPP)
-    model["compile_s"] = round(max(sum(seconds[s][0] - (model["c0_s"] + model["c1_s_per_spp"] * s) for s in PILOT_SPP),
-                                   0.0), 3)
+    model["compile_s"] = round(
+        max(sum(seconds[s][0] - (model["c0_s"] + model["c1_s_per_spp"] * s) for s in PILOT_SPP), 0.0), 3
+    )
     if film_share < 1.0:  # a pass renders the film: its samples and its accumulation in proportion to the pixels
         model["c1_s_per_spp"] = round(model["c1_s_per_spp"] / film_share, 6)
         model["accumulate_s"] = round(model["accumulate_s"] / film_share, 5)
@@ -649,8 +673,17 @@ def resolve_spp(plan: Plan, renderer, cfg, seed: np.random.SeedSequence) -> Plan
         return plan
     pilot_seed = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x9117))
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
-    return choose_spp(plan, renderer, k_e, cfg.sensor.full_well_e, cfg.render.noise_budget, cfg.render.max_spp, pilot_seed,
-                      noise_budget_p95=first_pass_p95_target(cfg.render), fd_full_well_e=cfg.sensor.fd_full_well_e)
+    return choose_spp(
+        plan,
+        renderer,
+        k_e,
+        cfg.sensor.full_well_e,
+        cfg.render.noise_budget,
+        cfg.render.max_spp,
+        pilot_seed,
+        noise_budget_p95=first_pass_p95_target(cfg.render),
+        fd_full_well_e=cfg.sensor.fd_full_well_e,
+    )
 
 
 # ----------------------------------------------------------------------------- the run's own estimate
@@ -660,9 +693,13 @@ def resolve_spp(plan: Plan, renderer, cfg, seed: np.random.SeedSequence) -> Plan
 TAIL_QUANTILE = 99.9
 
 
-def read_squared_difference(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons",
-                            buckets, full_well_e: float,
-                            fd_full_well_e: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def read_squared_difference(
+    mc_diff_exposure: np.ndarray,
+    buckets_e: "np.ndarray | BucketElectrons",
+    buckets,
+    full_well_e: float,
+    fd_full_well_e: float | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One read's ``(squared, signal, use)``, each (H, W, C): the square of its buckets' summed half-sample
     differences (exposure units, not pooled), its expected electrons, and the samples that count: lit,
     every bucket below the full well, the sum below the floating diffusion's (``fd_full_well_e``; None:
@@ -683,8 +720,14 @@ def read_squared_difference(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray
     return diff, signal, (signal > 1.0) & below & (signal < fd_full)
 
 
-def read_noise_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
-                     buckets, full_well_e: float, fd_full_well_e: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def read_noise_ratio(
+    mc_diff_exposure: np.ndarray,
+    buckets_e: "np.ndarray | BucketElectrons",
+    k_e: np.ndarray,
+    buckets,
+    full_well_e: float,
+    fd_full_well_e: float | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One read's ``(var_e, signal, use)``, each (H, W, C): its Monte Carlo variance in electrons^2 (the
     square of its buckets' summed half-sample differences, pooled over the alike of 3x3 pixels,
     :func:`pooled_alike`), its expected
@@ -713,9 +756,17 @@ class BucketElectrons:
 
 
 def render_error(
-    mc_diff_exposure: np.ndarray | None, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
-    reads: list[tuple[int, ...]], read_names: list[str], full_well_e: float, fd_full_well_e: float | None = None,
-    *, plan: Plan | None = None, noise_budget: float = 0.1, noise_budget_p95: float = 1.0,
+    mc_diff_exposure: np.ndarray | None,
+    buckets_e: "np.ndarray | BucketElectrons",
+    k_e: np.ndarray,
+    reads: list[tuple[int, ...]],
+    read_names: list[str],
+    full_well_e: float,
+    fd_full_well_e: float | None = None,
+    *,
+    plan: Plan | None = None,
+    noise_budget: float = 0.1,
+    noise_budget_p95: float = 1.0,
     noise_budget_tail: float = 1.0,
 ) -> dict:
     """The run's own estimate of its Monte Carlo rendering error on every read the sensor outputs,
@@ -744,8 +795,9 @@ def render_error(
 
     per_read, factors = {}, {}
     for name, buckets in zip(read_names, reads):
-        squared, signal, use = read_squared_difference(mc_diff_exposure, buckets_e, buckets, full_well_e,
-                                                       fd_full_well_e)
+        squared, signal, use = read_squared_difference(
+            mc_diff_exposure, buckets_e, buckets, full_well_e, fd_full_well_e
+        )
         if not use.any():
             continue
         dof = effective_dof(squared, use)  # measured before pooling
@@ -758,7 +810,8 @@ def render_error(
         var_e, signal = var_e[use], signal[use]  # the samples that count, the read's whole arrays let go
         ratio = var_e / signal
         (median, *median_iv), (p95, *p95_iv), (tail, *tail_iv) = quantiles_with_intervals(
-            ratio, [50.0, 95.0, TAIL_QUANTILE], design)
+            ratio, [50.0, 95.0, TAIL_QUANTILE], design
+        )
         # the median of the true ratios behind the noisy estimates (deconvolved_median); its interval is
         # the estimates' median's, moved by the same factor
         true_median = deconvolved_median(ratio, dof)
@@ -786,17 +839,22 @@ def render_error(
     deciding = max(per_read, key=lambda n: max(factors[n]))
     body = max(f[0] for f in factors.values())  # the median and p95 targets, on every read
     tail_met = all(f[1] <= 1.0 for f in factors.values())
-    budget = {"median_target": noise_budget, "p95_target": noise_budget_p95, "tail_target": noise_budget_tail,
-              "met": bool(body <= 1.0), "tail_met": tail_met}
+    budget = {
+        "median_target": noise_budget,
+        "p95_target": noise_budget_p95,
+        "tail_target": noise_budget_tail,
+        "met": bool(body <= 1.0),
+        "tail_met": tail_met,
+    }
     if plan is not None:
         budget["spp_source"] = plan.spp_source
     if plan is not None and plan.spp is not None and body > 1.0:
         budget["spp_that_would_meet"] = int(2 * np.ceil(float(plan.spp.max()) * body / 2))
     return {
         "method": "two independent half-sample renders per stratum, summed over each read's buckets; squared "
-                  "differences pooled over 3x3 pixels",
+        "differences pooled over 3x3 pixels",
         "interval": f"{INTERVAL_COVERAGE:.0%} interval of each quantile over the estimates it is taken from "
-                    "(order statistics, effective count with pooled neighbours and channels sharing renders)",
+        "(order statistics, effective count with pooled neighbours and channels sharing renders)",
         **per_read[deciding],
         "deciding_read": deciding,
         "reads": per_read,
@@ -850,8 +908,14 @@ ADAPTIVE_LEVELS = (16.0, 8.0, 4.0, 2.0, 1.6, 1.25, ADAPTIVE_SELECT, 0.8, 0.64, 0
 ADAPTIVE_FOOTPRINT = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], bool)
 
 
-def scout_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
-                reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float) -> np.ndarray:
+def scout_ratio(
+    mc_diff_exposure: np.ndarray,
+    buckets_e: "np.ndarray | BucketElectrons",
+    k_e: np.ndarray,
+    reads: list[tuple[int, ...]],
+    full_well_e: float,
+    fd_full_well_e: float,
+) -> np.ndarray:
     """(H, W): the most any read's pooled Monte Carlo / shot-noise ratio (:func:`read_noise_ratio`), in any
     channel, reaches at each pixel, from a render's half-sample differences and electrons (0 where no read
     counts the pixel): what :func:`tail_pixels` chooses from, before its scale."""
@@ -864,10 +928,20 @@ def scout_ratio(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketEle
     return worst
 
 
-def tail_pixels(mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
-                reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float, tail_target: float,
-                max_factor: int, scale: "float | np.ndarray" = 1.0, *, meets: "Callable[[np.ndarray], bool] | None" = None,
-                changing: "np.ndarray | None" = None) -> list[tuple[np.ndarray, int]]:
+def tail_pixels(
+    mc_diff_exposure: np.ndarray,
+    buckets_e: "np.ndarray | BucketElectrons",
+    k_e: np.ndarray,
+    reads: list[tuple[int, ...]],
+    full_well_e: float,
+    fd_full_well_e: float,
+    tail_target: float,
+    max_factor: int,
+    scale: "float | np.ndarray" = 1.0,
+    *,
+    meets: "Callable[[np.ndarray], bool] | None" = None,
+    changing: "np.ndarray | None" = None,
+) -> list[tuple[np.ndarray, int]]:
     """Adaptive sampling's choice, from a scout's half-sample differences and electrons: tiers of pixels
     (flat indices) and the factor of the first pass's samples each tier is to have in all, from
     :func:`scout_ratio` times ``scale`` (the ratio the first pass has over the one these renders measure,
@@ -957,9 +1031,17 @@ class TailModel:
     against what the quantile allows. Exact, to the last bits of the sums' order; thousands of plans cost what one
     pooled_alike does."""
 
-    def __init__(self, mc_diff_exposure: np.ndarray, buckets_e: "np.ndarray | BucketElectrons", k_e: np.ndarray,
-                 reads: list[tuple[int, ...]], full_well_e: float, fd_full_well_e: float | None, tail_target: float,
-                 quantile: float = TAIL_QUANTILE):
+    def __init__(
+        self,
+        mc_diff_exposure: np.ndarray,
+        buckets_e: "np.ndarray | BucketElectrons",
+        k_e: np.ndarray,
+        reads: list[tuple[int, ...]],
+        full_well_e: float,
+        fd_full_well_e: float | None,
+        tail_target: float,
+        quantile: float = TAIL_QUANTILE,
+    ):
         K, H, W, C = buckets_e.shape
         self.terms: list[np.ndarray] = []  # per read: (S, 9) the terms of each over-target sample's pooled ratio
         self.neighbours: list[np.ndarray] = []  # per read: (S, 9) the flat pixel of each term
@@ -969,8 +1051,9 @@ class TailModel:
         offsets = [(dy, dx) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
         limit = np.log(ALIKE_FACTOR)
         for buckets in reads:
-            squared, signal, use = read_squared_difference(mc_diff_exposure, buckets_e, buckets, full_well_e,
-                                                           fd_full_well_e)
+            squared, signal, use = read_squared_difference(
+                mc_diff_exposure, buckets_e, buckets, full_well_e, fd_full_well_e
+            )
             n = int(use.sum())
             if n == 0:
                 continue
@@ -989,7 +1072,7 @@ class TailModel:
                 terms[:, i] = np.where(alike, squared[yy, xx, c], 0.0)
                 where[:, i] = yy * W + xx
                 count += alike
-            terms *= (k_e[c]**2 / (count * signal[y, x, c]))[:, None]
+            terms *= (k_e[c] ** 2 / (count * signal[y, x, c]))[:, None]
             self.terms.append(terms)
             self.neighbours.append(where)
             self.allowed.append(n - int(np.ceil(quantile / 100.0 * n)))
@@ -999,8 +1082,10 @@ class TailModel:
         (the p-quantile, the smallest value whose share reaches p, is at most the target where no more than
         n - ceil(p n) of the n samples exceed it)."""
         f = np.asarray(factors, np.float64).ravel()
-        return all(int(((t / f[w]).sum(axis=1) > self.target).sum()) <= a
-                   for t, w, a in zip(self.terms, self.neighbours, self.allowed))
+        return all(
+            int(((t / f[w]).sum(axis=1) > self.target).sum()) <= a
+            for t, w, a in zip(self.terms, self.neighbours, self.allowed)
+        )
 
 
 def noise_verdict(render_error: dict, *, adaptive_hint: bool = False) -> str:
@@ -1016,8 +1101,10 @@ def noise_verdict(render_error: dict, *, adaptive_hint: bool = False) -> str:
         return f"Not estimated: {render_error.get('note', 'no half-sample estimate')}."
     extra = 100 * (np.sqrt(1 + med) - 1)  # added to the median sample's noise standard deviation
     where = f" of read {render_error['deciding_read']}" if "deciding_read" in render_error else ""
-    level = (f"rendering noise variance is {med:.3g} x the shot-noise variance in the median sample{where} and "
-             f"{p95:.3g} x in the 95th percentile (budget {budget['median_target']:g} / {budget['p95_target']:g})")
+    level = (
+        f"rendering noise variance is {med:.3g} x the shot-noise variance in the median sample{where} and "
+        f"{p95:.3g} x in the 95th percentile (budget {budget['median_target']:g} / {budget['p95_target']:g})"
+    )
     tail = render_error.get("to_shot_noise_variance_p999")
     tail_iv = render_error.get("to_shot_noise_variance_p999_interval")
     within = "" if tail_iv is None else f", {INTERVAL_COVERAGE:.0%} interval {tail_iv[0]:.3g}-{tail_iv[1]:.3g}"
@@ -1037,10 +1124,19 @@ def noise_verdict(render_error: dict, *, adaptive_hint: bool = False) -> str:
         tail_text += " render.adaptive: true renders the pixels over it again (docs/noise.md)."
     if budget["met"]:
         return f"Sensor noise dominates: {level}, adding {extra:.1f} % to the median sample's noise.{tail_text}"
-    head = (f"Rendering noise is visible in the simulated images: {level}, adding {extra:.0f} % to the median "
-            "sample's noise; ")
+    head = (
+        f"Rendering noise is visible in the simulated images: {level}, adding {extra:.0f} % to the median "
+        "sample's noise; "
+    )
     spp = f"render.spp >= {budget['spp_that_would_meet']}" if "spp_that_would_meet" in budget else None
     if budget.get("spp_source") == "noise_budget":  # the pilot's estimate missed: more samples, not the budget again
-        return head + (f"the noise budget's pilot under-estimated it; {spp} would meet it." if spp else
-                       "the noise budget's pilot under-estimated it.") + tail_text
+        return (
+            head
+            + (
+                f"the noise budget's pilot under-estimated it; {spp} would meet it."
+                if spp
+                else "the noise budget's pilot under-estimated it."
+            )
+            + tail_text
+        )
     return head + (f"{spp} or " if spp else "") + "render.spp: null (the noise budget) would meet it." + tail_text

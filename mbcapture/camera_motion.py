@@ -81,7 +81,9 @@ class ShakeSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     rotation_deg: float = Field(
-        0.05, ge=0, le=20,
+        0.05,
+        ge=0,
+        le=20,
         description="RMS of the camera's pitch and of its yaw, degrees (each; a hand-held camera: a few hundredths "
         "to a few tenths of a degree).",
     )
@@ -89,13 +91,19 @@ class ShakeSpec(BaseModel):
     translation_mm: float = Field(
         0.3, ge=0, le=100, description="RMS of the camera's translation along each of its three axes, millimetres."
     )
-    tremor_hz: float = Field(10.0, gt=0, le=25, description="Centre of the physiological tremor peak, Hz (measured: 8-12 Hz).")
+    tremor_hz: float = Field(
+        10.0, gt=0, le=25, description="Centre of the physiological tremor peak, Hz (measured: 8-12 Hz)."
+    )
     tremor_width_hz: float = Field(1.5, gt=0, le=10, description="Standard deviation of the tremor peak, Hz.")
     tremor_share: float = Field(
         0.3, ge=0, le=1, description="Fraction of each offset's variance in the tremor peak; the rest is slow drift."
     )
-    drift_corner_hz: float = Field(1.0, gt=0, le=20, description="Corner frequency of the drift's low-pass spectrum, Hz.")
-    seed: int = Field(0, ge=0, description="Seed of the trajectory (independent of the run's seed: the same hand in every run).")
+    drift_corner_hz: float = Field(
+        1.0, gt=0, le=20, description="Corner frequency of the drift's low-pass spectrum, Hz."
+    )
+    seed: int = Field(
+        0, ge=0, description="Seed of the trajectory (independent of the run's seed: the same hand in every run)."
+    )
 
 
 class CameraSection(BaseModel):
@@ -104,45 +112,55 @@ class CameraSection(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     shake: ShakeSpec | None = Field(
-        None, description="Hand shake: a seeded trajectory of rotation and translation with a hand-tremor spectrum "
+        None,
+        description="Hand shake: a seeded trajectory of rotation and translation with a hand-tremor spectrum "
         "(camera.shake.*); null: the camera is still.",
     )
     trajectory_file: str | None = Field(
-        None, description="CSV of the camera's offsets over scene time, header time_s,rx_deg,ry_deg,rz_deg,tx_mm,ty_mm,tz_mm "
+        None,
+        description="CSV of the camera's offsets over scene time, header time_s,rx_deg,ry_deg,rz_deg,tx_mm,ty_mm,tz_mm "
         "(camera frame: x image left, y up, z forward); interpolated linearly. Exclusive with camera.shake.",
     )
 
     vignetting: Literal["none", "cos4"] = Field(
-        "none", description="Relative illumination of the image plane: 'cos4', the natural vignetting of a thin "
+        "none",
+        description="Relative illumination of the image plane: 'cos4', the natural vignetting of a thin "
         "lens (cos^4 of each pixel's field angle: the metronome's 40-degree view gets 0.78 at the edges, 0.68 in "
         "the corners); 'none': "
         "as bright in the corners as in the centre (a pinhole).",
     )
 
     diffraction: bool = Field(
-        False, description="Blur every render by the diffraction of a circular aperture at sensor.f_number, per channel "
+        False,
+        description="Blur every render by the diffraction of a circular aperture at sensor.f_number, per channel "
         "at sensor.wavelength_nm (its OTF, on top of the pixel aperture the render already is; mbcapture.optics). "
         "false: a diffraction-free lens.",
     )
 
     lens: Literal["pinhole", "thin"] = Field(
-        "pinhole", description="'pinhole' (default): everything sharp, the geometry of the scenes' ground truths. 'thin': a thin "
+        "pinhole",
+        description="'pinhole' (default): everything sharp, the geometry of the scenes' ground truths. 'thin': a thin "
         "lens with depth of field (Mitsuba's thinlens), aperture radius f / (2 sensor.f_number), focused at "
         "camera.focus_distance_m; at the shipped configs' f/2.8 and 5.6 um it blurs by under a pixel. The "
         "depth AOV stays a pinhole's (docs/camera.md).",
     )
     focus_distance_m: float | None = Field(
-        None, gt=0, description="Distance in metres at which the thin lens (camera.lens: thin) is sharp; null: the "
+        None,
+        gt=0,
+        description="Distance in metres at which the thin lens (camera.lens: thin) is sharp; null: the "
         "distance from the camera to the point it looks at.",
     )
     focal_length_mm: float | None = Field(
-        None, gt=0, description="Focal length in millimetres; it sets the field of view, 2 atan(W p / 2 f) with W p "
+        None,
+        gt=0,
+        description="Focal length in millimetres; it sets the field of view, 2 atan(W p / 2 f) with W p "
         "the sensor's width (render.width x sensor.pixel_pitch_um), replacing the scene's. null: the scene's field "
         "of view, and the focal length it implies.",
     )
 
     distortion: list[float] | None = Field(
-        None, description="Radial lens distortion, Brown-Conrady coefficients [k1] to [k1, k2, k3]: normalized pinhole "
+        None,
+        description="Radial lens distortion, Brown-Conrady coefficients [k1] to [k1, k2, k3]: normalized pinhole "
         "position (x, y) lands at (x, y)(1 + k1 r^2 + k2 r^4 + k3 r^6) (k1 < 0 barrel, > 0 pincushion), "
         "resampled from a wider pinhole render, photometry kept. null: none. multi_flash, structured_light "
         "and flash_matting refuse it: their truths are pinhole geometry (docs/camera.md).",
@@ -181,8 +199,9 @@ def shake_psd(f_hz: np.ndarray, spec: ShakeSpec) -> np.ndarray:
 
     f = np.asarray(f_hz, dtype=np.float64)
     inside = (f >= SHAKE_F_MIN_HZ) & (f <= SHAKE_F_MAX_HZ)
-    s = ((1 - spec.tremor_share) * drift(f) / np.trapezoid(drift(grid), grid)
-         + spec.tremor_share * peak(f) / np.trapezoid(peak(grid), grid))
+    s = (1 - spec.tremor_share) * drift(f) / np.trapezoid(drift(grid), grid) + spec.tremor_share * peak(
+        f
+    ) / np.trapezoid(peak(grid), grid)
     return np.where(inside, s, 0.0)
 
 
@@ -202,8 +221,9 @@ class ShakeTrajectory:
         edges = np.geomspace(SHAKE_F_MIN_HZ, SHAKE_F_MAX_HZ, n + 1)
         df = np.diff(edges)
         centres = np.sqrt(edges[:-1] * edges[1:])
-        rms = np.array([math.radians(spec.rotation_deg)] * 2 + [math.radians(spec.roll_deg)]
-                       + [spec.translation_mm * 1e-3] * 3)
+        rms = np.array(
+            [math.radians(spec.rotation_deg)] * 2 + [math.radians(spec.roll_deg)] + [spec.translation_mm * 1e-3] * 3
+        )
         freq = edges[:-1][None, :] + rng.random((6, n)) * df[None, :]
         s = shake_psd(centres, spec)
         unit = np.sqrt(2.0 * s * df)
@@ -243,7 +263,9 @@ class FileTrajectory:
         lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
         header = tuple(h.strip() for h in lines[0].split(",")) if lines else ()
         if header != TRAJECTORY_COLUMNS:
-            raise ConfigError(f"{where}: expected the header {','.join(TRAJECTORY_COLUMNS)}, got {','.join(header) or 'nothing'}")
+            raise ConfigError(
+                f"{where}: expected the header {','.join(TRAJECTORY_COLUMNS)}, got {','.join(header) or 'nothing'}"
+            )
         try:
             data = np.loadtxt(lines[1:], delimiter=",", ndmin=2, dtype=np.float64)
         except ValueError as exc:
@@ -261,8 +283,10 @@ class FileTrajectory:
         t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
         lo, hi = float(self.times_s[0]), float(self.times_s[-1])
         if t.size and (t.min() < lo or t.max() > hi):
-            raise ConfigError(f"camera.trajectory_file: {self.path} covers scene times {lo:g}..{hi:g} s, the capture "
-                              f"needs {t.min():g}..{t.max():g} s")
+            raise ConfigError(
+                f"camera.trajectory_file: {self.path} covers scene times {lo:g}..{hi:g} s, the capture "
+                f"needs {t.min():g}..{t.max():g} s"
+            )
         return np.stack([np.interp(t, self.times_s, self.values[:, a]) for a in range(6)], axis=1)
 
 
@@ -291,8 +315,9 @@ def offset_matrices(offsets: np.ndarray) -> np.ndarray:
     return m
 
 
-def project_through(world_from_camera: np.ndarray, points: np.ndarray, fov_deg: float, width: int,
-                    height: int) -> np.ndarray:
+def project_through(
+    world_from_camera: np.ndarray, points: np.ndarray, fov_deg: float, width: int, height: int
+) -> np.ndarray:
     """Pixel coordinates (T, M, 2) (x right, y down, pixel centres at half-integers) of world points
     ``points`` (T, M, 3) seen by a pinhole with horizontal field of view ``fov_deg`` at poses
     ``world_from_camera`` (T, 4, 4): the projection of :meth:`mbcapture.scenes.Camera.project`."""
@@ -347,10 +372,12 @@ def from_config(section: CameraSection, base_dir: Path | None = None) -> CameraM
     looked up from the current folder, then from ``base_dir`` (the config file's folder)."""
     if section.shake is not None:
         s = section.shake
-        return CameraMotion(ShakeTrajectory.from_spec(s),
-                            f"hand shake (seed {s.seed}): RMS pitch/yaw {s.rotation_deg:g} deg, roll {s.roll_deg:g} deg, "
-                            f"translation {s.translation_mm:g} mm, tremor {s.tremor_hz:g} Hz ({100 * s.tremor_share:g} % of "
-                            "the variance)")
+        return CameraMotion(
+            ShakeTrajectory.from_spec(s),
+            f"hand shake (seed {s.seed}): RMS pitch/yaw {s.rotation_deg:g} deg, roll {s.roll_deg:g} deg, "
+            f"translation {s.translation_mm:g} mm, tremor {s.tremor_hz:g} Hz ({100 * s.tremor_share:g} % of "
+            "the variance)",
+        )
     if section.trajectory_file is not None:
         p = Path(section.trajectory_file).expanduser()
         if not p.exists() and base_dir is not None and (base_dir / p).exists():
@@ -377,8 +404,13 @@ def frame_motion_px(scene: "SceneModel", times_s: np.ndarray, width: int, height
         return 0.0
     pts = reference_points(scene.camera, width, height)
     t = np.atleast_1d(np.asarray(times_s, dtype=np.float64))
-    px = project_through(scene.camera_motion.world_from_camera(scene.camera, t),
-                         np.broadcast_to(pts, (t.size, *pts.shape)), scene.camera.fov_deg, width, height)
+    px = project_through(
+        scene.camera_motion.world_from_camera(scene.camera, t),
+        np.broadcast_to(pts, (t.size, *pts.shape)),
+        scene.camera.fov_deg,
+        width,
+        height,
+    )
     return float(np.linalg.norm(px.max(axis=0) - px.min(axis=0), axis=-1).max())
 
 

@@ -60,9 +60,15 @@ def check_resources(cfg: CaptureConfig, out_dir: Path | None) -> tuple[Prepared,
     return prepared, need, seconds
 
 
-def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progress: bool = True,
-                rendered: Rendered | None = None,
-                on_rendered: "Callable[[Rendered], None] | None" = None, client: Any = None) -> CaptureResult:
+def run_capture(
+    cfg: CaptureConfig,
+    out_dir: str | Path | None = None,
+    *,
+    progress: bool = True,
+    rendered: Rendered | None = None,
+    on_rendered: "Callable[[Rendered], None] | None" = None,
+    client: Any = None,
+) -> CaptureResult:
     """Run one capture. With ``out_dir``, write its outputs there (atomically). ``progress``: a
     status line for every stage and a bar for the render passes (stderr). ``rendered``: the render
     stage of another capture with the same renders (see :class:`Rendered`), used instead of
@@ -76,8 +82,10 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     if progress:
         print(f"mbcapture: this run {need.line()}", file=sys.stderr)
     if cfg.capture.frames > 1 and client is not None:
-        raise ConfigError("--workers/--scheduler: a video (capture.frames > 1) renders its frames here; "
-                          "use mbcapture sweep to spread captures over a cluster")
+        raise ConfigError(
+            "--workers/--scheduler: a video (capture.frames > 1) renders its frames here; "
+            "use mbcapture sweep to spread captures over a cluster"
+        )
     if cfg.capture.frames > 1:  # a video: a capture per frame (mbcapture/video.py)
         result = run_video(cfg, progress=progress)
         if out_dir is not None:
@@ -88,8 +96,9 @@ def run_capture(cfg: CaptureConfig, out_dir: str | Path | None = None, *, progre
     budget = cfg.render.spp is None  # a pilot, and adaptive sampling's second pass when it is on
     stages = 4 + own_render * (1 + budget + (budget and cfg.render.adaptive)) + (out_dir is not None)
     with StageStatus(progress, stages=stages) as status:
-        result = capture_in_memory(cfg, status, progress=progress, rendered=rendered, on_rendered=on_rendered,
-                                   client=client, planned=planned)
+        result = capture_in_memory(
+            cfg, status, progress=progress, rendered=rendered, on_rendered=on_rendered, client=client, planned=planned
+        )
         if out_dir is not None:
             with status.stage("write outputs and report"):
                 write_outputs(result, Path(out_dir))
@@ -106,9 +115,14 @@ def write_outputs(result: CaptureResult, out: Path, extra=None, *, raw: bool = T
     empty = result.film_store.empty  # a spilled film (render.spill) makes the EXRs' channels in scratch files too
     with staged_outputs(out) as st:
         if raw:
-            st.write_exr("buckets.exr", {f"B{k + 1}": partial(np.multiply, result.bucket_exposure[k], result.k_e)
-                                         for k in range(tl.n_buckets)}, empty=empty)
-            st.write_exr("reads_expected.exr", {n: result.reads_expected_e[i] for i, n in enumerate(names)}, empty=empty)
+            st.write_exr(
+                "buckets.exr",
+                {f"B{k + 1}": partial(np.multiply, result.bucket_exposure[k], result.k_e) for k in range(tl.n_buckets)},
+                empty=empty,
+            )
+            st.write_exr(
+                "reads_expected.exr", {n: result.reads_expected_e[i] for i, n in enumerate(names)}, empty=empty
+            )
             st.write_exr("reads.exr", {n: result.reads_dn[i] for i, n in enumerate(names)}, empty=empty)
         app_out = result.app_output
         st.write_exr(f"{result.app}.exr", app_out.images, empty=empty)
@@ -121,8 +135,14 @@ def write_outputs(result: CaptureResult, out: Path, extra=None, *, raw: bool = T
             cfa = None if cfg.sensor.cfa == "none" else cfg.sensor.cfa
             codes = result.reads_dn if result.mosaic_dn is None else result.mosaic_dn  # a CFA sensor: its photosites
             for i, n in enumerate(names):
-                write_dng(st.path(f"read_{n}.dng"), codes[i], black_level=cfg.sensor.black_level_dn,
-                          white_level=cfg.sensor.adc_max_dn, channel_gain=gain, cfa=cfa)
+                write_dng(
+                    st.path(f"read_{n}.dng"),
+                    codes[i],
+                    black_level=cfg.sensor.black_level_dn,
+                    white_level=cfg.sensor.adc_max_dn,
+                    channel_gain=gain,
+                    cfa=cfa,
+                )
         result.report["previews"] = write_read_previews(st, result)  # one common DN scale, and each its own
         st.write_yaml("config.yaml", cfg.to_yaml_dict())
         if extra is not None:

@@ -67,8 +67,10 @@ class Settings:
         if self.width < 16 or self.height < 16:
             raise ConfigError(f"characterize: --size must be at least 16x16 pixels, got {self.width}x{self.height}")
         if self.steps < 20:
-            raise ConfigError(f"characterize: --steps must be at least 20 (the fits need points below 70 % of "
-                              f"saturation), got {self.steps}")
+            raise ConfigError(
+                f"characterize: --steps must be at least 20 (the fits need points below 70 % of "
+                f"saturation), got {self.steps}"
+            )
         if self.dark_steps < 3 or self.frames < 2:
             raise ConfigError("characterize: --dark-steps must be at least 3 and --frames at least 2")
 
@@ -119,9 +121,11 @@ def monochromatic(cfg: CaptureConfig) -> CaptureConfig:
     wl, qe = channel_quantum_efficiency(cfg.sensor)
     at = [float(np.interp(w, wl, qe[c], left=0.0, right=0.0)) for c, w in enumerate(cfg.sensor.wavelength_nm)]
     if min(at) <= 0.0:
-        raise ConfigError(f"characterize: sensor.spectral_response {cfg.sensor.spectral_response!r} has no response at "
-                          f"sensor.wavelength_nm {cfg.sensor.wavelength_nm} in every channel; set wavelengths inside "
-                          f"its curves ({wl.min():g}-{wl.max():g} nm)")
+        raise ConfigError(
+            f"characterize: sensor.spectral_response {cfg.sensor.spectral_response!r} has no response at "
+            f"sensor.wavelength_nm {cfg.sensor.wavelength_nm} in every channel; set wavelengths inside "
+            f"its curves ({wl.min():g}-{wl.max():g} nm)"
+        )
     sensor = cfg.sensor.model_copy(update={"spectral_response": "effective_wavelength", "quantum_efficiency": at})
     variant = cfg.render.variant.replace("_spectral", "_rgb")
     return cfg.model_copy(update={"sensor": sensor, "render": cfg.render.model_copy(update={"variant": variant})})
@@ -185,8 +189,11 @@ def _per_channel(a: np.ndarray, b: np.ndarray) -> list[emva.PairStats]:
 
 
 def _stack(stats: list[emva.PairStats]) -> emva.PairStats:
-    return emva.PairStats(mean=np.stack([s.mean for s in stats], -1), variance=np.stack([s.variance for s in stats], -1),
-                          pixels=stats[0].pixels)
+    return emva.PairStats(
+        mean=np.stack([s.mean for s in stats], -1),
+        variance=np.stack([s.variance for s in stats], -1),
+        pixels=stats[0].pixels,
+    )
 
 
 def measure(cfg: CaptureConfig, settings: Settings | None = None, *, progress: bool = True) -> dict[str, ReadCurves]:
@@ -202,8 +209,14 @@ def measure(cfg: CaptureConfig, settings: Settings | None = None, *, progress: b
     per_mode = 4 * settings.steps + 2 * settings.dark_steps + 2 * settings.frames
     out: dict[str, ReadCurves] = {}
     dc = cfg.sensor.dark_current_e_per_s
-    with tqdm(total=per_mode * len(modes), desc="characterize", unit="frame", disable=not progress, leave=False,
-              dynamic_ncols=True) as bar:
+    with tqdm(
+        total=per_mode * len(modes),
+        desc="characterize",
+        unit="frame",
+        disable=not progress,
+        leave=False,
+        dynamic_ncols=True,
+    ) as bar:
         for m, (mode, buckets) in enumerate(modes.items()):
             t_sat = charge_limit_e(cfg, len(buckets)) / rate.max()
             t = np.arange(1, settings.steps + 1) * (SERIES_END * t_sat / settings.steps)
@@ -214,20 +227,38 @@ def measure(cfg: CaptureConfig, settings: Settings | None = None, *, progress: b
             t_dark = np.linspace(0.0, t_dark_end, settings.dark_steps)
             dark_series = _per_channel(*_pairs(sensor, buckets, t_dark, False, (m, 2), bar))
             t_half = 0.5 * t_sat
-            dark_avg = np.mean([sensor.frame(buckets, t_half, False, (m, 3, f)) for f in range(settings.frames)], axis=0)
+            dark_avg = np.mean(
+                [sensor.frame(buckets, t_half, False, (m, 3, f)) for f in range(settings.frames)], axis=0
+            )
             bar.update(settings.frames)
-            light_avg = np.mean([sensor.frame(buckets, t_half, True, (m, 4, f)) for f in range(settings.frames)], axis=0)
+            light_avg = np.mean(
+                [sensor.frame(buckets, t_half, True, (m, 4, f)) for f in range(settings.frames)], axis=0
+            )
             bar.update(settings.frames)
-            curves = ReadCurves(t_s=t, mu_p=photons_per_pixel(cfg, radiance.mean(axis=(0, 1)), t), light=_stack(light),
-                                dark=_stack(dark), dark_t_s=t_dark, dark_series=_stack(dark_series),
-                                dark_frame=dark_avg, light_frame=light_avg)
+            curves = ReadCurves(
+                t_s=t,
+                mu_p=photons_per_pixel(cfg, radiance.mean(axis=(0, 1)), t),
+                light=_stack(light),
+                dark=_stack(dark),
+                dark_t_s=t_dark,
+                dark_series=_stack(dark_series),
+                dark_frame=dark_avg,
+                light_frame=light_avg,
+            )
             i_half = int(np.argmin(np.abs(t - t_half)))
             for c, name in enumerate(CHANNELS):
                 figs = emva.sensitivity(curves.mu_p[:, c], light[c], dark[c], t)
                 figs.update(emva.dark_current(t_dark, dark_series[c], figs["system_gain_dn_per_e"]))
-                figs.update(emva.nonuniformity(dark_avg[..., c], light_avg[..., c], settings.frames,
-                                               float(dark[c].variance[i_half]), float(light[c].variance[i_half]),
-                                               figs["system_gain_dn_per_e"]))
+                figs.update(
+                    emva.nonuniformity(
+                        dark_avg[..., c],
+                        light_avg[..., c],
+                        settings.frames,
+                        float(dark[c].variance[i_half]),
+                        float(light[c].variance[i_half]),
+                        figs["system_gain_dn_per_e"],
+                    )
+                )
                 curves.figures[name] = figs
             out[mode] = curves
     return out
@@ -247,9 +278,12 @@ def configured_figures(cfg: CaptureConfig, buckets: int) -> dict[str, list[float
         "charge_limit_e": [charge_limit_e(cfg, buckets)] * 3,
         "dark_current_e_per_s": [s.dark_current_e_per_s * buckets] * 3,
         "dsnu_e": [line(s.dsnu_e, s.dsnu_row_e, s.dsnu_col_e)] * 3,
-        "dsnu_row_e": [s.dsnu_row_e] * 3, "dsnu_column_e": [s.dsnu_col_e] * 3, "dsnu_pixel_e": [s.dsnu_e] * 3,
+        "dsnu_row_e": [s.dsnu_row_e] * 3,
+        "dsnu_column_e": [s.dsnu_col_e] * 3,
+        "dsnu_pixel_e": [s.dsnu_e] * 3,
         "prnu_percent": [100 * line(s.prnu, s.prnu_row, s.prnu_col)] * 3,
-        "prnu_row_percent": [100 * s.prnu_row] * 3, "prnu_column_percent": [100 * s.prnu_col] * 3,
+        "prnu_row_percent": [100 * s.prnu_row] * 3,
+        "prnu_column_percent": [100 * s.prnu_col] * 3,
         "prnu_pixel_percent": [100 * s.prnu] * 3,
         "linearity_error_percent": [0.0] * 3,
     }
@@ -265,24 +299,40 @@ def datasheet(cfg: CaptureConfig, curves: dict[str, ReadCurves], settings: Setti
         "schema": DATASHEET_SCHEMA,
         "standard": "EMVA 1288 Release 4.0 Linear (figures computed by mbcapture.emva)",
         "config": source,
-        "sensor": {"pixel_pitch_um": s.pixel_pitch_um, "bucket_count": s.bucket_count, "adc_bits": s.adc_bits,
-                   "spectral_response": s.spectral_response,
-                   "wavelength_nm": list(s.wavelength_nm), "black_level_dn": s.black_level_dn,
-                   "f_number": s.f_number, "lens_transmittance": s.lens_transmittance},
-        "setup": {"film": [settings.width, settings.height], "steps": settings.steps,
-                  "dark_steps": settings.dark_steps, "frames_averaged": settings.frames,
-                  "saturation_time_s": SATURATION_TIME_S,
-                  "light": "flatfield scene, one radiance per channel at sensor.wavelength_nm, no vignetting or "
-                           "diffraction; photons counted on the pixel area (fill factor in the quantum efficiency)"},
+        "sensor": {
+            "pixel_pitch_um": s.pixel_pitch_um,
+            "bucket_count": s.bucket_count,
+            "adc_bits": s.adc_bits,
+            "spectral_response": s.spectral_response,
+            "wavelength_nm": list(s.wavelength_nm),
+            "black_level_dn": s.black_level_dn,
+            "f_number": s.f_number,
+            "lens_transmittance": s.lens_transmittance,
+        },
+        "setup": {
+            "film": [settings.width, settings.height],
+            "steps": settings.steps,
+            "dark_steps": settings.dark_steps,
+            "frames_averaged": settings.frames,
+            "saturation_time_s": SATURATION_TIME_S,
+            "light": "flatfield scene, one radiance per channel at sensor.wavelength_nm, no vignetting or "
+            "diffraction; photons counted on the pixel area (fill factor in the quantum efficiency)",
+        },
         "reads": {
             mode: {
                 "buckets": list(modes[mode]),
                 "channels": {ch: {k: f.as_dict() for k, f in rc.figures[ch].items()} for ch in CHANNELS},
                 "configured": configured_figures(cfg, len(modes[mode])),
-                "curves": {"t_s": rc.t_s.tolist(), "mu_p": rc.mu_p.tolist(), "mu_y": rc.light.mean.tolist(),
-                           "var_y": rc.light.variance.tolist(), "mu_y_dark": rc.dark.mean.tolist(),
-                           "var_y_dark": rc.dark.variance.tolist(), "dark_t_s": rc.dark_t_s.tolist(),
-                           "dark_series_mu_y": rc.dark_series.mean.tolist()},
+                "curves": {
+                    "t_s": rc.t_s.tolist(),
+                    "mu_p": rc.mu_p.tolist(),
+                    "mu_y": rc.light.mean.tolist(),
+                    "var_y": rc.light.variance.tolist(),
+                    "mu_y_dark": rc.dark.mean.tolist(),
+                    "var_y_dark": rc.dark.variance.tolist(),
+                    "dark_t_s": rc.dark_t_s.tolist(),
+                    "dark_series_mu_y": rc.dark_series.mean.tolist(),
+                },
             }
             for mode, rc in curves.items()
         },
@@ -303,8 +353,13 @@ SUMMARY = (
     ("dynamic_range_db", "dynamic range"),
     ("linearity_error_percent", "linearity error LE"),
     ("dark_current_e_per_s", "dark current μ_I"),
-    ("dsnu_e", "DSNU"), ("dsnu_row_e", "DSNU, row"), ("dsnu_column_e", "DSNU, column"), ("dsnu_pixel_e", "DSNU, pixel"),
-    ("prnu_percent", "PRNU"), ("prnu_row_percent", "PRNU, row"), ("prnu_column_percent", "PRNU, column"),
+    ("dsnu_e", "DSNU"),
+    ("dsnu_row_e", "DSNU, row"),
+    ("dsnu_column_e", "DSNU, column"),
+    ("dsnu_pixel_e", "DSNU, pixel"),
+    ("prnu_percent", "PRNU"),
+    ("prnu_row_percent", "PRNU, row"),
+    ("prnu_column_percent", "PRNU, column"),
     ("prnu_pixel_percent", "PRNU, pixel"),
 )
 
@@ -317,13 +372,15 @@ def _value(f: dict) -> str:
 def report_html(sheet: dict, plots: dict[str, str]) -> str:
     """report.html: the summary table per read mode (measured ± uncertainty beside configured), and
     the photon transfer, SNR, linearity and spectrogram plots."""
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>EMVA 1288 datasheet: {esc(sheet['config'])}"
-             f"</title><style>{CSS}</style></head><body>",
-             f"<h1>EMVA 1288 datasheet of the simulated sensor</h1><p class='lead'>{esc(sheet['config'])}: "
-             f"{esc(sheet['standard'])}. Light: {esc(sheet['setup']['light'])}. Film "
-             f"{sheet['setup']['film'][0]}x{sheet['setup']['film'][1]}, {sheet['setup']['steps']} exposure steps of two "
-             f"frames, {sheet['setup']['frames_averaged']} frames averaged for DSNU and PRNU. Uncertainties are 1σ, "
-             "from the number of pixels and frames.</p>"]
+    parts = [
+        f"<!doctype html><html><head><meta charset='utf-8'><title>EMVA 1288 datasheet: {esc(sheet['config'])}"
+        f"</title><style>{CSS}</style></head><body>",
+        f"<h1>EMVA 1288 datasheet of the simulated sensor</h1><p class='lead'>{esc(sheet['config'])}: "
+        f"{esc(sheet['standard'])}. Light: {esc(sheet['setup']['light'])}. Film "
+        f"{sheet['setup']['film'][0]}x{sheet['setup']['film'][1]}, {sheet['setup']['steps']} exposure steps of two "
+        f"frames, {sheet['setup']['frames_averaged']} frames averaged for DSNU and PRNU. Uncertainties are 1σ, "
+        "from the number of pixels and frames.</p>",
+    ]
     sensor = sheet["sensor"]
     parts.append(table([[k, v] for k, v in sensor.items()], ["sensor", "value"]))
     for mode, data in sheet["reads"].items():
@@ -338,17 +395,22 @@ def report_html(sheet: dict, plots: dict[str, str]) -> str:
                 row.append(_value(f) + (f" ({fmt(conf[CHANNELS.index(ch)])})" if conf is not None else ""))
             rows.append(row)
         parts.append(table(rows, ["figure", "unit", "R (configured)", "G (configured)", "B (configured)"]))
-        parts.append("<div class='grid'>" + "".join(figure(src, esc(cap), plot=True)
-                                                     for src, cap in plots.items() if src.startswith(f"{mode}_"))
-                     + "</div>")
-    parts.append("<p class='muted'>Every figure with its uncertainty, unit and section of the standard, and the "
-                 "measured curves: <a href='characterization.json'>characterization.json</a> (loads as a sensor "
-                 "preset: <code>sensor.preset: path/to/characterization.json</code>).</p></body></html>")
+        parts.append(
+            "<div class='grid'>"
+            + "".join(figure(src, esc(cap), plot=True) for src, cap in plots.items() if src.startswith(f"{mode}_"))
+            + "</div>"
+        )
+    parts.append(
+        "<p class='muted'>Every figure with its uncertainty, unit and section of the standard, and the "
+        "measured curves: <a href='characterization.json'>characterization.json</a> (loads as a sensor "
+        "preset: <code>sensor.preset: path/to/characterization.json</code>).</p></body></html>"
+    )
     return "".join(parts)
 
 
-def characterize(cfg: CaptureConfig, out_dir, *, source: str, settings: Settings | None = None,
-                 progress: bool = True) -> dict:
+def characterize(
+    cfg: CaptureConfig, out_dir, *, source: str, settings: Settings | None = None, progress: bool = True
+) -> dict:
     """Measure the sensor of ``cfg`` and write characterization.json, report.html and its plots into
     ``out_dir`` (atomically). Returns the datasheet."""
     settings = settings or Settings()
@@ -364,7 +426,10 @@ def characterize(cfg: CaptureConfig, out_dir, *, source: str, settings: Settings
         st.write_bytes("report.html", report_html(sheet, captions).encode())
     if progress:
         g = sheet["reads"]["bucket"]["channels"]["G"]
-        print(f"mbcapture: characterized ({sheet['config']}), green channel: K {_value(g['system_gain_dn_per_e'])} "
-              f"DN/e-, QE {_value(g['quantum_efficiency'])}, dark noise {_value(g['temporal_dark_noise_e'])} e-, "
-              f"saturation {_value(g['saturation_capacity_e'])} e-; {out_dir}/report.html", file=sys.stderr)
+        print(
+            f"mbcapture: characterized ({sheet['config']}), green channel: K {_value(g['system_gain_dn_per_e'])} "
+            f"DN/e-, QE {_value(g['quantum_efficiency'])}, dark noise {_value(g['temporal_dark_noise_e'])} e-, "
+            f"saturation {_value(g['saturation_capacity_e'])} e-; {out_dir}/report.html",
+            file=sys.stderr,
+        )
     return sheet

@@ -30,8 +30,11 @@ EXIT_INPUT = 2
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", type=Path,
-                   help="YAML config: a path (configs/metronome_hdr.yaml) or a shipped config's name (metronome_hdr)")
+    p.add_argument(
+        "config",
+        type=Path,
+        help="YAML config: a path (configs/metronome_hdr.yaml) or a shipped config's name (metronome_hdr)",
+    )
     p.add_argument(
         "--set",
         dest="overrides",
@@ -53,33 +56,53 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--out", type=Path, default=None, help="output folder (default: out/<config name>)")
     run.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     run_where = run.add_mutually_exclusive_group()
-    run_where.add_argument("--workers", type=int, default=None, metavar="N",
-                           help="render the capture's strata on a local Dask cluster of N worker processes")
-    run_where.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                           help="render the capture's strata on an existing Dask cluster (tcp://host:port)")
+    run_where.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="render the capture's strata on a local Dask cluster of N worker processes",
+    )
+    run_where.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="render the capture's strata on an existing Dask cluster (tcp://host:port)",
+    )
 
     plan = sub.add_parser("plan", help="show what would be rendered, without rendering")
     _add_config_args(plan)
     plan.add_argument("--json", action="store_true", help="print the plan as JSON")
-    plan.add_argument("--no-probe", action="store_true",
-                      help="no pilot/probe render: no spp from render.noise_budget and no time estimate")
+    plan.add_argument(
+        "--no-probe",
+        action="store_true",
+        help="no pilot/probe render: no spp from render.noise_budget and no time estimate",
+    )
 
     conv = sub.add_parser("converge", help="rendering error vs run time: planner and naive per-slot ladders")
     _add_config_args(conv)
     conv.add_argument("--out", type=Path, default=None, help="output folder (default: out/converge_<config name>)")
     conv.add_argument("--quick", action="store_true", help="short ladders and a 64-spp reference")
-    conv.add_argument("--spp", type=str, default=None, help="planner ladder, comma-separated (default 1,2,4,8,16,32,64)")
+    conv.add_argument(
+        "--spp", type=str, default=None, help="planner ladder, comma-separated (default 1,2,4,8,16,32,64)"
+    )
     conv.add_argument("--naive-spp", type=str, default=None, help="naive ladder, spp per slot (default 1,2,4,8)")
     conv.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 256; --quick 64)")
 
-    char = sub.add_parser("characterize", help="measure the configured sensor as EMVA 1288 Release 4.0 does; a "
-                                               "datasheet (report.html, characterization.json)")
+    char = sub.add_parser(
+        "characterize",
+        help="measure the configured sensor as EMVA 1288 Release 4.0 does; a "
+        "datasheet (report.html, characterization.json)",
+    )
     _add_config_args(char)
     char.add_argument("--out", type=Path, default=None, help="output folder (default: out/characterize_<config name>)")
-    char.add_argument("--size", type=_size, default=(128, 128), metavar="WxH",
-                      help="film of the flat-field frames (default 128x128)")
+    char.add_argument(
+        "--size", type=_size, default=(128, 128), metavar="WxH", help="film of the flat-field frames (default 128x128)"
+    )
     char.add_argument("--steps", type=int, default=50, help="exposure steps from dark to 1.25x saturation (default 50)")
-    char.add_argument("--dark-steps", type=int, default=10, help="exposure steps of the dark-current series (default 10)")
+    char.add_argument(
+        "--dark-steps", type=int, default=10, help="exposure steps of the dark-current series (default 10)"
+    )
     char.add_argument("--frames", type=int, default=16, help="frames averaged for DSNU and PRNU (default 16)")
     char.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
@@ -94,27 +117,61 @@ def _parser() -> argparse.ArgumentParser:
 
     sub.add_parser("apps", help="list the applications (reconstructions), their protocols and parameters")
 
-    sweep = sub.add_parser("sweep", help="many captures varying some keys (renders shared), on Dask; a table, plots, index.html")
-    sweep.add_argument("sweep", type=Path,
-                       help="sweep file: a path (configs/sweeps/sensor_noise.yaml) or a shipped sweep's name (sensor_noise)")
-    sweep.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                       help="override a key of the base config for every point (not an axis), e.g. render.width=160")
+    sweep = sub.add_parser(
+        "sweep", help="many captures varying some keys (renders shared), on Dask; a table, plots, index.html"
+    )
+    sweep.add_argument(
+        "sweep",
+        type=Path,
+        help="sweep file: a path (configs/sweeps/sensor_noise.yaml) or a shipped sweep's name (sensor_noise)",
+    )
+    sweep.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a key of the base config for every point (not an axis), e.g. render.width=160",
+    )
     sweep.add_argument("--out", type=Path, default=None, help="output folder (default: out/sweep_<sweep name>)")
     where = sweep.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, default=None, metavar="N",
-                       help="run on a local Dask cluster of N worker processes (default: one per core; a sweep whose "
-                            "points all share one set of renders runs in this process unless this is given)")
-    where.add_argument("--in-process", dest="in_process", action="store_const", const=True, default=None,
-                       help="run every point in this process, without Dask")
-    where.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                       help="run on an existing Dask cluster (tcp://host:port) instead of a local one")
-    sweep.add_argument("--resume", action="store_true", help="skip the points that finished in an earlier run into --out")
+    where.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="run on a local Dask cluster of N worker processes (default: one per core; a sweep whose "
+        "points all share one set of renders runs in this process unless this is given)",
+    )
+    where.add_argument(
+        "--in-process",
+        dest="in_process",
+        action="store_const",
+        const=True,
+        default=None,
+        help="run every point in this process, without Dask",
+    )
+    where.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run on an existing Dask cluster (tcp://host:port) instead of a local one",
+    )
+    sweep.add_argument(
+        "--resume", action="store_true", help="skip the points that finished in an earlier run into --out"
+    )
     sweep.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
     cache = sub.add_parser("cache", help="the render cache: where it is and how big, or empty it")
-    cache.add_argument("action", choices=["info", "clear"], help="info: folder, entries, size; clear: remove every render")
-    cache.add_argument("--dir", type=Path, default=None,
-                       help="cache folder (default: $MBCAPTURE_CACHE_DIR or the user cache folder, as render.cache: on)")
+    cache.add_argument(
+        "action", choices=["info", "clear"], help="info: folder, entries, size; clear: remove every render"
+    )
+    cache.add_argument(
+        "--dir",
+        type=Path,
+        default=None,
+        help="cache folder (default: $MBCAPTURE_CACHE_DIR or the user cache folder, as render.cache: on)",
+    )
     return p
 
 
@@ -124,8 +181,10 @@ def _cmd_cache(args) -> int:
         print(f"removed {cache.clear() if cache.root.is_dir() else 0} renders from {cache.root}")
         return 0
     info = cache.info()
-    print(f"{info['folder']}: {info['entries']} renders, {info['size_bytes'] / 1e9:.3f} GB "
-          "(cap: render.cache_max_gb, default 20 GB)")
+    print(
+        f"{info['folder']}: {info['entries']} renders, {info['size_bytes'] / 1e9:.3f} GB "
+        "(cap: render.cache_max_gb, default 20 GB)"
+    )
     return 0
 
 
@@ -150,8 +209,9 @@ def _cmd_characterize(args) -> int:
     cfg = load_config(args.config, args.overrides)
     out = args.out or Path("out") / f"characterize_{args.config.stem}"
     check_out_dir(out)
-    settings = characterize.Settings(width=args.size[0], height=args.size[1], steps=args.steps,
-                                     dark_steps=args.dark_steps, frames=args.frames)
+    settings = characterize.Settings(
+        width=args.size[0], height=args.size[1], steps=args.steps, dark_steps=args.dark_steps, frames=args.frames
+    )
     characterize.characterize(cfg, out, source=str(args.config), settings=settings, progress=not args.quiet)
     return 0
 
@@ -172,8 +232,10 @@ def _cmd_run(args) -> int:
                 cluster.close()
     if not args.quiet:
         r = result.report
-        print(f"wrote {out}/  ({r['plan']['passes']} render passes x {result.plan.spp_label()} spp, "
-              f"{r['timings_s']['total_before_write']:.1f} s)")
+        print(
+            f"wrote {out}/  ({r['plan']['passes']} render passes x {result.plan.spp_label()} spp, "
+            f"{r['timings_s']['total_before_write']:.1f} s)"
+        )
         for line in [*result.app_output.summary, *render_summary(r)]:
             print(line)
     return 0
@@ -191,35 +253,55 @@ def _cmd_plan(args) -> int:
     if args.json:
         print(json.dumps(info, indent=2))
         return 0
-    print(f"scene {info['scene']}, protocol {info['protocol']}{' (sequential, conventional sensor)' if timeline.sequential else ''}, "
-          f"film {cfg.render.width}x{cfg.render.height}, capture span {info['capture_span_s'] * 1e3:.4g} ms")
+    print(
+        f"scene {info['scene']}, protocol {info['protocol']}{' (sequential, conventional sensor)' if timeline.sequential else ''}, "
+        f"film {cfg.render.width}x{cfg.render.height}, capture span {info['capture_span_s'] * 1e3:.4g} ms"
+    )
     print("reads:")
     for r in info["reads"]:
-        print(f"  {r['name']}: buckets {r['buckets']}, exposure {r['exposure_s'] * 1e3:.4g} ms, "
-              f"span {r['span_s'] * 1e3:.4g} ms, centroid {r['centroid_s'] * 1e3:.4g} ms")
+        print(
+            f"  {r['name']}: buckets {r['buckets']}, exposure {r['exposure_s'] * 1e3:.4g} ms, "
+            f"span {r['span_s'] * 1e3:.4g} ms, centroid {r['centroid_s'] * 1e3:.4g} ms"
+        )
     s = info["plan"]
-    print(f"render ({s['planner']} planner): {s['passes']} passes x {plan.spp_label()} spp ({s['spp_source']}), "
-          f"groups {s['groups_rendered']}" + (f" (left out: {s['groups_left_out']})" if s["groups_left_out"] else ""))
+    print(
+        f"render ({s['planner']} planner): {s['passes']} passes x {plan.spp_label()} spp ({s['spp_source']}), "
+        f"groups {s['groups_rendered']}" + (f" (left out: {s['groups_left_out']})" if s["groups_left_out"] else "")
+    )
     if s["pilot"]:
-        need = [f"{name} {q['spp_for_median']:.0f}/{q['spp_for_p95']:.0f}" for name, q in s["pilot"]["per_read"].items()
-                if q is not None]
+        need = [
+            f"{name} {q['spp_for_median']:.0f}/{q['spp_for_p95']:.0f}"
+            for name, q in s["pilot"]["per_read"].items()
+            if q is not None
+        ]
         t = s["pilot"]["targets"]
-        print(f"pilot: {s['pilot']['renders']} renders, {s['pilot']['seconds']:.2f} s; spp each read needs for "
-              f"Monte Carlo / shot-noise variance median <= {t['median']:g} / p95 <= {t['p95']:g}: {', '.join(need)}")
+        print(
+            f"pilot: {s['pilot']['renders']} renders, {s['pilot']['seconds']:.2f} s; spp each read needs for "
+            f"Monte Carlo / shot-noise variance median <= {t['median']:g} / p95 <= {t['p95']:g}: {', '.join(need)}"
+        )
     if s["estimate_s"]:
         c, e = s["cost_model"], s["estimate_s"]
-        print(f"time estimate: render {e['render_s']:.2f} s + accumulate {e['accumulate_s']:.2f} s "
-              f"({s['renders']} renders x {c['c0_s'] * 1e3:.1f} ms + {c['c1_s_per_spp'] * 1e3:.2f} ms per spp; "
-              f"kernel compilation ~{c['compile_s']:.1f} s)")
-    print(f"image motion during the capture: {s['image_motion_px_total']:.2f} px (at most {s['max_motion_px']} px per stratum)")
+        print(
+            f"time estimate: render {e['render_s']:.2f} s + accumulate {e['accumulate_s']:.2f} s "
+            f"({s['renders']} renders x {c['c0_s'] * 1e3:.1f} ms + {c['c1_s_per_spp'] * 1e3:.2f} ms per spp; "
+            f"kernel compilation ~{c['compile_s']:.1f} s)"
+        )
+    print(
+        f"image motion during the capture: {s['image_motion_px_total']:.2f} px (at most {s['max_motion_px']} px per stratum)"
+    )
     r, (free, source) = info["resources"], resources.free_memory()
-    tiles = (f" in {r['tiles']} tiles of rows (render.tiles; {r['render_bands']} render bands)" if r["tiles"] > 1
-             else f" in one tile ({r['render_bands']} render band{'s' * (r['render_bands'] > 1)})")
+    tiles = (
+        f" in {r['tiles']} tiles of rows (render.tiles; {r['render_bands']} render bands)"
+        if r["tiles"] > 1
+        else f" in one tile ({r['render_bands']} render band{'s' * (r['render_bands'] > 1)})"
+    )
     if r["spill_gb"]:
         tiles += f", the film's results in {r['spill_gb']:.3g} GB of scratch files on disk (render.spill)"
-    print(f"resources: peak memory about {r['peak_memory_gb']:.3g} GB{tiles} ({free / 2**30:.3g} GB free: {source}), outputs "
-          f"about {r['outputs_mb']:.3g} MB" + (f", new render-cache entries about {r['render_cache_mb']:.3g} MB"
-                                               if r["render_cache_mb"] else ""))
+    print(
+        f"resources: peak memory about {r['peak_memory_gb']:.3g} GB{tiles} ({free / 2**30:.3g} GB free: {source}), outputs "
+        f"about {r['outputs_mb']:.3g} MB"
+        + (f", new render-cache entries about {r['render_cache_mb']:.3g} MB" if r["render_cache_mb"] else "")
+    )
     for n in s["notes"]:
         print(f"note: {n}")
     return 0
@@ -240,19 +322,23 @@ def _cmd_converge(args) -> int:
         return vals
 
     motion = ladder(args.spp, converge.QUICK_MOTION_LADDER if args.quick else converge.DEFAULT_MOTION_LADDER, "--spp")
-    naive = ladder(args.naive_spp, converge.QUICK_NAIVE_LADDER if args.quick else converge.DEFAULT_NAIVE_LADDER,
-                   "--naive-spp")
+    naive = ladder(
+        args.naive_spp, converge.QUICK_NAIVE_LADDER if args.quick else converge.DEFAULT_NAIVE_LADDER, "--naive-spp"
+    )
     ref_spp = args.ref_spp or (64 if args.quick else 256)
     out = args.out or Path("out") / f"converge_{args.config.stem}"
 
     check_out_dir(out)  # before the ladders run, not after
-    result = converge.run_converge(cfg, motion, naive, ref_spp=ref_spp, ref_motion_div=4.0 if args.quick else 8.0,
-                                   progress=print)
+    result = converge.run_converge(
+        cfg, motion, naive, ref_spp=ref_spp, ref_motion_div=4.0 if args.quick else 8.0, progress=print
+    )
     converge.write_outputs(result, out)
     print(f"slopes of log error vs log time: {result['slopes']} (Monte Carlo: -0.5)")
     for s in result["speedups"]:
-        print(f"equal error {s['error']:.3e}: naive {s['naive_s']:.2f} s (spp {s['naive_spp']}) vs planner "
-              f"{s['planner_s']:.2f} s: {s['speedup']:.1f}x{' (extrapolated)' if s['extrapolated'] else ''}")
+        print(
+            f"equal error {s['error']:.3e}: naive {s['naive_s']:.2f} s (spp {s['naive_spp']}) vs planner "
+            f"{s['planner_s']:.2f} s: {s['speedup']:.1f}x{' (extrapolated)' if s['extrapolated'] else ''}"
+        )
     print(f"wrote {out}/converge.png, converge.csv, converge.json")
     return 0
 
@@ -264,17 +350,29 @@ def _cmd_sweep(args) -> int:
     out = args.out or Path("out") / f"sweep_{resolve_sweep_path(args.sweep).stem}"
     say = (lambda line: None) if args.quiet else print
     try:
-        outcome = run_sweep(sweep, out, workers=args.workers, scheduler=args.scheduler, resume=args.resume,
-                            progress=not args.quiet, in_process=args.in_process, say=say)
+        outcome = run_sweep(
+            sweep,
+            out,
+            workers=args.workers,
+            scheduler=args.scheduler,
+            resume=args.resume,
+            progress=not args.quiet,
+            in_process=args.in_process,
+            say=say,
+        )
     except KeyboardInterrupt:
-        print(f"mbcapture: interrupted; the points that finished are kept in {out}/rows "
-              "(--resume goes on from there)", file=sys.stderr)
+        print(
+            f"mbcapture: interrupted; the points that finished are kept in {out}/rows (--resume goes on from there)",
+            file=sys.stderr,
+        )
         return 130
     s = outcome.summary
-    say(f"{s['ok']} of {s['points']} points ok, {s['failed']} failed; {s['render_groups']} render group"
+    say(
+        f"{s['ok']} of {s['points']} points ok, {s['failed']} failed; {s['render_groups']} render group"
         f"{'' if s['render_groups'] == 1 else 's'}; this run: "
         f"{s['ran']} points, {s['renders_rendered']} renders rendered, {s['renders_reused']} reused from the cache, "
-        f"{s['points_sharing_renders']} points on their group's renders; {s['wall_s']:.1f} s")
+        f"{s['points_sharing_renders']} points on their group's renders; {s['wall_s']:.1f} s"
+    )
     for index, row in sorted(outcome.rows.items()):
         if row.get("status") != "ok":
             say(f"  {sweep.points[index].label} failed: {row.get('error')}")
@@ -315,25 +413,39 @@ def _cmd_apps(args) -> int:
         by_app.setdefault(protocols.default_app(p), []).append(p)
     for name in apps.names():
         app = apps.get(name)
-        print(f"{name}: {app.description}  (protocols: {', '.join(by_app.get(name, [])) or 'any, chosen with app.name'})")
+        print(
+            f"{name}: {app.description}  (protocols: {', '.join(by_app.get(name, [])) or 'any, chosen with app.name'})"
+        )
         _print_keys("app", app.params)
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    handlers = {"run": _cmd_run, "plan": _cmd_plan, "scenes": _cmd_scenes, "apps": _cmd_apps, "figures": _cmd_figures,
-                "converge": _cmd_converge, "cache": _cmd_cache, "sweep": _cmd_sweep,
-                "characterize": _cmd_characterize}
+    handlers = {
+        "run": _cmd_run,
+        "plan": _cmd_plan,
+        "scenes": _cmd_scenes,
+        "apps": _cmd_apps,
+        "figures": _cmd_figures,
+        "converge": _cmd_converge,
+        "cache": _cmd_cache,
+        "sweep": _cmd_sweep,
+        "characterize": _cmd_characterize,
+    }
     # SIGTERM (kill, a batch system's time limit) ends a run like Ctrl-C: staging removed, outputs untouched
-    previous = signal.signal(signal.SIGTERM, _terminated) if threading.current_thread() is threading.main_thread() else None
+    previous = (
+        signal.signal(signal.SIGTERM, _terminated) if threading.current_thread() is threading.main_thread() else None
+    )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", ConfigNotice)
             shown = warnings.showwarning
             warnings.showwarning = lambda message, category, *a, **k: (
-                print(f"mbcapture: note: {message}", file=sys.stderr) if issubclass(category, ConfigNotice)
-                else shown(message, category, *a, **k))
+                print(f"mbcapture: note: {message}", file=sys.stderr)
+                if issubclass(category, ConfigNotice)
+                else shown(message, category, *a, **k)
+            )
             return handlers[args.command](args)
     except MBCaptureError as exc:
         print(f"mbcapture: error: {exc}", file=sys.stderr)

@@ -35,8 +35,15 @@ from .render.llvm import ensure_llvm
 from .sensor.sampling import set_threads as set_inversion_threads
 from .sensor.sampling import usable_cores
 
-__all__ = ["drjit_threads", "host_cores", "prepare_worker", "render_on_cluster", "start_client", "topology",
-           "usable_cores"]
+__all__ = [
+    "drjit_threads",
+    "host_cores",
+    "prepare_worker",
+    "render_on_cluster",
+    "start_client",
+    "topology",
+    "usable_cores",
+]
 
 
 def host_cores() -> tuple[str, int]:
@@ -66,8 +73,14 @@ def start_client(workers: int | None, scheduler: str | None = None):
             return Client(scheduler, timeout="30s")
         except (OSError, TimeoutError, ValueError) as exc:
             raise ConfigError(f"--scheduler {scheduler}: cannot connect ({one_line(exc)})") from None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           silence_logs=logging.ERROR, memory_limit=0)
+    cluster = LocalCluster(
+        n_workers=workers,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=":0",
+        silence_logs=logging.ERROR,
+        memory_limit=0,
+    )
     try:
         return Client(cluster)
     except BaseException:
@@ -104,8 +117,11 @@ def prepare_worker(threads: dict[str, int] | None, variant: str) -> None:
 _WORKER_RENDERERS: dict[str, Renderer] = {}
 
 
-def _render_task(cfg: CaptureConfig, request: tuple[float, int, int, tuple[str, ...], tuple[int, int] | None, int],
-                 threads: dict[str, int]) -> np.ndarray:
+def _render_task(
+    cfg: CaptureConfig,
+    request: tuple[float, int, int, tuple[str, ...], tuple[int, int] | None, int],
+    threads: dict[str, int],
+) -> np.ndarray:
     """On a worker: the raw render of ``request`` (t, spp, seed, groups, shared pattern, render band) for the capture
     ``cfg`` (its own renderer, built once)."""
     prepare_worker(threads, cfg.render.variant)
@@ -113,15 +129,22 @@ def _render_task(cfg: CaptureConfig, request: tuple[float, int, int, tuple[str, 
     renderer = _WORKER_RENDERERS.get(key)
     if renderer is None:
         renderer = _WORKER_RENDERERS[key] = Renderer.from_config(
-            scene_of(cfg), cfg, cache=open_cache(cfg.render.cache, cfg.render.cache_max_gb))
+            scene_of(cfg), cfg, cache=open_cache(cfg.render.cache, cfg.render.cache_max_gb)
+        )
     t_s, spp, seed, groups, pattern, band = request
     return renderer.raw_render(t_s, spp, seed, groups, band=band, pattern=pattern)
 
 
 # ------------------------------------------------------------------------------------ client side
-def render_on_cluster(client, cfg: CaptureConfig, plan: Plan, seed: np.random.SeedSequence, renderer: Renderer,
-                      on_done: Callable[[], None] | None = None,
-                      rows: tuple[int, int] | None = None) -> dict[str, Any]:
+def render_on_cluster(
+    client,
+    cfg: CaptureConfig,
+    plan: Plan,
+    seed: np.random.SeedSequence,
+    renderer: Renderer,
+    on_done: Callable[[], None] | None = None,
+    rows: tuple[int, int] | None = None,
+) -> dict[str, Any]:
     """Render ``plan``'s strata (the renders :func:`mbcapture.integrate.integrate` will ask for, with
     ``seed``) on the cluster, each render band of ``rows`` (a tile; None: the whole film) a task of
     its own, and give them to ``renderer``. ``on_done``: called after each render arrives (a
@@ -129,15 +152,19 @@ def render_on_cluster(client, cfg: CaptureConfig, plan: Plan, seed: np.random.Se
     from dask.distributed import as_completed
 
     if plan.estimator != "independent":
-        return {"renders": 0, "note": f"render.estimator {plan.estimator!r}: rendered here (its strata depend on "
-                                      "its base render)"}
+        return {
+            "renders": 0,
+            "note": f"render.estimator {plan.estimator!r}: rendered here (its strata depend on its base render)",
+        }
     bands = renderer.band_span((0, renderer.height) if rows is None else rows)
     requests = [(*req, b) for req in render_requests(plan, seed, sample_counter(renderer, plan)) for b in bands]
     hosts = topology(client)
     threads = {h: drjit_threads(c, w, w) for h, (c, w) in hosts.items()}
     start = time.perf_counter()
-    futures = {client.submit(_render_task, cfg, req, threads, pure=False, key=f"render-{i}-{req[2]}-{req[5]}"): req
-               for i, req in enumerate(requests)}
+    futures = {
+        client.submit(_render_task, cfg, req, threads, pure=False, key=f"render-{i}-{req[2]}-{req[5]}"): req
+        for i, req in enumerate(requests)
+    }
     for future in as_completed(list(futures)):
         req = futures.pop(future)
         try:
@@ -148,5 +175,10 @@ def render_on_cluster(client, cfg: CaptureConfig, plan: Plan, seed: np.random.Se
         future.release()
         if on_done is not None:
             on_done()
-    return {"workers": sum(w for _, w in hosts.values()), "hosts": len(hosts), "renders": len(requests),
-            "seconds": round(time.perf_counter() - start, 3), "threads_per_worker": threads}
+    return {
+        "workers": sum(w for _, w in hosts.values()),
+        "hosts": len(hosts),
+        "renders": len(requests),
+        "seconds": round(time.perf_counter() - start, 3),
+        "threads_per_worker": threads,
+    }

@@ -67,8 +67,9 @@ class SceneSection(BaseModel):
         try:
             return module.Params(**(self.model_extra or {}))
         except ValidationError as exc:
-            raise ConfigError(format_validation(exc, prefix="scene", origin=origin, model=module.Params,
-                                                 owner=f"scene {self.name!r}")) from None
+            raise ConfigError(
+                format_validation(exc, prefix="scene", origin=origin, model=module.Params, owner=f"scene {self.name!r}")
+            ) from None
 
 
 class RenderSection(_Model):
@@ -114,11 +115,20 @@ class RenderSection(_Model):
         "adaptive says what it refined.",
     )
     adaptive_max_factor: int = Field(
-        64, ge=2, le=256, description="Most samples a refined pixel may end with, as a multiple of its stratum's first-pass samples "
+        64,
+        ge=2,
+        le=256,
+        description="Most samples a refined pixel may end with, as a multiple of its stratum's first-pass samples "
         "(rounded down to a power of two). Adaptive sampling keeps the cheapest rule that meets the tail, so "
         "a larger bound only adds choices; 64: the default capture chooses 8. report.json adaptive.tiers "
-        "says how many pixels got what (docs/noise.md).")
-    max_spp: int = Field(1024, ge=2, le=1 << 16, description="Upper bound on the samples per pixel render.noise_budget may choose for one stratum.")
+        "says how many pixels got what (docs/noise.md).",
+    )
+    max_spp: int = Field(
+        1024,
+        ge=2,
+        le=1 << 16,
+        description="Upper bound on the samples per pixel render.noise_budget may choose for one stratum.",
+    )
     estimator: Literal["independent", "difference"] = Field(
         "independent",
         description="'independent': each stratum rendered with its own random numbers. 'difference': each stratum "
@@ -127,7 +137,9 @@ class RenderSection(_Model):
         "base's error, identically in every bucket (see mbcapture/integrate.py and scripts/benchmark.py [5]).",
     )
     base_spp: int | None = Field(
-        None, ge=2, le=1 << 20,
+        None,
+        ge=2,
+        le=1 << 20,
         description="Samples per pixel of the 'difference' estimator's base render (rendered in chunks of at most "
         "render.max_spp); null: the strata's total samples per pixel.",
     )
@@ -135,9 +147,17 @@ class RenderSection(_Model):
         "motion",
         description="'motion': time strata from image motion (one render per stratum); 'naive': one render per collecting slot of every period (the baseline of `mbcapture converge`).",
     )
-    variant: str = Field("llvm_ad_rgb", description="Mitsuba variant: llvm_ad_rgb on CPU, cuda_ad_rgb where a GPU exists; llvm_ad_spectral / cuda_ad_spectral apply sensor.spectral_response exactly (spectral mode).")
-    max_depth: int = Field(4, ge=1, le=64, description="Path length limit of the per-group path tracer, in segments (1 = emitters seen directly only, 2 adds direct light, each more one more bounce). In Lambertian scenes a path ends at the vertex that ends its segment max_depth - 1, whose light it estimates by light sampling alone: the bounce from there could only have "
-        "collected emission (unbiased; 0.91x the time on the default capture, docs/noise.md).")
+    variant: str = Field(
+        "llvm_ad_rgb",
+        description="Mitsuba variant: llvm_ad_rgb on CPU, cuda_ad_rgb where a GPU exists; llvm_ad_spectral / cuda_ad_spectral apply sensor.spectral_response exactly (spectral mode).",
+    )
+    max_depth: int = Field(
+        4,
+        ge=1,
+        le=64,
+        description="Path length limit of the per-group path tracer, in segments (1 = emitters seen directly only, 2 adds direct light, each more one more bounce). In Lambertian scenes a path ends at the vertex that ends its segment max_depth - 1, whose light it estimates by light sampling alone: the bounce from there could only have "
+        "collected emission (unbiased; 0.91x the time on the default capture, docs/noise.md).",
+    )
     sampler: Literal["multijitter", "ldsampler", "independent"] = Field(
         "multijitter",
         description="Mitsuba's sample generator for the pilot, the truths and spectral camera rays: 'multijitter' "
@@ -154,24 +174,31 @@ class RenderSection(_Model):
         "render its own render.sampler pattern. Both unbiased (docs/noise.md).",
     )
     guide_fraction: float | None = Field(
-        None, ge=0.0, le=MAX_GUIDE_SHARE,
+        None,
+        ge=0.0,
+        le=MAX_GUIDE_SHARE,
         description="Share of every diffuse bounce sent towards the scene's guides (brightly lit patches that are not "
         "lights, declared by the scene), weighted by the mixture's density so the image's expectation is "
         "unchanged. null: each guide its scene's share; a number: that share in all, split in the scene's "
         "proportions; 0: off. Removes rare fireflies at about 3 % more time per sample (docs/noise.md).",
     )
     max_motion_px: float = Field(
-        0.5, gt=0, description="Largest image motion, in pixels, of any moving point inside one time stratum (the paper's vT << p)."
+        0.5,
+        gt=0,
+        description="Largest image motion, in pixels, of any moving point inside one time stratum (the paper's vT << p).",
     )
     min_strata: int = Field(
-        4, ge=1,
+        4,
+        ge=1,
         description="Fewest time strata of a capture whose image moves at all, however little. Each stratum's time "
         "noise, and the run's own estimate of it, rests on one pair of render times shared by every pixel, "
         "so one stratum makes that estimate unreliable. 4: at least four; 1: strata from motion alone "
         "(render.max_motion_px). docs/noise.md.",
     )
     max_strata: int = Field(
-        2048, ge=1, description="Upper bound on render passes; a plan that needs more is coarsened with a warning in the report."
+        2048,
+        ge=1,
+        description="Upper bound on render passes; a plan that needs more is coarsened with a warning in the report.",
     )
     cache: str = Field(
         "on",
@@ -182,18 +209,24 @@ class RenderSection(_Model):
         "info | clear`.",
     )
     max_memory_gb: float | None = Field(
-        None, gt=0, description="Refuse, before any work, a run whose planned peak memory exceeds this many GB "
+        None,
+        gt=0,
+        description="Refuse, before any work, a run whose planned peak memory exceeds this many GB "
         "(mbcapture plan prints the plan); null: only the machine's free memory limits it.",
     )
     band_rows: int | None = Field(
-        None, ge=2, le=16384, multiple_of=2,
+        None,
+        ge=2,
+        le=16384,
+        multiple_of=2,
         description="Rows of each render band (even). Every film renders as fixed row bands, each with a sampler seed of "
         "its own, so that tiles of whole bands hold exactly the untiled run's pixels. null: about a "
         "megapixel per band (640x512 is one band). Changing it changes the renders' random numbers, as a new "
         "seed would (docs/resources.md).",
     )
     tiles: int | None = Field(
-        None, ge=1,
+        None,
+        ge=1,
         description="Tiles (runs of whole render bands) in which render, accumulation, the noise budget's passes and the "
         "sensor stage go through the film, to bound memory; the result is the untiled run's "
         "(docs/resources.md says how close). null: one tile when the capture fits in memory, otherwise the "
@@ -213,7 +246,9 @@ class RenderSection(_Model):
         "(~/.cache/mbcapture/scratch on Linux), or $MBCAPTURE_SCRATCH_DIR.",
     )
     cache_max_gb: float = Field(
-        20.0, gt=0, description="Size cap of the render cache in GB (10^9 bytes); beyond it the least recently used renders are removed."
+        20.0,
+        gt=0,
+        description="Size cap of the render cache in GB (10^9 bytes); beyond it the least recently used renders are removed.",
     )
 
     @field_validator("cache", mode="before")
@@ -231,7 +266,9 @@ class SlotSpec(_Model):
         description="1-based bucket that collects the photodiode's charge during this slot, or 'drain' (charge discarded)."
     )
     duration_s: float = Field(gt=0, description="Slot duration in seconds, within one period.")
-    groups: tuple[str, ...] = Field((), description="Switchable emitter groups (e.g. flash) that are on during this slot.")
+    groups: tuple[str, ...] = Field(
+        (), description="Switchable emitter groups (e.g. flash) that are on during this slot."
+    )
 
 
 class ReadSpec(_Model):
@@ -242,7 +279,9 @@ class ReadSpec(_Model):
 
 
 class ScheduleSpec(_Model):
-    slots: tuple[SlotSpec, ...] = Field(min_length=1, description="One period of the gate schedule; repeated capture.periods times.")
+    slots: tuple[SlotSpec, ...] = Field(
+        min_length=1, description="One period of the gate schedule; repeated capture.periods times."
+    )
     reads: tuple[ReadSpec, ...] = Field(min_length=1, description="Read events at the end of the capture.")
 
 
@@ -251,17 +290,26 @@ class GateCodeSpec(_Model):
         description="Per-pixel gate code (a coded two-bucket sensor): 'global' (every pixel sends sub-frame s to bucket s: "
         "global gates written as a code), 'one_hot' (tile position f sends sub-frame f to bucket 1, the rest to bucket 2), "
         "'hadamard' (bucket 1 where a Hadamard row is +1, bucket 2 where -1), 'random' (each pixel and sub-frame to "
-        "bucket 1 or 2 with probability 1/2), 'file' (an array file). See docs/coded_gates.md.")
+        "bucket 1 or 2 with probability 1/2), 'file' (an array file). See docs/coded_gates.md."
+    )
     subframes: int | None = Field(
-        None, ge=1, le=32, description="Sub-frames the protocol schedules (what it would give as many buckets); the code "
+        None,
+        ge=1,
+        le=32,
+        description="Sub-frames the protocol schedules (what it would give as many buckets); the code "
         "routes each to a bucket per pixel. Required by every family but 'global' (whose default is sensor.bucket_count). "
-        "multi_flash: 4 (one per LED) or 5 (and ambient).")
+        "multi_flash: 4 (one per LED) or 5 (and ambient).",
+    )
     tile: tuple[int, int] | None = Field(
-        None, description="one_hot, hadamard: the tile [height, width] of per-pixel codes repeated over the film "
-        "(default: the near-square tile that holds one code per position: 2x2 for 4 sub-frames, 2x3 for 5, 2x4 for Hadamard's 8).")
+        None,
+        description="one_hot, hadamard: the tile [height, width] of per-pixel codes repeated over the film "
+        "(default: the near-square tile that holds one code per position: 2x2 for 4 sub-frames, 2x3 for 5, 2x4 for Hadamard's 8).",
+    )
     file: str | None = Field(
-        None, description="'file': a .npy array of shape (sub-frames, height, width) of 1-based buckets (0: drain), tiled "
-        "over the film; a relative path is relative to the working directory.")
+        None,
+        description="'file': a .npy array of shape (sub-frames, height, width) of 1-based buckets (0: drain), tiled "
+        "over the film; a relative path is relative to the working directory.",
+    )
     seed: int | None = Field(None, ge=0, description="'random': the code's seed (default: the run's seed).")
 
     @model_validator(mode="after")
@@ -269,7 +317,9 @@ class GateCodeSpec(_Model):
         if (self.family == "file") != (self.file is not None):
             raise ValueError("capture.gate_code.file is required by family 'file' and read by no other family")
         if self.tile is not None and self.family not in ("one_hot", "hadamard"):
-            raise ValueError(f"capture.gate_code.tile is read by the one_hot and hadamard families, not {self.family!r}")
+            raise ValueError(
+                f"capture.gate_code.tile is read by the one_hot and hadamard families, not {self.family!r}"
+            )
         if self.tile is not None and min(self.tile) < 1:
             raise ValueError("capture.gate_code.tile: height and width must be >= 1")
         return self
@@ -282,26 +332,40 @@ class CaptureSection(_Model):
         "(flash_no_flash, ...); see docs/protocols.md and `mbcapture apps`.",
     )
     unit_exposure_s: float = Field(
-        1e-3, gt=0, description="T: the shortest exposure of the HDR protocols (reads are T, 2T, 4T, ...). Unused by 'custom'."
+        1e-3,
+        gt=0,
+        description="T: the shortest exposure of the HDR protocols (reads are T, 2T, 4T, ...). Unused by 'custom'.",
     )
-    periods: int = Field(16, ge=1, le=10**7, description="N: how many times the slot pattern repeats within the exposure.")
+    periods: int = Field(
+        16, ge=1, le=10**7, description="N: how many times the slot pattern repeats within the exposure."
+    )
     sequential: bool = Field(
         False,
         description="Capture the same exposures one after another on a conventional one-bucket sensor, "
         "with sensor.frame_readout_s between frames, instead of interleaving them.",
     )
-    start_s: float = Field(0.0, ge=0, description="Scene time at which the capture starts (moves the metronome's phase).")
+    start_s: float = Field(
+        0.0, ge=0, description="Scene time at which the capture starts (moves the metronome's phase)."
+    )
     gate_code: GateCodeSpec | None = Field(
-        None, description="Per-pixel gates: each pixel chooses its bucket for every sub-frame of the schedule (a coded "
-        "two-bucket sensor). null: global gates, every pixel follows the schedule.")
-    schedule: ScheduleSpec | None = Field(None, description="The 'custom' protocol's schedule (required for it, refused otherwise).")
+        None,
+        description="Per-pixel gates: each pixel chooses its bucket for every sub-frame of the schedule (a coded "
+        "two-bucket sensor). null: global gates, every pixel follows the schedule.",
+    )
+    schedule: ScheduleSpec | None = Field(
+        None, description="The 'custom' protocol's schedule (required for it, refused otherwise)."
+    )
     frames: int = Field(
-        1, ge=1, le=100_000,
+        1,
+        ge=1,
+        le=100_000,
         description="A video: this many captures, one per frame at capture.frame_rate_hz, each read out before the next "
         "(1: a single capture; see mbcapture/video.py).",
     )
     frame_rate_hz: float | None = Field(
-        None, gt=0, le=1e6,
+        None,
+        gt=0,
+        le=1e6,
         description="Frames per second of a video (capture.frames > 1); the frame period must hold the capture's span "
         "plus sensor.frame_readout_s.",
     )
@@ -333,7 +397,8 @@ class AppSection(BaseModel):
 
     model_config = ConfigDict(extra="allow", frozen=True)
     name: str | None = Field(
-        None, description="Application that reconstructs the reads; default: the protocol's own (hdr for the HDR protocols)."
+        None,
+        description="Application that reconstructs the reads; default: the protocol's own (hdr for the HDR protocols).",
     )
 
     def resolve(self, protocol: str, origin: "Callable[[tuple], str] | None" = None) -> tuple[Any, Any]:
@@ -344,16 +409,21 @@ class AppSection(BaseModel):
         try:
             return app, app.params(**(self.model_extra or {}))
         except ValidationError as exc:
-            raise ConfigError(format_validation(exc, prefix="app", origin=origin, model=app.params,
-                                                 owner=f"application {app.name!r}")) from None
+            raise ConfigError(
+                format_validation(exc, prefix="app", origin=origin, model=app.params, owner=f"application {app.name!r}")
+            ) from None
 
 
 class OutputSection(_Model):
     png_percentile: float = Field(
-        99.5, gt=0, le=100, description="Tone mapping of PNG previews: this luminance percentile maps to white before the sRGB curve."
+        99.5,
+        gt=0,
+        le=100,
+        description="Tone mapping of PNG previews: this luminance percentile maps to white before the sRGB curve.",
     )
     dng: bool = Field(
-        False, description="Also write each read as a DNG raw file, read_<name>.dng: its 16-bit ADC codes (a Bayer sensor's "
+        False,
+        description="Also write each read as a DNG raw file, read_<name>.dng: its 16-bit ADC codes (a Bayer sensor's "
         "mosaic with its CFA pattern, a mono sensor's one sample, else R, G, B per pixel), black and white "
         "levels, colour matrix and as-shot neutral. rawpy (LibRaw) opens and develops it (tested). Needs "
         "sensor.adc_bits <= 16 and an RGB render.variant unless mono (docs/characterize.md).",
@@ -365,15 +435,18 @@ class VideoSection(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     compare_alternating: bool = Field(
-        True, description="Also simulate the alternating short/long-exposure HDR video of a conventional sensor "
+        True,
+        description="Also simulate the alternating short/long-exposure HDR video of a conventional sensor "
         "(Kang et al. 2003) at the same frame rate and score both (HDR applications only).",
     )
     flow: Literal["dis_medium", "dis_fast", "dis_ultrafast", "farneback"] = Field(
-        "dis_medium", description="Optical flow that warps the alternating video's neighbours onto each frame: OpenCV's "
+        "dis_medium",
+        description="Optical flow that warps the alternating video's neighbours onto each frame: OpenCV's "
         "DIS optical flow at a preset, or Farneback's.",
     )
     aliasing_rates_hz: list[float] = Field(
-        [3.0], description="Frame rates whose temporal aliasing of the scene's motion is reported beside the run's own "
+        [3.0],
+        description="Frame rates whose temporal aliasing of the scene's motion is reported beside the run's own "
         "(the paper's prototype: 3 frames/s).",
     )
     playback_fps: float | None = Field(
@@ -383,19 +456,35 @@ class VideoSection(BaseModel):
 
 class CaptureConfig(_Model):
     seed: int = Field(
-        0, ge=0,
+        0,
+        ge=0,
         description="One seed for the whole run, split per stage: render times and samples (the renders), and the "
         "sensor's temporal noise unless sensor.noise_seed is set; the fixed pattern has sensor.fpn_seed.",
     )
-    scene: SceneSection = Field(default_factory=SceneSection, description="What is in front of the camera: scene.name and its parameters.")
-    render: RenderSection = Field(default_factory=RenderSection, description="Film size, samples and the motion tolerance of the render plan.")
-    capture: CaptureSection = Field(default_factory=CaptureSection, description="Protocol: gate schedule, exposures, interleaving periods.")
-    camera: CameraSection = Field(default_factory=CameraSection, description="The camera: how it moves during the capture (camera.shake or camera.trajectory_file; default still) and its lens (camera.lens, focus, focal length, vignetting, diffraction).")
-    sensor: SensorConfig = Field(default_factory=SensorConfig, description="The multi-bucket pixel: optics, full wells, noise, ADC.")
+    scene: SceneSection = Field(
+        default_factory=SceneSection, description="What is in front of the camera: scene.name and its parameters."
+    )
+    render: RenderSection = Field(
+        default_factory=RenderSection, description="Film size, samples and the motion tolerance of the render plan."
+    )
+    capture: CaptureSection = Field(
+        default_factory=CaptureSection, description="Protocol: gate schedule, exposures, interleaving periods."
+    )
+    camera: CameraSection = Field(
+        default_factory=CameraSection,
+        description="The camera: how it moves during the capture (camera.shake or camera.trajectory_file; default still) and its lens (camera.lens, focus, focal length, vignetting, diffraction).",
+    )
+    sensor: SensorConfig = Field(
+        default_factory=SensorConfig, description="The multi-bucket pixel: optics, full wells, noise, ADC."
+    )
     hdr: HDRSection = Field(default_factory=HDRSection, description="HDR reconstruction method.")
-    app: AppSection = Field(default_factory=AppSection, description="Reconstruction applied to the reads and its parameters.")
+    app: AppSection = Field(
+        default_factory=AppSection, description="Reconstruction applied to the reads and its parameters."
+    )
     output: OutputSection = Field(default_factory=OutputSection, description="Preview images.")
-    video: VideoSection = Field(default_factory=VideoSection, description="A video run's comparisons and previews (capture.frames > 1).")
+    video: VideoSection = Field(
+        default_factory=VideoSection, description="A video run's comparisons and previews (capture.frames > 1)."
+    )
 
     @field_validator("render")
     @classmethod
@@ -422,11 +511,14 @@ class CaptureConfig(_Model):
     @model_validator(mode="after")
     def _dng_needs_16_bit_rgb(self) -> "CaptureConfig":
         if self.output.dng and self.sensor.adc_bits > 16:
-            raise ValueError(f"output.dng: DNG samples are 16-bit here; needs sensor.adc_bits <= 16, got "
-                             f"{self.sensor.adc_bits}")
+            raise ValueError(
+                f"output.dng: DNG samples are 16-bit here; needs sensor.adc_bits <= 16, got {self.sensor.adc_bits}"
+            )
         if self.output.dng and is_spectral_variant(self.render.variant) and self.sensor.cfa != "mono":
-            raise ValueError(f"output.dng: the colour matrix is the RGB render's (raw = per-channel gain x linear "
-                             f"sRGB); not available for render.variant {self.render.variant!r}")
+            raise ValueError(
+                f"output.dng: the colour matrix is the RGB render's (raw = per-channel gain x linear "
+                f"sRGB); not available for render.variant {self.render.variant!r}"
+            )
         return self
 
     def to_yaml_dict(self) -> dict:
@@ -455,8 +547,11 @@ def _model_at(model: type[BaseModel], path: tuple) -> type[BaseModel] | None:
         field = model.model_fields.get(name) if isinstance(name, str) else None
         if field is None:
             return None
-        nested = [a for a in (field.annotation, *getattr(field.annotation, "__args__", ()))
-                  if isinstance(a, type) and issubclass(a, BaseModel)]
+        nested = [
+            a
+            for a in (field.annotation, *getattr(field.annotation, "__args__", ()))
+            if isinstance(a, type) and issubclass(a, BaseModel)
+        ]
         if not nested:
             return None
         model = nested[0]
@@ -470,15 +565,23 @@ def _suggest(key: str, section: tuple, model: type[BaseModel] | None) -> str:
     close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
     if close:
         return f"; did you mean {'.'.join((*map(str, section), close[0]))}?"
-    elsewhere = [f"{name}.{key}" for name, f in CaptureConfig.model_fields.items()
-                 if (sub := _model_at(CaptureConfig, (name,))) is not None and key in sub.model_fields]
+    elsewhere = [
+        f"{name}.{key}"
+        for name, f in CaptureConfig.model_fields.items()
+        if (sub := _model_at(CaptureConfig, (name,))) is not None and key in sub.model_fields
+    ]
     if elsewhere:
         return f"; did you mean {elsewhere[0]}?"
     return ""
 
 
-def format_validation(exc: ValidationError, prefix: str = "", origin: Callable[[tuple], str] | None = None,
-                       model: type[BaseModel] | None = None, owner: str | None = None) -> str:
+def format_validation(
+    exc: ValidationError,
+    prefix: str = "",
+    origin: Callable[[tuple], str] | None = None,
+    model: type[BaseModel] | None = None,
+    owner: str | None = None,
+) -> str:
     """One line for all of ``exc``'s errors: ``[origin: ]key: message`` joined by '; '.
 
     ``model``: the model that was validated (for the valid keys of an unknown key's section; default
@@ -494,8 +597,9 @@ def format_validation(exc: ValidationError, prefix: str = "", origin: Callable[[
         if err["type"] == "extra_forbidden":
             section = _model_at(model or CaptureConfig, path[:-1])
             if owner and section is not None and len(path) == 1:
-                msg = (f"unknown key for {owner} (its keys: {', '.join(section.model_fields) or 'none'})"
-                       + _suggest(str(path[-1]), full[:-1], section))
+                msg = f"unknown key for {owner} (its keys: {', '.join(section.model_fields) or 'none'})" + _suggest(
+                    str(path[-1]), full[:-1], section
+                )
             else:
                 msg = "unknown key" + _suggest(str(path[-1]), full[:-1], section)
         elif "input" in err and not isinstance(err["input"], (dict, list)):
@@ -548,17 +652,22 @@ def _switch_selected(data: dict, overrides: list[str]) -> tuple[dict, list[str]]
     parsed = [parse_override(t) for t in overrides]
     notices = []
     for section, what in _SELECTED_BY_NAME.items():
-        names = [v.get("name") if p == [section] and isinstance(v, dict) else v
-                 for p, v in parsed if p in ([section, "name"], [section])]
+        names = [
+            v.get("name") if p == [section] and isinstance(v, dict) else v
+            for p, v in parsed
+            if p in ([section, "name"], [section])
+        ]
         old = data.get(section)
         if not names or not isinstance(old, dict) or names[-1] is None or names[-1] == _selected_name(data, section):
             continue
         dropped = [k for k in old if k != "name"]
         if dropped:
             data[section] = {k: v for k, v in old.items() if k == "name"}
-            notices.append(f"--set {section}.name={names[-1]} replaces {what} {_selected_name(data, section)!r} of the "
-                           "config file: "
-                           f"dropped its keys {', '.join(f'{section}.{k}' for k in dropped)}")
+            notices.append(
+                f"--set {section}.name={names[-1]} replaces {what} {_selected_name(data, section)!r} of the "
+                "config file: "
+                f"dropped its keys {', '.join(f'{section}.{k}' for k in dropped)}"
+            )
     return data, notices
 
 
@@ -626,18 +735,24 @@ def config_from_dict(data: dict, source: str = "config", origin: Callable[[tuple
     cfg.scene.params(origin)  # validate the scene's and the application's own keys now, not halfway through a run
     app, _ = cfg.app.resolve(cfg.capture.protocol, origin)
     if cfg.camera.distortion and app.pinhole_truth:
-        raise ConfigError(f"{origin(('camera', 'distortion'))}: camera.distortion: the {app.name} application's truth is "
-                          f"pinhole geometry ({app.pinhole_truth}); remove the distortion for this application")
+        raise ConfigError(
+            f"{origin(('camera', 'distortion'))}: camera.distortion: the {app.name} application's truth is "
+            f"pinhole geometry ({app.pinhole_truth}); remove the distortion for this application"
+        )
     code = cfg.capture.gate_code
     if code is not None and code.family != "global":
         if not app.coded_gates:
             coded = [n for n in apps.names() if apps.get(n).coded_gates]
-            raise ConfigError(f"{origin(('capture', 'gate_code', 'family'))}: capture.gate_code.family {code.family!r}: "
-                              f"the {app.name} application reads global-gate reads; per-pixel codes need an application "
-                              f"that demultiplexes them ({', '.join(coded)})")
+            raise ConfigError(
+                f"{origin(('capture', 'gate_code', 'family'))}: capture.gate_code.family {code.family!r}: "
+                f"the {app.name} application reads global-gate reads; per-pixel codes need an application "
+                f"that demultiplexes them ({', '.join(coded)})"
+            )
         if cfg.sensor.cfa != "none":
-            raise ConfigError(f"{origin(('sensor', 'cfa'))}: sensor.cfa {cfg.sensor.cfa!r} with capture.gate_code: "
-                              "demultiplexing per-pixel codes on a colour mosaic is not modelled; set sensor.cfa none")
+            raise ConfigError(
+                f"{origin(('sensor', 'cfa'))}: sensor.cfa {cfg.sensor.cfa!r} with capture.gate_code: "
+                "demultiplexing per-pixel codes on a colour mosaic is not modelled; set sensor.cfa none"
+            )
     return cfg
 
 

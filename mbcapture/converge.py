@@ -77,11 +77,18 @@ def _seed(cfg: CaptureConfig, *key: int) -> np.random.SeedSequence:
     return np.random.SeedSequence([cfg.seed, *key])
 
 
-def render_point(cfg, scene, timeline, renderer, planner: str, spp: int, seed_key: tuple[int, ...],
-                 max_motion_px: float | None = None):
+def render_point(
+    cfg,
+    scene,
+    timeline,
+    renderer,
+    planner: str,
+    spp: int,
+    seed_key: tuple[int, ...],
+    max_motion_px: float | None = None,
+):
     """(integrated, plan, seconds) of one capture rendered with ``planner`` at ``spp``."""
-    render = replace_render(cfg, planner=planner, spp=int(spp),
-                            max_motion_px=max_motion_px or cfg.render.max_motion_px)
+    render = replace_render(cfg, planner=planner, spp=int(spp), max_motion_px=max_motion_px or cfg.render.max_motion_px)
     seeds = _seed(cfg, *seed_key).spawn(2)
     probe = make_plan(timeline, scene, render, np.random.default_rng(seeds[0]))
     _warm(renderer, probe)
@@ -99,8 +106,13 @@ def replace_render(cfg: CaptureConfig, **changes):
 FIREFLY_SHARE = 1e-3
 
 
-def relative_error(exposure: np.ndarray, reference: np.ndarray, ref_var: np.ndarray | None,
-                   buckets: list[int], trim: float = FIREFLY_SHARE) -> tuple[float, float]:
+def relative_error(
+    exposure: np.ndarray,
+    reference: np.ndarray,
+    ref_var: np.ndarray | None,
+    buckets: list[int],
+    trim: float = FIREFLY_SHARE,
+) -> tuple[float, float]:
     """(error with the reference's MC variance subtracted, raw error): RMS over buckets of each
     bucket's RMS difference over its mean reference exposure.
 
@@ -134,8 +146,9 @@ def run_converge(
     scene, timeline, renderer = _setup(cfg)
     buckets = sorted({b for r in timeline.reads for b in r.buckets})
     say(f"reference: strata for {cfg.render.max_motion_px / ref_motion_div:g} px motion, {ref_spp} spp")
-    ref, ref_plan, ref_s = render_point(cfg, scene, timeline, renderer, "motion", ref_spp, (99, ref_spp),
-                                        cfg.render.max_motion_px / ref_motion_div)
+    ref, ref_plan, ref_s = render_point(
+        cfg, scene, timeline, renderer, "motion", ref_spp, (99, ref_spp), cfg.render.max_motion_px / ref_motion_div
+    )
     points: list[Point] = []
     for method, ladder, mid in (("motion", motion_ladder, 1), ("naive", naive_ladder, 2)):
         for spp in ladder:
@@ -143,7 +156,11 @@ def run_converge(
             sub, err = relative_error(out.exposure, ref.exposure, ref.mc_var, buckets)
             points.append(Point(method, int(spp), plan.passes, int(plan.spp.sum()), secs, err, sub))
             say(f"{method:6s} spp {spp:4d}: {plan.passes} passes, {secs:7.2f} s, error {err:.3e}")
-    ref_err = relative_error(ref.exposure + np.sqrt(ref.mc_var), ref.exposure, None, buckets, 0.0)[1] if ref.mc_var is not None else None
+    ref_err = (
+        relative_error(ref.exposure + np.sqrt(ref.mc_var), ref.exposure, None, buckets, 0.0)[1]
+        if ref.mc_var is not None
+        else None
+    )
     return {
         "film": [cfg.render.width, cfg.render.height],
         "periods": cfg.capture.periods,
@@ -189,8 +206,16 @@ def equal_error_speedups(points: list[Point]) -> list[dict]:
             t, extrap = planner_seconds_at(points, p.error)
         except ValueError:
             continue
-        out.append({"naive_spp": p.spp, "error": p.error, "naive_s": p.seconds, "planner_s": t,
-                    "speedup": p.seconds / t, "extrapolated": extrap})
+        out.append(
+            {
+                "naive_spp": p.spp,
+                "error": p.error,
+                "naive_s": p.seconds,
+                "planner_s": t,
+                "speedup": p.seconds / t,
+                "extrapolated": extrap,
+            }
+        )
     return out
 
 
@@ -228,19 +253,37 @@ def plot(result: dict):
         if not sel:
             continue
         slope = result["slopes"].get(m)
-        ax.loglog([p["seconds"] for p in sel], [p["error"] for p in sel], style, color=color,
-                  label=f"{label}, slope {slope:.2f}" if slope is not None else label)
+        ax.loglog(
+            [p["seconds"] for p in sel],
+            [p["error"] for p in sel],
+            style,
+            color=color,
+            label=f"{label}, slope {slope:.2f}" if slope is not None else label,
+        )
         for p in sel:
-            ax.annotate(str(p["spp"]), (p["seconds"], p["error"]), textcoords="offset points", xytext=(4, 4),
-                        fontsize=7, color=color)
+            ax.annotate(
+                str(p["spp"]),
+                (p["seconds"], p["error"]),
+                textcoords="offset points",
+                xytext=(4, 4),
+                fontsize=7,
+                color=color,
+            )
     motion = sorted((p for p in pts if p["method"] == "motion"), key=lambda p: p["seconds"])
     if motion:
         t = np.array([min(p["seconds"] for p in pts), max(p["seconds"] for p in pts)])
         anchor = motion[len(motion) // 2]
-        ax.loglog(t, anchor["error"] * (t / anchor["seconds"]) ** -0.5, ":", color="gray", label="slope -1/2 (Monte Carlo)")
+        ax.loglog(
+            t, anchor["error"] * (t / anchor["seconds"]) ** -0.5, ":", color="gray", label="slope -1/2 (Monte Carlo)"
+        )
     for s in result.get("speedups", [])[:1]:
-        ax.annotate(f"{s['speedup']:.1f}x at equal error", (s["planner_s"], s["error"]), xytext=(s["planner_s"] * 1.3, s["error"] * 1.4),
-                    arrowprops={"arrowstyle": "->", "color": "gray"}, fontsize=8)
+        ax.annotate(
+            f"{s['speedup']:.1f}x at equal error",
+            (s["planner_s"], s["error"]),
+            xytext=(s["planner_s"] * 1.3, s["error"] * 1.4),
+            arrowprops={"arrowstyle": "->", "color": "gray"},
+            fontsize=8,
+        )
     ax.set_xlabel("run time: plan + render + accumulate (s)")
     ax.set_ylabel("relative RMS error of the bucket exposures")
     W, H = result["film"]

@@ -80,11 +80,26 @@ def config_markdown() -> str:
 def _sweep_section() -> list[str]:
     """The keys of a sweep file (``mbcapture sweep``)."""
 
-    return ["", "## Sweep files (`mbcapture sweep`)", "",
-            "A sweep file names a base config and the keys that vary; configs/sweeps/ has commented examples.", "",
-            *_table(SweepSpec, ""), "", "`axes`:", "", *_table(Axes, "axes."), "", "`axes.random`:", "",
-            *_table(RandomAxes, "axes.random."), "", "Each key of `axes.random.keys`:", "",
-            *_table(RandomKey, "axes.random.keys.<key>.")]
+    return [
+        "",
+        "## Sweep files (`mbcapture sweep`)",
+        "",
+        "A sweep file names a base config and the keys that vary; configs/sweeps/ has commented examples.",
+        "",
+        *_table(SweepSpec, ""),
+        "",
+        "`axes`:",
+        "",
+        *_table(Axes, "axes."),
+        "",
+        "`axes.random`:",
+        "",
+        *_table(RandomAxes, "axes.random."),
+        "",
+        "Each key of `axes.random.keys`:",
+        "",
+        *_table(RandomKey, "axes.random.keys.<key>."),
+    ]
 
 
 if __name__ == "__main__":

@@ -124,7 +124,9 @@ def periodic_oscillation_ticks(
         if count == 1:
             dirichlet = 1.0
         elif (num * period) % den == 0:  # resonance: theta / 2 = k pi, D = N cos(N k pi) / cos(k pi)
-            dirichlet = count * _sin_cos_cycles(num * period * count, 2 * den)[1] / _sin_cos_cycles(num * period, 2 * den)[1]
+            dirichlet = (
+                count * _sin_cos_cycles(num * period * count, 2 * den)[1] / _sin_cos_cycles(num * period, 2 * den)[1]
+            )
         else:  # D = sin(N theta / 2) / sin(theta / 2), theta / 2 = num period / (2 den) cycles
             dirichlet = _sin_cos_cycles(num * period * count, 2 * den)[0] / _sin_cos_cycles(num * period, 2 * den)[0]
         sin_m, cos_m = _sin_cos_cycles(num * mid2, 2 * den)  # phase of the mean occurrence midpoint

@@ -46,8 +46,12 @@ class Figure:
     section: str
 
     def as_dict(self) -> dict:
-        return {"value": float(self.value), "uncertainty": None if self.uncertainty is None else float(self.uncertainty),
-                "unit": self.unit, "section": self.section}
+        return {
+            "value": float(self.value),
+            "uncertainty": None if self.uncertainty is None else float(self.uncertainty),
+            "unit": self.unit,
+            "section": self.section,
+        }
 
 
 @dataclass(frozen=True)
@@ -72,8 +76,9 @@ def pair_stats(frames_a: np.ndarray, frames_b: np.ndarray) -> PairStats:
     return PairStats(mean=(ma + mb) / 2, variance=(d**2).mean(axis=(1, 2)) / 2, pixels=int(a.shape[1] * a.shape[2]))
 
 
-def weighted_line(x: np.ndarray, y: np.ndarray, var_y: np.ndarray, *, through_origin: bool = False
-                  ) -> tuple[float, float, np.ndarray]:
+def weighted_line(
+    x: np.ndarray, y: np.ndarray, var_y: np.ndarray, *, through_origin: bool = False
+) -> tuple[float, float, np.ndarray]:
     """Least squares y = a + b x weighted by 1 / var_y: (b, a, covariance of (a, b)). With
     ``through_origin`` a = 0. The covariance is the one the stated point variances give (not scaled by
     the residuals), so it is what the number of pixels and frames implies."""
@@ -177,8 +182,13 @@ def sensitivity(mu_p: np.ndarray, light: PairStats, dark: PairStats, t_s: np.nda
 
     sec = "Release 4.0 Linear: sensitivity, linearity and noise"
     return {
-        "charge_limit_e": Figure(limit_e, s_limit_e, "e-", "not in the standard: the mean of the series' last step "
-                                 "(1.25x saturation, every pixel clipped) less the dark mean, over K"),
+        "charge_limit_e": Figure(
+            limit_e,
+            s_limit_e,
+            "e-",
+            "not in the standard: the mean of the series' last step "
+            "(1.25x saturation, every pixel clipped) less the dark mean, over K",
+        ),
         "system_gain_dn_per_e": Figure(K, sK, "DN/e-", sec),
         "responsivity_dn_per_photon": Figure(R, sR, "DN/p", sec),
         "quantum_efficiency": Figure(eta, s_eta, "e-/p", sec),
@@ -224,15 +234,24 @@ def _split(image: np.ndarray, temporal_var: float, frames: int) -> tuple[dict[st
     parts = {"row": max(s_r, 0.0), "column": max(s_c, 0.0), "pixel": max(s_p, 0.0)}
     total = sum(parts.values())
     noise_p = s_p + temporal_var / frames
-    err = {"row": np.sqrt(2 / (H - 1)) * (s_r + noise_p / W), "column": np.sqrt(2 / (W - 1)) * (s_c + noise_p / H),
-           "pixel": np.sqrt(2 / (H * W - 1)) * noise_p}
+    err = {
+        "row": np.sqrt(2 / (H - 1)) * (s_r + noise_p / W),
+        "column": np.sqrt(2 / (W - 1)) * (s_c + noise_p / H),
+        "pixel": np.sqrt(2 / (H * W - 1)) * noise_p,
+    }
     parts["total"] = total
     err["total"] = float(np.sqrt(sum(e**2 for e in err.values())))
     return parts, err
 
 
-def nonuniformity(dark_mean_frame: np.ndarray, light_mean_frame: np.ndarray, frames: int, dark_temporal_var: float,
-                  light_temporal_var: float, system_gain: Figure) -> dict[str, Figure]:
+def nonuniformity(
+    dark_mean_frame: np.ndarray,
+    light_mean_frame: np.ndarray,
+    frames: int,
+    dark_temporal_var: float,
+    light_temporal_var: float,
+    system_gain: Figure,
+) -> dict[str, Figure]:
     """Release 4.0 Linear, 'spatial nonuniformity': from frames averaged over ``frames`` captures, dark
     and at about 50 % saturation, each (H, W) in DN.
 

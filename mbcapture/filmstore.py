@@ -52,16 +52,20 @@ class FilmStore:
             self.folder.mkdir(parents=True, exist_ok=True)
             fd, path = tempfile.mkstemp(prefix="film-", suffix=".scratch", dir=self.folder)
         except OSError as exc:
-            raise ResourceProblem(f"render.spill_dir {self.folder}: cannot make a scratch file there ({exc.strerror}); "
-                                  "choose another folder or set render.spill: false") from None
+            raise ResourceProblem(
+                f"render.spill_dir {self.folder}: cannot make a scratch file there ({exc.strerror}); "
+                "choose another folder or set render.spill: false"
+            ) from None
         try:
             os.unlink(path)  # the open descriptor and then the mapping keep it; no name is left behind
             try:
                 os.posix_fallocate(fd, 0, nbytes)
             except OSError as exc:
-                raise ResourceProblem(f"render.spill_dir {self.folder}: the film's arrays need "
-                                      f"{nbytes / (1 << 30):.2f} GB more there ({exc.strerror}); free some space, "
-                                      "choose another folder or a smaller film") from None
+                raise ResourceProblem(
+                    f"render.spill_dir {self.folder}: the film's arrays need "
+                    f"{nbytes / (1 << 30):.2f} GB more there ({exc.strerror}); free some space, "
+                    "choose another folder or a smaller film"
+                ) from None
             buffer = mmap.mmap(fd, nbytes)
         finally:
             os.close(fd)

@@ -61,7 +61,9 @@ class GateCode:
         if t.ndim != 3 or min(t.shape) < 1:
             raise ValueError(f"a gate code's tile is (sub-frames, height, width), got shape {t.shape}")
         if t.min() < DRAIN or t.max() >= self.n_buckets:
-            raise ValueError(f"a gate code names buckets 0..{self.n_buckets - 1} or the drain, got {t.min()}..{t.max()}")
+            raise ValueError(
+                f"a gate code names buckets 0..{self.n_buckets - 1} or the drain, got {t.min()}..{t.max()}"
+            )
         t = t.astype(np.int8)
         t.setflags(write=False)
         object.__setattr__(self, "tile", t)
@@ -94,8 +96,10 @@ class GateCode:
     def shares(self) -> list[list[Fraction]]:
         """[s][k]: the exact fraction of tile positions that send sub-frame s to bucket k."""
         n = self.tile.shape[1] * self.tile.shape[2]
-        return [[Fraction(int((self.tile[s] == k).sum()), n) for k in range(self.n_buckets)]
-                for s in range(self.n_subframes)]
+        return [
+            [Fraction(int((self.tile[s] == k).sum()), n) for k in range(self.n_buckets)]
+            for s in range(self.n_subframes)
+        ]
 
     def full(self, height: int, width: int) -> np.ndarray:
         """(S, H, W) int8: every pixel's bucket per sub-frame."""
@@ -140,11 +144,12 @@ class GateCode:
 def default_tile(positions: int) -> tuple[int, int]:
     """A tile (h, w) for ``positions`` codes: an exact h x w with w <= 2h when there is one (8: 2x4),
     else the near-square tile with room for them (5: 2x3; the extra positions repeat codes)."""
-    exact = [(h, positions // h) for h in range(1, positions + 1)
-             if positions % h == 0 and h <= positions // h <= 2 * h]
+    exact = [
+        (h, positions // h) for h in range(1, positions + 1) if positions % h == 0 and h <= positions // h <= 2 * h
+    ]
     if exact:
         return exact[-1]
-    h = max(1, round(positions ** 0.5))
+    h = max(1, round(positions**0.5))
     return h, ceil(positions / h)
 
 
@@ -162,37 +167,50 @@ def _fill(rows: np.ndarray, tile: tuple[int, int]) -> np.ndarray:
     return rows[idx].T.reshape(rows.shape[1], h, w)
 
 
-def make_code(family: str, subframes: int, n_buckets: int, *, width: int, height: int,
-              tile: tuple[int, int] | None = None, seed: int = 0, array: np.ndarray | None = None) -> GateCode:
+def make_code(
+    family: str,
+    subframes: int,
+    n_buckets: int,
+    *,
+    width: int,
+    height: int,
+    tile: tuple[int, int] | None = None,
+    seed: int = 0,
+    array: np.ndarray | None = None,
+) -> GateCode:
     """The gate code of ``family`` for ``subframes`` sub-frames and ``n_buckets`` buckets.
     ConfigError names ``capture.gate_code.<key>`` when it cannot be made."""
     S, K = subframes, n_buckets
     if family == "global":
         if S > K:
-            raise ConfigError(f"capture.gate_code.family: 'global' sends sub-frame s to bucket s, but the schedule has "
-                              f"{S} sub-frames and sensor.bucket_count is {K}")
+            raise ConfigError(
+                f"capture.gate_code.family: 'global' sends sub-frame s to bucket s, but the schedule has "
+                f"{S} sub-frames and sensor.bucket_count is {K}"
+            )
         return GateCode(family, np.arange(S, dtype=np.int8)[:, None, None], K)
     if family == "file":
         if array is None:
             raise ConfigError("capture.gate_code.file: the 'file' family needs an array file")
         a = np.asarray(array)
         if a.ndim != 3 or a.shape[0] != S:
-            raise ConfigError(f"capture.gate_code.file: expected an array of shape (sub-frames={S}, height, width), "
-                              f"got {a.shape}")
+            raise ConfigError(
+                f"capture.gate_code.file: expected an array of shape (sub-frames={S}, height, width), got {a.shape}"
+            )
         if not np.issubdtype(a.dtype, np.integer) or a.min() < 0 or a.max() > K:
             raise ConfigError(f"capture.gate_code.file: entries must be 1-based buckets 1..{K} or 0 (drain)")
         return GateCode(family, (a - 1).astype(np.int8), K)
     if K < 2:
-        raise ConfigError(f"capture.gate_code.family: {family!r} sends sub-frames to buckets 1 and 2; "
-                          f"sensor.bucket_count is {K}")
+        raise ConfigError(
+            f"capture.gate_code.family: {family!r} sends sub-frames to buckets 1 and 2; sensor.bucket_count is {K}"
+        )
     if family == "one_hot":
         rows = np.ones((S, S), dtype=np.int8)  # bucket 2 (index 1) ...
-        np.fill_diagonal(rows, 0)               # ... except sub-frame f at position f: bucket 1
+        np.fill_diagonal(rows, 0)  # ... except sub-frame f at position f: bucket 1
         shape = tile or default_tile(S)
         return GateCode(family, _fill(rows, _check_tile(shape, S)), K)
     if family == "hadamard":
         n = 1 << S.bit_length()  # the smallest power of two > S
-        rows = np.where(_sylvester(n)[1:, 1:S + 1] > 0, 0, 1).astype(np.int8)
+        rows = np.where(_sylvester(n)[1:, 1 : S + 1] > 0, 0, 1).astype(np.int8)
         shape = tile or default_tile(n - 1)
         return GateCode(family, _fill(rows, _check_tile(shape, n - 1)), K)
     if family == "random":

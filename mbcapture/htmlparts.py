@@ -39,8 +39,11 @@ def fmt(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
     if isinstance(v, (list, tuple)):
-        return json.dumps(v, default=lambda o: f"{o:.4g}" if isinstance(o, float) else str(o)) if len(str(v)) < 60 else \
-            "[" + ", ".join(fmt(x) for x in v) + "]"
+        return (
+            json.dumps(v, default=lambda o: f"{o:.4g}" if isinstance(o, float) else str(o))
+            if len(str(v)) < 60
+            else "[" + ", ".join(fmt(x) for x in v) + "]"
+        )
     return str(v)
 
 
@@ -62,5 +65,7 @@ def table(rows: list[list], header: list[str] | None = None) -> str:
 def figure(src: str, caption: str, plot: bool = False) -> str:
     """An image linked to itself, with its caption (HTML, not escaped); ``plot``: a chart, not a picture."""
     cls = " class='plot'" if plot else ""
-    return (f"<figure{cls}><a href='{esc(src)}'><img src='{esc(src)}' alt='{esc(src)}'></a>"
-            f"<figcaption>{caption}</figcaption></figure>")
+    return (
+        f"<figure{cls}><a href='{esc(src)}'><img src='{esc(src)}' alt='{esc(src)}'></a>"
+        f"<figcaption>{caption}</figcaption></figure>"
+    )

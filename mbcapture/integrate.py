@@ -55,8 +55,9 @@ def stratum_halves(plan: Plan) -> list[tuple[int, ...]]:
 
 def pattern_keys(seed: np.random.SeedSequence) -> np.ndarray:
     """The two shared patterns' keys (one per half) of the renders seeded by ``seed``."""
-    return np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5A7E))) \
-        .integers(0, 2**32, size=2)
+    return np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5A7E))).integers(
+        0, 2**32, size=2
+    )
 
 
 def sample_counter(renderer, plan: Plan) -> Callable[[int], int]:
@@ -67,8 +68,9 @@ def sample_counter(renderer, plan: Plan) -> Callable[[int], int]:
     return counter(plan.shares_pattern) if counter is not None else (lambda n: n)
 
 
-def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None,
-                    after: Plan | None = None) -> list[list[tuple[int, int] | None]]:
+def render_patterns(
+    plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None, after: Plan | None = None
+) -> list[list[tuple[int, int] | None]]:
     """The shared pattern (key, offset) of each stratum's half-sample renders, [j][h], or None
     (render.pattern 'own', or the ``difference`` estimator): half h of every stratum draws from one
     pattern of its own, stratum j taking the samples after those of strata 0 .. j - 1, so that the
@@ -92,8 +94,9 @@ def render_patterns(plan: Plan, seed: np.random.SeedSequence, count: Callable[[i
     return out
 
 
-def render_requests(plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None) \
-        -> list[tuple[float, int, int, tuple[str, ...], tuple[int, int] | None]]:
+def render_requests(
+    plan: Plan, seed: np.random.SeedSequence, count: Callable[[int], int] | None = None
+) -> list[tuple[float, int, int, tuple[str, ...], tuple[int, int] | None]]:
     """Every render :func:`integrate` makes for ``plan`` with the ``independent`` estimator, in its
     order: (scene time s, samples per pixel, seed, groups, shared pattern or None). What a cluster
     renders ahead of it (:mod:`mbcapture.cluster`); ``count`` as in :func:`render_patterns`."""
@@ -152,12 +155,17 @@ class Integrated:
         groups = None
         if self.group_exposure is not None:  # (S, G, H, W, C): route with the pixels on axes 1, 2
             groups = np.moveaxis(timeline.route(np.moveaxis(self.group_exposure, 1, 3)), 3, 1)
-        return Integrated(exposure=timeline.route(self.exposure), mc_diff=timeline.route(self.mc_diff),
-                          group_exposure=groups, temporal_diff=timeline.route(self.temporal_diff))
+        return Integrated(
+            exposure=timeline.route(self.exposure),
+            mc_diff=timeline.route(self.mc_diff),
+            group_exposure=groups,
+            temporal_diff=timeline.route(self.temporal_diff),
+        )
 
 
-def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray,
-               radiance64: np.ndarray | None = None) -> None:
+def accumulate(
+    weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray, radiance64: np.ndarray | None = None
+) -> None:
     """out[k] += sum_g weights_s[k, g] * radiance[g]  (float64, ``out`` C-contiguous; radiance (G, H, W, C)).
 
     One BLAS call does the product and the sum (dgemm with beta 1, into ``out``'s own memory): the
@@ -176,7 +184,7 @@ def accumulate(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarray,
     if radiance.dtype == np.float64 or radiance64 is None:
         wide = np.ascontiguousarray(radiance.reshape(G, n), dtype=np.float64)
     else:  # the same values (float32 -> float64 is exact), in the given array
-        wide = radiance64.reshape(-1)[:G * n].reshape(G, n)
+        wide = radiance64.reshape(-1)[: G * n].reshape(G, n)
         np.copyto(wide, radiance.reshape(G, n))
     # column-major view of the row-major product: out^T (n, K) += wide^T (n, G) @ weights^T (G, K)
     target = out.reshape(K, n).T
@@ -257,13 +265,14 @@ def integrate(
             w_j = plan.weights_s[j][:, gsel]
             combined = None
             if combined_all is not None:
-                combined = combined_all[:len(gsel)]
+                combined = combined_all[: len(gsel)]
                 combined.fill(0.0)
             for h, spp_h in enumerate(halves):
                 with stage("render"):
                     if control is None:
-                        radiance = renderer.render(float(times[j, h]), spp_h, int(seeds[j, h]), groups_j,
-                                                   pattern=patterns[j][h])
+                        radiance = renderer.render(
+                            float(times[j, h]), spp_h, int(seeds[j, h]), groups_j, pattern=patterns[j][h]
+                        )
                     else:
                         radiance = control.stratum(float(times[j, h]), h, spp_h, gsel)
                 with stage("accumulate"):
@@ -302,11 +311,21 @@ def integrate(
     return Integrated(exposure=exposure, mc_diff=mc_diff, group_exposure=groups_out, temporal_diff=temporal)
 
 
-def integrate_tiles(renderer, plan: Plan, n_buckets: int, seed: np.random.SeedSequence,
-                    tiles: tuple[tuple[int, int], ...], *, per_group: bool = False, timer=None,
-                    progress: bool = False, before_tile: Callable[[tuple[int, int]], None] | None = None,
-                    store: FilmStore = IN_MEMORY, desc: str = "render",
-                    continues: tuple[Plan, np.random.SeedSequence] | None = None) -> Integrated:
+def integrate_tiles(
+    renderer,
+    plan: Plan,
+    n_buckets: int,
+    seed: np.random.SeedSequence,
+    tiles: tuple[tuple[int, int], ...],
+    *,
+    per_group: bool = False,
+    timer=None,
+    progress: bool = False,
+    before_tile: Callable[[tuple[int, int]], None] | None = None,
+    store: FilmStore = IN_MEMORY,
+    desc: str = "render",
+    continues: tuple[Plan, np.random.SeedSequence] | None = None,
+) -> Integrated:
     """:func:`integrate` tile by tile: each tile (rows first, end; runs of whole render bands,
     :mod:`mbcapture.render.bands`) rendered through :class:`~mbcapture.render.renderer.RenderRows`
     and accumulated alone, so that the renders, the two halves, the pairs of strata and the
@@ -321,15 +340,33 @@ def integrate_tiles(renderer, plan: Plan, n_buckets: int, seed: np.random.SeedSe
     if len(tiles) == 1 and tuple(tiles[0]) == (0, renderer.height):
         if before_tile is not None:
             before_tile(tuple(tiles[0]))
-        return integrate(renderer, plan, n_buckets, seed, per_group=per_group, timer=timer, progress=progress,
-                         desc=desc, continues=continues)
+        return integrate(
+            renderer,
+            plan,
+            n_buckets,
+            seed,
+            per_group=per_group,
+            timer=timer,
+            progress=progress,
+            desc=desc,
+            continues=continues,
+        )
     H = renderer.height
     out: dict[str, np.ndarray | None] = {}
     for i, (r0, r1) in enumerate(tiles):
         if before_tile is not None:
             before_tile((r0, r1))
-        part = integrate(RenderRows(renderer, (r0, r1)), plan, n_buckets, seed, per_group=per_group, timer=timer,
-                         progress=progress, desc=f"{desc} tile {i + 1}/{len(tiles)}", continues=continues)
+        part = integrate(
+            RenderRows(renderer, (r0, r1)),
+            plan,
+            n_buckets,
+            seed,
+            per_group=per_group,
+            timer=timer,
+            progress=progress,
+            desc=f"{desc} tile {i + 1}/{len(tiles)}",
+            continues=continues,
+        )
         for name in ("exposure", "mc_diff", "group_exposure", "temporal_diff"):
             value = getattr(part, name)
             if value is None:
@@ -340,8 +377,12 @@ def integrate_tiles(renderer, plan: Plan, n_buckets: int, seed: np.random.SeedSe
                 shape[-3] = H
                 out[name] = store.empty(shape, value.dtype)
             out[name][..., r0:r1, :, :] = value
-    return Integrated(exposure=out["exposure"], mc_diff=out["mc_diff"], group_exposure=out["group_exposure"],
-                      temporal_diff=out["temporal_diff"])
+    return Integrated(
+        exposure=out["exposure"],
+        mc_diff=out["mc_diff"],
+        group_exposure=out["group_exposure"],
+        temporal_diff=out["temporal_diff"],
+    )
 
 
 class _Control:
@@ -399,9 +440,11 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
     """
     D = integrated.temporal_diff
     if D is None:
-        return {"temporal_method": "one stratum: not measured (strata are compared in pairs); the image motion "
-                                   "inside it is plan.image_motion_px_total",
-                "temporal_rel_rms_estimate": None}
+        return {
+            "temporal_method": "one stratum: not measured (strata are compared in pairs); the image motion "
+            "inside it is plan.image_motion_px_total",
+            "temporal_rel_rms_estimate": None,
+        }
     # bucket by bucket, one quantity at a time: the means of the samples of every bucket in order (the
     # same as over copies of all the buckets at once), holding one of them, not copies of the buckets
     exposure, mc_diff = integrated.exposure, integrated.mc_diff
@@ -416,7 +459,7 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
         samples, at = np.empty(sum(int(u.sum()) for u in use)), 0
         for b, u in zip(buckets, use):
             part = values(b)[u]
-            samples[at:at + part.size], at = part, at + part.size
+            samples[at : at + part.size], at = part, at + part.size
         return float(samples.mean())
 
     d2 = mean_of(lambda b: (D[b] * k_e) ** 2)
@@ -432,15 +475,29 @@ def temporal_error(integrated: Integrated, k_e: np.ndarray, buckets: list[int], 
         "temporal_resolved": resolved,
     }
     if not resolved:
-        out["temporal_note"] = ("the coarse-minus-fine difference is within the Monte Carlo noise: 0 means too small "
-                                "to measure at this spp, not exactly 0")
+        out["temporal_note"] = (
+            "the coarse-minus-fine difference is within the Monte Carlo noise: 0 means too small "
+            "to measure at this spp, not exactly 0"
+        )
     return out
 
 
-def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, factor: "int | np.ndarray",
-           seed: np.random.SeedSequence, *, points: int = 1, per_group: bool = False, timer=None,
-           progress: bool = False, desc: str = "refine", have: "int | np.ndarray" = 1,
-           store: FilmStore = IN_MEMORY) -> Integrated:
+def refine(
+    renderer,
+    plan: Plan,
+    integrated: Integrated,
+    pixels: np.ndarray,
+    factor: "int | np.ndarray",
+    seed: np.random.SeedSequence,
+    *,
+    points: int = 1,
+    per_group: bool = False,
+    timer=None,
+    progress: bool = False,
+    desc: str = "refine",
+    have: "int | np.ndarray" = 1,
+    store: FilmStore = IN_MEMORY,
+) -> Integrated:
     """Adaptive sampling's second pass: every stratum again at ``pixels`` (flat indices) only, each with
     ``factor`` - 1 times its samples (one factor for all, or one per pixel; two halves, for the error
     estimate), through :meth:`mbcapture.render.Renderer.render_pixels`, added to the first pass there: each
@@ -474,8 +531,10 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     fac = np.broadcast_to(np.asarray(factor, dtype=np.int64), pix.shape)
     held = np.broadcast_to(np.asarray(have, dtype=np.int64), pix.shape)
     if pix.size and (fac - held).min() < 1:
-        raise ValueError(f"refine: factor {fac[np.argmin(fac - held)]} adds no samples to the "
-                         f"{held[np.argmin(fac - held)]} x the first pass's the pixel holds")
+        raise ValueError(
+            f"refine: factor {fac[np.argmin(fac - held)]} adds no samples to the "
+            f"{held[np.argmin(fac - held)]} x the first pass's the pixel holds"
+        )
     stage = timer if timer is not None else (lambda name: nullcontext())
     K, H, W, C = integrated.exposure.shape
     extra = fac - held  # (P,)
@@ -489,12 +548,17 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     # times of their own: the first pass's time draws (a moving edge's positions) made its noise too
     rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x71AE)))
     times = plan.draw_times(rng, points=points)
-    seeds = [_refine_seeds(plan, seed if b == 0 else np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, b)),
-                           times.shape) for b in range(len(batches))]
+    seeds = [
+        _refine_seeds(
+            plan, seed if b == 0 else np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, b)), times.shape
+        )
+        for b in range(len(batches))
+    ]
     used = plan.weights_s.sum(axis=1) > 0
     parts = [np.zeros((K, pix.size, C)) for _ in range(2)]
-    groups_out = np.zeros((K, len(plan.groups), pix.size, C)) if per_group and integrated.group_exposure is not None \
-        else None
+    groups_out = (
+        np.zeros((K, len(plan.groups), pix.size, C)) if per_group and integrated.group_exposure is not None else None
+    )
     edges = np.arange(points + 1) / points
     with _progress(plan.passes, progress, desc) as bar:
         for j in range(plan.passes):
@@ -510,12 +574,20 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
                     for b, batch in enumerate(batches):
                         pattern = None if keys is None else (int(keys[h]), offset[h][batch])
                         with stage("refine"):
-                            rad = renderer.render_pixels(float(times[j, h, i]), counts[batch, i], int(seeds[b][j, h, i]),
-                                                         groups_j, pix[batch], pattern=pattern,
-                                                         cached=True).astype(np.float64)
+                            rad = renderer.render_pixels(
+                                float(times[j, h, i]),
+                                counts[batch, i],
+                                int(seeds[b][j, h, i]),
+                                groups_j,
+                                pix[batch],
+                                pattern=pattern,
+                                cached=True,
+                            ).astype(np.float64)
                             parts[h][:, batch] += np.einsum("kg,gpc->kpc", w_j * share, rad, optimize=True)
                             if groups_out is not None:
-                                groups_out[:, gsel[:, None], batch[None, :]] += w_j[:, :, None, None] * (rad * share)[None]
+                                groups_out[:, gsel[:, None], batch[None, :]] += (
+                                    w_j[:, :, None, None] * (rad * share)[None]
+                                )
                     offset[h] += counts[:, i]
             bar.update(1)
     r = float((halves[:, 0] / np.maximum(first_spp, 1)).mean())
@@ -536,8 +608,9 @@ def refine(renderer, plan: Plan, integrated: Integrated, pixels: np.ndarray, fac
     group_exposure = integrated.group_exposure
     if groups_out is not None:
         group_exposure = combined(group_exposure, groups_out, 2)
-    return Integrated(exposure=exposure, mc_diff=mc_diff, group_exposure=group_exposure,
-                      temporal_diff=integrated.temporal_diff)
+    return Integrated(
+        exposure=exposure, mc_diff=mc_diff, group_exposure=group_exposure, temporal_diff=integrated.temporal_diff
+    )
 
 
 def _refine_seeds(plan: Plan, seed: np.random.SeedSequence, shape: tuple[int, int, int]) -> np.ndarray:

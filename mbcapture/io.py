@@ -61,8 +61,9 @@ def check_out_dir(out: Path) -> None:
         at = out if created else (made[-1] if made else probe)
         if isinstance(exc, PermissionError):
             raise OutputError(f"--out {out}: {at} is not writable") from None
-        raise OutputError(f"--out {out}: cannot {'write into' if created else 'create a folder in'} {at} "
-                          f"({exc.strerror})") from None
+        raise OutputError(
+            f"--out {out}: cannot {'write into' if created else 'create a folder in'} {at} ({exc.strerror})"
+        ) from None
     finally:
         for folder in reversed(made):
             try:
@@ -104,8 +105,13 @@ class Staging:
     def write_yaml(self, name: str, data) -> None:
         self.path(name).write_text(yaml.safe_dump(data, sort_keys=False))
 
-    def write_exr(self, name: str, layers: Mapping[str, "np.ndarray | Callable[[], np.ndarray]"],
-                  channels=CHANNELS_RGB, empty: "Callable[..., np.ndarray]" = np.empty) -> None:
+    def write_exr(
+        self,
+        name: str,
+        layers: Mapping[str, "np.ndarray | Callable[[], np.ndarray]"],
+        channels=CHANNELS_RGB,
+        empty: "Callable[..., np.ndarray]" = np.empty,
+    ) -> None:
         write_exr(self.path(name), layers, channels, empty)
 
     def write_png(self, name: str, rgb_linear: np.ndarray, percentile: float | None = 99.5) -> None:
@@ -120,7 +126,7 @@ def _staging_owner(name: str) -> tuple[str, int] | None:
     """(host, pid) of a staging folder's name, or None for a name not made by this version."""
     if not name.startswith(STAGING_PREFIX):
         return None
-    parts = name[len(STAGING_PREFIX):].rsplit("-", 2)
+    parts = name[len(STAGING_PREFIX) :].rsplit("-", 2)
     if len(parts) != 3 or not parts[1].isdigit():
         return None
     return parts[0], int(parts[1])
@@ -181,8 +187,9 @@ def staged_outputs(out: Path) -> Iterator[Staging]:
         reason = _write_failure(exc)
         if reason is None:
             raise
-        raise OutputError(f"--out {out}: writing the outputs failed ({reason}); nothing was replaced, the previous "
-                          "output is kept") from None
+        raise OutputError(
+            f"--out {out}: writing the outputs failed ({reason}); nothing was replaced, the previous output is kept"
+        ) from None
     finally:
         shutil.rmtree(root, ignore_errors=True)
 
@@ -217,8 +224,12 @@ def _json_default(obj):
 
 
 # ----------------------------------------------------------------------------- EXR
-def write_exr(path: Path, layers: Mapping[str, "np.ndarray | Callable[[], np.ndarray]"], channels=CHANNELS_RGB,
-              empty: "Callable[..., np.ndarray]" = np.empty) -> None:
+def write_exr(
+    path: Path,
+    layers: Mapping[str, "np.ndarray | Callable[[], np.ndarray]"],
+    channels=CHANNELS_RGB,
+    empty: "Callable[..., np.ndarray]" = np.empty,
+) -> None:
     """Write layers ``{'B1': (H, W, C) array, ...}`` as float32 channels ``B1.R, B1.G, ...``.
 
     A 2-D array becomes a single channel named after its layer. A layer may be given as a function
@@ -293,13 +304,13 @@ def tonemap(rgb_linear: np.ndarray, percentile: float | None = 99.5) -> np.ndarr
     out = np.empty(rgb.shape, np.uint8)
     rows = max(1, TONEMAP_BAND_SAMPLES // max(1, rgb[0].size)) if rgb.shape[0] else 1
     for r0 in range(0, rgb.shape[0], rows):
-        band = rgb[r0:r0 + rows]
+        band = rgb[r0 : r0 + rows]
         if white > 0:
             band /= white
             np.clip(band, 0.0, 1.0, out=band)
         else:
             band[...] = 0.0
-        out[r0:r0 + rows] = np.round(colour.cctf_encoding(band, function="sRGB") * 255)
+        out[r0 : r0 + rows] = np.round(colour.cctf_encoding(band, function="sRGB") * 255)
     return out
 
 
@@ -326,8 +337,16 @@ def encode_mp4(frames_u8: np.ndarray, fps: float) -> bytes:
     fd, tmp = tempfile.mkstemp(suffix=".mp4")
     os.close(fd)
     try:
-        with iio.get_writer(tmp, format="FFMPEG", fps=fps, codec="libx264", quality=8, macro_block_size=1,
-                            pixelformat="yuv420p", ffmpeg_log_level="error") as w:
+        with iio.get_writer(
+            tmp,
+            format="FFMPEG",
+            fps=fps,
+            codec="libx264",
+            quality=8,
+            macro_block_size=1,
+            pixelformat="yuv420p",
+            ffmpeg_log_level="error",
+        ) as w:
             for f in frames_u8:
                 w.append_data(f)
         return Path(tmp).read_bytes()

@@ -26,6 +26,7 @@ __all__ = [
     "relative_mse",
 ]
 
+
 def flat_items(data: Mapping, prefix: str = "") -> Iterator[tuple[str, Any]]:
     """The leaves of nested dicts (a report's metrics) as ``("a.b.c", value)`` pairs, in order;
     every value that is not a dict is a leaf, lists included."""
@@ -45,6 +46,7 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
     """(..., C) -> (...): Rec. 709 luminance of linear RGB for 3 channels, the channel mean otherwise (float64)."""
     rgb = np.asarray(rgb, dtype=np.float64)
     return rgb @ REC709_LUMA if rgb.shape[-1] == 3 else rgb.mean(axis=-1)
+
 
 RELMSE_EPS = 1e-2
 """Default eps of :func:`relative_mse`, in the squared units of the reference.
@@ -107,7 +109,13 @@ PU21_L_MAX_CD_M2 = 10_000.0
 PU21_PARAMETERS: dict[str, tuple[float, ...]] = {
     "banding": (1.070275272, 0.4088273932, 0.153224308, 0.2520326168, 1.063512885, 1.14115047, 521.4527484),
     "banding_glare": (
-        0.353487901, 0.3734658629, 8.277049286e-05, 0.9062562627, 0.09150303166, 0.9099517204, 596.3148142,
+        0.353487901,
+        0.3734658629,
+        8.277049286e-05,
+        0.9062562627,
+        0.09150303166,
+        0.9099517204,
+        596.3148142,
     ),
     "peaks": (1.043882782, 0.6459495343, 0.3194584211, 0.374025247, 1.114783422, 1.095360363, 384.9217577),
     "peaks_glare": (816.885024, 1479.463946, 0.001253215609, 0.9329636822, 0.06746643971, 1.573435413, 419.6006374),

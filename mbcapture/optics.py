@@ -45,8 +45,13 @@ def diffraction_otf(freq_cyc_per_mm: np.ndarray, wavelength_nm: float, f_number:
 PAD_PX = 16
 
 
-def apply_diffraction(image: np.ndarray, pixel_pitch_um: float, f_number: float,
-                      wavelength_nm: list[float] | np.ndarray, clamp: bool = True) -> np.ndarray:
+def apply_diffraction(
+    image: np.ndarray,
+    pixel_pitch_um: float,
+    f_number: float,
+    wavelength_nm: list[float] | np.ndarray,
+    clamp: bool = True,
+) -> np.ndarray:
     """``image`` (..., H, W, C) filtered by each channel's diffraction OTF (channel c at
     ``wavelength_nm[c]``), the borders mirrored; float64. A flat image stays flat (OTF(0) = 1).
 
@@ -72,7 +77,7 @@ def apply_diffraction(image: np.ndarray, pixel_pitch_um: float, f_number: float,
     for c in range(C):
         spectrum = fft.rfft2(padded[..., c], axes=(-2, -1))
         out[..., c] = fft.irfft2(spectrum * diffraction_otf(f, lam[c], f_number), s=(Hp, Wp), axes=(-2, -1))
-    out = out[..., PAD_PX:PAD_PX + H, PAD_PX:PAD_PX + W, :]
+    out = out[..., PAD_PX : PAD_PX + H, PAD_PX : PAD_PX + W, :]
     return np.maximum(out, 0.0) if clamp else out
 
 
@@ -80,8 +85,9 @@ def apply_diffraction(image: np.ndarray, pixel_pitch_um: float, f_number: float,
 REACH_PX = 8
 
 
-def diffraction_reach(pixel_pitch_um: float, f_number: float, wavelength_nm: list[float] | np.ndarray,
-                      radius: int = REACH_PX) -> np.ndarray:
+def diffraction_reach(
+    pixel_pitch_um: float, f_number: float, wavelength_nm: list[float] | np.ndarray, radius: int = REACH_PX
+) -> np.ndarray:
     """(2 radius + 1, 2 radius + 1) how much a pixel at each offset weighs in :func:`apply_diffraction`'s value of
     the centre pixel, over the centre's own weight: the linear filter's absolute weights, the most over the
     channels (the filter is radially symmetric). Its weights fall slowly (about 2 % of the total beyond 4 pixels at
@@ -93,7 +99,7 @@ def diffraction_reach(pixel_pitch_um: float, f_number: float, wavelength_nm: lis
     delta[c, c] = 1.0
     k = np.abs(apply_diffraction(delta, pixel_pitch_um, f_number, wavelength_nm, clamp=False))
     k = (k / k[c, c]).max(axis=-1)
-    return k[c - radius:c + radius + 1, c - radius:c + radius + 1]
+    return k[c - radius : c + radius + 1, c - radius : c + radius + 1]
 
 
 def bilinear_taps(map_x: np.ndarray, map_y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -182,12 +188,17 @@ def undistortion_maps(camera, width: int, height: int, k: tuple[float, ...]) -> 
     r = np.linspace(0.0, float(r_u.max()), 2049)
     grows = np.all(np.diff(r * (1.0 + sum(ki * r ** (2 * (i + 1)) for i, ki in enumerate(k)))) > 0)
     if not grows or np.max(np.abs(bx - gx) + np.abs(by - gy)) > 1e-7 * max(t, 1.0):
-        raise ValueError(f"camera.distortion {list(k)}: folds the image over inside the frame (the distorted radius "
-                         "must grow with the radius out to the corners); use smaller coefficients")
+        raise ValueError(
+            f"camera.distortion {list(k)}: folds the image over inside the frame (the distorted radius "
+            "must grow with the radius out to the corners); use smaller coefficients"
+        )
     # a render of half-field t' puts x_u at pixel (x_u / t' + 1) W / 2 - 1/2, which must stay within
     # [0, W - 1] (and y likewise) for bilinear interpolation
-    t_render = max(t, float(np.abs(xu).max()) * width / (width - 1) if width > 1 else t,
-                   float(np.abs(yu).max()) * width / (height - 1) if height > 1 else t)
+    t_render = max(
+        t,
+        float(np.abs(xu).max()) * width / (width - 1) if width > 1 else t,
+        float(np.abs(yu).max()) * width / (height - 1) if height > 1 else t,
+    )
     map_x = ((xu / t_render + 1.0) * width / 2.0 - 0.5).astype(np.float32)
     map_y = ((yu / (t_render * height / width) + 1.0) * height / 2.0 - 0.5).astype(np.float32)
     return map_x, map_y, t_render

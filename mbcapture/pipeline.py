@@ -118,8 +118,15 @@ class _Timer:
             self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
 
 
-def _error_estimates(rendered: Rendered, integrated: Integrated, channels: Integrated, k_e: np.ndarray,
-                     timeline, plan: Plan, cfg: CaptureConfig) -> dict:
+def _error_estimates(
+    rendered: Rendered,
+    integrated: Integrated,
+    channels: Integrated,
+    k_e: np.ndarray,
+    timeline,
+    plan: Plan,
+    cfg: CaptureConfig,
+) -> dict:
     """report.json's ``render_error``: the run's own estimate of its rendering error on every read
     (:func:`mbcapture.budget.render_error`) and its temporal part
     (:func:`mbcapture.integrate.temporal_error`). Besides the renders they depend on the electrons per
@@ -129,15 +136,37 @@ def _error_estimates(rendered: Rendered, integrated: Integrated, channels: Integ
     reads = [r.buckets for r in timeline.reads]
     names = [r.name for r in timeline.reads]
     r, s = cfg.render, cfg.sensor
-    key = None if timeline.code is not None else (
-        np.asarray(k_e, np.float64).tobytes(), s.full_well_e, s.fd_full_well_e, tuple(map(tuple, reads)),
-        tuple(names), tuple(plan.buckets_read), r.noise_budget, r.noise_budget_p95, r.noise_budget_tail)
+    key = (
+        None
+        if timeline.code is not None
+        else (
+            np.asarray(k_e, np.float64).tobytes(),
+            s.full_well_e,
+            s.fd_full_well_e,
+            tuple(map(tuple, reads)),
+            tuple(names),
+            tuple(plan.buckets_read),
+            r.noise_budget,
+            r.noise_budget_p95,
+            r.noise_budget_tail,
+        )
+    )
     if key in rendered.estimates:
         return copy.deepcopy(rendered.estimates[key])
     out = {
-        **render_error(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, reads, names,
-                       s.full_well_e, s.fd_full_well_e, plan=plan, noise_budget=r.noise_budget,
-                       noise_budget_p95=r.noise_budget_p95, noise_budget_tail=r.noise_budget_tail),
+        **render_error(
+            integrated.mc_diff,
+            BucketElectrons(integrated.exposure, k_e),
+            k_e,
+            reads,
+            names,
+            s.full_well_e,
+            s.fd_full_well_e,
+            plan=plan,
+            noise_budget=r.noise_budget,
+            noise_budget_p95=r.noise_budget_p95,
+            noise_budget_tail=r.noise_budget_tail,
+        ),
         **temporal_error(channels, k_e, list(plan.buckets_read), s.full_well_e),
     }
     if key is not None:
@@ -268,12 +297,17 @@ class Rendered:
     estimates: dict = field(default_factory=dict, compare=False, repr=False)
 
     def plan_for(self, own: Plan) -> Plan:
-        same = (own.groups == self.plan.groups and np.array_equal(own.render_times, self.plan.render_times)
-                and np.array_equal(own.weights_s, self.plan.weights_s)
-                and (own.spp is None or np.array_equal(own.spp, self.plan.spp)))
+        same = (
+            own.groups == self.plan.groups
+            and np.array_equal(own.render_times, self.plan.render_times)
+            and np.array_equal(own.weights_s, self.plan.weights_s)
+            and (own.spp is None or np.array_equal(own.spp, self.plan.spp))
+        )
         if not same:
-            raise ValueError("run_capture(rendered=...): the renders were made for another plan "
-                             "(strata, render times, weights, groups or samples differ)")
+            raise ValueError(
+                "run_capture(rendered=...): the renders were made for another plan "
+                "(strata, render times, weights, groups or samples differ)"
+            )
         return self.plan
 
 
@@ -333,22 +367,43 @@ TOP_UP_MARGIN = 1.1
 TOP_UP_EXPONENT = 1.5
 
 
-def _read_figures(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig, names: list[str] | None = None,
-                  plan: Plan | None = None) -> dict:
+def _read_figures(
+    integrated: Integrated,
+    timeline: Timeline,
+    cfg: CaptureConfig,
+    names: list[str] | None = None,
+    plan: Plan | None = None,
+) -> dict:
     """The run's own estimate of each read's rendering noise (render_error's ``reads``), of the reads
     ``names`` (default: all); with ``plan``, of the channel sets it reads (:attr:`Plan.read_sets`: a coded
     capture's render stage holds sub-frames, not buckets), else of the timeline's reads' buckets."""
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
-    sets = (list(zip(plan.read_names, plan.read_sets)) if plan is not None else
-            [(r.name, r.buckets) for r in timeline.reads])
+    sets = (
+        list(zip(plan.read_names, plan.read_sets))
+        if plan is not None
+        else [(r.name, r.buckets) for r in timeline.reads]
+    )
     sets = [(n, b) for n, b in sets if names is None or n in names]
-    return render_error(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, [b for _, b in sets],
-                        [n for n, _ in sets], cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e).get("reads", {})
+    return render_error(
+        integrated.mc_diff,
+        BucketElectrons(integrated.exposure, k_e),
+        k_e,
+        [b for _, b in sets],
+        [n for n, _ in sets],
+        cfg.sensor.full_well_e,
+        cfg.sensor.fd_full_well_e,
+    ).get("reads", {})
 
 
-def over_budget(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig,
-                reads: dict | None = None, *, tail: bool = False,
-                plan: Plan | None = None) -> tuple[float, str | None, str, float]:
+def over_budget(
+    integrated: Integrated,
+    timeline: Timeline,
+    cfg: CaptureConfig,
+    reads: dict | None = None,
+    *,
+    tail: bool = False,
+    plan: Plan | None = None,
+) -> tuple[float, str | None, str, float]:
     """How far the run's own estimate of its rendering noise is over the budget's median and p95 targets
     (render.noise_budget, render.noise_budget_p95), and with ``tail`` its tail target too
     (render.noise_budget_tail), on its worst read: (max over reads of each figure over its target, that
@@ -358,9 +413,11 @@ def over_budget(integrated: Integrated, timeline: Timeline, cfg: CaptureConfig,
     reads = _read_figures(integrated, timeline, cfg, plan=plan) if reads is None else reads
     if not reads:
         return 0.0, None, "", 0.0
-    targets = {"to_shot_noise_variance_median": cfg.render.noise_budget,
-               "to_shot_noise_variance_p95": cfg.render.noise_budget_p95,
-               **({"to_shot_noise_variance_p999": cfg.render.noise_budget_tail} if tail else {})}
+    targets = {
+        "to_shot_noise_variance_median": cfg.render.noise_budget,
+        "to_shot_noise_variance_p95": cfg.render.noise_budget_p95,
+        **({"to_shot_noise_variance_p999": cfg.render.noise_budget_tail} if tail else {}),
+    }
     over = {(n, k): v[k] / t for n, v in reads.items() for k, t in targets.items()}
     worst, key = max(over, key=over.get)
     return over[(worst, key)], worst, key, reads[worst][key]
@@ -372,23 +429,41 @@ def no_room_for_another_pass(integrated: Integrated, layout: FilmLayout = WHOLE_
     must fit in free memory beside what the run holds (the top-up's second pass, adaptive sampling's
     scout). In tiles (``layout``) the pass holds that for its largest tile, and its results are whole-film
     arrays beside them unless they go to scratch files."""
-    arrays = [a for a in (integrated.exposure, integrated.mc_diff, integrated.group_exposure,
-                          integrated.temporal_diff) if a is not None]
+    arrays = [
+        a
+        for a in (integrated.exposure, integrated.mc_diff, integrated.group_exposure, integrated.temporal_diff)
+        if a is not None
+    ]
     share = layout.tile_share(integrated.exposure.shape[-3])
     results = 0.0 if share == 1.0 or layout.store.spills else 1.0
     need = int((3 * share + results) * sum(a.size * 8 for a in arrays))
     free, where = resources.free_memory()
     if need <= free - resources.rss_bytes():
         return None
-    return (f"room for a second set of the film's arrays ({need / 1e9:.2f} GB; "
-            f"{max(free - resources.rss_bytes(), 0) / 1e9:.2f} GB free by {where})")
+    return (
+        f"room for a second set of the film's arrays ({need / 1e9:.2f} GB; "
+        f"{max(free - resources.rss_bytes(), 0) / 1e9:.2f} GB free by {where})"
+    )
 
 
-def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
-           seed: np.random.SeedSequence, status: StageStatus, *, per_group: bool, timer, progress: bool,
-           why_not: str | None, planned: list[tuple[np.ndarray, int]] | None = None,
-           planned_reads: dict | None = None, tail: bool = False,
-           layout: FilmLayout = WHOLE_FILM) -> tuple[Plan, Integrated, dict | None]:
+def top_up(
+    cfg: CaptureConfig,
+    renderer: Renderer,
+    plan: Plan,
+    timeline: Timeline,
+    integrated: Integrated,
+    seed: np.random.SeedSequence,
+    status: StageStatus,
+    *,
+    per_group: bool,
+    timer,
+    progress: bool,
+    why_not: str | None,
+    planned: list[tuple[np.ndarray, int]] | None = None,
+    planned_reads: dict | None = None,
+    tail: bool = False,
+    layout: FilmLayout = WHOLE_FILM,
+) -> tuple[Plan, Integrated, dict | None]:
     """render.top_up: when the pilot's choice left the run's own estimate over the median or p95 target
     (:func:`over_budget` > 1; the pilot extrapolates from 8 and 32 samples, and its exponent can be
     too steep for the count it reaches), or, after adaptive sampling's choice, over the tail target (where
@@ -426,14 +501,18 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
     and what report.json keeps (None when the first pass met the budget)."""
     if integrated.mc_diff is None:
         return plan, integrated, None
-    factor, worst, figure, _ = over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg,
-                                           planned_reads, tail=tail, plan=plan)
+    factor, worst, figure, _ = over_budget(
+        with_planned_refinement(integrated, planned or []), timeline, cfg, planned_reads, tail=tail, plan=plan
+    )
     if factor <= 1.0:
         return plan, integrated, None
     why_not = why_not or no_room_for_another_pass(integrated, layout)
     if why_not is not None:
-        return plan, integrated, {"applied": False, "before": round(factor, 4),
-                                  "note": f"not applied: a top-up needs {why_not}"}
+        return (
+            plan,
+            integrated,
+            {"applied": False, "before": round(factor, 4), "note": f"not applied: a top-up needs {why_not}"},
+        )
     status.add_stage()
     with status.stage(f"top-up render (the estimate is {factor:.2f}x the noise budget)"):
         start = time.perf_counter()
@@ -450,41 +529,71 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
         if (room < 2).any():
             # the second pass must render every stratum: its exposure is the combination's only where
             # it holds all of them (a stratum left out would be missing from it, not less noisy)
-            return plan, integrated, {"applied": False, "before": round(factor, 4),
-                                      "note": f"render.max_spp={cfg.render.max_spp} reached in "
-                                              f"{int((room < 2).sum())} of {plan.passes} strata"}
+            return (
+                plan,
+                integrated,
+                {
+                    "applied": False,
+                    "before": round(factor, 4),
+                    "note": f"render.max_spp={cfg.render.max_spp} reached in "
+                    f"{int((room < 2).sum())} of {plan.passes} strata",
+                },
+            )
         extra = np.minimum(extra, room)
         child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x70F))
         rng = np.random.default_rng(np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x70F, 0x7)))
         times = plan.draw_times(rng)[:, :, 0]
         second_plan = replace(plan, spp=extra, times_s=times[:, 0], half_times_s=times)
-        second = layout.integrate(renderer, second_plan, timeline.n_channels, child, per_group=per_group,
-                                  timer=timer, progress=progress, desc="top-up",
-                                  continues=(plan, seed) if extend else None)
+        second = layout.integrate(
+            renderer,
+            second_plan,
+            timeline.n_channels,
+            child,
+            per_group=per_group,
+            timer=timer,
+            progress=progress,
+            desc="top-up",
+            continues=(plan, seed) if extend else None,
+        )
         c = float(extra.sum() / plan.spp.sum())  # by their samples: each sample alike when they continue
         if not extend:  # the two passes' figures as rendered (the planned refinement adds to both alike)
-            v1, v2 = (_read_figures(x, timeline, cfg, [worst], plan=plan).get(worst, {}).get(figure, 0.0)
-                      for x in (integrated, second))
+            v1, v2 = (
+                _read_figures(x, timeline, cfg, [worst], plan=plan).get(worst, {}).get(figure, 0.0)
+                for x in (integrated, second)
+            )
             c = v1 / v2 if v2 > 0 else c
 
         def mix(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
             return None if a is None or b is None else layout.mix(a, b, c)
 
-        integrated = Integrated(exposure=mix(integrated.exposure, second.exposure),
-                                mc_diff=mix(integrated.mc_diff, second.mc_diff),
-                                group_exposure=mix(integrated.group_exposure, second.group_exposure),
-                                temporal_diff=mix(integrated.temporal_diff, second.temporal_diff))
+        integrated = Integrated(
+            exposure=mix(integrated.exposure, second.exposure),
+            mc_diff=mix(integrated.mc_diff, second.mc_diff),
+            group_exposure=mix(integrated.group_exposure, second.group_exposure),
+            temporal_diff=mix(integrated.temporal_diff, second.temporal_diff),
+        )
         # the exposure's times: the first pass's at weight 1 / (1 + c), the second's at c / (1 + c)
         t1, w1 = plan.exposure_time_mix()
-        plan = replace(plan, spp=plan.spp + extra, mix_times_s=np.concatenate([t1, times], axis=1),
-                       mix_weights=np.concatenate([w1, c * second_plan.render_time_shares()], axis=1) / (1.0 + c))
-        info = {"applied": True, "before": round(factor, 4), "read": worst,
-                "figure": figure.removeprefix("to_shot_noise_variance_"), "spp_added": extra.tolist(),
-                "weight": round(c, 4),
-                "after": round(over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg,
-                                           tail=tail, plan=plan)[0], 4),
-                "judged_with_refinement": bool(planned),
-                "seconds": round(time.perf_counter() - start, 3)}
+        plan = replace(
+            plan,
+            spp=plan.spp + extra,
+            mix_times_s=np.concatenate([t1, times], axis=1),
+            mix_weights=np.concatenate([w1, c * second_plan.render_time_shares()], axis=1) / (1.0 + c),
+        )
+        info = {
+            "applied": True,
+            "before": round(factor, 4),
+            "read": worst,
+            "figure": figure.removeprefix("to_shot_noise_variance_"),
+            "spp_added": extra.tolist(),
+            "weight": round(c, 4),
+            "after": round(
+                over_budget(with_planned_refinement(integrated, planned or []), timeline, cfg, tail=tail, plan=plan)[0],
+                4,
+            ),
+            "judged_with_refinement": bool(planned),
+            "seconds": round(time.perf_counter() - start, 3),
+        }
     return plan, integrated, info
 
 
@@ -495,10 +604,23 @@ def top_up(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timelin
 #: render's samples together (the quasi-Monte Carlo samplers stratify within a render).
 REFINE_TIME_POINTS = 4
 
-def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
-               seed: np.random.SeedSequence, status: StageStatus, *, moving: np.ndarray, timer, progress: bool,
-               layout: FilmLayout = WHOLE_FILM, have: np.ndarray | None = None,
-               max_factor: int | None = None) -> tuple[list[tuple[np.ndarray, int]] | None, dict, dict | None]:
+
+def scout_tail(
+    cfg: CaptureConfig,
+    renderer: Renderer,
+    plan: Plan,
+    timeline: Timeline,
+    integrated: Integrated,
+    seed: np.random.SeedSequence,
+    status: StageStatus,
+    *,
+    moving: np.ndarray,
+    timer,
+    progress: bool,
+    layout: FilmLayout = WHOLE_FILM,
+    have: np.ndarray | None = None,
+    max_factor: int | None = None,
+) -> tuple[list[tuple[np.ndarray, int]] | None, dict, dict | None]:
     """Adaptive sampling's choice (render.adaptive): a scout, the strata rendered again with seeds of their own
     at about a sixteenth of the first pass's samples (:func:`mbcapture.budget.scout_spp`), chooses the pixels
     whose predicted ratio (the scout's, scaled as 1/spp except in ``moving``, where a render's time is noise:
@@ -518,9 +640,13 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
     factors of the first pass's samples: the scout (seeds of its own again) is scaled to them, the rule judged on
     that stage's own estimate, and the tiers are factors of what each pixel holds, at most ``max_factor`` (default
     render.adaptive_max_factor)."""
-    why = ("render.estimator independent" if plan.estimator != "independent"
-           else "two half-sample renders per stratum (spp >= 2)" if integrated.mc_diff is None
-           else no_room_for_another_pass(integrated, layout))  # the scout renders the film again
+    why = (
+        "render.estimator independent"
+        if plan.estimator != "independent"
+        else "two half-sample renders per stratum (spp >= 2)"
+        if integrated.mc_diff is None
+        else no_room_for_another_pass(integrated, layout)
+    )  # the scout renders the film again
     if why is not None:
         return None, {"pixels": 0, "note": f"not applied: adaptive sampling needs {why}"}, None
     with status.stage("adaptive sampling: scout"):
@@ -530,9 +656,14 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
         scout_plan = replace(plan, spp=scout_spp(spp, sample_counter(renderer, plan)))
         again = () if have is None else (0x2D,)  # a second round's scout: seeds of its own again
         with timer("scout"):
-            scout = layout.integrate(renderer, scout_plan, timeline.n_channels,
-                                     np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5C0, *again)),
-                                     progress=progress, desc="scout" if have is None else "scout again")
+            scout = layout.integrate(
+                renderer,
+                scout_plan,
+                timeline.n_channels,
+                np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0x5C0, *again)),
+                progress=progress,
+                desc="scout" if have is None else "scout again",
+            )
         # the first pass's ratio over the scout's: as 1/spp where nothing moves; 1 where a render's time is noise,
         # as there both passes draw one time per half-stratum, and their time noise does not fall with samples
         scale = np.where(moving, 1.0, float((scout_plan.spp / np.maximum(spp, 1)).max()))
@@ -540,32 +671,53 @@ def scout_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Tim
             scale = scale / have.reshape(scale.shape)
         on_moving = moving.ravel()
         with timer("adaptive_rule"):  # the tail each rule would leave, from the first pass's own estimate
-            model = TailModel(integrated.mc_diff, BucketElectrons(integrated.exposure, k_e), k_e, list(plan.read_sets),
-                              cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, cfg.render.noise_budget_tail)
+            model = TailModel(
+                integrated.mc_diff,
+                BucketElectrons(integrated.exposure, k_e),
+                k_e,
+                list(plan.read_sets),
+                cfg.sensor.full_well_e,
+                cfg.sensor.fd_full_well_e,
+                cfg.render.noise_budget_tail,
+            )
         tried = []
 
         def meets(factors: np.ndarray) -> bool:
             tried.append(model.meets(factors))
             return tried[-1]
 
-        tiers = tail_pixels(scout.mc_diff, BucketElectrons(scout.exposure, k_e), k_e,
-                            list(plan.read_sets), cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e,
-                            cfg.render.noise_budget_tail, max_factor or cfg.render.adaptive_max_factor, scale,
-                            meets=meets, changing=on_moving)
+        tiers = tail_pixels(
+            scout.mc_diff,
+            BucketElectrons(scout.exposure, k_e),
+            k_e,
+            list(plan.read_sets),
+            cfg.sensor.full_well_e,
+            cfg.sensor.fd_full_well_e,
+            cfg.render.noise_budget_tail,
+            max_factor or cfg.render.adaptive_max_factor,
+            scale,
+            meets=meets,
+            changing=on_moving,
+        )
         with timer("adaptive_rule"):  # the run's own estimate on the image the tiers will give: the top-up's too
             planned = _read_figures(with_planned_refinement(integrated, tiers), timeline, cfg, plan=plan)
         n_pix = sum(p.size for p, _ in tiers)
         film = cfg.render.width * cfg.render.height
         held = np.ones(film, np.int64) if have is None else have
-        info = {"scout": {"spp": scout_plan.spp.tolist(), "seconds": round(time.perf_counter() - start, 3)},
-                "pixels": int(n_pix), "share": round(n_pix / film, 6),
-                "tiers": [{"factor": f, "pixels": int(p.size), "moving_pixels": int(on_moving[p].sum())}
-                          for p, f in tiers],
-                # the second pass's samples over the first pass's, on the whole film
-                "added_samples": round(sum(int(held[p].sum()) * (f - 1) for p, f in tiers) / film, 4)}
+        info = {
+            "scout": {"spp": scout_plan.spp.tolist(), "seconds": round(time.perf_counter() - start, 3)},
+            "pixels": int(n_pix),
+            "share": round(n_pix / film, 6),
+            "tiers": [{"factor": f, "pixels": int(p.size), "moving_pixels": int(on_moving[p].sum())} for p, f in tiers],
+            # the second pass's samples over the first pass's, on the whole film
+            "added_samples": round(sum(int(held[p].sum()) * (f - 1) for p, f in tiers) / film, 4),
+        }
         # how many rules were judged, and the tail the run's own estimate predicts for the one kept
-        info.update(rules_judged=len(tried), tail_met_by_rule=bool(tried and tried[-1]),
-                    predicted_tail=round(max((v["to_shot_noise_variance_p999"] for v in planned.values()), default=0.0), 4))
+        info.update(
+            rules_judged=len(tried),
+            tail_met_by_rule=bool(tried and tried[-1]),
+            predicted_tail=round(max((v["to_shot_noise_variance_p999"] for v in planned.values()), default=0.0), 4),
+        )
     return tiers, info, planned
 
 
@@ -583,10 +735,23 @@ def with_planned_refinement(integrated: Integrated, tiers: list[tuple[np.ndarray
     return replace(integrated, mc_diff=integrated.mc_diff * shrink.reshape(1, H, W, 1))
 
 
-def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, integrated: Integrated,
-                tiers: list[tuple[np.ndarray, int]], info: dict, seed: np.random.SeedSequence, status: StageStatus,
-                *, moving: np.ndarray, per_group: bool, timer, progress: bool,
-                have: np.ndarray | None = None, layout: FilmLayout = WHOLE_FILM) -> tuple[Integrated, dict]:
+def refine_tail(
+    cfg: CaptureConfig,
+    renderer: Renderer,
+    plan: Plan,
+    integrated: Integrated,
+    tiers: list[tuple[np.ndarray, int]],
+    info: dict,
+    seed: np.random.SeedSequence,
+    status: StageStatus,
+    *,
+    moving: np.ndarray,
+    per_group: bool,
+    timer,
+    progress: bool,
+    have: np.ndarray | None = None,
+    layout: FilmLayout = WHOLE_FILM,
+) -> tuple[Integrated, dict]:
     """Adaptive sampling's second pass (render.adaptive): the pixels of :func:`scout_tail`'s ``tiers`` rendered
     again with more samples and added to the first pass (:func:`mbcapture.integrate.refine`), those in
     ``moving`` (where a render's time is noise, :func:`mbcapture.render.shadows.changing_region`) at
@@ -605,10 +770,21 @@ def refine_tail(cfg: CaptureConfig, renderer: Renderer, plan: Plan, integrated: 
         for part, points in ((~on_moving, 1), (on_moving, REFINE_TIME_POINTS)):  # every tier at once
             if part.any():
                 child = np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, 0xADA, points, *again))
-                integrated = refine(renderer, plan, integrated, pixels[part], factors[part], child, points=points,
-                                    per_group=per_group, timer=timer, progress=progress, have=held[part],
-                                    desc=f"refine {int(part.sum())} px" + (" moving" if points > 1 else ""),
-                                    store=layout.store)
+                integrated = refine(
+                    renderer,
+                    plan,
+                    integrated,
+                    pixels[part],
+                    factors[part],
+                    child,
+                    points=points,
+                    per_group=per_group,
+                    timer=timer,
+                    progress=progress,
+                    have=held[part],
+                    desc=f"refine {int(part.sum())} px" + (" moving" if points > 1 else ""),
+                    store=layout.store,
+                )
         info["seconds"] = round(info["scout"]["seconds"] + time.perf_counter() - start, 3)
     return integrated, info
 
@@ -622,10 +798,23 @@ ADAPTIVE_ROUNDS = 2
 SECOND_ROUND_MAX_FACTOR = 4
 
 
-def second_round(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: Timeline, integrated: Integrated,
-                 tiers: list[tuple[np.ndarray, int]], info: dict, seed: np.random.SeedSequence, status: StageStatus,
-                 *, moving: np.ndarray, per_group: bool, timer, progress: bool,
-                 layout: FilmLayout = WHOLE_FILM) -> tuple[Integrated, dict]:
+def second_round(
+    cfg: CaptureConfig,
+    renderer: Renderer,
+    plan: Plan,
+    timeline: Timeline,
+    integrated: Integrated,
+    tiers: list[tuple[np.ndarray, int]],
+    info: dict,
+    seed: np.random.SeedSequence,
+    status: StageStatus,
+    *,
+    moving: np.ndarray,
+    per_group: bool,
+    timer,
+    progress: bool,
+    layout: FilmLayout = WHOLE_FILM,
+) -> tuple[Integrated, dict]:
     """Adaptive sampling's second round (:data:`ADAPTIVE_ROUNDS`), where the refined render stage's own estimate of
     the tail is still over render.noise_budget_tail on some read (the median and p95 are the top-up's):
     :func:`scout_tail` and :func:`refine_tail` again, from what each pixel holds. Unbiased as the first round is: its
@@ -640,23 +829,55 @@ def second_round(cfg: CaptureConfig, renderer: Renderer, plan: Plan, timeline: T
     for pixels, f in tiers:
         have[pixels] = f
     status.add_stage()
-    more, round_info, _ = scout_tail(cfg, renderer, plan, timeline, integrated, seed, status, moving=moving,
-                                     timer=timer, progress=progress, have=have, max_factor=SECOND_ROUND_MAX_FACTOR,
-                                     layout=layout)
+    more, round_info, _ = scout_tail(
+        cfg,
+        renderer,
+        plan,
+        timeline,
+        integrated,
+        seed,
+        status,
+        moving=moving,
+        timer=timer,
+        progress=progress,
+        have=have,
+        max_factor=SECOND_ROUND_MAX_FACTOR,
+        layout=layout,
+    )
     round_info["before"] = round(factor, 4)
     if more:
         status.add_stage()
-        integrated, round_info = refine_tail(cfg, renderer, plan, integrated, more, round_info, seed, status,
-                                             moving=moving, per_group=per_group, timer=timer, progress=progress,
-                                             have=have, layout=layout)
+        integrated, round_info = refine_tail(
+            cfg,
+            renderer,
+            plan,
+            integrated,
+            more,
+            round_info,
+            seed,
+            status,
+            moving=moving,
+            per_group=per_group,
+            timer=timer,
+            progress=progress,
+            have=have,
+            layout=layout,
+        )
     info["second_round"] = round_info
     return integrated, info
 
 
-def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool = False,
-                      rendered: Rendered | None = None, on_rendered: "Callable[[Rendered], None] | None" = None,
-                      renderer: Renderer | None = None, client: Any = None,
-                      planned: "tuple[Prepared, resources.Resources, float] | None" = None) -> CaptureResult:
+def capture_in_memory(
+    cfg: CaptureConfig,
+    status: StageStatus,
+    *,
+    progress: bool = False,
+    rendered: Rendered | None = None,
+    on_rendered: "Callable[[Rendered], None] | None" = None,
+    renderer: Renderer | None = None,
+    client: Any = None,
+    planned: "tuple[Prepared, resources.Resources, float] | None" = None,
+) -> CaptureResult:
     """One capture, in the order of the data flow, nothing written: plan, render (or take
     ``rendered``), accumulate, the sensor stage (:func:`mbcapture.simulate.sense`), reconstruct.
     ``status``: the stage lines; ``progress``: a bar for the render passes; ``renderer``: a Renderer
@@ -666,14 +887,29 @@ def capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool
     of ``cfg`` made already, and the seconds they took (:func:`mbcapture.capture.check_resources`),
     else made here. BLAS runs on one thread throughout (:func:`mbcapture.resources.one_blas_thread`)."""
     with resources.one_blas_thread():
-        return _capture_in_memory(cfg, status, progress=progress, rendered=rendered, on_rendered=on_rendered,
-                                  renderer=renderer, client=client, planned=planned)
+        return _capture_in_memory(
+            cfg,
+            status,
+            progress=progress,
+            rendered=rendered,
+            on_rendered=on_rendered,
+            renderer=renderer,
+            client=client,
+            planned=planned,
+        )
 
 
-def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: bool = False,
-                       rendered: Rendered | None = None, on_rendered: "Callable[[Rendered], None] | None" = None,
-                       renderer: Renderer | None = None, client: Any = None,
-                       planned: "tuple[Prepared, resources.Resources, float] | None" = None) -> CaptureResult:
+def _capture_in_memory(
+    cfg: CaptureConfig,
+    status: StageStatus,
+    *,
+    progress: bool = False,
+    rendered: Rendered | None = None,
+    on_rendered: "Callable[[Rendered], None] | None" = None,
+    renderer: Renderer | None = None,
+    client: Any = None,
+    planned: "tuple[Prepared, resources.Resources, float] | None" = None,
+) -> CaptureResult:
     """:func:`capture_in_memory`'s work."""
     timer = _Timer()
     t_start = time.perf_counter()
@@ -718,8 +954,18 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
         where = " on the cluster" if client is not None else ""
         in_tiles = f" x {len(tiles)} tiles" if len(tiles) > 1 else ""
         with status.stage(f"render{where} ({plan.passes} passes{in_tiles})"):
-            integrated = integrate_tiles(renderer, plan, timeline.n_channels, seeds[2], tiles, per_group=app.per_group,
-                                         timer=timer, progress=progress, before_tile=on_cluster, store=store)
+            integrated = integrate_tiles(
+                renderer,
+                plan,
+                timeline.n_channels,
+                seeds[2],
+                tiles,
+                per_group=app.per_group,
+                timer=timer,
+                progress=progress,
+                before_tile=on_cluster,
+                store=store,
+            )
         if client is not None:
             cluster_info = merge_cluster_info(infos)
         moving = camera_motion.moving_region(scene, float(t0_s), float(t1_s), W, H)
@@ -729,24 +975,73 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
         if cfg.render.spp is None and cfg.render.adaptive:
             with timer("adaptive_rule"):
                 changing = changing_region(renderer, float(t0_s), float(t1_s), W, H, moving=moving)
-            tiers, adaptive_info, planned_reads = scout_tail(cfg, renderer, plan, timeline, integrated, seeds[2], status,
-                                              moving=changing, timer=timer, progress=progress, layout=layout)
+            tiers, adaptive_info, planned_reads = scout_tail(
+                cfg,
+                renderer,
+                plan,
+                timeline,
+                integrated,
+                seeds[2],
+                status,
+                moving=changing,
+                timer=timer,
+                progress=progress,
+                layout=layout,
+            )
         if cfg.render.spp is None and cfg.render.top_up:
             why_not = "render.estimator independent" if plan.estimator != "independent" else None
-            plan, integrated, top_up_info = top_up(cfg, renderer, plan, timeline, integrated, seeds[2], status,
-                                                   per_group=app.per_group, timer=timer, progress=progress,
-                                                   why_not=why_not, planned=tiers, planned_reads=planned_reads,
-                                                   tail=bool(adaptive_info and adaptive_info.get("rules_judged")
-                                                             and not adaptive_info["tail_met_by_rule"]),
-                                                   layout=layout)
+            plan, integrated, top_up_info = top_up(
+                cfg,
+                renderer,
+                plan,
+                timeline,
+                integrated,
+                seeds[2],
+                status,
+                per_group=app.per_group,
+                timer=timer,
+                progress=progress,
+                why_not=why_not,
+                planned=tiers,
+                planned_reads=planned_reads,
+                tail=bool(
+                    adaptive_info and adaptive_info.get("rules_judged") and not adaptive_info["tail_met_by_rule"]
+                ),
+                layout=layout,
+            )
         if tiers:
             status.add_stage()  # the scout's stage was counted at the start, its second pass is one more
-            integrated, adaptive_info = refine_tail(cfg, renderer, plan, integrated, tiers, adaptive_info, seeds[2],
-                                                    status, moving=changing, per_group=app.per_group, timer=timer,
-                                                    progress=progress, layout=layout)
-            integrated, adaptive_info = second_round(cfg, renderer, plan, timeline, integrated, tiers, adaptive_info,
-                                                     seeds[2], status, moving=changing, per_group=app.per_group,
-                                                     timer=timer, progress=progress, layout=layout)
+            integrated, adaptive_info = refine_tail(
+                cfg,
+                renderer,
+                plan,
+                integrated,
+                tiers,
+                adaptive_info,
+                seeds[2],
+                status,
+                moving=changing,
+                per_group=app.per_group,
+                timer=timer,
+                progress=progress,
+                layout=layout,
+            )
+            integrated, adaptive_info = second_round(
+                cfg,
+                renderer,
+                plan,
+                timeline,
+                integrated,
+                tiers,
+                adaptive_info,
+                seeds[2],
+                status,
+                moving=changing,
+                per_group=app.per_group,
+                timer=timer,
+                progress=progress,
+                layout=layout,
+            )
         rendered = Rendered(plan, integrated, moving)
         if on_rendered is not None:
             on_rendered(rendered)
@@ -761,10 +1056,13 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
 
     with timer("sensor"), status.stage("sensor"):
         spectral = cfg.render.variant.endswith("_spectral")
-        k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)  # (C,) e- per render unit s (spectral: film units)
+        k_e = electrons_per_render_second(
+            cfg.sensor, cfg.render.variant
+        )  # (C,) e- per render unit s (spectral: film units)
         # the expected electrons exposure x k_e, made tile by tile inside the sensor stage
-        sensor_out = sense(timeline, exposure, cfg.sensor, sensor_seed(cfg, seeds), tiles=tiles, per_unit=k_e,
-                           store=store)
+        sensor_out = sense(
+            timeline, exposure, cfg.sensor, sensor_seed(cfg, seeds), tiles=tiles, per_unit=k_e, store=store
+        )
 
     with timer("reconstruct"), status.stage(f"reconstruct ({app.name})"):
         mask = moving
@@ -794,9 +1092,14 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
 
     report = {
         **describe(cfg, timeline, plan, need),
-        "tiles": {"count": len(tiles), "rows": [list(t) for t in tiles], "render_bands": len(renderer.bands),
-                  "spill": {"folder": str(store.folder), "gb": round(store.spilled_bytes / resources.GB, 3)}
-                  if store.spills else None},
+        "tiles": {
+            "count": len(tiles),
+            "rows": [list(t) for t in tiles],
+            "render_bands": len(renderer.bands),
+            "spill": {"folder": str(store.folder), "gb": round(store.spilled_bytes / resources.GB, 3)}
+            if store.spills
+            else None,
+        },
         "app": app.name,
         "render_units": "camera-weighted film value, e- m^-2 sr^-1 s^-1 before optics" if spectral else "W m^-2 sr^-1",
         "electrons_per_render_unit_second": dict(zip(renderer.channels, k_e.tolist())),  # per film channel
@@ -806,11 +1109,16 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
         "cluster": cluster_info,
         "adaptive": adaptive_info,
         "top_up": top_up_info,
-        "versions": {**_versions(), "llvm": ".".join(map(str, llvm)) if llvm else None, "variant": cfg.render.variant,
-                     "llvm_target": _llvm_target_label() if llvm else None},
+        "versions": {
+            **_versions(),
+            "llvm": ".".join(map(str, llvm)) if llvm else None,
+            "variant": cfg.render.variant,
+            "llvm_target": _llvm_target_label() if llvm else None,
+        },
     }
     report["render_error"]["verdict"] = noise_verdict(
-        report["render_error"], adaptive_hint=cfg.render.spp is None and not cfg.render.adaptive)
+        report["render_error"], adaptive_hint=cfg.render.spp is None and not cfg.render.adaptive
+    )
     result = CaptureResult(
         config=cfg,
         timeline=timeline,
@@ -832,5 +1140,3 @@ def _capture_in_memory(cfg: CaptureConfig, status: StageStatus, *, progress: boo
     report["timings_s"] = {k: round(v, 4) for k, v in timer.stages.items()}
     report["timings_s"]["total_before_write"] = round(time.perf_counter() - t_start, 4)
     return result
-
-

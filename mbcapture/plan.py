@@ -179,8 +179,9 @@ class Plan:
         if self.cost is None or self.spp is None:
             return None
         c = self.cost
-        samples = float(self.spp.sum()) + (self.base_spp + float(np.unique(self.spp).sum())
-                                           if self.estimator == "difference" else 0.0)
+        samples = float(self.spp.sum()) + (
+            self.base_spp + float(np.unique(self.spp).sum()) if self.estimator == "difference" else 0.0
+        )
         render_s = self.renders * c["c0_s"] + c["c1_s_per_spp"] * samples
         acc_s = self.renders * c["accumulate_s"]
         return {
@@ -253,8 +254,9 @@ def _period_of(tl: Timeline, a: int, b: int) -> tuple[int, int] | None:
     return None
 
 
-def _split_interval(scene, tl: Timeline, a: int, b: int, render: RenderSection,
-                    fewest: int = 1) -> tuple[list[int], float]:
+def _split_interval(
+    scene, tl: Timeline, a: int, b: int, render: RenderSection, fewest: int = 1
+) -> tuple[list[int], float]:
     """Boundaries inside [a, b] so that each piece moves at most max_motion_px, and where the image moves at all,
     at least ``fewest`` pieces (render.min_strata, shared among the capture's intervals).
 

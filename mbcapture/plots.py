@@ -18,8 +18,18 @@ from .timeline import Timeline
 BUCKET_COLOURS = ["#d62728", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"]
 
 
-def draw_timeline(ax, tl, y: float, unit_s: float, label: str, height: float = 0.6, *, colour=None,
-                  until_tick: int | None = None, background: str = "#dddddd") -> int:
+def draw_timeline(
+    ax,
+    tl,
+    y: float,
+    unit_s: float,
+    label: str,
+    height: float = 0.6,
+    *,
+    colour=None,
+    until_tick: int | None = None,
+    background: str = "#dddddd",
+) -> int:
     """Coloured slots on a horizontal bar at ``y`` over a ``background`` bar (idle time), x in units of
     ``unit_s`` from the capture's start. ``colour(slot)``: the slot's colour or None to leave it out
     (default: one colour per bucket, drained slots left out). ``until_tick``: draw only the slots
@@ -66,14 +76,21 @@ def png_bytes(fig) -> bytes:
     return buf.getvalue()
 
 
-def set_margins(fig, *, left_in: float, right_in: float, bottom_in: float, top_in: float, hspace_in: float,
-             wspace: float = 0.2) -> None:
+def set_margins(
+    fig, *, left_in: float, right_in: float, bottom_in: float, top_in: float, hspace_in: float, wspace: float = 0.2
+) -> None:
     """Fixed margins in inches (tight_layout draws the figure twice: 3x slower for these plots)."""
     w, h = fig.get_size_inches()
     rows = fig.axes[0].get_subplotspec().get_gridspec().nrows if fig.axes else 1
     cell = (h - bottom_in - top_in - hspace_in * (rows - 1)) / rows
-    fig.subplots_adjust(left=left_in / w, right=1 - right_in / w, bottom=bottom_in / h, top=1 - top_in / h,
-                        hspace=hspace_in / max(cell, 0.1), wspace=wspace)
+    fig.subplots_adjust(
+        left=left_in / w,
+        right=1 - right_in / w,
+        bottom=bottom_in / h,
+        top=1 - top_in / h,
+        hspace=hspace_in / max(cell, 0.1),
+        wspace=wspace,
+    )
 
 
 def time_unit(seconds: float) -> tuple[float, str]:
@@ -107,16 +124,31 @@ def timeline_png(tl: Timeline) -> bytes:
                 x0 = float((seg.start_tick - tl.start_tick) * tl.tick_s) / unit
                 w = float((seg.end_tick - seg.start_tick) * tl.tick_s) / unit
                 ax.add_patch(_hatched(x0, y, w))
-                ax.text(x0 + w / 2, y, f"{seg.repeats} periods of {len(seg.slots)} slots", ha="center", va="center",
-                        fontsize=7)
+                ax.text(
+                    x0 + w / 2,
+                    y,
+                    f"{seg.repeats} periods of {len(seg.slots)} slots",
+                    ha="center",
+                    va="center",
+                    fontsize=7,
+                )
                 for gi, g in enumerate(groups):
                     if any(g in s.groups_on for s in seg.slots):
                         ax.add_patch(_hatched(x0, y - 1 - gi, w))
         else:
             draw_timeline(ax, tl, y, unit, "", until_tick=until_tick)
             for gi, g in enumerate(groups):
-                draw_timeline(ax, tl, y - 1 - gi, unit, "", height=0.35, until_tick=until_tick, background="#f2f2f2",
-                              colour=lambda s, g=g: group_colour if g in s.groups_on else None)
+                draw_timeline(
+                    ax,
+                    tl,
+                    y - 1 - gi,
+                    unit,
+                    "",
+                    height=0.35,
+                    until_tick=until_tick,
+                    background="#f2f2f2",
+                    colour=lambda s, g=g: group_colour if g in s.groups_on else None,
+                )
         labels = {y: "frames" if tl.sequential else ("sub-frames" if tl.code is not None else "buckets")}
         labels.update({y - 1 - gi: f"{g} on" for gi, g in enumerate(groups)})
         ax.set_yticks(list(labels), list(labels.values()), fontsize=8)
@@ -128,14 +160,22 @@ def timeline_png(tl: Timeline) -> bytes:
         ax.plot([r["span_start_s"] / unit, r["span_end_s"] / unit], [y, y], color="#555555", lw=2)
         ax.plot([r["centroid_s"] / unit], [y], marker="|", ms=12, mew=2, color="#d62728")
         ax.text(r["span_end_s"] / unit, y, f"  {r['exposure_s'] * 1e3:.4g} ms", va="center", fontsize=7)
-    ax.set_yticks([*ax.get_yticks(), *range(len(reads))],
-                  [*[t.get_text() for t in ax.get_yticklabels()],
-                   *[f"{r['name']} = {summed_label(r['buckets'], tl.sequential)}" for r in reversed(reads)]], fontsize=8)
+    ax.set_yticks(
+        [*ax.get_yticks(), *range(len(reads))],
+        [
+            *[t.get_text() for t in ax.get_yticklabels()],
+            *[f"{r['name']} = {summed_label(r['buckets'], tl.sequential)}" for r in reversed(reads)],
+        ],
+        fontsize=8,
+    )
     ax.set_xlim(-0.01 * span_s / unit, 1.12 * span_s / unit)
     ax.set_ylim(-0.7, rows - 0.3)
     ax.set_xlabel(f"time from the start of the capture ({uname})")
-    ax.set_title(f"{tl.protocol}{' (sequential, conventional sensor)' if tl.sequential else ''}: gate schedule; "
-                 "reads: span (grey) and centroid (red)", fontsize=9)
+    ax.set_title(
+        f"{tl.protocol}{' (sequential, conventional sensor)' if tl.sequential else ''}: gate schedule; "
+        "reads: span (grey) and centroid (red)",
+        fontsize=9,
+    )
     if not detail:  # the first periods in detail
         seg = tl.segments[0]
         periods = max(1, min(seg.repeats, MAX_DETAIL_SLOTS // max(len(seg.slots), 1), 2))
@@ -146,11 +186,25 @@ def timeline_png(tl: Timeline) -> bytes:
         y_top = rows - 1
         draw_timeline(ax, tl, y_top, unit_d, "", until_tick=until)
         for gi, g in enumerate(groups):
-            draw_timeline(ax, tl, y_top - 1 - gi, unit_d, "", height=0.35, until_tick=until, background="#f2f2f2",
-                          colour=lambda s, g=g: group_colour if g in s.groups_on else None)
-        ax.set_yticks([y_top - k for k in range(1 + len(groups))],
-                      ["frames" if tl.sequential else ("sub-frames" if tl.code is not None else "buckets"),
-                       *[f"{g} on" for g in groups]], fontsize=8)
+            draw_timeline(
+                ax,
+                tl,
+                y_top - 1 - gi,
+                unit_d,
+                "",
+                height=0.35,
+                until_tick=until,
+                background="#f2f2f2",
+                colour=lambda s, g=g: group_colour if g in s.groups_on else None,
+            )
+        ax.set_yticks(
+            [y_top - k for k in range(1 + len(groups))],
+            [
+                "frames" if tl.sequential else ("sub-frames" if tl.code is not None else "buckets"),
+                *[f"{g} on" for g in groups],
+            ],
+            fontsize=8,
+        )
         ax.set_xlim(0, shown_s / unit_d)
         ax.set_ylim(y_top - len(groups) - 0.7, y_top + 0.7)
         ax.set_xlabel(f"time ({uname_d})")
@@ -163,8 +217,9 @@ def timeline_png(tl: Timeline) -> bytes:
         handles.append(Patch(color=group_colour, label="switchable group on"))
     ncol = min(len(handles), 8)
     fig.legend(handles=handles, loc="lower center", ncol=ncol, fontsize=7, frameon=False)
-    set_margins(fig, left_in=1.45, right_in=0.15, bottom_in=0.7 + 0.2 * -(-len(handles) // ncol), top_in=0.3,
-             hspace_in=0.75)
+    set_margins(
+        fig, left_in=1.45, right_in=0.15, bottom_in=0.7 + 0.2 * -(-len(handles) // ncol), top_in=0.3, hspace_in=0.75
+    )
     return png_bytes(fig)
 
 
@@ -197,7 +252,9 @@ def gate_code_png(code, names: list[str], size_px: int = 12) -> bytes:
     axes = fig.subplots(1, S, squeeze=False)[0]
     h, w = code.tile_shape
     for s, ax in enumerate(axes):
-        draw_gate_code(ax, code, s, size_px, f"sub-frame {s + 1}: {names[s]}" if s < len(names) else f"sub-frame {s + 1}")
+        draw_gate_code(
+            ax, code, s, size_px, f"sub-frame {s + 1}: {names[s]}" if s < len(names) else f"sub-frame {s + 1}"
+        )
     handles = [Patch(color=BUCKET_COLOURS[k % len(BUCKET_COLOURS)], label=f"bucket {k + 1}") for k in range(K)]
     if (code.tile < 0).any():
         handles.append(Patch(color="#bbbbbb", label="drain"))
@@ -218,8 +275,9 @@ def _hatched(x: float, y: float, w: float):
     return Rectangle((x, y - 0.3), w, 0.6, facecolor="#c6dbef", edgecolor="#6b8fb3", hatch="///", zorder=1)
 
 
-def histograms_png(reads: np.ndarray, names: list[str], exposure_s: list[float], limits: list[dict],
-                   adc_max: float) -> bytes:
+def histograms_png(
+    reads: np.ndarray, names: list[str], exposure_s: list[float], limits: list[dict], adc_max: float
+) -> bytes:
     """Histogram of each read (R, H, W, C) in DN (per channel, log counts) with black level, charge
     limit and the ADC range marked; ``limits``: per read ``black_level_dn`` and ``charge_limit_dn``
     (:func:`mbcapture.report.read_limits_dn`)."""
@@ -243,13 +301,14 @@ def histograms_png(reads: np.ndarray, names: list[str], exposure_s: list[float],
             ax.plot(edges, np.append(y, y[-1]), drawstyle="steps-post", color=ch_colours[c], lw=1)
         lim = limits[i]
         ax.axvline(lim["black_level_dn"], color="#777777", ls=":", lw=1, label="black level")
-        ax.axvline(lim["charge_limit_dn"], color="#ff7f0e", ls="--", lw=1.2,
-                   label="full well of the read (buckets or FD)")
+        ax.axvline(
+            lim["charge_limit_dn"], color="#ff7f0e", ls="--", lw=1.2, label="full well of the read (buckets or FD)"
+        )
         ax.axvspan(0, adc_max, color="#1f77b4", alpha=0.05, label="ADC range")
         ax.axvline(adc_max, color="#d62728", lw=1.2, label="ADC top code")
         ax.set_xlim(-0.02 * adc_max, 1.03 * adc_max)
         ax.set_ylim(0, top * 1.05)
-        ax.set_yticks(decades, [str(10 ** d) if d < 3 else f"1e{d}" for d in decades])
+        ax.set_yticks(decades, [str(10**d) if d < 3 else f"1e{d}" for d in decades])
         ax.set_xticks([0, adc_max / 2, adc_max], ["0", f"{adc_max / 2:.0f}", f"{adc_max:.0f}"])
         ax.set_title(f"{name}: {exposure_s[i] * 1e3:.4g} ms", fontsize=9)
         ax.tick_params(labelsize=7)
@@ -335,9 +394,17 @@ def datasheet_pngs(curves, mode: str) -> dict[str, tuple[bytes, str]]:
         K = curves.figures[name]["system_gain_dn_per_e"].value
         ax.plot(y[:, c], s2[:, c], "o", ms=3, color=CHANNEL_COLOURS[c], label=f"{name}: K = {K:.4g} DN/e-")
         ax.plot(y[:, c], K * y[:, c], "-", lw=0.8, color=CHANNEL_COLOURS[c])
-    out["photon_transfer"] = (_labelled_png(fig, ax, xlabel="μ_y − μ_y.dark (DN)", ylabel="σ²_y − σ²_y.dark (DN²)",
-                                            title=f"photon transfer ({mode} read)"), "photon transfer: temporal variance against mean, with the gain K fitted "
-                                              "up to 70 % of saturation; the variance drops at saturation")
+    out["photon_transfer"] = (
+        _labelled_png(
+            fig,
+            ax,
+            xlabel="μ_y − μ_y.dark (DN)",
+            ylabel="σ²_y − σ²_y.dark (DN²)",
+            title=f"photon transfer ({mode} read)",
+        ),
+        "photon transfer: temporal variance against mean, with the gain K fitted "
+        "up to 70 % of saturation; the variance drops at saturation",
+    )
 
     fig = Figure(figsize=(5.2, 3.6))
     ax = fig.add_subplot()
@@ -348,9 +415,12 @@ def datasheet_pngs(curves, mode: str) -> dict[str, tuple[bytes, str]]:
         mu_e = f["quantum_efficiency"].value * curves.mu_p[:, c]
         noise_e2 = (f["temporal_dark_noise_dn"].value / f["system_gain_dn_per_e"].value) ** 2
         ax.loglog(curves.mu_p[:, c], mu_e / np.sqrt(noise_e2 + mu_e), "-", lw=0.8, color=CHANNEL_COLOURS[c])
-    out["snr"] = (_labelled_png(fig, ax, xlabel="photons per pixel μ_p", ylabel="SNR",
-                                title=f"signal-to-noise ratio ({mode} read)"), "SNR against photons: measured (dots) and the linear model of the measured η, σ_d, K "
-                                  "(lines)")
+    out["snr"] = (
+        _labelled_png(
+            fig, ax, xlabel="photons per pixel μ_p", ylabel="SNR", title=f"signal-to-noise ratio ({mode} read)"
+        ),
+        "SNR against photons: measured (dots) and the linear model of the measured η, σ_d, K (lines)",
+    )
 
     fig = Figure(figsize=(5.2, 5.0))
     ax, dev = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [2, 1]})
@@ -358,14 +428,22 @@ def datasheet_pngs(curves, mode: str) -> dict[str, tuple[bytes, str]]:
         R = curves.figures[name]["responsivity_dn_per_photon"].value
         ax.plot(curves.mu_p[:, c], y[:, c], "o", ms=3, color=CHANNEL_COLOURS[c], label=f"{name}: R = {R:.4g} DN/p")
         ok = (y[:, c] > 0.05 * y[:, c].max()) & (y[:, c] < 0.95 * y[:, c].max())
-        dev.plot(curves.mu_p[ok, c], (y[ok, c] - R * curves.mu_p[ok, c]) / (R * curves.mu_p[ok, c]) * 100, "o-", ms=3,
-                 color=CHANNEL_COLOURS[c])
+        dev.plot(
+            curves.mu_p[ok, c],
+            (y[ok, c] - R * curves.mu_p[ok, c]) / (R * curves.mu_p[ok, c]) * 100,
+            "o-",
+            ms=3,
+            color=CHANNEL_COLOURS[c],
+        )
     ax.set(ylabel="μ_y − μ_y.dark (DN)", title=f"linearity ({mode} read)")
     ax.legend(fontsize=8)
     dev.set(xlabel="photons per pixel μ_p", ylabel="deviation (%)")
     fig.tight_layout()
-    out["linearity"] = (png_bytes(fig), "linearity: mean against photons and its relative deviation from the fitted line "
-                                        "between 5 % and 95 % of saturation")
+    out["linearity"] = (
+        png_bytes(fig),
+        "linearity: mean against photons and its relative deviation from the fitted line "
+        "between 5 % and 95 % of saturation",
+    )
 
     fig = Figure(figsize=(7.5, 5.0))
     axes = fig.subplots(2, 2)
@@ -382,7 +460,10 @@ def datasheet_pngs(curves, mode: str) -> dict[str, tuple[bytes, str]]:
         axes[1, col].set(title=f"PRNU, {which}", ylabel="amplitude (%)", xlabel="frequency (cycles/pixel)")
     axes[0, 0].legend(fontsize=8)
     fig.tight_layout()
-    out["spectrograms"] = (png_bytes(fig), "spectrograms of the averaged dark frame (DSNU) and of the 50 % frame less "
-                                           "the dark one (PRNU): row and column patterns show as peaks or a raised "
-                                           "floor at low frequency, white pixel noise is flat")
+    out["spectrograms"] = (
+        png_bytes(fig),
+        "spectrograms of the averaged dark frame (DSNU) and of the 50 % frame less "
+        "the dark one (PRNU): row and column patterns show as peaks or a raised "
+        "floor at low frequency, white pixel noise is flat",
+    )
     return out

@@ -31,8 +31,14 @@ class StageStatus:
     (default 0.5 on a terminal, 10 into a file). ``refreshes`` counts redraws (tests).
     """
 
-    def __init__(self, enabled: bool = True, stages: int | None = None, *, file: TextIO | None = None,
-                 interval_s: float | None = None):
+    def __init__(
+        self,
+        enabled: bool = True,
+        stages: int | None = None,
+        *,
+        file: TextIO | None = None,
+        interval_s: float | None = None,
+    ):
         file = file if file is not None else sys.stderr
         self.enabled = enabled
         self.stages = stages

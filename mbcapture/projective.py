@@ -49,8 +49,9 @@ def column_planes(camera, px: np.ndarray, width: int) -> np.ndarray:
     return right[None] * np.ones(np.shape(px) + (1,)) - xc[..., None] * fwd
 
 
-def triangulate_columns(camera, projector, proj_col: np.ndarray, proj_width: int, width: int,
-                        height: int) -> np.ndarray:
+def triangulate_columns(
+    camera, projector, proj_col: np.ndarray, proj_width: int, width: int, height: int
+) -> np.ndarray:
     """Depth along the camera's optical axis (H, W) of the point each camera pixel centre sees, given
     the projector column ``proj_col`` (H, W; pixels of a projector image ``proj_width`` wide) that lit
     it: the camera ray meets the projector's column plane. NaN where ``proj_col`` is NaN or the ray
@@ -71,4 +72,3 @@ def points_from_depth(camera, z: np.ndarray) -> np.ndarray:
     h, w = z.shape
     yy, xx = np.mgrid[0:h, 0:w].astype(float) + 0.5
     return np.asarray(camera.origin, float) + z[..., None] * pixel_rays(camera, xx, yy, w, h)
-

@@ -151,19 +151,30 @@ def _sequential(slots: list[SlotSeconds], reads: list[ReadEvent], periods: int, 
 def gate_code(cfg: CaptureConfig, subframes: int) -> GateCode:
     """The per-pixel gate code ``capture.gate_code`` describes, for ``subframes`` sub-frames."""
     spec = cfg.capture.gate_code
-    return make_code(spec.family, subframes, cfg.sensor.bucket_count, width=cfg.render.width, height=cfg.render.height,
-                     tile=spec.tile, seed=cfg.seed if spec.seed is None else spec.seed,
-                     array=load_array(spec.file) if spec.file is not None else None)
+    return make_code(
+        spec.family,
+        subframes,
+        cfg.sensor.bucket_count,
+        width=cfg.render.width,
+        height=cfg.render.height,
+        tile=spec.tile,
+        seed=cfg.seed if spec.seed is None else spec.seed,
+        array=load_array(spec.file) if spec.file is not None else None,
+    )
 
 
 def _coded(cfg: CaptureConfig) -> Timeline:
     spec = cfg.capture.gate_code
     if cfg.capture.sequential:
-        raise ConfigError("capture.gate_code: a conventional sequential capture has one bucket and no per-pixel gates; "
-                          "set capture.sequential false or capture.gate_code null")
+        raise ConfigError(
+            "capture.gate_code: a conventional sequential capture has one bucket and no per-pixel gates; "
+            "set capture.sequential false or capture.gate_code null"
+        )
     if spec.subframes is None and spec.family != "global":
-        raise ConfigError(f"capture.gate_code.subframes: required by family {spec.family!r}: how many sub-frames the "
-                          f"protocol {cfg.capture.protocol!r} schedules (as it would schedule that many buckets)")
+        raise ConfigError(
+            f"capture.gate_code.subframes: required by family {spec.family!r}: how many sub-frames the "
+            f"protocol {cfg.capture.protocol!r} schedules (as it would schedule that many buckets)"
+        )
     subframes = spec.subframes or cfg.sensor.bucket_count
     # the protocol schedules its sub-frames as it would schedule that many buckets
     as_buckets = cfg.model_copy(update={"sensor": cfg.sensor.model_copy(update={"bucket_count": subframes})})
@@ -172,8 +183,10 @@ def _coded(cfg: CaptureConfig) -> Timeline:
     if not code.identity:
         reads = [ReadEvent(f"B{b + 1}", (b,)) for b in range(code.n_buckets)]
     elif k > cfg.sensor.bucket_count:
-        raise ConfigError(f"capture.gate_code.subframes: {k} sub-frames sent to buckets 1..{k} by the global code, "
-                          f"but sensor.bucket_count is {cfg.sensor.bucket_count}")
+        raise ConfigError(
+            f"capture.gate_code.subframes: {k} sub-frames sent to buckets 1..{k} by the global code, "
+            f"but sensor.bucket_count is {cfg.sensor.bucket_count}"
+        )
     segment = SegmentSeconds(exact(cfg.capture.start_s), tuple(slots), cfg.capture.periods)
     return build_timeline([segment], reads, code.n_buckets, cfg.capture.protocol, code=code)
 

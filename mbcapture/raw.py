@@ -29,9 +29,9 @@ import numpy as np
 from .sensor.cfa import BAYER_PATTERNS
 
 #: XYZ (D65) -> linear sRGB (IEC 61966-2-1), the matrix every sRGB pipeline uses.
-XYZ_TO_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314],
-                        [-0.9692660, 1.8760108, 0.0415560],
-                        [0.0556434, -0.2040259, 1.0572252]])
+XYZ_TO_SRGB = np.array(
+    [[3.2404542, -1.5371385, -0.4985314], [-0.9692660, 1.8760108, 0.0415560], [0.0556434, -0.2040259, 1.0572252]]
+)
 #: CFA layouts by name: the colour (0 R, 1 G, 2 B) of each photosite of the 2x2 tile, row by row.
 CFA_PATTERNS = BAYER_PATTERNS
 
@@ -82,8 +82,16 @@ def colour_tags(channel_gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return neutral[:, None] * XYZ_TO_SRGB, neutral
 
 
-def write_dng(path: str | Path, codes: np.ndarray, *, black_level: float, white_level: int,
-              channel_gain: np.ndarray, cfa: str | None = None, model: str = "mbcapture simulated sensor") -> None:
+def write_dng(
+    path: str | Path,
+    codes: np.ndarray,
+    *,
+    black_level: float,
+    white_level: int,
+    channel_gain: np.ndarray,
+    cfa: str | None = None,
+    model: str = "mbcapture simulated sensor",
+) -> None:
     """Write one read as a DNG. ``codes``: integer ADC codes, (H, W) for a ``cfa`` mosaic (one of
     :data:`CFA_PATTERNS`) or a ``cfa='mono'`` sensor, or (H, W, 3) without one; ``black_level`` and
     ``white_level`` in DN;
@@ -103,13 +111,17 @@ def write_dng(path: str | Path, codes: np.ndarray, *, black_level: float, white_
         (_WHITE_LEVEL, "I", 1, (int(white_level),), True),
     ]
     if cfa != "mono":
-        tags += [(_COLOR_MATRIX_1, "2i", 9, _srational(matrix.ravel()), True),
-                 (_AS_SHOT_NEUTRAL, "2I", 3, _urational(neutral), True),
-                 (_CALIBRATION_ILLUMINANT_1, "H", 1, (_D65,), True)]
+        tags += [
+            (_COLOR_MATRIX_1, "2i", 9, _srational(matrix.ravel()), True),
+            (_AS_SHOT_NEUTRAL, "2I", 3, _urational(neutral), True),
+            (_CALIBRATION_ILLUMINANT_1, "H", 1, (_D65,), True),
+        ]
     else:  # one colour plane: XYZ -> its value is Y (a 1x3 matrix), its neutral 1
-        tags += [(_COLOR_MATRIX_1, "2i", 3, _srational([0.0, 1.0, 0.0]), True),
-                 (_AS_SHOT_NEUTRAL, "2I", 1, _urational([1.0]), True),
-                 (_CALIBRATION_ILLUMINANT_1, "H", 1, (_D65,), True)]
+        tags += [
+            (_COLOR_MATRIX_1, "2i", 3, _srational([0.0, 1.0, 0.0]), True),
+            (_AS_SHOT_NEUTRAL, "2I", 1, _urational([1.0]), True),
+            (_CALIBRATION_ILLUMINANT_1, "H", 1, (_D65,), True),
+        ]
     if cfa == "mono":
         if data.ndim != 2:
             raise ValueError(f"codes: expected an (H, W) image of a monochrome sensor, got {data.shape}")
@@ -126,11 +138,23 @@ def write_dng(path: str | Path, codes: np.ndarray, *, black_level: float, white_
         if data.ndim != 2:
             raise ValueError(f"codes: expected an (H, W) mosaic with a CFA, got {data.shape}")
         photometric = _PHOTOMETRIC_CFA
-        tags += [(_CFA_REPEAT_PATTERN_DIM, "H", 2, (2, 2), True), (_CFA_PATTERN, "B", 4, CFA_PATTERNS[cfa], True),
-                 (_CFA_PLANE_COLOR, "B", 3, (0, 1, 2), True), (_CFA_LAYOUT, "H", 1, (1,), True),
-                 (_BLACK_LEVEL, "2I", 1, _urational([black_level]), True)]
-    tifffile.imwrite(path, data.astype(np.uint16), photometric=photometric, planarconfig="contig", subfiletype=0,
-                     extratags=tags, metadata=None, software="mbcapture")
+        tags += [
+            (_CFA_REPEAT_PATTERN_DIM, "H", 2, (2, 2), True),
+            (_CFA_PATTERN, "B", 4, CFA_PATTERNS[cfa], True),
+            (_CFA_PLANE_COLOR, "B", 3, (0, 1, 2), True),
+            (_CFA_LAYOUT, "H", 1, (1,), True),
+            (_BLACK_LEVEL, "2I", 1, _urational([black_level]), True),
+        ]
+    tifffile.imwrite(
+        path,
+        data.astype(np.uint16),
+        photometric=photometric,
+        planarconfig="contig",
+        subfiletype=0,
+        extratags=tags,
+        metadata=None,
+        software="mbcapture",
+    )
     if cfa == "mono":
         # a monochrome DNG is LinearRaw with one sample (what LibRaw and Adobe's dng_validate read), which
         # tifffile will not write directly (it expects three samples for LinearRaw): rewrite the tag in place

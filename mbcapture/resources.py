@@ -105,15 +105,22 @@ class Resources:
     spill_bytes: int = 0
 
     def summary(self) -> dict:
-        return {"peak_memory_gb": round(self.memory_bytes / GB, 3), "outputs_mb": round(self.output_bytes / MB, 2),
-                "render_cache_mb": round(self.cache_bytes / MB, 2), "tiles": self.tiles, "render_bands": self.bands,
-                "spill_gb": round(self.spill_bytes / GB, 3)}
+        return {
+            "peak_memory_gb": round(self.memory_bytes / GB, 3),
+            "outputs_mb": round(self.output_bytes / MB, 2),
+            "render_cache_mb": round(self.cache_bytes / MB, 2),
+            "tiles": self.tiles,
+            "render_bands": self.bands,
+            "spill_gb": round(self.spill_bytes / GB, 3),
+        }
 
     def line(self) -> str:
         tiles = f" in {self.tiles} tiles of rows" if self.tiles > 1 else ""
         spill = f" and {_size(self.spill_bytes)} of scratch files on disk (render.spill)" if self.spill_bytes else ""
-        return (f"needs about {_size(self.memory_bytes)} of memory{tiles}{spill}, {_size(self.output_bytes)} for its "
-                "outputs" + (f" and {_size(self.cache_bytes)} of new render-cache entries" if self.cache_bytes else ""))
+        return (
+            f"needs about {_size(self.memory_bytes)} of memory{tiles}{spill}, {_size(self.output_bytes)} for its "
+            "outputs" + (f" and {_size(self.cache_bytes)} of new render-cache entries" if self.cache_bytes else "")
+        )
 
 
 def _size(n: float) -> str:
@@ -152,8 +159,9 @@ def fixed_memory_bytes() -> float:
     return (BASE_MEMORY_MB + PER_THREAD_MB * max(usable_cores() - FITTED_THREADS, 0)) * MB
 
 
-def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles: int = 1,
-             spill: bool = False) -> Resources:
+def estimate(
+    cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles: int = 1, spill: bool = False
+) -> Resources:
     """The resources of the capture ``cfg`` with its ``timeline``, render ``plan`` and application,
     going through its film in ``tiles`` tiles of rows (at most one per render band); ``spill``: with the
     whole-film results of a tiled run in scratch files (:func:`spilled_per_bucket_sample`), whose
@@ -170,9 +178,13 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles
         share = max(b - a for a, b in rows) / cfg.render.height
         groups = len(plan.groups) if app.per_group else 0  # the per-group exposures stay whole too
         images = APP_CHANNEL_HELD * app.output_channels / (3.0 * acc)  # the reconstruction, per bucket sample
-        per_sample = (HELD_PER_BUCKET_SAMPLE + groups + images
-                      + (FLOAT64_PER_BUCKET_SAMPLE - HELD_PER_BUCKET_SAMPLE) * share
-                      + FLOAT64_PER_BUCKET_SAMPLE * (app.memory_scale - 1.0))
+        per_sample = (
+            HELD_PER_BUCKET_SAMPLE
+            + groups
+            + images
+            + (FLOAT64_PER_BUCKET_SAMPLE - HELD_PER_BUCKET_SAMPLE) * share
+            + FLOAT64_PER_BUCKET_SAMPLE * (app.memory_scale - 1.0)
+        )
     spill_values = spilled_per_bucket_sample(timeline, plan, app) if spill and len(rows) > 1 and frames == 1 else 0.0
     per_sample -= spill_values
     per_frame = 8.0 * samples * per_sample * acc
@@ -180,8 +192,11 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles
     held = 8.0 * samples * (1.5 * K + 2 * R) + 4.0 * px * app.output_channels
     memory = fixed_memory_bytes() + app.libraries_mb * MB + per_frame + (frames - 1) * held
 
-    exr = 4.0 * px * (3 * (K + R) * EXR_RATIO_EXPECTED + 3 * R * EXR_RATIO_DN
-                      + frames * app.output_channels * EXR_RATIO_APP)
+    exr = (
+        4.0
+        * px
+        * (3 * (K + R) * EXR_RATIO_EXPECTED + 3 * R * EXR_RATIO_DN + frames * app.output_channels * EXR_RATIO_APP)
+    )
     pngs = app.previews + 2 * R + 3  # the application's, each read on two scales, three maps
     dng = 2.0 * 3 * px * R if cfg.output.dng else 0.0  # uncompressed 16-bit R, G, B per read
     outputs = exr + 3.0 * px * PNG_RATIO * pngs + dng + REPORT_BYTES
@@ -190,8 +205,14 @@ def estimate(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App, tiles
     if cfg.render.cache != "off":
         renders = frames * (2 * plan.passes + (PILOT_RENDERS if cfg.render.spp is None else 0))
         cache = min(renders * 4.0 * px * 3 * max(len(plan.groups), 1), cfg.render.cache_max_gb * GB)
-    return Resources(int(memory), int(outputs), int(cache), tiles=len(rows), bands=len(bands_of(cfg)),
-                     spill_bytes=int(8.0 * samples * acc * spill_values))
+    return Resources(
+        int(memory),
+        int(outputs),
+        int(cache),
+        tiles=len(rows),
+        bands=len(bands_of(cfg)),
+        spill_bytes=int(8.0 * samples * acc * spill_values),
+    )
 
 
 def choose_layout(cfg: CaptureConfig, timeline: Timeline, plan: Plan, app: App) -> tuple[int, bool]:
@@ -262,8 +283,11 @@ def _cgroup_headroom(root: Path = Path("/sys/fs/cgroup"), own: Path = Path("/pro
     except (OSError, ValueError):
         pass
     try:
-        group = next(line.split(":", 2)[2].strip() for line in own.read_text().splitlines()
-                     if "memory" in line.split(":", 2)[1].split(","))
+        group = next(
+            line.split(":", 2)[2].strip()
+            for line in own.read_text().splitlines()
+            if "memory" in line.split(":", 2)[1].split(",")
+        )
         folder = root / "memory" / group.lstrip("/")
         if not folder.is_dir():
             folder = root / "memory"
@@ -306,37 +330,49 @@ def check(need: Resources, cfg: CaptureConfig, out_dir: Path | None, cache_root:
     estimate's error) above what is free or above ``render.max_memory_gb``; its outputs above the
     free disk of ``out_dir``; its new render-cache entries above the free disk of ``cache_root``."""
     film = f"film {cfg.render.width}x{cfg.render.height}" + (f" in {need.tiles} tiles" if need.tiles > 1 else "")
-    fewer = ("smaller render bands (render.band_rows) or fewer outputs" if need.tiles >= need.bands
-             else "more tiles (render.tiles, up to one per render band: "
-                  f"{need.bands})")
+    fewer = (
+        "smaller render bands (render.band_rows) or fewer outputs"
+        if need.tiles >= need.bands
+        else f"more tiles (render.tiles, up to one per render band: {need.bands})"
+    )
     cap = cfg.render.max_memory_gb
     if cap is not None and need.memory_bytes > cap * GB:
-        raise ResourceProblem(f"render.max_memory_gb: this run needs about {_size(need.memory_bytes)} of memory "
-                              f"({film}), above the cap of {cap:g} GB; use a smaller film (render.width, "
-                              f"render.height), {fewer}, or raise the cap")
+        raise ResourceProblem(
+            f"render.max_memory_gb: this run needs about {_size(need.memory_bytes)} of memory "
+            f"({film}), above the cap of {cap:g} GB; use a smaller film (render.width, "
+            f"render.height), {fewer}, or raise the cap"
+        )
     free, source = free_memory()
     if need.memory_bytes * MARGIN > free:
-        raise ResourceProblem(f"render.width/height: this run needs about {_size(need.memory_bytes)} of memory "
-                              f"({film}) but {_size(free)} is free ({source}); use a smaller film or {fewer}")
+        raise ResourceProblem(
+            f"render.width/height: this run needs about {_size(need.memory_bytes)} of memory "
+            f"({film}) but {_size(free)} is free ({source}); use a smaller film or {fewer}"
+        )
     if out_dir is not None:
         disk = free_disk(out_dir)
         if need.output_bytes * MARGIN > disk:
-            raise ResourceProblem(f"--out {out_dir}: the outputs need about {_size(need.output_bytes)} but "
-                                  f"{_size(disk)} is free on that disk; free some space, choose another --out "
-                                  "or a smaller film")
+            raise ResourceProblem(
+                f"--out {out_dir}: the outputs need about {_size(need.output_bytes)} but "
+                f"{_size(disk)} is free on that disk; free some space, choose another --out "
+                "or a smaller film"
+            )
     if need.spill_bytes:
         folder = spill_folder(cfg)
         disk = free_disk(folder)
         if need.spill_bytes * MARGIN > disk:
-            raise ResourceProblem(f"render.spill_dir {folder}: the film's arrays need about {_size(need.spill_bytes)} "
-                                  f"of scratch files there but {_size(disk)} is free; free some space, choose another "
-                                  "folder (render.spill_dir) or a smaller film")
+            raise ResourceProblem(
+                f"render.spill_dir {folder}: the film's arrays need about {_size(need.spill_bytes)} "
+                f"of scratch files there but {_size(disk)} is free; free some space, choose another "
+                "folder (render.spill_dir) or a smaller film"
+            )
     if cache_root is not None and need.cache_bytes:
         disk = free_disk(cache_root)
         if need.cache_bytes * MARGIN > disk:
-            raise ResourceProblem(f"render.cache: the renders need about {_size(need.cache_bytes)} in {cache_root} "
-                                  f"but {_size(disk)} is free there; set render.cache: off, another folder, or "
-                                  "free some space")
+            raise ResourceProblem(
+                f"render.cache: the renders need about {_size(need.cache_bytes)} in {cache_root} "
+                f"but {_size(disk)} is free there; set render.cache: off, another folder, or "
+                "free some space"
+            )
 
 
 def spill_folder(cfg: CaptureConfig) -> Path:
@@ -362,9 +398,25 @@ def peak_rss_bytes() -> int:
     return _status_kb("VmHWM") * 1024
 
 
-__all__ = ["Resources", "accumulated_channels", "anon_bytes", "bands_of", "check", "choose_layout", "choose_tiles",
-           "estimate", "fixed_memory_bytes", "free_disk", "free_memory", "peak_rss_bytes", "plan_resources",
-           "rss_bytes", "spill_folder", "spilled_per_bucket_sample", "tile_rows"]
+__all__ = [
+    "Resources",
+    "accumulated_channels",
+    "anon_bytes",
+    "bands_of",
+    "check",
+    "choose_layout",
+    "choose_tiles",
+    "estimate",
+    "fixed_memory_bytes",
+    "free_disk",
+    "free_memory",
+    "peak_rss_bytes",
+    "plan_resources",
+    "rss_bytes",
+    "spill_folder",
+    "spilled_per_bucket_sample",
+    "tile_rows",
+]
 
 
 #: :func:`one_blas_thread`'s state: how many blocks are open (in any thread), and the limit the first set.

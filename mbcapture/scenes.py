@@ -159,9 +159,7 @@ def load_module(name: str) -> ModuleType:
     """Import ``scenes/<name>/scene.py``; an unknown name lists the valid ones."""
     scenes = available()
     if name not in scenes:
-        raise ConfigError(
-            f"scene.name: unknown scene {name!r}; expected one of {sorted(scenes)}"
-        )
+        raise ConfigError(f"scene.name: unknown scene {name!r}; expected one of {sorted(scenes)}")
     path = scenes[name]
     mod_name = f"mbcapture_scene_{name}"
     spec = importlib.util.spec_from_file_location(mod_name, path)

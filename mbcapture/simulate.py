@@ -32,9 +32,15 @@ from .sensor.sampling import NoiseStreams
 from .timeline import Timeline
 
 
-def sense(timeline: Timeline, buckets_e: np.ndarray, sensor: SensorConfig, seed: np.random.SeedSequence,
-          tiles: tuple[tuple[int, int], ...] | None = None, per_unit: np.ndarray | None = None,
-          store: FilmStore = IN_MEMORY) -> SensorReads:
+def sense(
+    timeline: Timeline,
+    buckets_e: np.ndarray,
+    sensor: SensorConfig,
+    seed: np.random.SeedSequence,
+    tiles: tuple[tuple[int, int], ...] | None = None,
+    per_unit: np.ndarray | None = None,
+    store: FilmStore = IN_MEMORY,
+) -> SensorReads:
     """The sensor stage: ``buckets_e`` (K, H, W, C) noise-free expected electrons of the buckets of
     ``timeline`` into its reads, with dark current over each bucket's storage time
     (:meth:`~mbcapture.timeline.Timeline.storage_s`) and, on a multi-bucket sensor, the buckets
@@ -56,8 +62,10 @@ def sense(timeline: Timeline, buckets_e: np.ndarray, sensor: SensorConfig, seed:
     streams = NoiseStreams(seed)
     H = buckets_e.shape[1]
     # one tile at a time: its noise fields, counts and charge made, its reads copied into the film's, let go
-    parts = (simulate_reads(scale(buckets_e[:, r0:r1]), reads, sensor, streams, band=(r0, H), develop=False, **kw)
-             for r0, r1 in tiles)
+    parts = (
+        simulate_reads(scale(buckets_e[:, r0:r1]), reads, sensor, streams, band=(r0, H), develop=False, **kw)
+        for r0, r1 in tiles
+    )
     return develop_reads(join_rows(parts, height=H, reads_only=True, empty=store.empty), sensor)
 
 
@@ -82,8 +90,9 @@ class SimulatedCapture:
     plan: Plan
 
 
-def capture_timeline(timeline: Timeline, scene, cfg, renderer, spp: int, seed: np.random.SeedSequence,
-                     k_e: np.ndarray) -> SimulatedCapture:
+def capture_timeline(
+    timeline: Timeline, scene, cfg, renderer, spp: int, seed: np.random.SeedSequence, k_e: np.ndarray
+) -> SimulatedCapture:
     """Render, accumulate and read out ``timeline`` (the scene ``scene``, camera motion included) with
     ``spp`` samples per pixel per stratum. ``seed`` is split into the plan's jitter, the render seeds and
     the sensor noise; ``k_e`` (C,) electrons per render unit and second."""

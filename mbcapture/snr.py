@@ -50,12 +50,36 @@ class Protocol:
 
 
 PROTOCOLS = (
-    Protocol("photon_efficient", (4, 2, 1, 1), ((3,), (3, 2), (3, 2, 1), (3, 2, 1, 0)), (1, 2, 4, 8),
-             (8, 8, 8, 8), True, "ramp_fit", True),
-    Protocol("interleaved", (8, 4, 2, 1), ((0,), (1,), (2,), (3,)), (8, 4, 2, 1),
-             (15, 15, 15, 15), False, "inverse_variance", True),
-    Protocol("sequential", (8, 4, 2, 1), ((0,), (1,), (2,), (3,)), (8, 4, 2, 1),
-             (8, 4, 2, 1), False, "inverse_variance", False),
+    Protocol(
+        "photon_efficient",
+        (4, 2, 1, 1),
+        ((3,), (3, 2), (3, 2, 1), (3, 2, 1, 0)),
+        (1, 2, 4, 8),
+        (8, 8, 8, 8),
+        True,
+        "ramp_fit",
+        True,
+    ),
+    Protocol(
+        "interleaved",
+        (8, 4, 2, 1),
+        ((0,), (1,), (2,), (3,)),
+        (8, 4, 2, 1),
+        (15, 15, 15, 15),
+        False,
+        "inverse_variance",
+        True,
+    ),
+    Protocol(
+        "sequential",
+        (8, 4, 2, 1),
+        ((0,), (1,), (2,), (3,)),
+        (8, 4, 2, 1),
+        (8, 4, 2, 1),
+        False,
+        "inverse_variance",
+        False,
+    ),
 )
 
 REPORT_RADIANCES = {"low": 1e-3, "mid": 1e-1, "high": 1.0}
@@ -78,12 +102,21 @@ def snr_curve(
     expected = rate_e_per_s[None, :, None, None] * bucket_s[:, None, None, None]
     expected = np.broadcast_to(expected, (bucket_s.size, radiance.size, n_pixels, 1)).copy()
     out = simulate_reads(
-        expected, protocol.reads, cfg, rng,
+        expected,
+        protocol.reads,
+        cfg,
+        rng,
         storage_s=unit_exposure_s * np.asarray(protocol.storage_t, dtype=np.float64),
         shared_photodiode=protocol.shared_photodiode,
     )
-    res = merge_hdr(out.reads_dn, unit_exposure_s * np.asarray(protocol.read_t, dtype=np.float64), cfg,
-                    method=protocol.method, cumulative=protocol.cumulative, saturated=out.saturated)
+    res = merge_hdr(
+        out.reads_dn,
+        unit_exposure_s * np.asarray(protocol.read_t, dtype=np.float64),
+        cfg,
+        method=protocol.method,
+        cumulative=protocol.cumulative,
+        saturated=out.saturated,
+    )
     snr = np.full(radiance.size, np.nan)
     for i in range(radiance.size):
         valid = res.valid[i, :, 0]
@@ -91,8 +124,6 @@ def snr_curve(
             x = res.rate_e_per_s[i, valid, 0]
             snr[i] = x.mean() / x.std(ddof=1)
     return snr
-
-
 
 
 def radiance_range(cfg: SensorConfig, unit_exposure_s: float, levels: int) -> np.ndarray:
@@ -103,8 +134,9 @@ def radiance_range(cfg: SensorConfig, unit_exposure_s: float, levels: int) -> np
     return np.unique(np.concatenate([np.geomspace(lo, hi, levels), list(REPORT_RADIANCES.values())]))
 
 
-def snr_curves(cfg: SensorConfig, radiance: np.ndarray, unit_exposure_s: float, n_pixels: int,
-               seed: int) -> dict[str, np.ndarray]:
+def snr_curves(
+    cfg: SensorConfig, radiance: np.ndarray, unit_exposure_s: float, n_pixels: int, seed: int
+) -> dict[str, np.ndarray]:
     """Protocol name -> SNR at each radiance."""
     seeds = np.random.SeedSequence(seed).spawn(len(PROTOCOLS))
     return {

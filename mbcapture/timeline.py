@@ -221,7 +221,9 @@ class Timeline:
                 total += seg.gated(t, mask)
         return total
 
-    def drive_gated_ticks(self, t: Sequence[int] | np.ndarray, bucket: int, group: str | None, drive: "Drive") -> np.ndarray:
+    def drive_gated_ticks(
+        self, t: Sequence[int] | np.ndarray, bucket: int, group: str | None, drive: "Drive"
+    ) -> np.ndarray:
         """Oscillating part of integral_0^t gate_bucket(u) on_group(u) drive(u) du, ticks (float64);
         the constant part is ``drive.c0 * gated_ticks(t, bucket, group)``."""
         t = np.atleast_1d(np.asarray(t, dtype=np.int64))
@@ -237,7 +239,11 @@ class Timeline:
         return total
 
     def weights_ticks(
-        self, edges: np.ndarray, groups: Sequence[str], switchable: frozenset[str], drives: "Mapping[str, Drive] | None" = None
+        self,
+        edges: np.ndarray,
+        groups: Sequence[str],
+        switchable: frozenset[str],
+        drives: "Mapping[str, Drive] | None" = None,
     ) -> np.ndarray:
         """W[j, k, g] = ticks of stratum [edges[j], edges[j+1]) in which bucket k collects
         while group g is on (int64, exact). A group in ``switchable`` is on only in the slots
@@ -254,7 +260,9 @@ class Timeline:
                 sel = g if g in switchable else None
                 f = self.gated_ticks(edges, k, sel)
                 if g in drives:
-                    out[:, k, gi] = drives[g].c0 * np.diff(f) + np.diff(self.drive_gated_ticks(edges, k, sel, drives[g]))
+                    out[:, k, gi] = drives[g].c0 * np.diff(f) + np.diff(
+                        self.drive_gated_ticks(edges, k, sel, drives[g])
+                    )
                 else:
                     out[:, k, gi] = np.diff(f)
         return out
@@ -403,13 +411,19 @@ def build_timeline(
     for r in reads:
         bad = [b + 1 for b in r.buckets if not 0 <= b < n_buckets]
         if bad:
-            raise ConfigError(f"capture.schedule.reads: read {r.name} names bucket(s) {bad}; the schedule has {n_buckets}")
+            raise ConfigError(
+                f"capture.schedule.reads: read {r.name} names bucket(s) {bad}; the schedule has {n_buckets}"
+            )
     if code is not None:
         used = {s.bucket for seg in segments for s in seg.slots if s.bucket != DRAIN}
         if max(used) >= code.n_subframes:
-            raise ConfigError(f"capture.gate_code: the schedule has {max(used) + 1} sub-frames, the code {code.n_subframes}")
+            raise ConfigError(
+                f"capture.gate_code: the schedule has {max(used) + 1} sub-frames, the code {code.n_subframes}"
+            )
     tl = Timeline(tick, n_buckets, tuple(out_segments), tuple(reads), protocol, sequential, code)
     for r in tl.reads:
         if tl.read_exposure_ticks(r) == 0:
-            raise ConfigError(f"capture: read {r.name} sums buckets {[b + 1 for b in r.buckets]} that never collect light")
+            raise ConfigError(
+                f"capture: read {r.name} sums buckets {[b + 1 for b in r.buckets]} that never collect light"
+            )
     return tl

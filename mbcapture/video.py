@@ -82,8 +82,10 @@ def frame_config(cfg, i: int, spp: int | None = None):
     c = cfg.capture
     start = c.start_s + i / c.frame_rate_hz
     noise = np.random.SeedSequence([cfg.seed if cfg.sensor.noise_seed is None else cfg.sensor.noise_seed, 0x71DE0, i])
-    update = {"capture": c.model_copy(update={"frames": 1, "start_s": start}),
-              "sensor": cfg.sensor.model_copy(update={"noise_seed": int(noise.generate_state(1)[0])})}
+    update = {
+        "capture": c.model_copy(update={"frames": 1, "start_s": start}),
+        "sensor": cfg.sensor.model_copy(update={"noise_seed": int(noise.generate_state(1)[0])}),
+    }
     if spp is not None:
         update["render"] = cfg.render.model_copy(update={"spp": int(spp)})
     return cfg.model_copy(update=update)
@@ -102,8 +104,11 @@ def optical_flow(reference: np.ndarray, moving: np.ndarray, method: str) -> np.n
     a, b = u8(reference), u8(moving)
     if method == "farneback":
         return cv2.calcOpticalFlowFarneback(a, b, None, 0.5, 3, 9, 5, 5, 1.1, 0)
-    preset = {"dis_medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM, "dis_fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
-              "dis_ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST}[method]
+    preset = {
+        "dis_medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+        "dis_fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+        "dis_ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    }[method]
     dis = cv2.DISOpticalFlow_create(preset)
     return dis.calc(a, b, None)
 
@@ -126,8 +131,9 @@ def log_luminance(rate: np.ndarray) -> np.ndarray:
     return np.log(np.maximum(lum, 1e-3 * max(float(np.percentile(lum, 99)), 1e-30)))
 
 
-def alternating_merge(dn: list[np.ndarray], saturated: list[np.ndarray], exposure_s: np.ndarray, sensor, flow: str,
-                      i: int) -> np.ndarray:
+def alternating_merge(
+    dn: list[np.ndarray], saturated: list[np.ndarray], exposure_s: np.ndarray, sensor, flow: str, i: int
+) -> np.ndarray:
     """Rate (electrons/s, (H, W, C)) of output frame ``i`` of an alternating-exposure video: frame i's
     read merged with its neighbours' reads warped onto it by optical flow (module docstring)."""
 
@@ -140,8 +146,14 @@ def alternating_merge(dn: list[np.ndarray], saturated: list[np.ndarray], exposur
             reads.append(warp_by_flow(dn[j], f).astype(np.float64))
             sats.append(warp_by_flow(saturated[j].astype(np.float32), f, nearest=True) > 0.5)
             exps.append(exposure_s[j])
-    res = merge_hdr(np.stack(reads), np.asarray(exps, float), sensor, method="inverse_variance", cumulative=False,
-                    saturated=np.stack(sats))
+    res = merge_hdr(
+        np.stack(reads),
+        np.asarray(exps, float),
+        sensor,
+        method="inverse_variance",
+        cumulative=False,
+        saturated=np.stack(sats),
+    )
     return res.rate_e_per_s
 
 
@@ -170,8 +182,9 @@ def needle_track(scene, times_s: np.ndarray, width: int, height: int) -> np.ndar
     return scene.project(np.asarray(scene.motion_points(times_s)), times_s, width, height)[..., 0].mean(axis=1)
 
 
-def aliasing(scene, rates_hz: list[float], t0_s: float, centroid_s: float, duration_s: float, width: int,
-             height: int) -> dict:
+def aliasing(
+    scene, rates_hz: list[float], t0_s: float, centroid_s: float, duration_s: float, width: int, height: int
+) -> dict:
     """Per rate: the motion's apparent (sampled at the frames' centroids) and true dominant frequency."""
     if scene.motion_points is None:
         return {"note": "the scene has no moving parts"}
@@ -183,9 +196,13 @@ def aliasing(scene, rates_hz: list[float], t0_s: float, centroid_s: float, durat
     for r in sorted(set(rates_hz)):
         t = t0_s + centroid_s + np.arange(int(np.floor(span * r)) + 1) / r
         f = dominant_frequency_hz(needle_track(scene, t, width, height), r)
-        out["rates"][f"{r:g}"] = {"frame_rate_hz": r, "samples": int(t.size), "apparent_frequency_hz": f,
-                                  "aliased": bool(abs(f - true_f) > 2 * resolution),
-                                  "nyquist_hz": r / 2}
+        out["rates"][f"{r:g}"] = {
+            "frame_rate_hz": r,
+            "samples": int(t.size),
+            "apparent_frequency_hz": f,
+            "aliased": bool(abs(f - true_f) > 2 * resolution),
+            "nyquist_hz": r / 2,
+        }
     return out
 
 
@@ -245,8 +262,9 @@ def run_video(cfg, *, progress: bool = True):
     first.report["video"] = report
     if cache is not None:
         first.report["render_cache"] = {"folder": str(cache.root), **cache.stats.as_dict()}
-    first.report["timings_s"]["video_total_before_write"] = round(sum(f.report["timings_s"]["total_before_write"]
-                                                                      for f in frames), 4)
+    first.report["timings_s"]["video_total_before_write"] = round(
+        sum(f.report["timings_s"]["total_before_write"] for f in frames), 4
+    )
     first.video = video
     first.app_output.summary[:0] = _summary_lines(report)
     return first
@@ -258,7 +276,9 @@ def _video_report(cfg, frames, video: VideoFrames, period: float, scene, rendere
     per_frame = []
     for i, f in enumerate(frames):
         row = {"frame": i, "start_s": float(f.config.capture.start_s)}
-        row.update({k: v for k, v in f.report["metrics"].items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
+        row.update(
+            {k: v for k, v in f.report["metrics"].items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        )
         per_frame.append(row)
     rep: dict = {
         "frames": n,
@@ -286,8 +306,13 @@ def _video_report(cfg, frames, video: VideoFrames, period: float, scene, rendere
         for i, f in enumerate(frames):
             t_exp = short if i % 2 == 0 else long
             start = exact(f.config.capture.start_s)
-            tl = build_timeline([SegmentSeconds(start, (SlotSeconds(0, exact(t_exp)),), 1)],
-                                [ReadEvent("frame", (0,), destructive=True)], 1, "alternating_exposure", sequential=True)
+            tl = build_timeline(
+                [SegmentSeconds(start, (SlotSeconds(0, exact(t_exp)),), 1)],
+                [ReadEvent("frame", (0,), destructive=True)],
+                1,
+                "alternating_exposure",
+                sequential=True,
+            )
             seed = np.random.SeedSequence([cfg.seed, 0xA17E, i])
             sim = capture_timeline(tl, renderer.scene_model, f.config, renderer, int(f.plan.spp.max()), seed, k_e)
             dns.append(sim.reads_dn[0])
@@ -297,7 +322,9 @@ def _video_report(cfg, frames, video: VideoFrames, period: float, scene, rendere
         alt = np.stack([alternating_merge(dns, sats, ex, cfg.sensor, vcfg.flow, i) / k_e for i in range(n)])
         video.alternating_radiance = alt
         rep["alternating_exposure"] = {
-            "short_exposure_s": short, "long_exposure_s": long, "flow": vcfg.flow,
+            "short_exposure_s": short,
+            "long_exposure_s": long,
+            "flow": vcfg.flow,
             **_scores(alt, video.truth, masks, REL_MSE_EPS_RADIANCE, relative_mse),
         }
         for i, row in enumerate(per_frame):
@@ -329,8 +356,12 @@ def _video_report(cfg, frames, video: VideoFrames, period: float, scene, rendere
 
 def _scores(radiance: np.ndarray, truth: np.ndarray, masks: np.ndarray, eps: float, relative_mse) -> dict:
     all_ = [relative_mse(radiance[i], truth[i], eps=eps) for i in range(len(radiance))]
-    moving = [relative_mse(radiance[i], truth[i], mask=np.repeat(masks[i][..., None], radiance.shape[-1], -1), eps=eps)
-              if masks[i].any() else None for i in range(len(radiance))]
+    moving = [
+        relative_mse(radiance[i], truth[i], mask=np.repeat(masks[i][..., None], radiance.shape[-1], -1), eps=eps)
+        if masks[i].any()
+        else None
+        for i in range(len(radiance))
+    ]
     mv = [m for m in moving if m is not None]
     return {
         "rel_mse_per_frame": all_,
@@ -343,17 +374,26 @@ def _scores(radiance: np.ndarray, truth: np.ndarray, masks: np.ndarray, eps: flo
 
 
 def _summary_lines(rep: dict) -> list[str]:
-    out = [f"video: {rep['frames']} frames at {rep['frame_rate_hz']:g} frames/s (capture {rep['capture_span_s'] * 1e3:.4g} ms "
-           f"+ readout {rep['readout_s'] * 1e3:.4g} ms per {rep['frame_period_s'] * 1e3:.4g} ms frame)"]
-    for key, label in (("multi_bucket", "multi-bucket HDR video"), ("alternating_exposure", "alternating-exposure video")):
+    out = [
+        f"video: {rep['frames']} frames at {rep['frame_rate_hz']:g} frames/s (capture {rep['capture_span_s'] * 1e3:.4g} ms "
+        f"+ readout {rep['readout_s'] * 1e3:.4g} ms per {rep['frame_period_s'] * 1e3:.4g} ms frame)"
+    ]
+    for key, label in (
+        ("multi_bucket", "multi-bucket HDR video"),
+        ("alternating_exposure", "alternating-exposure video"),
+    ):
         s = rep.get(key)
         if s and s["ghosting_rel_mse_moving_mean"] is not None:
-            out.append(f"{label}: ghosting (relMSE in the moving region) mean {s['ghosting_rel_mse_moving_mean']:.4g}, "
-                       f"max {s['ghosting_rel_mse_moving_max']:.4g}; temporal consistency {s['temporal_consistency']:.4g}")
+            out.append(
+                f"{label}: ghosting (relMSE in the moving region) mean {s['ghosting_rel_mse_moving_mean']:.4g}, "
+                f"max {s['ghosting_rel_mse_moving_max']:.4g}; temporal consistency {s['temporal_consistency']:.4g}"
+            )
     al = rep.get("aliasing", {})
     for r in al.get("rates", {}).values():
-        out.append(f"{r['frame_rate_hz']:g} frames/s: the motion appears at {r['apparent_frequency_hz']:.3g} Hz (true "
-                   f"{al['true_frequency_hz']:.3g} Hz){': aliased' if r['aliased'] else ''}")
+        out.append(
+            f"{r['frame_rate_hz']:g} frames/s: the motion appears at {r['apparent_frequency_hz']:.3g} Hz (true "
+            f"{al['true_frequency_hz']:.3g} Hz){': aliased' if r['aliased'] else ''}"
+        )
     return out
 
 
@@ -382,5 +422,3 @@ def write_video_files(st, result) -> None:
     for row in rep["per_frame"]:
         w.writerow(row)
     st.write_bytes("frames.csv", buf.getvalue().encode("utf-8"))
-
-

@@ -45,8 +45,16 @@ import numpy as np
 from scipy.ndimage import grey_dilation
 
 from mbcapture import load_config, pipeline
-from mbcapture.budget import (ADAPTIVE_FOOTPRINT, ADAPTIVE_SELECT, budget_quantiles, effective_dof, factor_tiers, pooled_alike,
-                              scout_ratio, tail_pixels)
+from mbcapture.budget import (
+    ADAPTIVE_FOOTPRINT,
+    ADAPTIVE_SELECT,
+    budget_quantiles,
+    effective_dof,
+    factor_tiers,
+    pooled_alike,
+    scout_ratio,
+    tail_pixels,
+)
 from mbcapture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
@@ -65,9 +73,13 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], dest="sets")
     ap.add_argument("--seeds", default="1,2", help="the two run seeds, comma-separated (the first one's scout chooses)")
     ap.add_argument("--cache", default=None, help="NPZ of the renders: read when it exists, written when not")
-    ap.add_argument("--rule", action="append", default=[],
-                    help="level,target,dilation,dilate-from[,steps] (e.g. 1,1,cross,1 or 1,1,box,1,int); "
-                         "default: a grid around the rule in use")
+    ap.add_argument(
+        "--rule",
+        action="append",
+        default=[],
+        help="level,target,dilation,dilate-from[,steps] (e.g. 1,1,cross,1 or 1,1,box,1,int); "
+        "default: a grid around the rule in use",
+    )
     args = ap.parse_args()
     seeds = two_seeds(args.seeds)
     if args.cache and Path(args.cache).exists():
@@ -78,10 +90,15 @@ def main() -> None:
             np.savez(args.cache, **data)
     rules = [parse_rule(r) for r in args.rule] or [
         (level, target, dil, start)
-        for level, target, dil, start in itertools.product((0.7, 1.0, 1.2), (0.7, 1.0), ("box", "cross", "none"), (1, 2))
-        if target <= level and not (dil == "none" and start == 2)] + [
-        (level, target, dil, 1, "int") for level, target, dil in itertools.product((0.7, 1.0), (0.7, 1.0), ("box", "cross"))
-        if target <= level]
+        for level, target, dil, start in itertools.product(
+            (0.7, 1.0, 1.2), (0.7, 1.0), ("box", "cross", "none"), (1, 2)
+        )
+        if target <= level and not (dil == "none" and start == 2)
+    ] + [
+        (level, target, dil, 1, "int")
+        for level, target, dil in itertools.product((0.7, 1.0), (0.7, 1.0), ("box", "cross"))
+        if target <= level
+    ]
     predicted = data["scout_worst"] * data["scale"]
     tail = float(data["tail_target"])
     in_use = factors(predicted, tail, ADAPTIVE_SELECT, ADAPTIVE_SELECT, IN_USE, 1, max_factor=int(data["max_factor"]))
@@ -90,29 +107,44 @@ def main() -> None:
     for pixels, f in tiers:
         expected[pixels] = f
     if not np.array_equal(in_use.ravel(), expected):
-        raise SystemExit(f"the rule {ADAPTIVE_SELECT:g},{ADAPTIVE_SELECT:g},{IN_USE},1 no longer reproduces "
-                         "budget.factor_tiers: update factors() here")
+        raise SystemExit(
+            f"the rule {ADAPTIVE_SELECT:g},{ADAPTIVE_SELECT:g},{IN_USE},1 no longer reproduces "
+            "budget.factor_tiers: update factors() here"
+        )
     names = [str(n) for n in data["names"]]
-    print(f"{args.config} at {args.size}: first passes of seeds {seeds[0]} and {seeds[1]}, the scout of seed {seeds[0]}; "
-          f"the rule in use is level {ADAPTIVE_SELECT:g},target {ADAPTIVE_SELECT:g},{IN_USE},1")
-    print(f"{'level,target,dilation,from,steps':32s} {'added':>7s} {'pixels':>7s}   " +
-          "   ".join(f"{n} median/p95/p99.9" for n in names))
+    print(
+        f"{args.config} at {args.size}: first passes of seeds {seeds[0]} and {seeds[1]}, the scout of seed {seeds[0]}; "
+        f"the rule in use is level {ADAPTIVE_SELECT:g},target {ADAPTIVE_SELECT:g},{IN_USE},1"
+    )
+    print(
+        f"{'level,target,dilation,from,steps':32s} {'added':>7s} {'pixels':>7s}   "
+        + "   ".join(f"{n} median/p95/p99.9" for n in names)
+    )
     rows = [("first pass alone", np.ones(predicted.shape))]
-    rows += [(",".join(f"{x:g}" if isinstance(x, float) else str(x) for x in rule),
-              factors(predicted, tail, *rule, max_factor=int(data["max_factor"]))) for rule in rules]
+    rows += [
+        (
+            ",".join(f"{x:g}" if isinstance(x, float) else str(x) for x in rule),
+            factors(predicted, tail, *rule, max_factor=int(data["max_factor"])),
+        )
+        for rule in rules
+    ]
     for label, f in rows:
         figures = predict(data, f)
         added = float((f - 1.0).sum() / f.size)
-        print(f"{label:32s} {added:7.3f} {int((f > 1).sum()):7d}   " +
-              "   ".join(f"{m:.3f}/{p:.3f}/{t:.3f}" for m, p, t in figures))
+        print(
+            f"{label:32s} {added:7.3f} {int((f > 1).sum()):7d}   "
+            + "   ".join(f"{m:.3f}/{p:.3f}/{t:.3f}" for m, p, t in figures)
+        )
 
 
 def parse_rule(text: str) -> tuple:
     """'level,target,dilation,from[,steps]' -> the rule's tuple; a clear error naming what is wrong."""
     parts = text.split(",")
     if len(parts) not in (4, 5) or parts[2] not in FOOTPRINTS or (len(parts) == 5 and parts[4] not in STEPS):
-        raise SystemExit(f"--rule {text!r}: expected level,target,dilation,from[,steps] with dilation one of "
-                         f"{sorted(FOOTPRINTS)} and steps one of {list(STEPS)}, e.g. 1,1,box,1 or 1,1,cross,1,int")
+        raise SystemExit(
+            f"--rule {text!r}: expected level,target,dilation,from[,steps] with dilation one of "
+            f"{sorted(FOOTPRINTS)} and steps one of {list(STEPS)}, e.g. 1,1,box,1 or 1,1,cross,1,int"
+        )
     level, target, start = float(parts[0]), float(parts[1]), int(parts[3])
     if not (0 < target <= level) or start < 1:
         raise SystemExit(f"--rule {text!r}: expected 0 < target <= level and from >= 1")
@@ -123,8 +155,17 @@ def parse_rule(text: str) -> tuple:
 STEPS = ("pow2", "int")
 
 
-def factors(predicted: np.ndarray, tail_target: float, level: float, target: float, dilation: str, start: int,
-            steps: str = "pow2", *, max_factor: int) -> np.ndarray:
+def factors(
+    predicted: np.ndarray,
+    tail_target: float,
+    level: float,
+    target: float,
+    dilation: str,
+    start: int,
+    steps: str = "pow2",
+    *,
+    max_factor: int,
+) -> np.ndarray:
     """(H, W) factor of each pixel under a rule (module doc): 1 where it is not refined. The factors at
     2^``start`` or more spread to the neighbours of ``dilation``."""
     chosen = predicted > level * tail_target
@@ -136,8 +177,9 @@ def factors(predicted: np.ndarray, tail_target: float, level: float, target: flo
     else:
         fac[chosen] = np.clip(np.ceil(need), 2, max_factor)
     if FOOTPRINTS[dilation] is not None:
-        spread = grey_dilation(np.where(fac >= 2 ** start, fac, 0), footprint=FOOTPRINTS[dilation], mode="constant",
-                               cval=0)
+        spread = grey_dilation(
+            np.where(fac >= 2**start, fac, 0), footprint=FOOTPRINTS[dilation], mode="constant", cval=0
+        )
         fac = np.maximum(fac, spread)
     return fac
 
@@ -169,14 +211,20 @@ class Scout:
         self.kept: dict | None = None
         self.tiers: list | None = None
 
-    def __call__(self, mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e, tail_target, max_factor,
-                 scale=1.0, **kwargs):
+    def __call__(
+        self, mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e, tail_target, max_factor, scale=1.0, **kwargs
+    ):
         if self.tiers is None:
             worst = scout_ratio(mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e)
-            self.kept = {"scout_worst": worst, "scale": np.broadcast_to(np.asarray(scale, np.float64), worst.shape).copy(),
-                         "tail_target": float(tail_target), "max_factor": int(max_factor)}
-            self.tiers = tail_pixels(mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e, tail_target, max_factor,
-                                     scale, **kwargs)
+            self.kept = {
+                "scout_worst": worst,
+                "scale": np.broadcast_to(np.asarray(scale, np.float64), worst.shape).copy(),
+                "tail_target": float(tail_target),
+                "max_factor": int(max_factor),
+            }
+            self.tiers = tail_pixels(
+                mc_diff, buckets_e, k_e, reads, full_well_e, fd_full_well_e, tail_target, max_factor, scale, **kwargs
+            )
         return self.tiers
 
 
@@ -196,19 +244,28 @@ def render_inputs(config: str, size: str, seeds: list[int], sets: list[str]) -> 
         t0 = time.perf_counter()
         # both scout (the top-up judges the budget on the first run's choice, as a real run's does) and refine nothing
         overrides = [*base, f"seed={s}", "render.adaptive=true"]
-        with mock.patch.object(pipeline, "tail_pixels", scout), mock.patch.object(pipeline, "resolve_spp", samples), \
-                mock.patch.object(pipeline, "refine_tail", refine_nothing):
+        with (
+            mock.patch.object(pipeline, "tail_pixels", scout),
+            mock.patch.object(pipeline, "resolve_spp", samples),
+            mock.patch.object(pipeline, "refine_tail", refine_nothing),
+        ):
             runs.append(capture_in_memory(load_config(config, overrides), StageStatus(False)))
         print(f"seed {s}: {time.perf_counter() - t0:.0f} s, spp {runs[-1].plan.spp_label()}", flush=True)
     if scout.kept is None:
-        raise SystemExit(f"{config}: the first run made no scout (render.spp must be null and adaptive sampling apply: "
-                         f"{runs[0].report.get('adaptive')})")
+        raise SystemExit(
+            f"{config}: the first run made no scout (render.spp must be null and adaptive sampling apply: "
+            f"{runs[0].report.get('adaptive')})"
+        )
     cfg = runs[0].config
-    return {"e1": np.asarray(runs[0].reads_expected_e, np.float64), "e2": np.asarray(runs[1].reads_expected_e, np.float64),
-            "below1": below_full_well(runs[0], cfg.sensor.full_well_e),
-            "below2": below_full_well(runs[1], cfg.sensor.full_well_e),
-            "fd_full_well_e": float(cfg.sensor.fd_full_well_e),
-            "names": np.array([rd.name for rd in runs[0].timeline.reads]), **scout.kept}
+    return {
+        "e1": np.asarray(runs[0].reads_expected_e, np.float64),
+        "e2": np.asarray(runs[1].reads_expected_e, np.float64),
+        "below1": below_full_well(runs[0], cfg.sensor.full_well_e),
+        "below2": below_full_well(runs[1], cfg.sensor.full_well_e),
+        "fd_full_well_e": float(cfg.sensor.fd_full_well_e),
+        "names": np.array([rd.name for rd in runs[0].timeline.reads]),
+        **scout.kept,
+    }
 
 
 if __name__ == "__main__":

@@ -43,15 +43,31 @@ def main() -> None:
     ap.add_argument("--size", default="64x48")
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--seeds", type=int, default=40)
-    ap.add_argument("--tail-target", type=float, default=200.0,
-                    help="render.noise_budget_tail for the choice (the default capture's 1 chooses most of a "
-                         "small film at few samples; 200 chooses about 4 %% here, as the default capture does)")
-    ap.add_argument("--chooser", choices=("first", "scout"), default="scout",
-                    help="choose from the first pass's own differences, or from a scout of its own (a capture's way)")
+    ap.add_argument(
+        "--tail-target",
+        type=float,
+        default=200.0,
+        help="render.noise_budget_tail for the choice (the default capture's 1 chooses most of a "
+        "small film at few samples; 200 chooses about 4 %% here, as the default capture does)",
+    )
+    ap.add_argument(
+        "--chooser",
+        choices=("first", "scout"),
+        default="scout",
+        help="choose from the first pass's own differences, or from a scout of its own (a capture's way)",
+    )
     args = ap.parse_args()
     w, h = (int(x) for x in args.size.split("x"))
-    cfg = load_config(args.config, [f"render.width={w}", f"render.height={h}", f"render.spp={args.spp}",
-                                    "render.max_motion_px=4", "render.cache=off"])
+    cfg = load_config(
+        args.config,
+        [
+            f"render.width={w}",
+            f"render.height={h}",
+            f"render.spp={args.spp}",
+            "render.max_motion_px=4",
+            "render.cache=off",
+        ],
+    )
     _, timeline, plan, _ = prepare(cfg)
     renderer = Renderer.from_config(scene_of(cfg), cfg)
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
@@ -65,8 +81,17 @@ def main() -> None:
             scout_plan = replace(plan, spp=scout_spp(plan.spp, renderer.sample_count))
             chooser = integrate(renderer, scout_plan, timeline.n_buckets, np.random.SeedSequence(5000 + s))
             scale = float((scout_plan.spp / plan.spp).max())
-        tiers = tail_pixels(chooser.mc_diff, chooser.exposure * k_e, k_e, reads, cfg.sensor.full_well_e,
-                            cfg.sensor.fd_full_well_e, args.tail_target, cfg.render.adaptive_max_factor, scale)
+        tiers = tail_pixels(
+            chooser.mc_diff,
+            chooser.exposure * k_e,
+            k_e,
+            reads,
+            cfg.sensor.full_well_e,
+            cfg.sensor.fd_full_well_e,
+            args.tail_target,
+            cfg.render.adaptive_max_factor,
+            scale,
+        )
         mask = np.zeros(w * h, bool)
         for pixels, _ in tiers:
             mask[pixels] = True
@@ -78,15 +103,19 @@ def main() -> None:
     some = c.any(axis=0) & ~c.all(axis=0)  # where the choice varied between seeds
     left = (~c & some[None])[..., None] & np.ones_like(z, bool)
     taken = (c & some[None])[..., None] & np.ones_like(z, bool)
-    print(f"{args.config} at {args.size}, {args.spp} spp per stratum, {args.seeds} render seeds, chosen from "
-          f"{'a scout' if args.chooser == 'scout' else 'the first pass'}, tail target "
-          f"{args.tail_target}: {c.mean():.1%} of the pixels chosen on average, {some.mean():.1%} chosen in some "
-          "seeds but not all")
+    print(
+        f"{args.config} at {args.size}, {args.spp} spp per stratum, {args.seeds} render seeds, chosen from "
+        f"{'a scout' if args.chooser == 'scout' else 'the first pass'}, tail target "
+        f"{args.tail_target}: {c.mean():.1%} of the pixels chosen on average, {some.mean():.1%} chosen in some "
+        "seeds but not all"
+    )
     for name, m in (("left unrefined", left), ("chosen", taken)):
         d = z[m]
         if d.size:
-            print(f"  {name:15s} {d.size:7d} samples: {d.mean():+.3f} shot-noise sigma from their pixel's mean "
-                  f"(standard error {d.std() / np.sqrt(d.size):.3f})")
+            print(
+                f"  {name:15s} {d.size:7d} samples: {d.mean():+.3f} shot-noise sigma from their pixel's mean "
+                f"(standard error {d.std() / np.sqrt(d.size):.3f})"
+            )
 
 
 if __name__ == "__main__":

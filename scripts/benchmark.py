@@ -87,18 +87,28 @@ def timed_capture(overrides: list[str]) -> tuple[float, dict]:
 def equal_error(args) -> None:
     from mbcapture.converge import run_converge, write_outputs
 
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      [f"render.width={args.width}", f"render.height={args.height}", "capture.periods=64"])
-    res = run_converge(cfg, tuple(int(x) for x in args.ladder.split(",")), tuple(int(x) for x in args.naive_spp.split(",")),
-                       ref_spp=args.ref_spp)
+    cfg = load_config(
+        ROOT / "configs" / "metronome_hdr.yaml",
+        [f"render.width={args.width}", f"render.height={args.height}", "capture.periods=64"],
+    )
+    res = run_converge(
+        cfg,
+        tuple(int(x) for x in args.ladder.split(",")),
+        tuple(int(x) for x in args.naive_spp.split(",")),
+        ref_spp=args.ref_spp,
+    )
     out = ROOT / "out" / "benchmark_converge"
     write_outputs(res, out)
     for p in res["points"]:
-        print(f"    {p['method']:6s} spp {p['spp']:4d}: {p['passes']:4d} passes {p['seconds']:8.2f} s  error {p['error']:.3e}")
+        print(
+            f"    {p['method']:6s} spp {p['spp']:4d}: {p['passes']:4d} passes {p['seconds']:8.2f} s  error {p['error']:.3e}"
+        )
     for s in res["speedups"]:
-        print(f"[4] equal error {s['error']:.3e}: naive {s['naive_s']:.2f} s ({s['naive_spp']} spp per slot) vs planner "
-              f"{s['planner_s']:.2f} s: speed-up {s['speedup']:.1f}x{' (extrapolated)' if s['extrapolated'] else ''} "
-              f"(target >= 20x); slopes {res['slopes']}; plot {out}/converge.png")
+        print(
+            f"[4] equal error {s['error']:.3e}: naive {s['naive_s']:.2f} s ({s['naive_spp']} spp per slot) vs planner "
+            f"{s['planner_s']:.2f} s: speed-up {s['speedup']:.1f}x{' (extrapolated)' if s['extrapolated'] else ''} "
+            f"(target >= 20x); slopes {res['slopes']}; plot {out}/converge.png"
+        )
 
 
 def _budget_line(report: dict) -> str:
@@ -106,18 +116,22 @@ def _budget_line(report: dict) -> str:
     b = e.get("budget", {})
     adaptive = report.get("adaptive") or {}
     refined = f"; adaptive sampling refined {adaptive['pixels']} pixels" if adaptive.get("pixels") else ""
-    return (f"Monte Carlo / shot variance median {e.get('to_shot_noise_variance_median', float('nan')):.3g}, "
-            f"p95 {e.get('to_shot_noise_variance_p95', float('nan')):.3g}: {'within' if b.get('met') else 'NOT within'} "
-            f"the budget ({b.get('median_target')} / {b.get('p95_target')}); tail (p99.9) "
-            f"{e.get('to_shot_noise_variance_p999', float('nan')):.3g}: {'within' if b.get('tail_met') else 'NOT within'} "
-            f"its target {b.get('tail_target')}{refined}")
+    return (
+        f"Monte Carlo / shot variance median {e.get('to_shot_noise_variance_median', float('nan')):.3g}, "
+        f"p95 {e.get('to_shot_noise_variance_p95', float('nan')):.3g}: {'within' if b.get('met') else 'NOT within'} "
+        f"the budget ({b.get('median_target')} / {b.get('p95_target')}); tail (p99.9) "
+        f"{e.get('to_shot_noise_variance_p999', float('nan')):.3g}: {'within' if b.get('tail_met') else 'NOT within'} "
+        f"its target {b.get('tail_target')}{refined}"
+    )
 
 
 def _split(seconds: float, report: dict) -> str:
     c, t = report["render_cache"], report["timings_s"]
     render = t.get("render", 0.0) + t.get("pilot", 0.0)
-    return (f"{c['rendered']} renders rendered, {c['hits']} reused; render + pilot {render:.1f} s, "
-            f"the rest {seconds - render:.1f} s")
+    return (
+        f"{c['rendered']} renders rendered, {c['hits']} reused; render + pilot {render:.1f} s, "
+        f"the rest {seconds - render:.1f} s"
+    )
 
 
 def budget_and_cache(args) -> None:
@@ -127,26 +141,40 @@ def budget_and_cache(args) -> None:
     with tempfile.TemporaryDirectory() as cache:
         film = [f"render.width={w}", f"render.height={h}", f"render.cache={cache}"]
         t_cold, cold = timed_capture(film)
-        print(f"[5] {w}x{h}, empty cache: {t_cold:.1f} s (target <= 180 s), {cold['plan']['passes']} passes x "
-              f"{cold['plan']['spp_range']} spp; {_budget_line(cold)}")
+        print(
+            f"[5] {w}x{h}, empty cache: {t_cold:.1f} s (target <= 180 s), {cold['plan']['passes']} passes x "
+            f"{cold['plan']['spp_range']} spp; {_budget_line(cold)}"
+        )
         print(f"    cost split: {_split(t_cold, cold)}")
         # the issue's baseline: the default capture of the code whose budget judged buckets, pilot included
         t_old = bucket_budget_capture(w, h)
         if t_old is not None:
-            print(f"[5] the bucket budget's code ({BUCKET_BUDGET_COMMIT[:7]}), the same capture cold in this run: "
-                  f"{t_old[0]:.1f} s ({t_old[1]}); today's over it: {t_cold / t_old[0]:.2f}x (target <= 1)")
+            print(
+                f"[5] the bucket budget's code ({BUCKET_BUDGET_COMMIT[:7]}), the same capture cold in this run: "
+                f"{t_old[0]:.1f} s ({t_old[1]}); today's over it: {t_cold / t_old[0]:.2f}x (target <= 1)"
+            )
             if args.budget_pairs > 1:
                 budget_pairs(args.budget_pairs, w, h, (t_cold, t_old[0]))
         # the same code at the samples the bucket budget chose (their middle), without a pilot: what the reads'
         # extra samples cost
         with tempfile.TemporaryDirectory() as cache_b:
-            t_bucket, bucket = timed_capture([f"render.width={w}", f"render.height={h}", f"render.cache={cache_b}",
-                                              f"render.spp={BUCKET_BUDGET_SPP}"])
-        print(f"[5] today's code at the bucket budget's samples without a pilot (render.spp={BUCKET_BUDGET_SPP}, "
-              f"empty cache): {t_bucket:.1f} s; the read budget over it: {t_cold / t_bucket:.2f}x")
+            t_bucket, bucket = timed_capture(
+                [
+                    f"render.width={w}",
+                    f"render.height={h}",
+                    f"render.cache={cache_b}",
+                    f"render.spp={BUCKET_BUDGET_SPP}",
+                ]
+            )
+        print(
+            f"[5] today's code at the bucket budget's samples without a pilot (render.spp={BUCKET_BUDGET_SPP}, "
+            f"empty cache): {t_bucket:.1f} s; the read budget over it: {t_cold / t_bucket:.2f}x"
+        )
         t_warm, warm = timed_capture([*film, "sensor.read_noise_e=5"])
-        print(f"[5] the same with sensor.read_noise_e=5: {t_warm:.1f} s (target <= 15 s), "
-              f"{warm['render_cache']['rendered']} renders rendered (target 0); ratio warm / cold {t_warm / t_cold:.3f}")
+        print(
+            f"[5] the same with sensor.read_noise_e=5: {t_warm:.1f} s (target <= 15 s), "
+            f"{warm['render_cache']['rendered']} renders rendered (target 0); ratio warm / cold {t_warm / t_cold:.3f}"
+        )
         print(f"    cost split: {_split(t_warm, warm)}")
 
 
@@ -160,6 +188,7 @@ def budget_pairs(n: int, w: int, h: int, first: tuple[float, float]) -> None:
     pairs = [first]
     for i in range(1, n):
         with tempfile.TemporaryDirectory() as cache:
+
             def today() -> float:
                 return timed_capture([f"render.width={w}", f"render.height={h}", f"render.cache={cache}"])[0]
 
@@ -172,11 +201,15 @@ def budget_pairs(n: int, w: int, h: int, first: tuple[float, float]) -> None:
         if t_old is None:
             return
         pairs.append((t_new, t_old[0]))
-        print(f"[5] pair {i + 1} ({'old' if i % 2 else 'today'}'s first): today's {t_new:.1f} s, the bucket "
-              f"budget's {t_old[0]:.1f} s: {t_new / t_old[0]:.2f}x")
+        print(
+            f"[5] pair {i + 1} ({'old' if i % 2 else 'today'}'s first): today's {t_new:.1f} s, the bucket "
+            f"budget's {t_old[0]:.1f} s: {t_new / t_old[0]:.2f}x"
+        )
     new, old = np.median([p[0] for p in pairs]), np.median([p[1] for p in pairs])
-    print(f"[5] {n} pairs, order alternating: today's median {new:.1f} s, the bucket budget's {old:.1f} s: "
-          f"{new / old:.2f}x (target <= 1); the pairs' ratios {', '.join(f'{a / b:.2f}' for a, b in pairs)}")
+    print(
+        f"[5] {n} pairs, order alternating: today's median {new:.1f} s, the bucket budget's {old:.1f} s: "
+        f"{new / old:.2f}x (target <= 1); the pairs' ratios {', '.join(f'{a / b:.2f}' for a, b in pairs)}"
+    )
 
 
 def bucket_budget_capture(w: int, h: int) -> tuple[float, str] | None:
@@ -191,18 +224,22 @@ def bucket_budget_capture(w: int, h: int) -> tuple[float, str] | None:
     with tempfile.TemporaryDirectory() as tmp, tempfile.TemporaryDirectory() as cache:
         archive = subprocess.run(["git", "-C", str(ROOT), "archive", BUCKET_BUDGET_COMMIT], capture_output=True)
         if archive.returncode != 0:
-            print(f"[5] the bucket budget's code: not timed (git archive {BUCKET_BUDGET_COMMIT[:7]}: "
-                  f"{archive.stderr.decode(errors='replace').strip() or 'failed'})")
+            print(
+                f"[5] the bucket budget's code: not timed (git archive {BUCKET_BUDGET_COMMIT[:7]}: "
+                f"{archive.stderr.decode(errors='replace').strip() or 'failed'})"
+            )
             return None
         subprocess.run(["tar", "-x", "-C", tmp], input=archive.stdout, check=True)
-        code = ("import json, time\n"
-                "from mbcapture import load_config, run_capture\n"
-                f"cfg = load_config('configs/metronome_hdr.yaml', ['render.width={w}', 'render.height={h}', "
-                f"'render.cache={cache}'])\n"
-                "t0 = time.perf_counter()\n"
-                "r = run_capture(cfg, progress=False)\n"
-                "plan = r.report['plan']\n"
-                "print(json.dumps([time.perf_counter() - t0, plan['passes'], plan.get('spp_range', plan['spp'])]))\n")
+        code = (
+            "import json, time\n"
+            "from mbcapture import load_config, run_capture\n"
+            f"cfg = load_config('configs/metronome_hdr.yaml', ['render.width={w}', 'render.height={h}', "
+            f"'render.cache={cache}'])\n"
+            "t0 = time.perf_counter()\n"
+            "r = run_capture(cfg, progress=False)\n"
+            "plan = r.report['plan']\n"
+            "print(json.dumps([time.perf_counter() - t0, plan['passes'], plan.get('spp_range', plan['spp'])]))\n"
+        )
         env = {**os.environ, "PYTHONPATH": tmp}
         run = subprocess.run([sys.executable, "-c", code], cwd=tmp, env=env, capture_output=True, text=True)
         if run.returncode != 0:
@@ -217,19 +254,30 @@ def compare(args) -> None:
     import tempfile
 
     w, h = (int(x) for x in args.compare_film.split("x"))
-    rows = [("independent", "independent"), ("multijitter", "independent"), ("ldsampler", "independent"),
-            ("multijitter", "difference")]
+    rows = [
+        ("independent", "independent"),
+        ("multijitter", "independent"),
+        ("ldsampler", "independent"),
+        ("multijitter", "difference"),
+    ]
     for sampler, estimator in rows:
         with tempfile.TemporaryDirectory() as cache:
-            film = [f"render.width={w}", f"render.height={h}", f"render.cache={cache}",
-                    f"render.sampler={sampler}", f"render.estimator={estimator}"]
+            film = [
+                f"render.width={w}",
+                f"render.height={h}",
+                f"render.cache={cache}",
+                f"render.sampler={sampler}",
+                f"render.estimator={estimator}",
+            ]
             t1, r1 = timed_capture(film)
             t2, r2 = timed_capture([*film, "capture.protocol=interleaved_hdr"])
             p = r1["plan"]
-            print(f"[6] {sampler:11s} {estimator:11s}: spp {p['spp_range']}"
-                  f"{' + base ' + str(p['base_spp']) if p.get('base_spp') else ''}, {t1:.1f} s; {_budget_line(r1)}; "
-                  f"then interleaved_hdr on the warm cache {t2:.1f} s ({r2['render_cache']['hits']} renders reused, "
-                  f"{r2['render_cache']['rendered']} rendered)")
+            print(
+                f"[6] {sampler:11s} {estimator:11s}: spp {p['spp_range']}"
+                f"{' + base ' + str(p['base_spp']) if p.get('base_spp') else ''}, {t1:.1f} s; {_budget_line(r1)}; "
+                f"then interleaved_hdr on the warm cache {t2:.1f} s ({r2['render_cache']['hits']} renders reused, "
+                f"{r2['render_cache']['rendered']} rendered)"
+            )
 
 
 def _timed_command(args: list[str]) -> float:
@@ -259,22 +307,37 @@ def sweep_cost(args) -> None:
         (tmp / "first.yaml").write_text(yaml.safe_dump(data))
         t_run = _timed_command(["run", str(tmp / "first.yaml"), "--quiet", "--out", str(tmp / "run")])
         where = ["--workers", str(args.sweep_workers)] if args.sweep_workers else []  # none: the sweep's own choice
-        t_sweep = _timed_command(["sweep", "sensor_noise", *film, "--set", f"render.cache={tmp / 'cache_sweep'}",
-                                  *where, "--out", str(tmp / "sweep"), "--quiet"])
+        t_sweep = _timed_command(
+            [
+                "sweep",
+                "sensor_noise",
+                *film,
+                "--set",
+                f"render.cache={tmp / 'cache_sweep'}",
+                *where,
+                "--out",
+                str(tmp / "sweep"),
+                "--quiet",
+            ]
+        )
         table = pd.read_parquet(tmp / "sweep" / "results.parquet")
         summary = json.loads((tmp / "sweep" / "sweep.json").read_text())["summary"]
         report = json.loads((tmp / "run" / "report.json").read_text())
     lead = table[~table["render_shared"].astype(bool)]
     rest = table[table["render_shared"].astype(bool)]
-    print(f"[7] {w}x{h}: `mbcapture run` of the sweep's first point {t_run:.1f} s ({report['plan']['passes']} passes x "
-          f"{report['plan']['spp']} spp, capture {report['timings_s']['total_before_write']:.1f} s of it); "
-          f"`mbcapture sweep sensor_noise` ({len(table)} points, {summary['render_groups']} render group, "
-          f"{summary['executor']}) {t_sweep:.1f} s: ratio {t_sweep / t_run:.2f} (target <= 1.5)")
-    print(f"    in the sweep: the group's first point {lead['seconds'].sum():.1f} s ({summary['renders_rendered']} renders "
-          f"rendered), the other {len(rest)} points {rest['seconds'].mean():.2f} s each (sensor "
-          f"{rest['timings_s.sensor'].mean():.2f} s, reconstruct {rest['timings_s.reconstruct'].mean():.2f} s), "
-          f"{rest['seconds'].sum():.1f} s in all over the workers; the rest (start, cluster, planning, results) "
-          f"{t_sweep - summary['wall_s']:.1f} s outside the sweep's own {summary['wall_s']:.1f} s")
+    print(
+        f"[7] {w}x{h}: `mbcapture run` of the sweep's first point {t_run:.1f} s ({report['plan']['passes']} passes x "
+        f"{report['plan']['spp']} spp, capture {report['timings_s']['total_before_write']:.1f} s of it); "
+        f"`mbcapture sweep sensor_noise` ({len(table)} points, {summary['render_groups']} render group, "
+        f"{summary['executor']}) {t_sweep:.1f} s: ratio {t_sweep / t_run:.2f} (target <= 1.5)"
+    )
+    print(
+        f"    in the sweep: the group's first point {lead['seconds'].sum():.1f} s ({summary['renders_rendered']} renders "
+        f"rendered), the other {len(rest)} points {rest['seconds'].mean():.2f} s each (sensor "
+        f"{rest['timings_s.sensor'].mean():.2f} s, reconstruct {rest['timings_s.reconstruct'].mean():.2f} s), "
+        f"{rest['seconds'].sum():.1f} s in all over the workers; the rest (start, cluster, planning, results) "
+        f"{t_sweep - summary['wall_s']:.1f} s outside the sweep's own {summary['wall_s']:.1f} s"
+    )
 
 
 def sweep_workers(args) -> None:
@@ -286,14 +349,31 @@ def sweep_workers(args) -> None:
     times = {}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        spec = {"base": "metronome_hdr", "set": {"render.width": w, "render.height": h, "render.spp": 32},
-                "axes": {"grid": {"seed": [0, 1, 2, 3]}}, "keep": "none"}
+        spec = {
+            "base": "metronome_hdr",
+            "set": {"render.width": w, "render.height": h, "render.spp": 32},
+            "axes": {"grid": {"seed": [0, 1, 2, 3]}},
+            "keep": "none",
+        }
         (tmp / "seeds.yaml").write_text(yaml.safe_dump(spec))
         for n in (1, 2):
-            times[n] = _timed_command(["sweep", str(tmp / "seeds.yaml"), "--set", f"render.cache={tmp / f'cache{n}'}",
-                                       "--workers", str(n), "--out", str(tmp / f"out{n}"), "--quiet"])
-    print(f"[8] {w}x{h}, 4 seeds at 32 spp (4 render groups): 1 worker {times[1]:.1f} s, 2 workers {times[2]:.1f} s: "
-          f"speed-up {times[1] / times[2]:.2f}x")
+            times[n] = _timed_command(
+                [
+                    "sweep",
+                    str(tmp / "seeds.yaml"),
+                    "--set",
+                    f"render.cache={tmp / f'cache{n}'}",
+                    "--workers",
+                    str(n),
+                    "--out",
+                    str(tmp / f"out{n}"),
+                    "--quiet",
+                ]
+            )
+    print(
+        f"[8] {w}x{h}, 4 seeds at 32 spp (4 render groups): 1 worker {times[1]:.1f} s, 2 workers {times[2]:.1f} s: "
+        f"speed-up {times[1] / times[2]:.2f}x"
+    )
 
 
 def _child_capture(sets: list[str], workers: int | None) -> dict:
@@ -321,9 +401,20 @@ print(json.dumps({"wall_s": wall, "peak_bytes": peak_rss_bytes(), "planned_gb": 
                   * sum(s["spp"] for s in rep["plan"]["strata"])}))
 """
     with tempfile.TemporaryDirectory() as tmp:
-        proc = subprocess.run([sys.executable, "-c", child, str(ROOT / "configs" / "sensor_12mp.yaml"),
-                               str(Path(tmp) / "out"), str(workers or 0), *sets],
-                              capture_output=True, text=True, cwd=ROOT)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                child,
+                str(ROOT / "configs" / "sensor_12mp.yaml"),
+                str(Path(tmp) / "out"),
+                str(workers or 0),
+                *sets,
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
     if proc.returncode != 0:
         raise SystemExit(f"[9] {' '.join(sets)} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -340,14 +431,18 @@ def big_sensor(args) -> None:
     cores = usable_cores()
     for name, r in runs.items():
         rate = r["samples"] / max(r["render_s"], 1e-9) / cores
-        print(f"[9] 4096x3072, {args.big_spp} spp, strata of {args.big_motion_px} px, {name}: {r['tiles']} tiles, peak memory "
-              f"{r['peak_bytes'] / 2**30:.2f} GiB (planned {r['planned_gb']:.2f} GB, ratio "
-              f"{r['peak_bytes'] / 2**30 / r['planned_gb']:.2f}), {r['wall_s']:.0f} s, render "
-              f"{rate / 1e6:.2f} M samples/s per core ({cores} cores)")
+        print(
+            f"[9] 4096x3072, {args.big_spp} spp, strata of {args.big_motion_px} px, {name}: {r['tiles']} tiles, peak memory "
+            f"{r['peak_bytes'] / 2**30:.2f} GiB (planned {r['planned_gb']:.2f} GB, ratio "
+            f"{r['peak_bytes'] / 2**30 / r['planned_gb']:.2f}), {r['wall_s']:.0f} s, render "
+            f"{rate / 1e6:.2f} M samples/s per core ({cores} cores)"
+        )
     t = runs["tiled"]["wall_s"]
-    print(f"[9] speed-up over the tiled run here: 1 worker {t / runs['tiled, 1 worker']['wall_s']:.2f}x, "
-          f"2 workers {t / runs['tiled, 2 workers']['wall_s']:.2f}x; tiled / untiled peak memory "
-          f"{runs['tiled']['peak_bytes'] / runs['untiled']['peak_bytes']:.2f}")
+    print(
+        f"[9] speed-up over the tiled run here: 1 worker {t / runs['tiled, 1 worker']['wall_s']:.2f}x, "
+        f"2 workers {t / runs['tiled, 2 workers']['wall_s']:.2f}x; tiled / untiled peak memory "
+        f"{runs['tiled']['peak_bytes'] / runs['untiled']['peak_bytes']:.2f}"
+    )
 
 
 #: Each measure's name in docs/benchmarks.md (the docstring above says what it does and its target).
@@ -401,17 +496,26 @@ def machine() -> dict:
     differs from it)."""
     cpu = platform.processor() or platform.machine()
     with contextlib.suppress(OSError):
-        names = [ln.split(":", 1)[1].strip() for ln in Path("/proc/cpuinfo").read_text().splitlines()
-                 if ln.startswith("model name")]
+        names = [
+            ln.split(":", 1)[1].strip()
+            for ln in Path("/proc/cpuinfo").read_text().splitlines()
+            if ln.startswith("model name")
+        ]
         cpu = names[0] if names else cpu
+
     def git(*args: str) -> str:
         run = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True)
         return run.stdout.strip() if run.returncode == 0 else ""
+
     commit = git("rev-parse", "--short", "HEAD") or "unknown"
     if git("status", "--porcelain", "--untracked-files=no"):
         commit += " (with uncommitted changes)"
-    return {"date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "cpu": cpu, "cores": os.cpu_count(),
-            "commit": commit}
+    return {
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "commit": commit,
+    }
 
 
 def record(lines: dict[int, list[str]], command: str, path: Path = RECORD) -> dict:
@@ -426,19 +530,29 @@ def record(lines: dict[int, list[str]], command: str, path: Path = RECORD) -> di
 
 def page(data: dict) -> str:
     """docs/benchmarks.md from the record: each measure's latest run, where and how it ran, what it printed."""
-    out = ["# Benchmarks", "",
-           "Written by `python scripts/benchmark.py` from `docs/benchmarks.json`: the latest run of each measure,",
-           "ratios measured within one run (the machines are shared and noisy). What each measure does and its",
-           "target are in the script's docstring; older runs are in git history. Run a measure again to replace",
-           "its entry; `--write-docs` rewrites this page from the record without running anything.", ""]
+    out = [
+        "# Benchmarks",
+        "",
+        "Written by `python scripts/benchmark.py` from `docs/benchmarks.json`: the latest run of each measure,",
+        "ratios measured within one run (the machines are shared and noisy). What each measure does and its",
+        "target are in the script's docstring; older runs are in git history. Run a measure again to replace",
+        "its entry; `--write-docs` rewrites this page from the record without running anything.",
+        "",
+    ]
     for n, title in TITLES.items():
         out += [f"## [{n}] {title}", ""]
         entry = data.get(str(n))
         if entry is None:
             out += [f"Not recorded yet: `python scripts/benchmark.py --only {n}`.", ""]
             continue
-        out += [f"{entry['date']}, {entry['cpu']}, {entry['cores']} cores, commit {entry['commit']}: "
-                f"`{entry['command']}`", "", "```text", *entry["lines"], "```", ""]
+        out += [
+            f"{entry['date']}, {entry['cpu']}, {entry['cores']} cores, commit {entry['commit']}: `{entry['command']}`",
+            "",
+            "```text",
+            *entry["lines"],
+            "```",
+            "",
+        ]
     return "\n".join(out)
 
 
@@ -452,19 +566,28 @@ def main() -> None:
     ap.add_argument("--naive-spp", default="1,2", help="[4] naive spp per slot")
     ap.add_argument("--ref-spp", type=int, default=256, help="[4] reference spp")
     ap.add_argument("--budget-film", default="640x512", help="[5] film, WxH")
-    ap.add_argument("--budget-pairs", type=int, default=1,
-                    help="[5] pairs of (today's capture, the bucket budget's) in alternating order; their medians' ratio")
+    ap.add_argument(
+        "--budget-pairs",
+        type=int,
+        default=1,
+        help="[5] pairs of (today's capture, the bucket budget's) in alternating order; their medians' ratio",
+    )
     ap.add_argument("--compare-film", default="160x128", help="[6] film, WxH")
     ap.add_argument("--sweep-film", default="320x256", help="[7], [8] film, WxH")
-    ap.add_argument("--sweep-workers", type=int, default=None,
-                    help="[7] local Dask workers (default: none given, the sweep chooses: this process for one render set)")
+    ap.add_argument(
+        "--sweep-workers",
+        type=int,
+        default=None,
+        help="[7] local Dask workers (default: none given, the sweep chooses: this process for one render set)",
+    )
     ap.add_argument("--big-spp", type=int, default=2, help="[9] samples per stratum at 4096x3072")
     ap.add_argument("--big-motion-px", type=float, default=2.0, help="[9] render.max_motion_px at 4096x3072")
     ap.add_argument("--big-tiles", type=int, default=12, help="[9] render.tiles of the tiled runs")
     ap.add_argument("--only", default="1,2,3,4,5,6,7,8", help="which benchmarks to run, e.g. 4 ([9] only when named)")
     ap.add_argument("--no-record", action="store_true", help="print only: leave docs/benchmarks.json and .md alone")
-    ap.add_argument("--write-docs", action="store_true", help="write docs/benchmarks.md from docs/benchmarks.json, "
-                    "run nothing")
+    ap.add_argument(
+        "--write-docs", action="store_true", help="write docs/benchmarks.md from docs/benchmarks.json, run nothing"
+    )
     args = ap.parse_args()
     if args.write_docs:
         PAGE.write_text(page(json.loads(RECORD.read_text()) if RECORD.is_file() else {}))
@@ -506,8 +629,10 @@ def measure(args) -> None:
             runs[periods].append(timed_capture(film + [f"capture.periods={periods}"]))
     t4, r4 = min(runs[4], key=lambda x: x[0])
     t1024, r1024 = min(runs[1024], key=lambda x: x[0])
-    print(f"[1] periods 4: {t4:.2f} s ({r4['plan']['passes']} passes); periods 1024: {t1024:.2f} s "
-          f"({r1024['plan']['passes']} passes); ratio {t1024 / t4:.3f} (target <= 1.2; slots grew 256x)")
+    print(
+        f"[1] periods 4: {t4:.2f} s ({r4['plan']['passes']} passes); periods 1024: {t1024:.2f} s "
+        f"({r1024['plan']['passes']} passes); ratio {t1024 / t4:.3f} (target <= 1.2; slots grew 256x)"
+    )
 
     # [2] raw mi.render of the same passes x spp, through the same scene object
     from mbcapture import scenes
@@ -526,9 +651,11 @@ def measure(args) -> None:
         raw.append(time.perf_counter() - t0)
     t_raw = min(raw)
     t_pipe = r4["timings_s"]["render"] + r4["timings_s"]["accumulate"]
-    print(f"[2] pipeline render+accumulate {t_pipe:.2f} s (render {r4['timings_s']['render']:.2f} s, accumulate "
-          f"{r4['timings_s']['accumulate']:.2f} s) vs raw mi.render 'path' {t_raw:.2f} s for "
-          f"{len(times)} passes x {args.spp} spp: ratio {t_pipe / t_raw:.2f} (target <= 1.25)")
+    print(
+        f"[2] pipeline render+accumulate {t_pipe:.2f} s (render {r4['timings_s']['render']:.2f} s, accumulate "
+        f"{r4['timings_s']['accumulate']:.2f} s) vs raw mi.render 'path' {t_raw:.2f} s for "
+        f"{len(times)} passes x {args.spp} spp: ratio {t_pipe / t_raw:.2f} (target <= 1.25)"
+    )
     # the same samples buy different errors: the per-group integrator estimates direct light from every
     # emitter at each vertex, 'path' from one chosen at random. Per-pixel variance over 4 seeds of the same
     # image (every group summed, against 'path' with every group on), at the middle stratum's time
@@ -539,10 +666,12 @@ def measure(args) -> None:
     v_ours, v_path = ours.var(axis=0, ddof=1)[lit], path.var(axis=0, ddof=1)[lit]
     rel = lambda v, a: float(np.median(v / a.mean(axis=0)[lit] ** 2))  # noqa: E731
     mean_gain, median_gain = v_path.mean() / v_ours.mean(), rel(v_path, path) / rel(v_ours, ours)
-    print(f"[2] at equal samples 'path' has {mean_gain:.2f}x the per-group integrator's variance over the lit samples "
-          f"(mean) and {median_gain:.1f}x at the median sample (relative variance); the cost at equal error, "
-          f"pipeline over 'path': {t_pipe / t_raw / mean_gain:.2f} (mean variance), "
-          f"{t_pipe / t_raw / median_gain:.2f} (median)")
+    print(
+        f"[2] at equal samples 'path' has {mean_gain:.2f}x the per-group integrator's variance over the lit samples "
+        f"(mean) and {median_gain:.1f}x at the median sample (relative variance); the cost at equal error, "
+        f"pipeline over 'path': {t_pipe / t_raw / mean_gain:.2f} (mean variance), "
+        f"{t_pipe / t_raw / median_gain:.2f} (median)"
+    )
 
     # what the guides cost per sample (render.guide_fraction, the scene's guides): the same render with and
     # without them, alternating, the fastest of each (the pipeline's figures above include them)
@@ -556,13 +685,17 @@ def measure(args) -> None:
                 renderer.render(t_mid, 4 * args.spp, 1)
                 best[name] = min(best[name], time.perf_counter() - t0)
         renderer._integrator.guides = guided
-        print(f"[2] guides (render.guide_fraction {renderer.guide_fraction:.3g}): a render {best['guided']:.2f} s with them, "
-              f"{best['plain']:.2f} s without: {best['guided'] / best['plain']:.3f}x")
+        print(
+            f"[2] guides (render.guide_fraction {renderer.guide_fraction:.3g}): a render {best['guided']:.2f} s with them, "
+            f"{best['plain']:.2f} s without: {best['guided'] / best['plain']:.3f}x"
+        )
 
     stages = r4["timings_s"]
     share = (stages["sensor"] + stages["reconstruct"]) / stages["total_before_write"]
-    print(f"[3] sensor {stages['sensor']:.3f} s + reconstruct {stages['reconstruct']:.3f} s of "
-          f"{stages['total_before_write']:.2f} s total: {100 * share:.1f} % (target <= 10 %)")
+    print(
+        f"[3] sensor {stages['sensor']:.3f} s + reconstruct {stages['reconstruct']:.3f} s of "
+        f"{stages['total_before_write']:.2f} s total: {100 * share:.1f} % (target <= 10 %)"
+    )
     print(f"film {args.width}x{args.height}, spp {args.spp}, numpy {np.__version__}")
 
 

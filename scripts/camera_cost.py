@@ -21,11 +21,21 @@ from mbcapture.render import Renderer
 from mbcapture.sensor import simulate_reads
 
 FILM = ["render.width=640", "render.height=512"]
-LENS = {"pinhole": [], "thin lens": ["camera.lens=thin"], "cos4 vignetting": ["camera.vignetting=cos4"],
-        "diffraction": ["camera.diffraction=true"], "distortion": ["camera.distortion=[-0.1]"],
-        "mono sensor": ["sensor.cfa=mono"]}
-FPN = ["sensor.prnu_row=0.004", "sensor.prnu_col=0.003", "sensor.dsnu_row_e=0.6", "sensor.dsnu_col_e=0.8",
-       "sensor.read_noise_row_e=0.5"]
+LENS = {
+    "pinhole": [],
+    "thin lens": ["camera.lens=thin"],
+    "cos4 vignetting": ["camera.vignetting=cos4"],
+    "diffraction": ["camera.diffraction=true"],
+    "distortion": ["camera.distortion=[-0.1]"],
+    "mono sensor": ["sensor.cfa=mono"],
+}
+FPN = [
+    "sensor.prnu_row=0.004",
+    "sensor.prnu_col=0.003",
+    "sensor.dsnu_row_e=0.6",
+    "sensor.dsnu_col_e=0.8",
+    "sensor.read_noise_row_e=0.5",
+]
 
 
 def best(fn, repeats: int) -> float:
@@ -54,9 +64,14 @@ def main() -> None:
     expected = np.random.default_rng(0).uniform(0, 4000, (4, 512, 640, 3))
     reads = [(3,), (3, 2), (3, 2, 1), (3, 2, 1, 0)]
     sensor = {}
-    stages = {"pixel fixed pattern": [], "+ row/column and row noise": FPN,
-              **{f"Bayer RGGB, {m}": ["sensor.cfa=RGGB", f"sensor.demosaic={m}"]
-                 for m in ("bilinear", "malvar2004", "menon2007")}}
+    stages = {
+        "pixel fixed pattern": [],
+        "+ row/column and row noise": FPN,
+        **{
+            f"Bayer RGGB, {m}": ["sensor.cfa=RGGB", f"sensor.demosaic={m}"]
+            for m in ("bilinear", "malvar2004", "menon2007")
+        },
+    }
     for name, extra in stages.items():
         cfg = load_config("metronome_hdr", FILM + extra).sensor
         sensor[name] = best(lambda i: simulate_reads(expected, reads, cfg, 10 + i, storage_s=[0.008] * 4), args.repeats)

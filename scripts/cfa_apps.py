@@ -18,8 +18,18 @@ from mbcapture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ["metronome_hdr", "moving_light", "flash_no_flash", "multi_flash", "flash_matting", "rgb_illumination",
-           "structured_light", "flutter_shutter", "metronome_shake", "camera_full"]  # a coded capture refuses a mosaic
+CONFIGS = [
+    "metronome_hdr",
+    "moving_light",
+    "flash_no_flash",
+    "multi_flash",
+    "flash_matting",
+    "rgb_illumination",
+    "structured_light",
+    "flutter_shutter",
+    "metronome_shake",
+    "camera_full",
+]  # a coded capture refuses a mosaic
 #: The images that are not radiance (their sign means nothing here).
 NOT_RADIANCE = ("sigma", "diff", "error", "delta_e", "alpha", "phase", "depth", "code", "valid", "moving", "mask")
 
@@ -58,13 +68,17 @@ def main() -> None:
     for name in args.configs:
         row = {}
         for cfa in ("none", "RGGB"):
-            cfg = load_config(ROOT / "configs" / f"{name}.yaml", [f"render.width={w}", f"render.height={h}",
-                                                                   f"render.spp={args.spp}", f"sensor.cfa={cfa}"])
+            cfg = load_config(
+                ROOT / "configs" / f"{name}.yaml",
+                [f"render.width={w}", f"render.height={h}", f"render.spp={args.spp}", f"sensor.cfa={cfa}"],
+            )
             result = capture_in_memory(cfg, StageStatus(False))
             row[cfa] = {"metrics": dict(scores(result.report["metrics"])), "negative": negatives(result.images)}
         table[name] = row
-        print(f"{name}  (negative valid samples: none {row['none']['negative'] or 0}, "
-              f"RGGB {row['RGGB']['negative'] or 0})")
+        print(
+            f"{name}  (negative valid samples: none {row['none']['negative'] or 0}, "
+            f"RGGB {row['RGGB']['negative'] or 0})"
+        )
         for key, plain in row["none"]["metrics"].items():
             bayer = row["RGGB"]["metrics"].get(key)
             print(f"    {key:<52} {plain:10.4g} {bayer if bayer is None else format(bayer, '10.4g')}")

@@ -29,8 +29,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     args = ap.parse_args()
     w, h = args.size.split("x")
-    cfg = load_config(args.config, [f"render.width={w}", f"render.height={h}", f"render.spp={args.spp}",
-                                    "render.cache=off"])
+    cfg = load_config(
+        args.config, [f"render.width={w}", f"render.height={h}", f"render.spp={args.spp}", "render.cache=off"]
+    )
     capture_in_memory(cfg, StageStatus(False))  # compiles this process's kernels
     t = time.perf_counter()
     here = capture_in_memory(cfg, StageStatus(False))
@@ -49,8 +50,10 @@ def main() -> None:
             client.close()
             cluster.close()
         same = np.array_equal(res.reads_dn, here.reads_dn)
-        print(f"  {n} worker(s)       {s:7.2f} s   x{base / s:.2f} speed-up  (renders on the cluster "
-              f"{res.report['cluster']['seconds']:.2f} s; identical to here: {same})")
+        print(
+            f"  {n} worker(s)       {s:7.2f} s   x{base / s:.2f} speed-up  (renders on the cluster "
+            f"{res.report['cluster']['seconds']:.2f} s; identical to here: {same})"
+        )
 
 
 if __name__ == "__main__":

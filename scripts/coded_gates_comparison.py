@@ -32,8 +32,11 @@ CAPTURES = [
     ("(b) 2 buckets, Hadamard code", CODED, []),
     ("(b) 2 buckets, one-hot code", CODED, ["capture.gate_code.family=one_hot"]),
     ("(b) 2 buckets, random code", CODED, ["capture.gate_code.family=random"]),
-    ("(b) 2 buckets, Hadamard, 10 000 e- buckets", CODED, ["sensor.full_well_e=10000", "sensor.fd_full_well_e=40000",
-                                                          "sensor.gain_dn_per_e=0.4"]),
+    (
+        "(b) 2 buckets, Hadamard, 10 000 e- buckets",
+        CODED,
+        ["sensor.full_well_e=10000", "sensor.fd_full_well_e=40000", "sensor.gain_dn_per_e=0.4"],
+    ),
     ("(c) 5 sequential frames", MF, ["capture.sequential=true"]),
 ]
 
@@ -47,18 +50,22 @@ def row(name: str, res) -> str:
     de, sf, pl, nm = m["depth_edges"], m["shadow_free"], m["per_light"], m["normals"]
     mov = de.get("moving_region", {})
     spp = res.plan.spp
-    return (f"| {name} | {_fmt(pl['mean_nrmse'], '.4f')} / {_fmt(pl.get('mean_nrmse_moving'), '.4f')} "
-            f"| {_fmt(de['all']['f1'])} / {_fmt(mov.get('f1'))} | {sf['rel_mse']:.4f} "
-            f"| {100 * sf.get('residual_shadow_fraction', 0.0):.2f} % "
-            f"| {_fmt(nm.get('median_deg'), '.2f')} / {_fmt(nm.get('median_deg_moving'), '.2f')} "
-            f"| {m['saturated_px']} | {res.plan.passes} x {int(spp.max())} = {int(spp.sum())} |")
+    return (
+        f"| {name} | {_fmt(pl['mean_nrmse'], '.4f')} / {_fmt(pl.get('mean_nrmse_moving'), '.4f')} "
+        f"| {_fmt(de['all']['f1'])} / {_fmt(mov.get('f1'))} | {sf['rel_mse']:.4f} "
+        f"| {100 * sf.get('residual_shadow_fraction', 0.0):.2f} % "
+        f"| {_fmt(nm.get('median_deg'), '.2f')} / {_fmt(nm.get('median_deg_moving'), '.2f')} "
+        f"| {m['saturated_px']} | {res.plan.passes} x {int(spp.max())} = {int(spp.sum())} |"
+    )
 
 
 def render_cost(size: list[str], spp: int, repeats: int) -> str:
     """Render + accumulate + sensor of the coded capture against the same strata with global gates."""
     common = size + [f"render.spp={spp}", "render.cache=off", "app.truth_spp=1"]
-    runs = {"global gates (5 buckets)": load_config(MF, common),
-            "per-pixel code (2 buckets, Hadamard)": load_config(CODED, common)}
+    runs = {
+        "global gates (5 buckets)": load_config(MF, common),
+        "per-pixel code (2 buckets, Hadamard)": load_config(CODED, common),
+    }
     best: dict[str, float] = {}
     for _ in range(repeats):
         for name, cfg in runs.items():
@@ -67,8 +74,10 @@ def render_cost(size: list[str], spp: int, repeats: int) -> str:
             cost = t.get("render", 0.0) + t.get("accumulate", 0.0) + t.get("sensor", 0.0)
             best[name] = min(best.get(name, float("inf")), cost)
     g, c = best.values()
-    line = (f"Render + accumulate + sensor stage at {spp} spp (render cache off, best of {repeats} alternating runs): "
-            f"global gates {g:.2f} s, per-pixel code {c:.2f} s, ratio {c / g:.3f}.")
+    line = (
+        f"Render + accumulate + sensor stage at {spp} spp (render cache off, best of {repeats} alternating runs): "
+        f"global gates {g:.2f} s, per-pixel code {c:.2f} s, ratio {c / g:.3f}."
+    )
     print("\n" + line)
     return line
 
@@ -83,11 +92,14 @@ def main() -> None:
     args = ap.parse_args()
     w, h = args.size.split("x")
     size = [f"render.width={w}", f"render.height={h}"]
-    lines = [f"Multi-flash scene at {w}x{h}, sliding box; each capture's samples from its noise budget "
-             f"(`python scripts/coded_gates_comparison.py --size {args.size}`).", "",
-             "| capture | per-light NRMSE (all / moving) | depth-edge F1 (all / moving) | shadow-free relMSE "
-             "| residual shadow | normals median error, deg (all / moving) | px without a value (saturated; coded: or undetermined) | samples per pixel |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Multi-flash scene at {w}x{h}, sliding box; each capture's samples from its noise budget "
+        f"(`python scripts/coded_gates_comparison.py --size {args.size}`).",
+        "",
+        "| capture | per-light NRMSE (all / moving) | depth-edge F1 (all / moving) | shadow-free relMSE "
+        "| residual shadow | normals median error, deg (all / moving) | px without a value (saturated; coded: or undetermined) | samples per pixel |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     print("\n".join(lines), flush=True)
     for name, path, sets in CAPTURES:
         lines.append(row(name, capture_in_memory(load_config(path, size + sets), StageStatus(False))))

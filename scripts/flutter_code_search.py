@@ -48,15 +48,20 @@ def main() -> None:
         if best is None or j < best[0]:
             best = (j, code)
     j, code = best
-    print(f"box (one bucket, all chops):       noise {box:.4g}" + ("  (its spectrum has zeros: singular)" if box > 1e6 else ""))
+    print(
+        f"box (one bucket, all chops):       noise {box:.4g}"
+        + ("  (its spectrum has zeros: singular)" if box > 1e6 else "")
+    )
     if raskar is not None:
         rj, rs = noise(raskar, True, n_px), noise(raskar, False, n_px)
         print(f"Raskar 2006, open bucket only:     noise {rs:.4f}")
         print(f"Raskar 2006, both buckets (joint): noise {rj:.4f}")
     s = noise(code, False, n_px)
     print(f"best of {args.trials} random codes ({code.sum()} of {args.chops} open): {''.join(map(str, code))}")
-    print(f"  open bucket only: noise {s:.4f}; both buckets (joint): noise {j:.4f}"
-          + (f"  ({rj / j:.3f}x less than Raskar's joint)" if raskar is not None else ""))
+    print(
+        f"  open bucket only: noise {s:.4f}; both buckets (joint): noise {j:.4f}"
+        + (f"  ({rj / j:.3f}x less than Raskar's joint)" if raskar is not None else "")
+    )
 
 
 if __name__ == "__main__":

@@ -59,9 +59,13 @@ def main() -> None:
     ap.add_argument("--cases", default=",".join(all_cases()))
     ap.add_argument("--out", type=Path, default=SPREAD_FILE)
     ap.add_argument("--dump", type=Path, help=argparse.SUPPRESS)
-    ap.add_argument("--carry-over", type=Path, metavar="EARLIER",
-                    help="measure nothing: keep EARLIER's hosts (another machine's spreads of the previous goldens) "
-                         "in --out, each image at the larger difference")
+    ap.add_argument(
+        "--carry-over",
+        type=Path,
+        metavar="EARLIER",
+        help="measure nothing: keep EARLIER's hosts (another machine's spreads of the previous goldens) "
+        "in --out, each image at the larger difference",
+    )
     args = ap.parse_args()
     if args.carry_over:
         carry_over(args.out, args.carry_over)
@@ -83,18 +87,30 @@ def main() -> None:
         for t in targets:
             env = dict(os.environ) if t == "native" else emulation_env(t)
             if t == "native":
-                for k in ("MBCAPTURE_LLVM_TARGET", "NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE",
-                          "NUMBA_CPU_NAME", "OPENCV_CPU_DISABLE"):
+                for k in (
+                    "MBCAPTURE_LLVM_TARGET",
+                    "NPY_DISABLE_CPU_FEATURES",
+                    "OPENBLAS_CORETYPE",
+                    "NUMBA_CPU_NAME",
+                    "OPENCV_CPU_DISABLE",
+                ):
                     env.pop(k, None)
             env["MBCAPTURE_CACHE_DIR"] = str(Path(tmp) / "render-cache")  # not the user's cache
             print(f"{t}:", flush=True)
-            subprocess.run([sys.executable, __file__, "--dump", str(Path(tmp) / t), "--cases", ",".join(cases)],
-                           env=env, cwd=ROOT, check=True)
-            probe = ("from mbcapture.render import ensure_llvm; ensure_llvm(); import mitsuba as mi; "
-                     "mi.set_variant('llvm_ad_rgb'); from mbcapture.render.llvm import apply_target_from_env, "
-                     "llvm_target; apply_target_from_env(); t = llvm_target(); print(t['cpu'], t['vector_width'])")
-            described[t] = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
-                                          check=True).stdout.strip()
+            subprocess.run(
+                [sys.executable, __file__, "--dump", str(Path(tmp) / t), "--cases", ",".join(cases)],
+                env=env,
+                cwd=ROOT,
+                check=True,
+            )
+            probe = (
+                "from mbcapture.render import ensure_llvm; ensure_llvm(); import mitsuba as mi; "
+                "mi.set_variant('llvm_ad_rgb'); from mbcapture.render.llvm import apply_target_from_env, "
+                "llvm_target; apply_target_from_env(); t = llvm_target(); print(t['cpu'], t['vector_width'])"
+            )
+            described[t] = subprocess.run(
+                [sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True
+            ).stdout.strip()
             results[t] = Path(tmp) / t
 
         spread: dict[str, dict] = {}
@@ -118,12 +134,18 @@ def main() -> None:
     host = machine_description()
     doc = {
         "about": "largest difference of each golden image between the CPU targets below, on every host "
-                 "listed (scripts/golden_spread.py); tests/golden_cases.py turns it into a tolerance",
+        "listed (scripts/golden_spread.py); tests/golden_cases.py turns it into a tolerance",
         "measured": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "targets": {t: described[t] for t in targets},
-        "hosts": [{"cpu": host["cpu"], "native_target": described.get("native"), "targets": targets,
-                   "measured": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-                   **({} if set(cases) == set(all_cases()) else {"cases": cases})}],
+        "hosts": [
+            {
+                "cpu": host["cpu"],
+                "native_target": described.get("native"),
+                "targets": targets,
+                "measured": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+                **({} if set(cases) == set(all_cases()) else {"cases": cases}),
+            }
+        ],
         "golden_made": made,
         "cases": spread,
     }
@@ -132,7 +154,11 @@ def main() -> None:
         doc["cases"] = {**old.get("cases", {}), **spread}
         doc["golden_made"] = {**old.get("golden_made", {}), **made}
     # the same goldens measured on another host: keep both, case by case
-    same = [c for c in doc["cases"] if c in old.get("golden_made", {}) and old["golden_made"][c] == doc["golden_made"].get(c)]
+    same = [
+        c
+        for c in doc["cases"]
+        if c in old.get("golden_made", {}) and old["golden_made"][c] == doc["golden_made"].get(c)
+    ]
     merge(doc, old, same)
     write(doc, args.out)
     for case in cases:

@@ -73,6 +73,7 @@ def main() -> None:
                 return fn(*a, **k)
             finally:
                 rows.append((name, start, sampler.peak, rss_mib(), sampler.peak_anon))
+
         return wrapper
 
     timer_call = pipeline._Timer.__call__
@@ -95,8 +96,10 @@ def main() -> None:
     print(f"{'stage':16s} {'start':>8s} {'peak':>8s} {'end':>8s} {'anon peak':>10s}  MiB")
     for name, start, peak, end, anon in rows:
         print(f"{name:16s} {start:8.0f} {peak:8.0f} {end:8.0f} {anon:10.0f}")
-    print(f"high-water mark (VmHWM) {peak_rss_bytes() / MIB:.0f} MiB; anonymous memory, highest sampled: "
-          f"{sampler.run_anon:.0f} MiB")
+    print(
+        f"high-water mark (VmHWM) {peak_rss_bytes() / MIB:.0f} MiB; anonymous memory, highest sampled: "
+        f"{sampler.run_anon:.0f} MiB"
+    )
 
 
 if __name__ == "__main__":

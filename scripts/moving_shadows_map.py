@@ -35,8 +35,9 @@ def main() -> None:
     W, H = (int(v) for v in args.size.split("x"))
     fig, axes = plt.subplots(1, len(args.configs), figsize=(5.5 * len(args.configs), 4.6), squeeze=False)
     for ax, name in zip(axes[0], args.configs):
-        cfg = load_config(ROOT / "configs" / f"{name}.yaml",
-                          [f"render.width={W}", f"render.height={H}", "render.cache=off"])
+        cfg = load_config(
+            ROOT / "configs" / f"{name}.yaml", [f"render.width={W}", f"render.height={H}", "render.cache=off"]
+        )
         scene, timeline, _, _ = prepare(cfg)
         ensure_llvm()
         r = Renderer.from_config(scene, cfg)
@@ -51,8 +52,10 @@ def main() -> None:
         ax.contour(shadows & ~moving, [0.5], colors="red", linewidths=1)
         ax.set_title(f"{name} {W}x{H}: moving {int(moving.sum())} px, shadows +{int((shadows & ~moving).sum())} px")
         ax.set_axis_off()
-        print(f"{name}: moving region {int(moving.sum())} px, its hard shadows {int((shadows & ~moving).sum())} more "
-              f"({seconds:.2f} s)")
+        print(
+            f"{name}: moving region {int(moving.sum())} px, its hard shadows {int((shadows & ~moving).sum())} more "
+            f"({seconds:.2f} s)"
+        )
     fig.tight_layout()
     fig.savefig(args.out, dpi=80)
     print(f"wrote {args.out}")

@@ -51,33 +51,47 @@ CATEGORIES = {
     "review": "none of the above: a test gap, an equivalent mutant or an unreachable branch (see docs/mutation.md)",
 }
 _IMPORT_TIME = ("x_register__", "x__pymatting__")
-_DTYPE = re.compile(r",\s*(dtype=)?(np\.(float64|int64)|float|int|bool|None)?\s*(?=[,)])|(?<=\.astype\()(np\.\w+|None|bool)(?=\))")
+_DTYPE = re.compile(
+    r",\s*(dtype=)?(np\.(float64|int64)|float|int|bool|None)?\s*(?=[,)])|(?<=\.astype\()(np\.\w+|None|bool)(?=\))"
+)
 
 
 def category(name: str, changed: list[str]) -> str:
     """The :data:`CATEGORIES` key of a surviving mutant from its name and changed lines."""
     if any(k in name for k in _IMPORT_TIME):
         return "import_time"
-    if ".x__start__" in name or (".x_binomial_quantile__" in name and any(
-            re.match(r"[-+]\s*(var|sd|guess) =", ln) for ln in changed)):
+    if ".x__start__" in name or (
+        ".x_binomial_quantile__" in name and any(re.match(r"[-+]\s*(var|sd|guess) =", ln) for ln in changed)
+    ):
         return "start_point"
     old = [ln[1:] for ln in changed if ln.startswith("-")]
     new = [ln[1:] for ln in changed if ln.startswith("+")]
     text = " ".join(old)
     if re.search(r"\braise\b|Error\(|summary|\"note\"|warn", text) or (not new and "raise" in text):
         return "message"
-    if old and new and [_DTYPE.sub("", x).replace(" ", "") for x in old] == [_DTYPE.sub("", x).replace(" ", "") for x in new]:
+    if (
+        old
+        and new
+        and [_DTYPE.sub("", x).replace(" ", "") for x in old] == [_DTYPE.sub("", x).replace(" ", "") for x in new]
+    ):
         return "dtype"
     keys_old = re.findall(r'"([^"]*)"\s*:', text)
     keys_new = re.findall(r'"([^"]*)"\s*:', " ".join(new))
-    if keys_old and keys_new and keys_old != keys_new and re.sub(r'"[^"]*"\s*:', "", text) == re.sub(r'"[^"]*"\s*:', "", " ".join(new)):
+    if (
+        keys_old
+        and keys_new
+        and keys_old != keys_new
+        and re.sub(r'"[^"]*"\s*:', "", text) == re.sub(r'"[^"]*"\s*:', "", " ".join(new))
+    ):
         return "report_key"
     return "review"
 
 
 def _meta(mutants_dir: Path) -> dict[str, dict]:
-    return {str(m.relative_to(mutants_dir))[: -len(".meta")]: json.loads(m.read_text())
-            for m in sorted(mutants_dir.rglob("*.py.meta"))}
+    return {
+        str(m.relative_to(mutants_dir))[: -len(".meta")]: json.loads(m.read_text())
+        for m in sorted(mutants_dir.rglob("*.py.meta"))
+    }
 
 
 def _function(mutant: str) -> str:
@@ -99,8 +113,11 @@ def load(mutants_dir: Path, baseline: Path | None = None) -> dict[str, dict[str,
         codes = dict(meta["exit_code_by_key"])
         old = base.get(module)
         if old:
-            same = {f for f, h in meta.get("hash_by_function_name", {}).items()
-                    if old.get("hash_by_function_name", {}).get(f) == h}
+            same = {
+                f
+                for f, h in meta.get("hash_by_function_name", {}).items()
+                if old.get("hash_by_function_name", {}).get(f) == h
+            }
             for name, code in codes.items():
                 if code is None and name in old["exit_code_by_key"] and _function(name).split(".")[-1] in same:
                     codes[name] = old["exit_code_by_key"][name]
@@ -129,8 +146,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mutants", type=Path, default=Path("mutants"), help="mutmut's folder (default: mutants)")
     ap.add_argument("--survivors", action="store_true", help="also list the surviving mutants")
     ap.add_argument("--json", type=Path, help="write the table to this file")
-    ap.add_argument("--baseline", type=Path, help="an earlier run's mutants/ folder: its verdicts fill in the mutants "
-                    "this run left undecided whose function is unchanged")
+    ap.add_argument(
+        "--baseline",
+        type=Path,
+        help="an earlier run's mutants/ folder: its verdicts fill in the mutants "
+        "this run left undecided whose function is unchanged",
+    )
     args = ap.parse_args(argv)
     if not args.mutants.is_dir():
         print(f"--mutants: no folder {args.mutants} (run scripts/mutation.sh first)", file=sys.stderr)

@@ -34,9 +34,10 @@ def main() -> None:
     args = ap.parse_args()
     w, h = args.size.split("x")
     runs = {}
-    for label, extra in (("multi-bucket, photon-efficient (reads T, 2T, 4T, 8T in 8T)", []),
-                         ("conventional sensor, the same exposures one after another (15T)",
-                          ["capture.sequential=true"])):
+    for label, extra in (
+        ("multi-bucket, photon-efficient (reads T, 2T, 4T, 8T in 8T)", []),
+        ("conventional sensor, the same exposures one after another (15T)", ["capture.sequential=true"]),
+    ):
         cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", [f"render.width={w}", f"render.height={h}", *extra])
         runs[label] = capture_in_memory(cfg, StageStatus(False))
     import matplotlib

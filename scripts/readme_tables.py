@@ -32,12 +32,15 @@ from pathlib import Path
 
 #: name -> (config, [(row label, extra --set overrides)]): what each README table measures.
 TABLES: dict[str, tuple[str, list[tuple[str, list[str]]]]] = {
-    "hdr": ("configs/metronome_hdr.yaml", [
-        ("default: photon-efficient, 640x512, N=16", []),
-        ("`capture.protocol=interleaved_hdr`", ["capture.protocol=interleaved_hdr"]),
-        ("`capture.sequential=true` (conventional sensor)", ["capture.sequential=true"]),
-        ("default at `render.width=160 render.height=128`", ["render.width=160", "render.height=128"]),
-    ]),
+    "hdr": (
+        "configs/metronome_hdr.yaml",
+        [
+            ("default: photon-efficient, 640x512, N=16", []),
+            ("`capture.protocol=interleaved_hdr`", ["capture.protocol=interleaved_hdr"]),
+            ("`capture.sequential=true` (conventional sensor)", ["capture.sequential=true"]),
+            ("default at `render.width=160 render.height=128`", ["render.width=160", "render.height=128"]),
+        ],
+    ),
 }
 
 #: The noise budget table: every shipped config whose samples the budget chooses, at this film.
@@ -61,8 +64,12 @@ def run_in_own_process(args: list[str]) -> None:
     """``mbcapture <args>`` in a new Python process with an empty render cache of its own (what a user's
     first run of the command costs, kernel loading included)."""
     with tempfile.TemporaryDirectory(prefix="readme-tables-cache-") as cache:
-        proc = subprocess.run([sys.executable, "-m", "mbcapture", *args], capture_output=True, text=True,
-                              env={**os.environ, "MBCAPTURE_CACHE_DIR": cache})
+        proc = subprocess.run(
+            [sys.executable, "-m", "mbcapture", *args],
+            capture_output=True,
+            text=True,
+            env={**os.environ, "MBCAPTURE_CACHE_DIR": cache},
+        )
     if proc.returncode != 0:
         raise SystemExit(f"readme_tables: mbcapture {' '.join(args)} failed: {proc.stderr.strip()}")
 
@@ -104,11 +111,17 @@ def render_error_summary(err: dict, top_up: dict | None = None) -> dict | None:
         return name, reads[name][key]
 
     (median_read, median), (p95_read, p95), (tail_read, tail) = (
-        worst(f"to_shot_noise_variance_{q}") for q in ("median", "p95", "p999"))
+        worst(f"to_shot_noise_variance_{q}") for q in ("median", "p95", "p999")
+    )
     return {
-        "median": median, "median_read": median_read, "p95": p95, "p95_read": p95_read,
-        "p999": tail, "p999_read": tail_read,
-        "met": err["budget"]["met"], "tail_met": err["budget"].get("tail_met"),
+        "median": median,
+        "median_read": median_read,
+        "p95": p95,
+        "p95_read": p95_read,
+        "p999": tail,
+        "p999_read": tail_read,
+        "met": err["budget"]["met"],
+        "tail_met": err["budget"].get("tail_met"),
         "top_up_before": (top_up or {}).get("before") if (top_up or {}).get("applied") else None,
     }
 
@@ -123,13 +136,20 @@ def _seconds(s: float) -> str:
 
 def _measured_on(table: dict, what: str) -> str:
     """The sentence that opens a table: where, how long, how loaded, and what each row is."""
-    return (f"Measured on {table['machine']} with `python scripts/readme_tables.py"
-            f"{'' if table.get('only') is None else ' --only ' + table['only']}` ({table['seconds']:.0f} s, load "
-            f"average {table['load_average_5min']:g} over its last 5 minutes: other work on the machine stretches wall "
-            "times)" + (f", with $MBCAPTURE_SET={table['mbcapture_set']!r} (not the sizes the rows name)"
-                        if table.get("mbcapture_set") else "")
-            + "; each row is the `mbcapture run` below" + (", with an empty render cache" if table.get("empty_cache")
-                                                           else "") + f", {what}:")
+    return (
+        f"Measured on {table['machine']} with `python scripts/readme_tables.py"
+        f"{'' if table.get('only') is None else ' --only ' + table['only']}` ({table['seconds']:.0f} s, load "
+        f"average {table['load_average_5min']:g} over its last 5 minutes: other work on the machine stretches wall "
+        "times)"
+        + (
+            f", with $MBCAPTURE_SET={table['mbcapture_set']!r} (not the sizes the rows name)"
+            if table.get("mbcapture_set")
+            else ""
+        )
+        + "; each row is the `mbcapture run` below"
+        + (", with an empty render cache" if table.get("empty_cache") else "")
+        + f", {what}:"
+    )
 
 
 def render_table(name: str, data: dict) -> str:
@@ -150,10 +170,13 @@ def render_table(name: str, data: dict) -> str:
             lines.append(f"| {r['label']} | {r['passes']} × {r['spp']} | {_seconds(r['wall_s'])} | {mse} | {dis} |")
     elif name == "budget":
         lines = [
-            _measured_on(table, "read from its `report.json` (`render_error`: the run's own estimate, two "
-                         "half-sample renders per stratum, of the rendering-noise variance over the shot-noise "
-                         "variance of each lit, unsaturated sample of every read; each column the highest read's, "
-                         "named; `top_up`)"),
+            _measured_on(
+                table,
+                "read from its `report.json` (`render_error`: the run's own estimate, two "
+                "half-sample renders per stratum, of the rendering-noise variance over the shot-noise "
+                "variance of each lit, unsaturated sample of every read; each column the highest read's, "
+                "named; `top_up`)",
+            ),
             "",
             "| config | passes × spp | wall time | median (budget 0.1) | p95 (budget 1) | budget | top-up from | "
             "p99.9 (target 1) |",
@@ -168,7 +191,8 @@ def render_table(name: str, data: dict) -> str:
             top = "" if e["top_up_before"] is None else f"{e['top_up_before']:.2f}x"
             lines.append(
                 f"{head} {_num(e['median'], 2)} ({e['median_read']}) | {_num(e['p95'], 2)} ({e['p95_read']}) | "
-                f"{'met' if e['met'] else '**missed**'} | {top} | {_num(e['p999'], 2)} ({e['p999_read']}) |")
+                f"{'met' if e['met'] else '**missed**'} | {top} | {_num(e['p999'], 2)} ({e['p999_read']}) |"
+            )
     else:
         raise KeyError(name)
     lines.append("")
@@ -196,10 +220,19 @@ def machine() -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--readme", type=Path, default=Path("README.md"), help="README to rewrite (default README.md)")
-    ap.add_argument("--data", type=Path, default=Path("docs/measured.json"),
-                    help="measured numbers, written by a run and read by --from-data/--check")
-    ap.add_argument("--only", nargs="+", default=None, metavar="TABLE",
-                    help=f"tables to measure ({', '.join([*TABLES, 'budget'])}); the others keep their numbers")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=Path("docs/measured.json"),
+        help="measured numbers, written by a run and read by --from-data/--check",
+    )
+    ap.add_argument(
+        "--only",
+        nargs="+",
+        default=None,
+        metavar="TABLE",
+        help=f"tables to measure ({', '.join([*TABLES, 'budget'])}); the others keep their numbers",
+    )
     ap.add_argument("--from-data", action="store_true", help="rewrite the README from --data without running anything")
     ap.add_argument("--check", action="store_true", help="exit 1 if the README's tables differ from --data")
     args = ap.parse_args(argv)
@@ -209,8 +242,10 @@ def main(argv: list[str] | None = None) -> int:
     else:
         # tables not measured now keep their numbers (each table carries its own machine and timing)
         data = json.loads(args.data.read_text()) if args.data.exists() else {"tables": {}}
-        every = {**{n: [(label, config, over) for label, over in rows] for n, (config, rows) in TABLES.items()},
-                 "budget": budget_rows()}
+        every = {
+            **{n: [(label, config, over) for label, over in rows] for n, (config, rows) in TABLES.items()},
+            "budget": budget_rows(),
+        }
         for name in args.only or every:
             if name not in every:
                 raise SystemExit(f"readme_tables: --only: no table {name!r} (tables: {', '.join(every)})")
@@ -219,11 +254,15 @@ def main(argv: list[str] | None = None) -> int:
             for label, config, overrides in every[name]:
                 print(f"{name}: {label} ...", flush=True)
                 rows.append({"label": label, **measure(config, overrides)})
-            table = {"machine": f"{machine()}, {rows[0]['variant']}, LLVM {rows[0]['llvm']}",
-                     "seconds": round(time.perf_counter() - t0, 1),
-                     # other work on the machine stretches wall times
-                     "load_average_5min": round(os.getloadavg()[1], 2),
-                     "only": name, "empty_cache": True, "rows": rows}
+            table = {
+                "machine": f"{machine()}, {rows[0]['variant']}, LLVM {rows[0]['llvm']}",
+                "seconds": round(time.perf_counter() - t0, 1),
+                # other work on the machine stretches wall times
+                "load_average_5min": round(os.getloadavg()[1], 2),
+                "only": name,
+                "empty_cache": True,
+                "rows": rows,
+            }
             if os.environ.get("MBCAPTURE_SET"):  # the rows are not what their labels say: make it visible
                 table["mbcapture_set"] = os.environ["MBCAPTURE_SET"]
             data["tables"][name] = table
@@ -237,8 +276,10 @@ def main(argv: list[str] | None = None) -> int:
         new = rewrite(new, name, render_table(name, data))
     if args.check:
         if new != text:
-            print(f"{args.readme}: tables differ from {args.data}; run python scripts/readme_tables.py --from-data",
-                  file=sys.stderr)
+            print(
+                f"{args.readme}: tables differ from {args.data}; run python scripts/readme_tables.py --from-data",
+                file=sys.stderr,
+            )
             return 1
         return 0
     tmp = args.readme.with_name(f".{args.readme.name}.tmp")

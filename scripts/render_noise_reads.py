@@ -14,7 +14,7 @@ pixel must be fixed, ``--set render.spp=...``): each sample's variance over the 
 run's (up to 9 (N - 1) degrees of freedom), its median over the samples unsaturated in every run, and each
 estimate (outside and own) over it. And the tail from each sample's own variance over the N runs (N - 1
 degrees of freedom, no neighbour's noise in it) against the two runs' pooled estimates, alike and over
-every neighbour (how the runs estimated it before 2026-11-27).
+every neighbour (a comparison: the runs pool over alike neighbours only).
 
 The second run renders the samples per stratum the first run's pilot chose (every run's pilot still
 renders), and with adaptive sampling (``render.adaptive``) it refines the pixels the first run chose
@@ -41,8 +41,15 @@ from unittest import mock
 import numpy as np
 
 from mbcapture import load_config, pipeline
-from mbcapture.budget import (budget_quantiles, deconvolved_median, effective_dof, pooled, pooled_alike, resolve_spp,
-                              tail_pixels)
+from mbcapture.budget import (
+    budget_quantiles,
+    deconvolved_median,
+    effective_dof,
+    pooled,
+    pooled_alike,
+    resolve_spp,
+    tail_pixels,
+)
 from mbcapture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
@@ -54,9 +61,12 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], dest="sets")
     ap.add_argument("--seeds", default="1,2", help="the two run seeds, comma-separated")
     ap.add_argument("--map", default=None, help="PNG of where the longest read's tail lies")
-    ap.add_argument("--own-choices", action="store_true",
-                    help="each run renders its own pilot's samples and, with render.adaptive, refines its own choice of pixels "
-                         "(default: the first run's samples and choice)")
+    ap.add_argument(
+        "--own-choices",
+        action="store_true",
+        help="each run renders its own pilot's samples and, with render.adaptive, refines its own choice of pixels "
+        "(default: the first run's samples and choice)",
+    )
     ap.add_argument("--truth", type=int, default=0, help="runs for the converged median (0: none; at least 3)")
     args = ap.parse_args()
     w, h = args.size.split("x")
@@ -68,35 +78,54 @@ def main() -> None:
     base = [f"render.width={w}", f"render.height={h}", "render.cache=off", "sensor.noise_seed=7", *args.sets]
     runs, seconds, choice = two_runs(args.config, base, seeds, share=not args.own_choices)
     cfg = runs[0].config
-    print(f"{args.config} at {args.size}: spp {runs[0].plan.spp_label()} and {runs[1].plan.spp_label()}; "
-          f"{seconds[0]:.0f} s and {seconds[1]:.0f} s (render cache off)")
+    print(
+        f"{args.config} at {args.size}: spp {runs[0].plan.spp_label()} and {runs[1].plan.spp_label()}; "
+        f"{seconds[0]:.0f} s and {seconds[1]:.0f} s (render cache off)"
+    )
     if choice.tiers is not None:
-        print(f"adaptive sampling: {sum(p.size for p, _ in choice.tiers)} pixels refined, "
-              + ("each run choosing its own (--own-choices)" if args.own_choices else "the second run refining the "
-                 "first run's choice"))
+        print(
+            f"adaptive sampling: {sum(p.size for p, _ in choice.tiers)} pixels refined, "
+            + (
+                "each run choosing its own (--own-choices)"
+                if args.own_choices
+                else "the second run refining the first run's choice"
+            )
+        )
     n = [float(np.asarray(r.plan.spp).sum()) for r in runs]
     if abs(n[0] - n[1]) > 1e-9 * max(n):
         # the outside variance is the mean of the two runs' (Var[e1 - e2] / 2): a run with more samples
         # reads its own figures below it, the other above, by about half the difference each
-        print(f"the runs' samples per pixel differ by {100 * (n[1] / n[0] - 1):+.1f} % (seed {seeds[1]} against seed "
-              f"{seeds[0]}); the outside figure is the mean of their variances, each run's own is its own")
-    print(f"{'read':6s} {'median':>8s} {'p95':>8s} {'p99':>8s} {'p99.9':>8s} {'max':>9s} {'>10x':>7s}   run's own "
-          f"median / p95 / p99.9 (seed {seeds[0]}, seed {seeds[1]})")
+        print(
+            f"the runs' samples per pixel differ by {100 * (n[1] / n[0] - 1):+.1f} % (seed {seeds[1]} against seed "
+            f"{seeds[0]}); the outside figure is the mean of their variances, each run's own is its own"
+        )
+    print(
+        f"{'read':6s} {'median':>8s} {'p95':>8s} {'p99':>8s} {'p99.9':>8s} {'max':>9s} {'>10x':>7s}   run's own "
+        f"median / p95 / p99.9 (seed {seeds[0]}, seed {seeds[1]})"
+    )
     below = [below_full_well(r, cfg.sensor.full_well_e) for r in runs]  # (R, H, W, C) each
     for name, row in outside_figures(runs).items():
         own = row["own"]
-        own_text = ", ".join(f"{o.get('to_shot_noise_variance_median', float('nan')):.3g} / "
-                             f"{o.get('to_shot_noise_variance_p95', float('nan')):.3g} / "
-                             f"{o.get('to_shot_noise_variance_p999', float('nan')):.3g}" for o in own)
-        print(f"{name:6s} {row['median']:8.3g} {row['p95']:8.3g} {row['p99']:8.3g} {row['p999']:8.3g} "
-              f"{row['max']:9.3g} {100 * row['over_10']:6.2f}%   {own_text}")
+        own_text = ", ".join(
+            f"{o.get('to_shot_noise_variance_median', float('nan')):.3g} / "
+            f"{o.get('to_shot_noise_variance_p95', float('nan')):.3g} / "
+            f"{o.get('to_shot_noise_variance_p999', float('nan')):.3g}"
+            for o in own
+        )
+        print(
+            f"{name:6s} {row['median']:8.3g} {row['p95']:8.3g} {row['p99']:8.3g} {row['p999']:8.3g} "
+            f"{row['max']:9.3g} {100 * row['over_10']:6.2f}%   {own_text}"
+        )
         # does the outside measurement fall in each run's stated 95 % interval?
         for q, key in (("median", "median"), ("p95", "p95"), ("p99.9", "p999")):
             outside = row[key]
             ivs = [o.get(f"to_shot_noise_variance_{key}_interval") for o in own]
-            text = "; ".join("no interval" if iv is None else
-                             f"[{iv[0]:.3g}, {iv[1]:.3g}] {'holds' if iv[0] <= outside <= iv[1] else 'MISSES'} it"
-                             for iv in ivs)
+            text = "; ".join(
+                "no interval"
+                if iv is None
+                else f"[{iv[0]:.3g}, {iv[1]:.3g}] {'holds' if iv[0] <= outside <= iv[1] else 'MISSES'} it"
+                for iv in ivs
+            )
             print(f"{'':6s} {q:>6s}: outside {outside:.3g}; the runs' intervals {text}")
         mean, full_ratio = row["mean"], row["ratio_map"]
     if args.map:
@@ -137,10 +166,17 @@ def outside_figures(runs: list) -> dict[str, dict]:
         ratio = var[use] / mean[use]
         med, p95 = budget_quantiles(ratio, effective_dof(squared, use))
         p99, p999 = np.percentile(ratio, [99, 99.9])
-        out[read.name] = {"median": float(med), "p95": float(p95), "p99": float(p99), "p999": float(p999),
-                          "max": float(ratio.max()), "over_10": float((ratio > 10).mean()),
-                          "own": [r.report["render_error"].get("reads", {}).get(read.name, {}) for r in runs],
-                          "mean": mean, "ratio_map": np.where(use, var / np.maximum(mean, 1e-300), 0.0)}
+        out[read.name] = {
+            "median": float(med),
+            "p95": float(p95),
+            "p99": float(p99),
+            "p999": float(p999),
+            "max": float(ratio.max()),
+            "over_10": float((ratio > 10).mean()),
+            "own": [r.report["render_error"].get("reads", {}).get(read.name, {}) for r in runs],
+            "mean": mean,
+            "ratio_map": np.where(use, var / np.maximum(mean, 1e-300), 0.0),
+        }
     return out
 
 
@@ -222,8 +258,10 @@ def converged(args, base: list[str], runs: list, below: list[np.ndarray], choice
             r = capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False))
         reads.append(r.reads_expected_e)
         full.append(below_full_well(r, cfg.sensor.full_well_e))
-    print(f"converged median from {args.truth} runs (seeds {seeds + more}; {time.perf_counter() - t0:.0f} s for the "
-          f"{len(more)} more): each estimate over it")
+    print(
+        f"converged median from {args.truth} runs (seeds {seeds + more}; {time.perf_counter() - t0:.0f} s for the "
+        f"{len(more)} more): each estimate over it"
+    )
     E = np.stack(reads)  # (N, R, H, W, C)
     ok = np.stack(full).all(axis=0)
     for i, read in enumerate(runs[0].timeline.reads):
@@ -238,17 +276,21 @@ def converged(args, base: list[str], runs: list, below: list[np.ndarray], choice
         pair_ratio = pooled_alike(squared, pair_mean)[use] / pair_mean[use]
         outside = budget_quantiles(pair_ratio, effective_dof(squared, use))[0]
         own = [r.report["render_error"]["reads"][read.name]["to_shot_noise_variance_median"] for r in runs]
-        print(f"{read.name:6s} converged median {truth:.4g}; outside {outside / truth:.3f} of it, the runs' own "
-              f"{own[0] / truth:.3f} and {own[1] / truth:.3f}")
+        print(
+            f"{read.name:6s} converged median {truth:.4g}; outside {outside / truth:.3f} of it, the runs' own "
+            f"{own[0] / truth:.3f} and {own[1] / truth:.3f}"
+        )
         # the tail: each sample's own variance over the N runs (N - 1 degrees of freedom, not pooled: no
         # neighbour's noise in it), against the two runs' pooled estimates, alike (the run's) and box
         own_tail = np.percentile(var_n[use] / mean[use], [95, 99, 99.9])
         alike_tail = np.percentile(pair_ratio, [95, 99, 99.9])
         box_tail = np.percentile(pooled(squared[None])[0][use] / pair_mean[use], [95, 99, 99.9])
-        print(f"{'':6s} p95 / p99 / p99.9: each sample's own over {args.truth} runs "
-              f"{' / '.join(f'{x:.3g}' for x in own_tail)}; two runs pooled alike "
-              f"{' / '.join(f'{x:.3g}' for x in alike_tail)}, pooled over every neighbour "
-              f"{' / '.join(f'{x:.3g}' for x in box_tail)}")
+        print(
+            f"{'':6s} p95 / p99 / p99.9: each sample's own over {args.truth} runs "
+            f"{' / '.join(f'{x:.3g}' for x in own_tail)}; two runs pooled alike "
+            f"{' / '.join(f'{x:.3g}' for x in alike_tail)}, pooled over every neighbour "
+            f"{' / '.join(f'{x:.3g}' for x in box_tail)}"
+        )
 
 
 def tail_map(path: str, electrons: np.ndarray, ratio: np.ndarray, name: str) -> None:
@@ -266,8 +308,11 @@ def tail_map(path: str, electrons: np.ndarray, ratio: np.ndarray, name: str) -> 
     rgb[worst > 10] = (1.0, 0.0, 0.0)
     fig, ax = plt.subplots(figsize=(8, 6.6))
     ax.imshow(rgb, interpolation="nearest")
-    ax.set_title(f"read {name}: rendering / shot-noise variance > 1 (yellow), > 10 (red); "
-                 f"{100 * (worst > 10).mean():.3f} % of pixels > 10", fontsize=9)
+    ax.set_title(
+        f"read {name}: rendering / shot-noise variance > 1 (yellow), > 10 (red); "
+        f"{100 * (worst > 10).mean():.3f} % of pixels > 10",
+        fontsize=9,
+    )
     ax.set_xticks([]), ax.set_yticks([])
     fig.tight_layout()
     fig.savefig(path, dpi=110)

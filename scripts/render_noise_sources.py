@@ -46,7 +46,9 @@ def main() -> None:
     ap.add_argument("--size", default="160x128")
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--seeds", type=int, default=12)
-    ap.add_argument("--strata", type=int, default=0, help="K: K patterns of --spp against one of K x --spp (0: not measured)")
+    ap.add_argument(
+        "--strata", type=int, default=0, help="K: K patterns of --spp against one of K x --spp (0: not measured)"
+    )
     ap.add_argument("--set", action="append", default=[], dest="sets")
     args = ap.parse_args()
     w, h = args.size.split("x")
@@ -70,9 +72,11 @@ def main() -> None:
         s = "" if share is None else f"{share:10.3f}"
         print(f"{label:34s} {q[0]:9.3g} {q[1]:9.3g} {q[2]:9.3g} {ratio[lit].mean() / scale:9.3g} {s}")
 
-    print(f"{args.config} at {args.size}, stratum at t = {t:.6f} s, groups {list(groups)}, {args.spp} spp, "
-          f"{args.seeds} seeds, {int(lit.sum())} lit pixels; (variance x spp) / mean, relative to the median of "
-          f"the config's own render (max_depth {depth}, sampler {cfg.render.sampler})")
+    print(
+        f"{args.config} at {args.size}, stratum at t = {t:.6f} s, groups {list(groups)}, {args.spp} spp, "
+        f"{args.seeds} seeds, {int(lit.sum())} lit pixels; (variance x spp) / mean, relative to the median of "
+        f"the config's own render (max_depth {depth}, sampler {cfg.render.sampler})"
+    )
     print(f"{'':34s} {'median':>9s} {'p95':>9s} {'p99.9':>9s} {'mean':>9s} {'mean share':>10s}")
     for d in range(2, depth):
         imgs, n = renders(max_depth=d)
@@ -80,7 +84,7 @@ def main() -> None:
         row(f"max_depth {d}", per_sample_ratio(imgs, n, mean), share)
     row(f"max_depth {depth} (the config's)", per_sample_ratio(own, n_own, mean), 1.0)
     for g, name in enumerate(groups):
-        part = own[:, g:g + 1]
+        part = own[:, g : g + 1]
         share = float(np.median(part.sum(axis=(1, -1), dtype=np.float64).mean(axis=0)[lit] / mean[lit]))
         row(f"group {name}", per_sample_ratio(part, n_own, mean), share)
     for sampler in ("multijitter", "ldsampler", "independent"):
@@ -89,8 +93,12 @@ def main() -> None:
     if args.strata > 1:
         k = args.strata
         r = Renderer.from_config(scene, cfg)
-        many = np.stack([np.mean([r.render(t, n_own, 5000 + k * s + i, groups) for i in range(k)], axis=0)
-                         for s in range(args.seeds)])
+        many = np.stack(
+            [
+                np.mean([r.render(t, n_own, 5000 + k * s + i, groups) for i in range(k)], axis=0)
+                for s in range(args.seeds)
+            ]
+        )
         n_one = r.sample_count(k * n_own)
         one = np.stack([r.render(t, n_one, 9000 + s, groups) for s in range(args.seeds)])
         row(f"{k} patterns of {n_own} spp, their mean", per_sample_ratio(many, k * n_own, mean))

@@ -42,13 +42,16 @@ def planned(config: Path, sets: list[str]) -> resources.Resources:
 
 def measured(config: Path, sets: list[str]) -> tuple[float, float]:
     """(peak RSS bytes, bytes written) of one run in a child process."""
-    child = ("import resource, sys; from mbcapture import load_config, run_capture; "
-             "cfg = load_config(sys.argv[1], sys.argv[3:]); run_capture(cfg, sys.argv[2], progress=False); "
-             "from mbcapture.resources import peak_rss_bytes; print(peak_rss_bytes())")
+    child = (
+        "import resource, sys; from mbcapture import load_config, run_capture; "
+        "cfg = load_config(sys.argv[1], sys.argv[3:]); run_capture(cfg, sys.argv[2], progress=False); "
+        "from mbcapture.resources import peak_rss_bytes; print(peak_rss_bytes())"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out"
-        proc = subprocess.run([sys.executable, "-c", child, str(config), str(out), *sets],
-                              capture_output=True, text=True, cwd=ROOT)
+        proc = subprocess.run(
+            [sys.executable, "-c", child, str(config), str(out), *sets], capture_output=True, text=True, cwd=ROOT
+        )
         if proc.returncode != 0:
             raise SystemExit(f"{config.name} {' '.join(sets)} failed:\n{proc.stderr[-2000:]}")
         written = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
@@ -58,16 +61,21 @@ def measured(config: Path, sets: list[str]) -> tuple[float, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--configs", default="metronome_hdr,flash_no_flash,flash_matting,multi_flash,structured_light,"
-                                         "moving_light,rgb_illumination,flutter_shutter,burst")
+    ap.add_argument(
+        "--configs",
+        default="metronome_hdr,flash_no_flash,flash_matting,multi_flash,structured_light,"
+        "moving_light,rgb_illumination,flutter_shutter,burst",
+    )
     ap.add_argument("--sizes", default="320x256,640x512")
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--tiles", type=int, default=None, help="render.tiles of every run (default: as planned)")
     ap.add_argument("--band-rows", type=int, default=None, help="render.band_rows of every run")
     args = ap.parse_args()
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
-    print(f"{'config':20s} {'film':>9s} {'memory MB':>10s} {'planned':>8s} {'ratio':>6s} {'outputs MB':>11s} "
-          f"{'planned':>8s} {'ratio':>6s} {'slope B/px':>10s}")
+    print(
+        f"{'config':20s} {'film':>9s} {'memory MB':>10s} {'planned':>8s} {'ratio':>6s} {'outputs MB':>11s} "
+        f"{'planned':>8s} {'ratio':>6s} {'slope B/px':>10s}"
+    )
     for name in args.configs.split(","):
         config = ROOT / "configs" / f"{name}.yaml"
         rows = []
@@ -77,10 +85,13 @@ def main() -> None:
             rss, written = measured(config, sets)
             rows.append((w * h, rss))
             slope = (rss - rows[0][1]) / (w * h - rows[0][0]) if len(rows) > 1 else float("nan")
-            print(f"{name:20s} {f'{w}x{h}':>9s} {rss / 2**20:10.0f} {need.memory_bytes / 2**20:8.0f} "
-                  f"{rss / need.memory_bytes:6.2f} {written / 2**20:11.2f} {need.output_bytes / 2**20:8.2f} "
-                  f"{written / need.output_bytes:6.2f} {slope:10.0f}" + (f"  ({need.tiles} tiles)" if need.tiles > 1 else ""),
-                  flush=True)
+            print(
+                f"{name:20s} {f'{w}x{h}':>9s} {rss / 2**20:10.0f} {need.memory_bytes / 2**20:8.0f} "
+                f"{rss / need.memory_bytes:6.2f} {written / 2**20:11.2f} {need.output_bytes / 2**20:8.2f} "
+                f"{written / need.output_bytes:6.2f} {slope:10.0f}"
+                + (f"  ({need.tiles} tiles)" if need.tiles > 1 else ""),
+                flush=True,
+            )
     print(f"(this process: {resources.peak_rss_bytes() / 2**20:.0f} MiB)")
 
 

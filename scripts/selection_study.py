@@ -92,8 +92,13 @@ def study(halves: np.ndarray, run: int) -> tuple[float, dict[str, list[tuple[flo
     ratio_a = np.where(lit, pool((sums[run, 0] - sums[run, 1]) ** 2 / 4) / np.maximum(pool(full), 1e-30), 0) * scale
     spread = halves[run].astype(np.float64).reshape(2 * K, H, W, C).var(axis=0, ddof=1) * (2 * K) / 4
     ratio_b = np.where(lit, spread / np.maximum(full, 1e-30), 0) * scale
-    rules = {"A, pooled, + 3x3 dilation": (ratio_a, True), "A, pooled": (ratio_a, False), "B": (ratio_b, False),
-             "min(B, 4A)": (np.minimum(ratio_b, 4 * ratio_a), False), "oracle": (truth, False)}
+    rules = {
+        "A, pooled, + 3x3 dilation": (ratio_a, True),
+        "A, pooled": (ratio_a, False),
+        "B": (ratio_b, False),
+        "min(B, 4A)": (np.minimum(ratio_b, 4 * ratio_a), False),
+        "oracle": (truth, False),
+    }
     out = {}
     for name, (ratio, dilate) in rules.items():
         worst = ratio.max(axis=-1)
@@ -121,8 +126,10 @@ def main() -> None:
     halves = render_halves(args.config, w, h, args.spp, args.strata, args.seeds)
     runs = [round(i * (args.seeds - 1) / (HELD_OUT - 1)) for i in range(HELD_OUT)]
     results = [study(halves, r) for r in runs]
-    print(f"{args.config} at {args.size}, {args.strata} strata x {args.spp} spp, truth from {args.seeds - 1} seeds "
-          f"(means over held-out seeds {runs}); ratios in units where the truth's median is 0.1")
+    print(
+        f"{args.config} at {args.size}, {args.strata} strata x {args.spp} spp, truth from {args.seeds - 1} seeds "
+        f"(means over held-out seeds {runs}); ratios in units where the truth's median is 0.1"
+    )
     print(f"the truth's p99.9 before refinement: {np.mean([r[0] for r in results]):.3f}")
     for name in results[0][1]:
         print(name)

@@ -56,8 +56,9 @@ def main(argv: list[str] | None = None) -> int:
         writer = csv.writer(f)
         writer.writerow(["radiance_w_m2_sr", "electrons_per_unit_exposure", *(f"snr_{n}" for n in curves)])
         for i, L in enumerate(radiance):
-            writer.writerow([f"{L:.6g}", f"{k_green * L * args.unit_exposure_s:.6g}",
-                             *(f"{curves[n][i]:.6g}" for n in curves)])
+            writer.writerow(
+                [f"{L:.6g}", f"{k_green * L * args.unit_exposure_s:.6g}", *(f"{curves[n][i]:.6g}" for n in curves)]
+            )
 
     import matplotlib
 
@@ -80,13 +81,17 @@ def main(argv: list[str] | None = None) -> int:
     plt.close(fig)
 
     print(f"wrote {csv_path} and {png_path}")
-    print(f"{'level':<6}{'L (W m^-2 sr^-1)':>18}{'e-/T':>10}{'SNR PE':>10}"
-          f"{'gain vs interleaved':>22}{'gain vs sequential':>20}")
+    print(
+        f"{'level':<6}{'L (W m^-2 sr^-1)':>18}{'e-/T':>10}{'SNR PE':>10}"
+        f"{'gain vs interleaved':>22}{'gain vs sequential':>20}"
+    )
     for level, L in REPORT_RADIANCES.items():
         i = int(np.flatnonzero(radiance == L)[0])
         pe, il, sq = (curves[n][i] for n in ("photon_efficient", "interleaved", "sequential"))
-        print(f"{level:<6}{L:>18.3g}{k_green * L * args.unit_exposure_s:>10.3g}{pe:>10.2f}"
-              f"{pe / il:>22.3f}{pe / sq:>20.3f}")
+        print(
+            f"{level:<6}{L:>18.3g}{k_green * L * args.unit_exposure_s:>10.3g}{pe:>10.2f}"
+            f"{pe / il:>22.3f}{pe / sq:>20.3f}"
+        )
     return 0
 
 

@@ -59,8 +59,12 @@ def pytest_unconfigure(config):
 
 
 def pytest_addoption(parser):
-    parser.addoption("--regen-golden", action="store_true", default=False,
-                     help="rewrite tests/golden/*.npz from the current code (the golden tests then fail for review)")
+    parser.addoption(
+        "--regen-golden",
+        action="store_true",
+        default=False,
+        help="rewrite tests/golden/*.npz from the current code (the golden tests then fail for review)",
+    )
 
 
 def machine_description() -> dict:
@@ -84,8 +88,12 @@ def machine_description() -> dict:
     except Exception as exc:  # no usable Dr.Jit: the numpy-only goldens still record the rest
         target = {"cpu": f"unavailable ({exc})", "vector_width": None}
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=GOLDEN_DIR, timeout=10).stdout.strip() or None
+        commit = (
+            subprocess.run(
+                ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=GOLDEN_DIR, timeout=10
+            ).stdout.strip()
+            or None
+        )
     except (OSError, subprocess.SubprocessError):
         commit = None
     versions = {}
@@ -94,9 +102,15 @@ def machine_description() -> dict:
             versions[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
             versions[pkg] = None
-    return {"cpu": cpu, "llvm_target": target.get("cpu"), "vector_width": target.get("vector_width"),
-            "emulated": os.environ.get("MBCAPTURE_LLVM_TARGET"), "commit": commit, "versions": versions,
-            "made": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+    return {
+        "cpu": cpu,
+        "llvm_target": target.get("cpu"),
+        "vector_width": target.get("vector_width"),
+        "emulated": os.environ.get("MBCAPTURE_LLVM_TARGET"),
+        "commit": commit,
+        "versions": versions,
+        "made": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+    }
 
 
 def read_golden(path: Path) -> tuple[dict[str, np.ndarray], dict]:
@@ -146,8 +160,10 @@ class Golden:
         GOLDEN_DIR.mkdir(exist_ok=True)
         meta = np.array(json.dumps(machine_description()))
         np.savez_compressed(path, **self.as_stored(images), **{META_KEY: meta})
-        pytest.fail(f"--regen-golden: rewrote {path.name}; review the change, run scripts/golden_spread.py "
-                    "to measure its cross-target differences, and run the tests again without the flag")
+        pytest.fail(
+            f"--regen-golden: rewrote {path.name}; review the change, run scripts/golden_spread.py "
+            "to measure its cross-target differences, and run the tests again without the flag"
+        )
 
     def check(self, case: str, images: dict[str, np.ndarray]) -> None:
         """Compare ``images`` with the golden of ``case``; never writes a golden."""
@@ -156,7 +172,9 @@ class Golden:
         if not path.exists():
             pytest.fail(f"{path} is missing: run pytest --regen-golden to create it, then review it")
         expected, meta = read_golden(path)
-        assert sorted(expected) == sorted(images), f"{case}: image names changed: {sorted(expected)} -> {sorted(images)}"
+        assert sorted(expected) == sorted(images), (
+            f"{case}: image names changed: {sorted(expected)} -> {sorted(images)}"
+        )
         failures = []
         for name, exp in expected.items():
             got = images[name]
@@ -188,9 +206,12 @@ class Golden:
 
     @staticmethod
     def _fail(case: str, meta: dict, failures: list[str]) -> None:
-        made = f"golden made on {meta.get('cpu')}, {meta.get('llvm_target')} x{meta.get('vector_width')}" if meta else ""
-        assert not failures, f"{case} differs from its golden images ({made}; evidence in {FAILURE_DIR / case}): " + \
-            "; ".join(failures)
+        made = (
+            f"golden made on {meta.get('cpu')}, {meta.get('llvm_target')} x{meta.get('vector_width')}" if meta else ""
+        )
+        assert not failures, (
+            f"{case} differs from its golden images ({made}; evidence in {FAILURE_DIR / case}): " + "; ".join(failures)
+        )
 
     @staticmethod
     def _write_failure(case: str, name: str, expected: np.ndarray, obtained: np.ndarray) -> None:

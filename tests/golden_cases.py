@@ -114,15 +114,18 @@ class StageRecorder:
         out = fresh
         if self.stored is not None:
             if i >= len(self.stored) or self.stored[i].shape != expected_e.shape:
-                raise AssertionError(f"sensor stage {i}: the golden stored {len(self.stored)} stage inputs "
-                                     f"({[x.shape for x in self.stored]}), this run has input {expected_e.shape}")
+                raise AssertionError(
+                    f"sensor stage {i}: the golden stored {len(self.stored)} stage inputs "
+                    f"({[x.shape for x in self.stored]}), this run has input {expected_e.shape}"
+                )
             out = simulate(self.stored[i])
         self.used_dn.append(sensor_codes(out))
         return out
 
 
-def run_capture_case(config: str, overrides: list[str], extra: list[str] = (),
-                     stored: list[np.ndarray] | None = None) -> CaseRun:
+def run_capture_case(
+    config: str, overrides: list[str], extra: list[str] = (), stored: list[np.ndarray] | None = None
+) -> CaseRun:
     """Run a capture case; ``stored``: the golden's sensor-stage inputs to replay (None: none)."""
     from mbcapture import load_config, run_capture
     from mbcapture.sensor import sensor_stage_hook
@@ -136,8 +139,9 @@ def run_capture_case(config: str, overrides: list[str], extra: list[str] = (),
     images = {f"sensor{i}_in": x for i, x in enumerate(recorder.fresh_in)}
     images |= {f"sensor{i}_dn": x for i, x in enumerate(recorder.used_dn)}
     images |= {k: v for k, v in app_images(res).items() if k not in UNPINNED.get(config, {})}
-    return CaseRun(images, recorder.fresh_in, recorder.fresh_dn, recorder.reads, cfg.sensor.gain_dn_per_e, res,
-                   recorder.cfas)
+    return CaseRun(
+        images, recorder.fresh_in, recorder.fresh_dn, recorder.reads, cfg.sensor.gain_dn_per_e, res, recorder.cfas
+    )
 
 
 def app_images(res) -> dict[str, np.ndarray]:
@@ -175,8 +179,13 @@ def sensor_config():
 def sensor_images(seed: int = 7) -> dict[str, np.ndarray]:
     from mbcapture.sensor import simulate_reads
 
-    out = simulate_reads(synthetic_exposure(), CUMULATIVE_READS, sensor_config(), np.random.SeedSequence(seed),
-                         storage_s=np.full(4, 8e-3))
+    out = simulate_reads(
+        synthetic_exposure(),
+        CUMULATIVE_READS,
+        sensor_config(),
+        np.random.SeedSequence(seed),
+        storage_s=np.full(4, 8e-3),
+    )
     return {"reads_dn": out.reads_dn, "expected_e": out.reads_e_expected, "saturated": out.saturated}
 
 
@@ -185,10 +194,12 @@ def hdr_images(method: str) -> dict[str, np.ndarray]:
     from mbcapture.sensor import simulate_reads
 
     cfg = sensor_config()
-    out = simulate_reads(synthetic_exposure(), CUMULATIVE_READS, cfg, np.random.SeedSequence(8),
-                         storage_s=np.full(4, 8e-3))
-    res = merge_hdr(out.reads_dn, np.array([1e-3, 2e-3, 4e-3, 8e-3]), cfg, method=method, cumulative=True,
-                    saturated=out.saturated)
+    out = simulate_reads(
+        synthetic_exposure(), CUMULATIVE_READS, cfg, np.random.SeedSequence(8), storage_s=np.full(4, 8e-3)
+    )
+    res = merge_hdr(
+        out.reads_dn, np.array([1e-3, 2e-3, 4e-3, 8e-3]), cfg, method=method, cumulative=True, saturated=out.saturated
+    )
     return {"rate": res.rate_e_per_s, "sigma": res.sigma_e_per_s, "valid": res.valid}
 
 
@@ -300,7 +311,11 @@ def tolerance(case: str, name: str, golden: np.ndarray, measured: dict | None) -
         return {"kind": "exact", "flips": 0, "nonfinite": 0}
     nonfinite = max(int(np.ceil(SAFETY * m["nonfinite"])), FLOOR_FLIPS if np.any(~np.isfinite(golden)) else 0)
     if is_discrete(golden):
-        return {"kind": "discrete", "flips": max(int(np.ceil(SAFETY * m["flips"])), FLOOR_FLIPS), "nonfinite": nonfinite}
+        return {
+            "kind": "discrete",
+            "flips": max(int(np.ceil(SAFETY * m["flips"])), FLOOR_FLIPS),
+            "nonfinite": nonfinite,
+        }
     return {"kind": "continuous", "rel_l2": max(SAFETY * m["rel_l2"], FLOOR_REL_L2), "nonfinite": nonfinite}
 
 
@@ -311,7 +326,9 @@ def within(diff: dict, tol: dict, obtained: np.ndarray) -> str | None:
         if not np.all(np.isfinite(x)):
             return f"{np.count_nonzero(~np.isfinite(x))} non-finite samples (zero by construction)"
         worst = float(x.max()) if x.size else 0.0
-        return None if worst <= tol["max_abs"] else f"max |value| {worst:.3g} > {tol['max_abs']:g} (zero by construction)"
+        return (
+            None if worst <= tol["max_abs"] else f"max |value| {worst:.3g} > {tol['max_abs']:g} (zero by construction)"
+        )
     if diff["nonfinite_kind"]:
         return f"{diff['nonfinite_kind']} non-finite samples changed kind (inf <-> NaN)"
     if diff["nonfinite"] > tol["nonfinite"]:
@@ -361,8 +378,14 @@ def allowed_flips(mean_flips: float) -> int:
 RENDER_REPEAT_RTOL = 1e-6
 
 
-def count_differences(fresh_dn: np.ndarray, golden_dn: np.ndarray, fresh_in: np.ndarray, golden_in: np.ndarray,
-                      reads, gain_dn_per_e: float) -> list[str]:
+def count_differences(
+    fresh_dn: np.ndarray,
+    golden_dn: np.ndarray,
+    fresh_in: np.ndarray,
+    golden_in: np.ndarray,
+    reads,
+    gain_dn_per_e: float,
+) -> list[str]:
     """Compare end-to-end reads as counts: each read may differ from its golden in at most
     :func:`allowed_flips` samples, each by no more than the DN its inputs' difference can make
     (:func:`largest_count_change_e` times the gain, rounded up: one count where the inputs differ by
@@ -381,9 +404,13 @@ def count_differences(fresh_dn: np.ndarray, golden_dn: np.ndarray, fresh_in: np.
         allowed = allowed_flips(float(mean[r]))
         if big.any():
             i = tuple(np.argwhere(big)[0])
-            out.append(f"read {r}: {int(big.sum())} samples differ by more than their inputs allow, e.g. {d[i]:g} DN "
-                       f"at {i} where at most {most_dn[r][i]:g} DN (one count: {gain_dn_per_e:g} DN)")
+            out.append(
+                f"read {r}: {int(big.sum())} samples differ by more than their inputs allow, e.g. {d[i]:g} DN "
+                f"at {i} where at most {most_dn[r][i]:g} DN (one count: {gain_dn_per_e:g} DN)"
+            )
         elif flips > allowed:
-            out.append(f"read {r}: {flips} samples differ > {allowed} allowed "
-                       f"(expected {mean[r]:.3g} from the inputs' differences)")
+            out.append(
+                f"read {r}: {flips} samples differ > {allowed} allowed "
+                f"(expected {mean[r]:.3g} from the inputs' differences)"
+            )
     return out

@@ -80,8 +80,9 @@ def test_pixels_rendered_alone_from_a_shared_pattern_are_the_full_renders_pixels
     other = r.render_pixels(0.002, 24, 7, groups, pix, pattern=(12346, 48))
     assert np.abs(other - full[:, pix]).max() > 1e-3 * np.abs(full[:, pix]).max()
     # and a film render right after is the film's again (the listed pixels are not left in the integrator)
-    np.testing.assert_allclose(r.render(0.002, 24, 7, groups, pattern=(12345, 48)).reshape(full.shape), full,
-                               rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(
+        r.render(0.002, 24, 7, groups, pattern=(12345, 48)).reshape(full.shape), full, rtol=1e-5, atol=1e-7
+    )
 
 
 @pytest.mark.render
@@ -93,8 +94,10 @@ def test_pixels_with_samples_and_offsets_of_their_own_are_the_full_renders_pixel
     cfg = setup[0]
     r = Renderer.from_config(scene_of(cfg), cfg)
     groups = ["ambient", "lamp"]
-    films = {(n, o): r.render(0.002, n, 7, groups, pattern=(12345, o)).reshape(len(groups), -1, 3)
-             for n, o in ((24, 48), (12, 100), (5, 0))}
+    films = {
+        (n, o): r.render(0.002, n, 7, groups, pattern=(12345, o)).reshape(len(groups), -1, 3)
+        for n, o in ((24, 48), (12, 100), (5, 0))
+    }
     rng = np.random.default_rng(1)
     pix = rng.permutation(64 * 48)[:600]
     which = rng.integers(0, 3, pix.size)
@@ -119,17 +122,26 @@ def test_pixels_through_a_lens_that_mixes_neighbours_are_the_full_renders_estima
     neighbourhood left out would bias the pixels by the weight it has, up to 15 % beside the lamp), and the listed
     pixels' variance is at most 2x the full render's (measured 1.0-1.7x: the allocation gives them about the count
     they ask for), for about 1.4x the listed pixels' samples where they lie apart."""
-    cfg = load_config(ROOT / "configs" / "camera_full.yaml", ["render.width=48", "render.height=36",
-                                                               "render.cache=off", "render.spp=16"])
+    cfg = load_config(
+        ROOT / "configs" / "camera_full.yaml",
+        ["render.width=48", "render.height=36", "render.cache=off", "render.spp=16"],
+    )
     r = Renderer.from_config(scene_of(cfg), cfg)
     assert not r.renders_pixels_alone
     groups = list(r.groups)
     pix = np.random.default_rng(0).permutation(48 * 36)[:200]
     reps, n = 12, 24
-    alone = np.array([r.render_pixels(0.002, n, 5 + k, groups, pix, pattern=(100 + k, 0) if pattern else None)
-                      for k in range(reps)], np.float64)
-    full = np.array([r.render(0.002, n, 70 + k, groups, pattern=(200 + k, 0)).reshape(len(groups), -1, 3)[:, pix]
-                     for k in range(reps)], np.float64)
+    alone = np.array(
+        [r.render_pixels(0.002, n, 5 + k, groups, pix, pattern=(100 + k, 0) if pattern else None) for k in range(reps)],
+        np.float64,
+    )
+    full = np.array(
+        [
+            r.render(0.002, n, 70 + k, groups, pattern=(200 + k, 0)).reshape(len(groups), -1, 3)[:, pix]
+            for k in range(reps)
+        ],
+        np.float64,
+    )
     for g in range(len(groups)):
         d = alone[:, g].mean(axis=0) - full[:, g].mean(axis=0)
         var_alone, var_full = (x[:, g].var(axis=0, ddof=1) for x in (alone, full))
@@ -148,8 +160,10 @@ def test_spectral_pixels_rendered_alone_are_the_full_render_and_its_estimator(se
     pattern, whose camera rays and wavelengths are the pattern's (the full render's stay the sampler's), the mean
     over the film is the 512-spp render's within 5 standard errors, per group. An RGB renderer made before still
     renders after them (each renderer makes its variant Mitsuba's current one: mi.render refused the RGB scene)."""
-    cfg = load_config(ROOT / "configs" / "rgb_illumination.yaml", ["render.width=40", "render.height=30",
-                                                                    "render.cache=off", "render.spp=16"])
+    cfg = load_config(
+        ROOT / "configs" / "rgb_illumination.yaml",
+        ["render.width=40", "render.height=30", "render.cache=off", "render.spp=16"],
+    )
     r = Renderer.from_config(scene_of(cfg), cfg)
     groups = list(r.groups)
     assert r.spectral and r.renders_pixels_alone and len(groups) == 4
@@ -173,8 +187,17 @@ def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_err
     scout = integrate(r, replace(plan, spp=plan.spp // 4), timeline.n_buckets, np.random.SeedSequence(8))
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
     most = 2  # every chosen pixel at one factor
-    tiers = tail_pixels(scout.mc_diff, scout.exposure * k_e, k_e, [x.buckets for x in timeline.reads],
-                        cfg.sensor.full_well_e, cfg.sensor.fd_full_well_e, 40.0, most, 0.25)  # a tail target
+    tiers = tail_pixels(
+        scout.mc_diff,
+        scout.exposure * k_e,
+        k_e,
+        [x.buckets for x in timeline.reads],
+        cfg.sensor.full_well_e,
+        cfg.sensor.fd_full_well_e,
+        40.0,
+        most,
+        0.25,
+    )  # a tail target
     # that leaves most pixels alone at this small spp
     assert len(tiers) == 1
     pixels, factor = tiers[0]
@@ -267,10 +290,20 @@ def test_a_capture_with_adaptive_sampling_reports_its_tiers(tmp_path):
 
     # at most 32 spp and a tail target of 10: tiers of factors, chosen among the rules by what they leave in the
     # tail (at 32x24 one read's 0.1 % is two samples: the rule may refine most of the film)
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.min_strata=1",
-                       "render.cache=off", "render.max_spp=32", "render.adaptive=true", "render.adaptive_max_factor=64",
-                       "render.noise_budget_tail=10"])
+    cfg = load_config(
+        ROOT / "configs" / "metronome_hdr.yaml",
+        [
+            "render.width=32",
+            "render.height=24",
+            "render.max_motion_px=4",
+            "render.min_strata=1",
+            "render.cache=off",
+            "render.max_spp=32",
+            "render.adaptive=true",
+            "render.adaptive_max_factor=64",
+            "render.noise_budget_tail=10",
+        ],
+    )
     result = run_capture(cfg, tmp_path, progress=False)
     info = result.report["adaptive"]
     tiers = info["tiers"]
@@ -278,8 +311,9 @@ def test_a_capture_with_adaptive_sampling_reports_its_tiers(tmp_path):
     assert info["rules_judged"] >= 1 and isinstance(info["tail_met_by_rule"], bool) and info["predicted_tail"] > 0
     factors = [t["factor"] for t in tiers]
     assert factors == sorted(set(factors)) and all(2 <= f <= 64 and f & (f - 1) == 0 for f in factors)
-    assert info["added_samples"] == pytest.approx(sum(t["pixels"] * (t["factor"] - 1) for t in tiers) / (32 * 24),
-                                                  abs=1e-4)
+    assert info["added_samples"] == pytest.approx(
+        sum(t["pixels"] * (t["factor"] - 1) for t in tiers) / (32 * 24), abs=1e-4
+    )
     assert undocumented_keys(result.report, [r.name for r in result.timeline.reads]) == []
 
 
@@ -294,14 +328,26 @@ def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
 
     _, timeline, plan, seeds, r = setup
     # a budget that 64 spp misses by about 1.7x at this film
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      [*SMALL, "render.noise_budget=1.5", "render.noise_budget_p95=100"])
+    cfg = load_config(
+        ROOT / "configs" / "metronome_hdr.yaml", [*SMALL, "render.noise_budget=1.5", "render.noise_budget_p95=100"]
+    )
     low = plan  # 64 spp
     first = integrate(r, low, timeline.n_buckets, seeds[2])
     before = over_budget(first, timeline, cfg)[0]
     assert 1.3 < before < 4
-    topped_plan, topped, info = top_up(cfg, r, low, timeline, first, seeds[2], StageStatus(False),
-                                       per_group=False, timer=None, progress=False, why_not=None)
+    topped_plan, topped, info = top_up(
+        cfg,
+        r,
+        low,
+        timeline,
+        first,
+        seeds[2],
+        StageStatus(False),
+        per_group=False,
+        timer=None,
+        progress=False,
+        why_not=None,
+    )
     assert info["applied"] and info["before"] == pytest.approx(before, rel=1e-3)
     assert info["weight"] == pytest.approx(sum(info["spp_added"]) / low.spp.sum())  # by their samples
     assert (topped_plan.spp == low.spp + np.array(info["spp_added"])).all()
@@ -312,15 +358,37 @@ def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
         se = np.sqrt((topped.mc_var[k] + brute.mc_var[k]).sum()) / d.size
         assert abs(d.mean()) < 5 * se, (k, d.mean(), se)
     # not applied where it cannot run, and says why
-    same_plan, same, note = top_up(cfg, r, low, timeline, first, np.random.SeedSequence(4), StageStatus(False),
-                                   per_group=False, timer=None, progress=False, why_not="a reason")
+    same_plan, same, note = top_up(
+        cfg,
+        r,
+        low,
+        timeline,
+        first,
+        np.random.SeedSequence(4),
+        StageStatus(False),
+        per_group=False,
+        timer=None,
+        progress=False,
+        why_not="a reason",
+    )
     assert same is first and same_plan is low and not note["applied"] and "a reason" in note["note"]
     # nor where its second set of the film's arrays would not fit in free memory
     from mbcapture import resources
 
     monkeypatch.setattr(resources, "free_memory", lambda: (resources.rss_bytes() + 1000, "a test"))
-    _, same, note = top_up(cfg, r, low, timeline, first, np.random.SeedSequence(4), StageStatus(False),
-                           per_group=False, timer=None, progress=False, why_not=None)
+    _, same, note = top_up(
+        cfg,
+        r,
+        low,
+        timeline,
+        first,
+        np.random.SeedSequence(4),
+        StageStatus(False),
+        per_group=False,
+        timer=None,
+        progress=False,
+        why_not=None,
+    )
     assert same is first and not note["applied"] and "free by a test" in note["note"]
 
 
@@ -432,11 +500,20 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
 
     monkeypatch.setattr(pipeline, "integrate_tiles", integrate_recorded)
     monkeypatch.setattr(pipeline, "tail_pixels", choose)
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.min_strata=1",
-                       "render.cache=off", "render.adaptive=true", "render.noise_budget_tail=10"])
+    cfg = load_config(
+        ROOT / "configs" / "metronome_hdr.yaml",
+        [
+            "render.width=32",
+            "render.height=24",
+            "render.max_motion_px=4",
+            "render.min_strata=1",
+            "render.cache=off",
+            "render.adaptive=true",
+            "render.noise_budget_tail=10",
+        ],
+    )
     run = pipeline.capture_in_memory(cfg, StageStatus(False))
-    (desc, plan, scout), = [m for m in made if m[0] == "scout"]
+    ((desc, plan, scout),) = [m for m in made if m[0] == "scout"]
     assert len(seen) == 1 and seen[0][0] is scout.mc_diff
     top = run.report["top_up"] or {}  # the scout comes before a top-up: the first pass's samples alone
     first_spp = np.asarray(run.plan.spp) - (np.asarray(top["spp_added"]) if top.get("applied") else 0)
@@ -464,8 +541,17 @@ def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monk
     from mbcapture.progress import StageStatus
 
     script = load_script("render_noise_reads")
-    sets = ["render.width=32", "render.height=24", "render.max_motion_px=4", "render.min_strata=1", "render.cache=off",
-            "render.max_spp=32", "render.adaptive=true", "render.noise_budget_tail=10", "render.top_up=false"]
+    sets = [
+        "render.width=32",
+        "render.height=24",
+        "render.max_motion_px=4",
+        "render.min_strata=1",
+        "render.cache=off",
+        "render.max_spp=32",
+        "render.adaptive=true",
+        "render.noise_budget_tail=10",
+        "render.top_up=false",
+    ]
     real_resolve = script.resolve_spp
     for share in (True, False):
         calls, pilots = [], []
@@ -487,8 +573,9 @@ def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monk
             choice.start_run()
             monkeypatch.setattr(pipeline, "tail_pixels", choice)
             monkeypatch.setattr(pipeline, "resolve_spp", samples)
-            run = capture_in_memory(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*sets, f"seed={seed}"]),
-                                    StageStatus(False))
+            run = capture_in_memory(
+                load_config(ROOT / "configs" / "metronome_hdr.yaml", [*sets, f"seed={seed}"]), StageStatus(False)
+            )
             used.append(choice.tiers)
             spp.append(np.asarray(run.plan.spp))
             assert run.report["adaptive"]["pixels"] == sum(p.size for p, _ in choice.tiers) > 0
@@ -531,8 +618,18 @@ def test_adaptive_sampling_is_skipped_where_its_scout_would_not_fit_in_memory(se
     cfg, timeline, plan, seeds, r = setup
     first = integrate(r, plan, timeline.n_buckets, seeds[2])
     monkeypatch.setattr(resources, "free_memory", lambda: (resources.rss_bytes() + 1000, "a test"))
-    tiers, info, _ = scout_tail(cfg, r, plan, timeline, first, seeds[2], StageStatus(False),
-                             moving=np.zeros((48, 64), bool), timer=lambda name: nullcontext(), progress=False)
+    tiers, info, _ = scout_tail(
+        cfg,
+        r,
+        plan,
+        timeline,
+        first,
+        seeds[2],
+        StageStatus(False),
+        moving=np.zeros((48, 64), bool),
+        timer=lambda name: nullcontext(),
+        progress=False,
+    )
     assert tiers is None and info["pixels"] == 0 and "free by a test" in info["note"]
 
 
@@ -617,14 +714,40 @@ def test_the_top_up_judges_the_budget_on_the_image_adaptive_sampling_will_give(m
         return 0.5, "J1", "to_shot_noise_variance_median", 0.05
 
     monkeypatch.setattr(pipeline, "over_budget", over)
-    out = pipeline.top_up(None, None, None, None, first, None, StageStatus(False), per_group=False, timer=None,
-                          progress=False, why_not=None, planned=tiers)
+    out = pipeline.top_up(
+        None,
+        None,
+        None,
+        None,
+        first,
+        None,
+        StageStatus(False),
+        per_group=False,
+        timer=None,
+        progress=False,
+        why_not=None,
+        planned=tiers,
+    )
     assert out == (None, first, None)
     np.testing.assert_array_equal(judged[0][0], planned.mc_diff)
     assert judged[0][1:] == (None, False)  # the tail is not judged unless asked: a rule met it
     figures = {"J1": {}}
-    pipeline.top_up(None, None, None, None, first, None, StageStatus(False), per_group=False, timer=None,
-                    progress=False, why_not=None, planned=tiers, planned_reads=figures, tail=True)
+    pipeline.top_up(
+        None,
+        None,
+        None,
+        None,
+        first,
+        None,
+        StageStatus(False),
+        per_group=False,
+        timer=None,
+        progress=False,
+        why_not=None,
+        planned=tiers,
+        planned_reads=figures,
+        tail=True,
+    )
     assert judged[1][1] is figures and judged[1][2] is True  # scout_tail's figures reused, the tail judged
 
 
@@ -693,8 +816,7 @@ def test_adaptive_sampling_renders_the_cheapest_rule_that_meets_the_tail():
     assert cost(got) < costs[-1]  # the changing pixels ask for less
 
 
-def test_a_second_round_runs_only_where_the_refined_estimate_is_over_and_starts_from_what_each_pixel_holds(
-        monkeypatch):
+def test_a_second_round_runs_only_where_the_refined_estimate_is_over_and_starts_from_what_each_pixel_holds(monkeypatch):
     """pipeline.second_round: nothing where the refined render stage's own estimate meets the tail target on every read
     (a median over its target is the top-up's); else a scout and a refinement again, from the factor each pixel holds (the first round's tiers), at most
     SECOND_ROUND_MAX_FACTOR more, reported under adaptive.second_round with how far over the stage was."""
@@ -706,18 +828,46 @@ def test_a_second_round_runs_only_where_the_refined_estimate_is_over_and_starts_
     cfg = SimpleNamespace(render=SimpleNamespace(width=4, height=2, noise_budget_tail=1.0))
     tiers = [(np.array([1, 2]), 2), (np.array([5]), 8)]
     calls = []
-    monkeypatch.setattr(pipeline, "scout_tail", lambda *a, **k: (calls.append(("scout", k)) or
-                                                                ([(np.array([5]), 2)], {"pixels": 1}, None)))
-    monkeypatch.setattr(pipeline, "refine_tail", lambda cfg, r, plan, integrated, more, info, *a, **k: (
-        calls.append(("refine", more, k)) or ("refined", {**info, "seconds": 1.0})))
+    monkeypatch.setattr(
+        pipeline,
+        "scout_tail",
+        lambda *a, **k: calls.append(("scout", k)) or ([(np.array([5]), 2)], {"pixels": 1}, None),
+    )
+    monkeypatch.setattr(
+        pipeline,
+        "refine_tail",
+        lambda cfg, r, plan, integrated, more, info, *a, **k: (
+            calls.append(("refine", more, k)) or ("refined", {**info, "seconds": 1.0})
+        ),
+    )
     for over, runs in ((0.99, False), (1.3, True)):
         calls.clear()
-        monkeypatch.setattr(pipeline, "_read_figures", lambda *a, **k: {
-            "J1": {"to_shot_noise_variance_p999": 0.5, "to_shot_noise_variance_median": 7.0},  # the median: the top-up's
-            "J4": {"to_shot_noise_variance_p999": over, "to_shot_noise_variance_median": 0.0}})
-        out, info = pipeline.second_round(cfg, None, None, None, "first", tiers, {"pixels": 3}, None,
-                                          StageStatus(False), moving=np.zeros((2, 4), bool), per_group=False,
-                                          timer=None, progress=False)
+        monkeypatch.setattr(
+            pipeline,
+            "_read_figures",
+            lambda *a, **k: {
+                "J1": {
+                    "to_shot_noise_variance_p999": 0.5,
+                    "to_shot_noise_variance_median": 7.0,
+                },  # the median: the top-up's
+                "J4": {"to_shot_noise_variance_p999": over, "to_shot_noise_variance_median": 0.0},
+            },
+        )
+        out, info = pipeline.second_round(
+            cfg,
+            None,
+            None,
+            None,
+            "first",
+            tiers,
+            {"pixels": 3},
+            None,
+            StageStatus(False),
+            moving=np.zeros((2, 4), bool),
+            per_group=False,
+            timer=None,
+            progress=False,
+        )
         if not runs:
             assert out == "first" and info == {"pixels": 3} and not calls
             continue

@@ -19,8 +19,16 @@ T_S = 0.002
 
 
 def _cfg(*extra):
-    return load_config(None, ["capture.protocol=flash_matting", f"capture.unit_exposure_s={T_S}", "capture.periods=8",
-                              "scene.name=flash_toy", *extra])
+    return load_config(
+        None,
+        [
+            "capture.protocol=flash_matting",
+            f"capture.unit_exposure_s={T_S}",
+            "capture.periods=8",
+            "scene.name=flash_toy",
+            *extra,
+        ],
+    )
 
 
 # ----------------------------------------------------------------------------- protocol
@@ -130,7 +138,9 @@ def test_matting_methods_registry_and_degenerate_trimaps():
     with pytest.raises(ConfigError, match="app.matting"):
         mt.estimate_alpha(image, tri, "magic")
     ramp = np.linspace(-0.5, 1.5, tri.size).reshape(tri.shape)
-    np.testing.assert_allclose(mt.estimate_alpha(image, tri, "threshold", ramp)[tri == 0.5], np.clip(ramp, 0, 1)[tri == 0.5])
+    np.testing.assert_allclose(
+        mt.estimate_alpha(image, tri, "threshold", ramp)[tri == 0.5], np.clip(ramp, 0, 1)[tri == 0.5]
+    )
     only_unknown_and_bg = np.where(tri == 1.0, 0.5, tri)  # no foreground: nothing to propagate
     got = mt.estimate_alpha(image, only_unknown_and_bg, "closed_form", ramp)
     np.testing.assert_allclose(got[only_unknown_and_bg == 0.5], np.clip(ramp, 0, 1)[only_unknown_and_bg == 0.5])
@@ -166,18 +176,29 @@ def test_reconstruct_on_synthetic_reads_recovers_the_matte(n_flash):
     reads_e = np.stack([(amb + fl) * k_e * t_f, amb * k_e * t_n])
     s = cfg.sensor
     data = CaptureData(
-        cfg=cfg, scene=SimpleNamespace(name="synthetic"), timeline=tl, plan=SimpleNamespace(groups=("ambient", "flash")),
-        read_names=["flash", "noflash"], exposure_s=np.array([t_f, t_n]),
-        reads_dn=reads_e * s.gain_dn_per_e + s.black_level_dn, saturated=np.zeros(reads_e.shape, bool),
-        reads_e_expected=reads_e, bucket_exposure=np.zeros((4, h, w, 3)), k_e=k_e,
-        moving_mask=np.zeros((h, w), bool), switchable=("flash",), bucket_group_s=None, group_exposure=None,
+        cfg=cfg,
+        scene=SimpleNamespace(name="synthetic"),
+        timeline=tl,
+        plan=SimpleNamespace(groups=("ambient", "flash")),
+        read_names=["flash", "noflash"],
+        exposure_s=np.array([t_f, t_n]),
+        reads_dn=reads_e * s.gain_dn_per_e + s.black_level_dn,
+        saturated=np.zeros(reads_e.shape, bool),
+        reads_e_expected=reads_e,
+        bucket_exposure=np.zeros((4, h, w, 3)),
+        k_e=k_e,
+        moving_mask=np.zeros((h, w), bool),
+        switchable=("flash",),
+        bucket_group_s=None,
+        group_exposure=None,
     )
     out = fm.reconstruct(data, cfg.app.resolve(cfg.capture.protocol)[1])
     np.testing.assert_allclose(out.images["flash_only"], fl, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(out.images["flash"], amb + fl, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(out.images["noflash"], amb, rtol=1e-9, atol=1e-12)
-    np.testing.assert_array_equal(out.images["flash_only"], fm.flash_only_image(
-        data.reads_e()[0], t_f, data.reads_e()[1], t_n, k_e))  # the tested function is the one used
+    np.testing.assert_array_equal(
+        out.images["flash_only"], fm.flash_only_image(data.reads_e()[0], t_f, data.reads_e()[1], t_n, k_e)
+    )  # the tested function is the one used
     assert out.metrics["split"] == f"{n_flash}:{4 - n_flash}"
     assert out.metrics["reads"] == {"flash_exposure_s": t_f, "noflash_exposure_s": t_n}
     assert out.metrics["alpha_truth"] is None
@@ -197,8 +218,9 @@ def test_coverage_of_a_disk_is_its_projected_area():
     cam = Camera(origin=(0.0, 0.0, 1.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=40.0)
     radius, w, h = 0.1, 64, 48
     disk = Shape("disk", "disk", translate(0, 0, 0) @ scale(radius), Material((0.5, 0.5, 0.5)))
-    scene = SceneModel("disk", ("light",), frozenset(), cam, SceneBuild(shapes=(disk,)), None,
-                       extra={"foreground": ("disk",)})
+    scene = SceneModel(
+        "disk", ("light",), frozenset(), cam, SceneBuild(shapes=(disk,)), None, extra={"foreground": ("disk",)}
+    )
     spp, strata = 16, 2
     alpha = coverage_alpha(scene, np.zeros(strata), np.ones(strata), w, h, spp, np.random.SeedSequence(1))
     px_per_m = w / (2 * np.tan(np.radians(20.0)))  # at distance 1 m
@@ -212,8 +234,15 @@ def test_coverage_of_a_disk_is_its_projected_area():
 
 @pytest.mark.render
 def test_tiny_capture_interleaved_beats_sequential():
-    common = ["render.width=80", "render.height=64", "render.spp=4", "render.max_motion_px=1.0", "render.min_strata=1", "app.truth_spp=4",
-              "scene.wave_hz=4"]
+    common = [
+        "render.width=80",
+        "render.height=64",
+        "render.spp=4",
+        "render.max_motion_px=1.0",
+        "render.min_strata=1",
+        "app.truth_spp=4",
+        "scene.wave_hz=4",
+    ]
     from mbcapture import run_capture
 
     cfg_path = __import__("pathlib").Path(__file__).resolve().parents[1] / "configs" / "flash_matting.yaml"
@@ -230,7 +259,11 @@ def test_tiny_capture_interleaved_beats_sequential():
 
 
 def test_matte_scores_of_an_empty_region_and_trimap_error_thresholds():
-    assert fm.matte_scores(np.ones((2, 2)), np.zeros((2, 2)), np.zeros((2, 2), bool)) == {"pixels": 0, "sad": 0.0, "mse": None}
+    assert fm.matte_scores(np.ones((2, 2)), np.zeros((2, 2)), np.zeros((2, 2), bool)) == {
+        "pixels": 0,
+        "sad": 0.0,
+        "mse": None,
+    }
     # truth exactly at the tolerance is not an error (strict inequalities); unknown pixels never are
     tri = np.array([[1.0, 1.0, 0.0, 0.0, 0.5, 0.5]])
     truth = np.array([[0.05, 0.0499, 0.95, 0.9501, 0.0, 1.0]])
@@ -239,7 +272,7 @@ def test_matte_scores_of_an_empty_region_and_trimap_error_thresholds():
 
 # ----------------------------------------------------------------------------- exact small cases
 def test_reference_level_and_trimap_cue_by_hand():
-    assert mt.reference_level(np.zeros(0), 99.0) == 1.0      # nothing to measure
+    assert mt.reference_level(np.zeros(0), 99.0) == 1.0  # nothing to measure
     assert mt.reference_level(np.zeros((3, 3)), 99.0) == 1.0  # black: 1 render unit
     assert mt.reference_level(np.arange(101.0), 50.0) == 50.0
     rng = np.random.default_rng(11)
@@ -250,8 +283,9 @@ def test_reference_level_and_trimap_cue_by_hand():
     y = f / (np.maximum(n, 0.0) + 0.05 * np.percentile(n, 99))
     np.testing.assert_allclose(mt.trimap_cue(grey(f), grey(n)), y / np.percentile(y, 99), rtol=1e-12)
     y2 = f / (np.maximum(n, 0.0) + 0.2 * np.percentile(n, 80))
-    np.testing.assert_allclose(mt.trimap_cue(grey(f), grey(n), "flash_ratio", 80.0, 0.2), y2 / np.percentile(y2, 80),
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        mt.trimap_cue(grey(f), grey(n), "flash_ratio", 80.0, 0.2), y2 / np.percentile(y2, 80), rtol=1e-12
+    )
     np.testing.assert_allclose(mt.trimap_cue(grey(f), grey(n), "flash_only"), f / np.percentile(f, 99), rtol=1e-12)
 
 
@@ -301,7 +335,7 @@ def test_estimate_alpha_hands_the_method_clipped_inputs_and_keeps_definite_pixel
     tri[0], tri[3] = 1.0, 0.0
     ramp = rng.uniform(-0.5, 1.5, (4, 6))
     alpha = mt.estimate_alpha(image, tri, "spy", ramp)
-    (img_in, tri_in, ramp_in), = calls
+    ((img_in, tri_in, ramp_in),) = calls
     np.testing.assert_array_equal(img_in, np.clip(image, 0, 1))
     np.testing.assert_array_equal(tri_in, tri)
     np.testing.assert_array_equal(ramp_in, np.clip(ramp, 0, 1))
@@ -336,17 +370,38 @@ def _matting_data():
     bucket_group_s[:, 1] = flash_s  # switchable ("other", "flash"): the flash is the second
     bucket_group_s[:, 0] = [0.002, 0.0, 0.001, 0.0]  # another switchable group, on for part of the flash read
     tl = SimpleNamespace(reads=[ReadEvent("noflash", (2, 3)), ReadEvent("flash", (0, 1))])
-    plan = SimpleNamespace(groups=groups, weights_s=np.stack([np.array([[0.0, 0.002], [0.0, 0.0005], [0.0, 0.0], [0.0, 0.0]]),
-                                                              np.array([[0.0, 0.001], [0.0, 0.0005], [0.0, 0.0], [0.0, 0.0]])]),
-                           times_s=np.array([0.001, 0.003]),
-                           # each stratum's two halves and a top-up's pass (Plan.exposure_time_mix)
-                           exposure_time_mix=lambda: (np.array([[0.001, 0.0015, 0.0012], [0.003, 0.0035, 0.0031]]),
-                                                      np.array([[0.25, 0.25, 0.5], [0.125, 0.375, 0.5]])))
-    data = CaptureData(cfg=None, scene=None, timeline=tl, plan=plan, read_names=["noflash", "flash"],
-                       exposure_s=np.array([0.004, 0.004]), reads_dn=np.zeros(0), saturated=np.zeros(0),
-                       reads_e_expected=np.zeros(0), bucket_exposure=np.zeros(0), k_e=np.ones(3),
-                       moving_mask=np.zeros((3, 4), bool), switchable=("other", "flash"),
-                       bucket_group_s=bucket_group_s, group_exposure=group_exposure)
+    plan = SimpleNamespace(
+        groups=groups,
+        weights_s=np.stack(
+            [
+                np.array([[0.0, 0.002], [0.0, 0.0005], [0.0, 0.0], [0.0, 0.0]]),
+                np.array([[0.0, 0.001], [0.0, 0.0005], [0.0, 0.0], [0.0, 0.0]]),
+            ]
+        ),
+        times_s=np.array([0.001, 0.003]),
+        # each stratum's two halves and a top-up's pass (Plan.exposure_time_mix)
+        exposure_time_mix=lambda: (
+            np.array([[0.001, 0.0015, 0.0012], [0.003, 0.0035, 0.0031]]),
+            np.array([[0.25, 0.25, 0.5], [0.125, 0.375, 0.5]]),
+        ),
+    )
+    data = CaptureData(
+        cfg=None,
+        scene=None,
+        timeline=tl,
+        plan=plan,
+        read_names=["noflash", "flash"],
+        exposure_s=np.array([0.004, 0.004]),
+        reads_dn=np.zeros(0),
+        saturated=np.zeros(0),
+        reads_e_expected=np.zeros(0),
+        bucket_exposure=np.zeros(0),
+        k_e=np.ones(3),
+        moving_mask=np.zeros((3, 4), bool),
+        switchable=("other", "flash"),
+        bucket_group_s=bucket_group_s,
+        group_exposure=group_exposure,
+    )
     return data, L
 
 
@@ -372,8 +427,16 @@ def test_alpha_truth_weights_each_stratum_by_the_flash_reads_flash_time(monkeypa
     got = {}
 
     def fake_coverage(scene, times_s, weights_s, width, height, spp, seed, variant, cache):
-        got.update(scene=scene, times_s=times_s, weights_s=weights_s, size=(width, height), spp=spp, seed=seed,
-                   variant=variant, cache=cache)
+        got.update(
+            scene=scene,
+            times_s=times_s,
+            weights_s=weights_s,
+            size=(width, height),
+            spp=spp,
+            seed=seed,
+            variant=variant,
+            cache=cache,
+        )
         return "coverage"
 
     monkeypatch.setattr(fm, "coverage_alpha", fake_coverage)  # the name the application calls
@@ -383,8 +446,11 @@ def test_alpha_truth_weights_each_stratum_by_the_flash_reads_flash_time(monkeypa
 
     d = dataclasses.replace(data, cfg=cfg, scene="the scene", renderer=SimpleNamespace(cache="the cache"), seed=seed)
     assert fm.alpha_truth(d, fm.FlashMattingParams(truth_spp=7)) == "coverage"
-    np.testing.assert_allclose(got["weights_s"], [0.0025 * 0.25, 0.0025 * 0.25, 0.0025 * 0.5,
-                                                  0.0015 * 0.125, 0.0015 * 0.375, 0.0015 * 0.5], rtol=1e-15)
+    np.testing.assert_allclose(
+        got["weights_s"],
+        [0.0025 * 0.25, 0.0025 * 0.25, 0.0025 * 0.5, 0.0015 * 0.125, 0.0015 * 0.375, 0.0015 * 0.5],
+        rtol=1e-15,
+    )
     np.testing.assert_array_equal(got["times_s"], [0.001, 0.0015, 0.0012, 0.003, 0.0035, 0.0031])
     assert got["size"] == (4, 3) and got["spp"] == 7 and got["seed"] is seed and got["variant"] == "scalar_rgb"
     assert got["scene"] == "the scene" and got["cache"] == "the cache"

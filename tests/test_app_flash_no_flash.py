@@ -65,7 +65,10 @@ def brute_joint_bilateral(img, guide, ss, sr, truncate=2.5, border=_mirror):
                     if dy * dy + dx * dx > r * r:
                         continue
                     qy, qx = border(y + dy, H), border(x + dx, W)
-                    w = np.exp(-(dy * dy + dx * dx) / (2 * ss**2) - np.sum(np.abs(guide[qy, qx] - guide[y, x])) ** 2 / (2 * sr**2))
+                    w = np.exp(
+                        -(dy * dy + dx * dx) / (2 * ss**2)
+                        - np.sum(np.abs(guide[qy, qx] - guide[y, x])) ** 2 / (2 * sr**2)
+                    )
                     num = num + w * img[qy, qx]
                     den += w
             out[y, x] = num / den
@@ -76,16 +79,20 @@ def brute_joint_bilateral(img, guide, ss, sr, truncate=2.5, border=_mirror):
 def test_joint_bilateral_matches_its_definition():
     rng = np.random.default_rng(0)
     img, guide = rng.random((9, 11, 3)), rng.random((9, 11, 3))
-    np.testing.assert_allclose(joint_bilateral(img, guide, 1.3, 0.4), brute_joint_bilateral(img, guide, 1.3, 0.4),
-                               rtol=0, atol=F32)
+    np.testing.assert_allclose(
+        joint_bilateral(img, guide, 1.3, 0.4), brute_joint_bilateral(img, guide, 1.3, 0.4), rtol=0, atol=F32
+    )
     one = guide[..., 0]
-    np.testing.assert_allclose(joint_bilateral(img, one, 1.3, 0.1), brute_joint_bilateral(img, one[..., None], 1.3, 0.1),
-                               rtol=0, atol=F32)
+    np.testing.assert_allclose(
+        joint_bilateral(img, one, 1.3, 0.1), brute_joint_bilateral(img, one[..., None], 1.3, 0.1), rtol=0, atol=F32
+    )
 
 
 def test_joint_bilateral_keeps_constants_and_the_guides_edges():
     const = np.full((16, 16, 3), 0.7)
-    np.testing.assert_allclose(joint_bilateral(const, np.random.default_rng(1).random((16, 16)), 2.0, 0.1), 0.7, rtol=F32)
+    np.testing.assert_allclose(
+        joint_bilateral(const, np.random.default_rng(1).random((16, 16)), 2.0, 0.1), 0.7, rtol=F32
+    )
     # image = guide = a step: a range sigma far below the step keeps it exactly (weights e^-5000)
     step = np.zeros((16, 16, 1))
     step[:, 8:] = 1.0
@@ -105,11 +112,11 @@ def test_joint_bilateral_noise_reduction_is_the_spatial_kernels():
     noise = rng.normal(0, sigma, (400, 400, 1))
     out = joint_bilateral(noise, np.zeros((400, 400)), ss, 0.1)
     r = int(np.ceil(2.5 * ss))
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
     w = np.exp(-(yy**2 + xx**2) / (2 * ss**2)) * (yy**2 + xx**2 <= r * r)
     expected = sigma**2 * (w**2).sum() / w.sum() ** 2
     # independent samples: pixels 2r + 1 apart
-    sample = out[r:-r:2 * r + 1, r:-r:2 * r + 1].ravel()
+    sample = out[r : -r : 2 * r + 1, r : -r : 2 * r + 1].ravel()
     n = sample.size
     assert sample.var(ddof=1) == pytest.approx(expected, rel=N_SIGMA * np.sqrt(2 / (n - 1)))
 
@@ -131,7 +138,7 @@ def test_detail_transfer_recovers_an_ambient_image_proportional_to_the_flash():
 def test_mask_marks_flash_shadows_and_specularities():
     fo = np.ones((30, 30, 3))
     fo[5:15, 5:15] = 0.01  # shadow
-    fo[20, 20] = 0.0       # one dark noise pixel: removed by the opening
+    fo[20, 20] = 0.0  # one dark noise pixel: removed by the opening
     spec = np.zeros((30, 30), bool)
     spec[25, 5] = True
     m, shadow, specular = flash_mask(fo, spec, 0.05, dilate_px=1, feather_px=0.0)
@@ -153,11 +160,13 @@ def test_display_psnr_clips_to_white():
 
 # ----------------------------------------------------------------------------- protocol
 def _cfg(**capture):
-    return config_from_dict({
-        "scene": {"name": "metronome"},
-        "render": {"width": 32, "height": 24, "spp": 2},
-        "capture": {"protocol": "flash_no_flash", "unit_exposure_s": 0.01, "periods": 8, **capture},
-    })
+    return config_from_dict(
+        {
+            "scene": {"name": "metronome"},
+            "render": {"width": 32, "height": 24, "spp": 2},
+            "capture": {"protocol": "flash_no_flash", "unit_exposure_s": 0.01, "periods": 8, **capture},
+        }
+    )
 
 
 def test_protocol_interleaves_flash_and_ambient_buckets():
@@ -225,10 +234,20 @@ def synthetic(sequential: bool, seed: int = 0):
     moving[:, 18:37] = True
     sens = simulate_reads(ge.sum(1) * k_e, [(0,), (1,)], cfg.sensor, np.random.default_rng(seed))
     data = CaptureData(
-        cfg=cfg, scene=None, timeline=tl, plan=SimpleNamespace(groups=("ambient", "flash")),
-        read_names=["flash", "noflash"], exposure_s=np.array([t, t]), reads_dn=sens.reads_dn,
-        saturated=sens.saturated, reads_e_expected=sens.reads_e_expected, bucket_exposure=ge.sum(1), k_e=k_e,
-        moving_mask=moving, switchable=("flash",), bucket_group_s=bucket_group_seconds(tl, ("flash",)),
+        cfg=cfg,
+        scene=None,
+        timeline=tl,
+        plan=SimpleNamespace(groups=("ambient", "flash")),
+        read_names=["flash", "noflash"],
+        exposure_s=np.array([t, t]),
+        reads_dn=sens.reads_dn,
+        saturated=sens.saturated,
+        reads_e_expected=sens.reads_e_expected,
+        bucket_exposure=ge.sum(1),
+        k_e=k_e,
+        moving_mask=moving,
+        switchable=("flash",),
+        bucket_group_s=bucket_group_seconds(tl, ("flash",)),
         group_exposure=ge,
     )
     return data, dict(amb_f=amb_f, amb_a=amb_a, flash_only=fl, k_e=k_e, t=t)
@@ -316,9 +335,9 @@ def test_mask_threshold_opening_disc_and_feathered_border():
     from scipy import ndimage
 
     fo = np.ones((24, 24, 3))
-    fo[3:6, 3:6] = 0.2         # a 3x3 shadow: kept by the 3x3 opening
-    fo[3:5, 12:15] = 0.2       # 2x3: removed
-    fo[14:19, 3:8] = 0.5       # exactly at the threshold: not a shadow
+    fo[3:6, 3:6] = 0.2  # a 3x3 shadow: kept by the 3x3 opening
+    fo[3:5, 12:15] = 0.2  # 2x3: removed
+    fo[14:19, 3:8] = 0.5  # exactly at the threshold: not a shadow
     fo[14:19, 12:17] = 0.4999  # just below: a shadow
     no_spec = np.zeros((24, 24), bool)
     m0, shadow0, spec0 = flash_mask(fo, no_spec, 0.5, dilate_px=0, feather_px=0.0)
@@ -361,20 +380,41 @@ def test_letter_s_mask_is_the_region_its_points_sweep_over_the_capture():
 
     def points(t):  # (T, 5, 3): 0-1 a pair moving right at 2 m/s, 2-4 a triangle ("the S") moving down at 2 m/s
         t = np.asarray(t, float)[:, None]
-        pair = np.stack([np.hstack([-0.6 + 2 * t, 0.3 + 0 * t, 2 + 0 * t]),
-                         np.hstack([-0.5 + 2 * t, 0.4 + 0 * t, 2 + 0 * t])], axis=1)
-        tri = np.stack([np.hstack([0.3 + 0 * t, 0.5 - 2 * t, 2 + 0 * t]),
-                        np.hstack([0.5 + 0 * t, 0.5 - 2 * t, 2 + 0 * t]),
-                        np.hstack([0.4 + 0 * t, 0.3 - 2 * t, 2 + 0 * t])], axis=1)
+        pair = np.stack(
+            [np.hstack([-0.6 + 2 * t, 0.3 + 0 * t, 2 + 0 * t]), np.hstack([-0.5 + 2 * t, 0.4 + 0 * t, 2 + 0 * t])],
+            axis=1,
+        )
+        tri = np.stack(
+            [
+                np.hstack([0.3 + 0 * t, 0.5 - 2 * t, 2 + 0 * t]),
+                np.hstack([0.5 + 0 * t, 0.5 - 2 * t, 2 + 0 * t]),
+                np.hstack([0.4 + 0 * t, 0.3 - 2 * t, 2 + 0 * t]),
+            ],
+            axis=1,
+        )
         return np.concatenate([pair, tri], axis=1)
 
     cam = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 90.0)
-    scene = SceneModel("synthetic", ("ambient",), frozenset(), cam, None, None, motion_points=points,
-                       extra={"letter_s_points": (2, 3, 4)})
+    scene = SceneModel(
+        "synthetic",
+        ("ambient",),
+        frozenset(),
+        cam,
+        None,
+        None,
+        motion_points=points,
+        extra={"letter_s_points": (2, 3, 4)},
+    )
     ms = Fraction(1, 1000)
-    tl = build_timeline([SegmentSeconds(50 * ms, (SlotSeconds(0, 20 * ms), SlotSeconds(1, 20 * ms)), 2)],
-                        [ReadEvent("F", (0,)), ReadEvent("A", (1,))], 2, "two")
-    assert float(tl.seconds(tl.start_tick)) == pytest.approx(0.05) and float(tl.seconds(tl.end_tick)) == pytest.approx(0.13)
+    tl = build_timeline(
+        [SegmentSeconds(50 * ms, (SlotSeconds(0, 20 * ms), SlotSeconds(1, 20 * ms)), 2)],
+        [ReadEvent("F", (0,)), ReadEvent("A", (1,))],
+        2,
+        "two",
+    )
+    assert float(tl.seconds(tl.start_tick)) == pytest.approx(0.05) and float(tl.seconds(tl.end_tick)) == pytest.approx(
+        0.13
+    )
     W, H = 40, 30
     data = SimpleNamespace(scene=scene, timeline=tl, moving_mask=np.zeros((H, W), bool))
     got = _letter_s_mask(data)
@@ -447,7 +487,9 @@ def test_white_level_rel_rms_blur_agreement_and_display_psnr():
     x = img.copy()
     x[8, 8] += 0.4  # outside the mask
     x[2, 2] += 0.1
-    assert display_psnr(x, img, 1.0, mask) == pytest.approx(10 * np.log10(1 / (0.1**2 / 4)))  # one of 4 pixels off by 0.1
+    assert display_psnr(x, img, 1.0, mask) == pytest.approx(
+        10 * np.log10(1 / (0.1**2 / 4))
+    )  # one of 4 pixels off by 0.1
     assert display_psnr(img - 0.5, np.zeros_like(img), 1.0) == np.inf
     assert display_psnr(np.zeros_like(img), img - 0.5, 1.0) == np.inf
 
@@ -458,9 +500,12 @@ def test_read_roles_from_the_switchable_groups_each_read_saw():
 
     # buckets 0-1 make the no-flash read, bucket 2 the flash read; bucket 0 saw nothing switchable,
     # bucket 2 saw flash2 only (seconds per switchable group, columns flash, flash2)
-    data = SimpleNamespace(read_names=["A", "F"], switchable=("flash", "flash2"),
-                           bucket_group_s=np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.01]]),
-                           timeline=SimpleNamespace(reads=[ReadEvent("A", (0, 1)), ReadEvent("F", (2,))]))
+    data = SimpleNamespace(
+        read_names=["A", "F"],
+        switchable=("flash", "flash2"),
+        bucket_group_s=np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.01]]),
+        timeline=SimpleNamespace(reads=[ReadEvent("A", (0, 1)), ReadEvent("F", (2,))]),
+    )
     assert _read_roles(data) == (1, 0, ["flash2"])
     data.timeline = SimpleNamespace(reads=[ReadEvent("A", (2,)), ReadEvent("F", (0, 1))])
     data.bucket_group_s = np.array([[0.0, 0.02], [0.0, 0.0], [0.0, 0.0]])

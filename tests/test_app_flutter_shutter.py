@@ -43,7 +43,7 @@ def test_spread_kernel_keeps_weight_and_centroid():
 
 def _rows(n_rows=40, n=120, support=(30, 80), seed=0):
     f = np.zeros((n_rows, n, 1))
-    f[:, support[0]:support[1], 0] = np.random.default_rng(seed).uniform(0.1, 1.0, (n_rows, support[1] - support[0]))
+    f[:, support[0] : support[1], 0] = np.random.default_rng(seed).uniform(0.1, 1.0, (n_rows, support[1] - support[0]))
     return f
 
 
@@ -73,8 +73,9 @@ def test_least_squares_inverts_the_code_and_the_joint_solution_is_exact_too():
     np.testing.assert_allclose(db.deblur_least_squares(b[:1], [k_open], w[:1], 0.0), f, atol=1e-6)
     np.testing.assert_allclose(db.deblur_least_squares(b, [k_open, k_closed], w, 0.0), f, atol=1e-6)
     # the box of the same length is exact too without noise, but far worse conditioned (next test)
-    np.testing.assert_allclose(db.deblur_least_squares(_blur(f, (-26, np.ones(52)))[None], [(-26, np.ones(52))], w[:1],
-                                                       0.0), f, atol=1e-4)
+    np.testing.assert_allclose(
+        db.deblur_least_squares(_blur(f, (-26, np.ones(52)))[None], [(-26, np.ones(52))], w[:1], 0.0), f, atol=1e-4
+    )
 
 
 def _samples(code, first=-26, frac=0.0):
@@ -186,37 +187,58 @@ def test_read_kernels_follow_the_code_at_one_pixel_per_chop():
     # the open kernel, resampled per chop: chop k lies at shift k - 26 + 1/2 (its centre), so pixel
     # j gets half of chops j + 25 and j + 26
     x = f_o + np.arange(len(h_o))
-    code_px = np.array([0.5 * (CODE[j + 25] if 0 <= j + 25 < 52 else 0) + 0.5 * (CODE[j + 26] if 0 <= j + 26 < 52 else 0)
-                        for j in x])
+    code_px = np.array(
+        [0.5 * (CODE[j + 25] if 0 <= j + 25 < 52 else 0) + 0.5 * (CODE[j + 26] if 0 <= j + 26 < 52 else 0) for j in x]
+    )
     np.testing.assert_allclose(h_o / chop, code_px, atol=0.02)
 
 
 def test_protocol_for_each_shutter_and_sequential_frames():
     tl = protocols.build(load_config(CONFIG))
     seg = tl.segments[0]
-    assert [s.bucket for s in seg.slots] == [0 if c else 1 for c in CODE] and [r.name for r in tl.reads] == ["open", "closed"]
+    assert [s.bucket for s in seg.slots] == [0 if c else 1 for c in CODE] and [r.name for r in tl.reads] == [
+        "open",
+        "closed",
+    ]
     assert float(tl.read_exposure_ticks(tl.reads[0]) * tl.tick_s) == pytest.approx(0.013)
     classic = protocols.build(load_config(CONFIG, ["app.shutter=flutter"]))
     assert [s.bucket for s in classic.segments[0].slots] == [0 if c else -1 for c in CODE]
     box = protocols.build(load_config(CONFIG, ["app.shutter=box"]))
-    assert [r.name for r in box.reads] == ["box"] and box.read_exposure_ticks(box.reads[0]) * box.tick_s == pytest.approx(0.026)
+    assert [r.name for r in box.reads] == ["box"] and box.read_exposure_ticks(
+        box.reads[0]
+    ) * box.tick_s == pytest.approx(0.026)
     seq = protocols.build(load_config(CONFIG, ["capture.sequential=true"]))
     assert seq.sequential and len(seq.segments) == 2
     with pytest.raises(ConfigError, match="sensor.bucket_count"):
         protocols.build(load_config(CONFIG, ["sensor.bucket_count=1"]))
 
 
-@pytest.mark.parametrize("width,height,max_motion,resolved", [(640, 512, 0.25, True), (160, 128, 0.25, True),
-                                                                (160, 128, 1.0, False)])
+@pytest.mark.parametrize(
+    "width,height,max_motion,resolved", [(640, 512, 0.25, True), (160, 128, 0.25, True), (160, 128, 1.0, False)]
+)
 def test_planner_strata_resolve_one_chop(width, height, max_motion, resolved):
     """render.max_motion_px bounds the image motion inside a stratum; at the config's 0.25 px no stratum
     moves further than one chop's motion at either size (0.25 px at 160x128, 1 px at 640x512)."""
-    cfg = load_config(CONFIG, [f"render.width={width}", f"render.height={height}", f"render.max_motion_px={max_motion}"])
+    cfg = load_config(
+        CONFIG, [f"render.width={width}", f"render.height={height}", f"render.max_motion_px={max_motion}"]
+    )
     sc = scenes.make_scene(cfg.scene.name, cfg.scene.params())
     tl = protocols.build(cfg)
     plan = make_plan(tl, sc, cfg.render, np.random.default_rng(0))
-    data = CaptureData(cfg=cfg, scene=sc, timeline=tl, plan=plan, read_names=[], exposure_s=None, reads_dn=None,
-                       saturated=None, reads_e_expected=None, bucket_exposure=None, k_e=None, moving_mask=None)
+    data = CaptureData(
+        cfg=cfg,
+        scene=sc,
+        timeline=tl,
+        plan=plan,
+        read_names=[],
+        exposure_s=None,
+        reads_dn=None,
+        saturated=None,
+        reads_e_expected=None,
+        bucket_exposure=None,
+        k_e=None,
+        moving_mask=None,
+    )
     chk = fs.strata_check(data, 52)
     assert chk["resolved"] is resolved
     assert chk["max_stratum_motion_px"] <= max_motion * (1 + 1e-6)
@@ -228,8 +250,14 @@ def test_two_bucket_flutter_beats_flutter_beats_box_at_equal_exposure():
     from mbcapture import run_capture
 
     # 64x48 with the card 5x faster: 26 px of blur, half a pixel per chop (strata of at most one chop)
-    tiny = ["render.width=64", "render.height=48", "render.spp=1", "scene.speed_m_per_s=11.375", "app.truth_spp=16",
-            "render.max_motion_px=0.5"]
+    tiny = [
+        "render.width=64",
+        "render.height=48",
+        "render.spp=1",
+        "scene.speed_m_per_s=11.375",
+        "app.truth_spp=16",
+        "render.max_motion_px=0.5",
+    ]
     res = run_capture(load_config(CONFIG, tiny), progress=False)
     c = res.report["metrics"]["comparison"]
     assert res.report["metrics"]["strata"]["resolved"]
@@ -272,9 +300,20 @@ def test_reconstruct_deblurs_a_known_row_without_mitsuba():
     e = np.stack(e)
     dn = e * cfg.sensor.gain_dn_per_e + cfg.sensor.black_level_dn
     exposure = np.array([float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads])
-    data = CaptureData(cfg=cfg, scene=sc, timeline=tl, plan=None, read_names=[r.name for r in tl.reads],
-                       exposure_s=exposure, reads_dn=dn, saturated=np.zeros(dn.shape, bool), reads_e_expected=e,
-                       bucket_exposure=None, k_e=k_e, moving_mask=np.ones((h, w), bool))
+    data = CaptureData(
+        cfg=cfg,
+        scene=sc,
+        timeline=tl,
+        plan=None,
+        read_names=[r.name for r in tl.reads],
+        exposure_s=exposure,
+        reads_dn=dn,
+        saturated=np.zeros(dn.shape, bool),
+        reads_e_expected=e,
+        bucket_exposure=None,
+        k_e=k_e,
+        moving_mask=np.ones((h, w), bool),
+    )
     app = get("flutter_shutter")
     peak = float(sharp(0.0).max())
     for method in ("joint", "single"):

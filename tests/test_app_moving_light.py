@@ -184,9 +184,20 @@ def test_unknown_flicker_group_names_the_key():
     from mbcapture.apps.moving_light import flicker_metrics
 
     scene = scenes.make_scene("moving_light", scenes.load_module("moving_light").Params())
-    data = CaptureData(cfg=None, scene=scene, timeline=None, plan=None, read_names=[], exposure_s=np.zeros(0),
-                       reads_dn=np.zeros(0), saturated=np.zeros(0), reads_e_expected=np.zeros(0),
-                       bucket_exposure=np.zeros(0), k_e=np.ones(3), moving_mask=np.zeros((1, 1), bool))
+    data = CaptureData(
+        cfg=None,
+        scene=scene,
+        timeline=None,
+        plan=None,
+        read_names=[],
+        exposure_s=np.zeros(0),
+        reads_dn=np.zeros(0),
+        saturated=np.zeros(0),
+        reads_e_expected=np.zeros(0),
+        bucket_exposure=np.zeros(0),
+        k_e=np.ones(3),
+        moving_mask=np.zeros((1, 1), bool),
+    )
     with pytest.raises(ConfigError, match="app.flicker_group"):
         flicker_metrics(data, "lamp")
 
@@ -201,8 +212,13 @@ def test_still_lamp_is_one_pass_and_the_flicker_is_still_integrated():
     cfg = load_config(path, ["scene.lamp_speed_deg_per_s=0", "capture.sequential=true"])
     scene, tl, plan, _ = prepare(cfg)
     assert scene.is_static and plan.passes == 1
-    gains = drive_gains_exact(plan.weights_s, plan.groups.index("ambient"), [r.buckets for r in tl.reads],
-                              np.array([float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads]), 1.0)
+    gains = drive_gains_exact(
+        plan.weights_s,
+        plan.groups.index("ambient"),
+        [r.buckets for r in tl.reads],
+        np.array([float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads]),
+        1.0,
+    )
     assert gains.max() - gains.min() > 0.5  # four frames at four flicker phases, from one render
 
 
@@ -218,17 +234,29 @@ def _flicker_data(with_renders: bool):
     tl = sequential_frames(exp, 3 * ms)
     drive = Drive(c0=2.0, terms=((1.5, 100.0, 0.3),))
     groups = ("lamp", "ambient")
-    w_s = tl.weights_ticks(np.array([tl.start_tick, tl.end_tick]), list(groups), frozenset(),
-                           {"ambient": drive}) * float(tl.tick_s)
+    w_s = tl.weights_ticks(
+        np.array([tl.start_tick, tl.end_tick]), list(groups), frozenset(), {"ambient": drive}
+    ) * float(tl.tick_s)
     exposure = np.array([float(e) for e in exp])
     L = np.random.default_rng(2).uniform(0.1, 2.0, size=(4, 5, 3))  # a static radiance per group
     group_exposure = w_s.sum(axis=0)[:, :, None, None, None] * L[None, None] if with_renders else None
     scene = SimpleNamespace(name="synthetic", drives={"ambient": drive, "unrendered": Drive(c0=1.0)})
     plan = SimpleNamespace(groups=groups, weights_s=w_s)
-    data = CaptureData(cfg=None, scene=scene, timeline=tl, plan=plan, read_names=["J1", "J2", "J3"],
-                       exposure_s=exposure, reads_dn=np.zeros(0), saturated=np.zeros(0),
-                       reads_e_expected=np.zeros(0), bucket_exposure=np.zeros(0), k_e=np.ones(3),
-                       moving_mask=np.zeros((4, 5), bool), group_exposure=group_exposure)
+    data = CaptureData(
+        cfg=None,
+        scene=scene,
+        timeline=tl,
+        plan=plan,
+        read_names=["J1", "J2", "J3"],
+        exposure_s=exposure,
+        reads_dn=np.zeros(0),
+        saturated=np.zeros(0),
+        reads_e_expected=np.zeros(0),
+        bucket_exposure=np.zeros(0),
+        k_e=np.ones(3),
+        moving_mask=np.zeros((4, 5), bool),
+        group_exposure=group_exposure,
+    )
     starts = np.array([0.0, 0.004, 0.009])
     w = 2 * np.pi * 100
     mean = 2.0 + 1.5 * (np.sin(w * (starts + exposure) + 0.3) - np.sin(w * starts + 0.3)) / (w * exposure)
@@ -244,8 +272,14 @@ def test_flicker_metrics_reports_each_reads_mean_drive_over_its_time_average():
     data, gains = _flicker_data(with_renders=True)
     assert gains.max() - gains.min() > 0.1  # three frames at clearly different flicker phases
     fl = flicker_metrics(data, "ambient")
-    assert set(fl) == {"group", "drive", "gain_vs_time_average", "gain_spread", "max_abs_gain_error",
-                       "gain_measured_from_renders"}
+    assert set(fl) == {
+        "group",
+        "drive",
+        "gain_vs_time_average",
+        "gain_spread",
+        "max_abs_gain_error",
+        "gain_measured_from_renders",
+    }
     assert fl["group"] == "ambient"
     assert fl["drive"] == {"c0": 2.0, "terms": [{"amplitude": 1.5, "frequency_hz": 100.0, "phase_rad": 0.3}]}
     assert list(fl["gain_vs_time_average"]) == ["J1", "J2", "J3"]
@@ -258,15 +292,19 @@ def test_flicker_metrics_reports_each_reads_mean_drive_over_its_time_average():
     data_nr, _ = _flicker_data(with_renders=False)
     assert "gain_measured_from_renders" not in flicker_metrics(data_nr, "ambient")
     # a driven group that no read renders: named, with a note and nothing else
-    assert flicker_metrics(data, "unrendered") == {"group": "unrendered",
-                                                   "note": "group not rendered (no weight in any read)"}
+    assert flicker_metrics(data, "unrendered") == {
+        "group": "unrendered",
+        "note": "group not rendered (no weight in any read)",
+    }
 
 
 def test_rasterize_slanted_edges_image_borders_and_several_polygons():
     """Pixel centres on a slanted hull edge count as inside, the image's first row and column are
     reached, and every polygon adds its own pixels (a degenerate or off-image one skips only itself;
     a later polygon's bounding box does not clear an earlier one's pixels)."""
-    tri = np.array([[0, 0], [8, 0], [0, 8]], float)  # centres (x+.5, y+.5) with x + y + 1 <= 8 (the hypotenuse included)
+    tri = np.array(
+        [[0, 0], [8, 0], [0, 8]], float
+    )  # centres (x+.5, y+.5) with x + y + 1 <= 8 (the hypotenuse included)
     yy, xx = np.mgrid[0:10, 0:12]
     expect_tri = xx + yy <= 7
     m = rasterize_convex([tri], 12, 10)
@@ -360,7 +398,11 @@ def test_shadow_sweep_mask_covers_both_capture_modes_over_their_joint_span():
     expect = sweep_region([[occ[t] for occ in per_occ] for t in range(len(times))], W, H, grow)
     assert masks[0].shape == (H, W) and 0 < expect.sum() < H * W
     np.testing.assert_array_equal(masks[0], expect)
-    bare = SimpleNamespace(cfg=datas[0].cfg, scene=SimpleNamespace(name="plain", extra={}), timeline=datas[0].timeline,
-                           reads_dn=datas[0].reads_dn)
+    bare = SimpleNamespace(
+        cfg=datas[0].cfg,
+        scene=SimpleNamespace(name="plain", extra={}),
+        timeline=datas[0].timeline,
+        reads_dn=datas[0].reads_dn,
+    )
     with pytest.raises(ConfigError, match="app.name: moving_light needs a scene with extra\\['shadow_polygons'\\]"):
         shadow_sweep_mask(bare, grow)

@@ -15,9 +15,9 @@ CONFIG = ROOT / "configs" / "multi_flash.yaml"
 
 # ---------------------------------------------------------------- synthetic scene with known edges
 H, W = 40, 48
-R0, R1, C0, C1 = 10, 19, 12, 21          # foreground square, inclusive rows/cols
-SHADOW_PX = 3                             # shadow width beside the square, px
-INDIRECT = 0.05                           # light left in a shadow, relative to direct
+R0, R1, C0, C1 = 10, 19, 12, 21  # foreground square, inclusive rows/cols
+SHADOW_PX = 3  # shadow width beside the square, px
+INDIRECT = 0.05  # light left in a shadow, relative to direct
 
 
 def _square_scene(seed=0):
@@ -27,7 +27,7 @@ def _square_scene(seed=0):
     rng = np.random.default_rng(seed)
     albedo = rng.uniform(0.2, 0.9, size=(H, W, 3))
     fg = np.zeros((H, W), bool)
-    fg[R0:R1 + 1, C0:C1 + 1] = True
+    fg[R0 : R1 + 1, C0 : C1 + 1] = True
     shadows = {  # shadow cast on the wall on the side away from each LED
         "top": (slice(R1 + 1, R1 + 1 + SHADOW_PX), slice(C0, C1 + 1)),
         "bottom": (slice(R0 - SHADOW_PX, R0), slice(C0, C1 + 1)),
@@ -41,8 +41,12 @@ def _square_scene(seed=0):
         light[fg] = 1.6  # the foreground is nearer the LEDs: brighter
         light[shadows[name]] = INDIRECT
         images.append(albedo * light[..., None])
-    truth = fg & ~np.pad(fg, 1)[2:, 1:-1] | fg & ~np.pad(fg, 1)[:-2, 1:-1] \
-        | fg & ~np.pad(fg, 1)[1:-1, 2:] | fg & ~np.pad(fg, 1)[1:-1, :-2]
+    truth = (
+        fg & ~np.pad(fg, 1)[2:, 1:-1]
+        | fg & ~np.pad(fg, 1)[:-2, 1:-1]
+        | fg & ~np.pad(fg, 1)[1:-1, 2:]
+        | fg & ~np.pad(fg, 1)[1:-1, :-2]
+    )
     return np.stack(images), [mf.Epipole(False, dirs[n]) for n in ("top", "bottom", "left", "right")], truth, fg
 
 
@@ -55,7 +59,7 @@ def test_raskar_finds_exactly_the_occluding_border_of_a_square():
     np.testing.assert_array_equal(np.flatnonzero(det.per_flash[2].any(axis=0)), [C1])
     np.testing.assert_array_equal(np.flatnonzero(det.per_flash[0].any(axis=1)), [R1])
     # ratios are albedo-free: 1 on lit pixels, INDIRECT / 1 in shadows
-    assert np.allclose(det.ratios[2][R0:R1 + 1, C1 + 1:C1 + 1 + SHADOW_PX], INDIRECT)
+    assert np.allclose(det.ratios[2][R0 : R1 + 1, C1 + 1 : C1 + 1 + SHADOW_PX], INDIRECT)
     assert np.allclose(det.ratios[2][fg], 1.0)
     # the max composite has no shadow left
     assert np.allclose(mf.max_composite(images), images.max(axis=0))
@@ -120,10 +124,10 @@ def test_depth_discontinuities_mark_the_near_side_only():
 
 def test_edge_scores_by_hand():
     truth = np.zeros((10, 10), bool)
-    truth[5, 2:8] = True                       # 6 true pixels
+    truth[5, 2:8] = True  # 6 true pixels
     det = np.zeros_like(truth)
-    det[6, 2:6] = True                         # 4 detections 1 px below the line
-    det[0, 0] = True                           # 1 far away
+    det[6, 2:6] = True  # 4 detections 1 px below the line
+    det[0, 0] = True  # 1 far away
     s = mf.edge_scores(det, truth, 1.0)
     assert s["precision"] == pytest.approx(4 / 5)
     # true pixels within 1 px of a detection: columns 1..6 (2..5 directly, 6 is sqrt(2) > 1 away from (6,5))
@@ -153,10 +157,10 @@ def test_canny_baseline_finds_texture_edges_too():
     images, epipoles, truth, _ = _square_scene()
     flat = np.ones_like(images)
     flat[:, :, : W // 2] *= 0.3  # an albedo edge on the wall: no depth edge, no shadow
-    flat[:, R0:R1 + 1, C0:C1 + 1] *= 1.0
+    flat[:, R0 : R1 + 1, C0 : C1 + 1] *= 1.0
     p = mf.MultiFlashParams(method="canny_max_composite")
     det = mf.depth_edges(flat, epipoles, np.zeros((H, W), bool), p)
-    assert det.ratios is None and det.edges[:, W // 2 - 1: W // 2 + 1].any()
+    assert det.ratios is None and det.edges[:, W // 2 - 1 : W // 2 + 1].any()
     assert not mf.depth_edges(flat, epipoles, np.zeros((H, W), bool), mf.MultiFlashParams()).edges.any()
 
 
@@ -208,7 +212,9 @@ def test_protocol_buckets_reads_and_sequential_frames():
     tl4 = protocols.build(load_config(CONFIG, ["sensor.bucket_count=4"]))
     assert [r.name for r in tl4.reads] == ["top", "bottom", "left", "right"]
     seq = protocols.build(load_config(CONFIG, ["capture.sequential=true"]))
-    assert seq.sequential and [mf.read_groups(seq, r) for r in seq.reads] == [{g} for g in mf.FLASH_GROUPS] + [frozenset()]
+    assert seq.sequential and [mf.read_groups(seq, r) for r in seq.reads] == [{g} for g in mf.FLASH_GROUPS] + [
+        frozenset()
+    ]
     c = [seq.centroid_ticks(r.buckets) for r in seq.reads]
     assert float((c[1] - c[0]) * seq.tick_s) == pytest.approx(1e-3 + 0.0333333)
     with pytest.raises(ConfigError, match="sensor.bucket_count"):
@@ -223,7 +229,14 @@ def test_config_keys_are_validated():
 
 
 # ---------------------------------------------------------------- tiny renders
-TINY = ["render.width=80", "render.height=64", "render.spp=4", "app.truth_spp=8", "render.max_motion_px=1.0", "render.min_strata=1"]
+TINY = [
+    "render.width=80",
+    "render.height=64",
+    "render.spp=4",
+    "app.truth_spp=8",
+    "render.max_motion_px=1.0",
+    "render.min_strata=1",
+]
 
 
 @pytest.mark.render
@@ -235,7 +248,7 @@ def test_aov_depth_is_the_scene_geometry():
     sc = mod.make(mod.Params())
     r = Renderer(sc, 80, 64)
     d = render_depth(r, 0.0)
-    assert d.z_m[0, 0] == pytest.approx(1.0, abs=1e-5)         # the wall, camera 1 m away
+    assert d.z_m[0, 0] == pytest.approx(1.0, abs=1e-5)  # the wall, camera 1 m away
     assert np.isfinite(d.distance_m).all() and (d.distance_m >= d.z_m).all()
     for t in (0.0, 0.05):  # the slider's front face (z = 0.40: 0.60 m) follows it
         px = sc.camera.project(sc.motion_points(np.array([t]))[0, -1], 80, 64)
@@ -272,7 +285,7 @@ def test_step_span_catches_a_two_pixel_shadow_onset():
     eps = [mf.Epipole(False, (-1.0, 0.0)), mf.Epipole(False, (1.0, 0.0))]
     one = mf.raskar_depth_edges(images, eps, step_threshold=0.6, step_span_px=1).edges[1]
     two = mf.raskar_depth_edges(images, eps, step_threshold=0.6, step_span_px=2).edges[1]
-    assert not one[2:5].any() and one[8]         # each 1-px drop of the onset is below 0.6; the 1-px shadow is found
+    assert not one[2:5].any() and one[8]  # each 1-px drop of the onset is below 0.6; the 1-px shadow is found
     # span 2: the onset's last fully lit pixel; the 1-px shadow is seen one pixel early (7 -> 9 skips it)
     assert np.flatnonzero(two).tolist() == [2, 7]
 
@@ -325,8 +338,10 @@ def test_raskar_takes_the_local_maximum_of_the_drop_along_the_epipolar_line():
     np.testing.assert_array_equal(det.per_flash[0], np.zeros((12, 14), bool))
 
 
-@pytest.mark.parametrize("axis, light_xy, flip", [(1, (-1.0, 0.0), False), (1, (1.0, 0.0), True),
-                                                  (0, (0.0, -1.0), False), (0, (0.0, 1.0), True)])
+@pytest.mark.parametrize(
+    "axis, light_xy, flip",
+    [(1, (-1.0, 0.0), False), (1, (1.0, 0.0), True), (0, (0.0, -1.0), False), (0, (0.0, 1.0), True)],
+)
 def test_raskar_at_the_image_border(axis, light_xy, flip):
     """A shadow starting at the last pixel along the traversal: with step_span_px=1 the pixel
     before it is an edge (its sample point is the image's last pixel, inside); with
@@ -369,8 +384,9 @@ def test_raskar_smoothing_is_a_gaussian_of_each_flash_image():
     images, epipoles, _, _ = _square_scene(seed=4)
     for s in (0.7, 1.5):
         got = mf.raskar_depth_edges(images, epipoles, smooth_px=s)
-        pre = np.stack([np.stack([gaussian_filter(im[..., c], s, mode="nearest") for c in range(3)], -1)
-                        for im in images])
+        pre = np.stack(
+            [np.stack([gaussian_filter(im[..., c], s, mode="nearest") for c in range(3)], -1) for im in images]
+        )
         ref = mf.raskar_depth_edges(pre, epipoles)
         np.testing.assert_allclose(got.ratios, ref.ratios, atol=1e-12)
         np.testing.assert_array_equal(got.edges, ref.edges)
@@ -379,8 +395,8 @@ def test_raskar_smoothing_is_a_gaussian_of_each_flash_image():
 
 def test_signal_valid_against_the_99th_percentile():
     lum = np.ones((20, 10))
-    lum[0, :1] = 1000.0          # 0.5 % hot pixels do not move the 99th percentile
-    lum[5, :] = 0.25             # exactly min_signal_fraction x white: not valid
+    lum[0, :1] = 1000.0  # 0.5 % hot pixels do not move the 99th percentile
+    lum[5, :] = 0.25  # exactly min_signal_fraction x white: not valid
     lum[6, :] = 0.26
     v = mf._signal_valid(4.0 * lum, 0.25, None)  # in other units: the same
     assert v[6].all() and not v[5].any() and v.sum() == 200 - 10
@@ -389,7 +405,7 @@ def test_signal_valid_against_the_99th_percentile():
     v2 = mf._signal_valid(4.0 * lum, 0.25, bad)
     assert not v2[0, 5] and not v2[5].any() and v2.sum() == 200 - 11
     black = np.zeros((20, 10))
-    black[0, 0] = 5.0            # a black image with one bright pixel: its white is 0, nothing is valid
+    black[0, 0] = 5.0  # a black image with one bright pixel: its white is 0, nothing is valid
     assert not mf._signal_valid(black, 0.03, None).any()
     assert mf._signal_valid(np.zeros((0, 0)), 0.03, None).shape == (0, 0)
 
@@ -448,18 +464,21 @@ def test_shadow_metrics_strict_thresholds():
 def test_depth_edge_methods_pass_their_parameters():
     images, epipoles, _, _ = _square_scene(seed=5)
     bad = np.zeros((H, W), bool)
-    bad[R0:R1 + 1, C1] = True
-    p = mf.MultiFlashParams(method="raskar2004", step_threshold=0.5, step_span_px=1, smooth_px=0.8,
-                            min_signal_fraction=0.5)
+    bad[R0 : R1 + 1, C1] = True
+    p = mf.MultiFlashParams(
+        method="raskar2004", step_threshold=0.5, step_span_px=1, smooth_px=0.8, min_signal_fraction=0.5
+    )
     got = mf.depth_edges(images, epipoles, bad, p)
-    ref = mf.raskar_depth_edges(images, epipoles, step_threshold=0.5, step_span_px=1, smooth_px=0.8,
-                                min_signal_fraction=0.5, bad=bad)
+    ref = mf.raskar_depth_edges(
+        images, epipoles, step_threshold=0.5, step_span_px=1, smooth_px=0.8, min_signal_fraction=0.5, bad=bad
+    )
     for a, b in ((got.edges, ref.edges), (got.valid, ref.valid), (got.ratios, ref.ratios)):
         np.testing.assert_array_equal(a, b)
-    assert not got.valid[R0:R1 + 1, C1].any() and (~got.valid).mean() > 0.03  # dim albedos fall below half the white
+    assert not got.valid[R0 : R1 + 1, C1].any() and (~got.valid).mean() > 0.03  # dim albedos fall below half the white
     for low, high in ((0.3, 0.6), (0.5, 0.2)):  # canny: a high threshold below the low one is raised to it
-        c = mf.depth_edges(images, epipoles, bad, mf.MultiFlashParams(method="canny_max_composite",
-                                                                      canny_low=low, canny_high=high))
+        c = mf.depth_edges(
+            images, epipoles, bad, mf.MultiFlashParams(method="canny_max_composite", canny_low=low, canny_high=high)
+        )
         e = mf.canny_edges(mf.max_composite(images), low=low, high=max(low, high))
         np.testing.assert_array_equal(c.edges, e)
         assert c.per_flash.shape == (1, H, W) and (c.per_flash[0] == e).all()
@@ -492,9 +511,9 @@ def test_canny_edges_follow_the_documented_recipe():
     base = ndimage.gaussian_filter(rng.uniform(0, 1, (48, 64)), 2.0)
     base = (base - base.min()) / (base.max() - base.min())
     base[np.arange(48) % 16 == 5] *= 0.35  # a few horizontal dark lines: strong y gradients
-    img = np.stack([base, base ** 2, np.sqrt(base)], -1) * 3.0
+    img = np.stack([base, base**2, np.sqrt(base)], -1) * 3.0
     img[3, 7] = img[40, 50] = 30.0  # hot pixels
-    img[20:23, 30:33] = -0.5        # negative pixels
+    img[20:23, 30:33] = -0.5  # negative pixels
     for low, high in ((0.1, 0.25), (0.05, 0.15), (0.2, 0.4), (0.3, 0.3)):
         ref = _canny_reference(img, low, high)
         assert ref.any() and not ref.all()
@@ -530,19 +549,21 @@ def test_mid_time_is_the_middle_of_the_timeline():
     tl = SimpleNamespace(start_tick=3, end_tick=10, tick_s=Fraction(1, 1000))
     assert mf._mid_time_s(tl) == 0.0065
     real = protocols.build(load_config(CONFIG, ["capture.sequential=true"]))
-    assert mf._mid_time_s(real) == pytest.approx((float(real.seconds(real.start_tick)) + float(real.seconds(real.end_tick))) / 2)
+    assert mf._mid_time_s(real) == pytest.approx(
+        (float(real.seconds(real.start_tick)) + float(real.seconds(real.end_tick))) / 2
+    )
 
 
 def test_edges_overlay_colours():
     """Base luminance dimmed to 0..0.25 of its 99th percentile; matched detections green, unmatched
     red, missed true edges blue; without a truth, detections white."""
     base = np.zeros((6, 8, 3))
-    base[:, 4:] = 2.0                        # half the image at luminance 2 (the 99th percentile)
+    base[:, 4:] = 2.0  # half the image at luminance 2 (the 99th percentile)
     det = np.zeros((6, 8), bool)
     truth = np.zeros((6, 8), bool)
-    det[1, 1] = truth[1, 2] = True           # 1 px apart: matched
-    det[4, 6] = True                         # nothing true near: unmatched
-    truth[5, 0] = True                       # nothing detected near: missed
+    det[1, 1] = truth[1, 2] = True  # 1 px apart: matched
+    det[4, 6] = True  # nothing true near: unmatched
+    truth[5, 0] = True  # nothing detected near: missed
     out = mf.edges_overlay(base, det, truth, 1.0)
     np.testing.assert_allclose(out[0, 0], 0.0)
     np.testing.assert_allclose(out[0, 7], 0.25)
@@ -561,8 +582,8 @@ def test_edges_overlay_colours():
     # white is the 99th percentile, not the maximum: a hot pixel and values above white clip, below 0 too
     lum = np.zeros((10, 20))
     lum[:, 10:] = 2.0
-    lum[0, 0] = 50.0   # 0.5 % of the pixels
-    lum[5, 0] = 1.0    # half of white
+    lum[0, 0] = 50.0  # 0.5 % of the pixels
+    lum[5, 0] = 1.0  # half of white
     lum[6, 0] = -1.0
     out = mf.edges_overlay(np.repeat(lum[..., None], 3, -1), np.zeros((10, 20), bool), None, 1.0)
     np.testing.assert_allclose(out[..., 0][[0, 5, 6, 0], [0, 0, 0, 19]], [0.25, 0.125, 0.0, 0.25])
@@ -585,33 +606,52 @@ def test_scores_split_edges_and_shadow_free_error_by_the_moving_region():
 
     images, _, truth_edges, _ = _square_scene(seed=6)
     det = truth_edges.copy()
-    det[0, :6] = True                  # false detections in the top-left corner
-    det[R0, C0:C1 + 1] = False         # a missed true edge (the top row of the square)
+    det[0, :6] = True  # false detections in the top-left corner
+    det[R0, C0 : C1 + 1] = False  # a missed true edge (the top row of the square)
     moving = np.zeros((H, W), bool)
-    moving[:, :17] = True              # through the square: edges on both sides
+    moving[:, :17] = True  # through the square: edges on both sides
     shadow_free = mf.max_composite(images) * np.linspace(0.8, 1.2, W)[None, :, None]
-    truth = {"t_s": 0.5, "times_s": [0.5], "flash": images, "shadow_free": mf.max_composite(images),
-             "edges": truth_edges, "spp": 16}
+    truth = {
+        "t_s": 0.5,
+        "times_s": [0.5],
+        "flash": images,
+        "shadow_free": mf.max_composite(images),
+        "edges": truth_edges,
+        "spp": 16,
+    }
     p = mf.MultiFlashParams(tolerance_px=1.5, min_signal_fraction=0.4)
     s = mf._scores(SimpleNamespace(moving_mask=moving), p, det, shadow_free, truth)
     assert s["moving_px"] == moving.sum()
-    assert s["depth_edges"] == {"all": mf.edge_scores(det, truth_edges, 1.5),
-                                "moving_region": mf.edge_scores(det, truth_edges, 1.5, moving),
-                                "static_region": mf.edge_scores(det, truth_edges, 1.5, ~moving)}
+    assert s["depth_edges"] == {
+        "all": mf.edge_scores(det, truth_edges, 1.5),
+        "moving_region": mf.edge_scores(det, truth_edges, 1.5, moving),
+        "static_region": mf.edge_scores(det, truth_edges, 1.5, ~moving),
+    }
     de = s["depth_edges"]
     assert de["moving_region"] != de["static_region"] and de["all"] not in (de["moving_region"], de["static_region"])
     sm = mf.shadow_metrics(shadow_free, images, shadow_ratio=p.shadow_ratio, min_signal_fraction=0.4)
     assert 0 < sm["shadowed_px"] < mf.shadow_metrics(shadow_free, images)["shadowed_px"]  # fewer pixels count as lit
     assert s["shadow_free"] == {
         "rel_mse": pytest.approx(relative_mse(shadow_free, truth["shadow_free"], eps=eps)),
-        "rel_mse_moving": pytest.approx(relative_mse(shadow_free, truth["shadow_free"], mask=moving[..., None], eps=eps)),
-        **sm}
+        "rel_mse_moving": pytest.approx(
+            relative_mse(shadow_free, truth["shadow_free"], mask=moving[..., None], eps=eps)
+        ),
+        **sm,
+    }
     assert s["shadow_free"]["rel_mse"] != pytest.approx(s["shadow_free"]["rel_mse_moving"])
     t = s["truth"]
-    assert (t["time_s"], t["edge_times_s"], t["mode"], t["depth_jump"], t["tolerance_px"], t["shadow_free_spp"]) == \
-        (0.5, [0.5], p.truth_time, p.truth_depth_jump, 1.5, 16)
+    assert (t["time_s"], t["edge_times_s"], t["mode"], t["depth_jump"], t["tolerance_px"], t["shadow_free_spp"]) == (
+        0.5,
+        [0.5],
+        p.truth_time,
+        p.truth_depth_jump,
+        1.5,
+        16,
+    )
     # shadows at 5 % of the direct light are not below 4 % of it
-    low = mf._scores(SimpleNamespace(moving_mask=moving), mf.MultiFlashParams(shadow_ratio=0.04), det, shadow_free, truth)
+    low = mf._scores(
+        SimpleNamespace(moving_mask=moving), mf.MultiFlashParams(shadow_ratio=0.04), det, shadow_free, truth
+    )
     assert low["shadow_free"]["shadowed_px"] == 0
     still = mf._scores(SimpleNamespace(moving_mask=np.zeros((H, W), bool)), p, det, shadow_free, truth)
     assert set(still["depth_edges"]) == {"all"} and "rel_mse_moving" not in still["shadow_free"]

@@ -50,12 +50,15 @@ def test_monochrome_response_is_one_curve_for_all_channels():
     from mbcapture.sensor import SensorConfig
     from mbcapture.sensor.spectral import channel_quantum_efficiency
 
-    wl, qe = channel_quantum_efficiency(SensorConfig(spectral_response="monochrome:Nikon 5100 (NPL)",
-                                                     quantum_efficiency=[0.5, 0.5, 0.5]))
+    wl, qe = channel_quantum_efficiency(
+        SensorConfig(spectral_response="monochrome:Nikon 5100 (NPL)", quantum_efficiency=[0.5, 0.5, 0.5])
+    )
     np.testing.assert_array_equal(qe[0], qe[1])
     np.testing.assert_array_equal(qe[0], qe[2])
     assert qe.max() == pytest.approx(0.5)
-    _, cam = channel_quantum_efficiency(SensorConfig(spectral_response="Nikon 5100 (NPL)", quantum_efficiency=[1, 1, 1]))
+    _, cam = channel_quantum_efficiency(
+        SensorConfig(spectral_response="Nikon 5100 (NPL)", quantum_efficiency=[1, 1, 1])
+    )
     np.testing.assert_allclose(qe[0], cam.sum(0) / cam.sum(0).max() * 0.5)  # panchromatic: R + G + B
     with pytest.raises(ConfigError, match="unknown camera 'Nope'"):
         config_from_dict({**CFG, "sensor": {"spectral_response": "monochrome:Nope"}})
@@ -219,7 +222,9 @@ def test_xyz_to_lab_uses_the_given_white():
     a = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["A"]
     white_xyz = colour.xy_to_XYZ(a)
     np.testing.assert_allclose(rgb.xyz_to_lab(white_xyz, a), [100.0, 0.0, 0.0], atol=1e-9)
-    np.testing.assert_allclose(rgb.xyz_to_lab(np.array([-0.1, 0.5, 0.2]), a), rgb.xyz_to_lab(np.array([0.0, 0.5, 0.2]), a))
+    np.testing.assert_allclose(
+        rgb.xyz_to_lab(np.array([-0.1, 0.5, 0.2]), a), rgb.xyz_to_lab(np.array([0.0, 0.5, 0.2]), a)
+    )
 
 
 def _box(lo, hi, v=1.0):
@@ -240,16 +245,16 @@ def test_led_matrices_integrate_spectra_that_are_zero_outside_their_samples():
     leds = {"led_r": _box(690, 710), "led_g": _box(520, 540), "led_b": _box(440, 460)}
     sc = SimpleNamespace(extra={"led_spectra": leds})
     curves_wl = np.arange(450.0, 701.0)  # the red and blue LEDs stick out of the sensitivities' range
-    ch0 = np.full(curves_wl.size, 0.5)                               # 0.5 on 450..700
+    ch0 = np.full(curves_wl.size, 0.5)  # 0.5 on 450..700
     ch1 = np.where((curves_wl >= 530) & (curves_wl <= 610), 2.0, 0.0)  # 2 on 530..610
-    ch2 = np.ones(curves_wl.size)                                    # 1 on 450..700
+    ch2 = np.ones(curves_wl.size)  # 1 on 450..700
     response, led_xyz = rgb.led_matrices(sc, curves_wl, np.stack([ch0, ch1, ch2]), per_led_channel=False)
-    np.testing.assert_allclose(response, [[11 * 0.5, 21 * 0.5, 11 * 0.5],
-                                          [0.0, 11 * 2.0, 0.0],
-                                          [11.0, 21.0, 11.0]], rtol=1e-12)
+    np.testing.assert_allclose(
+        response, [[11 * 0.5, 21 * 0.5, 11 * 0.5], [0.0, 11 * 2.0, 0.0], [11.0, 21.0, 11.0]], rtol=1e-12
+    )
     cmfs = colour.MSDS_CMFS[rgb.CMFS_NAME].copy().align(colour.SpectralShape(360, 830, 1)).values
     for k, (lo, hi) in enumerate([(690, 710), (520, 540), (440, 460)]):
-        np.testing.assert_allclose(led_xyz[:, k], cmfs[lo - 360: hi - 360 + 1].sum(axis=0), rtol=1e-12)
+        np.testing.assert_allclose(led_xyz[:, k], cmfs[lo - 360 : hi - 360 + 1].sum(axis=0), rtol=1e-12)
     diag, led_xyz2 = rgb.led_matrices(sc, curves_wl, np.stack([ch0, ch1, ch2]), per_led_channel=True)
     np.testing.assert_allclose(diag, np.diag(np.diag(response)), rtol=1e-15)
     np.testing.assert_array_equal(led_xyz2, led_xyz)
@@ -277,10 +282,12 @@ def test_strata_split_the_window_so_no_point_moves_more_than_the_limit():
     from mbcapture.scenes import Camera, SceneModel
 
     cam = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 90.0)  # 1 m at 1 m depth = 20 px of 40
+
     def dot(t):  # (T, 2, 3): points 1 m ahead moving sideways at 2.5 and 1.5 m/s (10 and 6 px in the window)
         t = np.asarray(t, float)
-        return np.stack([np.stack([-2.5 * t, 0 * t, 1 + 0 * t], -1), np.stack([-1.5 * t, 0.1 + 0 * t, 1 + 0 * t], -1)],
-                        axis=1)
+        return np.stack(
+            [np.stack([-2.5 * t, 0 * t, 1 + 0 * t], -1), np.stack([-1.5 * t, 0.1 + 0 * t, 1 + 0 * t], -1)], axis=1
+        )
 
     moving = SceneModel("dot", ("ambient",), frozenset(), cam, None, None, motion_points=dot)
     mids = rgb._strata(moving, 0.1, 0.3, 40, 30, 3.0, 64)  # x from -0.25 to -0.75 m: 10 px (the other point: 6 px)
@@ -315,7 +322,9 @@ def test_cmf_curves_and_srgb_preview():
     # a colour: Bradford adaptation from the illuminant's white to D65, then the sRGB matrix, no encoding
     xyz = np.array([0.3, 0.2, 0.1])
     d65 = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
-    adapted = colour.adaptation.chromatic_adaptation_VonKries(xyz, colour.xy_to_XYZ(a), colour.xy_to_XYZ(d65), "Bradford")
+    adapted = colour.adaptation.chromatic_adaptation_VonKries(
+        xyz, colour.xy_to_XYZ(a), colour.xy_to_XYZ(d65), "Bradford"
+    )
     srgb = colour.RGB_COLOURSPACES["sRGB"]
     np.testing.assert_allclose(rgb.xyz_to_linear_srgb(xyz, a), srgb.matrix_XYZ_to_RGB @ adapted, rtol=1e-6)
 
@@ -335,8 +344,10 @@ def test_true_colours_with_leds_sampled_on_different_grids():
         return Spectrum.from_sd(sd)
 
     wl = np.arange(360.0, 831.0, 10.0)
-    refl = {"white": Spectrum(tuple(wl), (1.0,) * wl.size),
-            "red": Spectrum(tuple(wl), tuple(np.where(wl > 580, 0.8, 0.05)))}
+    refl = {
+        "white": Spectrum(tuple(wl), (1.0,) * wl.size),
+        "red": Spectrum(tuple(wl), tuple(np.where(wl > 580, 0.8, 0.05))),
+    }
     own = {"led_r": led(630, 560, 700), "led_g": led(530, 460, 620), "led_b": led(450, 380, 520)}
     full = {"led_r": led(630, 360, 830), "led_g": led(530, 360, 830), "led_b": led(450, 360, 830)}
     _, xyz_own, white_own = rgb.true_colours(SimpleNamespace(extra={"led_spectra": own, "reflectances": refl}))
@@ -354,8 +365,8 @@ def test_scores_aggregate_delta_e_over_the_image_and_the_patch_interiors():
     white_xy = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
     rng = np.random.default_rng(15)
     ref = np.broadcast_to([0.3, 0.32, 0.35], (12, 16, 3)).copy()
-    xyz = ref * rng.uniform(0.9, 1.1, (12, 16, 1))   # lightness errors everywhere
-    xyz[0, 0] = [0.6, 0.3, 0.05]                     # one very wrong pixel, outside the patches
+    xyz = ref * rng.uniform(0.9, 1.1, (12, 16, 1))  # lightness errors everywhere
+    xyz[0, 0] = [0.6, 0.3, 0.05]  # one very wrong pixel, outside the patches
     masks = np.zeros((2, 12, 16), bool)
     masks[0, 2:5, 2:6] = True
     masks[1, 7:10, 9:14] = True
@@ -364,9 +375,15 @@ def test_scores_aggregate_delta_e_over_the_image_and_the_patch_interiors():
     np.testing.assert_allclose(de, rgb.delta_e2000(xyz, ref, white_xy))
     inside = de[masks.any(axis=0)]
     patch = rgb.delta_e2000(rgb.patch_means(xyz, masks), true_xyz, white_xy)
-    expect = {"delta_e2000_mean": de.mean(), "delta_e2000_max": de.max(), "delta_e2000_p99": np.percentile(de, 99),
-              "delta_e2000_patch_interior_mean": inside.mean(), "delta_e2000_patch_interior_max": inside.max(),
-              "delta_e2000_patch_colour_vs_true_mean": patch.mean(), "delta_e2000_patch_colour_vs_true_max": patch.max()}
+    expect = {
+        "delta_e2000_mean": de.mean(),
+        "delta_e2000_max": de.max(),
+        "delta_e2000_p99": np.percentile(de, 99),
+        "delta_e2000_patch_interior_mean": inside.mean(),
+        "delta_e2000_patch_interior_max": inside.max(),
+        "delta_e2000_patch_colour_vs_true_mean": patch.mean(),
+        "delta_e2000_patch_colour_vs_true_max": patch.max(),
+    }
     assert scores == pytest.approx(expect, rel=1e-12)
     assert scores["delta_e2000_max"] == pytest.approx(float(de[0, 0]))  # the wrong pixel
     assert scores["delta_e2000_patch_interior_max"] < scores["delta_e2000_max"] / 5

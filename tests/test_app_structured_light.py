@@ -116,8 +116,9 @@ def test_depth_range_unwrapping_is_unique_for_the_shipped_geometry_and_rejects_o
     def tri(c):
         return pj.triangulate_columns(sc.camera, info["projector"], c, pw, W, H)
 
-    _, _, ok = ph.unwrap_depth_range(np.mod(2 * np.pi * 4 * u / pw, 2 * np.pi), np.ones((H, W), bool), tri, 4, pw,
-                                     0.7, 1.6)
+    _, _, ok = ph.unwrap_depth_range(
+        np.mod(2 * np.pi * 4 * u / pw, 2 * np.pi), np.ones((H, W), bool), tri, 4, pw, 0.7, 1.6
+    )
     assert not ok.any()
 
 
@@ -157,9 +158,20 @@ def test_interleaving_cancels_the_flicker_sequential_frames_do_not():
     def ambient(over):
         cfg = load_config(CONFIG, over)
         sc = scenes.make_scene(cfg.scene.name, cfg.scene.params())
-        data = CaptureData(cfg=cfg, scene=sc, timeline=protocols.build(cfg), plan=None, read_names=[], exposure_s=None,
-                           reads_dn=None, saturated=None, reads_e_expected=None, bucket_exposure=None, k_e=None,
-                           moving_mask=None)
+        data = CaptureData(
+            cfg=cfg,
+            scene=sc,
+            timeline=protocols.build(cfg),
+            plan=None,
+            read_names=[],
+            exposure_s=None,
+            reads_dn=None,
+            saturated=None,
+            reads_e_expected=None,
+            bucket_exposure=None,
+            k_e=None,
+            moving_mask=None,
+        )
         return sl.ambient_in_reads(data)
 
     inter, seq = ambient([]), ambient(["capture.sequential=true"])
@@ -182,7 +194,14 @@ def test_interleaved_beats_sequential_and_the_ambient_bucket_helps_gray_code():
     from mbcapture import run_capture
 
     # 40x32 pixels average a lot of slanted surface: 30 mm is the tolerance of this size
-    tiny = ["render.width=40", "render.height=32", "render.spp=4", "render.max_motion_px=1.0", "render.min_strata=1", "app.depth_tolerance_mm=30"]
+    tiny = [
+        "render.width=40",
+        "render.height=32",
+        "render.spp=4",
+        "render.max_motion_px=1.0",
+        "render.min_strata=1",
+        "app.depth_tolerance_mm=30",
+    ]
     inter = run_capture(load_config(CONFIG, tiny), progress=False).report["metrics"]
     seq = run_capture(load_config(CONFIG, tiny + ["capture.sequential=true"]), progress=False).report["metrics"]
     a, b = inter["depth"]["ambient_subtracted"]["all"], seq["depth"]["ambient_subtracted"]["all"]
@@ -190,8 +209,9 @@ def test_interleaved_beats_sequential_and_the_ambient_bucket_helps_gray_code():
     assert a["within_tolerance"] > b["within_tolerance"] + 0.2 and a["phase_rmse_rad"] < 0.3 * b["phase_rmse_rad"]
     # phase shifting: subtracting the ambient read changes nothing (it cancels in the arctangent)
     assert inter["depth"]["ambient_ignored"]["all"] == pytest.approx(a)
-    gray = run_capture(load_config(CONFIG, tiny + ["scene.pattern=gray_code", "sensor.bucket_count=10"]),
-                       progress=False).report["metrics"]["depth"]
+    gray = run_capture(
+        load_config(CONFIG, tiny + ["scene.pattern=gray_code", "sensor.bucket_count=10"]), progress=False
+    ).report["metrics"]["depth"]
     g_sub, g_none = gray["ambient_subtracted"]["all"], gray["ambient_ignored"]["all"]
     assert g_sub["coverage"] > g_none["coverage"] + 0.2 and g_sub["column_rmse_px"] < 0.5 * g_none["column_rmse_px"]
     assert g_sub["within_tolerance"] > g_none["within_tolerance"] + 0.1
@@ -214,8 +234,9 @@ def _synthetic_capture(over, ambient_scale=1.0):
     rng = np.random.default_rng(5)
     albedo = rng.uniform(0.3, 0.9, (H, W))
     ambient = ambient_scale * (0.05 + 0.4 * (np.arange(W)[None, :] > W // 2)) * np.ones((H, 1))  # a lit half
-    _, pats, _ = MOD.patterns(MOD.Params(**{k.split(".", 1)[1]: v for k, v in
-                                          (o.split("=") for o in over if o.startswith("scene."))}))
+    _, pats, _ = MOD.patterns(
+        MOD.Params(**{k.split(".", 1)[1]: v for k, v in (o.split("=") for o in over if o.startswith("scene."))})
+    )
     rows = [np.interp(u, np.arange(pw) + 0.5, p[0]) for p in pats]  # the patterns along the plane
     k_e = electrons_per_render_second(cfg.sensor, cfg.render.variant)
     exposure = np.array([float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads])
@@ -224,9 +245,20 @@ def _synthetic_capture(over, ambient_scale=1.0):
         rate.append(ambient)
     e = np.stack([np.repeat(r[..., None], 3, -1) for r in rate]) * k_e * exposure[:, None, None, None]
     dn = e * cfg.sensor.gain_dn_per_e + cfg.sensor.black_level_dn
-    return z, CaptureData(cfg=cfg, scene=sc, timeline=tl, plan=None, read_names=[r.name for r in tl.reads],
-                          exposure_s=exposure, reads_dn=dn, saturated=np.zeros(dn.shape, bool), reads_e_expected=e,
-                          bucket_exposure=None, k_e=k_e, moving_mask=np.zeros((H, W), bool))
+    return z, CaptureData(
+        cfg=cfg,
+        scene=sc,
+        timeline=tl,
+        plan=None,
+        read_names=[r.name for r in tl.reads],
+        exposure_s=exposure,
+        reads_dn=dn,
+        saturated=np.zeros(dn.shape, bool),
+        reads_e_expected=e,
+        bucket_exposure=None,
+        k_e=k_e,
+        moving_mask=np.zeros((H, W), bool),
+    )
 
 
 @pytest.mark.parametrize("over", [[], ["scene.pattern=gray_code", "sensor.bucket_count=10"]], ids=["phase", "gray"])
@@ -249,7 +281,7 @@ def test_reconstruct_recovers_a_plane_without_mitsuba(over):
         assert np.percentile(err, 99) < 0.015
         ignored = app.reconstruct(data, app.params(ambient="none"))
         right = np.zeros((H, W), bool)
-        right[:, W // 2 + 1:] = True
+        right[:, W // 2 + 1 :] = True
         bad = np.abs(ignored.images["depth"] - z) > 0.03
         assert (bad | (ignored.images["decoded"] == 0))[right].mean() > 0.5
         assert (np.abs(ignored.images["depth"] - z) < 0.03)[~right].mean() > 0.9
@@ -277,7 +309,9 @@ def test_depth_scores_phase_median_and_edge_cases():
     s2 = sl.depth_scores(z2, valid, truth["u_px"], None, truth, lit, 10.0, 4, 512)
     assert s2["depth_median_abs_mm"] == pytest.approx(1.0) and "phase_rmse_rad" not in s2  # |1, 3, 7.8, 0, 0| mm
     assert "phase_rmse_rad" not in sl.depth_scores(z2, valid, truth["u_px"], phase, truth, lit, 10.0, None, 512)
-    assert sl.depth_scores(z2, valid, truth["u_px"], phase, truth, np.zeros((2, 4), bool), 10.0, 4, 512) == {"pixels": 0}
+    assert sl.depth_scores(z2, valid, truth["u_px"], phase, truth, np.zeros((2, 4), bool), 10.0, 4, 512) == {
+        "pixels": 0
+    }
     one = np.zeros((2, 4), bool)
     one[0, 1] = True
     assert sl.depth_scores(z2, valid, truth["u_px"], phase, truth, one, 10.0, 4, 512)["pixels"] == 1
@@ -330,14 +364,14 @@ def test_valid_fraction_against_the_99th_percentile_of_the_good_pixels():
     percentile over such pixels. A NaN pixel is invalid and does not enter the percentile (it used
     to make the percentile NaN, and with it every pixel invalid)."""
     sig = np.ones((20, 10))
-    sig[0, 0] = 1000.0      # 0.5 % hot pixels do not move the 99th percentile
-    sig[1, :] = 0.25        # exactly the fraction: valid
-    sig[2, :] = 0.2         # below: not valid
+    sig[0, 0] = 1000.0  # 0.5 % hot pixels do not move the 99th percentile
+    sig[1, :] = 0.25  # exactly the fraction: valid
+    sig[2, :] = 0.2  # below: not valid
     sig[3, 0] = np.nan
     sig[3, 1] = 0.0
     bad = np.zeros((20, 10), bool)
     bad[4, :] = True
-    sig[4, :] = 1e6         # bad pixels neither count nor set the reference
+    sig[4, :] = 1e6  # bad pixels neither count nor set the reference
     v = sl._valid_fraction(4.0 * sig, 0.25, bad)
     expect = np.ones((20, 10), bool)
     expect[2, :] = expect[4, :] = False

@@ -58,8 +58,9 @@ def _function_local_project_imports(path: Path, root: Path = ROOT) -> list[str]:
     for fn in ast.walk(tree):
         if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
             for node in ast.walk(fn):
-                project = (isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("mbcapture"))) \
-                    or (isinstance(node, ast.Import) and any(a.name.startswith("mbcapture") for a in node.names))
+                project = (
+                    isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("mbcapture"))
+                ) or (isinstance(node, ast.Import) and any(a.name.startswith("mbcapture") for a in node.names))
                 if project:
                     found.append(f"{path.relative_to(root)}:{node.lineno} in {fn.name}: {ast.unparse(node)}")
     return found
@@ -73,7 +74,9 @@ def test_no_project_import_inside_a_function():
 
 
 def test_the_local_import_check_finds_one(tmp_path):
-    (tmp_path / "m.py").write_text("import numpy\n\ndef f():\n    from .x import y\n    import mbcapture.io\n    import os\n")
+    (tmp_path / "m.py").write_text(
+        "import numpy\n\ndef f():\n    from .x import y\n    import mbcapture.io\n    import os\n"
+    )
     hits = _function_local_project_imports(tmp_path / "m.py", root=tmp_path)
     assert [h.split(": ", 1)[1] for h in hits] == ["from .x import y", "import mbcapture.io"]
 
@@ -91,12 +94,23 @@ def test_main_and_comparison_captures_share_one_sensor_stage_and_storage_rule():
     from mbcapture.sensor import electrons_per_render_second, sensor_stage_hook
     from mbcapture.simulate import capture_timeline
 
-    cfg = load_config(None, [
-        "scene.name=flatfield", "render.width=8", "render.height=6", "render.spp=2", "capture.protocol=custom",
-        "capture.schedule.slots=[{bucket: 1, duration_s: 0.001}, {bucket: 3, duration_s: 0.002}]",
-        "capture.schedule.reads=[{buckets: [1]}, {buckets: [3]}]", "capture.periods=4", "app.name=hdr",
-        "sensor.dark_current_e_per_s=1e5", "sensor.read_noise_e=0", "sensor.dsnu_e=0",
-    ])
+    cfg = load_config(
+        None,
+        [
+            "scene.name=flatfield",
+            "render.width=8",
+            "render.height=6",
+            "render.spp=2",
+            "capture.protocol=custom",
+            "capture.schedule.slots=[{bucket: 1, duration_s: 0.001}, {bucket: 3, duration_s: 0.002}]",
+            "capture.schedule.reads=[{buckets: [1]}, {buckets: [3]}]",
+            "capture.periods=4",
+            "app.name=hdr",
+            "sensor.dark_current_e_per_s=1e5",
+            "sensor.read_noise_e=0",
+            "sensor.dsnu_e=0",
+        ],
+    )
     dark: list[np.ndarray] = []
 
     def hook(expected_e, simulate):
@@ -106,8 +120,15 @@ def test_main_and_comparison_captures_share_one_sensor_stage_and_storage_rule():
     with sensor_stage_hook(hook):
         res = run_capture(cfg, progress=False)
         scene = prepare(cfg)[0]
-        capture_timeline(res.timeline, scene, cfg, Renderer.from_config(scene, cfg), 2, np.random.SeedSequence(9),
-                         electrons_per_render_second(cfg.sensor, cfg.render.variant))
+        capture_timeline(
+            res.timeline,
+            scene,
+            cfg,
+            Renderer.from_config(scene, cfg),
+            2,
+            np.random.SeedSequence(9),
+            electrons_per_render_second(cfg.sensor, cfg.render.variant),
+        )
     storage_s = res.timeline.storage_s()
     assert res.timeline.n_buckets == 3 and storage_s[1] == 0.0 and storage_s[0] > 0 and storage_s[2] > 0
     main, comparison = dark
@@ -127,12 +148,17 @@ def test_docs_architecture_names_every_module_of_the_contract():
 
     layers = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"][0]["layers"]
     in_contract = {m.strip().removeprefix("mbcapture.") for layer in layers for m in layer.split("|")}
-    top_level = {p.stem for p in PACKAGE.glob("*.py") if p.stem != "__init__"} | \
-        {p.parent.name for p in PACKAGE.glob("*/__init__.py")}
+    top_level = {p.stem for p in PACKAGE.glob("*.py") if p.stem != "__init__"} | {
+        p.parent.name for p in PACKAGE.glob("*/__init__.py")
+    }
     assert top_level - in_contract == set(), "modules outside the layers contract"
     doc = (ROOT / "docs" / "architecture.md").read_text()
-    rows = {cell.strip("` /") for line in doc.splitlines() if line.startswith("| `")
-            for cell in line.split("|")[1].split(",")}
+    rows = {
+        cell.strip("` /")
+        for line in doc.splitlines()
+        if line.startswith("| `")
+        for cell in line.split("|")[1].split(",")
+    }
     assert in_contract - {"__main__"} - rows == set(), "modules without a row in docs/architecture.md"
 
 
@@ -142,6 +168,9 @@ def test_no_private_name_is_imported_across_modules():
     for path in sorted(PACKAGE.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("mbcapture")):
-                found += [f"{path.relative_to(ROOT)}:{node.lineno}: {a.name}" for a in node.names
-                          if a.name.startswith("_") and not a.name.startswith("__")]
+                found += [
+                    f"{path.relative_to(ROOT)}:{node.lineno}: {a.name}"
+                    for a in node.names
+                    if a.name.startswith("_") and not a.name.startswith("__")
+                ]
     assert found == []

@@ -14,8 +14,9 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_the_page_is_the_record():
     bench = load_script("benchmark")
     data = json.loads((ROOT / "docs" / "benchmarks.json").read_text())
-    assert (ROOT / "docs" / "benchmarks.md").read_text() == bench.page(data), \
+    assert (ROOT / "docs" / "benchmarks.md").read_text() == bench.page(data), (
         "docs/benchmarks.md is stale: run `python scripts/benchmark.py --write-docs`"
+    )
     for entry in data.values():  # every entry says where, when and how it was measured
         assert {"date", "cpu", "cores", "commit", "command", "lines"} <= entry.keys()
         assert entry["command"].startswith("python scripts/benchmark.py")
@@ -23,16 +24,24 @@ def test_the_page_is_the_record():
 
 def test_printed_lines_go_to_their_measures_and_a_new_run_replaces_only_its_own(tmp_path):
     bench = load_script("benchmark")
-    text = ("[7] 320x256: run 9.1 s, sweep 13.2 s\n    in the sweep: the rest\nfilm 160x128, spp 16\n"
-            "[1] periods 4: 1.0 s; ratio 1.01\n[2] ratio 1.18\n    and more\n")
+    text = (
+        "[7] 320x256: run 9.1 s, sweep 13.2 s\n    in the sweep: the rest\nfilm 160x128, spp 16\n"
+        "[1] periods 4: 1.0 s; ratio 1.01\n[2] ratio 1.18\n    and more\n"
+    )
     lines = bench.by_measure(text)
-    assert lines == {7: ["[7] 320x256: run 9.1 s, sweep 13.2 s", "    in the sweep: the rest"],
-                     1: ["[1] periods 4: 1.0 s; ratio 1.01"], 2: ["[2] ratio 1.18", "    and more"]}
+    assert lines == {
+        7: ["[7] 320x256: run 9.1 s, sweep 13.2 s", "    in the sweep: the rest"],
+        1: ["[1] periods 4: 1.0 s; ratio 1.01"],
+        2: ["[2] ratio 1.18", "    and more"],
+    }
     path = tmp_path / "record.json"
     bench.record(lines, "python scripts/benchmark.py --only 1,2,7", path)
     data = bench.record({2: ["[2] ratio 1.05"]}, "python scripts/benchmark.py --only 2", path)
     assert data["2"]["lines"] == ["[2] ratio 1.05"] and data["2"]["command"].endswith("--only 2")
     assert data["7"]["lines"][0].startswith("[7]") and list(data) == ["1", "2", "7"]
     md = bench.page(data)
-    assert "[2] ratio 1.05" in md and "ratio 1.18" not in md and "Not recorded yet: `python scripts/benchmark.py " \
-        "--only 4`" in md
+    assert (
+        "[2] ratio 1.05" in md
+        and "ratio 1.18" not in md
+        and "Not recorded yet: `python scripts/benchmark.py --only 4`" in md
+    )

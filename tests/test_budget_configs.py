@@ -36,8 +36,11 @@ TAIL_NOT_MET: dict[str, str] = {}
 
 def budgeted_configs() -> list[str]:
     """The shipped configs whose samples the noise budget chooses."""
-    return [p.stem for p in sorted((ROOT / "configs").glob("*.yaml"))
-            if (yaml.safe_load(p.read_text()).get("render") or {}).get("spp") is None]
+    return [
+        p.stem
+        for p in sorted((ROOT / "configs").glob("*.yaml"))
+        if (yaml.safe_load(p.read_text()).get("render") or {}).get("spp") is None
+    ]
 
 
 def test_the_budgeted_configs_are_found():
@@ -58,18 +61,27 @@ def test_every_budgeted_config_meets_the_noise_budget_at_160x128(name):
     reads = error.get("reads", {})
     assert reads, f"{name}: no read estimate in report.json's render_error"
     budget = error["budget"]
-    lines = [f"{n}: median {v['to_shot_noise_variance_median']:.3g}, p95 {v['to_shot_noise_variance_p95']:.3g}, "
-             f"p99.9 {v['to_shot_noise_variance_p999']:.3g}" for n, v in reads.items()]
+    lines = [
+        f"{n}: median {v['to_shot_noise_variance_median']:.3g}, p95 {v['to_shot_noise_variance_p95']:.3g}, "
+        f"p99.9 {v['to_shot_noise_variance_p999']:.3g}"
+        for n, v in reads.items()
+    ]
     adaptive = {k: v for k, v in (report.get("adaptive") or {}).items() if k != "tiers"}
     adaptive["factors"] = [t["factor"] for t in (report.get("adaptive") or {}).get("tiers", [])]
     print(f"{name} (top-up: {report.get('top_up')}; adaptive: {adaptive}):\n  " + "\n  ".join(lines))
-    over = {n: v for n, v in reads.items()
-            if v["to_shot_noise_variance_median"] > budget["median_target"]
-            or v["to_shot_noise_variance_p95"] > budget["p95_target"]}
+    over = {
+        n: v
+        for n, v in reads.items()
+        if v["to_shot_noise_variance_median"] > budget["median_target"]
+        or v["to_shot_noise_variance_p95"] > budget["p95_target"]
+    }
     assert not over and budget["met"], f"{name} misses the noise budget on {sorted(over)}: " + "; ".join(lines)
     if name in TAIL_NOT_MET:
         assert not budget["tail_met"], f"{name} now meets the tail target: take it out of TAIL_NOT_MET"
     else:
-        tail = {n: v["to_shot_noise_variance_p999"] for n, v in reads.items()
-                if v["to_shot_noise_variance_p999"] > budget["tail_target"]}
+        tail = {
+            n: v["to_shot_noise_variance_p999"]
+            for n, v in reads.items()
+            if v["to_shot_noise_variance_p999"] > budget["tail_target"]
+        }
         assert not tail and budget["tail_met"], f"{name} misses the tail target on {tail}"

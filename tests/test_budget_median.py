@@ -137,7 +137,7 @@ def _edge_field(width: int = 24):
     expected electrons and each pixel's true Monte Carlo variance (ratio 0.1 on the wall and the object,
     20 on the edge: coverage noise)."""
     e = np.full((width, width, 1), 10_000.0)
-    e[:, width // 2 + 1:] = 20.0
+    e[:, width // 2 + 1 :] = 20.0
     e[:, width // 2] = 5_000.0
     var = 0.1 * e
     var[:, width // 2] = 20.0 * e[:, width // 2]

@@ -147,8 +147,9 @@ def test_warp_onto_samples_at_the_warped_position_and_marks_what_falls_outside()
     np.testing.assert_allclose(lin[:, :-1], np.broadcast_to(xs**2 + xs / 4 + 0.5 / 16, (h, w - 1)), rtol=1e-6)
     assert np.isnan(lin[:, -1]).all() and lin.dtype == np.float64
     cub = rg.warp_onto(img, shift, cubic=True)
-    np.testing.assert_allclose(cub[:, 1:-2], np.broadcast_to(xs[1:-1] ** 2 + xs[1:-1] / 4 + 0.125 / 16, (h, w - 3)),
-                               rtol=1e-5)
+    np.testing.assert_allclose(
+        cub[:, 1:-2], np.broadcast_to(xs[1:-1] ** 2 + xs[1:-1] / 4 + 0.125 / 16, (h, w - 3)), rtol=1e-5
+    )
     assert np.isnan(cub[:, -1]).all()
     np.testing.assert_allclose(rg.warp_onto(img, 2.0 * shift), lin, rtol=1e-6)  # the same transform, projective
     # (H, W, C) in, (H, W, C) out; an integer shift down by 2 rows: the last two rows are outside
@@ -162,8 +163,8 @@ def test_warp_onto_samples_at_the_warped_position_and_marks_what_falls_outside()
 def test_score_registered_leaves_out_the_border_and_unfilled_pixels():
     truth = np.repeat(_texture(24, 32, seed=4)[..., None], 3, -1)
     on = 1.1 * truth
-    on[:2] = 50.0          # the border (2 px) is not scored
-    on[10, 10] = np.nan    # nor are pixels the registration left unfilled
+    on[:2] = 50.0  # the border (2 px) is not scored
+    on[10, 10] = np.nan  # nor are pixels the registration left unfilled
     s = burst.score_registered(on, truth, 2)
     inner = (slice(2, 22), slice(2, 30))
     ok = np.ones((20, 28), bool)

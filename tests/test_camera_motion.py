@@ -65,9 +65,17 @@ def test_still_pose_projects_like_the_scene_camera_and_a_yaw_shifts_the_image():
 def test_strata_follow_the_shake_of_a_static_scene():
     """A static scene is one stratum; shaken, the planner cuts it so that no reference point of the
     frame moves more than render.max_motion_px inside a stratum."""
-    base = ["render.width=160", "render.height=128", "render.spp=2", "scene.name=colour_chart",
-            "scene.shake_amplitude_m=0", "capture.protocol=burst", "capture.periods=1",
-            "capture.unit_exposure_s=0.02", "app.name=burst"]
+    base = [
+        "render.width=160",
+        "render.height=128",
+        "render.spp=2",
+        "scene.name=colour_chart",
+        "scene.shake_amplitude_m=0",
+        "capture.protocol=burst",
+        "capture.periods=1",
+        "capture.unit_exposure_s=0.02",
+        "app.name=burst",
+    ]
     still = load_config(None, base)
     _, _, plan0, _ = prepare(still)
     assert plan0.passes == 1
@@ -100,9 +108,11 @@ def test_trajectory_file_is_read_interpolated_and_checked(tmp_path):
     assert np.allclose(o, [math.radians(0.5), math.radians(1.0), math.radians(1.5), 2e-3, 2.5e-3, 3e-3])
     with pytest.raises(ConfigError, match="camera.trajectory_file: .* covers scene times 0..0.1 s"):
         motion.offsets([0.2])
-    for text, msg in [("t,a\n0,0\n", "expected the header"),
-                      ("time_s,rx_deg,ry_deg,rz_deg,tx_mm,ty_mm,tz_mm\n0,0,0,0,0,0,0\n0,1,1,1,1,1,1\n", "must increase"),
-                      ("time_s,rx_deg,ry_deg,rz_deg,tx_mm,ty_mm,tz_mm\n0,0,0,0,0,0,x\n1,0,0,0,0,0,0\n", "not numbers")]:
+    for text, msg in [
+        ("t,a\n0,0\n", "expected the header"),
+        ("time_s,rx_deg,ry_deg,rz_deg,tx_mm,ty_mm,tz_mm\n0,0,0,0,0,0,0\n0,1,1,1,1,1,1\n", "must increase"),
+        ("time_s,rx_deg,ry_deg,rz_deg,tx_mm,ty_mm,tz_mm\n0,0,0,0,0,0,x\n1,0,0,0,0,0,0\n", "not numbers"),
+    ]:
         bad = tmp_path / "bad.csv"
         bad.write_text(text)
         with pytest.raises(ConfigError, match=f"camera.trajectory_file: .*{msg}"):
@@ -111,8 +121,11 @@ def test_trajectory_file_is_read_interpolated_and_checked(tmp_path):
         load_config(None, ["camera.shake={}", f"camera.trajectory_file={good}"])
     # a capture outside the file's times fails before anything renders
     with pytest.raises(ConfigError, match="covers scene times"):
-        prepare(load_config(None, [f"camera.trajectory_file={good}", "capture.start_s=1", "render.width=16",
-                                   "render.height=12"]))
+        prepare(
+            load_config(
+                None, [f"camera.trajectory_file={good}", "capture.start_s=1", "render.width=16", "render.height=12"]
+            )
+        )
 
 
 @pytest.mark.render
@@ -140,7 +153,9 @@ def test_renderer_moves_the_camera_and_keys_the_cache_by_its_pose(tmp_path):
     assert expected[0] > 1.0  # a real shift, not a rounding of 0
 
     # the cache: the same scene, time, samples and seed with another camera pose is a miss
-    shake = lambda seed: cm.apply(still, cm.CameraSection(shake=cm.ShakeSpec(rotation_deg=0.3, seed=seed)))
+    def shake(seed):
+        return cm.apply(still, cm.CameraSection(shake=cm.ShakeSpec(rotation_deg=0.3, seed=seed)))
+
     ra, rb = Renderer(shake(1), W, H, cache=cache), Renderer(shake(2), W, H, cache=cache)
     assert ra.state_at(0.01) != rb.state_at(0.01) and ra.state_at(0.01) != ra.state_at(0.02)
     misses = cache.stats.misses

@@ -31,8 +31,17 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _ideal(**kw) -> SensorConfig:
     """A sensor whose reads are its photo-electrons: gain 1, no black level, no fixed pattern, no read noise."""
-    base = dict(gain_dn_per_e=1.0, black_level_dn=0.0, read_noise_e=0.0, prnu=0.0, dsnu_e=0.0, adc_bits=20,
-                full_well_e=1e6, fd_full_well_e=4e6, dark_current_e_per_s=0.0)
+    base = dict(
+        gain_dn_per_e=1.0,
+        black_level_dn=0.0,
+        read_noise_e=0.0,
+        prnu=0.0,
+        dsnu_e=0.0,
+        adc_bits=20,
+        full_well_e=1e6,
+        fd_full_well_e=4e6,
+        dark_current_e_per_s=0.0,
+    )
     return SensorConfig(**{**base, **kw})
 
 
@@ -45,7 +54,9 @@ def test_each_photosite_keeps_its_own_channel(pattern):
     for y in range(6):
         for x in range(8):
             assert m[1, y, x, 0] == img[1, y, x, tile[y % 2, x % 2]]
-    assert "RGB"[channel_map(pattern, 2, 2)[0, 0]] == pattern[0] and "RGB"[channel_map(pattern, 2, 2)[1, 1]] == pattern[3]
+    assert (
+        "RGB"[channel_map(pattern, 2, 2)[0, 0]] == pattern[0] and "RGB"[channel_map(pattern, 2, 2)[1, 1]] == pattern[3]
+    )
 
 
 @pytest.mark.parametrize("pattern", sorted(BAYER_PATTERNS))
@@ -63,8 +74,9 @@ def test_bilinear_green_at_a_red_photosite_is_its_four_neighbours_mean_and_offse
     assert b[4, 6, 1] == pytest.approx((raw[4, 5] + raw[4, 7] + raw[3, 6] + raw[5, 6]) / 4, rel=1e-12)
     assert b[4, 6, 0] == raw[4, 6]
     for method in ("bilinear", "malvar2004"):  # linear: a black level passes through unchanged
-        np.testing.assert_allclose(demosaic(raw + 64.0, "RGGB", method), demosaic(raw, "RGGB", method) + 64.0,
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            demosaic(raw + 64.0, "RGGB", method), demosaic(raw, "RGGB", method) + 64.0, atol=1e-9
+        )
 
 
 @pytest.mark.parametrize("method", sorted(DEMOSAIC_METHODS))
@@ -171,8 +183,11 @@ def test_the_hdr_app_merges_photosites_then_demosaics(tmp_path):
     the raw files keep the mosaic, and the result is close to the three-channel sensor's."""
     over = ["render.width=48", "render.height=40", "render.spp=4", "output.dng=true", "sensor.demosaic=malvar2004"]
     plain = run_capture(load_config(ROOT / "configs" / "metronome_hdr.yaml", over), tmp_path / "rgb", progress=False)
-    bayer = run_capture(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*over, "sensor.cfa=RGGB"]),
-                        tmp_path / "bayer", progress=False)
+    bayer = run_capture(
+        load_config(ROOT / "configs" / "metronome_hdr.yaml", [*over, "sensor.cfa=RGGB"]),
+        tmp_path / "bayer",
+        progress=False,
+    )
     assert bayer.mosaic_dn.shape == (4, 40, 48) and plain.mosaic_dn is None
     # same renders, same truth (the ideal three-channel sensor's)
     np.testing.assert_array_equal(bayer.reads_expected_e, plain.reads_expected_e)
@@ -212,8 +227,11 @@ def test_hdr_demosaicing_keeps_a_dark_pixel_beside_a_bright_one_positive(method)
     flat = np.full((H, W, 3), [0.3, 0.5, 0.2])
     np.testing.assert_allclose(demosaic_hdr(to_mosaic(flat, "RGGB"), "RGGB", method, floor), flat, rtol=1e-9)
     small = np.random.default_rng(0).normal(0, 1e-7, (H, W, 3))  # far under the floor: asinh is linear there
-    np.testing.assert_allclose(demosaic_hdr(to_mosaic(small, "RGGB"), "RGGB", method, 1.0),
-                               demosaic(to_mosaic(small, "RGGB"), "RGGB", method), atol=1e-12)
+    np.testing.assert_allclose(
+        demosaic_hdr(to_mosaic(small, "RGGB"), "RGGB", method, 1.0),
+        demosaic(to_mosaic(small, "RGGB"), "RGGB", method),
+        atol=1e-12,
+    )
 
 
 #: How far a Bayer capture's HDR relMSE may lie above the sum of its two causes, the mosaic's (its noise-free

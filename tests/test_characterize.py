@@ -86,19 +86,65 @@ def test_the_summed_read_has_every_buckets_dark_current_and_the_floating_diffusi
 #: A change of one sensor key, and the figures (green channel, bucket read) it must move.
 CHANGES = [
     ("sensor.gain_dn_per_e=0.3", {"system_gain_dn_per_e", "temporal_dark_noise_dn", "responsivity_dn_per_photon"}),
-    ("sensor.read_noise_e=6", {"temporal_dark_noise_e", "temporal_dark_noise_dn", "absolute_sensitivity_threshold_e",
-                               "absolute_sensitivity_threshold_photons", "dynamic_range", "dynamic_range_db"}),
-    ("sensor.prnu=0.03", {"prnu_percent", "prnu_pixel_percent", "saturation_capacity_e", "saturation_photons",
-                          "snr_max", "snr_max_db", "dynamic_range", "dynamic_range_db"}),
-    ("sensor.full_well_e=6000", {"charge_limit_e", "saturation_capacity_e", "saturation_photons", "snr_max",
-                                 "snr_max_db", "dynamic_range", "dynamic_range_db"}),
-    ("sensor.quantum_efficiency=[0.4,0.3,0.45]", {"quantum_efficiency", "responsivity_dn_per_photon",
-                                                  "absolute_sensitivity_threshold_photons", "saturation_photons"}),
+    (
+        "sensor.read_noise_e=6",
+        {
+            "temporal_dark_noise_e",
+            "temporal_dark_noise_dn",
+            "absolute_sensitivity_threshold_e",
+            "absolute_sensitivity_threshold_photons",
+            "dynamic_range",
+            "dynamic_range_db",
+        },
+    ),
+    (
+        "sensor.prnu=0.03",
+        {
+            "prnu_percent",
+            "prnu_pixel_percent",
+            "saturation_capacity_e",
+            "saturation_photons",
+            "snr_max",
+            "snr_max_db",
+            "dynamic_range",
+            "dynamic_range_db",
+        },
+    ),
+    (
+        "sensor.full_well_e=6000",
+        {
+            "charge_limit_e",
+            "saturation_capacity_e",
+            "saturation_photons",
+            "snr_max",
+            "snr_max_db",
+            "dynamic_range",
+            "dynamic_range_db",
+        },
+    ),
+    (
+        "sensor.quantum_efficiency=[0.4,0.3,0.45]",
+        {
+            "quantum_efficiency",
+            "responsivity_dn_per_photon",
+            "absolute_sensitivity_threshold_photons",
+            "saturation_photons",
+        },
+    ),
 ]
 #: Compared: the figures a datasheet leads with (the others follow from them).
-LEADING = ["system_gain_dn_per_e", "responsivity_dn_per_photon", "quantum_efficiency", "temporal_dark_noise_dn",
-           "temporal_dark_noise_e", "charge_limit_e", "absolute_sensitivity_threshold_e", "dark_current_e_per_s",
-           "dsnu_e", "prnu_percent"]
+LEADING = [
+    "system_gain_dn_per_e",
+    "responsivity_dn_per_photon",
+    "quantum_efficiency",
+    "temporal_dark_noise_dn",
+    "temporal_dark_noise_e",
+    "charge_limit_e",
+    "absolute_sensitivity_threshold_e",
+    "dark_current_e_per_s",
+    "dsnu_e",
+    "prnu_percent",
+]
 
 
 CHANGE_SETTINGS = ch.Settings(width=64, height=64, steps=30, dark_steps=4, frames=8)
@@ -134,7 +180,9 @@ def test_a_preset_round_trips_through_its_datasheet(tmp_path, preset):
     assert cfg.sensor.fill_factor == 1.0 and cfg.sensor.bucket_count == first["sensor"]["bucket_count"]
     second = _measure([f"sensor.preset={path}"], settings)
     assert set(second["reads"]) == set(first["reads"])
-    sensors = [load_config(ROOT / "configs" / "metronome_hdr.yaml", [f"sensor.preset={p}"]).sensor for p in (preset, path)]
+    sensors = [
+        load_config(ROOT / "configs" / "metronome_hdr.yaml", [f"sensor.preset={p}"]).sensor for p in (preset, path)
+    ]
     for mode in first["reads"]:
         for c in ch.CHANNELS:
             a, b = first["reads"][mode]["channels"][c], second["reads"][mode]["channels"][c]
@@ -145,7 +193,10 @@ def test_a_preset_round_trips_through_its_datasheet(tmp_path, preset):
                     continue  # not a preset key: the preset's R is its gain (the channels' mean K) x its QE (R / K per
                     # channel), so it carries the channel's K error; K and QE themselves are compared
                 # each sensor's own pixels: their mean gain differs from one sensor to the other
-                own = [_realization(s, name, settings.height, settings.width) * f[name]["value"] for s, f in zip(sensors, (a, b))]
+                own = [
+                    _realization(s, name, settings.height, settings.width) * f[name]["value"]
+                    for s, f in zip(sensors, (a, b))
+                ]
                 sd = math.sqrt(a[name]["uncertainty"] ** 2 + b[name]["uncertainty"] ** 2 + own[0] ** 2 + own[1] ** 2)
                 z = abs(a[name]["value"] - b[name]["value"]) / sd
                 assert z < Z, (preset, mode, c, name, a[name]["value"], b[name]["value"])
@@ -161,12 +212,15 @@ def test_shipped_presets_fill_the_sensor_and_keys_beside_them_win():
     assert load_config(hdr).sensor.preset == "wan2012_quad_bucket"
 
 
-@pytest.mark.parametrize("value,message", [
-    ("nope", "unknown preset 'nope'"),
-    ("missing/sheet.json", "file missing/sheet.json not found"),
-    ("BAD_SCHEMA", "schema 'other/1'"),
-    ("NO_READS", "expected 'sensor' and 'reads.bucket.channels'"),
-])
+@pytest.mark.parametrize(
+    "value,message",
+    [
+        ("nope", "unknown preset 'nope'"),
+        ("missing/sheet.json", "file missing/sheet.json not found"),
+        ("BAD_SCHEMA", "schema 'other/1'"),
+        ("NO_READS", "expected 'sensor' and 'reads.bucket.channels'"),
+    ],
+)
 def test_a_bad_preset_is_one_clear_error(tmp_path, value, message):
     if value == "BAD_SCHEMA":
         value = str(tmp_path / "a.json")
@@ -181,8 +235,24 @@ def test_a_bad_preset_is_one_clear_error(tmp_path, value, message):
 
 def test_the_command_writes_a_datasheet_a_browser_shows(tmp_path):
     out = tmp_path / "sheet"
-    cmd = [sys.executable, "-m", "mbcapture", "characterize", "metronome_hdr", "--out", str(out), "--size", "48x40",
-           "--steps", "24", "--dark-steps", "3", "--frames", "4", "--quiet"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "mbcapture",
+        "characterize",
+        "metronome_hdr",
+        "--out",
+        str(out),
+        "--size",
+        "48x40",
+        "--steps",
+        "24",
+        "--dark-steps",
+        "3",
+        "--frames",
+        "4",
+        "--quiet",
+    ]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     sheet = json.loads((out / "characterization.json").read_text())
@@ -214,5 +284,8 @@ def test_a_spectral_sensor_is_measured_at_its_wavelengths():
         assert abs(f["value"] - want) <= Z * math.hypot(f["uncertainty"], want * cfg.sensor.prnu / 48), (name, f, want)
     assert sheet["sensor"]["spectral_response"] == cfg.sensor.spectral_response
     with pytest.raises(ConfigError, match="no response at"):
-        ch.measure(load_config(ROOT / "configs" / "metronome_spectral.yaml", ["sensor.wavelength_nm=[1900,540,460]"]),
-                   settings, progress=False)
+        ch.measure(
+            load_config(ROOT / "configs" / "metronome_spectral.yaml", ["sensor.wavelength_nm=[1900,540,460]"]),
+            settings,
+            progress=False,
+        )

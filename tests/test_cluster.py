@@ -43,10 +43,12 @@ def test_a_capture_rendered_on_two_workers_is_the_local_capture(client):
 def test_a_tiled_capture_on_two_workers_is_the_local_untiled_capture(client):
     """Each tile's render bands are tasks of their own; the tiles go one after another."""
     banded = [*SMALL, "render.band_rows=8"]  # 4 bands of the 32 rows
-    local = run_capture(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*banded, "render.tiles=1"]),
-                        progress=False)
-    spread = run_capture(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*banded, "render.tiles=2"]),
-                         progress=False, client=client)
+    local = run_capture(
+        load_config(ROOT / "configs" / "metronome_hdr.yaml", [*banded, "render.tiles=1"]), progress=False
+    )
+    spread = run_capture(
+        load_config(ROOT / "configs" / "metronome_hdr.yaml", [*banded, "render.tiles=2"]), progress=False, client=client
+    )
     info = spread.report["cluster"]
     assert info["tiles"] == 2 and info["renders"] == 4 * len(render_requests(spread.plan, np.random.SeedSequence(0)))
     np.testing.assert_array_equal(spread.bucket_exposure, local.bucket_exposure)
@@ -71,8 +73,12 @@ def test_a_capture_with_the_noise_budget_on_two_workers_makes_the_local_choices(
     np.testing.assert_array_equal(spread.plan.spp, local.plan.spp)
     np.testing.assert_allclose(spread.bucket_exposure, local.bucket_exposure, rtol=RENDER_REPEAT_RTOL, atol=0)
     reads = [r.buckets for r in local.timeline.reads]
-    assert count_differences(spread.reads_dn, local.reads_dn, spread.buckets_e, local.buckets_e, reads,
-                             cfg.sensor.gain_dn_per_e) == []
+    assert (
+        count_differences(
+            spread.reads_dn, local.reads_dn, spread.buckets_e, local.buckets_e, reads, cfg.sensor.gain_dn_per_e
+        )
+        == []
+    )
 
 
 @pytest.mark.render
@@ -115,9 +121,23 @@ def test_mbcapture_run_takes_workers_and_refuses_a_bad_count(tmp_path, capsys):
     from mbcapture.cli import main
 
     def run(*extra):
-        return subprocess.run([sys.executable, "-m", "mbcapture", "run", "metronome_hdr", "--quiet", "--out",
-                               str(tmp_path / "out"), *[a for s in SMALL for a in ("--set", s)], *extra],
-                              capture_output=True, text=True, cwd=ROOT)
+        return subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "mbcapture",
+                "run",
+                "metronome_hdr",
+                "--quiet",
+                "--out",
+                str(tmp_path / "out"),
+                *[a for s in SMALL for a in ("--set", s)],
+                *extra,
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
 
     ok = run("--workers", "1")
     assert ok.returncode == 0, ok.stderr

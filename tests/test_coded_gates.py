@@ -50,8 +50,8 @@ def test_a_drained_sub_frame_is_in_no_bucket():
     code = GateCode("file", tile, 2)
     x = np.stack([np.full((2, 4, 1), v) for v in (1.0, 10.0, 100.0)])
     out = code.route(x)
-    np.testing.assert_array_equal(out[:, 0, 0, 0], [1.0, 100.0])   # even columns: 1 -> B1, 10 drained, 100 -> B2
-    np.testing.assert_array_equal(out[:, 0, 1, 0], [10.0, 1.0])    # odd columns: 1 -> B2, 10 -> B1, 100 drained
+    np.testing.assert_array_equal(out[:, 0, 0, 0], [1.0, 100.0])  # even columns: 1 -> B1, 10 drained, 100 -> B2
+    np.testing.assert_array_equal(out[:, 0, 1, 0], [10.0, 1.0])  # odd columns: 1 -> B2, 10 -> B1, 100 drained
 
 
 def test_families_are_what_their_names_say():
@@ -95,8 +95,17 @@ def test_bad_codes_are_refused_naming_the_key(tmp_path):
         make_code("global", 5, 2, width=8, height=8)
     missing = tmp_path / "nope.npy"
     with pytest.raises(ConfigError, match=f"capture.gate_code.file: {missing} does not exist"):
-        protocols.build(load_config(MULTI_FLASH, ["sensor.bucket_count=2", "capture.gate_code.family=file",
-                                                  "capture.gate_code.subframes=5", f"capture.gate_code.file={missing}"]))
+        protocols.build(
+            load_config(
+                MULTI_FLASH,
+                [
+                    "sensor.bucket_count=2",
+                    "capture.gate_code.family=file",
+                    "capture.gate_code.subframes=5",
+                    f"capture.gate_code.file={missing}",
+                ],
+            )
+        )
     with pytest.raises(ConfigError, match="capture.gate_code.subframes: required by family 'hadamard'"):
         protocols.build(load_config(MULTI_FLASH, ["sensor.bucket_count=2", "capture.gate_code.family=hadamard"]))
 
@@ -131,7 +140,9 @@ def test_the_global_code_keeps_the_protocol_reads_and_other_codes_read_each_buck
 
 def test_codes_need_an_application_that_demultiplexes():
     with pytest.raises(ConfigError, match="the hdr application reads global-gate reads; .* \\(multi_flash\\)"):
-        load_config(None, ["capture.gate_code.family=hadamard", "capture.gate_code.subframes=4", "sensor.bucket_count=2"])
+        load_config(
+            None, ["capture.gate_code.family=hadamard", "capture.gate_code.subframes=4", "sensor.bucket_count=2"]
+        )
     with pytest.raises(ConfigError, match="sensor.cfa 'RGGB' with capture.gate_code"):
         load_config(CODED, ["sensor.cfa=RGGB"])
     load_config(None, ["capture.gate_code.family=global"])  # global gates written as a code: any application
@@ -158,7 +169,7 @@ def test_demultiplexing_recovers_locally_constant_images_exactly(family):
     inner = np.zeros((H, W), bool)
     for by in range(0, H, 8):
         for bx in range(0, W, 8):
-            inner[by + ry - 1:by + 8 - ry + 1, bx + rx - 1:bx + 8 - rx + 1] = True
+            inner[by + ry - 1 : by + 8 - ry + 1, bx + rx - 1 : bx + 8 - rx + 1] = True
     inner &= d.valid
     assert inner.sum() > 0.05 * H * W
     np.testing.assert_allclose(d.images[:, inner], x[:, inner], rtol=1e-9)
@@ -173,8 +184,12 @@ def test_demultiplexing_variance_matches_monte_carlo():
     clean = code.route(np.full((S, H, W, 1), 500.0))
     rng = np.random.default_rng(2)
     n = 1000
-    est = np.stack([demultiplex(clean + rng.standard_normal((2, H, W, 1)), A, code.tile_shape).images[:, 6:8, 6:8, 0]
-                    for _ in range(n)])
+    est = np.stack(
+        [
+            demultiplex(clean + rng.standard_normal((2, H, W, 1)), A, code.tile_shape).images[:, 6:8, 6:8, 0]
+            for _ in range(n)
+        ]
+    )
     d = demultiplex(clean, A, code.tile_shape)
     var = est.var(axis=0, ddof=1)  # (S, 2, 2): one tile's four code positions
     # the sample variance of n normal draws has relative standard error sqrt(2 / (n - 1))
@@ -194,7 +209,10 @@ def test_guided_demultiplexing_is_the_plain_fit_with_flat_weights_and_keeps_an_e
     np.testing.assert_allclose(flat.images, plain.images, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(flat.variance, plain.variance, rtol=1e-9)
     # a vertical edge where every sub-frame image doubles: the plain fit mixes both sides, the guided one not
-    step = np.where(np.arange(W) < 20, 1.0, 2.0)[None, None, :, None] * np.array([300.0, 200, 500, 400, 100])[:, None, None, None]
+    step = (
+        np.where(np.arange(W) < 20, 1.0, 2.0)[None, None, :, None]
+        * np.array([300.0, 200, 500, 400, 100])[:, None, None, None]
+    )
     step = np.broadcast_to(step, (S, H, W, 1)).copy()
     reads = code.route(step)
     cols = slice(17, 23)  # the columns the 3 x 3 tile's window straddles
@@ -232,8 +250,8 @@ def test_near_light_photometric_stereo_recovers_a_sphere_and_a_tilted_plane():
     yy, xx = np.mgrid[0:H, 0:W]
     # a sphere of radius 0.2 m at 1 m, seen along -z; background: a tilted plane
     u, v = (xx - 19.5) / 40 * 0.6, (yy - 19.5) / 40 * 0.6
-    r2 = u ** 2 + v ** 2
-    inside = r2 < 0.2 ** 2
+    r2 = u**2 + v**2
+    inside = r2 < 0.2**2
     n_sphere = np.stack([u, v, np.sqrt(np.maximum(0.04 - r2, 0))], -1) / 0.2
     pts = np.stack([u, v, np.where(inside, np.sqrt(np.maximum(0.04 - r2, 0)), -0.1 * u)], -1)
     n_plane = np.array([0.1, 0.0, 1.0]) / np.linalg.norm([0.1, 0.0, 1.0])
@@ -244,8 +262,8 @@ def test_near_light_photometric_stereo_recovers_a_sphere_and_a_tilted_plane():
     for p, f in zip(lights, facing):
         d = p - pts
         r = np.linalg.norm(d, axis=-1)
-        l = d / r[..., None]
-        imgs.append(0.7 * np.maximum((l * normals).sum(-1), 0) * np.maximum((-l * f).sum(-1), 0) / r ** 2)
+        to_light = d / r[..., None]
+        imgs.append(0.7 * np.maximum((to_light * normals).sum(-1), 0) * np.maximum((-to_light * f).sum(-1), 0) / r**2)
     n, ok = near_light_normals(np.stack(imgs), pts, lights, facing)
     assert ok.mean() > 0.9  # the sphere's rim, lit by fewer than three lights, is left out
     assert angular_error_deg(n, normals)[ok].max() < 1e-4  # arccos near 1: float64 resolves ~1e-6 deg
@@ -271,8 +289,9 @@ def test_global_gates_written_as_a_code_reproduce_the_capture_bit_for_bit():
     for name, img in plain.images.items():
         np.testing.assert_array_equal(coded.images[name], img, err_msg=name)
     hdr = capture_in_memory(load_config(None, TINY[:3] + ["render.cache=off"]), StageStatus(False))
-    hdr_coded = capture_in_memory(load_config(None, TINY[:3] + ["render.cache=off", "capture.gate_code.family=global"]),
-                                  StageStatus(False))
+    hdr_coded = capture_in_memory(
+        load_config(None, TINY[:3] + ["render.cache=off", "capture.gate_code.family=global"]), StageStatus(False)
+    )
     np.testing.assert_array_equal(hdr_coded.reads_dn, hdr.reads_dn)  # non-destructive reads of bucket sums too
 
 
@@ -284,8 +303,13 @@ def test_a_coded_capture_conserves_light_and_keeps_the_sensor_physics(family, tm
     from mbcapture.pipeline import capture_in_memory
     from mbcapture.progress import StageStatus
 
-    quiet = ["sensor.dark_current_e_per_s=0", "sensor.prnu=0", "sensor.dsnu_e=0", "sensor.parasitic_light=0",
-             "sensor.transfer_inefficiency=0"]
+    quiet = [
+        "sensor.dark_current_e_per_s=0",
+        "sensor.prnu=0",
+        "sensor.dsnu_e=0",
+        "sensor.parasitic_light=0",
+        "sensor.transfer_inefficiency=0",
+    ]
     code = [f"capture.gate_code.family={family}", "capture.gate_code.subframes=5"]
     if family == "file":  # 1-based buckets, no 0 (drain): every sub-frame's light lands in a bucket
         np.save(tmp_path / "codes.npy", np.random.default_rng(3).integers(1, 3, size=(5, 40, 48)).astype(np.int8))
@@ -302,8 +326,8 @@ def test_a_coded_capture_conserves_light_and_keeps_the_sensor_physics(family, tm
     e = dn_to_electrons(res.reads_dn, res.config.sensor).astype(np.float64)
     mu = res.reads_expected_e
     ok = ~res.saturated & (mu > 50)
-    z = (e - mu)[ok] ** 2 - (mu[ok] + res.config.sensor.read_noise_e ** 2 + 1 / (12 * res.config.sensor.gain_dn_per_e ** 2))
-    scale = (mu[ok] + res.config.sensor.read_noise_e ** 2)
+    z = (e - mu)[ok] ** 2 - (mu[ok] + res.config.sensor.read_noise_e**2 + 1 / (12 * res.config.sensor.gain_dn_per_e**2))
+    scale = mu[ok] + res.config.sensor.read_noise_e**2
     # z has mean 0 and standard deviation about sqrt(2) x scale (a normal's squared deviation)
     assert abs(z.mean() / scale.mean()) < 5 * np.sqrt(2 / ok.sum()) * (scale.std() / scale.mean() + 1)
     m = res.report["metrics"]
@@ -316,6 +340,8 @@ def test_a_coded_capture_conserves_light_and_keeps_the_sensor_physics(family, tm
 def test_a_sweep_over_code_families_shares_one_render_stage():
     from mbcapture.sweep.groups import group_key
 
-    keys = {group_key(load_config(CODED, TINY + [f"capture.gate_code.family={f}"])) for f in
-            ("one_hot", "hadamard", "random")}
+    keys = {
+        group_key(load_config(CODED, TINY + [f"capture.gate_code.family={f}"]))
+        for f in ("one_hot", "hadamard", "random")
+    }
     assert len(keys) == 1

@@ -68,13 +68,22 @@ def test_custom_needs_schedule_and_others_refuse_it():
     with pytest.raises(ConfigError, match="capture.schedule is required"):
         load_config(None, ["scene.name=flatfield", "capture.protocol=custom"])
     with pytest.raises(ConfigError, match="only read by the 'custom' protocol"):
-        load_config(None, ["scene.name=flatfield", "capture.schedule={slots: [{bucket: 1, duration_s: 1}], reads: [{buckets: [1]}]}"])
+        load_config(
+            None,
+            ["scene.name=flatfield", "capture.schedule={slots: [{bucket: 1, duration_s: 1}], reads: [{buckets: [1]}]}"],
+        )
 
 
 def test_negative_slot_duration_is_refused():
     with pytest.raises(ConfigError, match=r"capture\.schedule\.slots\.0\.duration_s"):
-        load_config(None, ["scene.name=flatfield", "capture.protocol=custom",
-                           "capture.schedule={slots: [{bucket: 1, duration_s: -1}], reads: [{buckets: [1]}]}"])
+        load_config(
+            None,
+            [
+                "scene.name=flatfield",
+                "capture.protocol=custom",
+                "capture.schedule={slots: [{bucket: 1, duration_s: -1}], reads: [{buckets: [1]}]}",
+            ],
+        )
 
 
 def test_resolved_config_round_trips(tmp_path):

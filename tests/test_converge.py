@@ -16,7 +16,9 @@ from mbcapture.converge import (
 
 def _mc_points(method, c0, c1, sigma, spps, passes):
     # error = sigma / sqrt(passes x spp), seconds = passes x (c0 + c1 spp)
-    return [Point(method, s, passes, passes * s, passes * (c0 + c1 * s), sigma / np.sqrt(passes * s), 0.0) for s in spps]
+    return [
+        Point(method, s, passes, passes * s, passes * (c0 + c1 * s), sigma / np.sqrt(passes * s), 0.0) for s in spps
+    ]
 
 
 def test_slope_of_pure_monte_carlo_is_minus_half():

@@ -56,7 +56,10 @@ def test_shipped_config_runs_at_tiny_size(path, tmp_path):
     from mbcapture import application
 
     app = application.get(result.app)
-    layers = [*result.app_output.images.values(), *(v for d in result.app_output.extra_exr.values() for v in d.values())]
+    layers = [
+        *result.app_output.images.values(),
+        *(v for d in result.app_output.extra_exr.values() for v in d.values()),
+    ]
     channels = sum(np.asarray(v).shape[-1] if np.asarray(v).ndim == 3 else 1 for v in layers)
     assert channels <= app.output_channels and len(result.app_output.png) <= app.previews, (channels, app)
     # every application's run has a report.html that opens offline, shows each preview with what it is,
@@ -72,23 +75,43 @@ def test_cli_output_piped_into_head_ends_quietly():
     import subprocess
     import sys
 
-    proc = subprocess.run(["bash", "-o", "pipefail", "-c", f"'{sys.executable}' -m mbcapture apps | head -c 20"],
-                          capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+    proc = subprocess.run(
+        ["bash", "-o", "pipefail", "-c", f"'{sys.executable}' -m mbcapture apps | head -c 20"],
+        capture_output=True,
+        text=True,
+        cwd=Path(__file__).resolve().parents[1],
+    )
     assert proc.returncode == 0 and len(proc.stdout) == 20
     assert "Traceback" not in proc.stderr and "BrokenPipe" not in proc.stderr
 
 
 #: One shipped config per application, on a Bayer sensor (and two on a monochrome one).
-CFA_RUNS = [("burst", "RGGB"), ("flash_matting", "GRBG"), ("flash_no_flash", "RGGB"), ("flutter_shutter", "BGGR"),
-            ("metronome_hdr", "RGGB"), ("multi_flash", "GBRG"), ("rgb_illumination", "RGGB"),
-            ("structured_light", "RGGB"), ("metronome_hdr", "mono"), ("rgb_illumination", "mono")]
+CFA_RUNS = [
+    ("burst", "RGGB"),
+    ("flash_matting", "GRBG"),
+    ("flash_no_flash", "RGGB"),
+    ("flutter_shutter", "BGGR"),
+    ("metronome_hdr", "RGGB"),
+    ("multi_flash", "GBRG"),
+    ("rgb_illumination", "RGGB"),
+    ("structured_light", "RGGB"),
+    ("metronome_hdr", "mono"),
+    ("rgb_illumination", "mono"),
+]
 
 
 @pytest.mark.render
 @pytest.mark.parametrize("config,cfa", CFA_RUNS, ids=[f"{c}-{p}" for c, p in CFA_RUNS])
 def test_every_application_runs_on_a_cfa_sensor(config, cfa, tmp_path):
     """Each application reconstructs from a mosaic (sensor.cfa) and writes the mosaic as its raw files."""
-    over = ["render.width=16", "render.height=12", "render.spp=2", "render.max_motion_px=4", "render.min_strata=1", f"sensor.cfa={cfa}"]
+    over = [
+        "render.width=16",
+        "render.height=12",
+        "render.spp=2",
+        "render.max_motion_px=4",
+        "render.min_strata=1",
+        f"sensor.cfa={cfa}",
+    ]
     if config == "rgb_illumination":
         # its separate ordinary Bayer camera (app.bayer) is not the sensor's mosaic under test, and costs
         # half of the run (a second spectral renderer); the shipped config runs it in the tests above
@@ -125,7 +148,9 @@ def test_no_session_history_in_what_users_read():
     found = []
     for top in PROSE:
         path = ROOT / top
-        files = [path] if path.is_file() else [p for p in path.rglob("*") if p.suffix in (".md", ".py", ".yaml", ".txt")]
+        files = (
+            [path] if path.is_file() else [p for p in path.rglob("*") if p.suffix in (".md", ".py", ".yaml", ".txt")]
+        )
         for f in files:
             for n, line in enumerate(f.read_text(errors="replace").splitlines(), 1):
                 if HISTORY.search(line):

@@ -39,11 +39,13 @@ NOT_RUN = {
     "mbcapture converge configs/metronome_hdr.yaml --quick": (
         "its --quick ladders are ~40 renders and a 64-spp reference: 18 s even at 16x12",
         "mbcapture converge configs/metronome_hdr.yaml --quick --spp 1,2 --naive-spp 1 --ref-spp 4 "
-        "--set capture.periods=2"),
+        "--set capture.periods=2",
+    ),
     "mbcapture characterize metronome_hdr": (
         "a full datasheet, 504 frames of 128x128 pixels drawn exactly: 20 s of the suite "
         "(tests/test_characterize.py checks the command's datasheet at 48x40)",
-        "mbcapture characterize metronome_hdr --size 32x32 --steps 20 --dark-steps 3 --frames 2"),
+        "mbcapture characterize metronome_hdr --size 32x32 --steps 20 --dark-steps 3 --frames 2",
+    ),
     # docs/mutation.md: a mutation run is hours of CPU (every mutant runs its tests), and the report
     # and `mutmut show` read what a run left in mutants/
     "scripts/mutation.sh": ("a full mutation run: hours on 2 cores", None),
@@ -80,7 +82,14 @@ def inline_commands() -> list[tuple[str, int, str]]:
         for i, line in enumerate(text.splitlines(), 1):
             for span in re.findall(r"(?<!`)`([^`\n]+)`(?!`)", line):
                 words = span.split()
-                if len(words) >= 2 and words[0] in ("mbcapture", "python", "pytest", ".venv/bin/pytest", "make", "--set"):
+                if len(words) >= 2 and words[0] in (
+                    "mbcapture",
+                    "python",
+                    "pytest",
+                    ".venv/bin/pytest",
+                    "make",
+                    "--set",
+                ):
                     out.append((path.name, i, span))
     return out
 
@@ -153,8 +162,9 @@ def run_command(cmd: str, ws: Path, capsys) -> None:
         assert rc == 0, f"{cmd}: exit {rc}: {err.strip()[-500:]}"
     else:
         env_path = f"{ROOT / '.venv' / 'bin'}:{Path(sys.executable).parent}"
-        proc = subprocess.run(["bash", "-c", f'export PATH="{env_path}:$PATH"; {cmd}'], cwd=ws, capture_output=True,
-                              text=True)
+        proc = subprocess.run(
+            ["bash", "-c", f'export PATH="{env_path}:$PATH"; {cmd}'], cwd=ws, capture_output=True, text=True
+        )
         assert proc.returncode == 0, f"{cmd}: exit {proc.returncode}: {proc.stderr.strip()[-500:]}"
 
 
@@ -179,7 +189,9 @@ def test_commands_were_found():
     assert {"make capture", "make test", "mbcapture scenes"} <= shown
     assert any(c.startswith("mbcapture run metronome_hdr") for c in shown)  # a shipped config by name
     assert any(lang == "python" for _, _, lang, _ in FENCED)
-    assert any(t.startswith("--set ") for _, _, t in INLINE) and any(t.startswith("python scripts/") for _, _, t in INLINE)
+    assert any(t.startswith("--set ") for _, _, t in INLINE) and any(
+        t.startswith("python scripts/") for _, _, t in INLINE
+    )
     shown |= {step for c in shown if c.startswith("make ") for step in make_recipe(c.split()[1], ROOT / "Makefile")}
     for cmd, (reason, _) in NOT_RUN.items():  # no stale entries: each is a command the docs show
         assert reason and cmd in shown, cmd

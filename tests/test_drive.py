@@ -226,8 +226,16 @@ def test_driven_weights_of_switched_groups_over_segments_and_repeated_slots():
     gate occurrences in which the bucket collects with the group on (a slot's contributions add
     up across slots, segments and groups are kept apart)."""
     lamp = frozenset({"lamp"})
-    seg_a = SegmentSeconds(Fraction(0), (SlotSeconds(0, 2 * MS / 10, lamp), SlotSeconds(1, MS / 10),
-                                         SlotSeconds(0, 15 * MS / 100), SlotSeconds(DRAIN, 5 * MS / 100)), 5)
+    seg_a = SegmentSeconds(
+        Fraction(0),
+        (
+            SlotSeconds(0, 2 * MS / 10, lamp),
+            SlotSeconds(1, MS / 10),
+            SlotSeconds(0, 15 * MS / 100),
+            SlotSeconds(DRAIN, 5 * MS / 100),
+        ),
+        5,
+    )
     seg_b = SegmentSeconds(4 * MS, (SlotSeconds(1, 3 * MS / 10, lamp), SlotSeconds(0, MS / 10, lamp)), 3)
     tl = build_timeline([seg_a, seg_b], [ReadEvent("A", (0,)), ReadEvent("B", (1,))], 2, "test")
     drives = {"amb": Drive(1.0, ((0.5, 997.0, 0.3),)), "lamp": Drive(2.0, ((-0.8, 1733.0, 1.1), (0.3, 211.0, 0.0)))}

@@ -30,7 +30,15 @@ def tiny_run(tmp_path_factory):
 
 def test_outputs_are_written_with_the_documented_layers(tiny_run):
     names = {p.name for p in tiny_run.iterdir()}
-    assert {"buckets.exr", "reads_expected.exr", "reads.exr", "hdr.exr", "hdr.png", "config.yaml", "report.json"} <= names
+    assert {
+        "buckets.exr",
+        "reads_expected.exr",
+        "reads.exr",
+        "hdr.exr",
+        "hdr.png",
+        "config.yaml",
+        "report.json",
+    } <= names
     assert not any(n.startswith(".staging") for n in names)
     buckets = read_exr(tiny_run / "buckets.exr")
     assert sorted(buckets) == ["B1", "B2", "B3", "B4"] and buckets["B1"].shape == (48, 64, 3)
@@ -94,8 +102,16 @@ def test_bad_input_exits_2_with_one_line_and_writes_nothing(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "render.spp" in proc.stderr
     assert not out.exists()
-    proc = cli("run", TINY, "--set", "capture.protocol=custom", "--set",
-               "capture.schedule={slots: [{bucket: 5, duration_s: 0.001}], reads: [{buckets: [5]}]}", "--out", out)
+    proc = cli(
+        "run",
+        TINY,
+        "--set",
+        "capture.protocol=custom",
+        "--set",
+        "capture.schedule={slots: [{bucket: 5, duration_s: 0.001}], reads: [{buckets: [5]}]}",
+        "--out",
+        out,
+    )
     assert proc.returncode == 2 and "needs 5 buckets" in proc.stderr and not out.exists()
     blocker = tmp_path / "file"
     blocker.write_text("x")
@@ -139,7 +155,13 @@ def test_plan_and_scenes_commands():
 
 def test_render_error_estimate_is_calibrated():
     """The half-sample variance estimate predicts the actual error against a high-spp render."""
-    base = ["render.width=32", "render.height=24", "render.max_motion_px=50", "render.min_strata=1", "scene.lamp_scale=0"]
+    base = [
+        "render.width=32",
+        "render.height=24",
+        "render.max_motion_px=50",
+        "render.min_strata=1",
+        "scene.lamp_scale=0",
+    ]
     ref = run_capture(load_config(TINY, base + ["render.spp=512"]), progress=False)
     run = run_capture(load_config(TINY, base + ["render.spp=8", "seed=11"]), progress=False)
     assert ref.plan.passes == run.plan.passes == 1
@@ -160,10 +182,23 @@ def test_dark_frame_capture_holds_dark_current_over_each_buckets_storage_time(se
     Sequential frames are read at the end of their own exposures: 1, 2, 4, 8 ms (the gaps between
     frames do not count). 576 samples per read: the 5 sd tolerance is ~12 e- of 3000."""
     dark = 2e5
-    cfg = load_config(None, ["scene.name=flatfield", "scene.radiance=[0,0,0]", "render.width=16", "render.height=12",
-                             "render.spp=1", "capture.protocol=interleaved_hdr", "capture.periods=4",
-                             "capture.unit_exposure_s=0.001", f"capture.sequential={str(sequential).lower()}",
-                             f"sensor.dark_current_e_per_s={dark}", "sensor.read_noise_e=0", "sensor.dsnu_e=0"])
+    cfg = load_config(
+        None,
+        [
+            "scene.name=flatfield",
+            "scene.radiance=[0,0,0]",
+            "render.width=16",
+            "render.height=12",
+            "render.spp=1",
+            "capture.protocol=interleaved_hdr",
+            "capture.periods=4",
+            "capture.unit_exposure_s=0.001",
+            f"capture.sequential={str(sequential).lower()}",
+            f"sensor.dark_current_e_per_s={dark}",
+            "sensor.read_noise_e=0",
+            "sensor.dsnu_e=0",
+        ],
+    )
     res = run_capture(cfg, progress=False)
     storage_ms = [1.0, 2.0, 4.0, 8.0] if sequential else [11.5, 12.0, 13.0, 15.0]
     from mbcapture.sensor import dn_to_electrons

@@ -25,8 +25,9 @@ def test_difference_estimator_is_unbiased_and_measures_its_error_with_a_fake_ren
     tl = timeline(periods=16)
     p = replace(plan(point_scene(50.0), tl, spp=8), estimator="difference", base_spp_setting=64)
     mu, sigma, slope = 2.0, 3.0, 40.0
-    r = FakeRenderer(p.groups, {g: mu for g in p.groups}, {g: sigma for g in p.groups}, height=48, width=64,
-                     slope=slope)
+    r = FakeRenderer(
+        p.groups, {g: mu for g in p.groups}, {g: sigma for g in p.groups}, height=48, width=64, slope=slope
+    )
     out = integrate(r, p, tl.n_buckets, np.random.SeedSequence(4))
     w = p.weights_s.sum(axis=2)  # (J, K)
     col = np.linspace(0, 1, 64)[None, :, None]
@@ -48,9 +49,17 @@ def _metronome(*overrides: str):
     from mbcapture.capture import prepare
     from mbcapture.render import Renderer
 
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      ["render.width=32", "render.height=24", "render.max_motion_px=0.05", "render.cache=off",
-                       "capture.sequential=true", *overrides])
+    cfg = load_config(
+        ROOT / "configs" / "metronome_hdr.yaml",
+        [
+            "render.width=32",
+            "render.height=24",
+            "render.max_motion_px=0.05",
+            "render.cache=off",
+            "capture.sequential=true",
+            *overrides,
+        ],
+    )
     scene, tl, p, _ = prepare(cfg)
     return cfg, scene, tl, p, Renderer.from_config(scene, cfg)
 
@@ -91,8 +100,14 @@ def test_estimators_are_unbiased_against_a_brute_force_render():
     K = tl.n_buckets
     assert p.passes >= 2
     ref_p = replace(p, spp=np.full(p.passes, 512))
-    ref = integrate(Renderer.from_config(scene, cfg.model_copy(update={"render": cfg.render.model_copy(
-        update={"sampler": "independent"})})), ref_p, K, np.random.SeedSequence(99))
+    ref = integrate(
+        Renderer.from_config(
+            scene, cfg.model_copy(update={"render": cfg.render.model_copy(update={"sampler": "independent"})})
+        ),
+        ref_p,
+        K,
+        np.random.SeedSequence(99),
+    )
     for est in ("independent", "difference"):  # both with the default sampler, multijitter
         q = replace(p, spp=np.full(p.passes, 8), estimator=est)
         runs = np.stack([integrate(r, q, K, np.random.SeedSequence(10 + m)).exposure for m in range(M)])

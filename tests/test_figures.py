@@ -67,8 +67,12 @@ def test_unknown_figure_is_a_clear_error(tmp_path):
     with pytest.raises(ConfigError, match="--only: unknown figure"):
         figures.make_figures(tmp_path / "x", quick=True, only=["fig99"], progress=False)
     assert not (tmp_path / "x").exists()
-    proc = subprocess.run([sys.executable, "-m", "mbcapture", "figures", "--only", "nope", "--out", str(tmp_path / "y")],
-                          capture_output=True, text=True, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, "-m", "mbcapture", "figures", "--only", "nope", "--out", str(tmp_path / "y")],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
     assert proc.returncode == 2 and "unknown figure" in proc.stderr and proc.stderr.count("\n") == 1
 
 

@@ -138,8 +138,9 @@ def test_every_golden_image_has_a_measured_cross_target_spread():
         measured = spread["cases"].get(path.stem, {})
         missing = sorted(set(images) - set(measured))
         assert not missing, f"{path.name}: no measured spread for {missing}: run python scripts/golden_spread.py"
-        assert spread["golden_made"][path.stem] == meta["made"], \
+        assert spread["golden_made"][path.stem] == meta["made"], (
             f"{path.name} was regenerated after its spread was measured: run python scripts/golden_spread.py"
+        )
 
 
 def _golden_spread():
@@ -154,12 +155,19 @@ def test_spreads_from_another_host_keep_the_larger_difference_and_name_the_host(
     gs = _golden_spread()
     diff = {"rel_l2": 1e-5, "flips": 2, "nonfinite": 0, "nonfinite_kind": 0, "max_abs": 1.0}
     xeon = "Intel(R) Xeon(R) Processor"
-    doc = {"hosts": [{"cpu": xeon, "native_target": "sapphirerapids 16", "targets": ["native", "haswell"]}],
-           "targets": {"native": "sapphirerapids 16"}, "cases": {"a": {"img": dict(diff)}}}
-    old = {"hosts": [{"cpu": xeon, "native_target": "rocketlake 16", "targets": ["native"]},
-                     {"cpu": xeon, "native_target": "sapphirerapids 16", "targets": ["native"]}],
-           "targets": {"haswell": "haswell 8"},
-           "cases": {"a": {"img": {**diff, "rel_l2": 3e-5, "flips": 1}}, "b": {"img": dict(diff)}}}
+    doc = {
+        "hosts": [{"cpu": xeon, "native_target": "sapphirerapids 16", "targets": ["native", "haswell"]}],
+        "targets": {"native": "sapphirerapids 16"},
+        "cases": {"a": {"img": dict(diff)}},
+    }
+    old = {
+        "hosts": [
+            {"cpu": xeon, "native_target": "rocketlake 16", "targets": ["native"]},
+            {"cpu": xeon, "native_target": "sapphirerapids 16", "targets": ["native"]},
+        ],
+        "targets": {"haswell": "haswell 8"},
+        "cases": {"a": {"img": {**diff, "rel_l2": 3e-5, "flips": 1}}, "b": {"img": dict(diff)}},
+    }
     gs.merge(doc, old, ["a", "b"])
     assert doc["cases"]["a"]["img"]["rel_l2"] == 3e-5 and doc["cases"]["a"]["img"]["flips"] == 2
     assert [h["native_target"] for h in doc["hosts"]] == ["sapphirerapids 16", "rocketlake 16"]
@@ -174,18 +182,31 @@ def test_a_partial_run_keeps_each_hosts_record_of_the_other_cases():
     diff = {"rel_l2": 1e-5, "flips": 2, "nonfinite": 0, "nonfinite_kind": 0, "max_abs": 1.0}
     amd, xeon = ("AMD EPYC", "znver5 16"), ("Intel(R) Xeon(R) Processor", "sapphirerapids 16")
     host = lambda cpu, **kw: {"cpu": cpu[0], "native_target": cpu[1], "targets": ["native"], **kw}  # noqa: E731
-    committed = {"hosts": [host(amd, measured="then"), host(xeon, measured="then")], "targets": {},
-                 "golden_made": {"a": "old", "b": "old"},
-                 "cases": {"a": {"img": {**diff, "rel_l2": 3e-5}}, "b": {"img": dict(diff)}}}
+    committed = {
+        "hosts": [host(amd, measured="then"), host(xeon, measured="then")],
+        "targets": {},
+        "golden_made": {"a": "old", "b": "old"},
+        "cases": {"a": {"img": {**diff, "rel_l2": 3e-5}}, "b": {"img": dict(diff)}},
+    }
     # the partial run of case a (its golden regenerated) on the AMD host, as main() builds it
-    doc = {"hosts": [host(amd, measured="now", cases=["a"])], "targets": {}, "golden_made": {"a": "new", "b": "old"},
-           "cases": {"a": {"img": dict(diff)}, "b": dict(committed["cases"]["b"])}}
+    doc = {
+        "hosts": [host(amd, measured="now", cases=["a"])],
+        "targets": {},
+        "golden_made": {"a": "new", "b": "old"},
+        "cases": {"a": {"img": dict(diff)}, "b": dict(committed["cases"]["b"])},
+    }
     gs.merge(doc, committed, ["b"])  # main(): the cases whose goldens did not change
     gs.merge(doc, committed, ["a", "b"], carried=["a"])  # --carry-over the committed file
-    records = {(h["cpu"], h["measured"], tuple(h.get("cases", ())), tuple(h.get("carried_over", {}).get("cases", ())))
-               for h in doc["hosts"]}
-    assert records == {("AMD EPYC", "now", ("a",), ()), ("AMD EPYC", "then", ("b",), ()),
-                       (xeon[0], "then", ("b",), ()), (xeon[0], "then", ("a",), ("a",))}, records
+    records = {
+        (h["cpu"], h["measured"], tuple(h.get("cases", ())), tuple(h.get("carried_over", {}).get("cases", ())))
+        for h in doc["hosts"]
+    }
+    assert records == {
+        ("AMD EPYC", "now", ("a",), ()),
+        ("AMD EPYC", "then", ("b",), ()),
+        (xeon[0], "then", ("b",), ()),
+        (xeon[0], "then", ("a",), ("a",)),
+    }, records
     assert doc["cases"]["a"]["img"]["rel_l2"] == 3e-5  # the Xeon's spread of the earlier golden kept
 
 
@@ -201,8 +222,19 @@ def test_goldens_hold_on_a_second_cpu_target(tmp_path, golden):
     env[NESTED_ENV] = "1"
     env[DUMP_ENV] = str(tmp_path)
     env.pop("PYTEST_XDIST_WORKER", None)
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist",
-           str(ROOT / "tests" / "test_golden.py"), "-m", "golden"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pytest",
+        "-q",
+        "-p",
+        "no:cacheprovider",
+        "-p",
+        "no:xdist",
+        str(ROOT / "tests" / "test_golden.py"),
+        "-m",
+        "golden",
+    ]
     proc = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, f"golden tests fail on emulated {target}:\n{proc.stdout[-6000:]}{proc.stderr[-2000:]}"
     summary = proc.stdout.strip().splitlines()[-1]
@@ -270,8 +302,9 @@ def test_goldens_catch_a_one_percent_radiance_change(golden, photon_efficient_ru
     """1 % more light (quantum efficiency x 1.01): the sensor's input and the HDR radiance move."""
     case, config, overrides = CAPTURE_CASES[0]
     qe = np.array(photon_efficient_run.result.config.sensor.quantum_efficiency) * 1.01
-    run = run_capture_case(config, overrides, [f"sensor.quantum_efficiency={qe.tolist()}"],
-                           stored=golden.stored_inputs(case))
+    run = run_capture_case(
+        config, overrides, [f"sensor.quantum_efficiency={qe.tolist()}"], stored=golden.stored_inputs(case)
+    )
     with pytest.raises(AssertionError) as err:
         golden.check(case, run.images)
     for name in ("sensor0_in", "radiance"):
@@ -334,11 +367,16 @@ def test_goldens_catch_a_changed_noise_model(golden, monkeypatch, change):
     import mbcapture.sensor.readout as readout
 
     if change == "numpy_poisson":  # the same law, drawn by numpy's rejection sampler
-        monkeypatch.setattr(readout, "poisson_quantile_memo",
-                            lambda u, lam, u_key=None: np.random.default_rng(0).poisson(lam).astype(np.float64))
+        monkeypatch.setattr(
+            readout,
+            "poisson_quantile_memo",
+            lambda u, lam, u_key=None: np.random.default_rng(0).poisson(lam).astype(np.float64),
+        )
     else:
         base = golden_cases.sensor_config()
-        update = {"read_noise_e": base.read_noise_e * 1.5} if change == "read_noise_x1.5" else {"transfer_inefficiency": 0.0}
+        update = (
+            {"read_noise_e": base.read_noise_e * 1.5} if change == "read_noise_x1.5" else {"transfer_inefficiency": 0.0}
+        )
         monkeypatch.setattr(golden_cases, "sensor_config", lambda: base.model_copy(update=update))
     with pytest.raises(AssertionError, match="reads_dn"):
         golden.check("sensor_reads", sensor_images())

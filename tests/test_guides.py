@@ -22,15 +22,31 @@ def _patch_scene(distance_m: float) -> SceneModel:
     shapes = (
         Shape("wall", "rectangle", translate(0.0, 0.0, -0.3) @ scale(0.5), Material((0.6, 0.6, 0.6))),
         Shape("disk", "disk", translate(*patch) @ up @ scale(0.02), Material((0.8, 0.8, 0.8))),
-        Shape("bulb", "sphere", translate(*(patch + [0.0, 0.025, 0.0])) @ scale(0.008), None,
-              Light("lamp", (2000.0, 2000.0, 2000.0))),
-        Shape("fill", "rectangle", frame_towards((0.0, 0.6, 0.6), (0.0, 0.0, -0.3)) @ scale(0.3), None,
-              Light("fill", (0.2, 0.2, 0.2))),
+        Shape(
+            "bulb",
+            "sphere",
+            translate(*(patch + [0.0, 0.025, 0.0])) @ scale(0.008),
+            None,
+            Light("lamp", (2000.0, 2000.0, 2000.0)),
+        ),
+        Shape(
+            "fill",
+            "rectangle",
+            frame_towards((0.0, 0.6, 0.6), (0.0, 0.0, -0.3)) @ scale(0.3),
+            None,
+            Light("fill", (0.2, 0.2, 0.2)),
+        ),
     )
     camera = Camera(origin=(0.0, 0.0, 0.9), target=(0.0, 0.0, -0.3), up=(0.0, 1.0, 0.0), fov_deg=30.0)
-    return SceneModel(name="patch", groups=("lamp", "fill"), switchable=frozenset(), camera=camera,
-                      build=SceneBuild(shapes=shapes, guides=(Guide(tuple(patch), 0.022, 0.02),)), params=None,
-                      motion_points=lambda t: np.zeros((len(t), 0, 3)))
+    return SceneModel(
+        name="patch",
+        groups=("lamp", "fill"),
+        switchable=frozenset(),
+        camera=camera,
+        build=SceneBuild(shapes=shapes, guides=(Guide(tuple(patch), 0.022, 0.02),)),
+        params=None,
+        motion_points=lambda t: np.zeros((len(t), 0, 3)),
+    )
 
 
 @pytest.mark.render
@@ -51,13 +67,16 @@ def test_guided_bounces_keep_the_image_and_lower_the_patch_light_noise(mitsuba_r
     renders = {}
     for fraction in (0.0, 0.3):
         r = Renderer(scene, W, H, guide_fraction=fraction)
-        renders[fraction] = np.stack([r.render(0.0, spp, seed=0, pattern=(1000 * (fraction > 0) + i, 0)).sum(axis=0)
-                                      for i in range(k)]).astype(np.float64)
+        renders[fraction] = np.stack(
+            [r.render(0.0, spp, seed=0, pattern=(1000 * (fraction > 0) + i, 0)).sum(axis=0) for i in range(k)]
+        ).astype(np.float64)
     plain, guided = renders[0.0], renders[0.3]
     blocks = lambda x: x.reshape(k, H // 8, 8, W // 8, 8, 3).mean(axis=(2, 4))  # noqa: E731
     limit = lambda n: stats.t.ppf(1 - 1e-3 / (2 * n), 2 * (k - 1))  # noqa: E731
     se = lambda a, b: np.sqrt(a.var(axis=0, ddof=1) / k + b.var(axis=0, ddof=1) / k)  # noqa: E731
-    z = (blocks(guided).mean(axis=0) - blocks(plain).mean(axis=0)) / np.maximum(se(blocks(guided), blocks(plain)), 1e-12)
+    z = (blocks(guided).mean(axis=0) - blocks(plain).mean(axis=0)) / np.maximum(
+        se(blocks(guided), blocks(plain)), 1e-12
+    )
     assert np.max(np.abs(z)) < limit(z.size), np.max(np.abs(z))
     whole = lambda x: x.mean(axis=(1, 2))  # noqa: E731
     z_all = (whole(guided).mean(axis=0) - whole(plain).mean(axis=0)) / se(whole(guided), whole(plain))
@@ -132,9 +151,15 @@ def test_the_mixture_weights_integrate_the_lambertian_lobe(mitsuba_ready, where)
     from mbcapture.render.integrator import guided_lambertian
 
     Renderer(_patch_scene(0.25), 4, 4)  # sets the variant
-    centre = {"near": (0.0, 0.0, 0.2), "far": (0.0, 0.3, 1.2), "grazing": (0.3, 0.0, 0.02),
-              "narrow": (2.0, 1.0, 3.3), "too_narrow": (0.0, 6.0, 8.0),  # seen under 0.0125 and 0.005 rad
-              "inside": (0.0, 0.0, 0.01), "below": (0.0, 0.0, -0.2)}[where]
+    centre = {
+        "near": (0.0, 0.0, 0.2),
+        "far": (0.0, 0.3, 1.2),
+        "grazing": (0.3, 0.0, 0.02),
+        "narrow": (2.0, 1.0, 3.3),
+        "too_narrow": (0.0, 6.0, 8.0),  # seen under 0.0125 and 0.005 rad
+        "inside": (0.0, 0.0, 0.01),
+        "below": (0.0, 0.0, -0.2),
+    }[where]
     radius, share, albedo, n = 0.05, 0.3, 0.7, 1 << 20
     si = dr.zeros(mi.SurfaceInteraction3f, n)
     si.p = mi.Point3f(0.0, 0.0, 0.0)
@@ -153,7 +178,7 @@ def test_the_mixture_weights_integrate_the_lambertian_lobe(mitsuba_ready, where)
     assert abs(w.mean() - albedo) < 5 * se(w) + 1e-6, (w.mean(), se(w))
     # the cone: directions within asin(radius / distance) of the centre, on the hemisphere
     c = np.asarray(centre) / np.linalg.norm(centre)
-    sin2 = radius ** 2 / np.dot(centre, centre)
+    sin2 = radius**2 / np.dot(centre, centre)
     in_cone = np.linalg.norm(np.cross(d, c), axis=1) ** 2 <= sin2
     in_cone &= d @ c > 0
     # the cone's projected solid angle by quadrature: (theta, phi) about the cone's axis
@@ -163,13 +188,19 @@ def test_the_mixture_weights_integrate_the_lambertian_lobe(mitsuba_ready, where)
     e1 = np.cross(c, [1.0, 0.0, 0.0] if abs(c[0]) < 0.9 else [0.0, 1.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(c, e1)
-    dirs = (np.cos(tt)[..., None] * c + np.sin(tt)[..., None] * (np.cos(pp)[..., None] * e1 + np.sin(pp)[..., None] * e2))
+    dirs = np.cos(tt)[..., None] * c + np.sin(tt)[..., None] * (np.cos(pp)[..., None] * e1 + np.sin(pp)[..., None] * e2)
     integrand = np.clip(dirs[..., 2], 0, None) * np.sin(tt) / np.pi
     cone_share = np.trapezoid(np.trapezoid(integrand, p, axis=1), t)
     wc = np.where(in_cone, w, 0.0)
-    assert abs(wc.mean() - albedo * cone_share) <= 5 * se(wc) + 1e-4 * albedo * cone_share, \
-        (wc.mean(), albedo * cone_share, se(wc))
+    assert abs(wc.mean() - albedo * cone_share) <= 5 * se(wc) + 1e-4 * albedo * cone_share, (
+        wc.mean(),
+        albedo * cone_share,
+        se(wc),
+    )
     # how often a direction lands in the cone: the cone's share where it applies, plus the cosine lobe's
     applies = where not in ("inside", "below", "too_narrow")  # inside its sphere, under the horizon, < 0.01 rad
     expected = (share if applies else 0.0) + (1.0 - (share if applies else 0.0)) * cone_share
-    assert abs(np.mean(in_cone) - expected) <= 5 * np.sqrt(expected * (1 - expected) / n) + 1e-6, (np.mean(in_cone), expected)
+    assert abs(np.mean(in_cone) - expected) <= 5 * np.sqrt(expected * (1 - expected) / n) + 1e-6, (
+        np.mean(in_cone),
+        expected,
+    )

@@ -49,8 +49,9 @@ LEVELS = [(1e3, 4), (1e4, 4), (1e5, 4), (1e6, 4), (3e6, 3), (8e6, 2)]
 @pytest.mark.parametrize("rate,n_usable", LEVELS)
 def test_ramp_fit_unbiased_and_efficient(rate, n_usable):
     out = photon_efficient(rate, seed=int(np.log10(rate) * 10))
-    res = {m: merge_hdr(out.reads_dn, CUM_T, CFG, method=m, cumulative=True, saturated=out.saturated)
-           for m in HDR_METHODS}
+    res = {
+        m: merge_hdr(out.reads_dn, CUM_T, CFG, method=m, cumulative=True, saturated=out.saturated) for m in HDR_METHODS
+    }
     ramp = res["ramp_fit"]
     assert ramp.valid.all() and np.all(ramp.n_used == n_usable)
     bound = crb(rate, CUM_T[:n_usable], cumulative=True)
@@ -158,7 +159,9 @@ def test_debevec_and_inverse_variance_by_hand():
     to bright ones, where the floor and the hat's scale (1 at mid-range) matter to 1e-6."""
     t = CUM_T
     # pixel 2 sits at the black level: its pooled first-pass rate is negative and is used as 0
-    dn = np.array([[1256.0, 256.0, 250.0], [2100.0, 9000.0, 255.0], [4400.0, 12000.0, 258.0], [16383.0, 16383.0, 16383.0]])
+    dn = np.array(
+        [[1256.0, 256.0, 250.0], [2100.0, 9000.0, 255.0], [4400.0, 12000.0, 258.0], [16383.0, 16383.0, 16383.0]]
+    )
     sat = np.zeros(dn.shape, bool)
     sat[3] = True
     x = (dn - CFG.black_level_dn) / CFG.gain_dn_per_e
@@ -193,7 +196,10 @@ def test_auto_method_validation_and_integer_flags():
         b = merge_hdr(dn, CUM_T, CFG, method=method, cumulative=cumulative)
         np.testing.assert_array_equal(a.rate_e_per_s, b.rate_e_per_s)
         np.testing.assert_array_equal(a.sigma_e_per_s, b.sigma_e_per_s)
-    with pytest.raises(ConfigError, match=r"^hdr\.method: unknown method 'x'; valid methods: auto, debevec, inverse_variance, ramp_fit$"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^hdr\.method: unknown method 'x'; valid methods: auto, debevec, inverse_variance, ramp_fit$",
+    ):
         merge_hdr(dn, CUM_T, CFG, method="x", cumulative=True)
     with pytest.raises(ValueError, match=r"^exposures_s: expected one exposure per read \(\(4,\)\), got shape \(3,\)$"):
         merge_hdr(dn, CUM_T[:3], CFG, method="ramp_fit", cumulative=True)
@@ -205,8 +211,10 @@ def test_auto_method_validation_and_integer_flags():
     with pytest.raises(ValueError, match=r"^saturated: expected shape \(4, 2, 3, 3\), got \(4, 2, 3\)$"):
         merge_hdr(dn, CUM_T, CFG, method="ramp_fit", cumulative=True, saturated=np.zeros((4, 2, 3), bool))
     one = merge_hdr(dn[:, 0, 0, 0], CUM_T, CFG, method="ramp_fit", cumulative=True)  # reads of one pixel, shape (R,)
-    assert one.rate_e_per_s.shape == () and one.rate_e_per_s == merge_hdr(
-        dn, CUM_T, CFG, method="ramp_fit", cumulative=True).rate_e_per_s[0, 0, 0]
+    assert (
+        one.rate_e_per_s.shape == ()
+        and one.rate_e_per_s == merge_hdr(dn, CUM_T, CFG, method="ramp_fit", cumulative=True).rate_e_per_s[0, 0, 0]
+    )
     sat = np.zeros(dn.shape, bool)
     sat[2:, 0] = True
     flags = merge_hdr(dn, CUM_T, CFG, method="ramp_fit", cumulative=True, saturated=sat)
@@ -250,10 +258,16 @@ def test_motion_check_by_hand():
     reads = np.stack([truth, truth + 1.0, truth - 1.0])  # off by 0, +1, -1 everywhere
     mask = np.array([[True, False], [True, True]])
     got = motion_check(reads, ["J1", "J2", "J3"], truth, mask)
-    assert got == {"moving_pixels": 3, "rel_rms_vs_truth": {"J1": 0.0, "J2": 0.5, "J3": 0.5}, "max_pairwise_rel_rms": 1.0}
+    assert got == {
+        "moving_pixels": 3,
+        "rel_rms_vs_truth": {"J1": 0.0, "J2": 0.5, "J3": 0.5},
+        "max_pairwise_rel_rms": 1.0,
+    }
     assert motion_check(reads, ["J1", "J2", "J3"], 0 * truth, mask)["max_pairwise_rel_rms"] == 2.0  # truth 0: absolute
     assert motion_check(reads, ["J1", "J2", "J3"], truth, ~np.ones((2, 2), bool)) == {
-        "moving_pixels": 0, "note": "static scene: nothing moves"}
+        "moving_pixels": 0,
+        "note": "static scene: nothing moves",
+    }
 
 
 @pytest.mark.parametrize("method, cumulative", [("ramp_fit", True), ("inverse_variance", False), ("debevec", False)])
@@ -292,7 +306,13 @@ def test_ramp_fit_groups_of_usable_reads_whatever_their_number(n_reads, cumulati
     whole = module.merge_hdr(dn, t, cfg, method="ramp_fit", cumulative=cumulative, saturated=sat)
     assert len({tuple(col) for col in (~sat).reshape(n_reads, -1).T}) > 3  # several groups
     for y, x in np.ndindex(9, 5):
-        alone = module.merge_hdr(dn[:, y:y + 1, x:x + 1], t, cfg, method="ramp_fit", cumulative=cumulative,
-                                 saturated=sat[:, y:y + 1, x:x + 1])
+        alone = module.merge_hdr(
+            dn[:, y : y + 1, x : x + 1],
+            t,
+            cfg,
+            method="ramp_fit",
+            cumulative=cumulative,
+            saturated=sat[:, y : y + 1, x : x + 1],
+        )
         assert alone.rate_e_per_s[0, 0] == whole.rate_e_per_s[y, x]
         assert alone.sigma_e_per_s[0, 0] == whole.sigma_e_per_s[y, x]

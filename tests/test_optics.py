@@ -72,11 +72,23 @@ def _edge_scene(depth_m: float):
     from mbcapture.scenes import Camera, SceneModel
 
     half = 10.0 * depth_m
-    plane = Shape("plane", "rectangle", translate(half, 0.0, -depth_m) @ scale(half, half, 1.0), None,
-                  Light("edge", (1.0, 1.0, 1.0)))
+    plane = Shape(
+        "plane",
+        "rectangle",
+        translate(half, 0.0, -depth_m) @ scale(half, half, 1.0),
+        None,
+        Light("edge", (1.0, 1.0, 1.0)),
+    )
     camera = Camera(origin=(0.0, 0.0, 0.0), target=(0.0, 0.0, -1.0), up=(0.0, 1.0, 0.0), fov_deg=30.0)
-    return SceneModel(name="edge", groups=("edge",), switchable=frozenset(), camera=camera,
-                      build=SceneBuild(shapes=(plane,)), params=None, motion_points=None)
+    return SceneModel(
+        name="edge",
+        groups=("edge",),
+        switchable=frozenset(),
+        camera=camera,
+        build=SceneBuild(shapes=(plane,)),
+        params=None,
+        motion_points=None,
+    )
 
 
 def _edge_model(width: int, radius_px: float) -> np.ndarray:
@@ -135,8 +147,9 @@ def test_the_thin_lens_follows_the_config(tmp_path):
     f = focal_length_m(scene.camera, 64, cfg.sensor.pixel_pitch_um)
     assert f == pytest.approx(64 * 5.6e-6 / 2 / math.tan(math.radians(scene.camera.fov_deg) / 2))
     assert r.thin_lens == pytest.approx((f / (2 * 2.8), focus_distance_m(scene.camera)))
-    focused = Renderer.from_config(scene, load_config(hdr, [*small, "camera.lens=thin", "camera.focus_distance_m=0.7"]),
-                                   cache=cache)
+    focused = Renderer.from_config(
+        scene, load_config(hdr, [*small, "camera.lens=thin", "camera.focus_distance_m=0.7"]), cache=cache
+    )
     assert focused.thin_lens[1] == 0.7
     pinhole = Renderer.from_config(scene, load_config(hdr, small), cache=cache)
     assert pinhole.thin_lens is None
@@ -265,7 +278,10 @@ def test_distortion_keys_are_checked_and_pinhole_truth_applications_refuse_it():
     from mbcapture.errors import ConfigError
 
     configs = Path(__file__).resolve().parents[1] / "configs"
-    assert load_config(configs / "metronome_hdr.yaml", ["camera.distortion=[-0.1, 0.01]"]).camera.distortion == [-0.1, 0.01]
+    assert load_config(configs / "metronome_hdr.yaml", ["camera.distortion=[-0.1, 0.01]"]).camera.distortion == [
+        -0.1,
+        0.01,
+    ]
     with pytest.raises(ConfigError, match="distortion: expected 1 to 3"):
         load_config(configs / "metronome_hdr.yaml", ["camera.distortion=[0.1, 0.1, 0.1, 0.1]"])
     for name in ("multi_flash", "structured_light", "flash_matting"):

@@ -31,14 +31,15 @@ def points(jit, indices, key, dim):
     from mbcapture.render import pattern
 
     dr, mi = jit
-    p = pattern.pair(dr, mi, mi.UInt32(np.asarray(indices, np.uint32)), mi.UInt32(np.asarray(key, np.uint32)),
-                     mi.UInt32(dim))
+    p = pattern.pair(
+        dr, mi, mi.UInt32(np.asarray(indices, np.uint32)), mi.UInt32(np.asarray(key, np.uint32)), mi.UInt32(dim)
+    )
     return np.asarray(p.x, np.float64), np.asarray(p.y, np.float64)
 
 
 def is_net(x, y, m):
     """Whether the 2^m points (x, y) are a (0, m, 2)-net: one point in every elementary box of area 2^-m."""
-    return all(len(set(zip((x * 2 ** a).astype(int), (y * 2 ** (m - a)).astype(int)))) == 2 ** m for a in range(m + 1))
+    return all(len(set(zip((x * 2**a).astype(int), (y * 2 ** (m - a)).astype(int)))) == 2**m for a in range(m + 1))
 
 
 @pytest.mark.render
@@ -49,7 +50,7 @@ def test_aligned_blocks_of_the_pattern_are_nets(jit):
     for key, dim in ((1, 0), (12345, 3), (2**31 + 7, 17)):
         x, y = points(jit, np.arange(4096), np.full(4096, key), dim)
         assert is_net(x, y, 12)
-        assert all(is_net(x[s:s + 256], y[s:s + 256], 8) for s in range(0, 4096, 256))
+        assert all(is_net(x[s : s + 256], y[s : s + 256], 8) for s in range(0, 4096, 256))
     rng = np.random.default_rng(0)
     assert not is_net(rng.random(256), rng.random(256), 8)
 
@@ -96,22 +97,23 @@ def test_each_sample_is_uniform_over_keys_and_pairs_are_uncorrelated(jit):
 def test_the_median_factor_of_the_pilot():
     """K equal strata and a per-sample exponent e: K^-(e - 1); one stratum, or e = 1 (variance ~ 1/spp:
     no stratification to share), gain nothing; unequal weights count as fewer strata."""
-    assert shared_pattern_gain(np.ones(7), 1.2) == pytest.approx(7 ** -0.2)
+    assert shared_pattern_gain(np.ones(7), 1.2) == pytest.approx(7**-0.2)
     assert shared_pattern_gain(np.ones(1), 1.5) == 1.0
     assert shared_pattern_gain(np.ones(7), 1.0) == 1.0
     assert shared_pattern_gain(np.ones(7), 0.8) == 1.0
     assert shared_pattern_gain(np.array([1.0, 0.0, 0.0]), 1.5) == 1.0
-    assert 7 ** -0.2 < shared_pattern_gain(np.array([3.0, 1, 1, 1, 1, 1, 1]), 1.2) < 1.0
+    assert 7**-0.2 < shared_pattern_gain(np.array([3.0, 1, 1, 1, 1, 1, 1]), 1.2) < 1.0
 
 
 def test_each_half_takes_the_samples_after_the_strata_before_it():
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      ["render.width=40", "render.height=32", "render.spp=6", "render.pattern=shared",
-                       "render.max_motion_px=0.05"])
+    cfg = load_config(
+        ROOT / "configs" / "metronome_hdr.yaml",
+        ["render.width=40", "render.height=32", "render.spp=6", "render.pattern=shared", "render.max_motion_px=0.05"],
+    )
     from mbcapture.pipeline import prepare
 
     _, _, plan, seeds = prepare(cfg)
-    plan = replace(plan, spp=np.array([6, 10, 4, 8][:plan.passes] + [6] * max(plan.passes - 4, 0)))
+    plan = replace(plan, spp=np.array([6, 10, 4, 8][: plan.passes] + [6] * max(plan.passes - 4, 0)))
     pats = render_patterns(plan, seeds[2])
     keys = {p[0] for row in pats for p in row}
     assert plan.passes >= 3 and len(keys) == 2 and pats[0][0][0] != pats[0][1][0]  # one pattern per half
@@ -124,8 +126,9 @@ def test_each_half_takes_the_samples_after_the_strata_before_it():
     for h in range(2):
         halves = [n // 2 if h == 0 else n - n // 2 for n in plan.spp]
         np.testing.assert_array_equal(taken[h], np.concatenate([[0], np.cumsum(np.add(halves, 1))[:-1]]))
-    assert [r[4] for r in render_requests(plan, seeds[2], lambda n: n + 1)] == \
-        [p for row in render_patterns(plan, seeds[2], lambda n: n + 1) for p in row]
+    assert [r[4] for r in render_requests(plan, seeds[2], lambda n: n + 1)] == [
+        p for row in render_patterns(plan, seeds[2], lambda n: n + 1) for p in row
+    ]
     own = replace(plan, pattern="own")
     assert all(p is None for row in render_patterns(own, seeds[2]) for p in row)
     assert all(p is None for row in render_patterns(replace(plan, estimator="difference"), seeds[2]) for p in row)
@@ -152,8 +155,12 @@ def test_a_shared_pattern_render_is_keyed_by_its_pattern_and_bands_hold_the_film
     np.testing.assert_array_equal(r.render(t, 8, 4, plan.groups, pattern=(99, 0)), a)
     again = Renderer.from_config(scene, cfg, cache=open_cache(str(tmp_path), 1.0))
     np.testing.assert_array_equal(again.render(t, 8, 3, plan.groups, pattern=(99, 0)), a)
-    banded = Renderer.from_config(scene, load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                                                     ["render.width=40", "render.height=32", "render.band_rows=8"]))
+    banded = Renderer.from_config(
+        scene,
+        load_config(
+            ROOT / "configs" / "metronome_hdr.yaml", ["render.width=40", "render.height=32", "render.band_rows=8"]
+        ),
+    )
     banded.render(t, 8, 3, plan.groups)  # loads the scene and its integrator
     calls = []
     integrator = banded._integrator
@@ -178,7 +185,9 @@ def test_a_shared_pattern_render_is_the_same_through_either_sensor(monkeypatch):
     from mbcapture.pipeline import prepare
     from mbcapture.render import Renderer
 
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", ["render.width=40", "render.height=32", "render.cache=off"])
+    cfg = load_config(
+        ROOT / "configs" / "metronome_hdr.yaml", ["render.width=40", "render.height=32", "render.cache=off"]
+    )
     scene, _, plan, _ = prepare(cfg)
     t = float(plan.times_s[0])
     r = Renderer.from_config(scene, cfg)
@@ -203,15 +212,19 @@ def test_a_shared_pattern_is_unbiased_and_lowers_a_static_reads_variance():
     from mbcapture.pipeline import prepare
     from mbcapture.render import Renderer
 
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", ["render.width=80", "render.height=64", "render.cache=off"])
+    cfg = load_config(
+        ROOT / "configs" / "metronome_hdr.yaml", ["render.width=80", "render.height=64", "render.cache=off"]
+    )
     scene, _, plan, _ = prepare(cfg)
     t, groups = float(plan.times_s[0]), plan.groups
     r = Renderer.from_config(scene, cfg)
     K, n, S = 4, 64, 8
 
     def mean_of_strata(s: int, shared: bool) -> np.ndarray:
-        imgs = [r.render(t, n, 1000 * s + k + (500 if shared else 0), groups,
-                         pattern=(77 + s, k * n) if shared else None) for k in range(K)]
+        imgs = [
+            r.render(t, n, 1000 * s + k + (500 if shared else 0), groups, pattern=(77 + s, k * n) if shared else None)
+            for k in range(K)
+        ]
         return np.mean(imgs, axis=0).sum(axis=(0, -1), dtype=np.float64)
 
     own = np.stack([mean_of_strata(s, False) for s in range(S)])
@@ -240,7 +253,8 @@ def test_every_module_the_pixels_depend_on_keys_the_render_cache():
     for name in renderer._PIXEL_CODE:
         text = (render_dir / name).read_text()
         imported |= set(re.findall(r"^from \.(\w+) import", text, flags=re.M))
-        imported |= {m for group in re.findall(r"^from \. import ([\w, ]+)$", text, flags=re.M)
-                     for m in re.split(r",\s*", group)}
+        imported |= {
+            m for group in re.findall(r"^from \. import ([\w, ]+)$", text, flags=re.M) for m in re.split(r",\s*", group)
+        }
     missing = {f"{m}.py" for m in imported} - set(renderer._PIXEL_CODE) - {"cache.py", "llvm.py"}
     assert not missing and "pattern.py" in renderer._PIXEL_CODE

@@ -42,9 +42,15 @@ def test_closed_form_solves_the_ode():
     p = Pendulum.from_tempo(120.0, 40.0)
     w0sq = p.omega0_rad_per_s**2
     times = np.linspace(0.0, 3 * p.period_s, 301)
-    sol = solve_ivp(lambda t, y: (y[1], -w0sq * math.sin(y[0])), (0.0, times[-1]),
-                    (0.0, p.angular_velocity_rad_per_s(0.0)), method="DOP853",
-                    rtol=1e-12, atol=1e-13, t_eval=times)
+    sol = solve_ivp(
+        lambda t, y: (y[1], -w0sq * math.sin(y[0])),
+        (0.0, times[-1]),
+        (0.0, p.angular_velocity_rad_per_s(0.0)),
+        method="DOP853",
+        rtol=1e-12,
+        atol=1e-13,
+        t_eval=times,
+    )
     np.testing.assert_allclose(p.angle_rad(times), sol.y[0], atol=1e-9)
     np.testing.assert_allclose(p.angular_velocity_rad_per_s(times), sol.y[1], atol=1e-8)
 

@@ -16,7 +16,10 @@ CAM = Camera(origin=(0, 0, -10), target=(0, 0, 0), up=(0, 1, 0), fov_deg=40)
 def point_scene(speed_m_per_s: float | None, groups=("ambient", "flash"), switchable=frozenset({"flash"})):
     motion = None
     if speed_m_per_s is not None:
-        motion = lambda t: np.stack([np.asarray(t) * speed_m_per_s, 0 * np.asarray(t), 0 * np.asarray(t)], -1)[:, None, :]
+
+        def motion(t):
+            return np.stack([np.asarray(t) * speed_m_per_s, 0 * np.asarray(t), 0 * np.asarray(t)], -1)[:, None, :]
+
     return SceneModel("test", groups, switchable, CAM, build=None, params=None, motion_points=motion)
 
 
@@ -242,7 +245,9 @@ def test_the_second_pass_renders_at_times_of_its_own():
     keys = np.array([k for k, _ in patterns]).reshape(p.passes, 2, 4)
     offsets = np.array([o for _, o in patterns]).reshape(p.passes, 2, 4)
     c = np.array(counts).reshape(p.passes, 2, 4)
-    assert (keys[:, 0] == keys[0, 0, 0]).all() and (keys[:, 1] == keys[0, 1, 0]).all() and keys[0, 0, 0] != keys[0, 1, 0]
+    assert (
+        (keys[:, 0] == keys[0, 0, 0]).all() and (keys[:, 1] == keys[0, 1, 0]).all() and keys[0, 0, 0] != keys[0, 1, 0]
+    )
     for h in range(2):
         seq_offsets, seq_counts = offsets[:, h].ravel(), c[:, h].ravel()
         assert seq_offsets[0] == 0 and (seq_offsets[1:] == np.cumsum(seq_counts)[:-1]).all()
@@ -255,8 +260,13 @@ def test_the_second_pass_renders_at_times_of_its_own():
     calls = []
 
     def render_pixels_mixed(t_s, spp, seed, groups, pixels, pattern=None, cached=False):
-        calls.append((np.asarray(pixels).copy(), np.broadcast_to(spp, len(pixels)).copy(),
-                      np.broadcast_to(pattern[1], len(pixels)).copy()))
+        calls.append(
+            (
+                np.asarray(pixels).copy(),
+                np.broadcast_to(spp, len(pixels)).copy(),
+                np.broadcast_to(pattern[1], len(pixels)).copy(),
+            )
+        )
         return np.ones((len(groups), len(pixels), 3), np.float32)
 
     r.render_pixels = render_pixels_mixed
@@ -296,16 +306,35 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     np.testing.assert_array_equal(weights, p.render_time_shares())
     # the first pass 2x over the budget on J1, whose p95 ratio reads 2.0 there and 1.0 in the second (its
     # median 0.05 and 0.1): c = 2, from the figure that decided
-    monkeypatch.setattr(pipeline, "over_budget",
-                        lambda integrated, timeline, cfg, *a, **k: (2.0, "J1", "to_shot_noise_variance_p95", 2.0))
-    monkeypatch.setattr(pipeline, "_read_figures",
-                        lambda integrated, *a, **k: {"J1": {"to_shot_noise_variance_median": 0.05, "to_shot_noise_variance_p95": 2.0}
-                                                     if integrated is first else
-                                                     {"to_shot_noise_variance_median": 0.1, "to_shot_noise_variance_p95": 1.0}})
+    monkeypatch.setattr(
+        pipeline,
+        "over_budget",
+        lambda integrated, timeline, cfg, *a, **k: (2.0, "J1", "to_shot_noise_variance_p95", 2.0),
+    )
+    monkeypatch.setattr(
+        pipeline,
+        "_read_figures",
+        lambda integrated, *a, **k: {
+            "J1": {"to_shot_noise_variance_median": 0.05, "to_shot_noise_variance_p95": 2.0}
+            if integrated is first
+            else {"to_shot_noise_variance_median": 0.1, "to_shot_noise_variance_p95": 1.0}
+        },
+    )
     cfg = SimpleNamespace(render=SimpleNamespace(max_spp=1024))
     r.calls.clear()
-    topped_plan, topped, info = pipeline.top_up(cfg, r, p, tl, first, np.random.SeedSequence(2), StageStatus(False),
-                                                per_group=False, timer=None, progress=False, why_not=None)
+    topped_plan, topped, info = pipeline.top_up(
+        cfg,
+        r,
+        p,
+        tl,
+        first,
+        np.random.SeedSequence(2),
+        StageStatus(False),
+        per_group=False,
+        timer=None,
+        progress=False,
+        why_not=None,
+    )
     assert info["applied"] and info["weight"] == 2.0 and info["figure"] == "p95"
     t2 = np.array([c[0] for c in r.calls]).reshape(p.passes, 2)
     assert np.all(t2 >= p.bounds_s[:, :1]) and np.all(t2 < p.bounds_s[:, 1:])
@@ -323,8 +352,19 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     assert sum(strata[0]["render_time_weights"]) == pytest.approx(1.0, abs=1e-5)
     # a stratum with no room under render.max_spp: not applied (the second pass must hold every stratum)
     cfg.render.max_spp = int(p.spp.max()) + 1
-    same_plan, same, note = pipeline.top_up(cfg, r, p, tl, first, np.random.SeedSequence(2), StageStatus(False),
-                                            per_group=False, timer=None, progress=False, why_not=None)
+    same_plan, same, note = pipeline.top_up(
+        cfg,
+        r,
+        p,
+        tl,
+        first,
+        np.random.SeedSequence(2),
+        StageStatus(False),
+        per_group=False,
+        timer=None,
+        progress=False,
+        why_not=None,
+    )
     assert same is first and same_plan is p and not note["applied"]
     assert note["note"] == f"render.max_spp={p.spp.max() + 1} reached in {p.passes} of {p.passes} strata"
 
@@ -347,12 +387,16 @@ def test_with_the_shared_pattern_the_top_up_continues_the_first_pass(monkeypatch
     r = FakeRenderer(p.groups, mu, {g: 1.0 for g in p.groups}, height=4, width=8)
     seed = np.random.SeedSequence(1)
     first = integrate(r, p, tl.n_buckets, seed)
-    monkeypatch.setattr(pipeline, "over_budget",
-                        lambda integrated, timeline, cfg, *a, **k: (2.0, "J1", "to_shot_noise_variance_median", 0.2))
+    monkeypatch.setattr(
+        pipeline,
+        "over_budget",
+        lambda integrated, timeline, cfg, *a, **k: (2.0, "J1", "to_shot_noise_variance_median", 0.2),
+    )
     cfg = SimpleNamespace(render=SimpleNamespace(max_spp=1024))
     r.patterns.clear()
-    topped_plan, topped, info = pipeline.top_up(cfg, r, p, tl, first, seed, StageStatus(False),
-                                                per_group=False, timer=None, progress=False, why_not=None)
+    topped_plan, topped, info = pipeline.top_up(
+        cfg, r, p, tl, first, seed, StageStatus(False), per_group=False, timer=None, progress=False, why_not=None
+    )
     extra = np.array(info["spp_added"])
     assert info["applied"] and np.all(extra == 2 * int(np.ceil((2.0 * pipeline.TOP_UP_MARGIN - 1) * 8 / 2)))
     assert info["weight"] == pytest.approx(extra.sum() / p.spp.sum())
@@ -392,8 +436,12 @@ class FakeRenderer:
         rng = np.random.default_rng(seed)
         shape = (self.height, self.width, 3)
         ramp = np.linspace(0, 1, self.width)[None, :, None] * self.slope * t_s  # an image that changes in time
-        return np.stack([self.mu[g] + ramp + self.sigma[g] * self.sigma_map / np.sqrt(spp) * rng.standard_normal(shape)
-                         for g in groups]).astype(np.float32)
+        return np.stack(
+            [
+                self.mu[g] + ramp + self.sigma[g] * self.sigma_map / np.sqrt(spp) * rng.standard_normal(shape)
+                for g in groups
+            ]
+        ).astype(np.float32)
 
 
 class BlockRenderer(FakeRenderer):
@@ -430,7 +478,9 @@ def test_the_block_mosaic_pools_each_block_at_its_centre():
     assert centre.sum() == 4 and centre[1, [1, 4, 7, 10]].all()
     for i, c in enumerate(centres):
         y, x = divmod(int(c), W)
-        np.testing.assert_allclose(pooled(mosaic)[:, 1, 3 * i + 1], film[:, y - 1:y + 2, x - 1:x + 2].mean(axis=(1, 2)))
+        np.testing.assert_allclose(
+            pooled(mosaic)[:, 1, 3 * i + 1], film[:, y - 1 : y + 2, x - 1 : x + 2].mean(axis=(1, 2))
+        )
 
 
 def test_a_large_film_is_piloted_on_a_random_sample_of_its_blocks(monkeypatch):
@@ -473,7 +523,7 @@ def test_a_large_film_is_piloted_on_a_random_sample_of_its_blocks(monkeypatch):
     # estimates, which the blocks sample as the film holds them
     sigma_map = np.ones((H, W))
     side = int(round(np.sqrt(0.10 * H * W)))
-    sigma_map[20:20 + side, 30:30 + side] = 20.0
+    sigma_map[20 : 20 + side, 30 : 30 + side] = 20.0
     mu = 20.0
     r = BlockRenderer(p0.groups, {g: mu for g in p0.groups}, {g: sigma for g in p0.groups}, H, W, sigma_map=sigma_map)
     p = budget.choose_spp(p0, r, np.full(3, k_e), 1e12, f, 1 << 14, np.random.SeedSequence(5))
@@ -509,8 +559,17 @@ def read_weights(p) -> np.ndarray:
     return np.stack([p.weights_s[:, list(r), 0].sum(axis=1) for r in p.read_sets], axis=1)
 
 
-def _budget_plan(mu, sigma, k_e=np.array([1e5, 1e5, 1e5]), budget=0.1, max_spp=1 << 14, speed=50.0, sigma_map=None,
-                 budget_p95=1.0, size=(24, 32)):
+def _budget_plan(
+    mu,
+    sigma,
+    k_e=np.array([1e5, 1e5, 1e5]),
+    budget=0.1,
+    max_spp=1 << 14,
+    speed=50.0,
+    sigma_map=None,
+    budget_p95=1.0,
+    size=(24, 32),
+):
     tl = timeline(periods=16)
     p = plan(point_scene(speed), tl, spp=None)
     r = FakeRenderer(p.groups, {g: mu for g in p.groups}, {g: sigma for g in p.groups}, *size, sigma_map=sigma_map)
@@ -556,7 +615,7 @@ def test_noise_budget_targets_the_median_and_the_95th_percentile(noisy_fraction)
     H, W = 48, 64
     sigma_map = np.ones((H, W))
     side = int(round(np.sqrt(noisy_fraction * H * W)))
-    sigma_map[10:10 + side, 20:20 + side] = 20.0
+    sigma_map[10 : 10 + side, 20 : 20 + side] = 20.0
     p0, p, _ = _budget_plan(mu, sigma, budget=f, sigma_map=sigma_map, size=(H, W))
     w = read_weights(p0)
     calm = max((k_e**2 * w[:, k] ** 2 * sigma**2 / p.spp).sum() / (k_e * (w[:, k] * mu).sum()) for k in range(4))
@@ -624,8 +683,14 @@ def test_per_stratum_spp_follows_the_weights():
     pilot estimates sigma^2 from 2304 samples per pilot time: relative SE sqrt(2/2304) = 3 %, so
     5 SE = 15 %."""
     acc_m_per_s2 = 1e4
-    motion = lambda t: np.stack([0.5 * acc_m_per_s2 * np.asarray(t) ** 2, 0 * np.asarray(t), 0 * np.asarray(t)], -1)[:, None, :]  # noqa: E731
-    scene = SceneModel("test", ("ambient", "flash"), frozenset({"flash"}), CAM, build=None, params=None, motion_points=motion)
+
+    def motion(t):
+        t = np.asarray(t)
+        return np.stack([0.5 * acc_m_per_s2 * t**2, 0 * t, 0 * t], -1)[:, None, :]
+
+    scene = SceneModel(
+        "test", ("ambient", "flash"), frozenset({"flash"}), CAM, build=None, params=None, motion_points=motion
+    )
     tl = timeline(periods=16)
     p0 = plan(scene, tl, spp=None)
     mu, sigma, k_e, f = 2.0, 3.0, 1e5, 0.1

@@ -32,8 +32,13 @@ def test_every_emulated_target_sets_every_library_and_names_a_dr_jit_target():
     for name, t in EMULATED_TARGETS.items():
         env = emulation_env(name, base={"KEEP": "1"})
         assert env["KEEP"] == "1"
-        assert {"MBCAPTURE_LLVM_TARGET", "NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE", "NUMBA_CPU_NAME",
-                "OPENCV_CPU_DISABLE"} <= set(env)
+        assert {
+            "MBCAPTURE_LLVM_TARGET",
+            "NPY_DISABLE_CPU_FEATURES",
+            "OPENBLAS_CORETYPE",
+            "NUMBA_CPU_NAME",
+            "OPENCV_CPU_DISABLE",
+        } <= set(env)
         assert parse_target(env["MBCAPTURE_LLVM_TARGET"])[2] == t["width"]
         assert "+fma" in parse_target(env["MBCAPTURE_LLVM_TARGET"])[1], "Dr.Jit's kernels need FMA"
     with pytest.raises(ValueError, match="emulated target"):

@@ -26,8 +26,14 @@ ALBEDO = 0.8
 
 def _scene(projector: Projector, wall_to_world: np.ndarray, parts=None) -> SceneModel:
     wall = Shape("wall", "rectangle", wall_to_world, Material((ALBEDO,) * 3))
-    return SceneModel(name="projector_test", groups=(projector.group,), switchable=frozenset(), camera=CAM,
-                      build=SceneBuild(shapes=(wall,), parts=parts or {}, projectors=(projector,)), params=None)
+    return SceneModel(
+        name="projector_test",
+        groups=(projector.group,),
+        switchable=frozenset(),
+        camera=CAM,
+        build=SceneBuild(shapes=(wall,), parts=parts or {}, projectors=(projector,)),
+        params=None,
+    )
 
 
 def test_look_at_frame_matches_mitsuba():
@@ -38,7 +44,9 @@ def test_look_at_frame_matches_mitsuba():
 
     mi.set_variant("llvm_ad_rgb")
     p = Projector("p", "g", (0.2, -0.1, 1.3), (0.0, 0.05, 0.0), (0.0, 1.0, 0.0), 30.0, np.ones((2, 2, 3)))
-    want = np.asarray(mi.ScalarTransform4f().look_at(origin=list(p.origin), target=list(p.target), up=list(p.up)).matrix)
+    want = np.asarray(
+        mi.ScalarTransform4f().look_at(origin=list(p.origin), target=list(p.target), up=list(p.up)).matrix
+    )
     np.testing.assert_allclose(p.to_world(), want, atol=1e-6)
 
 
@@ -47,8 +55,9 @@ def test_irradiance_on_a_perpendicular_wall_is_the_image_over_z_squared():
     from mbcapture.render import Renderer
 
     e0 = 2.0
-    proj = Projector("proj", "pattern", (0.0, 0.0, 0.8), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), 50.0,
-                     np.full((6, 8, 3), e0))
+    proj = Projector(
+        "proj", "pattern", (0.0, 0.0, 0.8), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), 50.0, np.full((6, 8, 3), e0)
+    )
     sc = _scene(proj, scale(2.0, 2.0, 1.0))
     img = Renderer(sc, W, H, max_depth=2).render(0.0, 4, 1)[0]
     # the projector's 50 deg field covers the camera's 40 deg one from closer: every pixel is lit
@@ -62,7 +71,7 @@ def test_projected_stripe_lands_where_the_geometry_says():
 
     tw, th, col = 32, 24, 11  # stripe over texture columns 11..13, centre 12.5
     image = np.zeros((th, tw, 3))
-    image[:, col:col + 3] = 3.0
+    image[:, col : col + 3] = 3.0
     proj_cam = Camera((0.15, 0.0, 1.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 30.0)
     proj = Projector("proj", "pattern", proj_cam.origin, proj_cam.target, proj_cam.up, proj_cam.fov_deg, image)
     wall = rotate((0, 1, 0), np.radians(25)) @ scale(1.5, 1.5, 1.0)

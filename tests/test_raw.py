@@ -34,7 +34,9 @@ def test_rawpy_reads_back_the_codes_and_levels_exactly(tmp_path, cfa):
             pattern = np.where(raw.raw_pattern == 3, 1, raw.raw_pattern)
             assert np.array_equal(pattern, want)
         # white balance from AsShotNeutral: the reciprocal of the channel gains, green 1
-        assert np.allclose(np.array(raw.camera_whitebalance[:3]) / raw.camera_whitebalance[1], [1.5, 1.0, 2.0], rtol=1e-5)
+        assert np.allclose(
+            np.array(raw.camera_whitebalance[:3]) / raw.camera_whitebalance[1], [1.5, 1.0, 2.0], rtol=1e-5
+        )
 
 
 @pytest.mark.parametrize("black_level", [5000, 60000, 64.5])
@@ -51,9 +53,18 @@ def test_a_black_level_of_any_sixteen_bit_code_is_written(tmp_path, black_level)
 
 def test_a_run_with_a_high_black_level_writes_its_dngs(tmp_path):
     """The whole command: a 16-bit ADC with its black level at 5000 DN writes every read's DNG."""
-    cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml",
-                      ["render.width=32", "render.height=24", "render.spp=2", "render.cache=off", "sensor.adc_bits=16",
-                       "sensor.black_level_dn=5000", "output.dng=true"])
+    cfg = load_config(
+        ROOT / "configs" / "metronome_hdr.yaml",
+        [
+            "render.width=32",
+            "render.height=24",
+            "render.spp=2",
+            "render.cache=off",
+            "sensor.adc_bits=16",
+            "sensor.black_level_dn=5000",
+            "output.dng=true",
+        ],
+    )
     run_capture(cfg, tmp_path / "run", progress=False)
     names = sorted(p.name for p in (tmp_path / "run").glob("*.dng"))
     assert names == ["read_J1.dng", "read_J2.dng", "read_J3.dng", "read_J4.dng"]
@@ -73,8 +84,17 @@ def test_the_colour_matrix_maps_a_d65_white_to_the_as_shot_neutral():
 @pytest.fixture(scope="module")
 def chart_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("dng") / "run"
-    cfg = load_config(None, ["scene.name=colour_chart", "render.width=160", "render.height=128", "render.spp=4",
-                             "render.cache=off", "output.dng=true"])
+    cfg = load_config(
+        None,
+        [
+            "scene.name=colour_chart",
+            "render.width=160",
+            "render.height=128",
+            "render.spp=4",
+            "render.cache=off",
+            "output.dng=true",
+        ],
+    )
     run_capture(cfg, out, progress=False)
     return out
 
@@ -98,16 +118,30 @@ def _developed_colour_error(run: Path) -> tuple[np.ndarray, np.ndarray]:
     truth = read_exr(run / "hdr.exr")["truth"]
     reads = read_exr(run / "reads.exr")
     with rawpy.imread(str(run / "read_J4.dng")) as raw:
-        developed = raw.postprocess(use_camera_wb=True, no_auto_bright=True, output_color=rawpy.ColorSpace.sRGB,
-                                    gamma=(1, 1), output_bps=16, user_flip=0).astype(np.float64)
+        developed = raw.postprocess(
+            use_camera_wb=True,
+            no_auto_bright=True,
+            output_color=rawpy.ColorSpace.sRGB,
+            gamma=(1, 1),
+            output_bps=16,
+            user_flip=0,
+        ).astype(np.float64)
     with rawpy.imread(str(run / "read_J4.dng")) as raw:
-        plain = raw.postprocess(user_wb=[1, 1, 1, 1], no_auto_bright=True, output_color=rawpy.ColorSpace.raw,
-                                gamma=(1, 1), output_bps=16, user_flip=0).astype(np.float64)
+        plain = raw.postprocess(
+            user_wb=[1, 1, 1, 1],
+            no_auto_bright=True,
+            output_color=rawpy.ColorSpace.raw,
+            gamma=(1, 1),
+            output_bps=16,
+            user_flip=0,
+        ).astype(np.float64)
     ok = (reads["J4"] < 16000).all(-1) & (truth.min(-1) > 0)
     H, W = ok.shape
 
     def blocks(a):
-        return a[: H // 8 * 8, : W // 8 * 8].reshape(H // 8, 8, W // 8, 8, -1).mean(axis=(1, 3)).reshape(-1, a.shape[-1])
+        return (
+            a[: H // 8 * 8, : W // 8 * 8].reshape(H // 8, 8, W // 8, 8, -1).mean(axis=(1, 3)).reshape(-1, a.shape[-1])
+        )
 
     keep = blocks(ok[..., None].astype(float))[:, 0] == 1
     assert keep.sum() > 100
@@ -132,8 +166,18 @@ def test_a_developed_dng_has_the_scene_colours(chart_run):
 @pytest.fixture(scope="module")
 def bayer_chart_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("dng_bayer") / "run"
-    cfg = load_config(None, ["scene.name=colour_chart", "render.width=160", "render.height=128", "render.spp=4",
-                             "render.cache=off", "output.dng=true", "sensor.cfa=RGGB"])
+    cfg = load_config(
+        None,
+        [
+            "scene.name=colour_chart",
+            "render.width=160",
+            "render.height=128",
+            "render.spp=4",
+            "render.cache=off",
+            "output.dng=true",
+            "sensor.cfa=RGGB",
+        ],
+    )
     run_capture(cfg, out, progress=False)
     return out
 
@@ -150,9 +194,12 @@ def test_a_developed_bayer_dng_has_the_scene_colours(bayer_chart_run):
     assert np.median(plain) > 2 * np.median(de)
 
 
-@pytest.mark.parametrize("overrides,message", [
-    (["output.dng=true", "sensor.adc_bits=18"], "needs sensor.adc_bits <= 16"),
-])
+@pytest.mark.parametrize(
+    "overrides,message",
+    [
+        (["output.dng=true", "sensor.adc_bits=18"], "needs sensor.adc_bits <= 16"),
+    ],
+)
 def test_dng_needs_sixteen_bit_codes(overrides, message):
     with pytest.raises(ConfigError, match=message):
         load_config(ROOT / "configs" / "metronome_hdr.yaml", overrides)
@@ -171,7 +218,9 @@ def test_rawpy_default_develop_looks_like_the_runs_preview(chart_run):
     H, W = preview.shape[:2]
 
     def blocks(a):
-        return a[: H // 8 * 8, : W // 8 * 8].reshape(H // 8, 8, W // 8, 8, -1).mean(axis=(1, 3)).reshape(-1, a.shape[-1])
+        return (
+            a[: H // 8 * 8, : W // 8 * 8].reshape(H // 8, 8, W // 8, 8, -1).mean(axis=(1, 3)).reshape(-1, a.shape[-1])
+        )
 
     unclipped = (developed.max(-1) < 0.98) & (preview.max(-1) < 0.98) & (preview.min(-1) > 0.02)
     keep = blocks(unclipped[..., None].astype(float))[:, 0] == 1

@@ -17,7 +17,9 @@ def _script():
 
 def test_readme_tables_are_those_of_the_measured_data():
     rt = _script()
-    assert rt.main(["--check", "--readme", str(ROOT / "README.md"), "--data", str(ROOT / "docs" / "measured.json")]) == 0
+    assert (
+        rt.main(["--check", "--readme", str(ROOT / "README.md"), "--data", str(ROOT / "docs" / "measured.json")]) == 0
+    )
     data = json.loads((ROOT / "docs" / "measured.json").read_text())
     readme = (ROOT / "README.md").read_text()
     for row in data["tables"]["hdr"]["rows"]:  # the numbers in the README are the measured ones
@@ -36,11 +38,22 @@ def test_readme_tables_are_those_of_the_measured_data():
 
 def test_rewrite_changes_only_the_table_and_check_sees_a_hand_edit(tmp_path):
     rt = _script()
-    row = {"label": "default", "command": "mbcapture run configs/metronome_hdr.yaml --quiet", "film": [640, 512],
-           "passes": 7, "spp": 16, "wall_s": 24.4, "hdr_rel_mse": 0.00107, "hdr_rel_mse_moving": 0.00174,
-           "reads_disagreement_moving": 0.024, "llvm": "19", "variant": "llvm_ad_rgb"}
-    data = {"tables": {"hdr": {"machine": "test", "seconds": 99.0, "load_average_5min": 1.0, "only": "hdr",
-                               "rows": [row]}}}
+    row = {
+        "label": "default",
+        "command": "mbcapture run configs/metronome_hdr.yaml --quiet",
+        "film": [640, 512],
+        "passes": 7,
+        "spp": 16,
+        "wall_s": 24.4,
+        "hdr_rel_mse": 0.00107,
+        "hdr_rel_mse_moving": 0.00174,
+        "reads_disagreement_moving": 0.024,
+        "llvm": "19",
+        "variant": "llvm_ad_rgb",
+    }
+    data = {
+        "tables": {"hdr": {"machine": "test", "seconds": 99.0, "load_average_5min": 1.0, "only": "hdr", "rows": [row]}}
+    }
     (tmp_path / "m.json").write_text(json.dumps(data))
     begin, end = rt.markers("hdr")
     readme = tmp_path / "README.md"
@@ -79,10 +92,19 @@ def test_a_row_is_what_mbcapture_run_reports(monkeypatch, capsys):
 def test_a_video_rows_wall_time_is_all_its_frames():
     """A video's report.json is its first frame's, with every frame's time summed beside it: the table
     shows the sum (hdr_video's 16 frames read 25 s when it showed the first frame's)."""
+
     def run(args):
         out = Path(args[args.index("--out") + 1])
-        (out / "report.json").write_text(json.dumps({
-            "metrics": {}, "plan": {"passes": 4, "spp": 448}, "film": [160, 128], "versions": {},
-            "timings_s": {"total_before_write": 25.0, "video_total_before_write": 330.0}}))
+        (out / "report.json").write_text(
+            json.dumps(
+                {
+                    "metrics": {},
+                    "plan": {"passes": 4, "spp": 448},
+                    "film": [160, 128],
+                    "versions": {},
+                    "timings_s": {"total_before_write": 25.0, "video_total_before_write": 330.0},
+                }
+            )
+        )
 
     assert _script().measure("configs/hdr_video.yaml", [], run=run)["wall_s"] == 330.0

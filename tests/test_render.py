@@ -44,20 +44,35 @@ def _fake_libs(root: Path, names: dict[str, str | None]) -> Path:
     return root
 
 
-@pytest.mark.parametrize("name, version", [
-    ("libLLVM-19.so", 19), ("libLLVM-14.0.6.so.1", 14), ("libLLVM-15.so.1", 15),
-    ("libLLVM.so.19.1", 19), ("libLLVM.so.18", 18), ("libLLVM.so", None), ("libLLVM.so.1", None),
-    ("libLLVM-17git.so", 17), ("libLLVMCore.a", None),
-])
+@pytest.mark.parametrize(
+    "name, version",
+    [
+        ("libLLVM-19.so", 19),
+        ("libLLVM-14.0.6.so.1", 14),
+        ("libLLVM-15.so.1", 15),
+        ("libLLVM.so.19.1", 19),
+        ("libLLVM.so.18", 18),
+        ("libLLVM.so", None),
+        ("libLLVM.so.1", None),
+        ("libLLVM-17git.so", 17),
+        ("libLLVMCore.a", None),
+    ],
+)
 def test_version_from_name(name, version):
     assert llvm.version_from_name(name) == version
 
 
 def test_finder_picks_newest_at_least_16(tmp_path):
-    a = _fake_libs(tmp_path / "x86_64-linux-gnu", {
-        "libLLVM-14.so.1": None, "libLLVM-15.so.1": None, "libLLVM-15.so": "libLLVM-15.so.1",
-        "libLLVM.so.19.1": None, "libLLVM-19.so": "libLLVM.so.19.1",
-    })
+    a = _fake_libs(
+        tmp_path / "x86_64-linux-gnu",
+        {
+            "libLLVM-14.so.1": None,
+            "libLLVM-15.so.1": None,
+            "libLLVM-15.so": "libLLVM-15.so.1",
+            "libLLVM.so.19.1": None,
+            "libLLVM-19.so": "libLLVM.so.19.1",
+        },
+    )
     b = _fake_libs(tmp_path / "llvm-17" / "lib", {"libLLVM-17.so": None, "libLLVM.so": "libLLVM-17.so"})
     env: dict[str, str] = {}
     v, path = llvm.select_llvm(env, dirs=[str(a), str(tmp_path / "llvm-*" / "lib")], use_ldconfig=False)
@@ -67,8 +82,15 @@ def test_finder_picks_newest_at_least_16(tmp_path):
 
 
 def test_finder_refuses_only_old_llvm(tmp_path):
-    a = _fake_libs(tmp_path / "lib", {"libLLVM-14.so.1": None, "libLLVM-15.so.1": None,
-                                      "libLLVM-15.so": "libLLVM-15.so.1", "libLLVM.so": "libLLVM-15.so"})
+    a = _fake_libs(
+        tmp_path / "lib",
+        {
+            "libLLVM-14.so.1": None,
+            "libLLVM-15.so.1": None,
+            "libLLVM-15.so": "libLLVM-15.so.1",
+            "libLLVM.so": "libLLVM-15.so",
+        },
+    )
     env: dict[str, str] = {}
     with pytest.raises(EnvironmentProblem) as err:
         llvm.select_llvm(env, dirs=[str(a)], use_ldconfig=False)
@@ -80,9 +102,16 @@ def test_finder_refuses_only_old_llvm(tmp_path):
 
 
 def test_preset_env_var_is_checked(tmp_path):
-    a = _fake_libs(tmp_path / "lib", {"libLLVM-15.so.1": None, "libLLVM.so": "libLLVM-15.so.1",
-                                      "libLLVM.so.19.1": None, "libLLVM-19.so": "libLLVM.so.19.1",
-                                      "libfoo.so": None})
+    a = _fake_libs(
+        tmp_path / "lib",
+        {
+            "libLLVM-15.so.1": None,
+            "libLLVM.so": "libLLVM-15.so.1",
+            "libLLVM.so.19.1": None,
+            "libLLVM-19.so": "libLLVM.so.19.1",
+            "libfoo.so": None,
+        },
+    )
     for bad in ("libLLVM-15.so.1", "libLLVM.so"):  # the unversioned name resolves to 15
         with pytest.raises(EnvironmentProblem, match="LLVM 15"):
             llvm.select_llvm({llvm.ENV_VAR: str(a / bad)}, dirs=[], use_ldconfig=False)
@@ -95,8 +124,10 @@ def test_preset_env_var_is_checked(tmp_path):
 
 
 def test_import_render_does_not_import_mitsuba():
-    code = ("import sys, mbcapture.render, mbcapture.scenes; "
-            "sys.exit(int('mitsuba' in sys.modules or 'drjit' in sys.modules))")
+    code = (
+        "import sys, mbcapture.render, mbcapture.scenes; "
+        "sys.exit(int('mitsuba' in sys.modules or 'drjit' in sys.modules))"
+    )
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]))
     assert subprocess.run([sys.executable, "-c", code], env=env, cwd=REPO).returncode == 0
 
@@ -229,7 +260,7 @@ def test_time_change_does_not_recompile_and_moves_the_needle(mitsuba_ready):
     pts = sc.camera.project(sc.motion_points(np.array([0.0, t1])), w, h).reshape(-1, 2)
     near = np.zeros((h, w), bool)
     for x, y in pts[:, :]:
-        near[max(int(y) - 1, 0):int(y) + 2, max(int(x) - 1, 0):int(x) + 2] = True
+        near[max(int(y) - 1, 0) : int(y) + 2, max(int(x) - 1, 0) : int(x) + 2] = True
     assert diff[near].mean() > 10 * diff[~near].mean()
 
 
@@ -238,20 +269,48 @@ def _panels_scene() -> SceneModel:
     front, on a floor; a light in front of the panels and one behind them (groups front, back)."""
     away = frame_towards((0.0, 0.0, 0.0), (0.0, 0.0, -1.0))  # a rectangle facing -z, away from the camera
     shapes = (
-        Shape("one_sided_back", "rectangle", translate(-0.12, 0.0, 0.0) @ away @ scale(0.05), Material((0.8, 0.5, 0.3))),
-        Shape("two_sided_back", "rectangle", translate(0.0, 0.0, 0.0) @ away @ scale(0.05),
-              Material((0.3, 0.7, 0.6), twosided=True)),
-        Shape("front", "rectangle", frame_towards((0.12, 0.0, 0.0), (0.12, 0.0, 1.0)) @ scale(0.05),
-              Material((0.6, 0.6, 0.6))),
-        Shape("floor", "rectangle", translate(0.0, -0.06, 0.0) @ rotate((1, 0, 0), -np.pi / 2) @ scale(0.4),
-              Material((0.5, 0.5, 0.5))),
-        Shape("light_front", "rectangle", frame_towards((0.0, 0.15, 0.3), (0.0, 0.0, 0.0)) @ scale(0.05), None,
-              Light("front", (20.0, 20.0, 20.0))),
-        Shape("light_back", "sphere", translate(0.0, 0.1, -0.25) @ scale(0.03), None, Light("back", (30.0, 25.0, 20.0))),
+        Shape(
+            "one_sided_back", "rectangle", translate(-0.12, 0.0, 0.0) @ away @ scale(0.05), Material((0.8, 0.5, 0.3))
+        ),
+        Shape(
+            "two_sided_back",
+            "rectangle",
+            translate(0.0, 0.0, 0.0) @ away @ scale(0.05),
+            Material((0.3, 0.7, 0.6), twosided=True),
+        ),
+        Shape(
+            "front",
+            "rectangle",
+            frame_towards((0.12, 0.0, 0.0), (0.12, 0.0, 1.0)) @ scale(0.05),
+            Material((0.6, 0.6, 0.6)),
+        ),
+        Shape(
+            "floor",
+            "rectangle",
+            translate(0.0, -0.06, 0.0) @ rotate((1, 0, 0), -np.pi / 2) @ scale(0.4),
+            Material((0.5, 0.5, 0.5)),
+        ),
+        Shape(
+            "light_front",
+            "rectangle",
+            frame_towards((0.0, 0.15, 0.3), (0.0, 0.0, 0.0)) @ scale(0.05),
+            None,
+            Light("front", (20.0, 20.0, 20.0)),
+        ),
+        Shape(
+            "light_back", "sphere", translate(0.0, 0.1, -0.25) @ scale(0.03), None, Light("back", (30.0, 25.0, 20.0))
+        ),
     )
     camera = Camera(origin=(0.0, 0.05, 0.6), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=40.0)
-    return SceneModel(name="panels", groups=("front", "back"), switchable=frozenset(), camera=camera,
-                      build=SceneBuild(shapes=shapes, parts={}), params=None, motion_points=lambda t: np.zeros((len(t), 0, 3)))
+    return SceneModel(
+        name="panels",
+        groups=("front", "back"),
+        switchable=frozenset(),
+        camera=camera,
+        build=SceneBuild(shapes=shapes, parts={}),
+        params=None,
+        motion_points=lambda t: np.zeros((len(t), 0, 3)),
+    )
 
 
 @render
@@ -292,8 +351,13 @@ def test_is_lambertian_knows_mitsubas_bsdfs(mitsuba_ready):
     mi.set_variant("llvm_ad_rgb")
 
     def scene(bsdf):
-        return mi.load_dict({"type": "scene", "a": {"type": "sphere", "bsdf": {"type": "diffuse"}},
-                             "b": {"type": "rectangle", "bsdf": bsdf}})
+        return mi.load_dict(
+            {
+                "type": "scene",
+                "a": {"type": "sphere", "bsdf": {"type": "diffuse"}},
+                "b": {"type": "rectangle", "bsdf": bsdf},
+            }
+        )
 
     assert is_lambertian(scene({"type": "diffuse"}))
     assert is_lambertian(scene({"type": "twosided", "material": {"type": "diffuse"}}))
@@ -308,10 +372,20 @@ def _marker_scene(camera: Camera) -> SceneModel:
     unless its transform is opaque)."""
     radius = 0.004
     static = {"m0": (0.05, 0.02, -0.03), "m1": (-0.1, -0.06, 0.1)}
-    shapes = [Shape(n, "sphere", translate(*p) @ scale(radius), None, Light(n, (100.0, 100.0, 100.0)))
-              for n, p in static.items()]
-    shapes.append(Shape("m2", "rectangle", frame_towards((0.12, 0.05, 0.0), camera.origin) @ scale(radius),
-                        None, Light("m2", (100.0, 100.0, 100.0)), part="spin"))
+    shapes = [
+        Shape(n, "sphere", translate(*p) @ scale(radius), None, Light(n, (100.0, 100.0, 100.0)))
+        for n, p in static.items()
+    ]
+    shapes.append(
+        Shape(
+            "m2",
+            "rectangle",
+            frame_towards((0.12, 0.05, 0.0), camera.origin) @ scale(radius),
+            None,
+            Light("m2", (100.0, 100.0, 100.0)),
+            part="spin",
+        )
+    )
     spin = lambda t: rotate((0, 1, 0), 0.5 * t)  # noqa: E731
     points = np.array(list(static.values()) + [(0.12, 0.05, 0.0)])
 
@@ -321,16 +395,25 @@ def _marker_scene(camera: Camera) -> SceneModel:
             out[i, 2] = (spin(t) @ np.append(points[2], 1.0))[:3]
         return out
 
-    return SceneModel(name="markers", groups=("m0", "m1", "m2"), switchable=frozenset(), camera=camera,
-                      build=SceneBuild(shapes=tuple(shapes), parts={"spin": spin}), params=None,
-                      motion_points=motion_points)
+    return SceneModel(
+        name="markers",
+        groups=("m0", "m1", "m2"),
+        switchable=frozenset(),
+        camera=camera,
+        build=SceneBuild(shapes=tuple(shapes), parts={"spin": spin}),
+        params=None,
+        motion_points=motion_points,
+    )
 
 
 @render
-@pytest.mark.parametrize("camera", [
-    Camera(origin=(0.1, 0.3, 0.8), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=35.0),
-    Camera(origin=(-0.5, 0.2, 0.4), target=(0.02, -0.01, 0.03), up=(0.1, 1.0, 0.2), fov_deg=50.0),
-])
+@pytest.mark.parametrize(
+    "camera",
+    [
+        Camera(origin=(0.1, 0.3, 0.8), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=35.0),
+        Camera(origin=(-0.5, 0.2, 0.4), target=(0.02, -0.01, 0.03), up=(0.1, 1.0, 0.2), fov_deg=50.0),
+    ],
+)
 def test_camera_project_matches_rendered_marker_positions(mitsuba_ready, camera):
     import drjit as dr
 

@@ -137,8 +137,17 @@ def test_cache_cli_info_and_clear(tmp_path, capsys):
 def _run(cache_dir: Path, *overrides: str, config: str = "metronome_hdr.yaml"):
     from mbcapture import load_config, run_capture
 
-    cfg = load_config(ROOT / "configs" / config, ["render.width=16", "render.height=12", "render.spp=4",
-                                                  "render.max_motion_px=2.0", f"render.cache={cache_dir}", *overrides])
+    cfg = load_config(
+        ROOT / "configs" / config,
+        [
+            "render.width=16",
+            "render.height=12",
+            "render.spp=4",
+            "render.max_motion_px=2.0",
+            f"render.cache={cache_dir}",
+            *overrides,
+        ],
+    )
     return run_capture(cfg, progress=False)
 
 
@@ -146,8 +155,13 @@ def _run(cache_dir: Path, *overrides: str, config: str = "metronome_hdr.yaml"):
 def test_changes_downstream_of_the_render_render_nothing_and_give_the_same_images(tmp_path):
     first = _run(tmp_path)
     assert first.report["render_cache"]["hits"] == 0 and first.report["render_cache"]["rendered"] > 0
-    for change in ["sensor.read_noise_e=5", "sensor.noise_seed=7", "hdr.method=inverse_variance",
-                   "output.png_percentile=90", "sensor.full_well_e=5000"]:
+    for change in [
+        "sensor.read_noise_e=5",
+        "sensor.noise_seed=7",
+        "hdr.method=inverse_variance",
+        "output.png_percentile=90",
+        "sensor.full_well_e=5000",
+    ]:
         again = _run(tmp_path, change)
         assert again.report["render_cache"]["rendered"] == 0, change
         np.testing.assert_array_equal(again.bucket_exposure, first.bucket_exposure)
@@ -182,8 +196,17 @@ def test_a_pilot_on_blocks_and_adaptive_sampling_are_cached_too(tmp_path, monkey
 
 
 @pytest.mark.render
-@pytest.mark.parametrize("change", ["seed=2", "render.spp=6", "render.max_depth=2", "render.sampler=independent",
-                                    "scene.amplitude_deg=25", "render.width=18"])
+@pytest.mark.parametrize(
+    "change",
+    [
+        "seed=2",
+        "render.spp=6",
+        "render.max_depth=2",
+        "render.sampler=independent",
+        "scene.amplitude_deg=25",
+        "render.width=18",
+    ],
+)
 def test_changes_that_determine_a_render_render_again(tmp_path, change):
     _run(tmp_path)
     again = _run(tmp_path, change)

@@ -40,12 +40,28 @@ def test_report_html_opens_offline_and_shows_every_part(tiny_run):
     shown = set(refs.images)
     reads = ["J1", "J2", "J3", "J4"]
     assert {f"read_{n}_common_scale.png" for n in reads} | {f"read_{n}_own_scale.png" for n in reads} <= shown
-    assert {"report_timeline.png", "report_histograms.png", "map_saturation.png", "map_snr.png", "map_valid.png",
-            "hdr.png", "truth.png"} <= shown
+    assert {
+        "report_timeline.png",
+        "report_histograms.png",
+        "map_saturation.png",
+        "map_snr.png",
+        "map_valid.png",
+        "hdr.png",
+        "truth.png",
+    } <= shown
     text = " ".join(refs.text)
     rep = json.loads((out / "report.json").read_text())
-    for part in ("Gate schedule", "Histograms", "Metrics", "Rendering noise against shot noise", "Timings",
-                 "hdr_rel_mse", rep["render_error"]["verdict"], "photon_efficient_hdr", "B1+B2+B3+B4"):
+    for part in (
+        "Gate schedule",
+        "Histograms",
+        "Metrics",
+        "Rendering noise against shot noise",
+        "Timings",
+        "hdr_rel_mse",
+        rep["render_error"]["verdict"],
+        "photon_efficient_hdr",
+        "B1+B2+B3+B4",
+    ):
         assert part in text, part
     listed = {h for h in refs.links if not h.startswith("#")}
     assert {p.name for p in out.iterdir() if not p.name.startswith(".")} <= listed  # every file is listed
@@ -115,12 +131,18 @@ def test_status_line_moves_during_a_silent_stage():
 def test_noise_verdict_follows_the_budget():
     from mbcapture.budget import noise_verdict
 
-    within = {"to_shot_noise_variance_median": 0.05, "to_shot_noise_variance_p95": 0.5,
-              "budget": {"median_target": 0.1, "p95_target": 1.0, "met": True}}
+    within = {
+        "to_shot_noise_variance_median": 0.05,
+        "to_shot_noise_variance_p95": 0.5,
+        "budget": {"median_target": 0.1, "p95_target": 1.0, "met": True},
+    }
     assert noise_verdict(within).startswith("Sensor noise dominates")
     assert "adding 2.5 %" in noise_verdict(within)  # sqrt(1.05) - 1
-    over = {"to_shot_noise_variance_median": 3.0, "to_shot_noise_variance_p95": 30.0,
-            "budget": {"median_target": 0.1, "p95_target": 1.0, "met": False, "spp_that_would_meet": 480}}
+    over = {
+        "to_shot_noise_variance_median": 3.0,
+        "to_shot_noise_variance_p95": 30.0,
+        "budget": {"median_target": 0.1, "p95_target": 1.0, "met": False, "spp_that_would_meet": 480},
+    }
     assert noise_verdict(over).startswith("Rendering noise is visible") and "render.spp >= 480" in noise_verdict(over)
     assert "render.spp: null" in noise_verdict(over)
     # the budget chose the samples and missed: it does not suggest the budget again
@@ -129,8 +151,11 @@ def test_noise_verdict_follows_the_budget():
     assert "render.spp: null" not in noise_verdict(missed)
     assert "spp = 1" in noise_verdict({"note": "render.spp = 1: no half-sample error estimate"})
     # a tail over its target points to adaptive sampling where the run could have used it
-    tail_over = {**within, "to_shot_noise_variance_p999": 4.7,
-                 "budget": {**within["budget"], "tail_target": 1.0, "tail_met": False}}
+    tail_over = {
+        **within,
+        "to_shot_noise_variance_p999": 4.7,
+        "budget": {**within["budget"], "tail_target": 1.0, "tail_met": False},
+    }
     assert "over render.noise_budget_tail 1" in noise_verdict(tail_over)
     assert "render.adaptive: true" in noise_verdict(tail_over, adaptive_hint=True)
     assert "render.adaptive" not in noise_verdict(tail_over)
@@ -140,7 +165,9 @@ def test_noise_verdict_follows_the_budget():
     clear = {**tail_over, "to_shot_noise_variance_p999_interval": [3.6, 6.6]}
     unclear = {**tail_over, "to_shot_noise_variance_p999": 1.18, "to_shot_noise_variance_p999_interval": [0.93, 10.2]}
     assert "(over render.noise_budget_tail 1)" in noise_verdict(clear) and "cannot tell" not in noise_verdict(clear)
-    assert "(over render.noise_budget_tail 1 by this estimate, but its interval reaches below it" in noise_verdict(unclear)
+    assert "(over render.noise_budget_tail 1 by this estimate, but its interval reaches below it" in noise_verdict(
+        unclear
+    )
     assert "cannot tell" not in noise_verdict({**unclear, "budget": tail_within["budget"]})
 
 

@@ -35,7 +35,9 @@ def test_the_plan_follows_the_film_buckets_reads_and_outputs():
     # everything but the fixed part scales with the pixels: 4x the pixels, 4x the variable part
     fixed = resources.fixed_memory_bytes()
     assert (b.memory_bytes - fixed) == pytest.approx(4 * (a.memory_bytes - fixed), rel=1e-6)
-    assert (b.output_bytes - resources.REPORT_BYTES) == pytest.approx(4 * (a.output_bytes - resources.REPORT_BYTES), rel=1e-6)
+    assert (b.output_bytes - resources.REPORT_BYTES) == pytest.approx(
+        4 * (a.output_bytes - resources.REPORT_BYTES), rel=1e-6
+    )
     assert a.cache_bytes == 0
     cached = _need(["render.width=320", "render.height=256", "render.spp=4", "render.cache=on"])
     # two float32 halves per stratum of every rendered group, 3 channels
@@ -56,12 +58,15 @@ def test_the_plan_keeps_its_promise_on_a_real_run(tiles):
     most 20 % above the plan and not below 60 % of it (ZIP and PNG compression depend on the content:
     measured 0.63 to 1.16 of the plan over the shipped configs)."""
     over = ["render.width=320", "render.height=256", "render.spp=4", "render.cache=off", *tiles]
-    child = ("import resource, sys; from mbcapture import load_config, run_capture; "
-             "run_capture(load_config(sys.argv[1], sys.argv[3:]), sys.argv[2], progress=False); "
-             "from mbcapture.resources import peak_rss_bytes; print(peak_rss_bytes())")
+    child = (
+        "import resource, sys; from mbcapture import load_config, run_capture; "
+        "run_capture(load_config(sys.argv[1], sys.argv[3:]), sys.argv[2], progress=False); "
+        "from mbcapture.resources import peak_rss_bytes; print(peak_rss_bytes())"
+    )
     out = ROOT / "out" / "test-resources-run"
-    proc = subprocess.run([sys.executable, "-c", child, str(HDR), str(out), *over], capture_output=True, text=True,
-                          cwd=ROOT, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", child, str(HDR), str(out), *over], capture_output=True, text=True, cwd=ROOT, timeout=600
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     rss = float(proc.stdout.strip().splitlines()[-1])
     written = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
@@ -95,8 +100,19 @@ def test_a_film_that_cannot_fit_stops_before_any_work(monkeypatch, capsys):
 
     monkeypatch.setattr(pipeline, "integrate_tiles", no_work)
     monkeypatch.setattr(resources, "free_memory", lambda: (24 * resources.GB, "available memory"))
-    rc = main(["run", str(HDR), "--set", "render.width=16000", "--set", "render.height=12000", "--set", "render.spp=1",
-               "--quiet"])
+    rc = main(
+        [
+            "run",
+            str(HDR),
+            "--set",
+            "render.width=16000",
+            "--set",
+            "render.height=12000",
+            "--set",
+            "render.spp=1",
+            "--quiet",
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1, err
     assert "render.width/height" in err and "GB of memory" in err and "is free" in err and "smaller film" in err
@@ -111,9 +127,11 @@ def test_the_memory_cap_is_a_config_key():
 
 def test_free_memory_counts_the_address_space_limit():
     """Under ulimit -v the free memory is what the limit leaves (a child process sets it)."""
-    code = ("import resource; from mbcapture.resources import free_memory, _status_kb; "
-            "size = _status_kb('VmSize') * 1024; resource.setrlimit(resource.RLIMIT_AS, (size + (1 << 30), -1)); "
-            "free, source = free_memory(); print(free - _status_kb('VmRSS') * 1024, source)")
+    code = (
+        "import resource; from mbcapture.resources import free_memory, _status_kb; "
+        "size = _status_kb('VmSize') * 1024; resource.setrlimit(resource.RLIMIT_AS, (size + (1 << 30), -1)); "
+        "free, source = free_memory(); print(free - _status_kb('VmRSS') * 1024, source)"
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert proc.returncode == 0, proc.stderr
     headroom, source = proc.stdout.split(maxsplit=1)
@@ -132,9 +150,13 @@ def test_too_little_disk_for_the_outputs_or_the_cache_stops_before_any_work(tmp_
 
 
 @pytest.mark.render
-@pytest.mark.parametrize("failure", [OSError(errno.ENOSPC, "No space left on device"),
-                                     RuntimeError('Failed to write pixel data to image file "x.exr". '
-                                                  "No space left on device")])
+@pytest.mark.parametrize(
+    "failure",
+    [
+        OSError(errno.ENOSPC, "No space left on device"),
+        RuntimeError('Failed to write pixel data to image file "x.exr". No space left on device'),
+    ],
+)
 def test_a_write_the_disk_refuses_ends_with_one_line_and_keeps_the_previous_output(tmp_path, monkeypatch, failure):
     out = tmp_path / "out"
     cfg = load_config(HDR, SMALL)
@@ -145,8 +167,11 @@ def test_a_write_the_disk_refuses_ends_with_one_line_and_keeps_the_previous_outp
         raise failure
 
     monkeypatch.setattr(mio, "write_exr", full)
-    with pytest.raises(OutputError, match=r"writing the outputs failed \(No space left on device\); nothing was "
-                                          r"replaced, the previous output is kept"):
+    with pytest.raises(
+        OutputError,
+        match=r"writing the outputs failed \(No space left on device\); nothing was "
+        r"replaced, the previous output is kept",
+    ):
         run_capture(cfg, out, progress=False)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # no staging folder left, nothing replaced
 
@@ -250,14 +275,26 @@ def test_a_scratch_disk_too_small_is_one_line_before_any_array(tmp_path, monkeyp
 
     monkeypatch.setattr(filmstore.os, "posix_fallocate", full)
     store = filmstore.FilmStore(tmp_path)
-    with pytest.raises(ResourceProblem, match=r"render.spill_dir .*: the film's arrays need 0.09 GB more there "
-                                              r"\(No space left on device\)"):
+    with pytest.raises(
+        ResourceProblem,
+        match=r"render.spill_dir .*: the film's arrays need 0.09 GB more there "
+        r"\(No space left on device\)",
+    ):
         store.empty((12, 1000, 1000), np.float64)
     assert store.spilled_bytes == 0 and list(tmp_path.iterdir()) == []
     # and the plan's own check: the scratch files above the free disk of render.spill_dir
     monkeypatch.setattr(resources, "free_disk", lambda path: 1 << 20)
-    cfg = load_config(HDR, [*SMALL, "render.tiles=2", "render.band_rows=12", "render.spill=true",
-                            f"render.spill_dir={tmp_path}", "render.cache=off"])
+    cfg = load_config(
+        HDR,
+        [
+            *SMALL,
+            "render.tiles=2",
+            "render.band_rows=12",
+            "render.spill=true",
+            f"render.spill_dir={tmp_path}",
+            "render.cache=off",
+        ],
+    )
     need = _need([*SMALL, "render.tiles=2", "render.band_rows=12", "render.spill=true", "render.cache=off"])
     assert need.spill_bytes > 0
     big = resources.Resources(need.memory_bytes, need.output_bytes, 0, need.tiles, need.bands, spill_bytes=2 << 20)
@@ -277,8 +314,11 @@ def test_exr_channels_made_in_scratch_files_write_the_same_file(tmp_path):
     mask = rng.random((6, 10))
     mio.write_exr(tmp_path / "a.exr", {"B1": exposure[0] * k_e, "B2": exposure[1] * k_e, "valid": mask})
     store = FilmStore(tmp_path / "scratch")
-    mio.write_exr(tmp_path / "b.exr", {"B1": partial(np.multiply, exposure[0], k_e),
-                                       "B2": partial(np.multiply, exposure[1], k_e), "valid": mask}, empty=store.empty)
+    mio.write_exr(
+        tmp_path / "b.exr",
+        {"B1": partial(np.multiply, exposure[0], k_e), "B2": partial(np.multiply, exposure[1], k_e), "valid": mask},
+        empty=store.empty,
+    )
     assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
     assert store.spilled_bytes == 4 * 6 * 10 * 7  # seven float32 channels
     back = mio.read_exr(tmp_path / "b.exr")
@@ -303,7 +343,9 @@ def test_tonemap_encodes_a_band_of_rows_at_a_time_with_the_whole_images_values()
     grey = img[..., 0]
     assert np.array_equal(tonemap(grey, None), tonemap(np.repeat(grey[..., None], 3, axis=-1), None))
     peak = _traced_peak(lambda: tonemap(img, 99.5))
-    assert peak < 2.0 * img.nbytes, peak / img.nbytes  # measured 1.67 (the copy, its luminance, the percentile, a band); 7.4 before
+    assert peak < 2.0 * img.nbytes, (
+        peak / img.nbytes
+    )  # measured 1.67 (the copy, its luminance, the percentile, a band); 7.4 before
 
 
 def test_the_free_memory_reads_a_cgroup_v1_or_v2_limit(tmp_path):

@@ -69,8 +69,12 @@ def test_binomial_quantile_with_a_vanishing_probability_is_zero_and_does_not_cra
     # its count is 1 (scipy's ppf says 0 there: it loses the tail in 1 - u)
     n, p = 2.0**20, 2.0**-70
     np.testing.assert_array_equal(binomial_quantile(u, np.full(u.size, n), p), [0, 0, 0, 0, 1])
-    out = simulate_reads(np.full((4, 2, 3, 3), 500.0), [(3,), (3, 2)], SensorConfig(transfer_inefficiency=1.1125369292536007e-308),
-                         np.random.SeedSequence(0))
+    out = simulate_reads(
+        np.full((4, 2, 3, 3), 500.0),
+        [(3,), (3, 2)],
+        SensorConfig(transfer_inefficiency=1.1125369292536007e-308),
+        np.random.SeedSequence(0),
+    )
     base = simulate_reads(np.full((4, 2, 3, 3), 500.0), [(3,), (3, 2)], SensorConfig(), np.random.SeedSequence(0))
     np.testing.assert_array_equal(out.reads_dn, base.reads_dn)  # no electron is lost
 
@@ -162,11 +166,15 @@ def test_turning_one_noise_source_on_leaves_the_others_draws_unchanged():
     b = simulate_reads(exp_e, reads, base.model_copy(update={"transfer_inefficiency": 1e-3}), np.random.SeedSequence(4))
     np.testing.assert_array_equal(a.electrons, b.electrons)
     assert np.all(b.reads_dn <= a.reads_dn + 1) and np.any(b.reads_dn < a.reads_dn)
-    c = simulate_reads(exp_e, reads, base.model_copy(update={"read_noise_e": 2 * base.read_noise_e,
-                                                             "gain_dn_per_e": 1.0, "black_level_dn": 0.0}),
-                       np.random.SeedSequence(4))
-    d = simulate_reads(exp_e, reads, base.model_copy(update={"gain_dn_per_e": 1.0, "black_level_dn": 0.0}),
-                       np.random.SeedSequence(4))
+    c = simulate_reads(
+        exp_e,
+        reads,
+        base.model_copy(update={"read_noise_e": 2 * base.read_noise_e, "gain_dn_per_e": 1.0, "black_level_dn": 0.0}),
+        np.random.SeedSequence(4),
+    )
+    d = simulate_reads(
+        exp_e, reads, base.model_copy(update={"gain_dn_per_e": 1.0, "black_level_dn": 0.0}), np.random.SeedSequence(4)
+    )
     np.testing.assert_array_equal(c.electrons, d.electrons)
     fd = np.stack([a.electrons[list(r)].sum(axis=0) for r in reads])
     # DN = rint(fd + noise): the noise of c is twice that of d, up to the rounding of each
@@ -262,8 +270,9 @@ def test_a_sweeps_memos_give_the_same_reads_and_share_the_fields(monkeypatch):
     from mbcapture.sensor.readout import fixed_pattern
     from mbcapture.sensor.sampling import FIELD_MEMO, POISSON_MEMO
 
-    cfg = SensorConfig(prnu=0.01, dsnu_e=2.0, read_noise_e=3.0, read_noise_row_e=0.5, transfer_inefficiency=1e-4,
-                       full_well_e=5000.0)
+    cfg = SensorConfig(
+        prnu=0.01, dsnu_e=2.0, read_noise_e=3.0, read_noise_row_e=0.5, transfer_inefficiency=1e-4, full_well_e=5000.0
+    )
     exp_e = np.random.default_rng(0).uniform(0.0, 6000.0, (3, 6, 7, 3))
     reads = [(0,), (0, 1), (0, 1, 2)]
 
@@ -283,14 +292,17 @@ def test_a_sweeps_memos_give_the_same_reads_and_share_the_fields(monkeypatch):
         np.testing.assert_array_equal(a.electrons, b.electrons)
     np.testing.assert_array_equal(off.reads_dn, first.reads_dn)
     assert not np.array_equal(first.reads_dn, second.reads_dn)  # its own read noise on the same field
-    np.testing.assert_array_equal(second.reads_dn, simulate_reads(exp_e, reads, cfg.model_copy(
-        update={"read_noise_e": 6.0}), np.random.SeedSequence(11)).reads_dn)
+    np.testing.assert_array_equal(
+        second.reads_dn,
+        simulate_reads(exp_e, reads, cfg.model_copy(update={"read_noise_e": 6.0}), np.random.SeedSequence(11)).reads_dn,
+    )
     streams = NoiseStreams(np.random.SeedSequence(11))
     u = streams.uniform("shot", exp_e.shape)
     with pytest.raises(ValueError):
         u[0, 0, 0, 0] = 0.5  # the memo's array is handed out read-only
-    np.testing.assert_array_equal(np.stack([r.copy() for r in streams.normal_runs("read", (3, 6, 7, 3))]),
-                                  streams.normal("read", (3, 6, 7, 3)))
+    np.testing.assert_array_equal(
+        np.stack([r.copy() for r in streams.normal_runs("read", (3, 6, 7, 3))]), streams.normal("read", (3, 6, 7, 3))
+    )
     misses = FIELD_MEMO.misses
     fixed_pattern((6, 7, 3), cfg.model_copy(update={"prnu": 0.02}))
     sense(seed=12)  # its four noise fields anew; the fixed pattern is the sensor's (sensor.fpn_seed), the same

@@ -94,4 +94,4 @@ def test_radiance_scales():
     lights = {s.name: s.light for s in sc.build.shapes if s.light is not None}
     assert lights["lamp_bulb"].radiance[0] == pytest.approx(2 * mod.LAMP_RADIANCE)
     assert lights["flash_led"].radiance == (0.0, 0.0, 0.0)
-    assert {l.group for l in lights.values()} == {"ambient", "lamp", "flash"}
+    assert {light.group for light in lights.values()} == {"ambient", "lamp", "flash"}

@@ -42,7 +42,9 @@ def var_se(var: float, n: int, excess_kurtosis: float = 0.0) -> float:
 
 def flat(k_values: list[float], n_pix: int, channels: int = 1) -> np.ndarray:
     """(K, 1, n_pix, channels) flat expected electrons."""
-    return np.broadcast_to(np.asarray(k_values, dtype=np.float64)[:, None, None, None], (len(k_values), 1, n_pix, channels)).copy()
+    return np.broadcast_to(
+        np.asarray(k_values, dtype=np.float64)[:, None, None, None], (len(k_values), 1, n_pix, channels)
+    ).copy()
 
 
 # --------------------------------------------------------------------------- conversion
@@ -65,7 +67,9 @@ def test_conversion_factor_matches_hand_computation():
 def test_expected_electrons_needs_a_channel_axis_of_three():
     cfg = SensorConfig()
     k = electrons_per_radiance_second(cfg)
-    np.testing.assert_allclose(expected_electrons([1.0, 2.0, 3.0], cfg), [k[0], 2 * k[1], 3 * k[2]], rtol=1e-15)  # 1-D is fine
+    np.testing.assert_allclose(
+        expected_electrons([1.0, 2.0, 3.0], cfg), [k[0], 2 * k[1], 3 * k[2]], rtol=1e-15
+    )  # 1-D is fine
     for bad in (np.float64(1.0), np.zeros(2), np.zeros((4, 2))):
         with pytest.raises(ValueError, match=r"radiant exposure must end in a channel axis of 3, got shape"):
             expected_electrons(bad, cfg)
@@ -123,7 +127,9 @@ def test_floating_diffusion_and_adc_clipping_flagged():
     out = simulate_reads(flat([6000.0, 6000.0, 6000.0], 1000), [(0,), (0, 1), (0, 1, 2)], cfg, np.random.default_rng(3))
     assert not out.saturated[0].any() and not out.saturated[1].any()
     assert out.saturated[2].all()
-    assert np.allclose(dn_to_electrons(out.reads_dn[2], cfg), 15_000.0, atol=6 * cfg.read_noise_e + 2 / cfg.gain_dn_per_e)
+    assert np.allclose(
+        dn_to_electrons(out.reads_dn[2], cfg), 15_000.0, atol=6 * cfg.read_noise_e + 2 / cfg.gain_dn_per_e
+    )
     cfg_adc = ideal(gain_dn_per_e=2.0)  # 9000 e- * 2 DN/e + 256 > 16383
     out = simulate_reads(flat([9000.0], 1000), [(0,)], cfg_adc, np.random.default_rng(4))
     assert out.saturated.all() and np.all(out.reads_dn == cfg_adc.adc_max_dn)
@@ -187,8 +193,12 @@ def test_figure_11_in_pixel_addition_beats_read_then_add(signal_s):
     var_add_model = s_k + k * (r2 + q)
     for i in range(4):
         assert abs(j_in[i].mean() - s_k[i]) < N_SIGMA * np.sqrt(var_in_model[i] / n)
-        assert abs(j_in[i].var(ddof=1) - var_in_model[i]) < N_SIGMA * var_se(var_in_model[i], n, s_k[i] / var_in_model[i] ** 2)
-        assert abs(j_add[i].var(ddof=1) - var_add_model[i]) < N_SIGMA * var_se(var_add_model[i], n, s_k[i] / var_add_model[i] ** 2)
+        assert abs(j_in[i].var(ddof=1) - var_in_model[i]) < N_SIGMA * var_se(
+            var_in_model[i], n, s_k[i] / var_in_model[i] ** 2
+        )
+        assert abs(j_add[i].var(ddof=1) - var_add_model[i]) < N_SIGMA * var_se(
+            var_add_model[i], n, s_k[i] / var_add_model[i] ** 2
+        )
     snr_in = j_in.mean(axis=1) / j_in.std(axis=1)
     snr_add = j_add.mean(axis=1) / j_add.std(axis=1)
     assert np.all(snr_in[1:] > snr_add[1:])
@@ -234,8 +244,10 @@ def test_photon_transfer_curve_recovers_gain_read_noise_and_full_well():
     cov = np.linalg.inv(design.T @ (design * w[:, None]))
     slope, intercept = cov @ (design.T @ (w * var[lin]))
     se_slope, se_intercept = np.sqrt(np.diag(cov))
-    print(f"PTC: gain {slope:.5f} DN/e (true {g_true}, SE {se_slope:.5f}); "
-          f"intercept {intercept:.4f} DN^2 (SE {se_intercept:.4f})")
+    print(
+        f"PTC: gain {slope:.5f} DN/e (true {g_true}, SE {se_slope:.5f}); "
+        f"intercept {intercept:.4f} DN^2 (SE {se_intercept:.4f})"
+    )
     assert abs(slope - g_true) < N_SIGMA * se_slope
     read_noise_est = np.sqrt(max(intercept - 1 / 12, 0.0)) / slope
     # Propagated SE of R from the intercept: dR/dI = 1 / (2 g^2 R).
@@ -249,7 +261,9 @@ def test_photon_transfer_curve_recovers_gain_read_noise_and_full_well():
     peak = int(np.argmax(var))
     sat_e = mu[peak] / slope
     plateau_e = mu[-1] / slope
-    print(f"PTC: saturation (variance peak) {sat_e:.0f} e-, plateau {plateau_e:.0f} e- (full well {cfg.full_well_e:.0f})")
+    print(
+        f"PTC: saturation (variance peak) {sat_e:.0f} e-, plateau {plateau_e:.0f} e- (full well {cfg.full_well_e:.0f})"
+    )
     assert 0.9 * cfg.full_well_e < sat_e <= cfg.full_well_e
     assert plateau_e == pytest.approx(cfg.full_well_e, rel=0.01)
     assert var[-1] < 0.01 * var.max()
@@ -262,8 +276,19 @@ def _timeline(protocol: str, sequential: bool, periods: int = 4, unit_s: float =
     from mbcapture import protocols
     from mbcapture.config import config_from_dict
 
-    return protocols.build(config_from_dict({"scene": {"name": "flatfield"}, "capture": {
-        "protocol": protocol, "unit_exposure_s": unit_s, "periods": periods, "sequential": sequential}}))
+    return protocols.build(
+        config_from_dict(
+            {
+                "scene": {"name": "flatfield"},
+                "capture": {
+                    "protocol": protocol,
+                    "unit_exposure_s": unit_s,
+                    "periods": periods,
+                    "sequential": sequential,
+                },
+            }
+        )
+    )
 
 
 # storage time of each bucket, by hand, in units of T (N = 4 periods): from the bucket's first
@@ -293,8 +318,14 @@ def test_dark_current_accumulates_over_the_storage_time_of_every_bucket(protocol
     dark = 2e5  # e-/s: 3000 e- over 15 ms, below the 10 000 e- full well
     cfg = ideal(dark_current_e_per_s=dark, read_noise_e=0.0)
     n = 5_000
-    out = simulate_reads(np.zeros((4, 1, n, 1)), [r.buckets for r in tl.reads], cfg, np.random.SeedSequence(30),
-                         storage_s=tl.storage_s(), shared_photodiode=not sequential)
+    out = simulate_reads(
+        np.zeros((4, 1, n, 1)),
+        [r.buckets for r in tl.reads],
+        cfg,
+        np.random.SeedSequence(30),
+        storage_s=tl.storage_s(),
+        shared_photodiode=not sequential,
+    )
     mean_e = out.electrons.reshape(4, -1).mean(axis=1)
     for k in range(4):
         m = dark * want_s[k]
@@ -315,8 +346,15 @@ def test_prnu_is_one_fixed_pattern_shared_by_every_read():
     cumulative read of both, 5:1), and each read divided by its expectation is the sensor's PRNU
     map, identical in a second capture with another noise seed. Per-pixel tolerance: 5 sd of the
     shot noise of that pixel's own expected charge."""
-    cfg = ideal(prnu=0.2, read_noise_e=0.0, full_well_e=1e9, fd_full_well_e=4e9, adc_bits=24, gain_dn_per_e=1e-2,
-                black_level_dn=0.0)
+    cfg = ideal(
+        prnu=0.2,
+        read_noise_e=0.0,
+        full_well_e=1e9,
+        fd_full_well_e=4e9,
+        adc_bits=24,
+        gain_dn_per_e=1e-2,
+        black_level_dn=0.0,
+    )
     e = np.array([4e7, 1e7])  # buckets of 4T and T
     h, w = 8, 50
     exp_e = np.broadcast_to(e[:, None, None, None], (2, h, w, 3)).copy()
@@ -345,8 +383,9 @@ def test_transfer_inefficiency_alone_loses_its_fraction_once_per_bucket():
     thinned Poisson, mean = variance = (1 - eps) lambda_3 (a loss drawn afresh for each read would
     add 2 eps (1 - eps) lambda_4 = 320 e-^2 to that variance of 480)."""
     eps = 0.2
-    cfg = ideal(transfer_inefficiency=eps, read_noise_e=0.0, gain_dn_per_e=1.0, black_level_dn=0.0,
-                dark_current_e_per_s=0.0)
+    cfg = ideal(
+        transfer_inefficiency=eps, read_noise_e=0.0, gain_dn_per_e=1.0, black_level_dn=0.0, dark_current_e_per_s=0.0
+    )
     n = 40_000
     lam = np.array([0.0, 0.0, 600.0, 1000.0])
     out = simulate_reads(flat(list(lam), n), [(3,), (3, 2)], cfg, np.random.SeedSequence(33))
@@ -379,7 +418,9 @@ def test_parasitic_light_alone_adds_its_fraction_of_the_other_buckets_light():
     for k in range(3):
         assert abs(mean_e[k] - want[k]) < N_SIGMA * np.sqrt(want[k] / n), (k, mean_e[k], want[k])
     np.testing.assert_array_equal(out.reads_e_expected.reshape(3, -1), np.repeat(lam[:, None], n, axis=1))
-    seq = simulate_reads(flat(list(lam), n), [(0,), (1,), (2,)], cfg, np.random.SeedSequence(34), shared_photodiode=False)
+    seq = simulate_reads(
+        flat(list(lam), n), [(0,), (1,), (2,)], cfg, np.random.SeedSequence(34), shared_photodiode=False
+    )
     assert np.all(seq.electrons[1] == 0.0)
     assert abs(seq.electrons[0].mean() - lam[0]) < N_SIGMA * np.sqrt(lam[0] / n)
 
@@ -389,10 +430,18 @@ def test_simulate_reads_refuses_bad_input_naming_the_argument():
     ok = np.full((2, 1, 3, 3), 10.0)
     cases = [
         (np.full((2, 3, 3), 10.0), [(0,)], {}, r"^expected_bucket_e: expected shape \(K, H, W, C\), got \(2, 3, 3\)$"),
-        (np.where(np.arange(3) == 1, -1.0, 10.0) * np.ones((2, 1, 3, 3)), [(0,)], {},
-         r"^expected_bucket_e: values must be finite and >= 0$"),
-        (np.where(np.arange(3) == 1, np.nan, 10.0) * np.ones((2, 1, 3, 3)), [(0,)], {},
-         r"^expected_bucket_e: values must be finite and >= 0$"),
+        (
+            np.where(np.arange(3) == 1, -1.0, 10.0) * np.ones((2, 1, 3, 3)),
+            [(0,)],
+            {},
+            r"^expected_bucket_e: values must be finite and >= 0$",
+        ),
+        (
+            np.where(np.arange(3) == 1, np.nan, 10.0) * np.ones((2, 1, 3, 3)),
+            [(0,)],
+            {},
+            r"^expected_bucket_e: values must be finite and >= 0$",
+        ),
         (np.full((5, 1, 3, 3), 10.0), [(0,)], {}, r"^expected_bucket_e: 5 buckets but sensor.bucket_count is 4$"),
         (ok, [], {}, r"^reads: at least one read is needed$"),
         (ok, [(0,), ()], {}, r"^reads\[1\]: a read must sum at least one bucket$"),
@@ -429,8 +478,16 @@ def test_readout_chain_by_hand_with_fixed_noise_fields():
     signs; a 10-bit ADC whose top code the sum reaches exactly is flagged too; a read far below
     the black level clips to code 0 (not flagged). The noise argument may be a NoiseStreams itself,
     and the result lists the reads as given."""
-    cfg = SensorConfig(prnu=0.0, dsnu_e=2.0, read_noise_e=3.0, fd_full_well_e=200.0, gain_dn_per_e=4.0,
-                       black_level_dn=10.0, adc_bits=12, dark_current_e_per_s=0.0)
+    cfg = SensorConfig(
+        prnu=0.0,
+        dsnu_e=2.0,
+        read_noise_e=3.0,
+        fd_full_well_e=200.0,
+        gain_dn_per_e=4.0,
+        black_level_dn=10.0,
+        adc_bits=12,
+        dark_current_e_per_s=0.0,
+    )
     fpn = fixed_pattern((1, 4, 3), cfg)
     assert np.ptp(fpn.dsnu_offset_e) > 1.0  # a per-pixel map, not one offset
     exp_e = np.full((2, 1, 4, 3), 100.0)
@@ -440,8 +497,16 @@ def test_readout_chain_by_hand_with_fixed_noise_fields():
     np.testing.assert_array_equal(out.reads_dn[0], np.rint(4.0 * (100.0 + fpn.dsnu_offset_e + 3.0) + 10.0))
     np.testing.assert_array_equal(out.reads_dn[1], np.rint(4.0 * (200.0 + fpn.dsnu_offset_e + 3.0) + 10.0))
     assert not out.saturated[0].any() and out.saturated[1].all()
-    adc = cfg.model_copy(update={"fd_full_well_e": 1e6, "dsnu_e": 0.0, "read_noise_e": 0.0, "adc_bits": 10,
-                                 "gain_dn_per_e": 5.0, "black_level_dn": 23.0})  # 5 x 200 + 23 = 1023, the top code
+    adc = cfg.model_copy(
+        update={
+            "fd_full_well_e": 1e6,
+            "dsnu_e": 0.0,
+            "read_noise_e": 0.0,
+            "adc_bits": 10,
+            "gain_dn_per_e": 5.0,
+            "black_level_dn": 23.0,
+        }
+    )  # 5 x 200 + 23 = 1023, the top code
     top = simulate_reads(exp_e, [(0,), (0, 1)], adc, _FixedFields(0))
     np.testing.assert_array_equal(top.reads_dn, [np.full((1, 4, 3), 523.0), np.full((1, 4, 3), 1023.0)])
     assert not top.saturated[0].any() and top.saturated[1].all()
@@ -480,7 +545,10 @@ def test_the_sensor_stage_hook_sees_each_input_and_can_simulate_another():
     doubled = simulate_reads(2 * e, reads, cfg, np.random.SeedSequence(5), **kw)
     assert np.array_equal(out.reads_dn, doubled.reads_dn) and not np.array_equal(out.reads_dn, plain.reads_dn)
     assert np.array_equal(simulate_reads(e, reads, cfg, np.random.SeedSequence(5), **kw).reads_dn, plain.reads_dn)
-    with sensor_stage_hook(lambda x, simulate: simulate(x[:, :2])), pytest.raises(ValueError, match="sensor stage input"):
+    with (
+        sensor_stage_hook(lambda x, simulate: simulate(x[:, :2])),
+        pytest.raises(ValueError, match="sensor stage input"),
+    ):
         simulate_reads(e, reads, cfg, np.random.SeedSequence(5), **kw)
 
 
@@ -493,15 +561,26 @@ def test_row_and_column_fixed_pattern_and_row_noise_are_recovered_by_the_emva_sp
     from mbcapture.sensor import dn_to_electrons
 
     H, W, F = 384, 320, 24
-    cfg = SensorConfig(prnu=0.01, prnu_row=0.004, prnu_col=0.006, dsnu_e=1.0, dsnu_row_e=0.6, dsnu_col_e=0.8,
-                       read_noise_e=2.0, read_noise_row_e=0.5, dark_current_e_per_s=0.0, fpn_seed=3)
+    cfg = SensorConfig(
+        prnu=0.01,
+        prnu_row=0.004,
+        prnu_col=0.006,
+        dsnu_e=1.0,
+        dsnu_row_e=0.6,
+        dsnu_col_e=0.8,
+        read_noise_e=2.0,
+        read_noise_row_e=0.5,
+        dark_current_e_per_s=0.0,
+        fpn_seed=3,
+    )
     reads = [(k,) for k in range(F)]
     q_e2 = (1.0 / cfg.gain_dn_per_e) ** 2 / 12.0  # the ADC's rounding, in electrons^2
     t_pix = cfg.read_noise_e**2 + q_e2  # temporal variance per pixel and frame besides the row noise
 
     def series(level_e: float, seed: int) -> np.ndarray:
-        out = simulate_reads(np.full((F, H, W, 1), level_e), reads, cfg, np.random.SeedSequence(seed),
-                             shared_photodiode=False)
+        out = simulate_reads(
+            np.full((F, H, W, 1), level_e), reads, cfg, np.random.SeedSequence(seed), shared_photodiode=False
+        )
         return dn_to_electrons(out.reads_dn[..., 0], cfg)  # (F, H, W) electrons
 
     def within(got, want, sd, what):

@@ -17,8 +17,10 @@ W, H = 80, 64
 
 
 def renderer_of(name: str, *extra: str, width: int = W, height: int = H):
-    cfg = load_config(ROOT / "configs" / f"{name}.yaml",
-                      [f"render.width={width}", f"render.height={height}", "render.cache=off", *extra])
+    cfg = load_config(
+        ROOT / "configs" / f"{name}.yaml",
+        [f"render.width={width}", f"render.height={height}", "render.cache=off", *extra],
+    )
     scene, timeline, _, _ = prepare(cfg)
     span = float(timeline.seconds(timeline.start_tick)), float(timeline.seconds(timeline.end_tick))
     return scene, Renderer.from_config(scene, cfg, max_depth=2), span
@@ -61,8 +63,9 @@ def test_where_the_time_is_noise():
     from mbcapture.camera_motion import FRAME_MOTION_PX, frame_motion_px
 
     scene, r, (t0, t1) = renderer_of("multi_flash")
-    np.testing.assert_array_equal(changing_region(r, t0, t1, W, H),
-                                  moving_region(scene, t0, t1, W, H) | moving_shadows(r, t0, t1, W, H))
+    np.testing.assert_array_equal(
+        changing_region(r, t0, t1, W, H), moving_region(scene, t0, t1, W, H) | moving_shadows(r, t0, t1, W, H)
+    )
     scene, r, (t0, t1) = renderer_of("metronome_shake", width=160, height=128)
     assert 0 < frame_motion_px(scene, np.linspace(t0, t1, 64), 160, 128) < FRAME_MOTION_PX
     assert not moving_region(scene, t0, t1, 160, 128).all()

@@ -51,12 +51,16 @@ def test_camera_curves_keep_the_dataset_shape():
     np.testing.assert_array_equal(wl, msds.wavelengths)
     np.testing.assert_allclose(qe, np.asarray(msds.values).T * np.array([[0.3], [0.6], [0.5]]), rtol=1e-12, atol=0)
     assert np.all(qe.min(axis=1) < 0.05 * qe.max(axis=1))
-    with pytest.raises(ValueError, match="^spectral_response 'effective_wavelength' has no spectral curves; name a camera$"):
+    with pytest.raises(
+        ValueError, match="^spectral_response 'effective_wavelength' has no spectral curves; name a camera$"
+    ):
         channel_quantum_efficiency(SensorConfig())
 
 
 def test_unknown_camera_lists_valid_names():
-    with pytest.raises(ConfigError, match=r"sensor\.spectral_response.*unknown camera 'Nikon D9'.*effective_wavelength.*Nikon 5100"):
+    with pytest.raises(
+        ConfigError, match=r"sensor\.spectral_response.*unknown camera 'Nikon D9'.*effective_wavelength.*Nikon 5100"
+    ):
         config_from_dict({"render": {"variant": "llvm_ad_spectral"}, "sensor": {"spectral_response": "Nikon D9"}})
 
 
@@ -137,17 +141,26 @@ def test_narrowband_constant_spectrum_equals_effective_wavelength_model():
     srf = qe * centres[:, None] * 1e-9 / (PLANCK_J_S * SPEED_OF_LIGHT_M_PER_S)
     film = {"type": "specfilm", "width": 4, "height": 4, "rfilter": {"type": "box"}}
     for c, v in zip("RGB", srf):
-        film[c] = {"type": "regular", "wavelength_min": wl[0], "wavelength_max": wl[-1],
-                   "values": ", ".join(repr(float(x)) for x in v)}
+        film[c] = {
+            "type": "regular",
+            "wavelength_min": wl[0],
+            "wavelength_max": wl[-1],
+            "values": ", ".join(repr(float(x)) for x in v),
+        }
     L0 = 0.02
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 30, "film": film,
-                   "sampler": {"type": "independent", "sample_count": 1}},
-        "env": {"type": "constant", "radiance": {"type": "uniform", "value": L0}},
-    })
-    img = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "direct"}), spp=4096, seed=1),
-                     dtype=np.float64)
+    scene = mi.load_dict(
+        {
+            "type": "scene",
+            "sensor": {
+                "type": "perspective",
+                "fov": 30,
+                "film": film,
+                "sampler": {"type": "independent", "sample_count": 1},
+            },
+            "env": {"type": "constant", "radiance": {"type": "uniform", "value": L0}},
+        }
+    )
+    img = np.asarray(mi.render(scene, integrator=mi.load_dict({"type": "direct"}), spp=4096, seed=1), dtype=np.float64)
     rate_spectral = img.reshape(-1, 3).mean(axis=0) * electrons_per_film_second(cfg)
     in_band_radiance = L0 * np.trapezoid(shape, wl, axis=1)  # W m^-2 sr^-1 per channel
     rate_rgb = in_band_radiance * electrons_per_radiance_second(cfg)

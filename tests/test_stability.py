@@ -81,8 +81,15 @@ def upward_zero_crossings(p: Pendulum, t0: float, t1: float, n: int = 4001) -> n
 
 # (tempo bpm, amplitude deg): the scene's fastest tempo (400) and near its largest amplitude (< 90),
 # then the Pendulum class up to the closed form's limit near 180 deg
-EXTREMES = [(400.0, 89.99), (400.0, 1e-4), (30.0, 89.99), (400.0, 170.0), (400.0, 179.0), (400.0, 179.99),
-            (400.0, 179.996)]
+EXTREMES = [
+    (400.0, 89.99),
+    (400.0, 1e-4),
+    (30.0, 89.99),
+    (400.0, 170.0),
+    (400.0, 179.0),
+    (400.0, 179.99),
+    (400.0, 179.996),
+]
 
 
 @pytest.mark.parametrize("tempo,amp_deg", EXTREMES)
@@ -127,7 +134,7 @@ def test_stiff_damped_needle_uses_an_implicit_solver():
     # slow manifold: tan(theta/2) decays like exp(-omega0^2 t / gamma) once the speed has died
     late = np.array([0.2, 0.4])
     ratio = np.tan(p.angle_rad(late[1]) / 2) / np.tan(p.angle_rad(late[0]) / 2)
-    assert ratio == pytest.approx(math.exp(-p.omega0_rad_per_s**2 * 0.2 / gamma), rel=1e-6)
+    assert ratio == pytest.approx(math.exp(-(p.omega0_rad_per_s**2) * 0.2 / gamma), rel=1e-6)
 
 
 @pytest.mark.parametrize("gamma", [1e7, 1e12, 1e300])
@@ -171,8 +178,17 @@ def test_stiff_escapement_settles_on_the_exact_pendulum():
 def test_metronome_at_fastest_tempo_and_largest_amplitude_plans_finitely():
     from mbcapture.capture import prepare
 
-    c = load_config(TINY, ["render.width=32", "render.height=24", "scene.tempo_bpm=400", "scene.amplitude_deg=89.99",
-                           "render.max_motion_px=0.5", "render.spp=2"])
+    c = load_config(
+        TINY,
+        [
+            "render.width=32",
+            "render.height=24",
+            "scene.tempo_bpm=400",
+            "scene.amplitude_deg=89.99",
+            "render.max_motion_px=0.5",
+            "render.spp=2",
+        ],
+    )
     scene, timeline, plan, _ = prepare(c)
     assert plan.passes > 1 and np.all(np.isfinite(plan.times_s)) and np.all(np.isfinite(plan.weights_s))
     # the strata cover the capture exactly: the always-on ambient weights (ticks) sum to every exposure
@@ -293,9 +309,14 @@ def test_poisson_draws_stay_integer_and_within_a_few_sd_up_to_1e30():
 def test_exposure_ratio_2_to_the_20_in_a_custom_schedule():
     """Two independent reads, 1 us and 1.048576 s (ratio 2^20), exact in ticks; merged at rates where
     the short read sees 0.01 .. 9000 e-: finite, unbiased, the long read dropped once saturated."""
-    c = cfg(protocol="custom", periods=1, schedule={
-        "slots": [{"bucket": 1, "duration_s": 1e-6}, {"bucket": 2, "duration_s": 1.048576}],
-        "reads": [{"name": "short", "buckets": [1]}, {"name": "long", "buckets": [2]}]})
+    c = cfg(
+        protocol="custom",
+        periods=1,
+        schedule={
+            "slots": [{"bucket": 1, "duration_s": 1e-6}, {"bucket": 2, "duration_s": 1.048576}],
+            "reads": [{"name": "short", "buckets": [1]}, {"name": "long", "buckets": [2]}],
+        },
+    )
     tl = protocols.build(c)
     exp_ticks = [tl.read_exposure_ticks(r) for r in tl.reads]
     assert exp_ticks[1] == 2**20 * exp_ticks[0]
@@ -315,8 +336,9 @@ def test_exposure_ratio_2_to_the_20_in_a_custom_schedule():
 def test_twenty_one_cumulative_reads_spanning_2_to_the_20():
     """photon_efficient_hdr on a 21-bucket sensor: cumulative reads T .. 2^20 T; the ramp fit's
     min(t_i, t_j) matrix (condition number ~4e6) still gives unbiased, efficient rates."""
-    tl = protocols.build(cfg(protocol="photon_efficient_hdr", unit_exposure_s=1e-6, periods=1,
-                             sensor={"bucket_count": 21}))
+    tl = protocols.build(
+        cfg(protocol="photon_efficient_hdr", unit_exposure_s=1e-6, periods=1, sensor={"bucket_count": 21})
+    )
     t = np.array([float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads])
     assert np.allclose(t / t[0], 2.0 ** np.arange(21), rtol=0)
     slot_t = np.array([float(tl.exposure_ticks(k) * tl.tick_s) for k in range(21)])
@@ -348,8 +370,9 @@ def test_ramp_fit_with_one_unsaturated_read_has_its_single_read_sigma():
     x = dn_to_electrons(out.reads_dn[0], c)[one]
     np.testing.assert_allclose(res.rate_e_per_s[one], x / CUM_T[0], rtol=1e-12)
     lam = np.maximum(res.rate_e_per_s[one], 0)
-    np.testing.assert_allclose(res.sigma_e_per_s[one], np.sqrt(lam * CUM_T[0] + quantization_read_variance_e2(c)) / CUM_T[0],
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        res.sigma_e_per_s[one], np.sqrt(lam * CUM_T[0] + quantization_read_variance_e2(c)) / CUM_T[0], rtol=1e-12
+    )
 
 
 @pytest.mark.parametrize("method", ["ramp_fit", "inverse_variance", "debevec"])
@@ -441,10 +464,19 @@ def test_electrons_over_all_buckets_equal_incident_times_gated_fraction(durs, bu
     span = tl.end_tick - tl.start_tick
     edges = np.unique(np.linspace(tl.start_tick, tl.end_tick, 7).round().astype(np.int64))
     w = tl.weights_ticks(edges, ("field",), frozenset())
-    plan = Plan(starts_ticks=edges[:-1], ends_ticks=edges[1:], times_s=np.zeros(len(edges) - 1),
-                weights_s=w.astype(np.float64) * float(tl.tick_s), groups=("field",), buckets_read=(0, 1, 2),
-                spp=np.full(len(edges) - 1, 2), max_motion_px=1.0, motion_px_total=0.0, coarsened=False,
-                left_out_groups=())
+    plan = Plan(
+        starts_ticks=edges[:-1],
+        ends_ticks=edges[1:],
+        times_s=np.zeros(len(edges) - 1),
+        weights_s=w.astype(np.float64) * float(tl.tick_s),
+        groups=("field",),
+        buckets_read=(0, 1, 2),
+        spp=np.full(len(edges) - 1, 2),
+        max_motion_px=1.0,
+        motion_px_total=0.0,
+        coarsened=False,
+        left_out_groups=(),
+    )
     exposure = integrate(ConstantRenderer({"field": level}), plan, 3, np.random.SeedSequence(0)).exposure
     gated_ticks = sum(s.ticks for s in tl.segments[0].slots if s.bucket != DRAIN) * periods
     gated_fraction = Fraction(gated_ticks, span)
@@ -490,24 +522,54 @@ BAD_INPUT = [
     ("unknown key", "scene: {name: flatfield}\nrender: {widht: 32}\n", [], "render.widht: unknown key"),
     ("wrong type", None, ["capture.periods=many"], "capture.periods"),
     ("negative duration", None, ["capture.unit_exposure_s=-0.001"], "capture.unit_exposure_s"),
-    ("zero duration", None, ["capture.protocol=custom",
-                             "capture.schedule={slots: [{bucket: 1, duration_s: 0}], reads: [{buckets: [1]}]}"],
-     "capture.schedule.slots.0.duration_s"),
-    ("infinite duration", None, ["capture.protocol=custom",
-                                 "capture.schedule={slots: [{bucket: 1, duration_s: .inf}], reads: [{buckets: [1]}]}"],
-     "capture.schedule.slots.0.duration_s: expected a finite number"),
+    (
+        "zero duration",
+        None,
+        ["capture.protocol=custom", "capture.schedule={slots: [{bucket: 1, duration_s: 0}], reads: [{buckets: [1]}]}"],
+        "capture.schedule.slots.0.duration_s",
+    ),
+    (
+        "infinite duration",
+        None,
+        [
+            "capture.protocol=custom",
+            "capture.schedule={slots: [{bucket: 1, duration_s: .inf}], reads: [{buckets: [1]}]}",
+        ],
+        "capture.schedule.slots.0.duration_s: expected a finite number",
+    ),
     ("nan phase", None, ["scene.phase_s=.nan"], "scene.phase_s: expected a finite number"),
     ("zero periods", None, ["capture.periods=0"], "capture.periods"),
-    ("too many buckets", None, ["sensor.bucket_count=2", "capture.protocol=interleaved_hdr", "capture.protocol=custom",
-                                "capture.schedule={slots: [{bucket: 3, duration_s: 0.001}], reads: [{buckets: [3]}]}"],
-     "needs 3 buckets but sensor.bucket_count is 2"),
-    ("read never lit", None, ["capture.protocol=custom",
-                              "capture.schedule={slots: [{bucket: 1, duration_s: 0.001}], reads: [{buckets: [2]}]}"],
-     "never collect light"),
-    ("2^62 ticks", None, ["capture.protocol=custom", "capture.periods=10000000",
-                          "capture.schedule={slots: [{bucket: 1, duration_s: 0.3333333333333333}, {bucket: 2, duration_s: 0.001}], "
-                          "reads: [{buckets: [1]}]}"],
-     "2^62 ticks"),
+    (
+        "too many buckets",
+        None,
+        [
+            "sensor.bucket_count=2",
+            "capture.protocol=interleaved_hdr",
+            "capture.protocol=custom",
+            "capture.schedule={slots: [{bucket: 3, duration_s: 0.001}], reads: [{buckets: [3]}]}",
+        ],
+        "needs 3 buckets but sensor.bucket_count is 2",
+    ),
+    (
+        "read never lit",
+        None,
+        [
+            "capture.protocol=custom",
+            "capture.schedule={slots: [{bucket: 1, duration_s: 0.001}], reads: [{buckets: [2]}]}",
+        ],
+        "never collect light",
+    ),
+    (
+        "2^62 ticks",
+        None,
+        [
+            "capture.protocol=custom",
+            "capture.periods=10000000",
+            "capture.schedule={slots: [{bucket: 1, duration_s: 0.3333333333333333}, {bucket: 2, duration_s: 0.001}], "
+            "reads: [{buckets: [1]}]}",
+        ],
+        "2^62 ticks",
+    ),
     ("missing scene", None, ["scene.name=atlantis"], "scene.name: unknown scene 'atlantis'"),
     ("missing config file", "MISSING", [], "config file not found"),
 ]
@@ -558,8 +620,12 @@ def test_unwritable_output_folder(tmp_path, capsys):
 
 def test_exit_status_is_2_from_a_real_process(tmp_path):
     out = tmp_path / "o"
-    proc = subprocess.run([sys.executable, "-m", "mbcapture", "run", TINY, "--out", out, "--set", "capture.periods=0"],
-                          cwd=ROOT, capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "mbcapture", "run", TINY, "--out", out, "--set", "capture.periods=0"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "capture.periods" in proc.stderr
     assert not out.exists()
 
@@ -606,9 +672,31 @@ def snapshot(folder: Path) -> dict[str, bytes]:
 
 def start_slow_run(tmp_path, out, seed):
     flag = tmp_path / f"flag{seed}"
-    proc = subprocess.Popen([sys.executable, "-c", SLOW_WRITER, flag, "run", TINY, "--out", out, "--quiet",
-                             "--set", "render.width=16", "--set", "render.height=12", "--set", "render.spp=2",
-                             "--set", f"seed={seed}"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            SLOW_WRITER,
+            flag,
+            "run",
+            TINY,
+            "--out",
+            out,
+            "--quiet",
+            "--set",
+            "render.width=16",
+            "--set",
+            "render.height=12",
+            "--set",
+            "render.spp=2",
+            "--set",
+            f"seed={seed}",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.monotonic() + 120
     while not flag.exists():
         assert proc.poll() is None, proc.communicate()
@@ -643,8 +731,9 @@ def test_killed_and_terminated_runs_keep_previous_outputs(tmp_path):
     assert snapshot(out) == before
     # the killed run's folder is still there (this run ended before committing anything)...
     # ... and the next successful run removes it and replaces every file
-    run_capture(load_config(TINY, ["render.width=16", "render.height=12", "render.spp=2", "seed=7"]), out,
-                progress=False)
+    run_capture(
+        load_config(TINY, ["render.width=16", "render.height=12", "render.spp=2", "seed=7"]), out, progress=False
+    )
     after = snapshot(out)
     assert not any(p.name.startswith(".staging-") for p in out.iterdir())
     assert set(after) == set(before) and after["report.json"] != before["report.json"]
@@ -668,8 +757,16 @@ def test_flat_field_at_zero_and_a_million_full_wells(tmp_path, radiance, expect)
     from mbcapture import run_capture
     from mbcapture.io import read_exr
 
-    c = load_config(None, ["scene.name=flatfield", f"scene.radiance=[{radiance}, {radiance}, {radiance}]",
-                           "render.width=32", "render.height=24", "render.spp=2"])
+    c = load_config(
+        None,
+        [
+            "scene.name=flatfield",
+            f"scene.radiance=[{radiance}, {radiance}, {radiance}]",
+            "render.width=32",
+            "render.height=24",
+            "render.spp=2",
+        ],
+    )
     res = run_capture(c, tmp_path / "o", progress=False)
     img = read_exr(tmp_path / "o" / "hdr.exr")
     assert all(np.all(np.isfinite(v[np.isfinite(v)])) for v in img.values())
@@ -715,7 +812,12 @@ def test_multi_flash_ratio_images_where_the_max_is_zero():
         raskar_depth_edges,
     )
 
-    eps = [Epipole(False, (1.0, 0.0)), Epipole(False, (-1.0, 0.0)), Epipole(False, (0.0, 1.0)), Epipole(False, (0.0, -1.0))]
+    eps = [
+        Epipole(False, (1.0, 0.0)),
+        Epipole(False, (-1.0, 0.0)),
+        Epipole(False, (0.0, 1.0)),
+        Epipole(False, (0.0, -1.0)),
+    ]
     d = raskar_depth_edges(np.zeros((4, 24, 32, 3)), eps)
     assert np.all(d.ratios == 0.0) and not d.valid.any() and not d.edges.any()
     rng = np.random.default_rng(32)

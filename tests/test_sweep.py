@@ -30,21 +30,34 @@ TINY = {"render.width": 16, "render.height": 12, "render.spp": 4}
 
 
 # ------------------------------------------------------------------------------ sweep files
-@pytest.mark.parametrize("data,message", [
-    ({"base": "tiny_hdr", "axis": {"grid": {"seed": [0]}}}, "axis: unknown key; did you mean axes?"),
-    ({"base": "tiny_hdr", "axes": {"grid": {"capture.perids": [1, 2]}}},
-     "axes.grid capture.perids=1: capture.perids: unknown key; did you mean capture.periods?"),
-    ({"base": "tiny_hdr", "axes": {"grid": {"sensor.read_noise_e": [1, "loud"]}}},
-     "axes.grid sensor.read_noise_e=loud: sensor.read_noise_e: Input should be a valid number"),
-    ({"base": "tiny_hdr", "axes": {"zip": [{"seed": [0, 1], "sensor.read_noise_e": [1]}]}},
-     "the lists of a zip group must have one, non-zero length"),
-    ({"base": "tiny_hdr", "set": {"seed": 2}, "axes": {"grid": {"seed": [0, 1]}}}, "set: seed is also an axis"),
-    ({"base": "nope", "axes": {"grid": {"seed": [0]}}}, "base: nope: config file not found"),
-    ({"base": "tiny_hdr", "axes": {"random": {"samples": 4, "keys": {"sensor.full_well_e": {"low": 0, "high": 9,
-                                                                                          "log": True}}}}},
-     "log: true needs low > 0"),
-    ({"base": "tiny_hdr", "axes": {}}, "no key varies"),
-])
+@pytest.mark.parametrize(
+    "data,message",
+    [
+        ({"base": "tiny_hdr", "axis": {"grid": {"seed": [0]}}}, "axis: unknown key; did you mean axes?"),
+        (
+            {"base": "tiny_hdr", "axes": {"grid": {"capture.perids": [1, 2]}}},
+            "axes.grid capture.perids=1: capture.perids: unknown key; did you mean capture.periods?",
+        ),
+        (
+            {"base": "tiny_hdr", "axes": {"grid": {"sensor.read_noise_e": [1, "loud"]}}},
+            "axes.grid sensor.read_noise_e=loud: sensor.read_noise_e: Input should be a valid number",
+        ),
+        (
+            {"base": "tiny_hdr", "axes": {"zip": [{"seed": [0, 1], "sensor.read_noise_e": [1]}]}},
+            "the lists of a zip group must have one, non-zero length",
+        ),
+        ({"base": "tiny_hdr", "set": {"seed": 2}, "axes": {"grid": {"seed": [0, 1]}}}, "set: seed is also an axis"),
+        ({"base": "nope", "axes": {"grid": {"seed": [0]}}}, "base: nope: config file not found"),
+        (
+            {
+                "base": "tiny_hdr",
+                "axes": {"random": {"samples": 4, "keys": {"sensor.full_well_e": {"low": 0, "high": 9, "log": True}}}},
+            },
+            "log: true needs low > 0",
+        ),
+        ({"base": "tiny_hdr", "axes": {}}, "no key varies"),
+    ],
+)
 def test_sweep_file_errors_name_the_file_and_key(tmp_path, data, message):
     path = write_sweep(tmp_path, data)
     with pytest.raises(ConfigError) as err:
@@ -57,10 +70,12 @@ def test_cli_refuses_a_bad_sweep_with_one_line_and_writes_nothing(tmp_path, caps
 
     path = write_sweep(tmp_path, {"base": "tiny_hdr", "axes": {"grid": {"sensor.read_noise_e": [1, 2]}}})
     out = tmp_path / "out"
-    for args, message in ((["--set", "sensor.read_noise_e=3"], "sensor.read_noise_e is an axis of"),
-                          (["--set", "render.sp=4"], "render.sp: unknown key; did you mean render.spp?"),
-                          (["--workers", "0"], "--workers: expected a number of processes >= 1"),
-                          (["--scheduler", "tcp://127.0.0.1:9"], "--scheduler tcp://127.0.0.1:9: cannot connect")):
+    for args, message in (
+        (["--set", "sensor.read_noise_e=3"], "sensor.read_noise_e is an axis of"),
+        (["--set", "render.sp=4"], "render.sp: unknown key; did you mean render.spp?"),
+        (["--workers", "0"], "--workers: expected a number of processes >= 1"),
+        (["--scheduler", "tcp://127.0.0.1:9"], "--scheduler tcp://127.0.0.1:9: cannot connect"),
+    ):
         assert main(["sweep", str(path), "--out", str(out), *args]) == 2
         err = capsys.readouterr().err
         assert err.startswith("mbcapture: error: ") and message in err and err.count("\n") == 1, err
@@ -69,22 +84,38 @@ def test_cli_refuses_a_bad_sweep_with_one_line_and_writes_nothing(tmp_path, caps
 
 
 def test_points_are_the_product_of_grid_zip_and_random_samples(tmp_path):
-    path = write_sweep(tmp_path, {"base": "tiny_hdr", "axes": {
-        "grid": {"seed": [0, 1], "capture.periods": [2, 4, 8]},
-        "zip": [{"sensor.read_noise_e": [1.0, 2.0], "sensor.adc_bits": [12, 14]}],
-        "random": {"samples": 5, "seed": 7, "keys": {
-            "sensor.full_well_e": {"low": 1000, "high": 100000, "log": True},
-            "sensor.fpn_seed": {"low": 0, "high": 4, "integer": True},
-            "hdr.method": {"choices": ["ramp_fit", "inverse_variance"]}}}}})
+    path = write_sweep(
+        tmp_path,
+        {
+            "base": "tiny_hdr",
+            "axes": {
+                "grid": {"seed": [0, 1], "capture.periods": [2, 4, 8]},
+                "zip": [{"sensor.read_noise_e": [1.0, 2.0], "sensor.adc_bits": [12, 14]}],
+                "random": {
+                    "samples": 5,
+                    "seed": 7,
+                    "keys": {
+                        "sensor.full_well_e": {"low": 1000, "high": 100000, "log": True},
+                        "sensor.fpn_seed": {"low": 0, "high": 4, "integer": True},
+                        "hdr.method": {"choices": ["ramp_fit", "inverse_variance"]},
+                    },
+                },
+            },
+        },
+    )
     sweep = load_sweep(path)
     assert len(sweep.points) == 2 * 3 * 2 * 5
     first, last = sweep.points[0].values, sweep.points[-1].values
     assert (first["seed"], first["capture.periods"], first["sensor.read_noise_e"]) == (0, 2, 1.0)
     assert (last["seed"], last["capture.periods"], last["sensor.adc_bits"]) == (1, 8, 14)
-    assert sweep.points[5].config.capture.periods == 2 and sweep.points[5].config.sensor.adc_bits == 14  # random varies fastest
+    assert (
+        sweep.points[5].config.capture.periods == 2 and sweep.points[5].config.sensor.adc_bits == 14
+    )  # random varies fastest
     # seeded: the same samples again; a Latin hypercube: one sample in each fifth of log(range)
     again = load_sweep(path)
-    assert [p.values for p in again.points] == [p.values for p in sweep.points] and sweep.points[0].id == again.points[0].id
+    assert [p.values for p in again.points] == [p.values for p in sweep.points] and sweep.points[0].id == again.points[
+        0
+    ].id
     samples = [p.values for p in sweep.points[:5]]
     strata = sorted(int(np.log(s["sensor.full_well_e"] / 1000) / np.log(100) * 5) for s in samples)
     assert strata == [0, 1, 2, 3, 4]
@@ -114,9 +145,18 @@ def test_group_key_changes_exactly_with_what_the_renders_receive():
     seed, film, scene, schedule and (with the noise budget) the light per electron change it."""
     base = ["render.width=16", "render.height=12", "render.spp=4"]
     key = group_key(load_config("tiny_hdr", base))
-    same = ["sensor.read_noise_e=9", "sensor.full_well_e=3000", "sensor.f_number=8", "sensor.noise_seed=5",
-            "sensor.adc_bits=10", "sensor.prnu=0.05", "hdr.method=inverse_variance", "output.png_percentile=90",
-            "render.cache=off", "sensor.frame_readout_s=0.1"]
+    same = [
+        "sensor.read_noise_e=9",
+        "sensor.full_well_e=3000",
+        "sensor.f_number=8",
+        "sensor.noise_seed=5",
+        "sensor.adc_bits=10",
+        "sensor.prnu=0.05",
+        "hdr.method=inverse_variance",
+        "output.png_percentile=90",
+        "render.cache=off",
+        "sensor.frame_readout_s=0.1",
+    ]
     for change in same:
         assert group_key(load_config("tiny_hdr", [*base, change])) == key, change
     # one stratum at this size (render.max_motion_px 2): N periods weigh it alike, the renders are the same;
@@ -124,14 +164,24 @@ def test_group_key_changes_exactly_with_what_the_renders_receive():
     assert group_key(load_config("tiny_hdr", [*base, "capture.periods=4"])) == key
     fine = [*base, "render.max_motion_px=0.01"]
     assert group_key(load_config("tiny_hdr", [*fine, "capture.periods=4"])) != group_key(load_config("tiny_hdr", fine))
-    other = ["seed=4", "render.width=18", "render.spp=6", "scene.tempo_bpm=90", "capture.unit_exposure_s=0.002",
-             "render.max_motion_px=0.01", "capture.protocol=interleaved_hdr", "capture.sequential=true",
-             "render.max_depth=2"]
+    other = [
+        "seed=4",
+        "render.width=18",
+        "render.spp=6",
+        "scene.tempo_bpm=90",
+        "capture.unit_exposure_s=0.002",
+        "render.max_motion_px=0.01",
+        "capture.protocol=interleaved_hdr",
+        "capture.sequential=true",
+        "render.max_depth=2",
+    ]
     for change in other:
         assert group_key(load_config("tiny_hdr", [*base, change])) != key, change
     # a sequential capture reads sensor.frame_readout_s (the gap between frames): then it counts
     seq = [*base, "capture.sequential=true"]
-    assert group_key(load_config("tiny_hdr", [*seq, "sensor.frame_readout_s=0.1"])) != group_key(load_config("tiny_hdr", seq))
+    assert group_key(load_config("tiny_hdr", [*seq, "sensor.frame_readout_s=0.1"])) != group_key(
+        load_config("tiny_hdr", seq)
+    )
     # the noise budget chooses samples from the sensor's shot noise: light per electron and full well count
     budget = ["render.width=16", "render.height=12", "render.spp=null"]
     bkey = group_key(load_config("tiny_hdr", budget))
@@ -139,8 +189,13 @@ def test_group_key_changes_exactly_with_what_the_renders_receive():
     assert group_key(load_config("tiny_hdr", [*budget, "sensor.f_number=8"])) != bkey
     assert group_key(load_config("tiny_hdr", [*budget, "sensor.full_well_e=3000"])) != bkey
     # figure 6's strata at 1 and 2 periods: other weights (another render group), the same images
-    fig6 = ["render.spp=4", "capture.unit_exposure_s=0.004", "render.max_motion_px=0.1", "render.width=160",
-            "render.height=128"]
+    fig6 = [
+        "render.spp=4",
+        "capture.unit_exposure_s=0.004",
+        "render.max_motion_px=0.1",
+        "render.width=160",
+        "render.height=128",
+    ]
     one, two = (load_config("metronome_hdr", [*fig6, f"capture.periods={n}"]) for n in (1, 2))
     assert group_key(one) != group_key(two) and render_key(one) == render_key(two)
     assert render_key(load_config("metronome_hdr", [*fig6, "capture.periods=1", "seed=5"])) != render_key(one)
@@ -186,9 +241,15 @@ def tiny_sweep(tmp_path_factory, client):
     on the cluster with a render cache of its own; keep: all. For the session: once per test process,
     even where another module's tests run between this module's."""
     folder = tmp_path_factory.mktemp("sweep")
-    path = write_sweep(folder, {"base": "tiny_hdr", "set": {**TINY, "render.cache": str(folder / "cache")},
-                                "axes": {"zip": [{"seed": [0, 0, 1], "sensor.read_noise_e": [1.0, 20.0, 1.0]}]},
-                                "keep": "all"})
+    path = write_sweep(
+        folder,
+        {
+            "base": "tiny_hdr",
+            "set": {**TINY, "render.cache": str(folder / "cache")},
+            "axes": {"zip": [{"seed": [0, 0, 1], "sensor.read_noise_e": [1.0, 20.0, 1.0]}]},
+            "keep": "all",
+        },
+    )
     sweep = load_sweep(path)
     out = folder / "out"
     outcome = run_sweep(sweep, out, client=client, progress=False)
@@ -206,7 +267,9 @@ def test_tiny_sweep_renders_each_group_once(tiny_sweep):
     leaders, follower = [rows[0], rows[2]], rows[1]  # the first point of each seed renders, p0001 takes p0000's
     # a leader renders what one capture renders (2 halves per stratum), nothing comes from elsewhere
     passes = leaders[0]["passes"]
-    assert all(r["renders_rendered"] == 2 * passes and r["renders_reused"] == 0 and not r["render_shared"] for r in leaders)
+    assert all(
+        r["renders_rendered"] == 2 * passes and r["renders_reused"] == 0 and not r["render_shared"] for r in leaders
+    )
     assert follower["renders_rendered"] == 0 and follower["renders_reused"] == 0 and follower["render_shared"]
     assert s["renders_rendered"] == 4 * passes and s["points_sharing_renders"] == 1
     # the table: one row per point, in Parquet and CSV alike, with the axes and the metrics
@@ -268,10 +331,23 @@ def test_a_failing_point_is_recorded_and_the_others_finish(tmp_path, client):
     asks for more buckets than its sensor has (fails while the sweep is planned)."""
     import pandas as pd
 
-    path = write_sweep(tmp_path, {"base": "tiny_hdr", "set": TINY, "axes": {"zip": [{
-        "app.name": ["hdr", "multi_flash", "flash_matting"],
-        "capture.protocol": ["photon_efficient_hdr", "photon_efficient_hdr", "flash_matting"],
-        "sensor.bucket_count": [4, 4, 2]}]}, "keep": "none"})
+    path = write_sweep(
+        tmp_path,
+        {
+            "base": "tiny_hdr",
+            "set": TINY,
+            "axes": {
+                "zip": [
+                    {
+                        "app.name": ["hdr", "multi_flash", "flash_matting"],
+                        "capture.protocol": ["photon_efficient_hdr", "photon_efficient_hdr", "flash_matting"],
+                        "sensor.bucket_count": [4, 4, 2],
+                    }
+                ]
+            },
+            "keep": "none",
+        },
+    )
     outcome = run_sweep(load_sweep(path), tmp_path / "out", client=client, progress=False)
     rows = outcome.rows
     assert rows[0]["status"] == "ok" and rows[0]["metrics.hdr_rel_mse"] > 0
@@ -290,8 +366,12 @@ def test_the_executor_is_this_process_for_one_set_of_renders_and_dask_otherwise(
     from mbcapture.sweep import choose_executor
 
     one = SimpleNamespace(groups=(SimpleNamespace(points=(0, 1, 2), renders="a"),))
-    two = SimpleNamespace(groups=(SimpleNamespace(points=(0, 1), renders="a"), SimpleNamespace(points=(2,), renders="b")))
-    shared = SimpleNamespace(groups=(SimpleNamespace(points=(0,), renders="a"), SimpleNamespace(points=(1,), renders="a")))
+    two = SimpleNamespace(
+        groups=(SimpleNamespace(points=(0, 1), renders="a"), SimpleNamespace(points=(2,), renders="b"))
+    )
+    shared = SimpleNamespace(
+        groups=(SimpleNamespace(points=(0,), renders="a"), SimpleNamespace(points=(1,), renders="a"))
+    )
     free = {"workers": None, "scheduler": None, "client": None, "in_process": None}
     assert choose_executor(one, {0, 1, 2}, **free)
     assert choose_executor(shared, {0, 1}, **free)  # two groups (e.g. per-group exposures) on the same images
@@ -308,9 +388,14 @@ def test_a_sweep_of_one_render_set_runs_here_and_shares_its_error_estimates(tmp_
     computed once per full well and light level and equals a capture's own."""
     from mbcapture.capture import run_capture
 
-    path = write_sweep(tmp_path, {"base": "tiny_hdr", "set": {**TINY, "render.cache": "off"},
-                                  "axes": {"grid": {"sensor.full_well_e": [5000.0, 9000.0],
-                                                    "sensor.read_noise_e": [1.0, 20.0]}}})
+    path = write_sweep(
+        tmp_path,
+        {
+            "base": "tiny_hdr",
+            "set": {**TINY, "render.cache": "off"},
+            "axes": {"grid": {"sensor.full_well_e": [5000.0, 9000.0], "sensor.read_noise_e": [1.0, 20.0]}},
+        },
+    )
     sweep = load_sweep(path)
     outcome = run_sweep(sweep, tmp_path / "out", progress=False, keep_results=True)
     assert outcome.summary["executor"] == "this process (no Dask)" and outcome.summary["ok"] == 4
@@ -339,8 +424,13 @@ def test_an_application_that_says_it_renders_nothing_renders_nothing_on_shared_r
 
     for method in ("render", "render_rows", "render_pixels", "render_path", "raw_render", "_ensure_loaded", "set_time"):
         monkeypatch.setattr(Renderer, method, refuse)
-    again = run_capture(load_config(config, ["render.width=16", "render.height=12", "render.spp=4", "render.cache=off",
-                                             "sensor.read_noise_e=7"]), progress=False, rendered=kept["rendered"])
+    again = run_capture(
+        load_config(
+            config, ["render.width=16", "render.height=12", "render.spp=4", "render.cache=off", "sensor.read_noise_e=7"]
+        ),
+        progress=False,
+        rendered=kept["rendered"],
+    )
     assert again.images
 
 

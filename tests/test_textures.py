@@ -36,7 +36,7 @@ def _png(path, rgb_u8):
 def _two_colour(h=8, w=16):
     img = np.zeros((h, w, 3), np.uint8)
     img[:, : w // 2] = (200, 30, 10)
-    img[:, w // 2:] = (10, 40, 220)
+    img[:, w // 2 :] = (10, 40, 220)
     return img
 
 
@@ -91,8 +91,10 @@ OBJ_QUAD = "v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nvt 0 0\nf 1 2 3\nf 1 3 4\n"
 
 
 def _binary_ply(n_faces_written: int = 2) -> bytes:
-    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
-              "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n").encode()
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+    ).encode()
     verts = struct.pack("<12f", -1, -1, 0, 1, -1, 0, 1, 1, 0, -1, 1, 0)
     faces = [struct.pack("<B3i", 3, 0, 1, 2), struct.pack("<B3i", 3, 0, 2, 3)]
     return header + verts + b"".join(faces[:n_faces_written])
@@ -106,7 +108,9 @@ def test_mesh_checks(tmp_path):
     (tmp_path / "cut.ply").write_bytes(_binary_ply(1))
     (tmp_path / "bad.obj").write_text(OBJ_QUAD + "f 1 2 9\n")
     for name, msg in [("cut.ply", "truncated PLY"), ("bad.obj", "corrupt OBJ: line 8"), ("none.ply", "file not found")]:
-        build = SceneBuild(shapes=(Shape("statue", "mesh", np.eye(4), Material((0.5, 0.5, 0.5)), mesh=str(tmp_path / name)),))
+        build = SceneBuild(
+            shapes=(Shape("statue", "mesh", np.eye(4), Material((0.5, 0.5, 0.5)), mesh=str(tmp_path / name)),)
+        )
         with pytest.raises(ConfigError, match=rf"shape 'statue': mesh .*{name}: {msg}"):
             build.check_files("demo")
     with pytest.raises(ConfigError, match="kind 'mesh' needs a mesh file"):
@@ -124,7 +128,12 @@ def test_d65_radiance_with_unit_luminance_is_rgb_white():
     import colour
 
     d65 = colour.SDS_ILLUMINANTS["D65"].copy().align(colour.SpectralShape(360, 830, 1))
-    ybar = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(colour.SpectralShape(360, 830, 1)).values[:, 1]
+    ybar = (
+        colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
+        .copy()
+        .align(colour.SpectralShape(360, 830, 1))
+        .values[:, 1]
+    )
     k = 1.0 / np.trapezoid(ybar * d65.values, d65.wavelengths)
     rgb = spectrum_to_rgb_radiance(Spectrum.from_sd(d65, scale=2.0 * k))
     np.testing.assert_allclose(rgb, (2.0, 2.0, 2.0), rtol=3e-3)
@@ -139,8 +148,14 @@ def test_spectrum_validation():
 
 # -- renders -------------------------------------------------------------------------------------
 def _poster_scene(build: SceneBuild, groups=("sky",)) -> SceneModel:
-    return SceneModel(name="poster", groups=groups, switchable=frozenset(),
-                      camera=Camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 40.0), build=build, params=None)
+    return SceneModel(
+        name="poster",
+        groups=groups,
+        switchable=frozenset(),
+        camera=Camera((0.0, 0.0, 2.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 40.0),
+        build=build,
+        params=None,
+    )
 
 
 @pytest.mark.render
@@ -148,15 +163,19 @@ def test_texture_renders_in_place_and_missing_file_fails_before_mitsuba(tmp_path
     from mbcapture.render import Renderer
 
     path = _png(tmp_path / "poster.png", _two_colour())
-    build = SceneBuild(shapes=(Shape("poster", "rectangle", scale(3.0), Material(Texture(str(path)))),),
-                       environment=Environment("sky", (1.0, 1.0, 1.0)))
+    build = SceneBuild(
+        shapes=(Shape("poster", "rectangle", scale(3.0), Material(Texture(str(path)))),),
+        environment=Environment("sky", (1.0, 1.0, 1.0)),
+    )
     img = Renderer(_poster_scene(build), 32, 16, max_depth=2).render(0.0, 16, 1)[0]
     # Lambertian under a uniform unit sky: radiance = linear albedo (sRGB-decoded texel)
     lin = lambda v: ((np.asarray(v) / 255 + 0.055) / 1.055) ** 2.4  # noqa: E731
     np.testing.assert_allclose(img[:, 4:12].mean(axis=(0, 1)), lin([200, 30, 10]), rtol=0.03, atol=2e-3)
     np.testing.assert_allclose(img[:, 20:28].mean(axis=(0, 1)), lin([10, 40, 220]), rtol=0.03, atol=2e-3)
-    gone = SceneBuild(shapes=(Shape("poster", "rectangle", scale(3.0), Material(Texture(str(tmp_path / "x.png")))),),
-                      environment=Environment("sky", (1.0, 1.0, 1.0)))
+    gone = SceneBuild(
+        shapes=(Shape("poster", "rectangle", scale(3.0), Material(Texture(str(tmp_path / "x.png")))),),
+        environment=Environment("sky", (1.0, 1.0, 1.0)),
+    )
     with pytest.raises(ConfigError, match=r"scene 'poster', shape 'poster': texture .*x\.png: file not found"):
         Renderer(_poster_scene(gone), 32, 16)
 
@@ -168,8 +187,10 @@ def test_mesh_renders_like_the_rectangle(tmp_path):
     (tmp_path / "q.obj").write_text(OBJ_QUAD)
     imgs = []
     for kind, mesh in (("rectangle", None), ("mesh", str(tmp_path / "q.obj"))):
-        build = SceneBuild(shapes=(Shape("q", kind, translate(0.1, 0, 0) @ scale(0.5), Material((0.6, 0.3, 0.1)), mesh=mesh),),
-                           environment=Environment("sky", (1.0, 1.0, 1.0)))
+        build = SceneBuild(
+            shapes=(Shape("q", kind, translate(0.1, 0, 0) @ scale(0.5), Material((0.6, 0.3, 0.1)), mesh=mesh),),
+            environment=Environment("sky", (1.0, 1.0, 1.0)),
+        )
         imgs.append(Renderer(_poster_scene(build), 24, 24, max_depth=2).render(0.0, 8, 3)[0])
     covered = imgs[0][..., 1] < 0.6  # sky: 1, quad: 0.3
     assert 50 < covered.sum() < 24 * 24 - 50
@@ -210,26 +231,40 @@ def test_spectral_emitter_film_value_is_the_integral():
 def _tile_matrices():
     """Four 0.4 m tiles in a 2 x 2 grid, the lower right one mirrored in x (it must face +z too)."""
     mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
-    return (translate(-0.5, 0.5, 0) @ scale(0.4), translate(0.5, 0.5, 0) @ scale(0.4),
-            translate(-0.5, -0.5, 0) @ scale(0.4), translate(0.5, -0.5, 0) @ mirror @ scale(0.4))
+    return (
+        translate(-0.5, 0.5, 0) @ scale(0.4),
+        translate(0.5, 0.5, 0) @ scale(0.4),
+        translate(-0.5, -0.5, 0) @ scale(0.4),
+        translate(0.5, -0.5, 0) @ mirror @ scale(0.4),
+    )
 
 
 def _reflectance_spectra():
     wl = tuple(np.arange(380.0, 781.0, 10.0))
     x = (np.asarray(wl) - 380.0) / 400.0
-    return (Spectrum(wl, tuple(0.1 + 0.8 * x)), Spectrum(wl, tuple(0.9 - 0.8 * x)),
-            Spectrum(wl, tuple(0.5 + 0.4 * np.sin(6 * x))), Spectrum(wl, tuple(np.full_like(x, 0.3))))
+    return (
+        Spectrum(wl, tuple(0.1 + 0.8 * x)),
+        Spectrum(wl, tuple(0.9 - 0.8 * x)),
+        Spectrum(wl, tuple(0.5 + 0.4 * np.sin(6 * x))),
+        Spectrum(wl, tuple(np.full_like(x, 0.3))),
+    )
 
 
 def _tiles_and_rectangles(values, twosided=False):
     from mbcapture.render.build import PerTile
 
     mats = _tile_matrices()
-    tiles = SceneBuild(shapes=(Shape("grid", "tiles", translate(0, 0.05, 0), Material(PerTile(values), twosided),
-                                     tiles=mats),), environment=Environment("sky", (1.0, 1.0, 1.0)))
-    rects = SceneBuild(shapes=tuple(Shape(f"r{i}", "rectangle", translate(0, 0.05, 0) @ m, Material(v, twosided))
-                                    for i, (m, v) in enumerate(zip(mats, values))),
-                       environment=Environment("sky", (1.0, 1.0, 1.0)))
+    tiles = SceneBuild(
+        shapes=(Shape("grid", "tiles", translate(0, 0.05, 0), Material(PerTile(values), twosided), tiles=mats),),
+        environment=Environment("sky", (1.0, 1.0, 1.0)),
+    )
+    rects = SceneBuild(
+        shapes=tuple(
+            Shape(f"r{i}", "rectangle", translate(0, 0.05, 0) @ m, Material(v, twosided))
+            for i, (m, v) in enumerate(zip(mats, values))
+        ),
+        environment=Environment("sky", (1.0, 1.0, 1.0)),
+    )
     return tiles, rects
 
 
@@ -270,7 +305,10 @@ def test_tiles_shape_checks_name_the_shape():
 
     m = _tile_matrices()
     cases = [
-        (Shape("g", "tiles", np.eye(4), Material(PerTile(((0.1, 0.1, 0.1),) * 3)), tiles=m), "4 tiles but 3 reflectances"),
+        (
+            Shape("g", "tiles", np.eye(4), Material(PerTile(((0.1, 0.1, 0.1),) * 3)), tiles=m),
+            "4 tiles but 3 reflectances",
+        ),
         (Shape("g", "tiles", np.eye(4), Material((0.5, 0.5, 0.5))), "needs at least one tile matrix"),
         (Shape("g", "tiles", np.eye(4), None, Light("sky", (1.0, 1.0, 1.0)), tiles=m), "cannot emit light"),
         (Shape("g", "rectangle", np.eye(4), Material(PerTile(((0.1, 0.1, 0.1),)))), "belong to kind 'tiles'"),
@@ -282,8 +320,9 @@ def test_tiles_shape_checks_name_the_shape():
 
 
 @pytest.mark.render
-@pytest.mark.parametrize("variant,kind", [("llvm_ad_rgb", "spectra"), ("llvm_ad_spectral", "spectra"),
-                                          ("llvm_ad_spectral", "rgb")])
+@pytest.mark.parametrize(
+    "variant,kind", [("llvm_ad_rgb", "spectra"), ("llvm_ad_spectral", "spectra"), ("llvm_ad_spectral", "rgb")]
+)
 def test_tiles_render_as_the_rectangles_they_replace(variant, kind):
     """One tiles shape renders the image of its tiles as separate rectangles with their own BSDFs,
     to float rounding at the tiles' edges: the same paths, the same reflectances (spectra
@@ -291,11 +330,19 @@ def test_tiles_render_as_the_rectangles_they_replace(variant, kind):
     from mbcapture.render import Renderer
     from mbcapture.sensor import SensorConfig
 
-    values = _reflectance_spectra() if kind == "spectra" else ((0.8, 0.2, 0.1), (0.1, 0.7, 0.2), (0.2, 0.3, 0.9), (0.5, 0.5, 0.5))
+    values = (
+        _reflectance_spectra()
+        if kind == "spectra"
+        else ((0.8, 0.2, 0.1), (0.1, 0.7, 0.2), (0.2, 0.3, 0.9), (0.5, 0.5, 0.5))
+    )
     sensor = SensorConfig(spectral_response="Nikon 5100 (NPL)")
-    imgs = [Renderer(_poster_scene(b), 32, 32, variant=variant, max_depth=2, sensor=sensor).render(0.0, 8, 5)[0]
-            for b in _tiles_and_rectangles(values)]
+    imgs = [
+        Renderer(_poster_scene(b), 32, 32, variant=variant, max_depth=2, sensor=sensor).render(0.0, 8, 5)[0]
+        for b in _tiles_and_rectangles(values)
+    ]
     tiles_img, rect_img = (i.astype(np.float64) for i in imgs)
-    assert np.ptp(rect_img[8:12, 8:12].mean(axis=(0, 1)) - rect_img[8:12, 20:24].mean(axis=(0, 1))) > 0.05 * rect_img.max()
+    assert (
+        np.ptp(rect_img[8:12, 8:12].mean(axis=(0, 1)) - rect_img[8:12, 20:24].mean(axis=(0, 1))) > 0.05 * rect_img.max()
+    )
     same = np.isclose(tiles_img, rect_img, rtol=1e-5, atol=1e-6 * rect_img.max()).all(axis=-1)
     assert same.mean() > 0.99, f"only {same.mean():.3f} of the pixels agree"

@@ -20,8 +20,14 @@ from mbcapture.sensor.sampling import BandedField, NoiseStreams, uniform_open
 
 ROOT = Path(__file__).resolve().parents[1]
 #: 4 render bands of 16 rows on a 48x64 film
-SMALL = ["render.width=48", "render.height=64", "render.spp=4", "render.max_motion_px=0.05", "render.cache=off",
-         "render.band_rows=16"]
+SMALL = [
+    "render.width=48",
+    "render.height=64",
+    "render.spp=4",
+    "render.max_motion_px=0.05",
+    "render.cache=off",
+    "render.band_rows=16",
+]
 
 
 # ----------------------------------------------------------------------------- bands and fields
@@ -63,13 +69,23 @@ def test_a_banded_field_is_the_whole_fields_rows(kind):
 def test_sensing_a_film_band_by_band_gives_the_whole_films_reads(cfa):
     """Every noise source on (shot, transfer, read, row noise; pixel, row and column fixed pattern)."""
     e = np.random.default_rng(1).random((4, 30, 17, 3)) * 3000
-    cfg = SensorConfig(cfa=cfa, transfer_inefficiency=1e-3, read_noise_row_e=0.7, prnu_row=0.01, dsnu_col_e=0.5,
-                       prnu=0.01, dsnu_e=1.0, full_well_e=2500)
+    cfg = SensorConfig(
+        cfa=cfa,
+        transfer_inefficiency=1e-3,
+        read_noise_row_e=0.7,
+        prnu_row=0.01,
+        dsnu_col_e=0.5,
+        prnu=0.01,
+        dsnu_e=1.0,
+        full_well_e=2500,
+    )
     reads = [(3,), (3, 2), (3, 2, 1), (3, 2, 1, 0)]
     whole = simulate_reads(e, reads, cfg, np.random.SeedSequence(9), storage_s=[1e-3] * 4)
     streams = NoiseStreams(np.random.SeedSequence(9))
-    parts = [simulate_reads(e[:, a:b], reads, cfg, streams, storage_s=[1e-3] * 4, band=(a, 30), develop=False)
-             for a, b in [(0, 8), (8, 10), (10, 24), (24, 30)]]
+    parts = [
+        simulate_reads(e[:, a:b], reads, cfg, streams, storage_s=[1e-3] * 4, band=(a, 30), develop=False)
+        for a, b in [(0, 8), (8, 10), (10, 24), (24, 30)]
+    ]
     joined = develop_reads(join_rows(parts, height=30), cfg)
     assert whole.bucket_saturated.any() and not whole.bucket_saturated.all()  # wells reached in places
     for name in ("reads_dn", "saturated", "reads_e_expected", "electrons", "bucket_saturated", "mosaic_dn"):
@@ -86,14 +102,22 @@ def test_sensing_a_film_band_by_band_gives_the_whole_films_reads(cfa):
 def _pair(config: str, extra: list[str], tiles: int):
     cfg = load_config(ROOT / "configs" / config, [*SMALL, *extra])
     untiled = run_capture(load_config(ROOT / "configs" / config, [*SMALL, *extra, "render.tiles=1"]), progress=False)
-    tiled = run_capture(load_config(ROOT / "configs" / config, [*SMALL, *extra, f"render.tiles={tiles}"]),
-                        progress=False)
+    tiled = run_capture(
+        load_config(ROOT / "configs" / config, [*SMALL, *extra, f"render.tiles={tiles}"]), progress=False
+    )
     return cfg, untiled, tiled
 
 
 def _assert_same(untiled, tiled):
-    for name in ("bucket_exposure", "buckets_e", "reads_expected_e", "reads_dn", "saturated", "render_var_exposure",
-                 "mosaic_dn"):
+    for name in (
+        "bucket_exposure",
+        "buckets_e",
+        "reads_expected_e",
+        "reads_dn",
+        "saturated",
+        "render_var_exposure",
+        "mosaic_dn",
+    ):
         a, b = getattr(untiled, name), getattr(tiled, name)
         assert (a is None) == (b is None), name
         if a is not None:
@@ -105,13 +129,24 @@ def _assert_same(untiled, tiled):
 
 
 @pytest.mark.render
-@pytest.mark.parametrize("config, extra, tiles", [
-    ("metronome_hdr.yaml", [], 3),  # uneven tiles: 1 + 2 + 1 bands
-    # a Bayer mosaic, row noise and transfer loss, with the film's results in scratch files on disk
-    ("metronome_hdr.yaml", ["sensor.cfa=RGGB", "sensor.read_noise_row_e=1.0", "sensor.transfer_inefficiency=0.001",
-                            "render.spill=true"], 4),
-    ("multi_flash.yaml", [], 2),  # per-group exposures
-])
+@pytest.mark.parametrize(
+    "config, extra, tiles",
+    [
+        ("metronome_hdr.yaml", [], 3),  # uneven tiles: 1 + 2 + 1 bands
+        # a Bayer mosaic, row noise and transfer loss, with the film's results in scratch files on disk
+        (
+            "metronome_hdr.yaml",
+            [
+                "sensor.cfa=RGGB",
+                "sensor.read_noise_row_e=1.0",
+                "sensor.transfer_inefficiency=0.001",
+                "render.spill=true",
+            ],
+            4,
+        ),
+        ("multi_flash.yaml", [], 2),  # per-group exposures
+    ],
+)
 def test_a_tiled_capture_is_the_untiled_capture(config, extra, tiles, tmp_path):
     scratch = tmp_path / "scratch"
     _, untiled, tiled = _pair(config, [*extra, f"render.spill_dir={scratch}"], tiles)
@@ -144,8 +179,12 @@ def test_a_tiled_capture_with_the_noise_budget_is_the_untiled_capture(tmp_path):
     arrays, so the tiled capture makes the untiled one's choices, and its values are the untiled one's as far
     as two untiled runs agree (RENDER_REPEAT_RTOL), with its results in scratch files (render.spill). A tighter
     median target than the default makes the top-up run beside the refinement at this small film."""
-    extra = ["render.spp=null", "render.noise_budget=0.05", "render.spill=true",
-             f"render.spill_dir={tmp_path / 'scratch'}"]
+    extra = [
+        "render.spp=null",
+        "render.noise_budget=0.05",
+        "render.spill=true",
+        f"render.spill_dir={tmp_path / 'scratch'}",
+    ]
     _, untiled, tiled = _pair("metronome_hdr.yaml", extra, 3)
     assert tiled.report["tiles"]["count"] == 3 and tiled.report["tiles"]["spill"] is not None
     adaptive, top_up = untiled.report["adaptive"], untiled.report["top_up"]
@@ -157,8 +196,17 @@ def test_a_tiled_capture_with_the_noise_budget_is_the_untiled_capture(tmp_path):
     np.testing.assert_allclose(tiled.bucket_exposure, untiled.bucket_exposure, rtol=RENDER_REPEAT_RTOL, atol=0)
     # the reads as counts: a sample may move by one where its expected electrons moved (golden_cases says how many)
     reads = [r.buckets for r in untiled.timeline.reads]
-    assert count_differences(tiled.reads_dn, untiled.reads_dn, tiled.buckets_e, untiled.buckets_e, reads,
-                             tiled.config.sensor.gain_dn_per_e) == []
+    assert (
+        count_differences(
+            tiled.reads_dn,
+            untiled.reads_dn,
+            tiled.buckets_e,
+            untiled.buckets_e,
+            reads,
+            tiled.config.sensor.gain_dn_per_e,
+        )
+        == []
+    )
     for name, read in untiled.report["render_error"]["reads"].items():
         got = tiled.report["render_error"]["reads"][name]
         for key in ("to_shot_noise_variance_median", "to_shot_noise_variance_p95", "to_shot_noise_variance_p999"):
@@ -219,16 +267,26 @@ def test_tiles_are_chosen_from_the_memory_cap_and_shrink_the_estimate():
     assert all(a > b for a, b in zip(steps, steps[1:])), steps
     assert tiled.memory_bytes == steps[-1] and steps[-1] > 0.5 * steps[0]
     cap = (whole.memory_bytes + tiled.memory_bytes) / 2 / GB
-    capped = load_config(ROOT / "configs" / "sensor_12mp.yaml",
-                         ["render.spp=4", "render.cache=off", f"render.max_memory_gb={cap}"])
+    capped = load_config(
+        ROOT / "configs" / "sensor_12mp.yaml", ["render.spp=4", "render.cache=off", f"render.max_memory_gb={cap}"]
+    )
     n = choose_tiles(capped, timeline, plan, app)
     assert 1 < n <= 12
     assert estimate(capped, timeline, plan, app, n).memory_bytes <= cap * GB
     assert estimate(capped, timeline, plan, app, n - 1).memory_bytes > cap * GB  # the fewest that fit
     with pytest.raises(ResourceProblem, match="render.max_memory_gb"):  # below one band per tile: one line, exit 2
-        check_resources(load_config(ROOT / "configs" / "sensor_12mp.yaml",
-                                    ["render.spp=4", "render.cache=off", "render.spill=false",
-                                     f"render.max_memory_gb={0.9 * tiled.memory_bytes / GB}"]), None)
+        check_resources(
+            load_config(
+                ROOT / "configs" / "sensor_12mp.yaml",
+                [
+                    "render.spp=4",
+                    "render.cache=off",
+                    "render.spill=false",
+                    f"render.max_memory_gb={0.9 * tiled.memory_bytes / GB}",
+                ],
+            ),
+            None,
+        )
 
 
 def test_a_film_that_tiles_cannot_fit_spills_its_results_to_disk(tmp_path):
@@ -253,15 +311,25 @@ def test_a_film_that_tiles_cannot_fit_spills_its_results_to_disk(tmp_path):
     assert spill and 1 < n <= 12 and estimate(capped, timeline, plan, app, n, True).memory_bytes <= cap * GB
     need = plan_resources(capped, timeline, plan, app)  # what `mbcapture plan` and the run's first line say
     assert (need.tiles, need.spill_bytes > 0) == (n, True) and "scratch files on disk" in need.line()
-    assert choose_layout(load_config(ROOT / "configs" / "sensor_12mp.yaml", [*sets, "render.spill=false",
-                                                                           f"render.max_memory_gb={cap}"]),
-                         timeline, plan, app) == (12, False)
+    assert choose_layout(
+        load_config(
+            ROOT / "configs" / "sensor_12mp.yaml", [*sets, "render.spill=false", f"render.max_memory_gb={cap}"]
+        ),
+        timeline,
+        plan,
+        app,
+    ) == (12, False)
     # a small film in tiles fits in memory: no spill unless asked for; never in one tile
     small = [*SMALL, f"render.spill_dir={tmp_path}"]
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", [*small, "render.tiles=2"])
     _, timeline, plan, _ = prepare(cfg)
     assert choose_layout(cfg, timeline, plan, app) == (2, False)
-    assert choose_layout(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*small, "render.tiles=2", "render.spill=true"]),
-                         timeline, plan, app) == (2, True)
-    assert choose_layout(load_config(ROOT / "configs" / "metronome_hdr.yaml", [*small, "render.spill=true"]),
-                         timeline, plan, app) == (1, False)
+    assert choose_layout(
+        load_config(ROOT / "configs" / "metronome_hdr.yaml", [*small, "render.tiles=2", "render.spill=true"]),
+        timeline,
+        plan,
+        app,
+    ) == (2, True)
+    assert choose_layout(
+        load_config(ROOT / "configs" / "metronome_hdr.yaml", [*small, "render.spill=true"]), timeline, plan, app
+    ) == (1, False)

@@ -86,7 +86,13 @@ def test_equations_1_to_5_centroids(N):
 def test_sequential_centroids_and_gap():
     """N = 1 back-to-back frames with a readout gap: centroids (T1+T2)/2 + gap apart."""
     tl = protocols.build(
-        cfg(protocol="interleaved_hdr", unit_exposure_s=0.001, periods=8, sequential=True, sensor={"frame_readout_s": 0.02})
+        cfg(
+            protocol="interleaved_hdr",
+            unit_exposure_s=0.001,
+            periods=8,
+            sequential=True,
+            sensor={"frame_readout_s": 0.02},
+        )
     )
     assert tl.sequential and all(r.destructive for r in tl.reads)
     T, gap = Fraction(1, 1000), Fraction(2, 100)
@@ -128,7 +134,9 @@ def test_closed_form_gated_time_matches_enumeration(durs, buckets, flash, repeat
     if all(s.bucket == DRAIN for s in slots):
         slots = slots + (SlotSeconds(0, Fraction(1, 10**6)),)
     used = sorted({s.bucket for s in slots if s.bucket != DRAIN})
-    tl = build_timeline([SegmentSeconds(Fraction(3, 10**6), slots, repeats)], [ReadEvent("J1", (used[0],))], 3, "custom")
+    tl = build_timeline(
+        [SegmentSeconds(Fraction(3, 10**6), slots, repeats)], [ReadEvent("J1", (used[0],))], 3, "custom"
+    )
     scale = int(Fraction(1, 10**6) / tl.tick_s)
     ts = np.array(t, dtype=np.int64) * scale
     for k in range(3):
@@ -153,7 +161,9 @@ def test_weights_of_any_partition_sum_exactly_to_exposures(cuts, periods):
 
 def test_flash_weights_follow_the_slots():
     slots = (SlotSeconds(0, Fraction(1, 1000), frozenset({"flash"})), SlotSeconds(1, Fraction(1, 1000)))
-    tl = build_timeline([SegmentSeconds(Fraction(0), slots, 10)], [ReadEvent("F", (0,)), ReadEvent("A", (1,))], 2, "custom")
+    tl = build_timeline(
+        [SegmentSeconds(Fraction(0), slots, 10)], [ReadEvent("F", (0,)), ReadEvent("A", (1,))], 2, "custom"
+    )
     w = tl.weights_ticks(np.array([tl.start_tick, tl.end_tick]), ("ambient", "flash"), frozenset({"flash"}))[0]
     ms = int(Fraction(1, 1000) / tl.tick_s)
     assert w.tolist() == [[10 * ms, 10 * ms], [10 * ms, 0]]
@@ -168,8 +178,13 @@ def test_a_million_periods_of_1us_slots_are_exact():
 
 def test_protocol_needing_more_buckets_than_the_sensor_is_an_error():
     with pytest.raises(ConfigError, match=r"needs 4 buckets but sensor.bucket_count is 2"):
-        protocols.build(cfg(protocol="custom", sensor={"bucket_count": 2}, schedule={
-            "slots": [{"bucket": 4, "duration_s": 1e-3}], "reads": [{"buckets": [4]}]}))
+        protocols.build(
+            cfg(
+                protocol="custom",
+                sensor={"bucket_count": 2},
+                schedule={"slots": [{"bucket": 4, "duration_s": 1e-3}], "reads": [{"buckets": [4]}]},
+            )
+        )
 
 
 def test_two_bucket_photon_efficient():
@@ -179,10 +194,20 @@ def test_two_bucket_photon_efficient():
 
 
 def test_custom_schedule_with_drain_and_flash():
-    tl = protocols.build(cfg(protocol="custom", periods=4, schedule={
-        "slots": [{"bucket": 1, "duration_s": 2e-4, "groups": ["flash"]}, {"bucket": "drain", "duration_s": 1e-4},
-                  {"bucket": 2, "duration_s": 2e-4}],
-        "reads": [{"name": "flash", "buckets": [1]}, {"name": "ambient", "buckets": [2]}]}))
+    tl = protocols.build(
+        cfg(
+            protocol="custom",
+            periods=4,
+            schedule={
+                "slots": [
+                    {"bucket": 1, "duration_s": 2e-4, "groups": ["flash"]},
+                    {"bucket": "drain", "duration_s": 1e-4},
+                    {"bucket": 2, "duration_s": 2e-4},
+                ],
+                "reads": [{"name": "flash", "buckets": [1]}, {"name": "ambient", "buckets": [2]}],
+            },
+        )
+    )
     assert [r.name for r in tl.reads] == ["flash", "ambient"]
     assert tl.switchable_groups() == {"flash"}
     assert (tl.end_tick - tl.start_tick) * tl.tick_s == Fraction(2, 1000)
@@ -195,12 +220,21 @@ def test_storage_time_runs_from_the_first_slot_to_the_read():
     holds nothing. One period of 4 x 1 ms: drain, bucket 1, bucket 2, drain; 3 buckets, bucket 3 unused."""
     ms = Fraction(1, 1000)
     slots = (SlotSeconds(DRAIN, ms), SlotSeconds(0, ms), SlotSeconds(1, ms), SlotSeconds(DRAIN, ms))
-    tl = build_timeline([SegmentSeconds(Fraction(0), slots, 3)], [ReadEvent("A", (0,)), ReadEvent("B", (1,))], 3, "custom")
+    tl = build_timeline(
+        [SegmentSeconds(Fraction(0), slots, 3)], [ReadEvent("A", (0,)), ReadEvent("B", (1,))], 3, "custom"
+    )
     # the capture spans 12 ms; bucket 1 first collects at 1 ms, bucket 2 at 2 ms
     assert [tl.storage_ticks(k) * tl.tick_s for k in range(3)] == [11 * ms, 10 * ms, 0]
     np.testing.assert_allclose(tl.storage_s(), [11e-3, 10e-3, 0.0], rtol=1e-15, atol=0)
-    seq = protocols.build(cfg(protocol="photon_efficient_hdr", unit_exposure_s=0.001, periods=8, sequential=True,
-                              sensor={"frame_readout_s": 0.5}))
+    seq = protocols.build(
+        cfg(
+            protocol="photon_efficient_hdr",
+            unit_exposure_s=0.001,
+            periods=8,
+            sequential=True,
+            sensor={"frame_readout_s": 0.5},
+        )
+    )
     assert [seq.storage_ticks(k) * seq.tick_s for k in range(4)] == [ms, 2 * ms, 4 * ms, 8 * ms]  # gaps do not count
 
 
@@ -208,9 +242,12 @@ def test_collecting_intervals_merge_touching_segments_and_skip_drain_only_ones()
     """Segments [0, 3) and [3, 5) ms touch: one interval; [6, 7) after a gap: another; a segment that
     only drains (8..9 ms) collects nothing and is left out (ticks of 1 us here)."""
     ms = Fraction(1, 1000)
-    segs = [SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 3), SegmentSeconds(3 * ms, (SlotSeconds(1, ms),), 2),
-            SegmentSeconds(6 * ms, (SlotSeconds(0, ms / 2), SlotSeconds(DRAIN, ms / 2)), 1),
-            SegmentSeconds(8 * ms, (SlotSeconds(DRAIN, ms),), 1)]
+    segs = [
+        SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 3),
+        SegmentSeconds(3 * ms, (SlotSeconds(1, ms),), 2),
+        SegmentSeconds(6 * ms, (SlotSeconds(0, ms / 2), SlotSeconds(DRAIN, ms / 2)), 1),
+        SegmentSeconds(8 * ms, (SlotSeconds(DRAIN, ms),), 1),
+    ]
     tl = build_timeline(segs, [ReadEvent("A", (0,)), ReadEvent("B", (1,))], 2, "custom")
     per_ms = int(ms / tl.tick_s)
     assert tl.collecting_intervals() == [(0, 5 * per_ms), (6 * per_ms, 7 * per_ms)]
@@ -250,11 +287,21 @@ def test_exact_common_tick_and_build_checks():
         common_tick([Fraction(0)])
     ms = Fraction(1, 1000)
     with pytest.raises(ConfigError, match=r"^capture: slot durations must be > 0 s \(got 0.0\)$"):
-        build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms), SlotSeconds(1, Fraction(0))), 1)],
-                       [ReadEvent("A", (0,))], 2, "custom")
-    with pytest.raises(ConfigError, match=r"^capture.schedule.reads: read B names bucket\(s\) \[3\]; the schedule has 2$"):
-        build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 1)], [ReadEvent("A", (0,)), ReadEvent("B", (2,))],
-                       2, "custom")
+        build_timeline(
+            [SegmentSeconds(Fraction(0), (SlotSeconds(0, ms), SlotSeconds(1, Fraction(0))), 1)],
+            [ReadEvent("A", (0,))],
+            2,
+            "custom",
+        )
+    with pytest.raises(
+        ConfigError, match=r"^capture.schedule.reads: read B names bucket\(s\) \[3\]; the schedule has 2$"
+    ):
+        build_timeline(
+            [SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 1)],
+            [ReadEvent("A", (0,)), ReadEvent("B", (2,))],
+            2,
+            "custom",
+        )
     with pytest.raises(ConfigError, match=r"^capture.periods: must be >= 1$"):
         build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 0)], [ReadEvent("A", (0,))], 1, "custom")
     tl = build_timeline([SegmentSeconds(Fraction(0), (SlotSeconds(0, ms),), 1)], [ReadEvent("A", (0,))], 1, "mine")

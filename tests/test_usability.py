@@ -40,7 +40,9 @@ def test_unknown_key_from_the_file_names_the_file(tmp_path):
 
 
 def test_key_of_another_section_is_suggested_and_bad_values_name_their_set():
-    with pytest.raises(ConfigError, match=r"--set render\.periods=3: render\.periods: unknown key; did you mean capture\.periods\?"):
+    with pytest.raises(
+        ConfigError, match=r"--set render\.periods=3: render\.periods: unknown key; did you mean capture\.periods\?"
+    ):
         load_config(HDR, ["render.periods=3"])
     with pytest.raises(ConfigError, match=r"^--set render\.spp=-3: render\.spp: .*greater than or equal to 1"):
         load_config(HDR, ["render.spp=-3"])

@@ -14,7 +14,9 @@ from mbcapture.errors import ConfigError
 
 def test_a_frame_period_shorter_than_capture_plus_readout_is_refused():
     ok = load_config("hdr_video", ["render.width=16", "render.height=12"])
-    assert __import__("mbcapture.pipeline").pipeline.frame_period_check(ok, __import__("mbcapture").protocols.build(ok)) == pytest.approx(1 / 30)
+    assert __import__("mbcapture.pipeline").pipeline.frame_period_check(
+        ok, __import__("mbcapture").protocols.build(ok)
+    ) == pytest.approx(1 / 30)
     # 8 ms of capture + 10 ms of readout do not fit in 1/60 s
     with pytest.raises(ConfigError, match=r"capture.frame_rate_hz: 60 frames/s .* at most 55.56 frames/s"):
         prepare(load_config("hdr_video", ["capture.frame_rate_hz=60", "render.width=16", "render.height=12"]))
@@ -49,7 +51,9 @@ def test_temporal_consistency_counts_only_changes_the_truth_does_not_have():
     rng = np.random.default_rng(0)
     truth = rng.random((5, 8, 10, 3)) + 1.0
     assert video.temporal_consistency(truth * 1.0 + 0.0, truth) == pytest.approx(0.0, abs=1e-12)
-    assert video.temporal_consistency(truth + 0.3, truth) == pytest.approx(0.0, abs=1e-12)  # a constant offset: no change
+    assert video.temporal_consistency(truth + 0.3, truth) == pytest.approx(
+        0.0, abs=1e-12
+    )  # a constant offset: no change
     flicker = truth + 0.1 * (np.arange(5) % 2)[:, None, None, None]  # +0.1 on odd frames: every step changes by 0.1
     mean_lum = float(np.mean(truth @ np.array([0.2126, 0.7152, 0.0722])))
     assert video.temporal_consistency(flicker, truth) == pytest.approx(0.1 / mean_lum, rel=1e-9)
@@ -62,8 +66,9 @@ def test_alternating_merge_undoes_the_motion_between_frames():
     first frame (short, one long neighbour) gains most."""
     from mbcapture.sensor import SensorConfig
 
-    sensor = SensorConfig(read_noise_e=3.0, gain_dn_per_e=1.0, black_level_dn=0.0, adc_bits=16, full_well_e=1e6,
-                          fd_full_well_e=1e6)
+    sensor = SensorConfig(
+        read_noise_e=3.0, gain_dn_per_e=1.0, black_level_dn=0.0, adc_bits=16, full_well_e=1e6, fd_full_well_e=1e6
+    )
     rng = np.random.default_rng(3)
     big = gaussian_filter(rng.random((60, 84)), 2.0) * 3 + 0.5
     rate = np.stack([shift(big, (0, 1.5 * i), order=3, mode="reflect")[6:-6, 6:-6] for i in range(3)]) * 2e4  # e-/s
@@ -91,8 +96,10 @@ def test_tiny_video_writes_frames_movie_and_metrics(tmp_path):
     from mbcapture import run_capture
     from mbcapture.io import read_exr
 
-    cfg = load_config("hdr_video", ["render.width=16", "render.height=12", "capture.frames=4", "render.spp=4",
-                                    "render.max_motion_px=4"])
+    cfg = load_config(
+        "hdr_video",
+        ["render.width=16", "render.height=12", "capture.frames=4", "render.spp=4", "render.max_motion_px=4"],
+    )
     res = run_capture(cfg, tmp_path, progress=False)
     assert len(res.video.frames) == 4
     for i in range(4):

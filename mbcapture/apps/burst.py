@@ -95,8 +95,10 @@ CAPTIONS = {
 def burst_protocol(cfg):
     """K equal exposures T back to back, one per bucket, each read directly (F1..FK)."""
     if cfg.capture.periods != 1:
-        raise ConfigError(f"capture.periods: the 'burst' protocol takes its frames back to back once (capture.periods "
-                          f"must be 1, got {cfg.capture.periods}: repeating the pattern would interleave the frames)")
+        raise ConfigError(
+            f"capture.periods: the 'burst' protocol takes its frames back to back once (capture.periods "
+            f"must be 1, got {cfg.capture.periods}: repeating the pattern would interleave the frames)"
+        )
     k = cfg.sensor.bucket_count
     if k < 2:
         raise ConfigError(f"capture.protocol: 'burst' needs at least 2 buckets, sensor.bucket_count is {k}")
@@ -107,17 +109,21 @@ def burst_protocol(cfg):
 class BurstParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     method: Literal["ecc_euclidean", "ecc_homography", "phase_correlation", "none"] = Field(
-        "ecc_euclidean", description="Registration of each frame onto the reference: ecc_euclidean, ecc_homography "
-        "(OpenCV findTransformECC), phase_correlation (OpenCV phaseCorrelate, translation) or none (plain mean)."
+        "ecc_euclidean",
+        description="Registration of each frame onto the reference: ecc_euclidean, ecc_homography "
+        "(OpenCV findTransformECC), phase_correlation (OpenCV phaseCorrelate, translation) or none (plain mean).",
     )
     reference: Literal["first", "middle"] = Field(
         "middle", description="The frame the others are aligned to: the first, or the middle one (frame (K-1)//2 + 1)."
     )
-    ecc_blur_px: int = Field(5, ge=1, le=31, description="Gaussian filter size (odd, px) ECC smooths the noisy frames with.")
+    ecc_blur_px: int = Field(
+        5, ge=1, le=31, description="Gaussian filter size (odd, px) ECC smooths the noisy frames with."
+    )
     reference_spp: int = Field(128, ge=1, le=1 << 14, description="Samples per pixel of the still-camera truth render.")
     compare: bool = Field(
-        True, description="Also simulate the other burst (conventional <-> back-to-back) and the long exposure at "
-        "equal total exposure, and score all three (metrics.comparison)."
+        True,
+        description="Also simulate the other burst (conventional <-> back-to-back) and the long exposure at "
+        "equal total exposure, and score all three (metrics.comparison).",
     )
 
 
@@ -173,8 +179,14 @@ def frame_blur_px(scene, timeline, width: int, height: int) -> np.ndarray:
     out = []
     for r in timeline.reads:
         a, b = timeline.span_ticks(r.buckets)
-        out.append(frame_motion_px(scene, np.linspace(float(timeline.seconds(a)), float(timeline.seconds(b)),
-                                                      EXPOSURE_SAMPLES), width, height))
+        out.append(
+            frame_motion_px(
+                scene,
+                np.linspace(float(timeline.seconds(a)), float(timeline.seconds(b)), EXPOSURE_SAMPLES),
+                width,
+                height,
+            )
+        )
     return np.array(out)
 
 
@@ -193,15 +205,25 @@ def still_truth(data: CaptureData, params: BurstParams) -> tuple[np.ndarray, flo
     tl = data.timeline
     t_mid = float(tl.seconds((tl.start_tick + tl.end_tick) // 2))
     scene = still(data.scene)
-    renderer = data.renderer if scene is data.scene else Renderer.from_config(
-        scene, data.cfg, cache=getattr(data.renderer, "cache", None))
+    renderer = (
+        data.renderer
+        if scene is data.scene
+        else Renderer.from_config(scene, data.cfg, cache=getattr(data.renderer, "cache", None))
+    )
     seed = int(np.random.default_rng(child_seed(data.seed, 0)).integers(0, 2**31 - 1))
     img = renderer.render(t_mid, params.reference_spp, seed, list(data.plan.groups)).astype(np.float64)
     return img.sum(axis=0), t_mid
 
 
-def _burst_result(name: str, rates: np.ndarray, saturated: np.ndarray, timeline, data: CaptureData,
-                  params: BurstParams, truth: np.ndarray) -> tuple[dict, dict[str, np.ndarray]]:
+def _burst_result(
+    name: str,
+    rates: np.ndarray,
+    saturated: np.ndarray,
+    timeline,
+    data: CaptureData,
+    params: BurstParams,
+    truth: np.ndarray,
+) -> tuple[dict, dict[str, np.ndarray]]:
     W, H = data.cfg.render.width, data.cfg.render.height
     ref = reference_index(params, rates.shape[0])
     aligned = align_and_average(rates, saturated, params.method, ref, params.ecc_blur_px)
@@ -218,18 +240,30 @@ def _burst_result(name: str, rates: np.ndarray, saturated: np.ndarray, timeline,
         "registration_error_px_mean": float(np.mean(np.delete(reg, ref))),
         "shake_between_frames_px": dict(zip(names, between.tolist())),
     }
-    images = {"average": radiance, "unaligned_average": rates.mean(axis=0) / data.k_e,
-              "reference_frame": rates[ref] / data.k_e}
+    images = {
+        "average": radiance,
+        "unaligned_average": rates.mean(axis=0) / data.k_e,
+        "reference_frame": rates[ref] / data.k_e,
+    }
     return out, images
 
 
-@register("burst", output_channels=18, previews=6, libraries_mb=200, memory_scale=1.19, params=BurstParams,
-          description="back-to-back burst aligned and averaged; vs a conventional burst and one long exposure")
+@register(
+    "burst",
+    output_channels=18,
+    previews=6,
+    libraries_mb=200,
+    memory_scale=1.19,
+    params=BurstParams,
+    description="back-to-back burst aligned and averaged; vs a conventional burst and one long exposure",
+)
 def reconstruct(data: CaptureData, params: BurstParams) -> AppOutput:
     cfg = data.cfg
     if data.exposure_s.size < 2 or not np.allclose(data.exposure_s, data.exposure_s[0]):
-        raise ConfigError(f"app.name: 'burst' aligns equal exposures (capture.protocol 'burst'), got exposures "
-                          f"{data.exposure_s.tolist()} s")
+        raise ConfigError(
+            f"app.name: 'burst' aligns equal exposures (capture.protocol 'burst'), got exposures "
+            f"{data.exposure_s.tolist()} s"
+        )
     K, T = data.exposure_s.size, float(data.exposure_s[0])
     truth, t_mid = still_truth(data, params)
     own = "conventional_burst" if data.sequential else "back_to_back"
@@ -237,40 +271,58 @@ def reconstruct(data: CaptureData, params: BurstParams) -> AppOutput:
     own_metrics, own_images = _burst_result(own, rates, data.saturated, data.timeline, data, params, truth)
     comparison = {own: own_metrics}
     images = {**own_images, "truth": truth}
-    png = {"average": ("average", cfg.output.png_percentile), "truth": ("truth", cfg.output.png_percentile),
-           "reference_frame": ("reference_frame", cfg.output.png_percentile),
-           "unaligned_average": ("unaligned_average", cfg.output.png_percentile)}
+    png = {
+        "average": ("average", cfg.output.png_percentile),
+        "truth": ("truth", cfg.output.png_percentile),
+        "reference_frame": ("reference_frame", cfg.output.png_percentile),
+        "unaligned_average": ("unaligned_average", cfg.output.png_percentile),
+    }
     if params.compare:
         spp = int(data.plan.spp.max())
         seeds = [child_seed(data.seed, 1), child_seed(data.seed, 2)]
-        twin_cfg = cfg.model_copy(update={"capture": cfg.capture.model_copy(update={"sequential": not data.sequential})})
+        twin_cfg = cfg.model_copy(
+            update={"capture": cfg.capture.model_copy(update={"sequential": not data.sequential})}
+        )
         twin = capture_timeline(protocols.build(twin_cfg), data.scene, cfg, data.renderer, spp, seeds[0], data.k_e)
         other = "back_to_back" if data.sequential else "conventional_burst"
-        comparison[other], twin_images = _burst_result(other, twin.rate_e_per_s, twin.saturated, twin.timeline, data,
-                                                       params, truth)
+        comparison[other], twin_images = _burst_result(
+            other, twin.rate_e_per_s, twin.saturated, twin.timeline, data, params, truth
+        )
         images["other_burst"] = twin_images["average"]
         start = exact(cfg.capture.start_s)
-        long_tl = build_timeline([SegmentSeconds(start, (SlotSeconds(0, exact(T) * K),), 1)],
-                                 [ReadEvent("long", (0,), destructive=True)], 1, "burst_long_exposure", sequential=True)
+        long_tl = build_timeline(
+            [SegmentSeconds(start, (SlotSeconds(0, exact(T) * K),), 1)],
+            [ReadEvent("long", (0,), destructive=True)],
+            1,
+            "burst_long_exposure",
+            sequential=True,
+        )
         long = capture_timeline(long_tl, data.scene, cfg, data.renderer, spp, seeds[1], data.k_e)
         W, H = cfg.render.width, cfg.render.height
         long_rad = long.rate_e_per_s[0] / data.k_e
-        comparison["long_exposure"] = {"capture_span_s": K * T,
-                                       "motion_blur_px": float(frame_blur_px(data.scene, long_tl, W, H)[0]),
-                                       "saturated_fraction": float(long.saturated.mean())}
+        comparison["long_exposure"] = {
+            "capture_span_s": K * T,
+            "motion_blur_px": float(frame_blur_px(data.scene, long_tl, W, H)[0]),
+            "saturated_fraction": float(long.saturated.mean()),
+        }
         images["long_exposure"] = long_rad
         png["long_exposure"] = ("long_exposure", cfg.output.png_percentile)
         png["other_burst"] = ("other_burst", cfg.output.png_percentile)
     # every result scored on the same pixels: registered onto the truth, then the largest border of all
     results = {own: images["average"]}
     if params.compare:
-        results.update({("back_to_back" if data.sequential else "conventional_burst"): images["other_burst"],
-                        "long_exposure": images["long_exposure"]})
+        results.update(
+            {
+                ("back_to_back" if data.sequential else "conventional_burst"): images["other_burst"],
+                "long_exposure": images["long_exposure"],
+            }
+        )
     registered = {name: register_to_truth(img, truth, params.ecc_blur_px) for name, img in results.items()}
     border = max(border_for(shift) for _, shift in registered.values())
     for name, (on, shift) in registered.items():
-        comparison[name].update({**score_registered(on, truth, border), "scoring_shift_px": shift,
-                                 "scoring_border_px": border})
+        comparison[name].update(
+            {**score_registered(on, truth, border), "scoring_shift_px": shift, "scoring_border_px": border}
+        )
     metrics = {
         "method": params.method,
         "alignment": ALIGN_METHODS[params.method],
@@ -283,8 +335,13 @@ def reconstruct(data: CaptureData, params: BurstParams) -> AppOutput:
         "truth": f"still camera (no shake) at scene time {t_mid:.6g} s, {params.reference_spp} spp",
         "comparison": comparison,
     }
-    summary = [f"{name}: PSNR {m['psnr_db']:.2f} dB, residual blur {m['residual_blur_px']:.2f} px"
-               + (f", registration error {m['registration_error_px_mean']:.2f} px" if "registration_error_px_mean" in m else "")
-               for name, m in comparison.items()]
+    summary = [
+        f"{name}: PSNR {m['psnr_db']:.2f} dB, residual blur {m['residual_blur_px']:.2f} px"
+        + (
+            f", registration error {m['registration_error_px_mean']:.2f} px"
+            if "registration_error_px_mean" in m
+            else ""
+        )
+        for name, m in comparison.items()
+    ]
     return AppOutput(images=images, metrics=metrics, png=png, summary=summary, captions=CAPTIONS)
-

@@ -93,12 +93,16 @@ class FlashMattingParams(BaseModel):
         "'flash_only' = the flash-only luminance itself.",
     )
     trimap_ratio_eps: float = Field(
-        0.05, gt=0, le=10,
+        0.05,
+        gt=0,
+        le=10,
         description="With trimap_cue 'flash_ratio': added to the no-flash luminance, as a fraction of its "
         "trimap_reference_percentile, so that dark, noisy pixels do not blow up the ratio.",
     )
     trimap_reference_percentile: float = Field(
-        99.0, gt=0, le=100,
+        99.0,
+        gt=0,
+        le=100,
         description="Percentile of the trimap cue (and of the matting image) that is 1.0 for the trimap fractions.",
     )
     trimap_fg_fraction: float = Field(
@@ -107,12 +111,20 @@ class FlashMattingParams(BaseModel):
     trimap_bg_fraction: float = Field(
         0.15, ge=0, lt=1, description="Cue at or below this fraction of its reference: candidate background."
     )
-    trimap_open_px: int = Field(1, ge=0, le=20, description="Radius of the opening that removes specks from both candidates, pixels.")
+    trimap_open_px: int = Field(
+        1, ge=0, le=20, description="Radius of the opening that removes specks from both candidates, pixels."
+    )
     trimap_erode_px: int = Field(
-        2, ge=0, le=50, description="Radius by which the definite foreground and background are eroded into unknown, pixels."
+        2,
+        ge=0,
+        le=50,
+        description="Radius by which the definite foreground and background are eroded into unknown, pixels.",
     )
     truth_spp: int = Field(
-        16, ge=1, le=4096, description="Samples per pixel per time stratum of the ground-truth coverage render (max_depth 1)."
+        16,
+        ge=1,
+        le=4096,
+        description="Samples per pixel per time stratum of the ground-truth coverage render (max_depth 1).",
     )
 
     @model_validator(mode="after")
@@ -141,8 +153,13 @@ def flash_matting_protocol(cfg):
         slots = [SlotSeconds(0, slot, on), SlotSeconds(2, slot), SlotSeconds(3, slot), SlotSeconds(1, slot, on)]
         reads = [ReadEvent(FLASH_READ, (0, 1)), ReadEvent(NOFLASH_READ, (2, 3))]
     else:
-        slots = [SlotSeconds(3, slot / 2), SlotSeconds(0, slot, on), SlotSeconds(1, slot, on), SlotSeconds(2, slot, on),
-                 SlotSeconds(3, slot / 2)]
+        slots = [
+            SlotSeconds(3, slot / 2),
+            SlotSeconds(0, slot, on),
+            SlotSeconds(1, slot, on),
+            SlotSeconds(2, slot, on),
+            SlotSeconds(3, slot / 2),
+        ]
         reads = [ReadEvent(FLASH_READ, (0, 1, 2)), ReadEvent(NOFLASH_READ, (3,))]
     return slots, reads, 4
 
@@ -153,8 +170,9 @@ def read_radiance(read_e: np.ndarray, exposure_s: float, k_e: np.ndarray) -> np.
     return np.asarray(read_e, np.float64) / exposure_s / np.asarray(k_e, np.float64)
 
 
-def flash_only_image(flash_e: np.ndarray, flash_exposure_s: float, noflash_e: np.ndarray, noflash_exposure_s: float,
-                     k_e: np.ndarray) -> np.ndarray:
+def flash_only_image(
+    flash_e: np.ndarray, flash_exposure_s: float, noflash_e: np.ndarray, noflash_exposure_s: float, k_e: np.ndarray
+) -> np.ndarray:
     """Flash-only radiance (H, W, C): the flash read's radiance minus the no-flash read's, each read
     normalised by its own exposure (2T and 2T in the 2:2 split, 3T and T in the 3:1 split)."""
     return read_radiance(flash_e, flash_exposure_s, k_e) - read_radiance(noflash_e, noflash_exposure_s, k_e)
@@ -174,8 +192,10 @@ def matte_scores(alpha: np.ndarray, truth: np.ndarray, region: np.ndarray | None
 def trimap_errors(trimap: np.ndarray, truth: np.ndarray, tol: float = 0.05) -> dict:
     """Definite trimap pixels that the truth contradicts: labelled foreground with truth alpha
     below ``tol``, labelled background with truth alpha above 1 - ``tol`` (pixels)."""
-    return {"fg_on_background": int(((trimap == 1.0) & (truth < tol)).sum()),
-            "bg_on_foreground": int(((trimap == 0.0) & (truth > 1 - tol)).sum())}
+    return {
+        "fg_on_background": int(((trimap == 1.0) & (truth < tol)).sum()),
+        "bg_on_foreground": int(((trimap == 0.0) & (truth > 1 - tol)).sum()),
+    }
 
 
 # ----------------------------------------------------------------------------- application
@@ -202,9 +222,17 @@ def alpha_truth(data: CaptureData, params: FlashMattingParams) -> np.ndarray | N
     weights = weights[:, None] * shares
     cfg = data.cfg
     seed = data.seed if data.seed is not None else np.random.SeedSequence(cfg.seed)
-    return coverage_alpha(data.scene, times.ravel(), weights.ravel(), cfg.render.width, cfg.render.height,
-                          params.truth_spp, seed, variant=cfg.render.variant,
-                          cache=getattr(data.renderer, "cache", None))
+    return coverage_alpha(
+        data.scene,
+        times.ravel(),
+        weights.ravel(),
+        cfg.render.width,
+        cfg.render.height,
+        params.truth_spp,
+        seed,
+        variant=cfg.render.variant,
+        cache=getattr(data.renderer, "cache", None),
+    )
 
 
 def flash_only_truth(data: CaptureData, params: FlashMattingParams) -> np.ndarray | None:
@@ -230,13 +258,22 @@ CAPTIONS = {
 }
 
 
-@register("flash_matting", output_channels=33, previews=8, libraries_mb=180, params=FlashMattingParams, per_group=True,
-          pinhole_truth="the true matte is the foreground's coverage rendered through pixel centres",
-          description="flash-only image, trimap and alpha matte (app.matting) scored against the rendered coverage")
+@register(
+    "flash_matting",
+    output_channels=33,
+    previews=8,
+    libraries_mb=180,
+    params=FlashMattingParams,
+    per_group=True,
+    pinhole_truth="the true matte is the foreground's coverage rendered through pixel centres",
+    description="flash-only image, trimap and alpha matte (app.matting) scored against the rendered coverage",
+)
 def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
     if params.flash_group not in data.switchable:
-        raise ConfigError(f"app.flash_group: {params.flash_group!r} is not a switchable group of scene "
-                          f"{data.scene.name!r} (switchable: {list(data.switchable)})")
+        raise ConfigError(
+            f"app.flash_group: {params.flash_group!r} is not a switchable group of scene "
+            f"{data.scene.name!r} (switchable: {list(data.switchable)})"
+        )
     i_f, i_n = _read(data, FLASH_READ), _read(data, NOFLASH_READ)
     reads_e = data.reads_e()
     t_f, t_n = float(data.exposure_s[i_f]), float(data.exposure_s[i_n])
@@ -245,16 +282,20 @@ def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
     flash_only = flash_only_image(reads_e[i_f], t_f, reads_e[i_n], t_n, data.k_e)
     y = luminance(flash_only)
     ref = reference_level(y, params.trimap_reference_percentile)
-    cue = trimap_cue(flash_only, noflash, params.trimap_cue, params.trimap_reference_percentile, params.trimap_ratio_eps)
-    trimap = make_trimap(cue, params.trimap_fg_fraction, params.trimap_bg_fraction,
-                         params.trimap_open_px, params.trimap_erode_px)
+    cue = trimap_cue(
+        flash_only, noflash, params.trimap_cue, params.trimap_reference_percentile, params.trimap_ratio_eps
+    )
+    trimap = make_trimap(
+        cue, params.trimap_fg_fraction, params.trimap_bg_fraction, params.trimap_open_px, params.trimap_erode_px
+    )
     ramp = (cue - params.trimap_bg_fraction) / (params.trimap_fg_fraction - params.trimap_bg_fraction)
     sources = {"flash_only": flash_only, "flash": flash, "noflash": noflash}
 
     def matte(name: str) -> np.ndarray:
         img = sources[name]  # to [0, 1] by its largest channel: clipping would break the colour-line model
-        return estimate_alpha(img / reference_level(img.max(axis=-1), MATTING_WHITE_PERCENTILE), trimap,
-                              params.matting, ramp)
+        return estimate_alpha(
+            img / reference_level(img.max(axis=-1), MATTING_WHITE_PERCENTILE), trimap, params.matting, ramp
+        )
 
     alpha = matte(params.matting_image)
 
@@ -273,19 +314,36 @@ def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
         "matting_image": params.matting_image,
         "reads": {"flash_exposure_s": t_f, "noflash_exposure_s": t_n},
         "flash_read_saturated_fraction": float(data.saturated[i_f].any(axis=-1).mean()),
-        "trimap": {"cue": params.trimap_cue, "flash_only_reference_luminance": ref, "foreground_fraction": float((trimap == 1.0).mean()),
-                   "background_fraction": float((trimap == 0.0).mean()), "unknown_fraction": float(unknown.mean())},
+        "trimap": {
+            "cue": params.trimap_cue,
+            "flash_only_reference_luminance": ref,
+            "foreground_fraction": float((trimap == 1.0).mean()),
+            "background_fraction": float((trimap == 0.0).mean()),
+            "unknown_fraction": float(unknown.mean()),
+        },
     }
     images = {
-        "flash": flash, "noflash": noflash, "flash_only": flash_only,
-        "trimap": np.repeat(trimap[..., None], n_ch, -1), "alpha": np.repeat(alpha[..., None], n_ch, -1),
-        "foreground": fg_colour, "extracted": extracted,
+        "flash": flash,
+        "noflash": noflash,
+        "flash_only": flash_only,
+        "trimap": np.repeat(trimap[..., None], n_ch, -1),
+        "alpha": np.repeat(alpha[..., None], n_ch, -1),
+        "foreground": fg_colour,
+        "extracted": extracted,
         "moving": np.repeat(mask[..., None], n_ch, -1).astype(np.float64),
     }
-    png = {"flash": ("flash", 99.5), "noflash": ("noflash", 99.5), "flash_only": ("flash_only", 99.5),
-           "trimap": ("trimap", None), "alpha": ("alpha", None), "extracted": ("extracted", 99.5)}
-    summary = [f"flash matting ({params.flash_buckets}:{4 - params.flash_buckets}, {params.matting} on {params.matting_image}): trimap "
-               f"{100 * unknown.mean():.1f}% unknown"]
+    png = {
+        "flash": ("flash", 99.5),
+        "noflash": ("noflash", 99.5),
+        "flash_only": ("flash_only", 99.5),
+        "trimap": ("trimap", None),
+        "alpha": ("alpha", None),
+        "extracted": ("extracted", 99.5),
+    }
+    summary = [
+        f"flash matting ({params.flash_buckets}:{4 - params.flash_buckets}, {params.matting} on {params.matting_image}): trimap "
+        f"{100 * unknown.mean():.1f}% unknown"
+    ]
 
     fo_truth = flash_only_truth(data, params)
     if fo_truth is not None:
@@ -293,14 +351,16 @@ def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
         metrics["flash_only_rel_mse"] = relative_mse(flash_only, fo_truth, eps=REL_MSE_EPS_RADIANCE)
         if mask.any():
             metrics["flash_only_rel_mse_moving"] = relative_mse(
-                flash_only, fo_truth, mask=np.repeat(mask[..., None], n_ch, -1), eps=REL_MSE_EPS_RADIANCE)
+                flash_only, fo_truth, mask=np.repeat(mask[..., None], n_ch, -1), eps=REL_MSE_EPS_RADIANCE
+            )
     truth = alpha_truth(data, params)
     if truth is None:
         metrics["alpha_truth"] = None
         metrics["note"] = "no renderer: no ground-truth alpha"
     else:
-        metrics["alpha_truth"] = (f"coverage of the scene's foreground shapes as the flash read saw it, "
-                                  f"{params.truth_spp} spp per stratum")
+        metrics["alpha_truth"] = (
+            f"coverage of the scene's foreground shapes as the flash read saw it, {params.truth_spp} spp per stratum"
+        )
         metrics["alpha"] = matte_scores(alpha, truth)
         metrics["alpha_unknown"] = matte_scores(alpha, truth, unknown)
         metrics["alpha_moving"] = matte_scores(alpha, truth, mask) if mask.any() else None
@@ -314,6 +374,8 @@ def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
         png["alpha_truth"] = ("alpha_truth", None)
         png["alpha_error"] = ("alpha_error", None)
         a = metrics["alpha"]
-        summary.append(f"alpha vs truth: SAD {a['sad']:.1f} px, MSE {a['mse']:.3g}; in the unknown region "
-                       f"SAD {metrics['alpha_unknown']['sad']:.1f}, MSE {metrics['alpha_unknown']['mse'] or 0:.3g}")
+        summary.append(
+            f"alpha vs truth: SAD {a['sad']:.1f} px, MSE {a['mse']:.3g}; in the unknown region "
+            f"SAD {metrics['alpha_unknown']['sad']:.1f}, MSE {metrics['alpha_unknown']['mse'] or 0:.3g}"
+        )
     return AppOutput(images=images, metrics=metrics, png=png, summary=summary, captions=CAPTIONS)

@@ -60,9 +60,9 @@ CAPTIONS = {
     "truth_ambient": "reference: the noise-free ambient image the no-flash read saw",
     "truth_flash_only": "reference: the noise-free flash-only image the flash read saw",
     "mask": "Petschnigg's mask: red = flash shadow, green = flash specularity (saturation), blue = M, the "
-            "dilated and feathered union of both, where the enhanced image falls back to the no-flash bilateral "
-            "base; so magenta = shadow inside M, cyan = specularity inside M, pure blue = M's feathered rim, "
-            "black = detail transfer applies",
+    "dilated and feathered union of both, where the enhanced image falls back to the no-flash bilateral "
+    "base; so magenta = shadow inside M, cyan = specularity inside M, pure blue = M's feathered rim, "
+    "black = detail transfer applies",
 }
 
 
@@ -92,32 +92,45 @@ class FlashNoFlashParams(BaseModel):
         "'none' (the no-flash read). Metrics list every method.",
     )
     sigma_spatial_px: float = Field(
-        1.5, gt=0, le=50, description="Spatial Gaussian sigma of the bilateral filters, pixels (window radius 2.5 sigma)."
+        1.5,
+        gt=0,
+        le=50,
+        description="Spatial Gaussian sigma of the bilateral filters, pixels (window radius 2.5 sigma).",
     )
     sigma_range: float = Field(
-        0.05, gt=0,
+        0.05,
+        gt=0,
         description="Range sigma of the joint bilateral filter on the flash image, fraction of its white "
-        "(the range distance is the sum of the absolute differences over R, G and B: OpenCV's ximgproc)."
+        "(the range distance is the sum of the absolute differences over R, G and B: OpenCV's ximgproc).",
     )
     ambient_sigma_range: float = Field(
-        0.1, gt=0,
+        0.1,
+        gt=0,
         description="Range sigma of the plain bilateral filter of the (noisy) no-flash image, fraction of its white.",
     )
     detail_eps: float = Field(
-        0.02, gt=0, description="eps of the detail layer (F + eps) / (F_base + eps), fraction of the flash image's white."
+        0.02,
+        gt=0,
+        description="eps of the detail layer (F + eps) / (F_base + eps), fraction of the flash image's white.",
     )
     shadow_threshold: float = Field(
-        0.05, ge=0, lt=1,
+        0.05,
+        ge=0,
+        lt=1,
         description="Flash shadow: flash-only luminance below this fraction of its white (Petschnigg's tau_shad).",
     )
     specular_fraction: float = Field(
-        0.95, gt=0, le=1,
+        0.95,
+        gt=0,
+        le=1,
         description="Flash specularity: flash read at or above this fraction of sensor.full_well_e, or saturated.",
     )
     mask_dilate_px: int = Field(1, ge=0, le=50, description="Dilation of the shadow/specular mask, pixels.")
     mask_feather_px: float = Field(1.0, ge=0, le=50, description="Gaussian sigma that feathers the mask, pixels.")
     white_percentile: float = Field(
-        99.0, gt=0, le=100,
+        99.0,
+        gt=0,
+        le=100,
         description="Luminance percentile that is white (1.0) for the range kernels, detail eps, thresholds and PSNR peak.",
     )
 
@@ -129,8 +142,9 @@ def white_level(rgb: np.ndarray, percentile: float) -> float:
     return w if w > 0 else 1.0
 
 
-def joint_bilateral(image: np.ndarray, guide: np.ndarray, sigma_spatial_px: float, sigma_range: float,
-                    truncate: float = 2.5) -> np.ndarray:
+def joint_bilateral(
+    image: np.ndarray, guide: np.ndarray, sigma_spatial_px: float, sigma_range: float, truncate: float = 2.5
+) -> np.ndarray:
     """Joint (cross) bilateral filter: OpenCV's ``ximgproc.jointBilateralFilter`` (opencv-contrib).
 
     out(p) = sum_q w(p, q) image(q) / sum_q w(p, q),
@@ -163,14 +177,19 @@ def joint_bilateral(image: np.ndarray, guide: np.ndarray, sigma_spatial_px: floa
     img_p = np.pad(img, ((r, r), (r, r), (0, 0)), mode=mode)
     # OpenCV filters one or three channels at a time
     planes = [img_p] if img.shape[-1] == 3 else [np.ascontiguousarray(img_p[..., c]) for c in range(img.shape[-1])]
-    out = [cv2.ximgproc.jointBilateralFilter(g_p, plane, 2 * r + 1, float(sigma_range), float(sigma_spatial_px),
-                                             borderType=cv2.BORDER_REFLECT_101) for plane in planes]
+    out = [
+        cv2.ximgproc.jointBilateralFilter(
+            g_p, plane, 2 * r + 1, float(sigma_range), float(sigma_spatial_px), borderType=cv2.BORDER_REFLECT_101
+        )
+        for plane in planes
+    ]
     filtered = out[0] if img.shape[-1] == 3 else np.stack(out, axis=-1)
-    return np.asarray(filtered[r:r + H, r:r + W], dtype=np.float64)
+    return np.asarray(filtered[r : r + H, r : r + W], dtype=np.float64)
 
 
-def flash_mask(flash_only_n: np.ndarray, specular: np.ndarray, shadow_threshold: float, dilate_px: int,
-               feather_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def flash_mask(
+    flash_only_n: np.ndarray, specular: np.ndarray, shadow_threshold: float, dilate_px: int, feather_px: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(M, shadow, specular): Petschnigg's mask of flash shadows and specularities.
 
     flash_only_n (H, W, C) flash-only image scaled to its white; specular (H, W) bool. Shadow:
@@ -184,7 +203,7 @@ def flash_mask(flash_only_n: np.ndarray, specular: np.ndarray, shadow_threshold:
     shadow = ndimage.binary_opening(shadow, structure=np.ones((3, 3), bool))
     spec = np.asarray(specular, bool)
     if dilate_px > 0:
-        disc = np.hypot(*np.mgrid[-dilate_px:dilate_px + 1, -dilate_px:dilate_px + 1]) <= dilate_px
+        disc = np.hypot(*np.mgrid[-dilate_px : dilate_px + 1, -dilate_px : dilate_px + 1]) <= dilate_px
         shadow = ndimage.binary_dilation(shadow, structure=disc)
         spec = ndimage.binary_dilation(spec, structure=disc)
     m = (shadow | spec).astype(np.float64)
@@ -197,20 +216,22 @@ def flash_mask(flash_only_n: np.ndarray, specular: np.ndarray, shadow_threshold:
 class Components:
     """The pieces every method is made of (radiance unless noted)."""
 
-    ambient: np.ndarray      # A, the no-flash image
-    flash: np.ndarray        # F, the flash image
-    a_nr: np.ndarray         # joint bilateral of A, range kernel on F
-    a_base: np.ndarray       # bilateral of A
-    f_detail: np.ndarray     # (F + eps) / (F_base + eps), dimensionless
-    mask: np.ndarray         # (H, W) in [0, 1]
-    shadow: np.ndarray       # (H, W) bool
-    specular: np.ndarray     # (H, W) bool
+    ambient: np.ndarray  # A, the no-flash image
+    flash: np.ndarray  # F, the flash image
+    a_nr: np.ndarray  # joint bilateral of A, range kernel on F
+    a_base: np.ndarray  # bilateral of A
+    f_detail: np.ndarray  # (F + eps) / (F_base + eps), dimensionless
+    mask: np.ndarray  # (H, W) in [0, 1]
+    shadow: np.ndarray  # (H, W) bool
+    specular: np.ndarray  # (H, W) bool
 
 
 #: method -> (combine(components) -> enhanced image, description)
 METHODS: dict[str, tuple[Callable[[Components], np.ndarray], str]] = {
-    "petschnigg": (lambda c: (1.0 - c.mask[..., None]) * c.a_nr * c.f_detail + c.mask[..., None] * c.a_base,
-                   "(1 - M) A_NR F_detail + M A_base"),
+    "petschnigg": (
+        lambda c: (1.0 - c.mask[..., None]) * c.a_nr * c.f_detail + c.mask[..., None] * c.a_base,
+        "(1 - M) A_NR F_detail + M A_base",
+    ),
     "joint_bilateral": (lambda c: c.a_nr, "A_NR: joint bilateral of A guided by F"),
     "bilateral": (lambda c: c.a_base, "A_base: bilateral of A"),
     "none": (lambda c: c.ambient, "the no-flash image"),
@@ -228,8 +249,9 @@ def components(ambient: np.ndarray, flash: np.ndarray, specular: np.ndarray, p: 
     f_base_n = joint_bilateral(f_n, f_n, p.sigma_spatial_px, p.sigma_range)
     f_detail = (f_n + p.detail_eps) / (f_base_n + p.detail_eps)
     fo = f - a
-    mask, shadow, spec = flash_mask(fo / white_level(fo, p.white_percentile), specular, p.shadow_threshold,
-                                    p.mask_dilate_px, p.mask_feather_px)
+    mask, shadow, spec = flash_mask(
+        fo / white_level(fo, p.white_percentile), specular, p.shadow_threshold, p.mask_dilate_px, p.mask_feather_px
+    )
     return Components(a, f, a_nr, a_base, f_detail, mask, shadow, spec)
 
 
@@ -294,8 +316,16 @@ def blur_agreement(ambient_in_flash: np.ndarray, ambient_in_noflash: np.ndarray,
     return {"pixels": int(mask.sum()), "rel_rms": rel_rms(ambient_in_flash, ambient_in_noflash, mask)}
 
 
-@register("flash_no_flash", renders=False, output_channels=33, previews=7, libraries_mb=90, params=FlashNoFlashParams, per_group=True,
-          description="flash, no-flash, flash-only and Petschnigg-enhanced images (app.method), blur agreement")
+@register(
+    "flash_no_flash",
+    renders=False,
+    output_channels=33,
+    previews=7,
+    libraries_mb=90,
+    params=FlashNoFlashParams,
+    per_group=True,
+    description="flash, no-flash, flash-only and Petschnigg-enhanced images (app.method), blur agreement",
+)
 def reconstruct(data: CaptureData, p: FlashNoFlashParams) -> AppOutput:
     if data.group_exposure is None:
         raise ConfigError("app.name: flash_no_flash needs per-group exposures (per_group)")
@@ -338,8 +368,9 @@ def reconstruct(data: CaptureData, p: FlashNoFlashParams) -> AppOutput:
         fo["rel_mse_moving"] = relative_mse(flash_only, truth_flash_only, mask=mmask, eps=REL_MSE_EPS_RADIANCE)
         # the ghosts alone: noise-free flash read minus noise-free no-flash read, against the truth. Only in
         # the moving region: elsewhere a sequential capture's two frames differ by render noise only
-        fo["ghost_rel_mse_moving"] = relative_mse(ambient_in_flash + truth_flash_only - truth_ambient,
-                                                  truth_flash_only, mask=mmask, eps=REL_MSE_EPS_RADIANCE)
+        fo["ghost_rel_mse_moving"] = relative_mse(
+            ambient_in_flash + truth_flash_only - truth_ambient, truth_flash_only, mask=mmask, eps=REL_MSE_EPS_RADIANCE
+        )
     by_method = {}
     for name in METHODS:
         img = enhanced if name == p.method else enhance(comps, name)
@@ -364,30 +395,41 @@ def reconstruct(data: CaptureData, p: FlashNoFlashParams) -> AppOutput:
         "reads": {"flash": data.read_names[i_f], "noflash": data.read_names[i_a]},
         "flash_groups": flash_groups,
         "truth": "noise-free per-group exposures: ambient = all groups but the flash, seen by the no-flash read; "
-                 "flash-only = the flash group seen by the flash read",
+        "flash-only = the flash group seen by the flash read",
         "motion_blur_agreement": blur,
         "flash_only": fo,
         "enhanced": enh,
-        "mask_fraction": {"shadow": float(comps.shadow.mean()), "specular": float(comps.specular.mean()),
-                          "mean_M": float(comps.mask.mean())},
+        "mask_fraction": {
+            "shadow": float(comps.shadow.mean()),
+            "specular": float(comps.specular.mean()),
+            "mean_M": float(comps.mask.mean()),
+        },
     }
 
     summary = []
     if moving:
         mb = blur["letter_s" if "letter_s" in blur else "moving_region"]
         where = "letter S" if "letter_s" in blur else "moving region"
-        summary.append(f"motion blur agreement ({where}): ambient in flash vs no-flash read, rel RMS "
-                       f"{100 * mb['rel_rms']:.2f}%")
+        summary.append(
+            f"motion blur agreement ({where}): ambient in flash vs no-flash read, rel RMS {100 * mb['rel_rms']:.2f}%"
+        )
         summary.append(f"flash-only relMSE {fo['rel_mse']:.4g} (moving region {fo['rel_mse_moving']:.4g})")
-        summary.append(f"enhanced ({p.method}) PSNR {enh['psnr_db']:.2f} dB vs no-flash {enh['noflash_psnr_db']:.2f} dB; "
-                       f"moving region {enh['psnr_db_moving']:.2f} vs {enh['noflash_psnr_db_moving']:.2f} dB")
+        summary.append(
+            f"enhanced ({p.method}) PSNR {enh['psnr_db']:.2f} dB vs no-flash {enh['noflash_psnr_db']:.2f} dB; "
+            f"moving region {enh['psnr_db_moving']:.2f} vs {enh['noflash_psnr_db_moving']:.2f} dB"
+        )
     else:
-        summary.append(f"flash-only relMSE {fo['rel_mse']:.4g}; enhanced ({p.method}) PSNR {enh['psnr_db']:.2f} dB "
-                       f"vs no-flash {enh['noflash_psnr_db']:.2f} dB")
+        summary.append(
+            f"flash-only relMSE {fo['rel_mse']:.4g}; enhanced ({p.method}) PSNR {enh['psnr_db']:.2f} dB "
+            f"vs no-flash {enh['noflash_psnr_db']:.2f} dB"
+        )
 
     pct = data.cfg.output.png_percentile
-    mask_img = np.stack([comps.shadow.astype(float), comps.specular.astype(float), comps.mask], -1)[..., :n_ch] \
-        if n_ch >= 3 else np.repeat(comps.mask[..., None], n_ch, -1)
+    mask_img = (
+        np.stack([comps.shadow.astype(float), comps.specular.astype(float), comps.mask], -1)[..., :n_ch]
+        if n_ch >= 3
+        else np.repeat(comps.mask[..., None], n_ch, -1)
+    )
     return AppOutput(
         images={
             "flash": flash,

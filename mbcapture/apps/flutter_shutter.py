@@ -92,18 +92,34 @@ def code_bits(code: str) -> np.ndarray:
 class FlutterParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    code: str = Field("raskar2006", description="Chop code: 'raskar2006' (the 52-chop code of Raskar et al. 2006) or a "
-                      "string of 0s and 1s; read by the flutter_shutter protocol.")
+    code: str = Field(
+        "raskar2006",
+        description="Chop code: 'raskar2006' (the 52-chop code of Raskar et al. 2006) or a "
+        "string of 0s and 1s; read by the flutter_shutter protocol.",
+    )
     shutter: Literal["two_bucket", "flutter", "box"] = Field(
-        "two_bucket", description="flutter_shutter protocol: 'two_bucket' (open chops to bucket 1, closed to bucket 2), "
-        "'flutter' (classic: closed chops drained) or 'box' (every chop to bucket 1, a conventional exposure).")
-    method: Literal["joint", "single"] = Field("joint", description="Deblurred image shown: 'joint' (least squares over "
-                                               "every read) or 'single' (the first read alone).")
-    deblur: str = Field("fourier", description="Deconvolution: 'fourier' (least squares per frequency over the zero-padded "
-                        "row, band-limited fractional shifts) or 'pixel_least_squares' (banded least squares, fractional "
-                        "shifts by linear interpolation).")
-    regularization: float = Field(1e-6, ge=0.0, le=1.0, description="Tikhonov weight, relative to the mean diagonal of "
-                                  "the normal matrix (numerical safety; 0: plain least squares).")
+        "two_bucket",
+        description="flutter_shutter protocol: 'two_bucket' (open chops to bucket 1, closed to bucket 2), "
+        "'flutter' (classic: closed chops drained) or 'box' (every chop to bucket 1, a conventional exposure).",
+    )
+    method: Literal["joint", "single"] = Field(
+        "joint",
+        description="Deblurred image shown: 'joint' (least squares over "
+        "every read) or 'single' (the first read alone).",
+    )
+    deblur: str = Field(
+        "fourier",
+        description="Deconvolution: 'fourier' (least squares per frequency over the zero-padded "
+        "row, band-limited fractional shifts) or 'pixel_least_squares' (banded least squares, fractional "
+        "shifts by linear interpolation).",
+    )
+    regularization: float = Field(
+        1e-6,
+        ge=0.0,
+        le=1.0,
+        description="Tikhonov weight, relative to the mean diagonal of "
+        "the normal matrix (numerical safety; 0: plain least squares).",
+    )
     truth_spp: int = Field(64, ge=1, le=4096, description="Samples per pixel of the sharp ground-truth render.")
 
     @field_validator("code")
@@ -129,8 +145,10 @@ def flutter_shutter_protocol(cfg):
     shutter = getattr(params, "shutter", FlutterParams().shutter)
     need = 2 if shutter == "two_bucket" else 1
     if cfg.sensor.bucket_count < need:
-        raise ConfigError(f"capture.protocol: 'flutter_shutter' ({shutter}) needs {need} buckets but sensor.bucket_count "
-                          f"is {cfg.sensor.bucket_count}")
+        raise ConfigError(
+            f"capture.protocol: 'flutter_shutter' ({shutter}) needs {need} buckets but sensor.bucket_count "
+            f"is {cfg.sensor.bucket_count}"
+        )
     chop = exact(cfg.capture.unit_exposure_s) / Fraction(len(code) * cfg.capture.periods)
     closed = {"two_bucket": 1, "flutter": DRAIN, "box": 0}[shutter]
     slots = [SlotSeconds(0 if bit else closed, chop) for bit in code]
@@ -161,9 +179,12 @@ def score(f: np.ndarray, f0: np.ndarray, truth: np.ndarray, region: np.ndarray, 
     """PSNR/SSIM of luminance against the truth (peak: the truth's largest luminance), noise and model error."""
     lf, l0, lt = luminance(f), luminance(f0), luminance(truth)
     peak = float(lt.max()) or 1.0
-    out = {"psnr_db": psnr(lf, lt, peak=peak), "ssim": ssim(lf, lt, peak),
-           "noise_rms": float(np.sqrt(np.mean((lf - l0)[region] ** 2))) if region.any() else None,
-           "model_rms": float(np.sqrt(np.mean((l0 - lt) ** 2)))}
+    out = {
+        "psnr_db": psnr(lf, lt, peak=peak),
+        "ssim": ssim(lf, lt, peak),
+        "noise_rms": float(np.sqrt(np.mean((lf - l0)[region] ** 2))) if region.any() else None,
+        "model_rms": float(np.sqrt(np.mean((l0 - lt) ** 2))),
+    }
     if region.any():
         out["psnr_db_object"] = psnr(lf, lt, mask=region, peak=peak)
         out["noise_amplification"] = out["noise_rms"] / ref_noise if ref_noise > 0 else None
@@ -185,24 +206,34 @@ def strata_check(data: CaptureData, code_len: int) -> dict:
     chop_s = float(data.cfg.capture.unit_exposure_s) / (code_len * data.cfg.capture.periods)
     t0 = float(tl.seconds(tl.start_tick))
     chop = min(moved(t, t + chop_s) for t in t0 + chop_s * np.arange(code_len * data.cfg.capture.periods))
-    return {"max_stratum_motion_px": max(strata), "chop_motion_px": chop, "strata": len(strata),
-            "resolved": bool(max(strata) <= chop + 1e-9)}
+    return {
+        "max_stratum_motion_px": max(strata),
+        "chop_motion_px": chop,
+        "strata": len(strata),
+        "resolved": bool(max(strata) <= chop + 1e-9),
+    }
 
 
 # --------------------------------------------------------------------------------- app
 CAPTIONS = {
     "blurred": "the first read's bucket as exposed (radiance, tone-mapped): the object smeared by its motion, coded by the "
-               "shutter",
+    "shutter",
     "deblurred": "the object deblurred with the known motion and code (least squares; both buckets for the two-bucket "
-                 "flutter shutter)",
+    "flutter shutter)",
     "truth": "reference: the object rendered sharp at the capture's mid-time",
     "deblurred_box": "a box shutter of the same total time, deblurred the same way: its code has spectral zeros",
     "deblurred_flutter": "the classic flutter shutter (open chops only, the closed chops' light drained), deblurred",
 }
 
 
-@register("flutter_shutter", output_channels=21, previews=5, memory_scale=2.5, params=FlutterParams,
-          description="flutter shutter: coded-exposure deblurring, single code or joint over both buckets, vs box")
+@register(
+    "flutter_shutter",
+    output_channels=21,
+    previews=5,
+    memory_scale=2.5,
+    params=FlutterParams,
+    description="flutter shutter: coded-exposure deblurring, single code or joint over both buckets, vs box",
+)
 def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
     cfg, tl = data.cfg, data.timeline
     W, H = cfg.render.width, cfg.render.height
@@ -218,8 +249,11 @@ def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
 
     def both(idx, reads=b, reads0=b0, samp=samples, w=weights):
         s_ = [samp[i] for i in idx]
-        return (deblur(reads[idx], s_, w[idx], params.regularization), deblur(reads0[idx], s_, w[idx], params.regularization),
-                white_noise_gain(s_, np.ones(len(idx)), W, float(data.exposure_s.sum())))
+        return (
+            deblur(reads[idx], s_, w[idx], params.regularization),
+            deblur(reads0[idx], s_, w[idx], params.regularization),
+            white_noise_gain(s_, np.ones(len(idx)), W, float(data.exposure_s.sum())),
+        )
 
     results = {"single": both([0])}
     if len(tl.reads) > 1:
@@ -230,28 +264,43 @@ def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
     # the box baseline: every chop in one bucket = the sum of the reads' noise-free electrons, its own noise
 
     box_e = data.reads_e_expected.sum(axis=0)
-    box_seed = np.random.SeedSequence(data.seed.entropy, spawn_key=(*data.seed.spawn_key, 0xB0C5)) \
-        if data.seed is not None else 0
+    box_seed = (
+        np.random.SeedSequence(data.seed.entropy, spawn_key=(*data.seed.spawn_key, 0xB0C5))
+        if data.seed is not None
+        else 0
+    )
     box_read = simulate_reads(box_e[None], [(0,)], sensor, box_seed, shared_photodiode=False)
     box_b = dn_to_electrons(box_read.reads_dn, sensor) / k_e
     box_t = float(data.exposure_s.sum())
     box_samples = [(np.concatenate([s_ for s_, _ in samples]), np.concatenate([w_ for _, w_ in samples]))]
-    ref_noise = float(np.sqrt(np.mean(luminance((box_b[0] - box_e / k_e) / box_t)[region] ** 2))) if region.any() else 0.0
+    ref_noise = (
+        float(np.sqrt(np.mean(luminance((box_b[0] - box_e / k_e) / box_t)[region] ** 2))) if region.any() else 0.0
+    )
     kernels = [spread_kernel(*sm) for sm in samples]
 
-    metrics: dict = {"code": CODES.get(params.code, params.code), "chops": int(len(code_bits(params.code))),
-                     "open_fraction": float(code_bits(params.code).mean()), "shutter": params.shutter,
-                     "reads": data.read_names, "method": main_key, "deblur": params.deblur,
-                     "kernels_px": {n: {"first_shift": f, "length": len(h), "seconds": float(h.sum())}
-                                    for n, (f, h) in zip(data.read_names, kernels)},
-                     "saturated_px": int(data.saturated.any(axis=(0, -1)).sum()),
-                     "strata": strata_check(data, len(code_bits(params.code)))}
+    metrics: dict = {
+        "code": CODES.get(params.code, params.code),
+        "chops": int(len(code_bits(params.code))),
+        "open_fraction": float(code_bits(params.code).mean()),
+        "shutter": params.shutter,
+        "reads": data.read_names,
+        "method": main_key,
+        "deblur": params.deblur,
+        "kernels_px": {
+            n: {"first_shift": f, "length": len(h), "seconds": float(h.sum())}
+            for n, (f, h) in zip(data.read_names, kernels)
+        },
+        "saturated_px": int(data.saturated.any(axis=(0, -1)).sum()),
+        "strata": strata_check(data, len(code_bits(params.code))),
+    }
     images = {"deblurred": main.astype(np.float32)}
     for n, i in zip(data.read_names, range(len(tl.reads))):
         images[f"blurred_{n}"] = (b[i] / data.exposure_s[i]).astype(np.float32)
     png = {"deblurred": ("deblurred", cfg.output.png_percentile)}
-    summary = [f"flutter shutter ({params.shutter}, {len(code_bits(params.code))} chops): deblurred by {main_key} "
-               f"least squares ({params.deblur})"]
+    summary = [
+        f"flutter shutter ({params.shutter}, {len(code_bits(params.code))} chops): deblurred by {main_key} "
+        f"least squares ({params.deblur})"
+    ]
 
     if data.renderer is not None:
         truth = _truth(data, params, t_ref)
@@ -268,8 +317,11 @@ def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
             images["blurred_box"] = (box_b[0] / box_t).astype(np.float32)
             png["deblurred_box"] = ("deblurred_box", cfg.output.png_percentile)
             comparison = {
-                "box": {"light_fraction": 1.0, **score(fb, fb0, truth, region, ref_noise),
-                        "white_noise_gain": white_noise_gain(box_samples, np.ones(1), W, box_t)},
+                "box": {
+                    "light_fraction": 1.0,
+                    **score(fb, fb0, truth, region, ref_noise),
+                    "white_noise_gain": white_noise_gain(box_samples, np.ones(1), W, box_t),
+                },
                 "flutter": {"light_fraction": float(data.exposure_s[0] / box_t), **table["single"]},
                 "two_bucket_flutter": {"light_fraction": float(data.exposure_s.sum() / box_t), **table["joint"]},
             }
@@ -277,11 +329,17 @@ def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
             images["deblurred_flutter"] = results["single"][0].astype(np.float32)
             png["deblurred_flutter"] = ("deblurred_flutter", cfg.output.png_percentile)
             for k, v in comparison.items():
-                summary.append(f"  {k:>18}: PSNR {v['psnr_db']:.2f} dB, SSIM {v['ssim']:.3f}, noise x"
-                               f"{v.get('noise_amplification') or float('nan'):.2f}")
+                summary.append(
+                    f"  {k:>18}: PSNR {v['psnr_db']:.2f} dB, SSIM {v['ssim']:.3f}, noise x"
+                    f"{v.get('noise_amplification') or float('nan'):.2f}"
+                )
         metrics["deblurred"] = table
-        metrics["truth"] = {"time_s": t_ref, "spp": params.truth_spp, "object_px": int(region.sum()),
-                            "what": "the scene rendered sharp at the capture's mid-time"}
+        metrics["truth"] = {
+            "time_s": t_ref,
+            "spp": params.truth_spp,
+            "object_px": int(region.sum()),
+            "what": "the scene rendered sharp at the capture's mid-time",
+        }
         metrics["reference_noise_rms"] = ref_noise
         m = table[main_key]
         summary.insert(1, f"deblurred ({main_key}): PSNR {m['psnr_db']:.2f} dB, SSIM {m['ssim']:.3f}")

@@ -78,8 +78,14 @@ def merge_mosaic(data: CaptureData, method: str, cumulative: bool) -> tuple[np.n
     0.0685 against 0.0714 with bilinear (both in the logarithmic domain; demosaicing linearly, 0.26 to 0.53).
     ``sigma`` is the merged photosites' sigma interpolated bilinearly, not the demosaiced value's own
     (averaging lowers it)."""
-    hdr = merge_hdr(data.mosaic_dn, data.exposure_s, data.cfg.sensor, method=method, cumulative=cumulative,
-                    saturated=data.mosaic_saturated)
+    hdr = merge_hdr(
+        data.mosaic_dn,
+        data.exposure_s,
+        data.cfg.sensor,
+        method=method,
+        cumulative=cumulative,
+        saturated=data.mosaic_saturated,
+    )
     k = data.k_e[data.photosite_channels()]
     floor = demosaic_floor(data.cfg.sensor, data.k_e, data.exposure_s)
     radiance = demosaic_hdr(hdr.rate_e_per_s / k, data.cfg.sensor.cfa, data.cfg.sensor.demosaic, floor)
@@ -96,7 +102,13 @@ CAPTIONS = {
 }
 
 
-@register("hdr", output_channels=15, previews=2, renders=False, description="HDR merge of the reads (hdr.method), with sigma and valid layers")
+@register(
+    "hdr",
+    output_channels=15,
+    previews=2,
+    renders=False,
+    description="HDR merge of the reads (hdr.method), with sigma and valid layers",
+)
 def reconstruct(data: CaptureData, params) -> AppOutput:
     cfg, tl = data.cfg, data.timeline
     cumulative = not data.sequential and any(len(r.buckets) > 1 for r in tl.reads)
@@ -104,8 +116,9 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
     if data.bayer:
         radiance, sigma, valid = merge_mosaic(data, method, cumulative)
     else:
-        hdr = merge_hdr(data.reads_dn, data.exposure_s, cfg.sensor, method=method, cumulative=cumulative,
-                        saturated=data.saturated)
+        hdr = merge_hdr(
+            data.reads_dn, data.exposure_s, cfg.sensor, method=method, cumulative=cumulative, saturated=data.saturated
+        )
         radiance, sigma, valid = hdr.rate_e_per_s / data.k_e, hdr.sigma_e_per_s / data.k_e, hdr.valid
     normalized = normalized_reads(data)
     ref = int(np.argmax(data.exposure_s))
@@ -123,12 +136,17 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
         "motion_check": motion_check(normalized, data.read_names, truth, mask),
     }
     if data.bayer:  # the mosaic's own share: the noise-free truth through the same mosaic and demosaicing
-        alone = demosaic_hdr(to_mosaic(truth, cfg.sensor.cfa), cfg.sensor.cfa, cfg.sensor.demosaic,
-                             demosaic_floor(cfg.sensor, data.k_e, data.exposure_s))
+        alone = demosaic_hdr(
+            to_mosaic(truth, cfg.sensor.cfa),
+            cfg.sensor.cfa,
+            cfg.sensor.demosaic,
+            demosaic_floor(cfg.sensor, data.k_e, data.exposure_s),
+        )
         metrics["demosaic_rel_mse"] = relative_mse(alone, truth, eps=REL_MSE_EPS_RADIANCE)
         if mask.any():
-            metrics["demosaic_rel_mse_moving"] = relative_mse(alone, truth, mask=mask[..., None].repeat(n_ch, -1),
-                                                              eps=REL_MSE_EPS_RADIANCE)
+            metrics["demosaic_rel_mse_moving"] = relative_mse(
+                alone, truth, mask=mask[..., None].repeat(n_ch, -1), eps=REL_MSE_EPS_RADIANCE
+            )
     if mask.any():
         metrics["hdr_rel_mse_moving"] = relative_mse(
             radiance, truth, mask=mask[..., None].repeat(n_ch, -1), eps=REL_MSE_EPS_RADIANCE

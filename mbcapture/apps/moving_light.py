@@ -36,7 +36,10 @@ SWEEP_TIME_SAMPLES = 96
 class MovingLightParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     sweep_grow_px: float = Field(
-        1.5, ge=0.0, le=50.0, description="Grow the shadow-sweep region by this many pixels (penumbrae, interreflections)."
+        1.5,
+        ge=0.0,
+        le=50.0,
+        description="Grow the shadow-sweep region by this many pixels (penumbrae, interreflections).",
     )
     flicker_group: str = Field(
         "ambient", description="Emitter group whose flicker phase is measured (must have a drive in the scene)."
@@ -69,7 +72,9 @@ def rasterize_convex(polygons_px: list[np.ndarray], width: int, height: int) -> 
     return mask
 
 
-def sweep_region(shadows_px_over_time: list[list[np.ndarray]], width: int, height: int, grow_px: float = 0.0) -> np.ndarray:
+def sweep_region(
+    shadows_px_over_time: list[list[np.ndarray]], width: int, height: int, grow_px: float = 0.0
+) -> np.ndarray:
     """(H, W) bool: pixels inside some shadow at some time but not inside it at every time.
 
     ``shadows_px_over_time[t][o]`` is occluder o's shadow polygon at time t, (P, 2) pixels.
@@ -113,7 +118,7 @@ def consistency(normalized: np.ndarray, names: list[str], truth: np.ndarray, mas
 #: What each preview shows (report.html), besides the HDR ones.
 CAPTIONS = {
     "read_spread": "the largest departure of any exposure-normalized read from the reference, relative, linear: "
-                   "white = 100 %",
+    "white = 100 %",
     "sweep": "white: the region the moving lamp's shadows sweep during the capture",
 }
 
@@ -124,8 +129,9 @@ def read_spread_rel(normalized: np.ndarray, truth: np.ndarray, floor: float = 0.
     return np.abs(normalized - truth[None]).max(axis=0) / np.maximum(np.abs(truth), floor)
 
 
-def drive_gains_exact(weights_s: np.ndarray, group: int, read_buckets: list[tuple[int, ...]],
-                      exposure_s: np.ndarray, c0: float) -> np.ndarray:
+def drive_gains_exact(
+    weights_s: np.ndarray, group: int, read_buckets: list[tuple[int, ...]], exposure_s: np.ndarray, c0: float
+) -> np.ndarray:
     """(R,) mean drive of ``group`` over each read's gated time, relative to the time average c0:
     sum over strata and the read's buckets of the weights (seconds x drive), over exposure x c0.
     ``weights_s`` (J, K, G) from the plan."""
@@ -133,8 +139,14 @@ def drive_gains_exact(weights_s: np.ndarray, group: int, read_buckets: list[tupl
     return np.array([per_bucket[list(b)].sum() for b in read_buckets]) / (np.asarray(exposure_s) * c0)
 
 
-def drive_gains_measured(group_exposure: np.ndarray, weights_s: np.ndarray, group: int,
-                         read_buckets: list[tuple[int, ...]], exposure_s: np.ndarray, c0: float) -> np.ndarray:
+def drive_gains_measured(
+    group_exposure: np.ndarray,
+    weights_s: np.ndarray,
+    group: int,
+    read_buckets: list[tuple[int, ...]],
+    exposure_s: np.ndarray,
+    c0: float,
+) -> np.ndarray:
     """(R,) the same measured on the rendered images: each read's mean level of ``group``
     (group_exposure (K, G, H, W, C), summed over its buckets) per second of exposure, over the
     group's drive-weighted mean radiance (all read buckets' exposure / their weights) x c0.
@@ -151,7 +163,9 @@ def _sweep_times(data: CaptureData) -> np.ndarray:
     """Scene times spanning both this capture and its twin (interleaved <-> sequential)."""
 
     cfg = data.cfg
-    twin_cfg = cfg.model_copy(update={"capture": cfg.capture.model_copy(update={"sequential": not cfg.capture.sequential})})
+    twin_cfg = cfg.model_copy(
+        update={"capture": cfg.capture.model_copy(update={"sequential": not cfg.capture.sequential})}
+    )
     spans = []
     for tl in (data.timeline, protocols.build(twin_cfg)):
         spans += [float(tl.seconds(tl.start_tick)), float(tl.seconds(tl.end_tick))]
@@ -162,7 +176,9 @@ def shadow_sweep_mask(data: CaptureData, grow_px: float) -> np.ndarray:
     scene = data.scene
     polys_fn = scene.extra.get("shadow_polygons")
     if polys_fn is None:
-        raise ConfigError(f"app.name: moving_light needs a scene with extra['shadow_polygons'] (scene {scene.name!r} has none)")
+        raise ConfigError(
+            f"app.name: moving_light needs a scene with extra['shadow_polygons'] (scene {scene.name!r} has none)"
+        )
     H, W = data.reads_dn.shape[1:3]
     times = _sweep_times(data)
     per_occ = [scene.project(p, times, W, H) for p in polys_fn(times)]  # each (T, P, 2), through a shaking camera too
@@ -172,8 +188,10 @@ def shadow_sweep_mask(data: CaptureData, grow_px: float) -> np.ndarray:
 def flicker_metrics(data: CaptureData, group_name: str) -> dict:
     drives = getattr(data.scene, "drives", {}) or {}
     if group_name not in drives:
-        raise ConfigError(f"app.flicker_group: scene {data.scene.name!r} has no drive for group {group_name!r} "
-                          f"(driven groups: {sorted(drives)})")
+        raise ConfigError(
+            f"app.flicker_group: scene {data.scene.name!r} has no drive for group {group_name!r} "
+            f"(driven groups: {sorted(drives)})"
+        )
     drive = drives[group_name]
     if group_name not in data.plan.groups:
         return {"group": group_name, "note": "group not rendered (no weight in any read)"}
@@ -182,19 +200,32 @@ def flicker_metrics(data: CaptureData, group_name: str) -> dict:
     exact = drive_gains_exact(data.plan.weights_s, gi, buckets, data.exposure_s, drive.c0)
     out = {
         "group": group_name,
-        "drive": {"c0": drive.c0, "terms": [{"amplitude": a, "frequency_hz": f, "phase_rad": p} for a, f, p in drive.terms]},
+        "drive": {
+            "c0": drive.c0,
+            "terms": [{"amplitude": a, "frequency_hz": f, "phase_rad": p} for a, f, p in drive.terms],
+        },
         "gain_vs_time_average": dict(zip(data.read_names, exact.tolist())),
         "gain_spread": float(exact.max() - exact.min()),
         "max_abs_gain_error": float(np.abs(exact - 1.0).max()),
     }
     if data.group_exposure is not None:
-        measured = drive_gains_measured(data.group_exposure, data.plan.weights_s, gi, buckets, data.exposure_s, drive.c0)
+        measured = drive_gains_measured(
+            data.group_exposure, data.plan.weights_s, gi, buckets, data.exposure_s, drive.c0
+        )
         out["gain_measured_from_renders"] = dict(zip(data.read_names, measured.tolist()))
     return out
 
 
-@register("moving_light", renders=False, output_channels=21, previews=4, memory_scale=1.12, params=MovingLightParams, per_group=True,
-          description="HDR of a moving-light scene plus read consistency (shadow sweep, flicker phase)")
+@register(
+    "moving_light",
+    renders=False,
+    output_channels=21,
+    previews=4,
+    memory_scale=1.12,
+    params=MovingLightParams,
+    per_group=True,
+    description="HDR of a moving-light scene plus read consistency (shadow sweep, flicker phase)",
+)
 def reconstruct(data: CaptureData, params: MovingLightParams) -> AppOutput:
     base = hdr_app.reconstruct(data, None)
     normalized = hdr_app.normalized_reads(data)
@@ -231,5 +262,11 @@ def reconstruct(data: CaptureData, params: MovingLightParams) -> AppOutput:
     png = dict(base.png)
     png["read_spread"] = ("read_spread_rel", None)  # linear: white = 100 % departure, the same scale in every run
     png["sweep"] = ("sweep", None)
-    return AppOutput(images=images, metrics=metrics, png=png, extra_exr=base.extra_exr, summary=summary,
-                     captions={**base.captions, **CAPTIONS})
+    return AppOutput(
+        images=images,
+        metrics=metrics,
+        png=png,
+        extra_exr=base.extra_exr,
+        summary=summary,
+        captions={**base.captions, **CAPTIONS},
+    )

@@ -122,47 +122,117 @@ def multi_flash_protocol(cfg):
 class MultiFlashParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    method: str = Field("raskar2004", description="Depth-edge method: raskar2004 (ratio images traversed away from "
-                        "each flash's epipole) or canny_max_composite (baseline: Canny on the max composite).")
+    method: str = Field(
+        "raskar2004",
+        description="Depth-edge method: raskar2004 (ratio images traversed away from "
+        "each flash's epipole) or canny_max_composite (baseline: Canny on the max composite).",
+    )
     ambient: Literal["auto", "subtract", "none"] = Field(
-        "auto", description="Ambient light: 'auto' subtracts the ambient-only read when the capture has one "
-        "(sensor.bucket_count >= 5), 'subtract' requires it, 'none' keeps the ambient in the flash images.")
-    step_threshold: float = Field(0.35, gt=0.0, lt=1.0, description="raskar2004: smallest drop of a ratio image "
-                                  "R(p) - R(p + s d) (dimensionless; s = step_span_px, d one pixel away from the "
-                                  "epipole) that marks a depth edge.")
-    step_span_px: int = Field(2, ge=1, le=8, description="raskar2004: s, the distance (px) over which the ratio's drop "
-                              "is measured: 2 also catches shadows that begin over two pixels (curved silhouettes at "
-                              "grazing light); the edge of a shadow narrower than s is marked up to s - 1 px early.")
-    smooth_px: float = Field(0.0, ge=0.0, le=5.0, description="raskar2004: Gaussian sigma (px) applied to each "
-                             "flash image's luminance before the ratios (0: none).")
-    min_signal_fraction: float = Field(0.03, ge=0.0, lt=1.0, description="Pixels whose max-composite luminance is "
-                                       "below this fraction of its 99th percentile carry no ratio (too dark).")
-    canny_low: float = Field(0.1, gt=0.0, lt=1.0, description="canny_max_composite: low hysteresis threshold as a "
-                             "fraction of the largest gradient of the tone-mapped luminance.")
-    canny_high: float = Field(0.25, gt=0.0, le=1.0, description="canny_max_composite: high hysteresis threshold, "
-                              "same units.")
-    truth_depth_jump: float = Field(0.05, gt=0.0, lt=10.0, description="Ground truth: relative depth jump "
-                                    "|z1 - z2| / min(z1, z2) between 4-neighbours that makes a depth edge.")
+        "auto",
+        description="Ambient light: 'auto' subtracts the ambient-only read when the capture has one "
+        "(sensor.bucket_count >= 5), 'subtract' requires it, 'none' keeps the ambient in the flash images.",
+    )
+    step_threshold: float = Field(
+        0.35,
+        gt=0.0,
+        lt=1.0,
+        description="raskar2004: smallest drop of a ratio image "
+        "R(p) - R(p + s d) (dimensionless; s = step_span_px, d one pixel away from the "
+        "epipole) that marks a depth edge.",
+    )
+    step_span_px: int = Field(
+        2,
+        ge=1,
+        le=8,
+        description="raskar2004: s, the distance (px) over which the ratio's drop "
+        "is measured: 2 also catches shadows that begin over two pixels (curved silhouettes at "
+        "grazing light); the edge of a shadow narrower than s is marked up to s - 1 px early.",
+    )
+    smooth_px: float = Field(
+        0.0,
+        ge=0.0,
+        le=5.0,
+        description="raskar2004: Gaussian sigma (px) applied to each "
+        "flash image's luminance before the ratios (0: none).",
+    )
+    min_signal_fraction: float = Field(
+        0.03,
+        ge=0.0,
+        lt=1.0,
+        description="Pixels whose max-composite luminance is "
+        "below this fraction of its 99th percentile carry no ratio (too dark).",
+    )
+    canny_low: float = Field(
+        0.1,
+        gt=0.0,
+        lt=1.0,
+        description="canny_max_composite: low hysteresis threshold as a "
+        "fraction of the largest gradient of the tone-mapped luminance.",
+    )
+    canny_high: float = Field(
+        0.25, gt=0.0, le=1.0, description="canny_max_composite: high hysteresis threshold, same units."
+    )
+    truth_depth_jump: float = Field(
+        0.05,
+        gt=0.0,
+        lt=10.0,
+        description="Ground truth: relative depth jump "
+        "|z1 - z2| / min(z1, z2) between 4-neighbours that makes a depth edge.",
+    )
     truth_time: Literal["mid", "strata_union"] = Field(
-        "mid", description="Ground-truth depth edges at the capture's mid-time ('mid') or the union over the "
-        "render strata's times ('strata_union').")
-    tolerance_px: float = Field(1.5, ge=0.0, le=10.0, description="Precision/recall: a detected and a true edge "
-                                "pixel match within this distance, px.")
-    shadow_ratio: float = Field(0.5, gt=0.0, lt=1.0, description="Residual-shadow metric: a pixel is shadowed in a "
-                                "truth flash image when its luminance is below this fraction of the truth max composite.")
-    truth_spp: int = Field(0, ge=0, le=4096, description="Samples per pixel of the noise-free shadow-free truth "
-                           "render (0: 4 x the capture's largest samples per pixel per stratum, render.spp or the noise budget's).")
-    demux_radius_px: int = Field(0, ge=0, le=16, description="Coded captures (capture.gate_code): half-width of the tent "
-                                 "window over which the per-light images are demultiplexed, px (0: the code's tile height "
-                                 "and width; a random code: 2).")
-    demux_method: Literal["lsq", "guided"] = Field("guided", description="Coded captures: 'lsq' (least squares over "
-                                                   "a tent window) or 'guided' (the same with edge-aware weights: "
-                                                   "neighbours whose total light differs are left out).")
-    demux_guide_sigma: float = Field(0.1, gt=0.0, le=10.0, description="Coded captures, demux_method 'guided': the "
-                                     "relative difference of two pixels' total light at which a neighbour's weight "
-                                     "falls to exp(-1/2).")
-    normals_shadow_ratio: float = Field(0.2, gt=0.0, lt=1.0, description="Photometric-stereo normals: a light whose "
-                                        "image is below this fraction of the brightest at a pixel is left out there (shadow).")
+        "mid",
+        description="Ground-truth depth edges at the capture's mid-time ('mid') or the union over the "
+        "render strata's times ('strata_union').",
+    )
+    tolerance_px: float = Field(
+        1.5,
+        ge=0.0,
+        le=10.0,
+        description="Precision/recall: a detected and a true edge pixel match within this distance, px.",
+    )
+    shadow_ratio: float = Field(
+        0.5,
+        gt=0.0,
+        lt=1.0,
+        description="Residual-shadow metric: a pixel is shadowed in a "
+        "truth flash image when its luminance is below this fraction of the truth max composite.",
+    )
+    truth_spp: int = Field(
+        0,
+        ge=0,
+        le=4096,
+        description="Samples per pixel of the noise-free shadow-free truth "
+        "render (0: 4 x the capture's largest samples per pixel per stratum, render.spp or the noise budget's).",
+    )
+    demux_radius_px: int = Field(
+        0,
+        ge=0,
+        le=16,
+        description="Coded captures (capture.gate_code): half-width of the tent "
+        "window over which the per-light images are demultiplexed, px (0: the code's tile height "
+        "and width; a random code: 2).",
+    )
+    demux_method: Literal["lsq", "guided"] = Field(
+        "guided",
+        description="Coded captures: 'lsq' (least squares over "
+        "a tent window) or 'guided' (the same with edge-aware weights: "
+        "neighbours whose total light differs are left out).",
+    )
+    demux_guide_sigma: float = Field(
+        0.1,
+        gt=0.0,
+        le=10.0,
+        description="Coded captures, demux_method 'guided': the "
+        "relative difference of two pixels' total light at which a neighbour's weight "
+        "falls to exp(-1/2).",
+    )
+    normals_shadow_ratio: float = Field(
+        0.2,
+        gt=0.0,
+        lt=1.0,
+        description="Photometric-stereo normals: a light whose "
+        "image is below this fraction of the brightest at a pixel is left out there (shadow).",
+    )
 
 
 # --------------------------------------------------------------------------------- geometry
@@ -213,12 +283,14 @@ def epipole(camera, position, width: int, height: int) -> Epipole:
 
 
 # --------------------------------------------------------------------------------- images
-def flash_images(reads_e: np.ndarray, exposure_s: np.ndarray, k_e: np.ndarray, flash_reads: list[int],
-                 ambient_read: int | None) -> np.ndarray:
+def flash_images(
+    reads_e: np.ndarray, exposure_s: np.ndarray, k_e: np.ndarray, flash_reads: list[int], ambient_read: int | None
+) -> np.ndarray:
     """(F, H, W, C) radiance of each flash read (W m^-2 sr^-1 while the flash was on), with the
     ambient read's radiance subtracted when ``ambient_read`` is given (exposures may differ)."""
-    rad = np.asarray(reads_e, np.float64) / (np.asarray(k_e)[None, None, None, :]
-                                             * np.asarray(exposure_s, np.float64)[:, None, None, None])
+    rad = np.asarray(reads_e, np.float64) / (
+        np.asarray(k_e)[None, None, None, :] * np.asarray(exposure_s, np.float64)[:, None, None, None]
+    )
     out = rad[flash_reads]
     if ambient_read is not None:
         out = out - rad[ambient_read][None]
@@ -254,9 +326,16 @@ def _signal_valid(lum_max: np.ndarray, min_signal_fraction: float, bad: np.ndarr
     return valid
 
 
-def raskar_depth_edges(images: np.ndarray, epipoles: list[Epipole], *, step_threshold: float = 0.3,
-                       step_span_px: int = 2, smooth_px: float = 0.0, min_signal_fraction: float = 0.03,
-                       bad: np.ndarray | None = None) -> DepthEdges:
+def raskar_depth_edges(
+    images: np.ndarray,
+    epipoles: list[Epipole],
+    *,
+    step_threshold: float = 0.3,
+    step_span_px: int = 2,
+    smooth_px: float = 0.0,
+    min_signal_fraction: float = 0.03,
+    bad: np.ndarray | None = None,
+) -> DepthEdges:
     """Depth edges from flash images (F, H, W, C) lit from ``epipoles`` (Raskar et al. 2004).
 
     ``bad`` (H, W) bool: pixels with no usable value (e.g. a saturated read). See the module
@@ -280,8 +359,8 @@ def raskar_depth_edges(images: np.ndarray, epipoles: list[Epipole], *, step_thre
         d = ep.away(H, W)
         dx, dy = d[..., 0], d[..., 1]
         r = ratios[k]
-        ax, ay = xx + step_span_px * dx, yy + step_span_px * dy    # the pixel step_span_px further away
-        step = r - _sample(r, ay, ax)                             # drop into the shadow: positive
+        ax, ay = xx + step_span_px * dx, yy + step_span_px * dy  # the pixel step_span_px further away
+        step = r - _sample(r, ay, ax)  # drop into the shadow: positive
         step_prev = _sample(step, yy - dy, xx - dx)
         step_next = _sample(step, yy + dy, xx + dx)
         ok = valid & (_sample(valid.astype(float), ay, ax) > 0.999)
@@ -335,13 +414,17 @@ def edge_scores(detected: np.ndarray, truth: np.ndarray, tolerance_px: float, ma
     n_det, n_true = int((detected & m).sum()), int((truth & m).sum())
     precision = float((d_to_truth[detected & m] <= tolerance_px).mean()) if n_det else None
     recall = float((d_to_det[truth & m] <= tolerance_px).mean()) if n_true else None
-    f1 = (2 * precision * recall / (precision + recall) if precision is not None and recall is not None
-          and precision + recall > 0 else (0.0 if precision is not None and recall is not None else None))
+    f1 = (
+        2 * precision * recall / (precision + recall)
+        if precision is not None and recall is not None and precision + recall > 0
+        else (0.0 if precision is not None and recall is not None else None)
+    )
     return {"precision": precision, "recall": recall, "f1": f1, "detected_px": n_det, "true_px": n_true}
 
 
-def shadow_metrics(shadow_free: np.ndarray, truth_flash: np.ndarray, *, shadow_ratio: float = 0.5,
-                   min_signal_fraction: float = 0.03) -> dict:
+def shadow_metrics(
+    shadow_free: np.ndarray, truth_flash: np.ndarray, *, shadow_ratio: float = 0.5, min_signal_fraction: float = 0.03
+) -> dict:
     """How much shadow the shadow-free image keeps, against noise-free truth flash images (F, H, W, C).
 
     Over the pixels shadowed in some truth image (luminance below ``shadow_ratio`` x the truth
@@ -383,9 +466,15 @@ def edges_overlay(base: np.ndarray, detected: np.ndarray, truth: np.ndarray | No
 
 # --------------------------------------------------------------------------------- methods
 def _method_raskar(images, epipoles, bad, p: MultiFlashParams) -> DepthEdges:
-    return raskar_depth_edges(images, epipoles, step_threshold=p.step_threshold, step_span_px=p.step_span_px,
-                              smooth_px=p.smooth_px,
-                              min_signal_fraction=p.min_signal_fraction, bad=bad)
+    return raskar_depth_edges(
+        images,
+        epipoles,
+        step_threshold=p.step_threshold,
+        step_span_px=p.step_span_px,
+        smooth_px=p.smooth_px,
+        min_signal_fraction=p.min_signal_fraction,
+        bad=bad,
+    )
 
 
 def _method_canny(images, epipoles, bad, p: MultiFlashParams) -> DepthEdges:
@@ -400,16 +489,16 @@ DEPTH_EDGE_METHODS: dict[str, Callable] = {"raskar2004": _method_raskar, "canny_
 
 def depth_edges(images, epipoles, bad, params: MultiFlashParams) -> DepthEdges:
     if params.method not in DEPTH_EDGE_METHODS:
-        raise ConfigError(f"app.method: unknown depth-edge method {params.method!r}; expected one of "
-                          f"{sorted(DEPTH_EDGE_METHODS)}")
+        raise ConfigError(
+            f"app.method: unknown depth-edge method {params.method!r}; expected one of {sorted(DEPTH_EDGE_METHODS)}"
+        )
     return DEPTH_EDGE_METHODS[params.method](images, epipoles, bad, params)
 
 
 # --------------------------------------------------------------------------------- capture glue
 def read_groups(timeline: Timeline, read: ReadEvent) -> frozenset[str]:
     """Switchable groups lit while the buckets of ``read`` collected."""
-    return frozenset(g for seg in timeline.segments for s in seg.slots if s.bucket in read.buckets
-                     for g in s.groups_on)
+    return frozenset(g for seg in timeline.segments for s in seg.slots if s.bucket in read.buckets for g in s.groups_on)
 
 
 @dataclass
@@ -433,22 +522,32 @@ class Sources:
 def _sources(data: CaptureData, params: MultiFlashParams) -> Sources:
     tl = data.timeline
     if tl.code is None or tl.code.identity:
-        return Sources(list(data.read_names), [read_groups(tl, r) for r in tl.reads], data.reads_e(),
-                       np.asarray(data.exposure_s, np.float64), data.saturated.any(axis=-1))
+        return Sources(
+            list(data.read_names),
+            [read_groups(tl, r) for r in tl.reads],
+            data.reads_e(),
+            np.asarray(data.exposure_s, np.float64),
+            data.saturated.any(axis=-1),
+        )
     # a coded capture: every pixel's reads are its own mix of the sub-frames; demultiplex them
     code, W, H = tl.code, data.cfg.render.width, data.cfg.render.height
     A = code.measurement([r.buckets for r in tl.reads], H, W)
     rank = code_rank(A)
     if rank < code.n_subframes:
-        raise ConfigError(f"capture.gate_code: the {code.family!r} code's reads separate at most {rank} of the "
-                          f"{code.n_subframes} sub-frames; use a code whose pixels differ (one_hot, hadamard, random)")
+        raise ConfigError(
+            f"capture.gate_code: the {code.family!r} code's reads separate at most {rank} of the "
+            f"{code.n_subframes} sub-frames; use a code whose pixels differ (one_hot, hadamard, random)"
+        )
     if params.demux_radius_px:
         radius = (params.demux_radius_px, params.demux_radius_px)
     else:
         radius = (2, 2) if code.family == "random" else code.tile_shape
     sat_samples = data.saturated.any(axis=-1)
-    d = (demultiplex(data.reads_e(), A, radius, bad=sat_samples) if params.demux_method == "lsq" else
-         demultiplex_guided(data.reads_e(), A, radius, params.demux_guide_sigma, bad=sat_samples))
+    d = (
+        demultiplex(data.reads_e(), A, radius, bad=sat_samples)
+        if params.demux_method == "lsq"
+        else demultiplex_guided(data.reads_e(), A, radius, params.demux_guide_sigma, bad=sat_samples)
+    )
     from scipy.ndimage import binary_dilation
 
     sat = data.saturated.any(axis=(0, -1))
@@ -458,15 +557,25 @@ def _sources(data: CaptureData, params: MultiFlashParams) -> Sources:
     for c in range(code.n_subframes):
         groups.append(frozenset(g for seg in tl.segments for sl in seg.slots if sl.bucket == c for g in sl.groups_on))
         exposure.append(float(tl.gated_ticks([tl.end_tick], c)[0] * tl.tick_s))
-    names = [next(iter(g)).removeprefix("flash_") if len(g) == 1 else (AMBIENT_READ if not g else f"subframe{c + 1}")
-             for c, g in enumerate(groups)]
-    info = {"family": code.family, "tile": list(code.tile_shape), "subframes": code.n_subframes,
-            "buckets": code.n_buckets, "window_half_width_px": list(radius),
-            "method": "local weighted least squares" + (", edge-aware (guided by the total light, sigma "
-                                                        f"{params.demux_guide_sigma:g})" if params.demux_method == "guided"
-                                                        else ""),
-            "noise_gain": dict(zip(names, [round(float(g), 4) for g in d.noise_gain])),
-            "undetermined_px": int((~d.valid).sum())}
+    names = [
+        next(iter(g)).removeprefix("flash_") if len(g) == 1 else (AMBIENT_READ if not g else f"subframe{c + 1}")
+        for c, g in enumerate(groups)
+    ]
+    info = {
+        "family": code.family,
+        "tile": list(code.tile_shape),
+        "subframes": code.n_subframes,
+        "buckets": code.n_buckets,
+        "window_half_width_px": list(radius),
+        "method": "local weighted least squares"
+        + (
+            f", edge-aware (guided by the total light, sigma {params.demux_guide_sigma:g})"
+            if params.demux_method == "guided"
+            else ""
+        ),
+        "noise_gain": dict(zip(names, [round(float(g), 4) for g in d.noise_gain])),
+        "undetermined_px": int((~d.valid).sum()),
+    }
     return Sources(names, groups, d.images, np.asarray(exposure), bad, info)
 
 
@@ -480,11 +589,15 @@ def _layout(src: Sources, params: MultiFlashParams) -> tuple[list[int], list[str
         elif not g:
             ambient = i
     if len(flash_idx) < 2:
-        raise ConfigError("capture.protocol: multi_flash needs reads lit by at least two of "
-                          f"{list(FLASH_GROUPS)}, one LED group each (got {src.names})")
+        raise ConfigError(
+            "capture.protocol: multi_flash needs reads lit by at least two of "
+            f"{list(FLASH_GROUPS)}, one LED group each (got {src.names})"
+        )
     if params.ambient == "subtract" and ambient is None:
-        raise ConfigError("app.ambient: 'subtract' needs an ambient-only read (sensor.bucket_count >= 5, or 5 "
-                          "sub-frames of a coded capture)")
+        raise ConfigError(
+            "app.ambient: 'subtract' needs an ambient-only read (sensor.bucket_count >= 5, or 5 "
+            "sub-frames of a coded capture)"
+        )
     return flash_idx, groups, (ambient if params.ambient != "none" else None)
 
 
@@ -497,16 +610,22 @@ CAPTIONS = {
     "shadow_free": "the per-pixel maximum of the flash images: no flash shadows",
     "shadow_free_truth": "reference: the noise-free shadow-free image",
     "depth_edges": "detected depth edges on the dimmed shadow-free image: green = matches a true depth edge "
-                   "(within app.tolerance_px), red = no true edge near, blue = true edge missed (without a "
-                   "reference: white = detected)",
+    "(within app.tolerance_px), red = no true edge near, blue = true edge missed (without a "
+    "reference: white = detected)",
     "normals": "photometric-stereo normals from the flash images at the true depth, (n + 1) / 2 as RGB (x right, "
-               "y up, z towards the camera); black: fewer than three unshadowed lights",
+    "y up, z towards the camera); black: fewer than three unshadowed lights",
 }
 
 
-@register("multi_flash", output_channels=34, previews=4, params=MultiFlashParams, coded_gates=True,
-          pinhole_truth="depth edges of the aov depth through pixel centres; flash directions projected by the pinhole",
-          description="multi-flash: shadow-free max composite and depth edges from ratio images (Raskar 2004)")
+@register(
+    "multi_flash",
+    output_channels=34,
+    previews=4,
+    params=MultiFlashParams,
+    coded_gates=True,
+    pinhole_truth="depth edges of the aov depth through pixel centres; flash directions projected by the pinhole",
+    description="multi-flash: shadow-free max composite and depth edges from ratio images (Raskar 2004)",
+)
 def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
     cfg = data.cfg
     W, H = cfg.render.width, cfg.render.height
@@ -534,8 +653,10 @@ def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
         "method": params.method,
         "ambient": "ambient read subtracted" if ambient is not None else "kept in the flash images",
         "flash_reads": dict(zip(names, groups)),
-        "epipoles_px": {n: {"at_infinity": not e.finite, ("direction" if not e.finite else "xy"): list(e.xy)}
-                        for n, e in zip(names, epipoles)},
+        "epipoles_px": {
+            n: {"at_infinity": not e.finite, ("direction" if not e.finite else "xy"): list(e.xy)}
+            for n, e in zip(names, epipoles)
+        },
         "saturated_px": int(bad.sum()),
         "coded_gates": src.demux,
         "detected_edge_px": int(edges.sum()),
@@ -549,22 +670,33 @@ def reconstruct(data: CaptureData, params: MultiFlashParams) -> AppOutput:
         metrics["per_light"] = _per_light(images, truth["flash"], names, data.moving_mask)
         normals, n_metrics = _normals(data, params, images, groups, truth)
         metrics["normals"] = n_metrics
-        out_images["normals"] = (0.5 * (normals + 1.0) * (np.linalg.norm(normals, axis=-1, keepdims=True) > 0))
+        out_images["normals"] = 0.5 * (normals + 1.0) * (np.linalg.norm(normals, axis=-1, keepdims=True) > 0)
         out_images["normals_truth"] = 0.5 * (truth["normals"] + 1.0)
         png["normals"] = ("normals", None)
-        out_images.update({"shadow_free_truth": truth["shadow_free"], "depth_edges_truth": truth["edges"].astype(np.float32),
-                           "depth_truth_z": truth["z_m"].astype(np.float32),
-                           "edges_overlay": edges_overlay(shadow_free, edges, truth["edges"], params.tolerance_px)})
+        out_images.update(
+            {
+                "shadow_free_truth": truth["shadow_free"],
+                "depth_edges_truth": truth["edges"].astype(np.float32),
+                "depth_truth_z": truth["z_m"].astype(np.float32),
+                "edges_overlay": edges_overlay(shadow_free, edges, truth["edges"], params.tolerance_px),
+            }
+        )
         png["shadow_free_truth"] = ("shadow_free_truth", cfg.output.png_percentile)
         e = metrics["depth_edges"]["all"]
         fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
-        summary.append(f"depth edges vs truth ({params.truth_time}): precision {fmt(e['precision'])}, "
-                       f"recall {fmt(e['recall'])}, F1 {fmt(e['f1'])} (tolerance {params.tolerance_px} px)")
+        summary.append(
+            f"depth edges vs truth ({params.truth_time}): precision {fmt(e['precision'])}, "
+            f"recall {fmt(e['recall'])}, F1 {fmt(e['f1'])} (tolerance {params.tolerance_px} px)"
+        )
         s = metrics["shadow_free"]
-        summary.append(f"shadow-free: relMSE {s['rel_mse']:.4g}, residual shadow "
-                       f"{100 * s.get('residual_shadow_fraction', 0.0):.2f}% of shadowed pixels")
-        summary.append(f"per-light images: NRMSE {metrics['per_light']['mean_nrmse']:.4g} (mean); photometric-stereo "
-                       f"normals: median error {fmt(metrics['normals'].get('median_deg'))} deg")
+        summary.append(
+            f"shadow-free: relMSE {s['rel_mse']:.4g}, residual shadow "
+            f"{100 * s.get('residual_shadow_fraction', 0.0):.2f}% of shadowed pixels"
+        )
+        summary.append(
+            f"per-light images: NRMSE {metrics['per_light']['mean_nrmse']:.4g} (mean); photometric-stereo "
+            f"normals: median error {fmt(metrics['normals'].get('median_deg'))} deg"
+        )
     else:
         out_images["edges_overlay"] = edges_overlay(shadow_free, edges, None, params.tolerance_px)
     png["depth_edges"] = ("edges_overlay", None)
@@ -587,15 +719,24 @@ def _truth(data: CaptureData, params: MultiFlashParams, groups: list[str], with_
         flash = flash + rad[always_on].sum(axis=0)[None]
     depth_mid = render_depth(renderer, t_mid)
     # strata_union: every time a render of the capture was made at (both halves, a top-up's pass)
-    times = [t_mid] if params.truth_time == "mid" else \
-        sorted({float(t) for t in data.plan.exposure_time_mix()[0].ravel()})
+    times = (
+        [t_mid] if params.truth_time == "mid" else sorted({float(t) for t in data.plan.exposure_time_mix()[0].ravel()})
+    )
     edges = np.zeros(depth_mid.z_m.shape, bool)
     for t in times:
         z = depth_mid.z_m if t == t_mid else render_depth(renderer, t).z_m
         edges |= depth_discontinuities(z, params.truth_depth_jump)
-    return {"t_s": t_mid, "times_s": times, "flash": flash, "shadow_free": max_composite(flash), "edges": edges,
-            "z_m": depth_mid.z_m, "spp": spp, "normals": render_normals(renderer, t_mid),
-            "with_ambient": with_ambient and bool(always_on)}
+    return {
+        "t_s": t_mid,
+        "times_s": times,
+        "flash": flash,
+        "shadow_free": max_composite(flash),
+        "edges": edges,
+        "z_m": depth_mid.z_m,
+        "spp": spp,
+        "normals": render_normals(renderer, t_mid),
+        "with_ambient": with_ambient and bool(always_on),
+    }
 
 
 def _per_light(images: np.ndarray, truth: np.ndarray, names: list[str], moving: np.ndarray) -> dict:
@@ -605,12 +746,15 @@ def _per_light(images: np.ndarray, truth: np.ndarray, names: list[str], moving: 
     out = {n: nrmse(img, t) for n, img, t in zip(names, images, truth)}
     res = {"nrmse": out, "mean_nrmse": float(np.mean(list(out.values())))}
     if moving.any():
-        res["mean_nrmse_moving"] = float(np.mean([nrmse(img, t, mask=moving[..., None]) for img, t in zip(images, truth)]))
+        res["mean_nrmse_moving"] = float(
+            np.mean([nrmse(img, t, mask=moving[..., None]) for img, t in zip(images, truth)])
+        )
     return res
 
 
-def _normals(data: CaptureData, params: MultiFlashParams, images: np.ndarray, groups: list[str],
-             truth: dict) -> tuple[np.ndarray, dict]:
+def _normals(
+    data: CaptureData, params: MultiFlashParams, images: np.ndarray, groups: list[str], truth: dict
+) -> tuple[np.ndarray, dict]:
     """Photometric-stereo normals of the flash images (:func:`~mbcapture.reconstruct.photometric.near_light_normals`)
     at the true depth, and their angular error against the normal AOV where every pixel of the 3x3
     neighbourhood is a surface off the true depth edges."""
@@ -621,43 +765,72 @@ def _normals(data: CaptureData, params: MultiFlashParams, images: np.ndarray, gr
         return np.zeros(images.shape[1:3] + (3,)), {"note": f"scene {data.scene.name!r} gives no flash_directions"}
     positions = data.scene.extra["flash_positions_m"]
     lum = luminance(np.maximum(images, 0.0))
-    note = ("ambient light kept in the flash images (no ambient read): it biases the normals" if truth["with_ambient"]
-            else "flash images free of ambient light (subtracted, or none in the scene)")
+    note = (
+        "ambient light kept in the flash images (no ambient read): it biases the normals"
+        if truth["with_ambient"]
+        else "flash images free of ambient light (subtracted, or none in the scene)"
+    )
     pts = points_from_depth(data.scene.camera, truth["z_m"])
-    n, ok = near_light_normals(lum, pts, np.array([positions[g] for g in groups]),
-                               np.array([directions[g] for g in groups]), shadow_ratio=params.normals_shadow_ratio)
+    n, ok = near_light_normals(
+        lum,
+        pts,
+        np.array([positions[g] for g in groups]),
+        np.array([directions[g] for g in groups]),
+        shadow_ratio=params.normals_shadow_ratio,
+    )
     tn = truth["normals"]
     judged = ok & ~binary_dilation(truth["edges"] | ~np.isfinite(truth["z_m"]), np.ones((3, 3), bool))
     judged &= np.linalg.norm(tn, axis=-1) > 0.5
     err = angular_error_deg(n, tn)
-    out: dict = {"method": "near-light Lambertian photometric stereo at the true depth (3+ unshadowed lights)",
-                 "note": note, "solved_px": int(ok.sum()), "judged_px": int(judged.sum())}
+    out: dict = {
+        "method": "near-light Lambertian photometric stereo at the true depth (3+ unshadowed lights)",
+        "note": note,
+        "solved_px": int(ok.sum()),
+        "judged_px": int(judged.sum()),
+    }
     if judged.any():
         e = err[judged]
-        out.update({"median_deg": float(np.median(e)), "mean_deg": float(e.mean()), "p90_deg": float(np.percentile(e, 90))})
+        out.update(
+            {"median_deg": float(np.median(e)), "mean_deg": float(e.mean()), "p90_deg": float(np.percentile(e, 90))}
+        )
         mov = judged & data.moving_mask
         if mov.any():
             out["median_deg_moving"] = float(np.median(err[mov]))
     return n, out
 
 
-def _scores(data: CaptureData, params: MultiFlashParams, edges: np.ndarray, shadow_free: np.ndarray, truth: dict) -> dict:
+def _scores(
+    data: CaptureData, params: MultiFlashParams, edges: np.ndarray, shadow_free: np.ndarray, truth: dict
+) -> dict:
     mask = data.moving_mask
     de = {"all": edge_scores(edges, truth["edges"], params.tolerance_px)}
     if mask.any():
         de["moving_region"] = edge_scores(edges, truth["edges"], params.tolerance_px, mask)
         de["static_region"] = edge_scores(edges, truth["edges"], params.tolerance_px, ~mask)
-    sf = {"rel_mse": relative_mse(shadow_free, truth["shadow_free"], eps=REL_MSE_EPS_RADIANCE),
-          **shadow_metrics(shadow_free, truth["flash"], shadow_ratio=params.shadow_ratio,
-                           min_signal_fraction=params.min_signal_fraction)}
+    sf = {
+        "rel_mse": relative_mse(shadow_free, truth["shadow_free"], eps=REL_MSE_EPS_RADIANCE),
+        **shadow_metrics(
+            shadow_free,
+            truth["flash"],
+            shadow_ratio=params.shadow_ratio,
+            min_signal_fraction=params.min_signal_fraction,
+        ),
+    }
     if mask.any():
-        sf["rel_mse_moving"] = relative_mse(shadow_free, truth["shadow_free"], mask=mask[..., None], eps=REL_MSE_EPS_RADIANCE)
+        sf["rel_mse_moving"] = relative_mse(
+            shadow_free, truth["shadow_free"], mask=mask[..., None], eps=REL_MSE_EPS_RADIANCE
+        )
     return {
-        "truth": {"time_s": truth["t_s"], "edge_times_s": truth["times_s"], "mode": params.truth_time,
-                  "depth_jump": params.truth_depth_jump, "tolerance_px": params.tolerance_px,
-                  "shadow_free_spp": truth["spp"],
-                  "what": "depth edges of the aov depth at pixel centres; shadow-free truth = max composite of "
-                          "the flash groups rendered noise-free at the capture's mid-time"},
+        "truth": {
+            "time_s": truth["t_s"],
+            "edge_times_s": truth["times_s"],
+            "mode": params.truth_time,
+            "depth_jump": params.truth_depth_jump,
+            "tolerance_px": params.tolerance_px,
+            "shadow_free_spp": truth["spp"],
+            "what": "depth edges of the aov depth at pixel centres; shadow-free truth = max composite of "
+            "the flash groups rendered noise-free at the capture's mid-time",
+        },
         "moving_px": int(mask.sum()),
         "depth_edges": de,
         "shadow_free": sf,

@@ -79,8 +79,9 @@ CAPTIONS = {
 def rgb_illumination_protocol(cfg):
     """One period: bucket 1 red LED, bucket 2 green, bucket 3 blue, bucket 4 ambient, each T/N."""
     if cfg.sensor.bucket_count < 4:
-        raise ConfigError(f"capture.protocol: 'rgb_illumination' needs 4 buckets but sensor.bucket_count "
-                          f"is {cfg.sensor.bucket_count}")
+        raise ConfigError(
+            f"capture.protocol: 'rgb_illumination' needs 4 buckets but sensor.bucket_count is {cfg.sensor.bucket_count}"
+        )
     T, N = exact(cfg.capture.unit_exposure_s), cfg.capture.periods
     slots = [SlotSeconds(b, T / N, frozenset({g})) for b, g in enumerate(LED_GROUPS)]
     slots.append(SlotSeconds(3, T / N, frozenset()))
@@ -92,22 +93,43 @@ class Params(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     method: Literal["chart_fit", "analytic"] = Field(
-        "chart_fit", description="Colour correction from LED signals to XYZ: 'chart_fit' (3x3 least squares on the "
-        "chart patches against their true colours) or 'analytic' (from the LED and sensor spectra, white patch scale).")
+        "chart_fit",
+        description="Colour correction from LED signals to XYZ: 'chart_fit' (3x3 least squares on the "
+        "chart patches against their true colours) or 'analytic' (from the LED and sensor spectra, white patch scale).",
+    )
     patch_interior_fraction: float = Field(
-        0.5, gt=0.0, le=1.0, description="Side of the patch interior used for fits and patch metrics, as a fraction "
-        "of the patch side (a margin against motion blur and fringes).")
-    reference_spp: int = Field(64, ge=1, le=4096, description="Samples per pixel of the noise-free static reference render.")
-    bayer: bool = Field(True, description="Also simulate an ordinary Bayer-filter capture of the same scene and score it.")
-    bayer_camera: str = Field("Nikon 5100 (NPL)", description="Camera whose R, G, B curves the Bayer capture uses "
-                              "(colour.MSDS_CAMERA_SENSITIVITIES; spectral variants only).")
-    bayer_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = Field("RGGB", description="Colour filter array layout, "
-                                                                    "rows 0-1 x columns 0-1.")
+        0.5,
+        gt=0.0,
+        le=1.0,
+        description="Side of the patch interior used for fits and patch metrics, as a fraction "
+        "of the patch side (a margin against motion blur and fringes).",
+    )
+    reference_spp: int = Field(
+        64, ge=1, le=4096, description="Samples per pixel of the noise-free static reference render."
+    )
+    bayer: bool = Field(
+        True, description="Also simulate an ordinary Bayer-filter capture of the same scene and score it."
+    )
+    bayer_camera: str = Field(
+        "Nikon 5100 (NPL)",
+        description="Camera whose R, G, B curves the Bayer capture uses "
+        "(colour.MSDS_CAMERA_SENSITIVITIES; spectral variants only).",
+    )
+    bayer_pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = Field(
+        "RGGB", description="Colour filter array layout, rows 0-1 x columns 0-1."
+    )
     demosaic: Literal["bilinear", "malvar2004", "menon2007"] = Field(
-        "menon2007", description="Demosaicing of the Bayer capture, as sensor.demosaic (the sensor stage's colour "
-        "filter array, colour-demosaicing): bilinear, malvar2004 or menon2007.")
-    bayer_spp: int | None = Field(None, ge=1, le=4096, description="Samples per pixel of the Bayer frame's renders "
-                                  "(default: the capture's largest samples per pixel per stratum, render.spp or the noise budget's).")
+        "menon2007",
+        description="Demosaicing of the Bayer capture, as sensor.demosaic (the sensor stage's colour "
+        "filter array, colour-demosaicing): bilinear, malvar2004 or menon2007.",
+    )
+    bayer_spp: int | None = Field(
+        None,
+        ge=1,
+        le=4096,
+        description="Samples per pixel of the Bayer frame's renders "
+        "(default: the capture's largest samples per pixel per stratum, render.spp or the noise budget's).",
+    )
 
 
 # -- pure numpy: signals, masks, colour -------------------------------------------------------
@@ -177,8 +199,14 @@ def analytic_matrix(response: np.ndarray, led_xyz: np.ndarray, white_signal: np.
 COLOUR_METHODS: dict[str, Callable] = {"chart_fit": fit_chart_matrix, "analytic": analytic_matrix}
 
 
-def colour_matrix(method: str, signals_patch: np.ndarray, true_xyz: np.ndarray, white_index: int,
-                  response: np.ndarray | None = None, led_xyz: np.ndarray | None = None) -> np.ndarray:
+def colour_matrix(
+    method: str,
+    signals_patch: np.ndarray,
+    true_xyz: np.ndarray,
+    white_index: int,
+    response: np.ndarray | None = None,
+    led_xyz: np.ndarray | None = None,
+) -> np.ndarray:
     """Dispatch ``app.method``; an unknown name lists the valid ones."""
     if method not in COLOUR_METHODS:
         raise ConfigError(f"app.method: unknown colour method {method!r}; expected one of {sorted(COLOUR_METHODS)}")
@@ -204,8 +232,13 @@ def xyz_to_linear_srgb(xyz: np.ndarray, white_xy: np.ndarray) -> np.ndarray:
     """For previews: XYZ (illuminant white_xy) -> linear sRGB, chromatically adapted to D65."""
     import colour
 
-    return colour.XYZ_to_RGB(xyz, colour.RGB_COLOURSPACES["sRGB"], illuminant=white_xy,
-                             chromatic_adaptation_transform="Bradford", apply_cctf_encoding=False)
+    return colour.XYZ_to_RGB(
+        xyz,
+        colour.RGB_COLOURSPACES["sRGB"],
+        illuminant=white_xy,
+        chromatic_adaptation_transform="Bradford",
+        apply_cctf_encoding=False,
+    )
 
 
 def true_colours(scene) -> tuple[list[str], np.ndarray, np.ndarray]:
@@ -235,7 +268,9 @@ def _led_sum(scene) -> tuple[np.ndarray, np.ndarray]:
     return wl, sum(np.interp(wl, *s.arrays, left=0.0, right=0.0) for s in specs)
 
 
-def led_matrices(scene, curves_wl: np.ndarray, curves: np.ndarray, per_led_channel: bool) -> tuple[np.ndarray, np.ndarray]:
+def led_matrices(
+    scene, curves_wl: np.ndarray, curves: np.ndarray, per_led_channel: bool
+) -> tuple[np.ndarray, np.ndarray]:
     """(response (C, K), led_xyz (3, K)) for the analytic method. ``curves`` (C, n) on ``curves_wl``
     are the capturing channels' sensitivities; ``per_led_channel``: channel k sees only LED k (the
     multi-bucket sensor), so response is diagonal."""
@@ -275,9 +310,13 @@ def reference_xyz(data: CaptureData, params: Params, white_mask: np.ndarray, whi
     cfg, scene = data.cfg, data.scene
     spectral = cfg.render.variant.endswith("_spectral")
     rest = still(scene)  # the chart at rest through a still camera (camera.shake moves only the capture)
-    renderer = (Renderer.from_config(rest, cfg, film_curves=_cmf_curves(), sensor=None,
-                                     cache=getattr(data.renderer, "cache", None)) if spectral
-                else colour_renderer(data, rest))
+    renderer = (
+        Renderer.from_config(
+            rest, cfg, film_curves=_cmf_curves(), sensor=None, cache=getattr(data.renderer, "cache", None)
+        )
+        if spectral
+        else colour_renderer(data, rest)
+    )
     seed = int(np.random.default_rng(data.seed.spawn(1)[0]).integers(0, 2**31 - 1))
     img = renderer.render(float(scene.extra["rest_time_s"]), params.reference_spp, seed, list(LED_GROUPS)).sum(0)
     img = img.astype(np.float64)
@@ -342,11 +381,19 @@ def bayer_capture(data: CaptureData, params: Params) -> dict:
     rng = np.random.default_rng(data.seed.spawn(3)[2])
     out = simulate_reads(expected[None], [(0,)], sensor, rng, storage_s=[t1 - t0], shared_photodiode=False)
     rgb = dn_to_electrons(out.reads_dn, sensor)[0] / (t1 - t0)  # demosaiced by the sensor stage
-    return {"rates": rgb, "curves": (curves_wl, curves), "passes": len(mids), "window_s": [t0, t1],
-            "saturated_fraction": float(out.mosaic_saturated.mean()), "sensor": sensor}
+    return {
+        "rates": rgb,
+        "curves": (curves_wl, curves),
+        "passes": len(mids),
+        "window_s": [t0, t1],
+        "saturated_fraction": float(out.mosaic_saturated.mean()),
+        "sensor": sensor,
+    }
 
 
-def _scores(xyz: np.ndarray, ref: np.ndarray, masks: np.ndarray, true_xyz: np.ndarray, white_xy) -> tuple[dict, np.ndarray]:
+def _scores(
+    xyz: np.ndarray, ref: np.ndarray, masks: np.ndarray, true_xyz: np.ndarray, white_xy
+) -> tuple[dict, np.ndarray]:
     de = delta_e2000(xyz, ref, white_xy)
     interior = masks.any(axis=0)
     patch_de = delta_e2000(patch_means(xyz, masks), true_xyz, white_xy)
@@ -361,18 +408,29 @@ def _scores(xyz: np.ndarray, ref: np.ndarray, masks: np.ndarray, true_xyz: np.nd
     }, de
 
 
-@register("rgb_illumination", output_channels=30, previews=5, libraries_mb=315, params=Params,
-          description="colour from R, G, B LEDs in three buckets, ambient subtracted; CIEDE2000 vs a static reference")
+@register(
+    "rgb_illumination",
+    output_channels=30,
+    previews=5,
+    libraries_mb=315,
+    params=Params,
+    description="colour from R, G, B LEDs in three buckets, ambient subtracted; CIEDE2000 vs a static reference",
+)
 def reconstruct(data: CaptureData, params: Params) -> AppOutput:
     cfg, scene = data.cfg, data.scene
-    missing = [g for g in LED_GROUPS if g not in scene.groups] + [k for k in ("patches", "reflectances", "led_spectra")
-                                                                   if k not in scene.extra]
+    missing = [g for g in LED_GROUPS if g not in scene.groups] + [
+        k for k in ("patches", "reflectances", "led_spectra") if k not in scene.extra
+    ]
     if missing:
-        raise ConfigError(f"app.name: 'rgb_illumination' needs a scene with LED groups {list(LED_GROUPS)} and a "
-                          f"chart (scene 'colour_chart'); scene {scene.name!r} lacks {missing}")
+        raise ConfigError(
+            f"app.name: 'rgb_illumination' needs a scene with LED groups {list(LED_GROUPS)} and a "
+            f"chart (scene 'colour_chart'); scene {scene.name!r} lacks {missing}"
+        )
     if data.read_names[:4] != list(READ_NAMES):
-        raise ConfigError(f"app.name: 'rgb_illumination' reads {list(READ_NAMES)} (capture.protocol "
-                          f"'rgb_illumination'), got {data.read_names}")
+        raise ConfigError(
+            f"app.name: 'rgb_illumination' reads {list(READ_NAMES)} (capture.protocol "
+            f"'rgb_illumination'), got {data.read_names}"
+        )
     W, H = cfg.render.width, cfg.render.height
     names, true_xyz, white_xy = true_colours(scene)
     white_index = names.index(next(n for n in names if n.startswith("white")))
@@ -384,8 +442,10 @@ def reconstruct(data: CaptureData, params: Params) -> AppOutput:
     sat = data.saturated[:4].any(axis=(0, -1))
     spectral = cfg.render.variant.endswith("_spectral")
     if params.method == "analytic" and not spectral:
-        raise ConfigError("app.method: 'analytic' needs the sensor's spectral curves, i.e. a spectral render.variant "
-                          f"(got {cfg.render.variant!r}); use 'chart_fit'")
+        raise ConfigError(
+            "app.method: 'analytic' needs the sensor's spectral curves, i.e. a spectral render.variant "
+            f"(got {cfg.render.variant!r}); use 'chart_fit'"
+        )
     response = led_xyz = None
     if spectral:
         wl, curves = film_sensitivity(cfg.sensor)
@@ -402,18 +462,25 @@ def reconstruct(data: CaptureData, params: Params) -> AppOutput:
         "capture": label,
         "illuminant": "the three LEDs together (sum of the scene's LED spectra); CIE 1931 2-degree observer",
         "reference": "chart at rest (scene time %g s) under the three LEDs, no ambient, noise-free, %d spp"
-                     % (scene.extra["rest_time_s"], params.reference_spp),
+        % (scene.extra["rest_time_s"], params.reference_spp),
         "colour_matrix": m.tolist(),
         "saturated_fraction": float(sat.mean()),
         label: scores,
     }
-    images = {"colour": xyz_to_linear_srgb(xyz, white_xy), "reference": xyz_to_linear_srgb(ref, white_xy),
-              "delta_e2000": np.repeat(de[..., None], 3, -1), "xyz": xyz, "reference_xyz": ref,
-              "led_signals": signals}
+    images = {
+        "colour": xyz_to_linear_srgb(xyz, white_xy),
+        "reference": xyz_to_linear_srgb(ref, white_xy),
+        "delta_e2000": np.repeat(de[..., None], 3, -1),
+        "xyz": xyz,
+        "reference_xyz": ref,
+        "led_signals": signals,
+    }
     png = {"colour": ("colour", None), "reference": ("reference", None), "delta_e2000": ("delta_e2000_png", None)}
     images["delta_e2000_png"] = images["delta_e2000"] / DELTA_E_PNG_WHITE
-    summary = [f"{label}: CIEDE2000 vs static reference mean {scores['delta_e2000_mean']:.2f}, max "
-               f"{scores['delta_e2000_max']:.1f}; patch interiors mean {scores['delta_e2000_patch_interior_mean']:.2f}"]
+    summary = [
+        f"{label}: CIEDE2000 vs static reference mean {scores['delta_e2000_mean']:.2f}, max "
+        f"{scores['delta_e2000_max']:.1f}; patch interiors mean {scores['delta_e2000_patch_interior_mean']:.2f}"
+    ]
 
     if params.bayer:
         bay = bayer_capture(data, params)
@@ -423,14 +490,23 @@ def reconstruct(data: CaptureData, params: Params) -> AppOutput:
         mb = colour_matrix(params.method, patch_means(bay["rates"], masks), true_xyz, white_index, b_resp, b_xyz)
         xyz_b = bay["rates"] @ mb
         scores_b, de_b = _scores(xyz_b, ref, masks, true_xyz, white_xy)
-        metrics["bayer"] = {**scores_b, "camera": params.bayer_camera, "pattern": params.bayer_pattern,
-                            "demosaic": params.demosaic, "window_s": bay["window_s"], "render_passes": bay["passes"],
-                            "saturated_fraction": bay["saturated_fraction"], "colour_matrix": mb.tolist()}
+        metrics["bayer"] = {
+            **scores_b,
+            "camera": params.bayer_camera,
+            "pattern": params.bayer_pattern,
+            "demosaic": params.demosaic,
+            "window_s": bay["window_s"],
+            "render_passes": bay["passes"],
+            "saturated_fraction": bay["saturated_fraction"],
+            "colour_matrix": mb.tolist(),
+        }
         images["bayer"] = xyz_to_linear_srgb(xyz_b, white_xy)
         images["delta_e2000_bayer"] = np.repeat(de_b[..., None], 3, -1)
         images["delta_e2000_bayer_png"] = images["delta_e2000_bayer"] / DELTA_E_PNG_WHITE
         png["bayer"] = ("bayer", None)
         png["delta_e2000_bayer"] = ("delta_e2000_bayer_png", None)
-        summary.append(f"bayer: CIEDE2000 mean {scores_b['delta_e2000_mean']:.2f}, max {scores_b['delta_e2000_max']:.1f}; "
-                       f"patch interiors mean {scores_b['delta_e2000_patch_interior_mean']:.2f}")
+        summary.append(
+            f"bayer: CIEDE2000 mean {scores_b['delta_e2000_mean']:.2f}, max {scores_b['delta_e2000_max']:.1f}; "
+            f"patch interiors mean {scores_b['delta_e2000_patch_interior_mean']:.2f}"
+        )
     return AppOutput(images=images, metrics=metrics, png=png, summary=summary, captions=CAPTIONS)

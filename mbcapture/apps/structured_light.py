@@ -89,8 +89,10 @@ SCENE_KEY = "structured_light"
 def scene_info(scene) -> dict:
     info = scene.extra.get(SCENE_KEY)
     if not info:
-        raise ConfigError(f"scene.name: scene {scene.name!r} has no projector patterns "
-                          f"(SceneModel.extra[{SCENE_KEY!r}]); use a structured-light scene")
+        raise ConfigError(
+            f"scene.name: scene {scene.name!r} has no projector patterns "
+            f"(SceneModel.extra[{SCENE_KEY!r}]); use a structured-light scene"
+        )
     return info
 
 
@@ -102,8 +104,10 @@ def structured_light_protocol(cfg):
     groups = list(scene_info(scenes.make_scene(cfg.scene.name, cfg.scene.params()))["groups"])
     n, have = len(groups), cfg.sensor.bucket_count
     if have < n:
-        raise ConfigError(f"capture.protocol: 'structured_light' with {n} patterns needs {n} buckets (and one more for "
-                          f"the ambient image) but sensor.bucket_count is {have}")
+        raise ConfigError(
+            f"capture.protocol: 'structured_light' with {n} patterns needs {n} buckets (and one more for "
+            f"the ambient image) but sensor.bucket_count is {have}"
+        )
     T, N = exact(cfg.capture.unit_exposure_s), cfg.capture.periods
     slots = [SlotSeconds(b, T / N, frozenset({g})) for b, g in enumerate(groups)]
     reads = [ReadEvent(g, (b,)) for b, g in enumerate(groups)]
@@ -118,18 +122,34 @@ class StructuredLightParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     ambient: Literal["auto", "subtract", "none"] = Field(
-        "auto", description="Ambient light: 'auto' subtracts the ambient-only read when the capture has one, 'subtract' "
-        "requires it, 'none' decodes the pattern reads as they are (report.json scores both decodings anyway).")
-    unwrap: str = Field("depth_range", description="Phase unwrapping (phase_shift patterns): depth_range (per pixel, the one "
-                        "period whose triangulated depth lies in [depth_min_m, depth_max_m]), spatial (scikit-image "
-                        "unwrap_phase plus one global offset) or none (single-period patterns).")
-    depth_min_m: float = Field(0.7, gt=0.0, description="Nearest depth along the camera's axis the scene can have, m "
-                               "(depth_range unwrapping; decoded depths outside [depth_min_m, depth_max_m] are invalid).")
+        "auto",
+        description="Ambient light: 'auto' subtracts the ambient-only read when the capture has one, 'subtract' "
+        "requires it, 'none' decodes the pattern reads as they are (report.json scores both decodings anyway).",
+    )
+    unwrap: str = Field(
+        "depth_range",
+        description="Phase unwrapping (phase_shift patterns): depth_range (per pixel, the one "
+        "period whose triangulated depth lies in [depth_min_m, depth_max_m]), spatial (scikit-image "
+        "unwrap_phase plus one global offset) or none (single-period patterns).",
+    )
+    depth_min_m: float = Field(
+        0.7,
+        gt=0.0,
+        description="Nearest depth along the camera's axis the scene can have, m "
+        "(depth_range unwrapping; decoded depths outside [depth_min_m, depth_max_m] are invalid).",
+    )
     depth_max_m: float = Field(1.6, gt=0.0, description="Farthest depth along the camera's axis the scene can have, m.")
-    min_modulation_fraction: float = Field(0.05, ge=0.0, lt=1.0, description="A pixel is decoded only where its "
-                                           "pattern modulation (phase_shift: B; gray_code: the white image's projector "
-                                           "light) is at least this fraction of its 99th percentile.")
-    depth_tolerance_mm: float = Field(10.0, gt=0.0, description="Metric within_tolerance: |depth error| at most this, mm.")
+    min_modulation_fraction: float = Field(
+        0.05,
+        ge=0.0,
+        lt=1.0,
+        description="A pixel is decoded only where its "
+        "pattern modulation (phase_shift: B; gray_code: the white image's projector "
+        "light) is at least this fraction of its 99th percentile.",
+    )
+    depth_tolerance_mm: float = Field(
+        10.0, gt=0.0, description="Metric within_tolerance: |depth error| at most this, mm."
+    )
 
     @field_validator("unwrap")
     @classmethod
@@ -173,8 +193,13 @@ def decode_gray_code(images, ambient, info, bad, tri, p: StructuredLightParams) 
     light = white - ambient if ambient is not None else white
     with np.errstate(invalid="ignore"):
         ok = _valid_fraction(light, p.min_modulation_fraction, bad) & (z >= p.depth_min_m) & (z <= p.depth_max_m)
-    return {"phase": None, "modulation": light, "column": np.where(ok, u, np.nan), "depth": np.where(ok, z, np.nan),
-            "valid": ok}
+    return {
+        "phase": None,
+        "modulation": light,
+        "column": np.where(ok, u, np.nan),
+        "depth": np.where(ok, z, np.nan),
+        "valid": ok,
+    }
 
 
 #: Pattern decoders by the scene's pattern kind: ``fn(images, ambient, info, bad, triangulate, params) -> dict``.
@@ -182,16 +207,20 @@ DECODERS: dict[str, Callable] = {"phase_shift": decode_phase_shift, "gray_code":
 
 
 # --------------------------------------------------------------------------------- metrics
-def depth_scores(z, valid, u, phase, truth: dict, lit: np.ndarray, tolerance_mm: float, periods: int | None,
-                 proj_width: int) -> dict:
+def depth_scores(
+    z, valid, u, phase, truth: dict, lit: np.ndarray, tolerance_mm: float, periods: int | None, proj_width: int
+) -> dict:
     """Depth and phase errors over the truly lit pixels ``lit`` (see module doc)."""
     n_lit = int(lit.sum())
     if n_lit == 0:
         return {"pixels": 0}
     both = lit & valid
     err_mm = (z - truth["z_m"]) * 1e3
-    out = {"pixels": n_lit, "coverage": float(both.sum() / n_lit),
-           "within_tolerance": float(np.sum(both & (np.abs(np.nan_to_num(err_mm, nan=np.inf)) <= tolerance_mm)) / n_lit)}
+    out = {
+        "pixels": n_lit,
+        "coverage": float(both.sum() / n_lit),
+        "within_tolerance": float(np.sum(both & (np.abs(np.nan_to_num(err_mm, nan=np.inf)) <= tolerance_mm)) / n_lit),
+    }
     if both.any():
         out["depth_rmse_mm"] = float(np.sqrt(np.mean(err_mm[both] ** 2)))
         out["depth_median_abs_mm"] = float(np.median(np.abs(err_mm[both])))
@@ -225,12 +254,19 @@ def projector_depth(renderer, projector, width: int, height: int, t_s: float) ->
 
     mi = renderer.mitsuba
     renderer.set_time(t_s)
-    sensor = mi.load_dict({
-        "type": "perspective", "fov": float(projector.fov_deg), "fov_axis": "x", "near_clip": NEAR_CLIP_M,
-        "to_world": mi.ScalarTransform4f().look_at(origin=list(projector.origin), target=list(projector.target),
-                                                   up=list(projector.up)),
-        "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"}},
-        "sampler": {"type": "stratified", "sample_count": 1, "jitter": False}})
+    sensor = mi.load_dict(
+        {
+            "type": "perspective",
+            "fov": float(projector.fov_deg),
+            "fov_axis": "x",
+            "near_clip": NEAR_CLIP_M,
+            "to_world": mi.ScalarTransform4f().look_at(
+                origin=list(projector.origin), target=list(projector.target), up=list(projector.up)
+            ),
+            "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"}},
+            "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+        }
+    )
     integ = mi.load_dict({"type": "aov", "aovs": "dd.y:depth"})
     img = np.asarray(mi.render(renderer.mitsuba_scene, sensor=sensor, integrator=integ, spp=1, seed=0), np.float64)
     t = img[..., -1]
@@ -238,7 +274,9 @@ def projector_depth(renderer, projector, width: int, height: int, t_s: float) ->
     return np.where(t > 0, (t + NEAR_CLIP_M / cos) * cos, np.inf)
 
 
-def lit_by_projector(points: np.ndarray, projector, shadow_map: np.ndarray, proj_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def lit_by_projector(
+    points: np.ndarray, projector, shadow_map: np.ndarray, proj_size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray]:
     """(lit (H, W) bool, projector column u (H, W)) of world points (H, W, 3): inside the projector's field
     and no nearer than the 3x3 minimum of the shadow map around their texel (plus 2 mm + 0.2 %)."""
     from scipy.ndimage import minimum_filter
@@ -277,8 +315,10 @@ def _roles(data: CaptureData, info: dict) -> tuple[list[int], int | None]:
     names = data.read_names
     missing = [g for g in info["groups"] if g not in names]
     if missing:
-        raise ConfigError(f"capture.protocol: structured_light needs one read per pattern group {list(info['groups'])} "
-                          f"(missing {missing}; reads {names})")
+        raise ConfigError(
+            f"capture.protocol: structured_light needs one read per pattern group {list(info['groups'])} "
+            f"(missing {missing}; reads {names})"
+        )
     return [names.index(g) for g in info["groups"]], (names.index(AMBIENT_READ) if AMBIENT_READ in names else None)
 
 
@@ -296,13 +336,19 @@ CAPTIONS = {
     "depth": "decoded depth, turbo colour map: app.depth_min_m (near) to app.depth_max_m (far); black = not decoded",
     "depth_truth": "reference: the depth AOV at the capture's mid-time where the projector lights the scene, same scale",
     "depth_error": "|decoded - true depth|: black = 0, white = 4 x app.depth_tolerance_mm or more; blue = lit but not "
-                   "decoded",
+    "decoded",
 }
 
 
-@register("structured_light", output_channels=22, previews=3, libraries_mb=60, params=StructuredLightParams,
-          pinhole_truth="triangulation through the pinhole camera and projector; truth depth from the aov",
-          description="structured light: ambient-subtracted phase shifting or Gray code, unwrapping, triangulated depth")
+@register(
+    "structured_light",
+    output_channels=22,
+    previews=3,
+    libraries_mb=60,
+    params=StructuredLightParams,
+    pinhole_truth="triangulation through the pinhole camera and projector; truth depth from the aov",
+    description="structured light: ambient-subtracted phase shifting or Gray code, unwrapping, triangulated depth",
+)
 def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
     cfg = data.cfg
     W, H = cfg.render.width, cfg.render.height
@@ -312,7 +358,9 @@ def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
         raise ConfigError(f"scene: unknown pattern kind {kind!r}; expected one of {sorted(DECODERS)}")
     pat_idx, amb_idx = _roles(data, info)
     if params.ambient == "subtract" and amb_idx is None:
-        raise ConfigError("app.ambient: 'subtract' needs an ambient-only read (sensor.bucket_count > number of patterns)")
+        raise ConfigError(
+            "app.ambient: 'subtract' needs an ambient-only read (sensor.bucket_count > number of patterns)"
+        )
     rate = data.reads_e() / (data.k_e * data.exposure_s[:, None, None, None])
     lum = luminance(rate)
     used = pat_idx + ([amb_idx] if amb_idx is not None else [])
@@ -333,26 +381,32 @@ def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
 
     periods = info.get("fringe_periods")
     metrics: dict = {
-        "patterns": kind, "pattern_reads": [data.read_names[i] for i in pat_idx],
-        "ambient_read": amb_idx is not None, "decoding": chosen,
+        "patterns": kind,
+        "pattern_reads": [data.read_names[i] for i in pat_idx],
+        "ambient_read": amb_idx is not None,
+        "decoding": chosen,
         "unwrap": params.unwrap if kind == "phase_shift" else "not needed (absolute Gray code)",
         "saturated_px": int(bad.sum()),
         "ambient_in_reads": ambient_in_reads(data),
     }
     if kind == "phase_shift":
-        metrics["period_ambiguity"] = period_ambiguity(data.scene.camera, proj, pw, periods, W, H, params.depth_min_m,
-                                                       params.depth_max_m)
-    out_images = {"depth": np.nan_to_num(main["depth"], nan=0.0).astype(np.float32),
-                  "decoded": main["valid"].astype(np.float32),
-                  "modulation": main["modulation"].astype(np.float32),
-                  "depth_preview": _depth_preview(main["depth"], params.depth_min_m, params.depth_max_m)}
+        metrics["period_ambiguity"] = period_ambiguity(
+            data.scene.camera, proj, pw, periods, W, H, params.depth_min_m, params.depth_max_m
+        )
+    out_images = {
+        "depth": np.nan_to_num(main["depth"], nan=0.0).astype(np.float32),
+        "decoded": main["valid"].astype(np.float32),
+        "modulation": main["modulation"].astype(np.float32),
+        "depth_preview": _depth_preview(main["depth"], params.depth_min_m, params.depth_max_m),
+    }
     if main["phase"] is not None:
         out_images["phase"] = main["phase"].astype(np.float32)
     if ambient is not None:
         out_images["ambient"] = rate[amb_idx]
     if "ambient_subtracted" in decoded:
-        out_images["depth_preview_ambient_ignored"] = _depth_preview(decoded["ambient_ignored"]["depth"],
-                                                                     params.depth_min_m, params.depth_max_m)
+        out_images["depth_preview_ambient_ignored"] = _depth_preview(
+            decoded["ambient_ignored"]["depth"], params.depth_min_m, params.depth_max_m
+        )
     png = {"depth": ("depth_preview", None)}
     summary = [f"structured light ({kind}, {chosen}): {int(main['valid'].sum())} pixels decoded"]
 
@@ -366,26 +420,37 @@ def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
             if mask.any():
                 row["moving_region"] = depth_scores(*args, lit & mask, params.depth_tolerance_mm, periods, pw)
             scores[m] = row
-        metrics["truth"] = {"time_s": truth["t_s"], "lit_px": int(lit.sum()), "moving_px": int(mask.sum()),
-                            "tolerance_mm": params.depth_tolerance_mm,
-                            "what": "depth AOV at the capture's mid-time; pixels the projector lights (shadow map)"}
+        metrics["truth"] = {
+            "time_s": truth["t_s"],
+            "lit_px": int(lit.sum()),
+            "moving_px": int(mask.sum()),
+            "tolerance_mm": params.depth_tolerance_mm,
+            "what": "depth AOV at the capture's mid-time; pixels the projector lights (shadow map)",
+        }
         metrics["depth"] = scores
         out_images["depth_truth"] = np.nan_to_num(truth["z_m"], nan=0.0).astype(np.float32)
         out_images["lit_truth"] = lit.astype(np.float32)
         err = np.where(lit & main["valid"], np.abs(main["depth"] - truth["z_m"]) * 1e3, np.nan)
         out_images["depth_error_mm"] = np.nan_to_num(err, nan=0.0).astype(np.float32)
-        e_rgb = np.repeat(np.clip(np.nan_to_num(err, nan=0.0) / (4 * params.depth_tolerance_mm), 0, 1)[..., None], 3, -1)
-        e_rgb[lit & ~main["valid"]] = (0.0, 0.0, 1.0)   # lit but not decoded: blue
+        e_rgb = np.repeat(
+            np.clip(np.nan_to_num(err, nan=0.0) / (4 * params.depth_tolerance_mm), 0, 1)[..., None], 3, -1
+        )
+        e_rgb[lit & ~main["valid"]] = (0.0, 0.0, 1.0)  # lit but not decoded: blue
         out_images["error_preview"] = e_rgb.astype(np.float32)
-        out_images["depth_truth_preview"] = _depth_preview(np.where(lit, truth["z_m"], np.nan), params.depth_min_m,
-                                                           params.depth_max_m)
+        out_images["depth_truth_preview"] = _depth_preview(
+            np.where(lit, truth["z_m"], np.nan), params.depth_min_m, params.depth_max_m
+        )
         png |= {"depth_truth": ("depth_truth_preview", None), "depth_error": ("error_preview", None)}
         a = scores[chosen]["all"]
         fmt = lambda v: "n/a" if v is None else f"{v:.3g}"  # noqa: E731
-        summary.append(f"depth RMSE {fmt(a.get('depth_rmse_mm'))} mm, {100 * a.get('within_tolerance', 0):.1f}% within "
-                       f"{params.depth_tolerance_mm:g} mm, coverage {100 * a.get('coverage', 0):.1f}%")
+        summary.append(
+            f"depth RMSE {fmt(a.get('depth_rmse_mm'))} mm, {100 * a.get('within_tolerance', 0):.1f}% within "
+            f"{params.depth_tolerance_mm:g} mm, coverage {100 * a.get('coverage', 0):.1f}%"
+        )
         if "ambient_subtracted" in scores:
             b = scores["ambient_ignored"]["all"]
-            summary.append(f"without the ambient bucket: RMSE {fmt(b.get('depth_rmse_mm'))} mm, "
-                           f"{100 * b.get('within_tolerance', 0):.1f}% within tolerance")
+            summary.append(
+                f"without the ambient bucket: RMSE {fmt(b.get('depth_rmse_mm'))} mm, "
+                f"{100 * b.get('within_tolerance', 0):.1f}% within tolerance"
+            )
     return AppOutput(images=out_images, metrics=metrics, png=png, summary=summary, captions=CAPTIONS)

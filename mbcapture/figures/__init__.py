@@ -117,7 +117,9 @@ class FigureContext:
 
         key = (name, overrides)
         if key not in self._cache:
-            self._cache[key] = run_capture(self.config(name, overrides), progress=self.progress)  # a status line per stage
+            self._cache[key] = run_capture(
+                self.config(name, overrides), progress=self.progress
+            )  # a status line per stage
         return self._cache[key]
 
 
@@ -134,8 +136,14 @@ def _save(spec: FigureSpec, out: FigureOutput, st, elapsed_s: float) -> dict:
         csv.writer(buf).writerows(out.table)
         st.write_bytes(f"{spec.name}.csv", buf.getvalue().encode())
         files.append(f"{spec.name}.csv")
-    return {"name": spec.name, "title": spec.title, "paper": spec.paper, "caption": out.caption,
-            "files": files, "seconds": round(elapsed_s, 2)}
+    return {
+        "name": spec.name,
+        "title": spec.title,
+        "paper": spec.paper,
+        "caption": out.caption,
+        "files": files,
+        "seconds": round(elapsed_s, 2),
+    }
 
 
 def _render(fig, fmt: str) -> bytes:
@@ -148,11 +156,13 @@ def _render(fig, fmt: str) -> bytes:
 def _index_html(entries: list[dict], quick: bool) -> str:
     rows = []
     for e in entries:
-        links = " · ".join(f'<a href="{html.escape(f)}">{html.escape(f.rsplit(".", 1)[1].upper())}</a>' for f in e["files"])
+        links = " · ".join(
+            f'<a href="{html.escape(f)}">{html.escape(f.rsplit(".", 1)[1].upper())}</a>' for f in e["files"]
+        )
         rows.append(
             f'<section id="{e["name"]}"><h2>{html.escape(e["title"])} <small>({html.escape(e["paper"])})</small></h2>'
             f'<img src="{e["name"]}.png" alt="{html.escape(e["title"])}" style="max-width:100%">'
-            f'<p>{html.escape(e["caption"])}</p><p>{links} · {e["seconds"]} s</p></section>'
+            f"<p>{html.escape(e['caption'])}</p><p>{links} · {e['seconds']} s</p></section>"
         )
     mode = "quick (160x128, 4 spp)" if quick else "full size (640x512)"
     return (
@@ -163,8 +173,9 @@ def _index_html(entries: list[dict], quick: bool) -> str:
     )
 
 
-def make_figures(out_dir: Path, *, quick: bool = False, only: list[str] | None = None, seed: int = 0,
-                 progress: bool = True) -> list[dict]:
+def make_figures(
+    out_dir: Path, *, quick: bool = False, only: list[str] | None = None, seed: int = 0, progress: bool = True
+) -> list[dict]:
     """Write the figures (all, or ``only``) and ``index.html`` into ``out_dir``; returns the index entries."""
 
     _load()
@@ -198,5 +209,10 @@ def _previous_entries(out_dir: Path, replaced: set[str]) -> list[dict]:
         old = json.loads((out_dir / "index.json").read_text())["figures"]
     except (OSError, ValueError, KeyError, TypeError):
         return []
-    return [e for e in old if e.get("name") in _REGISTRY and e["name"] not in replaced
-            and all((out_dir / f).exists() for f in e.get("files", []))]
+    return [
+        e
+        for e in old
+        if e.get("name") in _REGISTRY
+        and e["name"] not in replaced
+        and all((out_dir / f).exists() for f in e.get("files", []))
+    ]

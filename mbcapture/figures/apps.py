@@ -14,8 +14,11 @@ from . import FigureContext, FigureOutput, figure
 
 def _flat_metrics(metrics: dict) -> dict[str, float]:
     """Numeric leaves of a metrics dict, with dotted keys."""
-    return {k: float(v) for k, v in flat_items(metrics)
-            if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)}
+    return {
+        k: float(v)
+        for k, v in flat_items(metrics)
+        if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)
+    }
 
 
 def app_comparison(ctx: FigureContext, config: str, title: str, *overrides: str) -> FigureOutput:
@@ -38,12 +41,23 @@ def app_comparison(ctx: FigureContext, config: str, title: str, *overrides: str)
     mi, ms = _flat_metrics(inter.report["metrics"]), _flat_metrics(seq.report["metrics"])
     keys = [k for k in mi if k in ms]
     table = [["metric", "interleaved", "sequential"], *[[k, mi[k], ms[k]] for k in keys]]
-    caption = (f"{title} ({inter.app}), {ctx.film[0]}x{ctx.film[1]}. Top: the multi-bucket capture, every image from "
-               "the same span of time; bottom: the same exposures one after another on a conventional sensor. "
-               "The table (JSON/CSV) lists the application's metrics for both.")
-    return FigureOutput(fig, {"app": inter.app, "config": config, "film": list(ctx.film),
-                              "interleaved": inter.report["metrics"], "sequential": seq.report["metrics"]},
-                        caption, table)
+    caption = (
+        f"{title} ({inter.app}), {ctx.film[0]}x{ctx.film[1]}. Top: the multi-bucket capture, every image from "
+        "the same span of time; bottom: the same exposures one after another on a conventional sensor. "
+        "The table (JSON/CSV) lists the application's metrics for both."
+    )
+    return FigureOutput(
+        fig,
+        {
+            "app": inter.app,
+            "config": config,
+            "film": list(ctx.film),
+            "interleaved": inter.report["metrics"],
+            "sequential": seq.report["metrics"],
+        },
+        caption,
+        table,
+    )
 
 
 @figure("fig12_flash_no_flash", "Flash/no-flash of the swinging metronome", "Fig. 12")

@@ -15,8 +15,12 @@ from ..video import needle_track
 from . import FigureContext, FigureOutput, figure
 
 
-@figure("camera_shake", "Hand shake: the trajectory model and the strata it costs", "beyond the paper (Fig. 13's shake)",
-        renders=False)
+@figure(
+    "camera_shake",
+    "Hand shake: the trajectory model and the strata it costs",
+    "beyond the paper (Fig. 13's shake)",
+    renders=False,
+)
 def camera_shake(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
     from scipy.signal import welch
@@ -54,26 +58,39 @@ def camera_shake(ctx: FigureContext) -> FigureOutput:
     rots = [r[0] for r in rows[1:]]
     axes[2].plot(rots, [r[1] for r in rows[1:]], "o-")
     axes[2].set_xlabel("camera.shake.rotation_deg (RMS)"), axes[2].set_ylabel("render passes (strata)")
-    axes[2].set_title(f"burst (a still scene), {ctx.film[0]}x{ctx.film[1]}, "
-                      f"{burst_cfg.capture.unit_exposure_s * burst_cfg.sensor.bucket_count * 1e3:g} ms", fontsize=10)
+    axes[2].set_title(
+        f"burst (a still scene), {ctx.film[0]}x{ctx.film[1]}, "
+        f"{burst_cfg.capture.unit_exposure_s * burst_cfg.sensor.bucket_count * 1e3:g} ms",
+        fontsize=10,
+    )
     fig.tight_layout()
-    caption = ("Left: the seeded hand-shake trajectory of configs/metronome_shake.yaml (pitch, yaw, roll and one "
-               "translation) over 2 s. Middle: its spectrum against the model (slow drift plus the physiological "
-               "tremor peak). Right: the planner's strata for configs/burst.yaml (a still scene) as the shake grows: "
-               "the projected motion of the whole frame bounds them, as a moving part's does.")
+    caption = (
+        "Left: the seeded hand-shake trajectory of configs/metronome_shake.yaml (pitch, yaw, roll and one "
+        "translation) over 2 s. Middle: its spectrum against the model (slow drift plus the physiological "
+        "tremor peak). Right: the planner's strata for configs/burst.yaml (a still scene) as the shake grows: "
+        "the projected motion of the whole frame bounds them, as a moving part's does."
+    )
     return FigureOutput(fig, {"shake": spec.model_dump(), "film": list(ctx.film), "strata": rows}, caption, rows)
 
 
-@figure("burst", "Back-to-back burst vs conventional burst vs one long exposure, hand-held in low light",
-        "beyond the paper (section 5)")
+@figure(
+    "burst",
+    "Back-to-back burst vs conventional burst vs one long exposure, hand-held in low light",
+    "beyond the paper (section 5)",
+)
 def burst(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
     res = ctx.capture("burst")
     img, m = res.images, res.report["metrics"]
-    panels = [("truth", "truth (still camera)"), ("reference_frame", f"one frame ({m['reference_frame']})"),
-              ("unaligned_average", "frames averaged, not aligned"), ("average", f"back-to-back, aligned ({m['method']})"),
-              ("other_burst", "conventional burst, aligned"), ("long_exposure", "one long exposure")]
+    panels = [
+        ("truth", "truth (still camera)"),
+        ("reference_frame", f"one frame ({m['reference_frame']})"),
+        ("unaligned_average", "frames averaged, not aligned"),
+        ("average", f"back-to-back, aligned ({m['method']})"),
+        ("other_burst", "conventional burst, aligned"),
+        ("long_exposure", "one long exposure"),
+    ]
     panels = [(k, t) for k, t in panels if k in img]
     white = float(np.percentile(img["truth"] @ np.array([0.2126, 0.7152, 0.0722]), 99.5)) or 1.0
     fig, axes = plt.subplots(1, len(panels), figsize=(2.6 * len(panels), 2.7))
@@ -85,15 +102,20 @@ def burst(ctx: FigureContext) -> FigureOutput:
     keys = ["capture_span_s", "psnr_db", "rel_mse", "residual_blur_px", "motion_blur_px", "registration_error_px_mean"]
     comp = m.get("comparison", {})
     table = [["metric", *comp], *[[k, *[comp[c].get(k) for c in comp]] for k in keys]]
-    caption = (f"configs/burst.yaml at {ctx.film[0]}x{ctx.film[1]}: {m['frames']} frames of "
-               f"{m['frame_exposure_s'] * 1e3:g} ms, hand-held ({m['camera_motion']}). All at equal total exposure "
-               f"{m['total_exposure_s'] * 1e3:g} ms, one white level. The table: PSNR against the still-camera truth, "
-               "residual (Gaussian) blur, the frame's own motion during each exposure and the registration error.")
+    caption = (
+        f"configs/burst.yaml at {ctx.film[0]}x{ctx.film[1]}: {m['frames']} frames of "
+        f"{m['frame_exposure_s'] * 1e3:g} ms, hand-held ({m['camera_motion']}). All at equal total exposure "
+        f"{m['total_exposure_s'] * 1e3:g} ms, one white level. The table: PSNR against the still-camera truth, "
+        "residual (Gaussian) blur, the frame's own motion during each exposure and the registration error."
+    )
     return FigureOutput(fig, {"film": list(ctx.film), "metrics": m}, caption, table)
 
 
-@figure("hdr_video", "Multi-bucket HDR video vs alternating exposures, and temporal aliasing at 3 vs 30 frames/s",
-        "beyond the paper (section 6)")
+@figure(
+    "hdr_video",
+    "Multi-bucket HDR video vs alternating exposures, and temporal aliasing at 3 vs 30 frames/s",
+    "beyond the paper (section 6)",
+)
 def hdr_video(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
@@ -130,11 +152,22 @@ def hdr_video(ctx: FigureContext) -> FigureOutput:
         t0 = max(res.report["reads"], key=lambda r: r["exposure_s"])["centroid_s"]  # the longest read's centroid
         dense = t0 + np.arange(0.0, 3.0, 2e-3)
         W, H = cfg.render.width, cfg.render.height
-        ax.plot(dense, needle_track(sc, dense, W, H), color="0.6", lw=1, label=f"needle, true ({al['true_frequency_hz']:.3g} Hz)")
+        ax.plot(
+            dense,
+            needle_track(sc, dense, W, H),
+            color="0.6",
+            lw=1,
+            label=f"needle, true ({al['true_frequency_hz']:.3g} Hz)",
+        )
         for r in al["rates"].values():
             ts = t0 + np.arange(int(3.0 * r["frame_rate_hz"]) + 1) / r["frame_rate_hz"]
-            ax.plot(ts, needle_track(sc, ts, W, H), "o-" if r["frame_rate_hz"] < 10 else ".", ms=4,
-                    label=f"{r['frame_rate_hz']:g} frames/s: appears at {r['apparent_frequency_hz']:.3g} Hz")
+            ax.plot(
+                ts,
+                needle_track(sc, ts, W, H),
+                "o-" if r["frame_rate_hz"] < 10 else ".",
+                ms=4,
+                label=f"{r['frame_rate_hz']:g} frames/s: appears at {r['apparent_frequency_hz']:.3g} Hz",
+            )
         ax.set_xlabel("scene time (s)"), ax.set_ylabel("needle x (px)"), ax.legend(fontsize=8, loc="upper right")
         ax.set_title("temporal aliasing of the needle", fontsize=9)
     fig.tight_layout()
@@ -142,10 +175,15 @@ def hdr_video(ctx: FigureContext) -> FigureOutput:
     for key in ("multi_bucket", "alternating_exposure"):
         if key in rep:
             s = rep[key]
-            table.append([key, s["ghosting_rel_mse_moving_mean"], s["ghosting_rel_mse_moving_max"], s["temporal_consistency"]])
-    caption = (f"configs/hdr_video.yaml at {ctx.film[0]}x{ctx.film[1]}, {n} frames at {rep['frame_rate_hz']:g} frames/s. "
-               "Top: frames of the truth, the multi-bucket HDR video and the alternating short/long-exposure video "
-               "(Kang et al. 2003: neighbours warped by optical flow), one white level; right: ghosting per frame. "
-               "Bottom: the needle's horizontal position, continuous and sampled at the compared frame rates.")
-    return FigureOutput(fig, {"film": list(ctx.film), "video": {k: v2 for k, v2 in rep.items() if k != "per_frame"}},
-                        caption, table)
+            table.append(
+                [key, s["ghosting_rel_mse_moving_mean"], s["ghosting_rel_mse_moving_max"], s["temporal_consistency"]]
+            )
+    caption = (
+        f"configs/hdr_video.yaml at {ctx.film[0]}x{ctx.film[1]}, {n} frames at {rep['frame_rate_hz']:g} frames/s. "
+        "Top: frames of the truth, the multi-bucket HDR video and the alternating short/long-exposure video "
+        "(Kang et al. 2003: neighbours warped by optical flow), one white level; right: ghosting per frame. "
+        "Bottom: the needle's horizontal position, continuous and sampled at the compared frame rates."
+    )
+    return FigureOutput(
+        fig, {"film": list(ctx.film), "video": {k: v2 for k, v2 in rep.items() if k != "per_frame"}}, caption, table
+    )

@@ -38,8 +38,14 @@ def _bucket_legend(ax, n: int) -> None:
 def _read_rows(tl, unit_s: float) -> list[dict]:
     rows = []
     for r in tl.describe_reads():
-        rows.append({**r, "exposure_T": r["exposure_s"] / unit_s, "span_T": r["span_s"] / unit_s,
-                     "centroid_T": r["centroid_s"] / unit_s})
+        rows.append(
+            {
+                **r,
+                "exposure_T": r["exposure_s"] / unit_s,
+                "span_T": r["span_s"] / unit_s,
+                "centroid_T": r["centroid_s"] / unit_s,
+            }
+        )
     return rows
 
 
@@ -52,9 +58,12 @@ def fig01_timing(ctx: FigureContext) -> FigureOutput:
     rows = {
         "non-interleaved (sequential)": _timeline(
             {"protocol": "interleaved_hdr", "unit_exposure_s": T, "periods": N, "sequential": True},
-            {"frame_readout_s": 0.0}),
+            {"frame_readout_s": 0.0},
+        ),
         "time-interleaved (8:4:2:1)": _timeline({"protocol": "interleaved_hdr", "unit_exposure_s": T, "periods": N}),
-        "photon-efficient (4:2:1:1)": _timeline({"protocol": "photon_efficient_hdr", "unit_exposure_s": T, "periods": N}),
+        "photon-efficient (4:2:1:1)": _timeline(
+            {"protocol": "photon_efficient_hdr", "unit_exposure_s": T, "periods": N}
+        ),
     }
     fig, ax = plt.subplots(figsize=(9, 3.2))
     data = {}
@@ -63,8 +72,14 @@ def fig01_timing(ctx: FigureContext) -> FigureOutput:
         draw_timeline(ax, tl, y, T, label)
         end = float((tl.end_tick - tl.start_tick) * tl.tick_s) / T
         reads = _read_rows(tl, T)
-        ax.text(end + 0.2, y, "reads: " + ", ".join(f"{r['name']}={'+'.join(f'B{b}' for b in r['buckets'])}"
-                                                    f" ({r['exposure_T']:g}T)" for r in reads), va="center", fontsize=7)
+        ax.text(
+            end + 0.2,
+            y,
+            "reads: "
+            + ", ".join(f"{r['name']}={'+'.join(f'B{b}' for b in r['buckets'])} ({r['exposure_T']:g}T)" for r in reads),
+            va="center",
+            fontsize=7,
+        )
         data[label] = {"capture_span_T": end, "reads": reads}
     ax.set_xlim(-0.5, 26)
     ax.set_ylim(-0.7, len(rows) - 0.3)
@@ -73,9 +88,11 @@ def fig01_timing(ctx: FigureContext) -> FigureOutput:
     _bucket_legend(ax, 4)
     fig.tight_layout()
     pe, il = data["photon-efficient (4:2:1:1)"], data["time-interleaved (8:4:2:1)"]
-    caption = (f"Exposures T, 2T, 4T, 8T with N = {N} periods. Capture span: photon-efficient "
-               f"{pe['capture_span_T']:g}T, time-interleaved {il['capture_span_T']:g}T, sequential "
-               f"{data['non-interleaved (sequential)']['capture_span_T']:g}T (no readout gaps drawn).")
+    caption = (
+        f"Exposures T, 2T, 4T, 8T with N = {N} periods. Capture span: photon-efficient "
+        f"{pe['capture_span_T']:g}T, time-interleaved {il['capture_span_T']:g}T, sequential "
+        f"{data['non-interleaved (sequential)']['capture_span_T']:g}T (no readout gaps drawn)."
+    )
     return FigureOutput(fig, {"unit_exposure_s": T, "periods": N, "protocols": data}, caption)
 
 
@@ -99,8 +116,9 @@ def fig01_hdr(ctx: FigureContext) -> FigureOutput:
     reads = [(r.name, (res.reads_dn[i] - cfg.sensor.black_level_dn) / full_scale) for i, r in enumerate(tl.reads)]
     exps = [r["exposure_s"] for r in tl.describe_reads()]
     crop = _crop_box(res)
-    fig, axes = plt.subplots(2, len(reads) + 1, figsize=(2.6 * (len(reads) + 1), 4.6),
-                             gridspec_kw={"height_ratios": [1.0, 0.8]})
+    fig, axes = plt.subplots(
+        2, len(reads) + 1, figsize=(2.6 * (len(reads) + 1), 4.6), gridspec_kw={"height_ratios": [1.0, 0.8]}
+    )
     panels = [(f"{n} ({e * 1e3:g} ms)", tonemap(img, None)) for (n, img), e in zip(reads, exps)]
     panels.append(("HDR (ramp fit)", tonemap(res.images["radiance"], cfg.output.png_percentile)))
     for j, (title, img) in enumerate(panels):
@@ -112,12 +130,17 @@ def fig01_hdr(ctx: FigureContext) -> FigureOutput:
     axes[1, 0].set_ylabel("crop: needle and S", fontsize=8)
     fig.tight_layout()
     m = res.report["metrics"]
-    caption = (f"Reads as the sensor saw them (each at its own exposure) and the merged HDR image; the crops show "
-               f"the swinging needle with the same blur in every read. HDR relMSE {m['hdr_rel_mse']:.3g}, "
-               f"largest difference between exposure-normalized reads in the moving region "
-               f"{100 * m['motion_check'].get('max_pairwise_rel_rms', 0):.2f}%.")
-    return FigureOutput(fig, {"metrics": m, "plan": {k: res.report["plan"][k] for k in ("passes", "spp")},
-                              "film": list(ctx.film)}, caption)
+    caption = (
+        f"Reads as the sensor saw them (each at its own exposure) and the merged HDR image; the crops show "
+        f"the swinging needle with the same blur in every read. HDR relMSE {m['hdr_rel_mse']:.3g}, "
+        f"largest difference between exposure-normalized reads in the moving region "
+        f"{100 * m['motion_check'].get('max_pairwise_rel_rms', 0):.2f}%."
+    )
+    return FigureOutput(
+        fig,
+        {"metrics": m, "plan": {k: res.report["plan"][k] for k in ("passes", "spp")}, "film": list(ctx.film)},
+        caption,
+    )
 
 
 # ------------------------------------------------------------------------------------- figure 2
@@ -128,9 +151,12 @@ def fig02_ghosting(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
     T = 2e-3
-    sched = ["capture.protocol=custom", "capture.periods=16",
-             "capture.schedule={slots: [{bucket: 1, duration_s: %g}, {bucket: 2, duration_s: %g}], "
-             "reads: [{name: long, buckets: [1]}, {name: short, buckets: [2]}]}" % (8 * T / 16, T / 16)]
+    sched = [
+        "capture.protocol=custom",
+        "capture.periods=16",
+        "capture.schedule={slots: [{bucket: 1, duration_s: %g}, {bucket: 2, duration_s: %g}], "
+        "reads: [{name: long, buckets: [1]}, {name: short, buckets: [2]}]}" % (8 * T / 16, T / 16),
+    ]
     seq = ctx.capture("metronome_hdr", *sched, "capture.sequential=true", "sensor.frame_readout_s=0.0666667")
     inter = ctx.capture("metronome_hdr", *sched)
     crop = _crop_box(seq)
@@ -145,13 +171,19 @@ def fig02_ghosting(ctx: FigureContext) -> FigureOutput:
     axes[2].set_xticks([]), axes[2].set_yticks([])
     fig.colorbar(im, ax=axes[2], fraction=0.046)
     fig.tight_layout()
-    data = {name: {"hdr_rel_mse": r.report["metrics"]["hdr_rel_mse"],
-                   "hdr_rel_mse_moving": r.report["metrics"].get("hdr_rel_mse_moving"),
-                   "max_pairwise_rel_rms": r.report["metrics"]["motion_check"].get("max_pairwise_rel_rms")}
-            for name, r in (("sequential", seq), ("interleaved", inter))}
-    caption = (f"Long (8T) and short (T) exposures, T = {T * 1e3:g} ms. Sequentially, with 1/15 s between the frames, the "
-               f"needle is in two places (relMSE in the moving region {data['sequential']['hdr_rel_mse_moving']:.3g}); "
-               f"interleaved in two buckets it is not ({data['interleaved']['hdr_rel_mse_moving']:.3g}).")
+    data = {
+        name: {
+            "hdr_rel_mse": r.report["metrics"]["hdr_rel_mse"],
+            "hdr_rel_mse_moving": r.report["metrics"].get("hdr_rel_mse_moving"),
+            "max_pairwise_rel_rms": r.report["metrics"]["motion_check"].get("max_pairwise_rel_rms"),
+        }
+        for name, r in (("sequential", seq), ("interleaved", inter))
+    }
+    caption = (
+        f"Long (8T) and short (T) exposures, T = {T * 1e3:g} ms. Sequentially, with 1/15 s between the frames, the "
+        f"needle is in two places (relMSE in the moving region {data['sequential']['hdr_rel_mse_moving']:.3g}); "
+        f"interleaved in two buckets it is not ({data['interleaved']['hdr_rel_mse_moving']:.3g})."
+    )
     return FigureOutput(fig, data, caption)
 
 
@@ -162,8 +194,10 @@ def _three_frames(T123: tuple[float, float, float], periods: int, sequential: bo
     import yaml
 
     sched = yaml.safe_load("{slots: [%s], reads: [%s]}" % (slots, reads))
-    return _timeline({"protocol": "custom", "periods": periods, "sequential": sequential, "schedule": sched},
-                     {"bucket_count": 3, "frame_readout_s": gap_s})
+    return _timeline(
+        {"protocol": "custom", "periods": periods, "sequential": sequential, "schedule": sched},
+        {"bucket_count": 3, "frame_readout_s": gap_s},
+    )
 
 
 def _centroid_check(T123, N: int) -> dict:
@@ -192,13 +226,21 @@ def _centroid_check(T123, N: int) -> dict:
     bad = [r[0] for r in rows if not r[3]]
     if bad:
         raise MBCaptureError(f"timeline centroids/spans disagree with the paper's closed forms: {bad}")
-    return {"rows": rows, "centroids_sequential_s": [float(c) for c in cs],
-            "centroids_multiplexed_s": [float(c) for c in cm], "spans_sequential_s": [float(s) for s in ss],
-            "spans_multiplexed_s": [float(s) for s in sm]}
+    return {
+        "rows": rows,
+        "centroids_sequential_s": [float(c) for c in cs],
+        "centroids_multiplexed_s": [float(c) for c in cm],
+        "spans_sequential_s": [float(s) for s in ss],
+        "spans_multiplexed_s": [float(s) for s in sm],
+    }
 
 
-@figure("fig03_frame_rates", "Three exposures on conventional sensors of low, high and infinite frame rate", "Fig. 3",
-        renders=False)
+@figure(
+    "fig03_frame_rates",
+    "Three exposures on conventional sensors of low, high and infinite frame rate",
+    "Fig. 3",
+    renders=False,
+)
 def fig03_frame_rates(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
@@ -213,30 +255,42 @@ def fig03_frame_rates(ctx: FigureContext) -> FigureOutput:
         draw_timeline(ax, tl, y, unit, label)
         for r in tl.describe_reads():
             ax.plot(r["centroid_s"] / unit, y, "k.", ms=5)
-        data[label] = {"frame_readout_s": gap, "capture_span_s": float((tl.end_tick - tl.start_tick) * tl.tick_s),
-                       "reads": tl.describe_reads()}
+        data[label] = {
+            "frame_readout_s": gap,
+            "capture_span_s": float((tl.end_tick - tl.start_tick) * tl.tick_s),
+            "reads": tl.describe_reads(),
+        }
     ax.set_ylim(-0.6, len(cases) - 0.4)
     ax.set_xlim(-25, 90)
     ax.set_yticks([])
     ax.set_xlabel("time (ms)")
     _bucket_legend(ax, 3)
     fig.tight_layout()
-    caption = ("Exposures 1/125, 1/250 and 1/500 s captured one after another; grey: idle time while the previous frame is "
-               "read out (frame time = readout time). Dots: exposure centroids. Capture spans: "
-               + ", ".join(f"{k} {v['capture_span_s'] * 1e3:.1f} ms" for k, v in data.items()) + ".")
+    caption = (
+        "Exposures 1/125, 1/250 and 1/500 s captured one after another; grey: idle time while the previous frame is "
+        "read out (frame time = readout time). Dots: exposure centroids. Capture spans: "
+        + ", ".join(f"{k} {v['capture_span_s'] * 1e3:.1f} ms" for k, v in data.items())
+        + "."
+    )
     return FigureOutput(fig, data, caption)
 
 
-@figure("fig05_centroids", "Sequential vs time-multiplexed exposure: centroids and spans (eq. 1-5)", "Fig. 5",
-        renders=False)
+@figure(
+    "fig05_centroids", "Sequential vs time-multiplexed exposure: centroids and spans (eq. 1-5)", "Fig. 5", renders=False
+)
 def fig05_centroids(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
     T123, N, unit = (4e-3, 2e-3, 1e-3), 4, 1e-3
     check = _centroid_check(T123, N)
     fig, ax = plt.subplots(figsize=(9, 2.6))
-    for y, (label, tl) in zip((1, 0), (("(a) sequential, infinite frame rate", _three_frames(T123, 1, True, 0.0)),
-                                       (f"(b) time-multiplexed, N = {N}", _three_frames(T123, N, False, 0.0)))):
+    for y, (label, tl) in zip(
+        (1, 0),
+        (
+            ("(a) sequential, infinite frame rate", _three_frames(T123, 1, True, 0.0)),
+            (f"(b) time-multiplexed, N = {N}", _three_frames(T123, N, False, 0.0)),
+        ),
+    ):
         draw_timeline(ax, tl, y, unit, label)
         for r in tl.describe_reads():
             ax.plot(r["centroid_s"] / unit, y, "ko", ms=4)
@@ -247,8 +301,10 @@ def fig05_centroids(ctx: FigureContext) -> FigureOutput:
     _bucket_legend(ax, 3)
     fig.tight_layout()
     table = [["quantity", "closed form (s)", "from timeline (s)", "equal"], *check["rows"]]
-    caption = (f"Frames of T1, T2, T3 = 4, 2, 1 ms. Dots: centroids computed from the schedule. All six centroid and span "
-               f"differences equal the paper's closed forms exactly (N = {N} times closer when multiplexed).")
+    caption = (
+        f"Frames of T1, T2, T3 = 4, 2, 1 ms. Dots: centroids computed from the schedule. All six centroid and span "
+        f"differences equal the paper's closed forms exactly (N = {N} times closer when multiplexed)."
+    )
     return FigureOutput(fig, {"T_s": list(T123), "N": N, **check}, caption, table)
 
 
@@ -267,20 +323,38 @@ def fig06_interleaving(ctx: FigureContext) -> FigureOutput:
         grid["capture.periods"] = [1, 4, 16, 64]
     sweep = load_sweep(CONFIG_DIR / "sweeps" / "interleaving.yaml", ctx.size_overrides(), axes=grid)
     outcome = run_sweep(sweep, None, in_process=True, keep_results=True, progress=ctx.progress)
-    failed = [f"{p.label}: {outcome.rows[p.index].get('error')}" for p in sweep.points if p.index not in outcome.results]
+    failed = [
+        f"{p.label}: {outcome.rows[p.index].get('error')}" for p in sweep.points if p.index not in outcome.results
+    ]
     if failed:
         raise RuntimeError(f"fig06_interleaving: sweep points failed: {'; '.join(failed)}")
     periods = [p.values["capture.periods"] for p in sweep.points]
     runs = [outcome.results[p.index] for p in sweep.points]
-    rows = [["periods_N", "period_s", "needle_motion_per_period_px", "vT_over_p", "hdr_rel_mse_moving",
-             "max_pairwise_rel_rms"]]
+    rows = [
+        [
+            "periods_N",
+            "period_s",
+            "needle_motion_per_period_px",
+            "vT_over_p",
+            "hdr_rel_mse_moving",
+            "max_pairwise_rel_rms",
+        ]
+    ]
     for n, r in zip(periods, runs):
         span = r.report["capture_span_s"]
         motion = r.report["plan"]["image_motion_px_total"]
         per_period = motion / n
         m = r.report["metrics"]
-        rows.append([n, span / n, per_period, per_period, m.get("hdr_rel_mse_moving"),
-                     m["motion_check"].get("max_pairwise_rel_rms")])
+        rows.append(
+            [
+                n,
+                span / n,
+                per_period,
+                per_period,
+                m.get("hdr_rel_mse_moving"),
+                m["motion_check"].get("max_pairwise_rel_rms"),
+            ]
+        )
     show = [0, len(periods) // 2, len(periods) - 1]
     crop = _crop_box(runs[0])
     fig = plt.figure(figsize=(11, 4.2))
@@ -302,11 +376,13 @@ def fig06_interleaving(ctx: FigureContext) -> FigureOutput:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    caption = ("Photon-efficient HDR (T = 4 ms) of the swinging metronome with the 4:2:1:1 pattern repeated N times. With few "
-               "periods the needle moves more than a pixel per period (vT > p) and the reads disagree (ghosts in the "
-               "merge); the difference between reads falls in proportion to vT. Strata of at most 0.1 px resolve the "
-               "motion inside each period. The photon-efficient points of the sweep configs/sweeps/interleaving.yaml "
-               "(`mbcapture sweep interleaving` runs all of it, the interleaved protocol too).")
+    caption = (
+        "Photon-efficient HDR (T = 4 ms) of the swinging metronome with the 4:2:1:1 pattern repeated N times. With few "
+        "periods the needle moves more than a pixel per period (vT > p) and the reads disagree (ghosts in the "
+        "merge); the difference between reads falls in proportion to vT. Strata of at most 0.1 px resolve the "
+        "motion inside each period. The photon-efficient points of the sweep configs/sweeps/interleaving.yaml "
+        "(`mbcapture sweep interleaving` runs all of it, the interleaved protocol too)."
+    )
     return FigureOutput(fig, {"rows": rows}, caption, rows)
 
 
@@ -335,15 +411,24 @@ def fig09_gates(ctx: FigureContext) -> FigureOutput:
 
 
 # ------------------------------------------------------------------------------------- figure 11
-@figure("fig11_snr_table", "SNR of read-then-add vs in-pixel addition, analytic and simulated", "Fig. 11",
-        renders=False)
+@figure(
+    "fig11_snr_table", "SNR of read-then-add vs in-pixel addition, analytic and simulated", "Fig. 11", renders=False
+)
 def fig11_snr_table(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
     S, R = 100.0, 8.0
     n = 20_000 if ctx.quick else 200_000
-    cfg = SensorConfig(read_noise_e=R, prnu=0.0, dsnu_e=0.0, dark_current_e_per_s=0.0, full_well_e=1e6,
-                       fd_full_well_e=4e6, adc_bits=20, gain_dn_per_e=4.0)
+    cfg = SensorConfig(
+        read_noise_e=R,
+        prnu=0.0,
+        dsnu_e=0.0,
+        dark_current_e_per_s=0.0,
+        full_well_e=1e6,
+        fd_full_well_e=4e6,
+        adc_bits=20,
+        gain_dn_per_e=4.0,
+    )
     exp_e = np.broadcast_to(np.array([4 * S, 2 * S, S, S])[:, None, None, None], (4, n, 1, 1)).copy()
     rng = np.random.default_rng(np.random.SeedSequence(ctx.seed).spawn(1)[0])
     cumulative = [(3,), (3, 2), (3, 2, 1), (3, 2, 1, 0)]
@@ -353,29 +438,57 @@ def fig11_snr_table(ctx: FigureContext) -> FigureOutput:
     s_k = S * np.array([1, 2, 4, 8])
     k = np.arange(1, 5)
     q = 1.0 / (12 * cfg.gain_dn_per_e**2)
-    rows = [["read", "signal_e", "SNR_read_then_add_analytic", "SNR_read_then_add_simulated",
-             "SNR_in_pixel_analytic", "SNR_in_pixel_simulated"]]
+    rows = [
+        [
+            "read",
+            "signal_e",
+            "SNR_read_then_add_analytic",
+            "SNR_read_then_add_simulated",
+            "SNR_in_pixel_analytic",
+            "SNR_in_pixel_simulated",
+        ]
+    ]
     for i in range(4):
-        rows.append([f"J{i + 1}", s_k[i], s_k[i] / np.sqrt(s_k[i] + k[i] * (R**2 + q)),
-                     added[i].mean() / added[i].std(ddof=1), s_k[i] / np.sqrt(s_k[i] + R**2 + q),
-                     inpix[i].mean() / inpix[i].std(ddof=1)])
+        rows.append(
+            [
+                f"J{i + 1}",
+                s_k[i],
+                s_k[i] / np.sqrt(s_k[i] + k[i] * (R**2 + q)),
+                added[i].mean() / added[i].std(ddof=1),
+                s_k[i] / np.sqrt(s_k[i] + R**2 + q),
+                inpix[i].mean() / inpix[i].std(ddof=1),
+            ]
+        )
     fig, ax = plt.subplots(figsize=(9, 2.4))
     ax.axis("off")
     cells = [[r[0], f"{r[1]:g}", f"{r[2]:.2f}", f"{r[3]:.2f}", f"{r[4]:.2f}", f"{r[5]:.2f}"] for r in rows[1:]]
-    tab = ax.table(cellText=cells, colLabels=["read", "signal (e-)", "read-then-add\nanalytic", "read-then-add\nsimulated",
-                                              "in-pixel\nanalytic", "in-pixel\nsimulated"], loc="center")
+    tab = ax.table(
+        cellText=cells,
+        colLabels=[
+            "read",
+            "signal (e-)",
+            "read-then-add\nanalytic",
+            "read-then-add\nsimulated",
+            "in-pixel\nanalytic",
+            "in-pixel\nsimulated",
+        ],
+        loc="center",
+    )
     tab.scale(1, 1.5)
     ax.set_title(f"Buckets hold S, S, 2S, 4S with S = {S:g} e-, read noise R = {R:g} e-; {n} pixels", fontsize=10)
     fig.tight_layout()
-    caption = ("Figure 11's tables: J_k = sum of the first k buckets. Adding after readout pays the read noise k times "
-               "(SNR = s/sqrt(s + kR^2)); adding on the floating diffusion pays it once (s/sqrt(s + R^2)). "
-               "Simulated columns: the sensor model on flat fields (quantization included in the analytic values).")
+    caption = (
+        "Figure 11's tables: J_k = sum of the first k buckets. Adding after readout pays the read noise k times "
+        "(SNR = s/sqrt(s + kR^2)); adding on the floating diffusion pays it once (s/sqrt(s + R^2)). "
+        "Simulated columns: the sensor model on flat fields (quantization included in the analytic values)."
+    )
     return FigureOutput(fig, {"S_e": S, "read_noise_e": R, "pixels": n, "rows": rows}, caption, rows)
 
 
 # ------------------------------------------------------------------------------------- beyond the paper
-@figure("hdr_snr_vs_radiance", "HDR SNR against radiance for the three HDR protocols", "beyond the paper",
-        renders=False)
+@figure(
+    "hdr_snr_vs_radiance", "HDR SNR against radiance for the three HDR protocols", "beyond the paper", renders=False
+)
 def hdr_snr_vs_radiance(ctx: FigureContext) -> FigureOutput:
     import matplotlib.pyplot as plt
 
@@ -394,6 +507,8 @@ def hdr_snr_vs_radiance(ctx: FigureContext) -> FigureOutput:
     fig.tight_layout()
     rows = [["radiance_w_m2_sr", *(f"snr_{n}" for n in curves)]]
     rows += [[float(L), *(float(curves[n][i]) for n in curves)] for i, L in enumerate(radiance)]
-    caption = ("Exposures T, 2T, 4T, 8T (T = 1 ms) of a static flat field: photon-efficient (ramp fit over cumulative "
-               "reads, 8T of capture) against interleaved and sequential (15T). See scripts/snr_curves.py.")
+    caption = (
+        "Exposures T, 2T, 4T, 8T (T = 1 ms) of a static flat field: photon-efficient (ramp fit over cumulative "
+        "reads, 8T of capture) against interleaved and sequential (15T). See scripts/snr_curves.py."
+    )
     return FigureOutput(fig, {"unit_exposure_s": T, "rows": rows}, caption, rows)

@@ -14,18 +14,25 @@ def error_vs_runtime(ctx: FigureContext) -> FigureOutput:
     # renders), 80x64 and a 32-spp reference, a preview of the same comparison.
     periods = 16 if ctx.quick else 64
     width, height = (80, 64) if ctx.quick else (160, 128)
-    cfg = ctx.config("metronome_hdr", (f"capture.periods={periods}", f"render.width={width}", f"render.height={height}"))
+    cfg = ctx.config(
+        "metronome_hdr", (f"capture.periods={periods}", f"render.width={width}", f"render.height={height}")
+    )
     if ctx.quick:
         result = converge.run_converge(cfg, converge.QUICK_MOTION_LADDER, (1,), ref_spp=32)
     else:
         result = converge.run_converge(cfg)
     fig = converge.plot(result)
     rows = [["method", "spp", "passes", "samples_per_pixel", "seconds", "error"]]
-    rows += [[p["method"], p["spp"], p["passes"], p["samples_per_pixel_total"], p["seconds"], p["error"]] for p in result["points"]]
+    rows += [
+        [p["method"], p["spp"], p["passes"], p["samples_per_pixel_total"], p["seconds"], p["error"]]
+        for p in result["points"]
+    ]
     best = max((s["speedup"] for s in result["speedups"]), default=None)
-    caption = ("Relative RMS error of the noise-free bucket exposures against a high-budget reference, metronome "
-               f"photon-efficient HDR at {periods} periods, {width}x{height}. Planner: strata from motion; naive: one render per "
-               f"slot. Fitted slopes: {result['slopes']}. "
-               + (f"Largest equal-error speed-up: {best:.1f}x." if best else "")
-               + " Run times are wall-clock on this machine and vary with its load.")
+    caption = (
+        "Relative RMS error of the noise-free bucket exposures against a high-budget reference, metronome "
+        f"photon-efficient HDR at {periods} periods, {width}x{height}. Planner: strata from motion; naive: one render per "
+        f"slot. Fitted slopes: {result['slopes']}. "
+        + (f"Largest equal-error speed-up: {best:.1f}x." if best else "")
+        + " Run times are wall-clock on this machine and vary with its load."
+    )
     return FigureOutput(fig, result, caption, rows)

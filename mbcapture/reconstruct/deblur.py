@@ -42,8 +42,9 @@ def spread_kernel(shifts_px: np.ndarray, weights_s: np.ndarray) -> tuple[int, np
     return first, h
 
 
-def read_samples(timeline, read, scene, t_ref_s: float, width: int, height: int,
-                 steps: int = KERNEL_TIME_STEPS) -> tuple[np.ndarray, np.ndarray]:
+def read_samples(
+    timeline, read, scene, t_ref_s: float, width: int, height: int, steps: int = KERNEL_TIME_STEPS
+) -> tuple[np.ndarray, np.ndarray]:
     """(shifts px, seconds) of ``read``: the exact gated seconds of its buckets in each of ``steps`` equal
     time steps over the capture (steps without gated time left out), at the object's displacement
     along the rows mid-step, relative to its position at ``t_ref_s``."""
@@ -53,13 +54,16 @@ def read_samples(timeline, read, scene, t_ref_s: float, width: int, height: int,
     mid = timeline.seconds((edges[:-1] + edges[1:]) / 2)
     d = displacement_px(scene, np.asarray(mid, float)[keep], t_ref_s, width, height)
     if np.abs(d[:, 1]).max(initial=0.0) > 0.05 * max(1.0, np.abs(d[:, 0]).max(initial=0.0)):
-        raise ConfigError(f"scene.name: {scene.name!r} moves vertically in the image; flutter_shutter deblurs motion "
-                          "along the image rows only")
+        raise ConfigError(
+            f"scene.name: {scene.name!r} moves vertically in the image; flutter_shutter deblurs motion "
+            "along the image rows only"
+        )
     return d[:, 0], gated[keep]
 
 
-def read_kernel(timeline, read, scene, t_ref_s: float, width: int, height: int,
-                steps: int = KERNEL_TIME_STEPS) -> tuple[int, np.ndarray]:
+def read_kernel(
+    timeline, read, scene, t_ref_s: float, width: int, height: int, steps: int = KERNEL_TIME_STEPS
+) -> tuple[int, np.ndarray]:
     """Exposure kernel of ``read`` on integer shifts (:func:`spread_kernel` of :func:`read_samples`)."""
     return spread_kernel(*read_samples(timeline, read, scene, t_ref_s, width, height, steps))
 
@@ -99,8 +103,7 @@ def deblur_fourier(reads: np.ndarray, samples, weights: np.ndarray, regularizati
     return out
 
 
-def white_noise_gain(samples, weights: np.ndarray, width: int, exposure_s: float,
-                     regularization: float = 0.0) -> float:
+def white_noise_gain(samples, weights: np.ndarray, width: int, exposure_s: float, regularization: float = 0.0) -> float:
     """RMS noise of :func:`deblur_fourier`'s result for white noise of variance 1 / w_r in read r, times the
     total exposure: 1 for an unblurred image taken with that exposure and unit noise (weights (R,))."""
     n = fft_length(samples, width)
@@ -128,8 +131,10 @@ def support(kernels, n: int) -> tuple[int, int]:
     hi = min(n - (first + len(h) - 1) for first, h in kernels)
     lo, hi = max(lo, 0), min(hi, n)
     if hi - lo < 1:
-        raise ConfigError(f"render.width: the motion blur ({max(len(h) for _, h in kernels)} px) is wider than the "
-                          f"{n}-pixel row; nothing left to deblur")
+        raise ConfigError(
+            f"render.width: the motion blur ({max(len(h) for _, h in kernels)} px) is wider than the "
+            f"{n}-pixel row; nothing left to deblur"
+        )
     return lo, hi
 
 

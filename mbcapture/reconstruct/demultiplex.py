@@ -64,8 +64,9 @@ def tent(radius: int) -> np.ndarray:
 def _filter(img: np.ndarray, ky: np.ndarray, kx: np.ndarray) -> np.ndarray:
     import cv2
 
-    return cv2.sepFilter2D(np.ascontiguousarray(img, dtype=np.float64), cv2.CV_64F, kx, ky,
-                           borderType=cv2.BORDER_REFLECT_101)
+    return cv2.sepFilter2D(
+        np.ascontiguousarray(img, dtype=np.float64), cv2.CV_64F, kx, ky, borderType=cv2.BORDER_REFLECT_101
+    )
 
 
 def code_rank(A: np.ndarray) -> int:
@@ -92,8 +93,13 @@ def _solve(N: np.ndarray, N2: np.ndarray, b: np.ndarray) -> Demultiplexed:
         # the weighted fit's variance for unit-variance independent reads: N^-1 N2 N^-1
         variance[valid] = np.diagonal(inv @ N2[valid] @ inv, axis1=-2, axis2=-1)
         gain = np.median(variance[valid], axis=0)
-    return Demultiplexed(images=np.moveaxis(x, 2, 0), valid=valid, condition=condition,
-                         variance=np.moveaxis(variance, 2, 0), noise_gain=gain)
+    return Demultiplexed(
+        images=np.moveaxis(x, 2, 0),
+        valid=valid,
+        condition=condition,
+        variance=np.moveaxis(variance, 2, 0),
+        noise_gain=gain,
+    )
 
 
 def _products(reads: np.ndarray, A: np.ndarray, bad: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -109,8 +115,9 @@ def _products(reads: np.ndarray, A: np.ndarray, bad: np.ndarray | None) -> tuple
     return P, Q
 
 
-def demultiplex_guided(reads: np.ndarray, A: np.ndarray, radius: tuple[int, int], sigma: float = 0.1,
-                       bad: np.ndarray | None = None) -> Demultiplexed:
+def demultiplex_guided(
+    reads: np.ndarray, A: np.ndarray, radius: tuple[int, int], sigma: float = 0.1, bad: np.ndarray | None = None
+) -> Demultiplexed:
     """:func:`demultiplex` with edge-aware weights: the tent times a Gaussian of the relative
     difference of the pixels' total light (the sum of their reads' channel means), width ``sigma``."""
     reads = np.asarray(reads, np.float64)
@@ -132,12 +139,14 @@ def demultiplex_guided(reads: np.ndarray, A: np.ndarray, radius: tuple[int, int]
             win = (slice(ry + dy, ry + dy + H), slice(rx + dx, rx + dx + W))
             wq = ty[dy + ry] * tx[dx + rx] * np.exp(-0.5 * ((gp[win] - guide) / scale) ** 2)
             N += wq[..., None, None] * Pp[win]
-            N2 += (wq ** 2)[..., None, None] * Pp[win]
+            N2 += (wq**2)[..., None, None] * Pp[win]
             b += wq[..., None, None] * Qp[win]
     return _solve(N, N2, b)
 
 
-def demultiplex(reads: np.ndarray, A: np.ndarray, radius: tuple[int, int], bad: np.ndarray | None = None) -> Demultiplexed:
+def demultiplex(
+    reads: np.ndarray, A: np.ndarray, radius: tuple[int, int], bad: np.ndarray | None = None
+) -> Demultiplexed:
     """Sub-frame images from coded reads.
 
     reads   (R, H, W, C) each pixel's reads (electrons, or any linear unit)
@@ -155,7 +164,7 @@ def demultiplex(reads: np.ndarray, A: np.ndarray, radius: tuple[int, int], bad: 
     for i in range(S):
         for j in range(i, S):
             N[..., i, j] = N[..., j, i] = _filter(P[..., i, j], ky, kx)
-            N2[..., i, j] = N2[..., j, i] = _filter(P[..., i, j], ky ** 2, kx ** 2)
+            N2[..., i, j] = N2[..., j, i] = _filter(P[..., i, j], ky**2, kx**2)
     b = np.empty((H, W, S, C))
     for i in range(S):
         for c in range(C):

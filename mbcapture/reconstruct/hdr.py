@@ -254,8 +254,9 @@ def merge_hdr(
     # temporaries (a dozen (R, chunk) arrays) of one chunk, whatever the film
     for a in range(0, n, MERGE_CHUNK):
         b = min(a + MERGE_CHUNK, n)
-        rate[a:b], sigma[a:b], valid[a:b], n_used[a:b] = _merge_samples(dn2[:, a:b], sat2[:, a:b], t, cfg, method,
-                                                                         cumulative)
+        rate[a:b], sigma[a:b], valid[a:b], n_used[a:b] = _merge_samples(
+            dn2[:, a:b], sat2[:, a:b], t, cfg, method, cumulative
+        )
     return HDRResult(
         rate_e_per_s=rate.reshape(pixel_shape),
         sigma_e_per_s=sigma.reshape(pixel_shape),
@@ -268,8 +269,9 @@ def merge_hdr(
 MERGE_CHUNK = 1 << 18
 
 
-def _merge_samples(dn2: np.ndarray, sat2: np.ndarray, t: np.ndarray, cfg: SensorConfig, method: str,
-                   cumulative: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _merge_samples(
+    dn2: np.ndarray, sat2: np.ndarray, t: np.ndarray, cfg: SensorConfig, method: str, cumulative: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`merge_hdr` on (R, P) codes and flags: rate, sigma, valid, reads used, each (P,)."""
     x_e = dn_to_electrons(dn2, cfg)
     usable = ~sat2

@@ -22,8 +22,13 @@ def reference_level(y: np.ndarray, percentile: float) -> float:
     return ref if ref > 0 else 1.0
 
 
-def trimap_cue(flash_only: np.ndarray, noflash: np.ndarray, kind: str = "flash_ratio", percentile: float = 99.0,
-               ratio_eps: float = 0.05) -> np.ndarray:
+def trimap_cue(
+    flash_only: np.ndarray,
+    noflash: np.ndarray,
+    kind: str = "flash_ratio",
+    percentile: float = 99.0,
+    ratio_eps: float = 0.05,
+) -> np.ndarray:
     """The trimap's cue (H, W), scaled so that its ``percentile`` is 1.
 
     ``flash_only``: the flash-only luminance. ``flash_ratio``: flash-only luminance / (no-flash
@@ -44,7 +49,9 @@ def _disc(radius: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
-def make_trimap(cue: np.ndarray, fg_fraction: float, bg_fraction: float, open_px: int = 1, erode_px: int = 2) -> np.ndarray:
+def make_trimap(
+    cue: np.ndarray, fg_fraction: float, bg_fraction: float, open_px: int = 1, erode_px: int = 2
+) -> np.ndarray:
     """Trimap (H, W) float64: 1 foreground, 0 background, 0.5 unknown, from a cue scaled so that
     the foreground is about 1 (``cue >= fg_fraction``: candidate foreground, ``<= bg_fraction``:
     candidate background). Each candidate is opened by a disc of radius ``open_px`` and eroded by
@@ -92,8 +99,9 @@ MATTING_METHODS: dict[str, Callable[[np.ndarray, np.ndarray, np.ndarray], np.nda
 }
 
 
-def estimate_alpha(image: np.ndarray, trimap: np.ndarray, method: str = "closed_form",
-                   ramp: np.ndarray | None = None) -> np.ndarray:
+def estimate_alpha(
+    image: np.ndarray, trimap: np.ndarray, method: str = "closed_form", ramp: np.ndarray | None = None
+) -> np.ndarray:
     """Alpha (H, W) in [0, 1] by ``method``; the trimap's definite pixels are kept as they are.
 
     A trimap without foreground or without background has nothing to propagate: alpha is then

@@ -52,8 +52,9 @@ def decode_gray(white: np.ndarray, bits: np.ndarray, ambient: np.ndarray | None)
     return gray_to_binary(g)
 
 
-def period_ambiguity(camera, projector, proj_width: int, periods: int, width: int, height: int,
-                     z_min: float, z_max: float) -> float:
+def period_ambiguity(
+    camera, projector, proj_width: int, periods: int, width: int, height: int, z_min: float, z_max: float
+) -> float:
     """Largest disparity range (projector texels) over the camera's pixels for depths in [z_min, z_max],
     as a fraction of one fringe period: below 1, depth_range unwrapping is unique everywhere."""
 
@@ -64,8 +65,9 @@ def period_ambiguity(camera, projector, proj_width: int, periods: int, width: in
     return float(np.abs(u[0] - u[1]).max() / (proj_width / periods))
 
 
-def unwrap_depth_range(phase, valid, tri: Callable[[np.ndarray], np.ndarray], periods: int, proj_width: int,
-                       z_min: float, z_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def unwrap_depth_range(
+    phase, valid, tri: Callable[[np.ndarray], np.ndarray], periods: int, proj_width: int, z_min: float, z_max: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(projector column, depth, valid): per pixel the one period whose depth lies in [z_min, z_max]."""
     lam = proj_width / periods
     cols, depths = [], []
@@ -116,5 +118,8 @@ def unwrap_none(phase, valid, tri, periods, proj_width, z_min, z_max):
 
 #: Phase unwrapping: ``fn(phase, valid, triangulate(u) -> z, periods, projector width, z_min, z_max)
 #: -> (projector column, depth, valid)``.
-UNWRAP_METHODS: dict[str, Callable] = {"depth_range": unwrap_depth_range, "spatial": unwrap_spatial,
-                                       "none": unwrap_none}
+UNWRAP_METHODS: dict[str, Callable] = {
+    "depth_range": unwrap_depth_range,
+    "spatial": unwrap_spatial,
+    "none": unwrap_none,
+}

@@ -24,8 +24,15 @@ from __future__ import annotations
 import numpy as np
 
 
-def near_light_normals(images: np.ndarray, points: np.ndarray, light_pos: np.ndarray, light_dir: np.ndarray,
-                       *, shadow_ratio: float = 0.2, valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def near_light_normals(
+    images: np.ndarray,
+    points: np.ndarray,
+    light_pos: np.ndarray,
+    light_dir: np.ndarray,
+    *,
+    shadow_ratio: float = 0.2,
+    valid: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Normals (H, W, 3) (unit, world frame; zero where not determined) and a bool mask (H, W).
 
     images     (F, H, W) radiance of each light's image (luminance), ambient removed
@@ -38,15 +45,15 @@ def near_light_normals(images: np.ndarray, points: np.ndarray, light_pos: np.nda
     X = np.asarray(points, np.float64)
     ok = np.isfinite(X).all(axis=-1) if valid is None else (np.asarray(valid, bool) & np.isfinite(X).all(axis=-1))
     Xs = np.where(ok[..., None], X, 0.0)
-    d = np.asarray(light_pos, np.float64)[:, None, None, :] - Xs[None]          # (F, H, W, 3)
-    r2 = (d ** 2).sum(axis=-1)
-    l = d / np.sqrt(r2)[..., None]
-    cos_e = np.einsum("fhwc,fc->fhw", -l, np.asarray(light_dir, np.float64))     # emitter cosine towards X
+    d = np.asarray(light_pos, np.float64)[:, None, None, :] - Xs[None]  # (F, H, W, 3)
+    r2 = (d**2).sum(axis=-1)
+    to_light = d / np.sqrt(r2)[..., None]
+    cos_e = np.einsum("fhwc,fc->fhw", -to_light, np.asarray(light_dir, np.float64))  # emitter cosine towards X
     s = np.where(cos_e > 0, images * r2 / np.maximum(cos_e, 1e-12), 0.0)
     lit = (images > shadow_ratio * images.max(axis=0)[None]) & (cos_e > 0)
     wl = lit.astype(np.float64)
-    M = np.einsum("fhw,fhwi,fhwj->hwij", wl, l, l)                               # sum over lit lights of l l^T
-    b = np.einsum("fhw,fhwi,fhw->hwi", wl, l, s)
+    M = np.einsum("fhw,fhwi,fhwj->hwij", wl, to_light, to_light)  # sum over lit lights of l l^T
+    b = np.einsum("fhw,fhwi,fhw->hwi", wl, to_light, s)
     solvable = ok & (lit.sum(axis=0) >= 3)
     det = np.linalg.det(np.where(solvable[..., None, None], M, np.eye(3)))
     solvable &= np.abs(det) > 1e-12

@@ -111,13 +111,16 @@ def align_and_average(rates: np.ndarray, saturated: np.ndarray, method: str, ref
     frame's value where none is)."""
     K = rates.shape[0]
     lum = luminance(rates)
-    warps = np.stack([np.eye(3) if k == reference else register_frame(lum[reference], lum[k], method, blur)
-                      for k in range(K)])
+    warps = np.stack(
+        [np.eye(3) if k == reference else register_frame(lum[reference], lum[k], method, blur) for k in range(K)]
+    )
     total = np.zeros(rates.shape[1:])
     count = np.zeros(rates.shape[1:])
     for k in range(K):
         img = rates[k] if k == reference else warp_onto(rates[k], warps[k])
-        ok = np.isfinite(img) & ~(saturated[k] if k == reference else warp_onto(saturated[k].astype(float), warps[k]) > 0)
+        ok = np.isfinite(img) & ~(
+            saturated[k] if k == reference else warp_onto(saturated[k].astype(float), warps[k]) > 0
+        )
         total += np.where(ok, img, 0.0)
         count += ok
     avg = np.where(count > 0, total / np.maximum(count, 1), rates[reference])
@@ -134,8 +137,12 @@ def registration_errors(warps: np.ndarray, true_positions: np.ndarray, reference
     """(K,) RMS over points of |warp_k(p_ref) - p_k|: ``true_positions`` (K, N, 2) each frame's mean
     image position of N scene points."""
     ref = true_positions[reference]
-    return np.array([float(np.sqrt(np.mean(np.sum((apply_warp(w, ref) - true_positions[k]) ** 2, axis=-1))))
-                     for k, w in enumerate(warps)])
+    return np.array(
+        [
+            float(np.sqrt(np.mean(np.sum((apply_warp(w, ref) - true_positions[k]) ** 2, axis=-1))))
+            for k, w in enumerate(warps)
+        ]
+    )
 
 
 def fit_blur_px(result: np.ndarray, truth: np.ndarray, max_sigma: float = MAX_BLUR_PX) -> float:
@@ -147,7 +154,11 @@ def fit_blur_px(result: np.ndarray, truth: np.ndarray, max_sigma: float = MAX_BL
     r = np.asarray(result, np.float64)
 
     def cost(s: float) -> float:
-        return float(np.mean((gaussian_filter(t, s, mode="nearest") - r) ** 2)) if s > 1e-3 else float(np.mean((t - r) ** 2))
+        return (
+            float(np.mean((gaussian_filter(t, s, mode="nearest") - r) ** 2))
+            if s > 1e-3
+            else float(np.mean((t - r) ** 2))
+        )
 
     best = minimize_scalar(cost, bounds=(0.0, max_sigma), method="bounded", options={"xatol": 1e-3})
     return float(best.x) if cost(float(best.x)) < cost(0.0) else 0.0

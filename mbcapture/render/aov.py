@@ -43,15 +43,19 @@ def pixel_cosines(camera, width: int, height: int) -> np.ndarray:
 def _centre_sensor(renderer):
     mi = renderer.mitsuba
     cam = renderer.scene_model.camera
-    return mi.load_dict({
-        "type": "perspective",
-        "fov": float(cam.fov_deg),
-        "fov_axis": "x",
-        "near_clip": NEAR_CLIP_M,
-        "to_world": mi.ScalarTransform4f().look_at(origin=list(cam.origin), target=list(cam.target), up=list(cam.up)),
-        "film": {"type": "hdrfilm", "width": renderer.width, "height": renderer.height, "rfilter": {"type": "box"}},
-        "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
-    })
+    return mi.load_dict(
+        {
+            "type": "perspective",
+            "fov": float(cam.fov_deg),
+            "fov_axis": "x",
+            "near_clip": NEAR_CLIP_M,
+            "to_world": mi.ScalarTransform4f().look_at(
+                origin=list(cam.origin), target=list(cam.target), up=list(cam.up)
+            ),
+            "film": {"type": "hdrfilm", "width": renderer.width, "height": renderer.height, "rfilter": {"type": "box"}},
+            "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+        }
+    )
 
 
 def _centre_aov(renderer, t_s: float, aovs: str, kind: str, channels: "int | slice") -> np.ndarray:
@@ -75,8 +79,9 @@ def _centre_aov(renderer, t_s: float, aovs: str, kind: str, channels: "int | sli
             dr.make_opaque(tf)
             params["to_world"] = tf
             params.update()
-        return np.asarray(mi.render(renderer.mitsuba_scene, sensor=sensor, integrator=integrator, spp=1, seed=0),
-                          dtype=np.float32)[..., channels]
+        return np.asarray(
+            mi.render(renderer.mitsuba_scene, sensor=sensor, integrator=integrator, spp=1, seed=0), dtype=np.float32
+        )[..., channels]
 
     # the renderer's cache (if any) keeps it: the key holds the scene, its pose at t_s and this kind
     return np.asarray(renderer.cached(kind, t_s, {}, make), dtype=np.float64)

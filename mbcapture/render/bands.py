@@ -21,8 +21,9 @@ import numpy as np
 BAND_PIXELS = 1 << 20
 
 
-def film_bands(width: int, height: int, band_rows: int | None = None,
-               whole: bool = False) -> tuple[tuple[int, int], ...]:
+def film_bands(
+    width: int, height: int, band_rows: int | None = None, whole: bool = False
+) -> tuple[tuple[int, int], ...]:
     """The bands (first row, end row) of a ``width`` x ``height`` film: ``band_rows`` rows each (the
     last may be shorter), or, with None, the largest even number of rows within :data:`BAND_PIXELS`
     (even, so that a Bayer mosaic's pattern starts every band in the same phase). ``whole``: one

@@ -241,8 +241,10 @@ class Guide:
         if not (math.isfinite(self.radius) and self.radius > 0):
             raise ValueError(f"Guide.radius: expected a positive radius (m), got {self.radius!r}")
         if not (math.isfinite(self.share) and 0 < self.share <= MAX_GUIDE_SHARE):
-            raise ValueError(f"Guide.share: expected a share of the bounces above 0 and at most {MAX_GUIDE_SHARE}, "
-                             f"got {self.share!r}")
+            raise ValueError(
+                f"Guide.share: expected a share of the bounces above 0 and at most {MAX_GUIDE_SHARE}, "
+                f"got {self.share!r}"
+            )
         object.__setattr__(self, "centre", tuple(map(float, c)))
         object.__setattr__(self, "radius", float(self.radius))
         object.__setattr__(self, "share", float(self.share))
@@ -274,8 +276,10 @@ class SceneBuild:
     def __post_init__(self) -> None:
         total = sum(g.share for g in self.guides)
         if total > MAX_GUIDE_SHARE:
-            raise ValueError(f"SceneBuild.guides: their shares add up to {total:g}, above {MAX_GUIDE_SHARE}: the "
-                             "cosine lobe needs the rest of every bounce")
+            raise ValueError(
+                f"SceneBuild.guides: their shares add up to {total:g}, above {MAX_GUIDE_SHARE}: the "
+                "cosine lobe needs the rest of every bounce"
+            )
 
     def emitter_groups(self) -> tuple[str, ...]:
         """Groups that own at least one emitter, in first-appearance order."""
@@ -310,8 +314,9 @@ class SceneBuild:
                 if s.light is not None:
                     raise ConfigError(f"{where}: a tiles shape cannot emit light")
                 if per_tile and len(s.material.reflectance.values) != len(s.tiles):
-                    raise ConfigError(f"{where}: {len(s.tiles)} tiles but "
-                                      f"{len(s.material.reflectance.values)} reflectances")
+                    raise ConfigError(
+                        f"{where}: {len(s.tiles)} tiles but {len(s.material.reflectance.values)} reflectances"
+                    )
             elif s.tiles or per_tile:
                 raise ConfigError(f"{where}: tiles and PerTile reflectances belong to kind 'tiles', not {s.kind!r}")
             if s.material is not None and isinstance(s.material.reflectance, Texture):
@@ -390,8 +395,24 @@ def check_texture_file(path: str | Path) -> None:
     read_texture(path)
 
 
-_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+_PLY_SIZES = {
+    "char": 1,
+    "uchar": 1,
+    "int8": 1,
+    "uint8": 1,
+    "short": 2,
+    "ushort": 2,
+    "int16": 2,
+    "uint16": 2,
+    "int": 4,
+    "uint": 4,
+    "int32": 4,
+    "uint32": 4,
+    "float": 4,
+    "float32": 4,
+    "double": 8,
+    "float64": 8,
+}
 
 
 def check_mesh_file(path: str | Path) -> None:
@@ -413,7 +434,7 @@ def _check_ply(raw: bytes) -> None:
         header = raw[:end].decode("ascii").splitlines()
     except UnicodeDecodeError:
         raise ValueError("corrupt PLY: header is not ASCII") from None
-    body = raw[raw.index(b"\n", end) + 1:] if b"\n" in raw[end:] else b""
+    body = raw[raw.index(b"\n", end) + 1 :] if b"\n" in raw[end:] else b""
     fmt, elements = None, []  # elements: [name, count, [(kind, size | (count_size, item_size))]]
     for line in header[1:]:
         w = line.split()

@@ -71,8 +71,13 @@ class CacheStats:
     kinds: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
-        return {"hits": self.hits, "rendered": self.misses, "corrupt_replaced": self.corrupt,
-                "render_seconds_saved": round(self.saved_s, 3), "by_kind": self.kinds}
+        return {
+            "hits": self.hits,
+            "rendered": self.misses,
+            "corrupt_replaced": self.corrupt,
+            "render_seconds_saved": round(self.saved_s, 3),
+            "by_kind": self.kinds,
+        }
 
 
 class RenderCache:
@@ -129,8 +134,15 @@ class RenderCache:
         write (a full disk, a read-only folder) is not an error: the render is simply not kept."""
         arr = np.ascontiguousarray(array)
         data = arr.tobytes()
-        header = {"format": FORMAT, "key": key, "shape": list(arr.shape), "dtype": arr.dtype.str,
-                  "sha256": hashlib.sha256(data).hexdigest(), "seconds": float(seconds), "about": about or {}}
+        header = {
+            "format": FORMAT,
+            "key": key,
+            "shape": list(arr.shape),
+            "dtype": arr.dtype.str,
+            "sha256": hashlib.sha256(data).hexdigest(),
+            "seconds": float(seconds),
+            "about": about or {},
+        }
         path = self._path(key)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -225,8 +237,12 @@ class RenderCache:
 
     def info(self) -> dict:
         files = self.entries()
-        return {"folder": str(self.root), "entries": len(files), "size_bytes": self.size_bytes(),
-                "max_bytes": self.max_bytes}
+        return {
+            "folder": str(self.root),
+            "entries": len(files),
+            "size_bytes": self.size_bytes(),
+            "max_bytes": self.max_bytes,
+        }
 
 
 def open_cache(setting: str, max_gb: float) -> RenderCache | None:

@@ -31,8 +31,10 @@ def coverage_scene(scene: SceneModel, names: Iterable[str] | None = None) -> Sce
     if names is None:
         names = scene.extra.get("foreground")
         if not names:
-            raise ConfigError(f"scene.name: scene {scene.name!r} does not name its foreground shapes "
-                              "(SceneModel.extra['foreground']), needed for a coverage ground truth")
+            raise ConfigError(
+                f"scene.name: scene {scene.name!r} does not name its foreground shapes "
+                "(SceneModel.extra['foreground']), needed for a coverage ground truth"
+            )
     names = set(names)
     build: SceneBuild = scene.build
     unknown = names - {s.name for s in build.shapes}
@@ -82,8 +84,9 @@ def coverage_alpha(
         raise ValueError(f"coverage weights: expected {t.size} non-negative values with a positive sum")
     if spp < 1:
         raise ValueError("coverage spp must be >= 1")
-    renderer = Renderer(coverage_scene(scene, names), width, height, variant=rgb_variant(variant), max_depth=1,
-                        cache=cache)
+    renderer = Renderer(
+        coverage_scene(scene, names), width, height, variant=rgb_variant(variant), max_depth=1, cache=cache
+    )
     seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=t.size)
     uncovered = np.zeros((height, width), dtype=np.float64)
     for j in np.flatnonzero(w > 0):

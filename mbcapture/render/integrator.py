@@ -289,8 +289,11 @@ def integrator_class(variant: str) -> type:
             Mitsuba's sampler (which counts dimensions itself and ignores ``dim``) and ``ray`` as given,
             or the shared pattern and a camera ray through the pattern's position in the pixel."""
             if self.pattern is None:
-                return (lambda sampler, dim, active: sampler.next_1d(active)), \
-                    (lambda sampler, dim, active: sampler.next_2d(active)), ray
+                return (
+                    (lambda sampler, dim, active: sampler.next_1d(active)),
+                    (lambda sampler, dim, active: sampler.next_2d(active)),
+                    ray,
+                )
             # mi.render's wavefront: sample_count() consecutive lanes per pixel, pixels row-major
             spp = mi.UInt32(sampler.sample_count())
             seed, offset, first = (mi.UInt32(v) for v in self.pattern)
@@ -314,10 +317,14 @@ def integrator_class(variant: str) -> type:
                 size = sensor.film().size()
                 y = pixel // size.x
                 offset_in_pixel = next_2d(sampler, mi.UInt32(CAMERA_DIM), True)
-                pos = (mi.Point2f(mi.Float(pixel - y * size.x), mi.Float(y)) + offset_in_pixel) \
-                    * mi.ScalarVector2f(1.0 / size.x, 1.0 / size.y)
-                aperture = next_2d(sampler, mi.UInt32(CAMERA_DIM + 1), True) if sensor.needs_aperture_sample() \
+                pos = (mi.Point2f(mi.Float(pixel - y * size.x), mi.Float(y)) + offset_in_pixel) * mi.ScalarVector2f(
+                    1.0 / size.x, 1.0 / size.y
+                )
+                aperture = (
+                    next_2d(sampler, mi.UInt32(CAMERA_DIM + 1), True)
+                    if sensor.needs_aperture_sample()
                     else mi.Point2f(0.5)
+                )
                 ray, _ = sensor.sample_ray(ray.time, mi.Float(0.5), pos, aperture)
             return (lambda sampler, dim, active: next_2d(sampler, dim, active).x), next_2d, ray
 
@@ -403,7 +410,8 @@ def integrator_class(variant: str) -> type:
                 # BSDF sampling: continue the path.
                 wo_bsdf, pdf_bsdf, bsdf_weight, delta_bsdf = sample_bsdf(
                     next_1d(sampler, depth * (n_emitters + 2), active_next),
-                    next_2d(sampler, depth * (n_emitters + 2) + n_emitters + 1, active_next), active_next
+                    next_2d(sampler, depth * (n_emitters + 2) + n_emitters + 1, active_next),
+                    active_next,
                 )
                 throughput = dr.select(active_next, throughput * bsdf_weight, 0.0)
                 ray = si.spawn_ray(si.to_world(wo_bsdf))

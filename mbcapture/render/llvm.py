@@ -63,10 +63,7 @@ _SYM_WIDTH = "_Z21jit_llvm_vector_widthv"
 #: Oldest LLVM major version that renders without crashing.
 MIN_LLVM_MAJOR = 16
 ENV_VAR = "DRJIT_LIBLLVM_PATH"
-FIX = (
-    f"install a newer LLVM ('apt-get install libllvm19') or set {ENV_VAR} to a "
-    f"libLLVM >= {MIN_LLVM_MAJOR}"
-)
+FIX = f"install a newer LLVM ('apt-get install libllvm19') or set {ENV_VAR} to a libLLVM >= {MIN_LLVM_MAJOR}"
 #: Directories searched (glob patterns allowed), in addition to ``ldconfig -p``.
 SEARCH_DIRS: tuple[str, ...] = (
     "/usr/lib/x86_64-linux-gnu",
@@ -110,9 +107,7 @@ def library_version(path: str | os.PathLike) -> int | None:
 
 def _ldconfig_paths() -> list[str]:
     try:
-        out = subprocess.run(
-            ["ldconfig", "-p"], capture_output=True, text=True, timeout=10, check=False
-        ).stdout
+        out = subprocess.run(["ldconfig", "-p"], capture_output=True, text=True, timeout=10, check=False).stdout
     except (OSError, subprocess.SubprocessError):
         return []
     return [line.split("=>", 1)[1].strip() for line in out.splitlines() if "libLLVM" in line and "=>" in line]
@@ -148,8 +143,9 @@ def find_llvm(dirs: Sequence[str] = SEARCH_DIRS, use_ldconfig: bool = True) -> t
     raise EnvironmentProblem(f"no libLLVM found; {FIX}")
 
 
-def select_llvm(environ: dict | None = None, dirs: Sequence[str] = SEARCH_DIRS,
-                use_ldconfig: bool = True) -> tuple[int, str]:
+def select_llvm(
+    environ: dict | None = None, dirs: Sequence[str] = SEARCH_DIRS, use_ldconfig: bool = True
+) -> tuple[int, str]:
     """Choose the library and write it into ``environ[DRJIT_LIBLLVM_PATH]`` (default os.environ).
 
     Pure file-system logic (no Dr.Jit import), so it can be tested with fake directories.
@@ -188,9 +184,7 @@ def ensure_llvm() -> tuple[int, int, int]:
     except Exception as exc:  # Dr.Jit raises when it could not load any libLLVM
         raise EnvironmentProblem(f"Dr.Jit could not load libLLVM ({exc}); {FIX}") from exc
     if version[0] < MIN_LLVM_MAJOR:
-        raise EnvironmentProblem(
-            f"Dr.Jit loaded LLVM {'.'.join(map(str, version))} (crashes Mitsuba); {FIX}"
-        )
+        raise EnvironmentProblem(f"Dr.Jit loaded LLVM {'.'.join(map(str, version))} (crashes Mitsuba); {FIX}")
     return version  # type: ignore[return-value]
 
 
@@ -203,7 +197,8 @@ def parse_target(spec: str) -> tuple[str, str, int]:
     if len(parts) != 3 or not parts[0] or not parts[2].isdigit() or int(parts[2]) not in (1, 4, 8, 16):
         raise EnvironmentProblem(
             f"{TARGET_ENV_VAR}={spec!r}: expected one of {sorted(CPU_TARGETS)} or cpu:features:width "
-            "with width 1, 4, 8 or 16 (e.g. haswell:+avx,+avx2,+fma:8)")
+            "with width 1, 4, 8 or 16 (e.g. haswell:+avx,+avx2,+fma:8)"
+        )
     return parts[0], parts[1], int(parts[2])
 
 
@@ -242,7 +237,9 @@ def apply_target_from_env() -> tuple[str, str, int] | None:
     target = parse_target(spec)
     if _applied_target is not None:
         if _applied_target != target:
-            raise EnvironmentProblem(f"{TARGET_ENV_VAR} changed within one process ({_applied_target[0]} -> {target[0]})")
+            raise EnvironmentProblem(
+                f"{TARGET_ENV_VAR} changed within one process ({_applied_target[0]} -> {target[0]})"
+            )
         return target
     import ctypes
 

@@ -64,8 +64,16 @@ EXACT_SENSOR = "sensor_exact"
 _SENSORS = ("sensor", EXACT_SENSOR)
 
 #: Modules whose code turns a scene description into pixels: part of every cache key.
-_PIXEL_CODE = ("renderer.py", "integrator.py", "pattern.py", "build.py", "aov.py", "coverage.py", "bands.py",
-               "tiles.py")
+_PIXEL_CODE = (
+    "renderer.py",
+    "integrator.py",
+    "pattern.py",
+    "build.py",
+    "aov.py",
+    "coverage.py",
+    "bands.py",
+    "tiles.py",
+)
 
 
 @lru_cache(maxsize=None)
@@ -86,8 +94,10 @@ def file_digest(path: str | Path) -> str:
 def _canonical(obj: Any, mi: Any) -> Any:
     """A Mitsuba scene dict as plain JSON data for hashing: transforms as matrices, files by content."""
     if isinstance(obj, dict):
-        return {str(k): ({"file": Path(v).name, "sha256": file_digest(v)} if k == "filename" else _canonical(v, mi))
-                for k, v in obj.items()}
+        return {
+            str(k): ({"file": Path(v).name, "sha256": file_digest(v)} if k == "filename" else _canonical(v, mi))
+            for k, v in obj.items()
+        }
     if isinstance(obj, (list, tuple)):
         return [_canonical(v, mi) for v in obj]
     if isinstance(obj, (bool, int, str)) or obj is None:
@@ -98,7 +108,11 @@ def _canonical(obj: Any, mi: Any) -> Any:
         return [[repr(float(x)) for x in row] for row in np.asarray(obj.matrix, dtype=np.float64)]
     if isinstance(obj, mi.Bitmap):  # e.g. a projector's pattern: by content
         data = np.ascontiguousarray(np.asarray(obj))
-        return {"bitmap": hashlib.sha256(data.tobytes()).hexdigest(), "shape": list(data.shape), "dtype": data.dtype.str}
+        return {
+            "bitmap": hashlib.sha256(data.tobytes()).hexdigest(),
+            "shape": list(data.shape),
+            "dtype": data.dtype.str,
+        }
     if isinstance(obj, np.ndarray):
         return {"array": hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest(), "shape": list(obj.shape)}
     # anything else would be hashed by its repr, which need not show its content: refuse, so that
@@ -138,8 +152,9 @@ def image_settings(scene: SceneModel, cfg: Any) -> dict[str, Any]:
         "thin_lens": None if (lens := thin_lens_of(scene, cfg)) is None else [repr(float(x)) for x in lens],
         "vignetting": cam.vignetting,
         "distortion": cam.distortion,
-        "diffraction": None if not cam.diffraction else
-        {"f_number": s.f_number, "pixel_pitch_um": s.pixel_pitch_um, "wavelength_nm": list(s.wavelength_nm)},
+        "diffraction": None
+        if not cam.diffraction
+        else {"f_number": s.f_number, "pixel_pitch_um": s.pixel_pitch_um, "wavelength_nm": list(s.wavelength_nm)},
         "mono": None if mono is None else [repr(float(w)) for w in mono],
     }
 
@@ -207,14 +222,26 @@ class Renderer:
 
     channels: tuple[str, ...] = ("R", "G", "B")
 
-    def __init__(self, scene: SceneModel, width: int, height: int, *,
-                 variant: str = "llvm_ad_rgb", max_depth: int = 4,
-                 sensor: "SensorConfig | None" = None,
-                 film_curves: tuple[np.ndarray, np.ndarray] | None = None,
-                 cache: RenderCache | None = None, sampler: str = "multijitter", vignetting: str = "none",
-                 diffraction: bool = False, thin_lens: tuple[float, float] | None = None,
-                 mono: np.ndarray | None = None, distortion: Sequence[float] | None = None,
-                 band_rows: int | None = None, guide_fraction: float | None = 0.0) -> None:
+    def __init__(
+        self,
+        scene: SceneModel,
+        width: int,
+        height: int,
+        *,
+        variant: str = "llvm_ad_rgb",
+        max_depth: int = 4,
+        sensor: "SensorConfig | None" = None,
+        film_curves: tuple[np.ndarray, np.ndarray] | None = None,
+        cache: RenderCache | None = None,
+        sampler: str = "multijitter",
+        vignetting: str = "none",
+        diffraction: bool = False,
+        thin_lens: tuple[float, float] | None = None,
+        mono: np.ndarray | None = None,
+        distortion: Sequence[float] | None = None,
+        band_rows: int | None = None,
+        guide_fraction: float | None = 0.0,
+    ) -> None:
         if thin_lens is not None and not (thin_lens[0] > 0 and thin_lens[1] > 0):
             raise ConfigError(f"thin lens: aperture radius and focus distance must be positive, got {thin_lens}")
         #: (aperture radius m, focus distance m) of Mitsuba's thinlens sensor; None: a pinhole
@@ -234,8 +261,13 @@ class Renderer:
             self._undistort = (map_x, map_y)
             self.render_fov_deg = float(np.degrees(2.0 * np.arctan(t_render)))
         # the falloff of each ray's field angle, on the grid Mitsuba renders (before any resampling)
-        self._falloff = None if vignetting == "none" else natural_vignetting(
-            replace(scene.camera, fov_deg=self.render_fov_deg), width, height).astype(np.float32)[None, :, :, None]
+        self._falloff = (
+            None
+            if vignetting == "none"
+            else natural_vignetting(replace(scene.camera, fov_deg=self.render_fov_deg), width, height).astype(
+                np.float32
+            )[None, :, :, None]
+        )
         if diffraction and sensor is None:
             raise ConfigError("camera.diffraction: needs the sensor (f-number, pixel pitch, wavelengths)")
         self._diffraction = sensor if diffraction else None  # the sensor's f-number, pitch and wavelengths
@@ -263,9 +295,7 @@ class Renderer:
         if max_depth < 1:
             raise ConfigError(f"render.max_depth must be >= 1, got {max_depth}")
         if not variant.endswith(("_rgb", "_spectral")) or variant.startswith("scalar"):
-            raise ConfigError(
-                f"render.variant: expected an llvm/cuda *_rgb or *_spectral variant, got {variant!r}"
-            )
+            raise ConfigError(f"render.variant: expected an llvm/cuda *_rgb or *_spectral variant, got {variant!r}")
         if sampler not in SAMPLERS:
             raise ConfigError(f"render.sampler: expected one of {list(SAMPLERS)}, got {sampler!r}")
         self.sampler = sampler
@@ -276,7 +306,9 @@ class Renderer:
                 raise ConfigError(f"render.variant {variant!r}: film_curves need a spectral variant")
             wl, curves = (np.asarray(a, np.float64) for a in film_curves)
             if wl.ndim != 1 or curves.shape != (3, wl.size):
-                raise ConfigError(f"film_curves: expected wavelengths (n,) and curves (3, n), got {wl.shape}, {curves.shape}")
+                raise ConfigError(
+                    f"film_curves: expected wavelengths (n,) and curves (3, n), got {wl.shape}, {curves.shape}"
+                )
             self._sensitivity = (wl, curves)
         elif self.spectral:
             if sensor is None:
@@ -315,8 +347,9 @@ class Renderer:
         build.check_files(scene.name)
         self._python_objects: list[Any] = []  # Python Mitsuba objects its scenes hold (mbcapture.render.tiles)
         if build.projectors and self.spectral:
-            raise ConfigError(f"scene {scene.name!r}: projector emitters are supported in RGB variants only, "
-                              f"not {variant!r}")
+            raise ConfigError(
+                f"scene {scene.name!r}: projector emitters are supported in RGB variants only, not {variant!r}"
+            )
         self.cache = cache
         # the scene descriptions now; the Mitsuba scenes when something is rendered (a run whose
         # renders all come from the cache never loads them)
@@ -330,8 +363,10 @@ class Renderer:
                     self._dicts[g] = self._scene_dict(flat_group=g, film_shape=shape)
         whole = self.distortion is not None or diffraction  # the lens mixes neighbouring pixels
         if whole and band_rows is not None and band_rows < self.height:
-            raise ConfigError("render.band_rows: camera.distortion and camera.diffraction act on the whole film, "
-                              "which is then one band; set render.band_rows null")
+            raise ConfigError(
+                "render.band_rows: camera.distortion and camera.diffraction act on the whole film, "
+                "which is then one band; set render.band_rows null"
+            )
         #: (first row, end row) of each band of the film
         self.bands: tuple[tuple[int, int], ...] = film_bands(self.width, self.height, band_rows, whole)
         self._crop: dict[int, tuple[int, int]] = {}  # id(params) -> the rows its film renders now
@@ -370,8 +405,9 @@ class Renderer:
             if g is not None:
                 sc = self._load(d)
                 self._group_scenes[g] = (sc, mi.traverse(sc), self._collect_emitters(sc)[g])
-        self._integrator.lambertian = all(is_lambertian(sc) for sc in
-                                          [self._scene, *(v[0] for v in self._group_scenes.values())])
+        self._integrator.lambertian = all(
+            is_lambertian(sc) for sc in [self._scene, *(v[0] for v in self._group_scenes.values())]
+        )
         self._integrator.light_alone_at_last = self._integrator.lambertian
         self._integrator.guides = self._guides()
         self._loaded = True
@@ -382,21 +418,34 @@ class Renderer:
         if not self.guide_fraction:
             return ()
         if not self._integrator.lambertian:
-            raise ConfigError(f"render.guide_fraction: scene {self.scene_model.name!r} has guides, which only "
-                              "Lambertian materials sample towards; set render.guide_fraction: 0")
+            raise ConfigError(
+                f"render.guide_fraction: scene {self.scene_model.name!r} has guides, which only "
+                "Lambertian materials sample towards; set render.guide_fraction: 0"
+            )
         return tuple((g.centre, g.radius, share) for g, share in zip(self._build.guides, self.guide_shares))
 
     @classmethod
-    def from_config(cls, scene: SceneModel, cfg: Any, *, cache: RenderCache | None = None, **overrides: Any) -> "Renderer":
+    def from_config(
+        cls, scene: SceneModel, cfg: Any, *, cache: RenderCache | None = None, **overrides: Any
+    ) -> "Renderer":
         """The renderer a capture config asks for (film, variant, depth, sampler, sensor), with
         ``overrides`` of any keyword of :class:`Renderer` (e.g. ``film_curves``, ``sensor``)."""
         r = cfg.render
         lens = thin_lens_of(scene, cfg)
-        kw: dict[str, Any] = {"variant": r.variant, "max_depth": r.max_depth, "sampler": r.sampler,
-                              "sensor": cfg.sensor, "cache": cache, "vignetting": cfg.camera.vignetting,
-                              "diffraction": cfg.camera.diffraction, "thin_lens": lens,
-                              "mono": mono_weights(cfg.sensor, r.variant), "distortion": cfg.camera.distortion,
-                              "band_rows": r.band_rows, "guide_fraction": r.guide_fraction}
+        kw: dict[str, Any] = {
+            "variant": r.variant,
+            "max_depth": r.max_depth,
+            "sampler": r.sampler,
+            "sensor": cfg.sensor,
+            "cache": cache,
+            "vignetting": cfg.camera.vignetting,
+            "diffraction": cfg.camera.diffraction,
+            "thin_lens": lens,
+            "mono": mono_weights(cfg.sensor, r.variant),
+            "distortion": cfg.camera.distortion,
+            "band_rows": r.band_rows,
+            "guide_fraction": r.guide_fraction,
+        }
         kw.update(overrides)
         return cls(scene, r.width, r.height, **kw)
 
@@ -428,8 +477,11 @@ class Renderer:
         f = v0 / total
         for r in rads[1:]:
             wl, v = r.arrays
-            if wl.shape != wl0.shape or not np.allclose(wl, wl0) or not np.allclose(v / max(r.integral(), 1e-300), f,
-                                                                                     rtol=1e-6, atol=1e-12 * f.max()):
+            if (
+                wl.shape != wl0.shape
+                or not np.allclose(wl, wl0)
+                or not np.allclose(v / max(r.integral(), 1e-300), f, rtol=1e-6, atol=1e-12 * f.max())
+            ):
                 return None
         return Spectrum(tuple(wl0), tuple(f))
 
@@ -441,13 +493,15 @@ class Renderer:
         d: dict[str, Any] = {
             "type": "scene",
             "sensor": {
-                **({"type": "perspective"} if self.thin_lens is None else
-                   {"type": "thinlens", "aperture_radius": self.thin_lens[0], "focus_distance": self.thin_lens[1]}),
+                **(
+                    {"type": "perspective"}
+                    if self.thin_lens is None
+                    else {"type": "thinlens", "aperture_radius": self.thin_lens[0], "focus_distance": self.thin_lens[1]}
+                ),
                 "fov": self.render_fov_deg,
                 "fov_axis": "x",
                 "near_clip": 1e-3,
-                "to_world": T().look_at(origin=list(cam.origin), target=list(cam.target),
-                                        up=list(cam.up)),
+                "to_world": T().look_at(origin=list(cam.origin), target=list(cam.target), up=list(cam.up)),
                 "film": self._film_dict(film_shape),
                 "sampler": {"type": self.sampler, "sample_count": 4},
             },
@@ -465,20 +519,27 @@ class Renderer:
                 d[s.name] = self._shape_dict(s, np.asarray(s.to_world, float))
             elif s.light is not None:
                 if s.kind not in MOVABLE_EMITTER_KINDS:
-                    raise ConfigError(f"shape {s.name!r}: a moving light must be one of "
-                                      f"{sorted(MOVABLE_EMITTER_KINDS)}")
+                    raise ConfigError(
+                        f"shape {s.name!r}: a moving light must be one of {sorted(MOVABLE_EMITTER_KINDS)}"
+                    )
                 d[s.name] = self._shape_dict(s, parts[s.part](0.0) @ s.to_world)
             else:
                 grouped.setdefault(s.part, {"type": "shapegroup"})[s.name] = self._shape_dict(
-                    s, np.asarray(s.to_world, float))
+                    s, np.asarray(s.to_world, float)
+                )
         for part, group in grouped.items():
             d[f"{part}__group"] = group
-            d[part] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"{part}__group"},
-                       "to_world": T(np.asarray(parts[part](0.0), float))}
+            d[part] = {
+                "type": "instance",
+                "shapegroup": {"type": "ref", "id": f"{part}__group"},
+                "to_world": T(np.asarray(parts[part](0.0), float)),
+            }
         env = self._build.environment
         if env is not None:
-            d["environment"] = {"type": "constant",
-                                "radiance": self._emission_dict(env.radiance, env.group == flat_group)}
+            d["environment"] = {
+                "type": "constant",
+                "radiance": self._emission_dict(env.radiance, env.group == flat_group),
+            }
         for p in self._build.projectors:
             if p.name in d or p.name in parts:
                 raise ConfigError(f"scene {self.scene_model.name!r}: duplicate name {p.name!r} (projector)")
@@ -496,10 +557,20 @@ class Renderer:
         axial distance z with irradiance pi v scale / z^2 (measured), so scale = 1/pi makes the image
         the irradiance at 1 m (see :class:`~.build.Projector`)."""
         mi = self._mi
-        return {"type": "projector", "to_world": mi.ScalarTransform4f(self._projector_world(p, 0.0)),
-                "fov": float(p.fov_deg), "fov_axis": "x", "scale": 1.0 / np.pi,
-                "irradiance": {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(p.image)), "raw": True,
-                               "filter_type": "bilinear", "wrap_mode": "clamp"}}
+        return {
+            "type": "projector",
+            "to_world": mi.ScalarTransform4f(self._projector_world(p, 0.0)),
+            "fov": float(p.fov_deg),
+            "fov_axis": "x",
+            "scale": 1.0 / np.pi,
+            "irradiance": {
+                "type": "bitmap",
+                "bitmap": mi.Bitmap(np.ascontiguousarray(p.image)),
+                "raw": True,
+                "filter_type": "bilinear",
+                "wrap_mode": "clamp",
+            },
+        }
 
     def _film_dict(self, shape: Spectrum | None = None) -> dict[str, Any]:
         film: dict[str, Any] = {"width": self.width, "height": self.height, "rfilter": {"type": "box"}}
@@ -520,22 +591,30 @@ class Renderer:
             wl = grid
         film["type"] = "specfilm"
         for c, values in zip(self.channels, srf):
-            film[c] = {"type": "regular", "wavelength_min": float(wl[0]), "wavelength_max": float(wl[-1]),
-                       "values": ", ".join(repr(float(v)) for v in values)}
+            film[c] = {
+                "type": "regular",
+                "wavelength_min": float(wl[0]),
+                "wavelength_max": float(wl[-1]),
+                "values": ", ".join(repr(float(v)) for v in values),
+            }
         return film
 
     def _shape_dict(self, s: Shape, to_world: np.ndarray) -> dict[str, Any]:
         out = shape_description(self._mi, s, to_world, self._bsdf_dict(s))
         if s.light is not None and s.kind != "tiles":
-            out["emitter"] = {"type": "area",
-                              "radiance": self._emission_dict(s.light.radiance, s.light.group == self._flat_group)}
+            out["emitter"] = {
+                "type": "area",
+                "radiance": self._emission_dict(s.light.radiance, s.light.group == self._flat_group),
+            }
         return out
 
     def _bsdf_dict(self, s: Shape) -> dict[str, Any]:
         """The shape's Lambertian BSDF (black without a material)."""
         mat = s.material or Material((0.0, 0.0, 0.0))
         if isinstance(mat.reflectance, PerTile):
-            refl = tile_table(mat.reflectance.values, self.spectral, f"scene {self.scene_model.name!r}, shape {s.name!r}")
+            refl = tile_table(
+                mat.reflectance.values, self.spectral, f"scene {self.scene_model.name!r}, shape {s.name!r}"
+            )
         else:
             refl = self._reflectance_dict(mat.reflectance)
         bsdf: dict[str, Any] = {"type": "diffuse", "reflectance": refl}
@@ -552,8 +631,11 @@ class Renderer:
         if isinstance(value, Spectrum):
             if self.spectral:
                 wl, v = value.arrays
-                return {"type": "irregular", "wavelengths": ", ".join(repr(float(x)) for x in wl),
-                        "values": ", ".join(repr(float(x)) for x in v)}
+                return {
+                    "type": "irregular",
+                    "wavelengths": ", ".join(repr(float(x)) for x in wl),
+                    "values": ", ".join(repr(float(x)) for x in v),
+                }
             value = spectrum_to_rgb_radiance(value) if emission else spectrum_to_rgb_reflectance(value)
         return {"type": "rgb", "value": [float(x) for x in value]}
 
@@ -600,17 +682,20 @@ class Renderer:
         here = Path(__file__).resolve().parent
         code = {name: file_digest(here / name) for name in _PIXEL_CODE}
         target = llvm_target() if self.variant.startswith("llvm") else {"backend": "cuda"}
-        return digest({
-            "scene": [_canonical(d, self._mi) for d in dicts],
-            "groups": list(self.groups),
-            "variant": self.variant,
-            "max_depth": self.max_depth,
-            "guides": [[*g.centre, g.radius, share] for g, share in zip(self._build.guides, self.guide_shares)]
-            if self.guide_fraction else [],
-            "code": code,
-            "versions": {p: metadata.version(p) for p in ("mitsuba", "drjit")},
-            "target": target,
-        })
+        return digest(
+            {
+                "scene": [_canonical(d, self._mi) for d in dicts],
+                "groups": list(self.groups),
+                "variant": self.variant,
+                "max_depth": self.max_depth,
+                "guides": [[*g.centre, g.radius, share] for g, share in zip(self._build.guides, self.guide_shares)]
+                if self.guide_fraction
+                else [],
+                "code": code,
+                "versions": {p: metadata.version(p) for p in ("mitsuba", "drjit")},
+                "target": target,
+            }
+        )
 
     def sample_count(self, spp: int, pattern: bool = False) -> int:
         """The samples per pixel a render takes when asked for ``spp``: exactly ``spp`` where it draws from
@@ -673,8 +758,12 @@ class Renderer:
         start = time.perf_counter()
         img = make()
         seconds = time.perf_counter() - start
-        self.cache.put(key, img, seconds=seconds, about={"kind": kind, "scene": self.scene_model.name,
-                                                         "film": [self.width, self.height], **params})
+        self.cache.put(
+            key,
+            img,
+            seconds=seconds,
+            about={"kind": kind, "scene": self.scene_model.name, "film": [self.width, self.height], **params},
+        )
         self.last_render_s = seconds
         return img
 
@@ -720,8 +809,14 @@ class Renderer:
         self._dr.make_opaque(tf)
         return tf
 
-    def render(self, t_s: float, spp: int, seed: int,
-               groups: Sequence[str] | None = None, pattern: tuple[int, int] | None = None) -> np.ndarray:
+    def render(
+        self,
+        t_s: float,
+        spp: int,
+        seed: int,
+        groups: Sequence[str] | None = None,
+        pattern: tuple[int, int] | None = None,
+    ) -> np.ndarray:
         """Radiance (W m^-2 sr^-1) of each requested emitter group at scene time ``t_s`` (s);
         in spectral mode the ``specfilm`` value, photo-electrons per (m^2 sr s).
 
@@ -743,8 +838,15 @@ class Renderer:
             raise ValueError(f"rows {r0}..{r1}: not a run of whole bands of the film ({self.bands})")
         return range(idx[0], idx[-1] + 1)
 
-    def render_rows(self, t_s: float, spp: int, seed: int, groups: Sequence[str] | None,
-                    rows: tuple[int, int], pattern: tuple[int, int] | None = None) -> np.ndarray:
+    def render_rows(
+        self,
+        t_s: float,
+        spp: int,
+        seed: int,
+        groups: Sequence[str] | None,
+        rows: tuple[int, int],
+        pattern: tuple[int, int] | None = None,
+    ) -> np.ndarray:
         """:meth:`render`'s rows ``rows`` (first, end; a run of whole :attr:`bands`), rendering only
         those: float32 (group, end - first, width, channel), equal to the whole film's rows."""
         req = list(self.groups if groups is None else groups)
@@ -784,31 +886,51 @@ class Renderer:
             return img
         return np.repeat((img @ self._mono.astype(np.float32))[..., None], 3, axis=-1)
 
-    def give(self, t_s: float, spp: int, seed: int, groups: Sequence[str], radiance: np.ndarray, band: int = 0,
-             pattern: tuple[int, int] | None = None) -> None:
+    def give(
+        self,
+        t_s: float,
+        spp: int,
+        seed: int,
+        groups: Sequence[str],
+        radiance: np.ndarray,
+        band: int = 0,
+        pattern: tuple[int, int] | None = None,
+    ) -> None:
         """Hand this renderer the raw render of band ``band`` of ``(t_s, spp, seed, groups)`` made by
         another process with the same renderer (a cluster worker, :meth:`raw_render`): :meth:`render`
         and :meth:`render_rows` use it (the lens applied as to their own) instead of rendering, once."""
-        self._given[(float(t_s), int(spp), int(seed), tuple(groups), int(band), _pattern_key(pattern))] = \
-            np.asarray(radiance, np.float32)
+        self._given[(float(t_s), int(spp), int(seed), tuple(groups), int(band), _pattern_key(pattern))] = np.asarray(
+            radiance, np.float32
+        )
 
-    def raw_render(self, t_s: float, spp: int, seed: int, groups: Sequence[str], band: int = 0,
-                   pattern: tuple[int, int] | None = None) -> np.ndarray:
+    def raw_render(
+        self,
+        t_s: float,
+        spp: int,
+        seed: int,
+        groups: Sequence[str],
+        band: int = 0,
+        pattern: tuple[int, int] | None = None,
+    ) -> np.ndarray:
         """What :meth:`render` caches: band ``band`` of the render before the lens's falloff, distortion,
         diffraction and mono mixture (what :meth:`give` takes)."""
         req = list(groups)
         n = self.sample_count(spp, pattern is not None)
         params = self._cache_params(n, seed, req, pattern)
         if len(self.bands) == 1:  # the whole film: the key it has always had
-            return self.cached("radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), req, None, pattern))
+            return self.cached(
+                "radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), req, None, pattern)
+            )
         rows = self.bands[band]
         params["rows"] = list(rows)
-        return self.cached("radiance", t_s, params,
-                           lambda: self._render(t_s, int(n), band_seed(seed, band), req, rows, pattern))
+        return self.cached(
+            "radiance", t_s, params, lambda: self._render(t_s, int(n), band_seed(seed, band), req, rows, pattern)
+        )
 
     @staticmethod
-    def _cache_params(n: "int | np.ndarray", seed: int, req: list[str],
-                      pattern: "tuple[int, int | np.ndarray] | None") -> dict[str, Any]:
+    def _cache_params(
+        n: "int | np.ndarray", seed: int, req: list[str], pattern: "tuple[int, int | np.ndarray] | None"
+    ) -> dict[str, Any]:
         """The part of a render's cache key its call gives: samples taken, seed, groups and pattern. The
         samples and the pattern's offset may be one per pixel (:meth:`render_pixels`): one value where they
         are all alike (the key such a render has always had), else the digest of them all."""
@@ -824,8 +946,16 @@ class Renderer:
         the whole film, the listed pixels' neighbourhoods at their samples and the rest at one."""
         return self._undistort is None and self._diffraction is None
 
-    def render_pixels(self, t_s: float, spp: "int | np.ndarray", seed: int, groups: Sequence[str], pixels: np.ndarray,
-                      pattern: "tuple[int, int | np.ndarray] | None" = None, cached: bool = False) -> np.ndarray:
+    def render_pixels(
+        self,
+        t_s: float,
+        spp: "int | np.ndarray",
+        seed: int,
+        groups: Sequence[str],
+        pixels: np.ndarray,
+        pattern: "tuple[int, int | np.ndarray] | None" = None,
+        cached: bool = False,
+    ) -> np.ndarray:
         """Radiance of each requested group at the film pixels ``pixels`` (flat indices y * W + x) only,
         ``spp`` samples each: float32 (len(groups), len(pixels), 3), the same estimator as :meth:`render`
         (box filter: the mean over each pixel's area; the lens and a mono mixture applied), at a
@@ -851,8 +981,10 @@ class Renderer:
         counts = np.broadcast_to(np.asarray(spp, np.int64), pix.shape)
         if pattern is None:
             if counts.size and counts.min() != counts.max():
-                raise ValueError("render_pixels: samples per pixel that vary need a pattern (the sampler's "
-                                 "sequences are spp consecutive lanes a pixel)")
+                raise ValueError(
+                    "render_pixels: samples per pixel that vary need a pattern (the sampler's "
+                    "sequences are spp consecutive lanes a pixel)"
+                )
             n = self.sample_count(int(counts.flat[0]) if counts.size else 1)
             counts, offsets = np.full(pix.shape, n, np.int64), None
         else:
@@ -865,8 +997,11 @@ class Renderer:
             pat = None if pattern is None else (pattern[0], first)
             if not cached:
                 return self._render_pixels(t_s, n, s, req, at, pat, first)
-            params = {**self._cache_params(n, s, req, pat),
-                      "pixels": hashlib.sha256(at.tobytes()).hexdigest(), "n_pixels": int(at.size)}
+            params = {
+                **self._cache_params(n, s, req, pat),
+                "pixels": hashlib.sha256(at.tobytes()).hexdigest(),
+                "n_pixels": int(at.size),
+            }
             return self.cached("pixels", t_s, params, lambda: self._render_pixels(t_s, n, s, req, at, pat, first))
 
         if self.renders_pixels_alone:
@@ -885,13 +1020,15 @@ class Renderer:
             reached = asked > 0
             img = np.zeros((len(req), film.size, 3), np.float32)
             img[:, reached] = rendered(film[reached], np.full(int(reached.sum()), int(counts.flat[0])), None, seed)
-            img[:, ~reached] = rendered(film[~reached], np.ones(int((~reached).sum()), np.int64), None,
-                                        band_seed(seed, 0x5A))
+            img[:, ~reached] = rendered(
+                film[~reached], np.ones(int((~reached).sum()), np.int64), None, band_seed(seed, 0x5A)
+            )
         img = self._lens(img.reshape(len(req), self.height, self.width, 3), 0, self.height)
         return self._mono_mixed(img.reshape(len(req), -1, 3)[:, pix])
 
-    def _lens_samples(self, pix: np.ndarray, counts: np.ndarray, offsets: np.ndarray | None
-                      ) -> tuple[np.ndarray, np.ndarray]:
+    def _lens_samples(
+        self, pix: np.ndarray, counts: np.ndarray, offsets: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(flat, per pinhole pixel) the samples :meth:`render_pixels` renders each pinhole pixel with (0: none asked;
         it then takes one) and the pattern offset they start at, where sensor pixels ``pix`` ask for ``counts`` from
         ``offsets``: through diffraction, each sensor pixel's count in proportion to how much each neighbour weighs in
@@ -909,8 +1046,9 @@ class Renderer:
         n, o = n.reshape(self.height, self.width), o.reshape(self.height, self.width)
         if self._log_reach is not None:
             none = -1e300
-            log_n = grey_dilation(np.where(n > 0, np.log(np.maximum(n, 1.0)), none), structure=self._log_reach,
-                                  mode="constant", cval=none)
+            log_n = grey_dilation(
+                np.where(n > 0, np.log(np.maximum(n, 1.0)), none), structure=self._log_reach, mode="constant", cval=none
+            )
             n = np.where(log_n > none / 2, np.rint(np.exp(np.minimum(log_n, 700.0))), 0.0)
             o = grey_dilation(o, size=self._log_reach.shape, mode="constant", cval=0)
         n, o = n.ravel(), o.ravel()
@@ -923,8 +1061,16 @@ class Renderer:
             n, o = reach_n, reach_o
         return n.astype(np.int64), o
 
-    def _render_pixels(self, t_s: float, counts: np.ndarray, seed: int, req: list[str], pix: np.ndarray,
-                       pattern: "tuple[int, int | np.ndarray] | None", offsets: np.ndarray | None) -> np.ndarray:
+    def _render_pixels(
+        self,
+        t_s: float,
+        counts: np.ndarray,
+        seed: int,
+        req: list[str],
+        pix: np.ndarray,
+        pattern: "tuple[int, int | np.ndarray] | None",
+        offsets: np.ndarray | None,
+    ) -> np.ndarray:
         """:meth:`render_pixels` before the lens's falloff and a mono mixture: ``counts`` samples at each of
         ``pix``, from the pattern's samples ``offsets`` on (with a pattern) or the sampler's (equal counts).
         RGB: every group in one pass (its AOVs); spectral: one pass a group, in the scene whose film samples
@@ -937,8 +1083,11 @@ class Renderer:
         self.set_time(t_s)
         passes = [[g] for g in lit] if self.spectral else [lit]
         for groups in passes:
-            scene, params, emitters = self._scene_of(groups[0]) if self.spectral else \
-                (self._scene, self._params, [self._group_emitters[g] for g in groups])
+            scene, params, emitters = (
+                self._scene_of(groups[0])
+                if self.spectral
+                else (self._scene, self._params, [self._group_emitters[g] for g in groups])
+            )
             self._set_rows(params, (0, self.height))  # the rays below address the whole film
             self._integrator.set_groups(groups, emitters)
             sums = self._pixel_sums(scene, groups[0] if self.spectral else None, counts, seed, pix, pattern, offsets)
@@ -954,8 +1103,16 @@ class Renderer:
             return scene, params, [emitters]
         return self._scene, self._params, [self._group_emitters[group]]
 
-    def _pixel_sums(self, scene: Any, group: str | None, counts: np.ndarray, seed: int, pix: np.ndarray,
-                    pattern: "tuple[int, int | np.ndarray] | None", offsets: np.ndarray | None) -> np.ndarray:
+    def _pixel_sums(
+        self,
+        scene: Any,
+        group: str | None,
+        counts: np.ndarray,
+        seed: int,
+        pix: np.ndarray,
+        pattern: "tuple[int, int | np.ndarray] | None",
+        offsets: np.ndarray | None,
+    ) -> np.ndarray:
         """One pass of :meth:`_render_pixels` in ``scene`` (the integrator's groups set): float64 (pixels,
         groups, 3), each pixel's mean over its samples. ``group``: the spectral group rendered (its scene's film
         curves weigh the wavelengths), None in RGB."""
@@ -979,8 +1136,11 @@ class Renderer:
             slots = np.repeat(np.arange(pix.size, dtype=np.uint32), counts)
             starts = np.cumsum(counts) - counts
             lane_index = (np.arange(lanes, dtype=np.int64) - np.repeat(starts - offsets, counts)).astype(np.uint32)
-            slot, pixel, index = mi.UInt32(_aligned(slots)), mi.UInt32(_aligned(pix[slots])), \
-                mi.UInt32(_aligned(lane_index))
+            slot, pixel, index = (
+                mi.UInt32(_aligned(slots)),
+                mi.UInt32(_aligned(pix[slots])),
+                mi.UInt32(_aligned(lane_index)),
+            )
             self._integrator.use_pattern(int(pattern[0]) & 0xFFFFFFFF, 0, 0, lanes=(pixel, index))
             key = mi.UInt32(int(pattern[0]) & 0xFFFFFFFF)
             dr.make_opaque(key)
@@ -1012,7 +1172,7 @@ class Renderer:
         for c, value in enumerate(values):
             dr.scatter_reduce(dr.ReduceOp.Add, acc, value, slot * C + c)
         dr.eval(acc)
-        return np.asarray(acc, dtype=np.float64)[:pix.size * C].reshape(pix.size, C // 3, 3) / counts[:, None, None]
+        return np.asarray(acc, dtype=np.float64)[: pix.size * C].reshape(pix.size, C // 3, 3) / counts[:, None, None]
 
     def _film_values(self, film: Any, group: str, wavelengths: Any, spec: Any) -> list[Any]:
         """What ``specfilm`` stores of one sample (its channels), written here because Mitsuba 3.9.1's Python
@@ -1053,8 +1213,15 @@ class Renderer:
         params.update()
         self._crop[id(params)] = tuple(rows)
 
-    def _render(self, t_s: float, spp: int, seed: int, req: list[str], rows: tuple[int, int] | None = None,
-                pattern: tuple[int, int] | None = None) -> np.ndarray:
+    def _render(
+        self,
+        t_s: float,
+        spp: int,
+        seed: int,
+        req: list[str],
+        rows: tuple[int, int] | None = None,
+        pattern: tuple[int, int] | None = None,
+    ) -> np.ndarray:
         """The Mitsuba pass(es) of ``req`` at ``t_s``: the whole film, or its ``rows`` (a band)."""
         start = time.perf_counter()
         self._ensure_loaded()
@@ -1072,15 +1239,19 @@ class Renderer:
                 scene, params, emitters = self._scene_of(g)
                 self._set_rows(params, rows)
                 self._integrator.set_groups([g], emitters)
-                img = self._mi.render(scene, integrator=self._integrator, spp=int(spp),
-                                      seed=int(seed) & 0xFFFFFFFF)
+                img = self._mi.render(scene, integrator=self._integrator, spp=int(spp), seed=int(seed) & 0xFFFFFFFF)
                 out[req.index(g)] = np.asarray(img, dtype=np.float32)[..., :3]
         elif lit:
             self.set_time(t_s)
             self._set_rows(self._params, rows)
             self._integrator.set_groups(lit, [self._group_emitters[g] for g in lit])
-            img = self._mi.render(self._scene, integrator=self._integrator, spp=int(spp),
-                                  seed=int(seed) & 0xFFFFFFFF, sensor=self._sensor_index(pattern))
+            img = self._mi.render(
+                self._scene,
+                integrator=self._integrator,
+                spp=int(spp),
+                seed=int(seed) & 0xFFFFFFFF,
+                sensor=self._sensor_index(pattern),
+            )
             arr = np.asarray(img, dtype=np.float32)[..., 3:]
             arr = arr.reshape(h, self.width, len(lit), 3).transpose(2, 0, 1, 3)
             for i, g in enumerate(lit):
@@ -1094,8 +1265,9 @@ class Renderer:
         self._ensure_loaded()
         self.set_time(t_s)
         self._set_rows(self._params, (0, self.height))
-        integ = self._mi.load_dict({"type": "path", "max_depth": self.max_depth,
-                                    "rr_depth": max(self.max_depth + 1, 5)})
+        integ = self._mi.load_dict(
+            {"type": "path", "max_depth": self.max_depth, "rr_depth": max(self.max_depth + 1, 5)}
+        )
         img = self._mi.render(self._scene, integrator=integ, spp=int(spp), seed=int(seed))
         return np.asarray(img, dtype=np.float32)[..., :3]
 
@@ -1123,7 +1295,7 @@ def _aligned(a: np.ndarray) -> np.ndarray:
     a = np.ascontiguousarray(a)
     buf = np.empty(a.nbytes + 64, np.uint8)
     start = (-buf.ctypes.data) % 64
-    out = buf[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
+    out = buf[start : start + a.nbytes].view(a.dtype).reshape(a.shape)
     out[...] = a
     return out
 
@@ -1153,8 +1325,14 @@ class RenderRows:
         self.width, self.height = renderer.width, self.rows[1] - self.rows[0]
         self.channels, self.groups, self.cache = renderer.channels, renderer.groups, renderer.cache
 
-    def render(self, t_s: float, spp: int, seed: int, groups: Sequence[str] | None = None,
-               pattern: tuple[int, int] | None = None) -> np.ndarray:
+    def render(
+        self,
+        t_s: float,
+        spp: int,
+        seed: int,
+        groups: Sequence[str] | None = None,
+        pattern: tuple[int, int] | None = None,
+    ) -> np.ndarray:
         return self.renderer.render_rows(t_s, spp, seed, groups, self.rows, pattern)
 
     def sample_count(self, spp: int, pattern: bool = False) -> int:

@@ -53,8 +53,12 @@ def _light_points(shape: Shape, part_to_world: np.ndarray | None) -> np.ndarray:
 
 def _static_scene(mi, shapes: list[Shape]):
     """A Mitsuba scene of ``shapes`` alone (their geometry; what they look like does not matter here)."""
-    return mi.load_dict({"type": "scene", **{f"s{i}": shape_description(mi, s, s.to_world, {"type": "diffuse"})
-                                             for i, s in enumerate(shapes)}})
+    return mi.load_dict(
+        {
+            "type": "scene",
+            **{f"s{i}": shape_description(mi, s, s.to_world, {"type": "diffuse"}) for i, s in enumerate(shapes)},
+        }
+    )
 
 
 def moving_shadows(renderer, t0_s: float, t1_s: float, width: int, height: int) -> np.ndarray:
@@ -104,15 +108,17 @@ def moving_shadows(renderer, t0_s: float, t1_s: float, width: int, height: int) 
     for k, (pts, ti) in enumerate(zip(starts, sets)):
         d = motion[ti][None, :, :] - pts[:, None, :]  # (P, M, 3)
         n = np.linalg.norm(d, axis=-1, keepdims=True)
-        ok = (n[..., 0] > 1e-9)
+        ok = n[..., 0] > 1e-9
         origins.append(np.broadcast_to(motion[ti][None], d.shape)[ok])
         directions.append((d / np.maximum(n, 1e-12))[ok])
         owner.append(np.full(int(ok.sum()), k))
     o, dvec, owner = np.concatenate(origins), np.concatenate(directions), np.concatenate(owner)
     mi = renderer.mitsuba
     static = _static_scene(mi, receivers)
-    ray = mi.Ray3f(mi.Point3f(*[np.ascontiguousarray(o[:, i], np.float32) for i in range(3)]),
-                   mi.Vector3f(*[np.ascontiguousarray(dvec[:, i], np.float32) for i in range(3)]))
+    ray = mi.Ray3f(
+        mi.Point3f(*[np.ascontiguousarray(o[:, i], np.float32) for i in range(3)]),
+        mi.Vector3f(*[np.ascontiguousarray(dvec[:, i], np.float32) for i in range(3)]),
+    )
     si = static.ray_intersect(ray)
     hit = np.asarray(si.is_valid(), bool)
     p = np.stack([np.asarray(si.p[i], float) for i in range(3)], axis=1)
@@ -126,8 +132,9 @@ def moving_shadows(renderer, t0_s: float, t1_s: float, width: int, height: int) 
     return hull_mask((px[owner == k] for k in np.unique(owner)), width, height)
 
 
-def changing_region(renderer, t0_s: float, t1_s: float, width: int, height: int,
-                    moving: np.ndarray | None = None) -> np.ndarray:
+def changing_region(
+    renderer, t0_s: float, t1_s: float, width: int, height: int, moving: np.ndarray | None = None
+) -> np.ndarray:
     """(H, W) bool: the pixels where a render's time within its stratum is noise, which adaptive sampling refines at
     several times per half-stratum (:func:`mbcapture.pipeline.scout_tail`): the moving region
     (:func:`mbcapture.camera_motion.moving_region`), the moving parts' hard shadows (:func:`moving_shadows`), and

@@ -23,12 +23,25 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["BAYER_PATTERNS", "DEMOSAIC_METHODS", "LOG_DEMOSAIC_FLOOR_E", "channel_map", "demosaic", "demosaic_hdr",
-           "footprint_radius", "spread_to_footprint", "to_mosaic"]
+__all__ = [
+    "BAYER_PATTERNS",
+    "DEMOSAIC_METHODS",
+    "LOG_DEMOSAIC_FLOOR_E",
+    "channel_map",
+    "demosaic",
+    "demosaic_hdr",
+    "footprint_radius",
+    "spread_to_footprint",
+    "to_mosaic",
+]
 
 #: Bayer layouts by name: the channel (0 R, 1 G, 2 B) of each photosite of the 2x2 tile, row by row.
 BAYER_PATTERNS: dict[str, tuple[int, int, int, int]] = {
-    "RGGB": (0, 1, 1, 2), "BGGR": (2, 1, 1, 0), "GRBG": (1, 0, 2, 1), "GBRG": (1, 2, 0, 1)}
+    "RGGB": (0, 1, 1, 2),
+    "BGGR": (2, 1, 1, 0),
+    "GRBG": (1, 0, 2, 1),
+    "GBRG": (1, 2, 0, 1),
+}
 
 #: sensor.demosaic -> (colour-demosaicing function, the radius in photosites of the neighbourhood an
 #: output pixel depends on). Bilinear: its 3x3 kernels. Malvar 2004: its 5x5 gradient-corrected
@@ -97,7 +110,7 @@ def demosaic(mosaic: np.ndarray, pattern: str, method: str) -> np.ndarray:
     pad = _MARGIN
     H, W = flat.shape[-2:]
     for i, plane in enumerate(flat):
-        out[i] = fn(np.pad(plane, pad, mode="reflect"), pattern)[pad:pad + H, pad:pad + W]
+        out[i] = fn(np.pad(plane, pad, mode="reflect"), pattern)[pad : pad + H, pad : pad + W]
     return out.reshape(*m.shape, 3)
 
 

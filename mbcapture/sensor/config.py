@@ -45,20 +45,22 @@ class SensorConfig(BaseModel):
         "(characterization.json). null: the keys below as set.",
     )
     bucket_count: int = Field(
-        4, ge=1, le=64,
+        4,
+        ge=1,
+        le=64,
         description="Number of charge-storage buckets per pixel (paper: the quad-bucket sensor of [Wan 12] has 4).",
     )
     pixel_pitch_um: float = Field(
         5.6, gt=0, le=100, description="Pixel pitch in micrometres (paper: 5.6 um). Pixel area = pitch^2."
     )
-    f_number: float = Field(
-        2.8, gt=0.3, le=128, description="Lens f-number N, dimensionless (assumption)."
-    )
+    f_number: float = Field(2.8, gt=0.3, le=128, description="Lens f-number N, dimensionless (assumption).")
     lens_transmittance: float = Field(
         0.9, gt=0, le=1, description="Lens transmittance tau, fraction of light passed, dimensionless (assumption)."
     )
     fill_factor: float = Field(
-        0.5, gt=0, le=1,
+        0.5,
+        gt=0,
+        le=1,
         description="Effective optical fill factor including the microlens, fraction of the pixel area "
         "(assumption; a 4-bucket pixel spends area on storage gates).",
     )
@@ -81,12 +83,14 @@ class SensorConfig(BaseModel):
         "docs/camera.md.",
     )
     full_well_e: float = Field(
-        10_000.0, gt=0,
+        10_000.0,
+        gt=0,
         description="Capacity of each bucket in electrons (assumption). Charge above it is drained by the "
         "anti-blooming gate and lost; the affected reads are flagged saturated.",
     )
     fd_full_well_e: float = Field(
-        40_000.0, gt=0,
+        40_000.0,
+        gt=0,
         description="Capacity of the floating diffusion (output bucket) in electrons (assumption). A read "
         "that sums buckets on it clips there and is flagged saturated.",
     )
@@ -94,55 +98,66 @@ class SensorConfig(BaseModel):
         3.0, ge=0, description="Read noise in electrons rms, added once per read (paper's R; value an assumption)."
     )
     gain_dn_per_e: float = Field(
-        0.4, gt=0,
+        0.4,
+        gt=0,
         description="Conversion gain in digital numbers per electron (assumption; maps the floating-diffusion "
         "full well to about the ADC range).",
     )
     adc_bits: int = Field(14, ge=1, le=24, description="ADC resolution in bits; codes 0 .. 2^bits - 1 (assumption).")
-    black_level_dn: float = Field(
-        256.0, ge=0, description="Offset added before quantization, in DN (assumption)."
-    )
+    black_level_dn: float = Field(256.0, ge=0, description="Offset added before quantization, in DN (assumption).")
     dark_current_e_per_s: float = Field(
-        10.0, ge=0,
+        10.0,
+        ge=0,
         description="Dark current in electrons per second per bucket during storage (assumption; room temperature).",
     )
     frame_readout_s: float = Field(
-        1.0 / 30.0, ge=0,
+        1.0 / 30.0,
+        ge=0,
         description="Gap between frames of a conventional sequential capture, in seconds: the time to read "
         "one frame out (assumption: 30 frames/s). Used by the sequential protocols' timelines.",
     )
     prnu: float = Field(
-        0.01, ge=0, lt=1,
+        0.01,
+        ge=0,
+        lt=1,
         description="Photo-response non-uniformity: std of the per-pixel relative sensitivity, fraction "
         "(assumption; 1 %). Fixed pattern: identical in every bucket and read.",
     )
     dsnu_e: float = Field(
-        1.0, ge=0,
+        1.0,
+        ge=0,
         description="Dark-signal non-uniformity: std of a per-pixel fixed offset in electrons, added to "
         "every read (assumption). Fixed pattern: identical in every read.",
     )
     prnu_row: float = Field(
-        0.0, ge=0, lt=1,
+        0.0,
+        ge=0,
+        lt=1,
         description="PRNU's row component (EMVA 1288 R4.0): std of a relative sensitivity shared by every pixel "
         "of a row (row drivers), multiplying the pixel one; fraction. 0: none. Fixed pattern.",
     )
     prnu_col: float = Field(
-        0.0, ge=0, lt=1,
+        0.0,
+        ge=0,
+        lt=1,
         description="PRNU's column component: std of a relative gain shared by every pixel of a column (column "
         "amplifiers); fraction. 0: none. Fixed pattern.",
     )
     dsnu_row_e: float = Field(
-        0.0, ge=0,
+        0.0,
+        ge=0,
         description="DSNU's row component: std of an offset in electrons shared by every pixel of a row, added to "
         "every read. 0: none. Fixed pattern.",
     )
     dsnu_col_e: float = Field(
-        0.0, ge=0,
+        0.0,
+        ge=0,
         description="DSNU's column component: std of an offset in electrons shared by every pixel of a column "
         "(column amplifiers, ADCs), added to every read. 0: none. Fixed pattern.",
     )
     read_noise_row_e: float = Field(
-        0.0, ge=0,
+        0.0,
+        ge=0,
         description="Temporal row noise: std in electrons of an offset drawn anew for each row at each read "
         "(shared by the row's pixels: horizontal banding), besides read_noise_e. 0: none.",
     )
@@ -162,23 +177,29 @@ class SensorConfig(BaseModel):
         "(docs/camera.md).",
     )
     transfer_inefficiency: float = Field(
-        0.0, ge=0, lt=1,
+        0.0,
+        ge=0,
+        lt=1,
         description="Fraction of each electron that fails to move from its bucket to the floating diffusion "
         "when read (binomial loss; 0 = ideal; typical 1e-4 .. 1e-3; assumption).",
     )
     parasitic_light: float = Field(
-        0.0, ge=0, lt=1,
+        0.0,
+        ge=0,
+        lt=1,
         description="Parasitic light sensitivity: a bucket collects this fraction of the photo-electrons "
         "generated while the other buckets of the same pixel are gated (0 = ideal; global-shutter storage "
         "nodes typically 1e-4 .. 1e-3; assumption).",
     )
     fpn_seed: int = Field(
-        0, ge=0,
+        0,
+        ge=0,
         description="Seed of the fixed-pattern noise (PRNU, DSNU) maps: it identifies one physical sensor, so "
         "the maps are identical across reads and captures made with it (assumption).",
     )
     noise_seed: int | None = Field(
-        None, ge=0,
+        None,
+        ge=0,
         description="Seed of the temporal noise of the capture (shot, transfer and read noise). null: derived "
         "from the top-level seed. The renders depend on the top-level seed only, so changing noise_seed draws new "
         "noise on the same (cached) renders.",

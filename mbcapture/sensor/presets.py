@@ -40,15 +40,19 @@ def load_preset(ref: str) -> dict:
     if not path.is_file():
         path = Path(ref)
         if not (path.suffix or "/" in ref):
-            raise ValueError(f"preset: unknown preset {ref!r}; expected one of {preset_names()} or a path to a "
-                             "datasheet (characterization.json) or a YAML file of sensor keys")
+            raise ValueError(
+                f"preset: unknown preset {ref!r}; expected one of {preset_names()} or a path to a "
+                "datasheet (characterization.json) or a YAML file of sensor keys"
+            )
         if not path.is_file():
             raise ValueError(f"preset: file {ref} not found")
     try:
         stat = path.stat()
         data = copy.deepcopy(_parsed(str(path.resolve()), stat.st_mtime_ns, stat.st_size))
     except (OSError, ValueError, yaml.YAMLError) as exc:
-        raise ValueError(f"preset: {path}: cannot read it as {'JSON' if path.suffix == '.json' else 'YAML'} ({exc})") from None
+        raise ValueError(
+            f"preset: {path}: cannot read it as {'JSON' if path.suffix == '.json' else 'YAML'} ({exc})"
+        ) from None
     if not isinstance(data, dict):
         raise ValueError(f"preset: {path}: expected a mapping of sensor keys or a datasheet, got {type(data).__name__}")
     if "schema" in data:
@@ -70,7 +74,9 @@ def _figure(channels: dict, name: str, source: str, read: str = "bucket") -> lis
     try:
         return [float(channels[c][name]["value"]) for c in ("R", "G", "B")]
     except (KeyError, TypeError, ValueError):
-        raise ValueError(f"preset: {source}: reads.{read}.channels.<R|G|B>.{name}.value missing or not a number") from None
+        raise ValueError(
+            f"preset: {source}: reads.{read}.channels.<R|G|B>.{name}.value missing or not a number"
+        ) from None
 
 
 def sensor_keys_from_datasheet(sheet: dict, source: str = "datasheet") -> dict:
@@ -99,16 +105,27 @@ def sensor_keys_from_datasheet(sheet: dict, source: str = "datasheet") -> dict:
 
     try:
         count = int(info.get("bucket_count", 1))
-        setup = {"bucket_count": count, "pixel_pitch_um": float(info["pixel_pitch_um"]), "adc_bits": int(info["adc_bits"]),
-                 "black_level_dn": float(info["black_level_dn"]),
-                 "wavelength_nm": [float(w) for w in info["wavelength_nm"]]}
+        setup = {
+            "bucket_count": count,
+            "pixel_pitch_um": float(info["pixel_pitch_um"]),
+            "adc_bits": int(info["adc_bits"]),
+            "black_level_dn": float(info["black_level_dn"]),
+            "wavelength_nm": [float(w) for w in info["wavelength_nm"]],
+        }
     except (KeyError, TypeError, ValueError) as exc:
-        what = exc.args[0] if isinstance(exc, KeyError) else "bucket_count, pixel_pitch_um, adc_bits, black_level_dn or wavelength_nm"
+        what = (
+            exc.args[0]
+            if isinstance(exc, KeyError)
+            else "bucket_count, pixel_pitch_um, adc_bits, black_level_dn or wavelength_nm"
+        )
         raise ValueError(f"preset: {source}: sensor.{what} missing or malformed") from None
     full_well = mean("charge_limit_e")
     summed = reads.get("sum")
-    fd = (float(sum(_figure(summed.get("channels"), "charge_limit_e", source, "sum")) / 3)
-          if isinstance(summed, dict) else max(count, 1) * full_well)
+    fd = (
+        float(sum(_figure(summed.get("channels"), "charge_limit_e", source, "sum")) / 3)
+        if isinstance(summed, dict)
+        else max(count, 1) * full_well
+    )
     return {
         **setup,
         "fill_factor": 1.0,
@@ -118,7 +135,10 @@ def sensor_keys_from_datasheet(sheet: dict, source: str = "datasheet") -> dict:
         "full_well_e": full_well,
         "fd_full_well_e": max(fd, full_well),
         "dark_current_e_per_s": max(mean("dark_current_e_per_s"), 0.0),
-        "dsnu_e": rms("dsnu_pixel_e"), "dsnu_row_e": rms("dsnu_row_e"), "dsnu_col_e": rms("dsnu_column_e"),
-        "prnu": rms("prnu_pixel_percent") / 100, "prnu_row": rms("prnu_row_percent") / 100,
+        "dsnu_e": rms("dsnu_pixel_e"),
+        "dsnu_row_e": rms("dsnu_row_e"),
+        "dsnu_col_e": rms("dsnu_column_e"),
+        "prnu": rms("prnu_pixel_percent") / 100,
+        "prnu_row": rms("prnu_row_percent") / 100,
         "prnu_col": rms("prnu_column_percent") / 100,
     }

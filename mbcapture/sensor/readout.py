@@ -54,8 +54,16 @@ from .cfa import LOG_DEMOSAIC_FLOOR_E, demosaic_hdr, spread_to_footprint, to_mos
 from .config import SensorConfig
 from .sampling import FIELD_MEMO, BandedField, NoiseStreams, binomial_quantile, poisson_quantile_memo
 
-__all__ = ["FixedPattern", "SensorReads", "develop_reads", "dn_to_electrons", "fixed_pattern", "join_rows",
-           "sensor_stage_hook", "simulate_reads"]
+__all__ = [
+    "FixedPattern",
+    "SensorReads",
+    "develop_reads",
+    "dn_to_electrons",
+    "fixed_pattern",
+    "join_rows",
+    "sensor_stage_hook",
+    "simulate_reads",
+]
 
 
 @dataclass(frozen=True)
@@ -110,8 +118,12 @@ class SensorReads:
     cfa: str = "none"
 
 
-def fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig, rows: tuple[int, int] | None = None,
-                  streams: NoiseStreams | None = None) -> FixedPattern:
+def fixed_pattern(
+    shape: tuple[int, int, int],
+    cfg: SensorConfig,
+    rows: tuple[int, int] | None = None,
+    streams: NoiseStreams | None = None,
+) -> FixedPattern:
     """The PRNU / DSNU maps of the sensor identified by ``cfg.fpn_seed``, for (H, W, C) images: a
     pixel component (``prnu``, ``dsnu_e``) plus row and column components (``prnu_row``,
     ``prnu_col``, ``dsnu_row_e``, ``dsnu_col_e``), whose variances add.
@@ -124,15 +136,30 @@ def fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig, rows: tuple[in
     Whole maps come read-only from :data:`~.sampling.FIELD_MEMO` when it is on (a sweep).
     """
     if rows is None and FIELD_MEMO.entries:  # the same sensor's maps at every point of a sweep: made once
-        key = repr(("fpn", tuple(int(n) for n in shape), cfg.fpn_seed, cfg.prnu, cfg.dsnu_e, cfg.prnu_row, cfg.prnu_col,
-                    cfg.dsnu_row_e, cfg.dsnu_col_e)).encode()
+        key = repr(
+            (
+                "fpn",
+                tuple(int(n) for n in shape),
+                cfg.fpn_seed,
+                cfg.prnu,
+                cfg.dsnu_e,
+                cfg.prnu_row,
+                cfg.prnu_col,
+                cfg.dsnu_row_e,
+                cfg.dsnu_col_e,
+            )
+        ).encode()
         maps = FIELD_MEMO.fetch(key, lambda: np.stack(astuple(_fixed_pattern(shape, cfg))))
         return FixedPattern(prnu_gain=maps[0], dsnu_offset_e=maps[1])
     return _fixed_pattern(shape, cfg, rows, streams)
 
 
-def _fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig, rows: tuple[int, int] | None = None,
-                   streams: NoiseStreams | None = None) -> FixedPattern:
+def _fixed_pattern(
+    shape: tuple[int, int, int],
+    cfg: SensorConfig,
+    rows: tuple[int, int] | None = None,
+    streams: NoiseStreams | None = None,
+) -> FixedPattern:
     """:func:`fixed_pattern`, drawn."""
     seed = np.random.SeedSequence(cfg.fpn_seed)
     if rows is None:
@@ -141,8 +168,11 @@ def _fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig, rows: tuple[i
         dsnu_offset_e = cfg.dsnu_e * rng.standard_normal(shape)
     else:  # the pixel maps are the first 2 x H x W x C normals of their generator: PRNU's, then DSNU's
         full = (2, *shape)
-        field = BandedField(seed, full, "normal") if streams is None else \
-            streams.banded(("fpn", cfg.fpn_seed), seed, full, "normal")
+        field = (
+            BandedField(seed, full, "normal")
+            if streams is None
+            else streams.banded(("fpn", cfg.fpn_seed), seed, full, "normal")
+        )
         pixel = field.rows(*rows)
         prnu_pixel, dsnu_offset_e = cfg.prnu * pixel[0], cfg.dsnu_e * pixel[1]
     # row and column components (EMVA 1288 R4.0 reports DSNU and PRNU split so), from a generator of
@@ -153,7 +183,7 @@ def _fixed_pattern(shape: tuple[int, int, int], cfg: SensorConfig, rows: tuple[i
     prnu_lines = cfg.prnu_row * lines.standard_normal((H, 1, 1)) + cfg.prnu_col * lines.standard_normal((1, W, 1))
     dsnu_lines = cfg.dsnu_row_e * lines.standard_normal((H, 1, 1)) + cfg.dsnu_col_e * lines.standard_normal((1, W, 1))
     if rows is not None:  # (H, 1, 1) + (1, W, 1): drawn whole (a line each), cut to the band
-        prnu_lines, dsnu_lines = prnu_lines[rows[0]:rows[1]], dsnu_lines[rows[0]:rows[1]]
+        prnu_lines, dsnu_lines = prnu_lines[rows[0] : rows[1]], dsnu_lines[rows[0] : rows[1]]
     prnu_gain = np.maximum(1.0 + prnu_pixel + prnu_lines, 0.0)
     return FixedPattern(prnu_gain=prnu_gain, dsnu_offset_e=dsnu_offset_e + dsnu_lines)
 
@@ -228,9 +258,7 @@ def simulate_reads(
         raise ValueError("expected_bucket_e: values must be finite and >= 0")
     k_buckets = expected.shape[0]
     if shared_photodiode and k_buckets > cfg.bucket_count:
-        raise ValueError(
-            f"expected_bucket_e: {k_buckets} buckets but sensor.bucket_count is {cfg.bucket_count}"
-        )
+        raise ValueError(f"expected_bucket_e: {k_buckets} buckets but sensor.bucket_count is {cfg.bucket_count}")
     read_sets = _validate_reads(reads, k_buckets)
     storage = None if storage_s is None else np.asarray(storage_s, dtype=np.float64)
     if storage is not None:
@@ -260,8 +288,9 @@ def simulate_reads(
 
 
 #: The sensor-stage seam (:func:`sensor_stage_hook`); None outside such a context.
-_STAGE_HOOK: ContextVar[Callable[[np.ndarray, Callable[[np.ndarray], SensorReads]], SensorReads] | None] = \
-    ContextVar("mbcapture_sensor_stage_hook", default=None)
+_STAGE_HOOK: ContextVar[Callable[[np.ndarray, Callable[[np.ndarray], SensorReads]], SensorReads] | None] = ContextVar(
+    "mbcapture_sensor_stage_hook", default=None
+)
 
 
 @contextmanager
@@ -294,8 +323,15 @@ class _Film:
         return (shape[0], self.height, *shape[2:]), (self.r0, self.r0 + shape[1])
 
 
-def _photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cfg: SensorConfig, streams: NoiseStreams,
-                storage: np.ndarray | None, shared_photodiode: bool, film: _Film | None) -> SensorReads:
+def _photosites(
+    expected: np.ndarray,
+    read_sets: tuple[tuple[int, ...], ...],
+    cfg: SensorConfig,
+    streams: NoiseStreams,
+    storage: np.ndarray | None,
+    shared_photodiode: bool,
+    film: _Film | None,
+) -> SensorReads:
     """:func:`simulate_reads` on validated arguments, up to the photosites behind the colour filter
     array (:mod:`.cfa`); :func:`develop_reads` turns them into R, G, B reads."""
     if cfg.cfa == "none":
@@ -303,8 +339,9 @@ def _photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cf
     if cfg.cfa == "mono":
         # one photosite per pixel; its input is the same in every channel (the renderer's mono mixture),
         # the channels' mean where a caller gives them different
-        return _simulate_photosites(expected.mean(axis=-1, keepdims=True), read_sets, cfg, streams, storage,
-                                    shared_photodiode, film)
+        return _simulate_photosites(
+            expected.mean(axis=-1, keepdims=True), read_sets, cfg, streams, storage, shared_photodiode, film
+        )
     out = _simulate_photosites(to_mosaic(expected, cfg.cfa), read_sets, cfg, streams, storage, shared_photodiode, film)
     full = np.stack([expected[list(r)].sum(axis=0) for r in read_sets])  # the ideal RGB sensor: the truth
     return replace(out, reads_e_expected=full)
@@ -320,27 +357,44 @@ def develop_reads(photosites: SensorReads, cfg: SensorConfig) -> SensorReads:
         return out
     if cfg.cfa == "mono":
         mono = np.repeat(out.reads_e_expected, 3, axis=-1)
-        return replace(out, reads_dn=np.repeat(out.reads_dn, 3, axis=-1), reads_e_expected=mono,
-                       saturated=np.repeat(out.saturated, 3, axis=-1), mosaic_dn=out.reads_dn[..., 0],
-                       mosaic_saturated=out.saturated[..., 0], cfa="mono")
+        return replace(
+            out,
+            reads_dn=np.repeat(out.reads_dn, 3, axis=-1),
+            reads_e_expected=mono,
+            saturated=np.repeat(out.saturated, 3, axis=-1),
+            mosaic_dn=out.reads_dn[..., 0],
+            mosaic_saturated=out.saturated[..., 0],
+            cfa="mono",
+        )
     # demosaic the signal above black in a logarithmic domain (demosaic_hdr: a read spans its ADC's range,
     # thousands to one), linear below LOG_DEMOSAIC_FLOOR_E; not rounded again: the reads are the ISP's output
     floor = LOG_DEMOSAIC_FLOOR_E * cfg.gain_dn_per_e
     signal = demosaic_hdr(out.reads_dn[..., 0] - cfg.black_level_dn, cfg.cfa, cfg.demosaic, floor) + cfg.black_level_dn
-    return replace(out, reads_dn=signal, saturated=spread_to_footprint(out.saturated, cfg.demosaic),
-                   mosaic_dn=out.reads_dn[..., 0], mosaic_saturated=out.saturated[..., 0], cfa=cfg.cfa)
+    return replace(
+        out,
+        reads_dn=signal,
+        saturated=spread_to_footprint(out.saturated, cfg.demosaic),
+        mosaic_dn=out.reads_dn[..., 0],
+        mosaic_saturated=out.saturated[..., 0],
+        cfa=cfg.cfa,
+    )
 
 
-def join_rows(bands: "Iterable[SensorReads]", height: int, reads_only: bool = False,
-              empty: "Callable[[tuple, np.dtype], np.ndarray]" = np.empty) -> SensorReads:
+def join_rows(
+    bands: "Iterable[SensorReads]",
+    height: int,
+    reads_only: bool = False,
+    empty: "Callable[[tuple, np.dtype], np.ndarray]" = np.empty,
+) -> SensorReads:
     """The reads of a film of ``height`` rows from its row bands (in order, each from
     :func:`simulate_reads` with ``band``); ``reads_only``: without the buckets' charge
     (``electrons``, ``bucket_saturated`` None), which a tiled capture does not keep. ``bands`` may be
     a generator: each band is copied into the film's arrays as it comes and let go, so the bands are
     never all held at once. ``empty(shape, dtype)`` makes the film's arrays (``np.empty``, or
     :meth:`mbcapture.filmstore.FilmStore.empty` for arrays on disk)."""
-    names = ("reads_dn", "reads_e_expected", "saturated", "mosaic_dn", "mosaic_saturated") + \
-        (() if reads_only else ("electrons", "bucket_saturated"))
+    names = ("reads_dn", "reads_e_expected", "saturated", "mosaic_dn", "mosaic_saturated") + (
+        () if reads_only else ("electrons", "bucket_saturated")
+    )
     first: SensorReads | None = None
     film: dict[str, np.ndarray | None] = {}
     row = 0
@@ -354,7 +408,7 @@ def join_rows(bands: "Iterable[SensorReads]", height: int, reads_only: bool = Fa
                 continue
             if name not in film:  # rows on axis 1 of every array
                 film[name] = empty((value.shape[0], height, *value.shape[2:]), value.dtype)
-            film[name][:, row:row + h] = value
+            film[name][:, row : row + h] = value
         row += h
     if first is None:
         raise ValueError("join_rows: no bands")
@@ -365,11 +419,18 @@ def join_rows(bands: "Iterable[SensorReads]", height: int, reads_only: bool = Fa
     return replace(first, **film)
 
 
-def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...], ...], cfg: SensorConfig,
-                         streams: NoiseStreams, storage: np.ndarray | None, shared_photodiode: bool,
-                         film: _Film | None = None) -> SensorReads:
+def _simulate_photosites(
+    expected: np.ndarray,
+    read_sets: tuple[tuple[int, ...], ...],
+    cfg: SensorConfig,
+    streams: NoiseStreams,
+    storage: np.ndarray | None,
+    shared_photodiode: bool,
+    film: _Film | None = None,
+) -> SensorReads:
     """The photosites (one per pixel and channel of ``expected``): fixed pattern, shot noise, wells, reads.
     ``film``: where a band lies in its film (every field cut to its rows); None: the whole film."""
+
     def field(kind: str, stage: str, shape: tuple[int, ...]) -> np.ndarray:
         draw = streams.uniform if kind == "uniform" else streams.normal
         return draw(stage, shape) if film is None else draw(stage, *film.field(shape))
@@ -377,8 +438,11 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
     def normal_runs(stage: str, shape: tuple[int, ...]) -> Iterator[np.ndarray]:  # field("normal", ...)[i], in turn
         return streams.normal_runs(stage, shape) if film is None else streams.normal_runs(stage, *film.field(shape))
 
-    fpn = fixed_pattern(expected.shape[1:], cfg) if film is None else \
-        fixed_pattern((film.height, *expected.shape[2:]), cfg, (film.r0, film.r0 + expected.shape[1]), streams)
+    fpn = (
+        fixed_pattern(expected.shape[1:], cfg)
+        if film is None
+        else fixed_pattern((film.height, *expected.shape[2:]), cfg, (film.r0, film.r0 + expected.shape[1]), streams)
+    )
     # arrays of the film's size are made once and then worked in place: a fresh array costs its page
     # faults, more than the arithmetic (numpy asks the kernel for huge pages, which it may compact for)
     mean_e = expected * fpn.prnu_gain
@@ -391,8 +455,11 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
         mean_e += (cfg.dark_current_e_per_s * storage)[:, None, None, None]
 
     # remembered: a sweep's points that differ only after this draw (read noise, full wells, ADC) reuse it
-    electrons = poisson_quantile_memo(field("uniform", "shot", mean_e.shape), mean_e,
-                                      streams.field_key("shot", mean_e.shape, "uniform") if film is None else None)
+    electrons = poisson_quantile_memo(
+        field("uniform", "shot", mean_e.shape),
+        mean_e,
+        streams.field_key("shot", mean_e.shape, "uniform") if film is None else None,
+    )
     del mean_e
     bucket_saturated = electrons >= cfg.full_well_e
     np.minimum(electrons, cfg.full_well_e, out=electrons)
@@ -412,8 +479,9 @@ def _simulate_photosites(expected: np.ndarray, read_sets: tuple[tuple[int, ...],
     adc_max = float(cfg.adc_max_dn)
     read_noise = normal_runs("read", shape)
     # temporal row noise: one offset per row and read, shared by the row's pixels and channels
-    row_noise = cfg.read_noise_row_e * field("normal", "row", (n_reads, shape[1], 1, 1)) \
-        if cfg.read_noise_row_e > 0.0 else None
+    row_noise = (
+        cfg.read_noise_row_e * field("normal", "row", (n_reads, shape[1], 1, 1)) if cfg.read_noise_row_e > 0.0 else None
+    )
     signal_e, scratch = np.empty(shape[1:]), np.empty(shape[1:])
     for r, buckets in enumerate(read_sets):
         idx = list(buckets)

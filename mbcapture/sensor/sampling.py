@@ -59,8 +59,21 @@ from typing import Callable, Iterator
 import numpy as np
 from scipy import special
 
-__all__ = ["FIELD_MEMO", "POISSON_MEMO", "ArrayMemo", "BandedField", "DiscreteLaw", "NoiseStreams", "binomial_quantile",
-           "invert_discrete", "keep_sensor_work", "poisson_pmf", "poisson_quantile", "poisson_quantile_memo", "uniform_open"]
+__all__ = [
+    "FIELD_MEMO",
+    "POISSON_MEMO",
+    "ArrayMemo",
+    "BandedField",
+    "DiscreteLaw",
+    "NoiseStreams",
+    "binomial_quantile",
+    "invert_discrete",
+    "keep_sensor_work",
+    "poisson_pmf",
+    "poisson_quantile",
+    "poisson_quantile_memo",
+    "uniform_open",
+]
 
 #: Above this mean a Poisson count is no longer an exact float64 integer: the draw is the rounded
 #: Cornish-Fisher quantile (relative skewness 1/sqrt(mean) < 3e-8, below float64 use downstream).
@@ -128,8 +141,9 @@ class BandedField:
         """``out`` (r1 - r0, ...) filled with rows r0:r1 of leading index ``a`` of the field (``rows(r0, r1)[a]``)."""
         lead, H = self.shape[:2]
         if not 0 <= r0 < r1 <= H or not 0 <= a < lead:
-            raise ValueError(f"BandedField run: expected 0 <= a < {lead} and rows 0 <= r0 < r1 <= {H}, "
-                             f"got {a}, {r0}, {r1}")
+            raise ValueError(
+                f"BandedField run: expected 0 <= a < {lead} and rows 0 <= r0 < r1 <= {H}, got {a}, {r0}, {r1}"
+            )
         row = int(np.prod(self.shape[2:], dtype=np.int64))
         start, n = (a * H + r0) * row, (r1 - r0) * row
         g = self._at(start)
@@ -186,20 +200,23 @@ class NoiseStreams:
         """The stage's uniform field in (0, 1), float64 of ``shape`` (the same on every call), or its ``rows``.
         Read-only when it comes from :data:`FIELD_MEMO` (on in a sweep)."""
         if rows is None:
-            return FIELD_MEMO.fetch(self.field_key(stage, shape, "uniform"),
-                                    lambda: uniform_open(self._rng(stage), shape))
+            return FIELD_MEMO.fetch(
+                self.field_key(stage, shape, "uniform"), lambda: uniform_open(self._rng(stage), shape)
+            )
         return self.banded(("stage", stage), self._seed(stage), shape, "uniform").rows(*rows)
 
     def normal(self, stage: str, shape: tuple[int, ...], rows: tuple[int, int] | None = None) -> np.ndarray:
         """The stage's standard normal field, float64 of ``shape`` (the same on every call), or its ``rows``.
         Read-only when it comes from :data:`FIELD_MEMO` (on in a sweep)."""
         if rows is None:
-            return FIELD_MEMO.fetch(self.field_key(stage, shape, "normal"),
-                                    lambda: self._rng(stage).standard_normal(shape))
+            return FIELD_MEMO.fetch(
+                self.field_key(stage, shape, "normal"), lambda: self._rng(stage).standard_normal(shape)
+            )
         return self.banded(("stage", stage), self._seed(stage), shape, "normal").rows(*rows)
 
-    def normal_runs(self, stage: str, shape: tuple[int, ...],
-                    rows: tuple[int, int] | None = None) -> Iterator[np.ndarray]:
+    def normal_runs(
+        self, stage: str, shape: tuple[int, ...], rows: tuple[int, int] | None = None
+    ) -> Iterator[np.ndarray]:
         """:meth:`normal`'s field one leading index at a time, ``normal(stage, shape, rows)[i]`` for i in
         order, each drawn into the same array (valid until the next): the field's values without the
         whole field's memory, which is new memory the system must map and zero first (a 640x512
@@ -219,8 +236,9 @@ class NoiseStreams:
             yield field.run(a, *rows, out)
 
 
-def _cornish_fisher(z: np.ndarray, mean: np.ndarray, var: np.ndarray, skew: np.ndarray,
-                    exkurt: np.ndarray) -> np.ndarray:
+def _cornish_fisher(
+    z: np.ndarray, mean: np.ndarray, var: np.ndarray, skew: np.ndarray, exkurt: np.ndarray
+) -> np.ndarray:
     """Continuous quantile mean + sd * (z + skew (z^2-1)/6 + exkurt (z^3-3z)/24 - skew^2 (2z^3-5z)/36)."""
     z2 = z * z
     w = z + skew * (z2 - 1.0) / 6.0 + z * (exkurt * (z2 - 3.0) / 24.0 - skew * skew * (2.0 * z2 - 5.0) / 36.0)
@@ -337,6 +355,7 @@ class DiscreteLaw:
             # here, not at the top: scipy.stats takes 1.1 s to import, a third of the command line's start
             # (`mbcapture --help`), and only this pmf needs it
             from scipy import stats
+
             return stats.binom.pmf(k, self.param[lanes], self.p)
         return poisson_pmf(k, self.param[lanes])
 

@@ -74,7 +74,7 @@ def camera_names() -> tuple[str, ...]:
 def check_spectral_response(name: str) -> str:
     """``name`` if it is ``effective_wavelength``, a known camera or ``monochrome:<known camera>``,
     else ValueError listing the names."""
-    camera = name[len(MONOCHROME_PREFIX):] if name.startswith(MONOCHROME_PREFIX) else name
+    camera = name[len(MONOCHROME_PREFIX) :] if name.startswith(MONOCHROME_PREFIX) else name
     if name == EFFECTIVE_WAVELENGTH or camera in camera_names():
         return name
     valid = [EFFECTIVE_WAVELENGTH, *camera_names()]
@@ -101,7 +101,7 @@ def channel_quantum_efficiency(cfg: "SensorConfig") -> tuple[np.ndarray, np.ndar
     import colour
 
     mono = is_monochrome(name)
-    msds = colour.MSDS_CAMERA_SENSITIVITIES[name[len(MONOCHROME_PREFIX):] if mono else name]
+    msds = colour.MSDS_CAMERA_SENSITIVITIES[name[len(MONOCHROME_PREFIX) :] if mono else name]
     wl = np.asarray(msds.wavelengths, dtype=np.float64)
     rel = np.asarray(msds.values, dtype=np.float64).T.copy()  # (3, n): red, green, blue
     rel = np.clip(rel, 0.0, None)

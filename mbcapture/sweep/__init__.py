@@ -33,8 +33,21 @@ from .groups import SweepPlan, group_key, plan_sweep, render_inputs, render_key
 from .results import write_results
 from .spec import Point, Sweep, SweepSpec, load_sweep, resolve_sweep_path
 
-__all__ = ["Point", "Sweep", "SweepOutcome", "SweepPlan", "SweepSpec", "choose_executor", "group_key", "load_sweep",
-           "plan_sweep", "render_inputs", "render_key", "resolve_sweep_path", "run_sweep"]
+__all__ = [
+    "Point",
+    "Sweep",
+    "SweepOutcome",
+    "SweepPlan",
+    "SweepSpec",
+    "choose_executor",
+    "group_key",
+    "load_sweep",
+    "plan_sweep",
+    "render_inputs",
+    "render_key",
+    "resolve_sweep_path",
+    "run_sweep",
+]
 
 
 @dataclass
@@ -67,8 +80,15 @@ def _write_row(out: Path, point: Point, row: dict) -> None:
         st.write_json(f"{point.id}.json", {"point": point.label, "values": point.values, **row})
 
 
-def choose_executor(plan: SweepPlan, pending: set[int], *, workers: int | None, scheduler: str | None,
-                    client: Any, in_process: bool | None) -> bool:
+def choose_executor(
+    plan: SweepPlan,
+    pending: set[int],
+    *,
+    workers: int | None,
+    scheduler: str | None,
+    client: Any,
+    in_process: bool | None,
+) -> bool:
     """Whether to run the pending points in this process rather than on Dask.
 
     ``in_process`` True or False decides; so do ``workers``, ``scheduler`` or ``client`` (Dask). Left
@@ -85,10 +105,19 @@ def choose_executor(plan: SweepPlan, pending: set[int], *, workers: int | None, 
     return len({g.renders for g in plan.groups if any(i in pending for i in g.points)}) <= 1
 
 
-def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, scheduler: str | None = None,
-              resume: bool = False, progress: bool = True, in_process: bool | None = None,
-              keep_results: bool = False, client: Any = None,
-              say: Callable[[str], None] | None = None) -> SweepOutcome:
+def run_sweep(
+    sweep: Sweep,
+    out: Path | None,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    in_process: bool | None = None,
+    keep_results: bool = False,
+    client: Any = None,
+    say: Callable[[str], None] | None = None,
+) -> SweepOutcome:
     """Run ``sweep``; with ``out``, write rows as they finish and the results at the end.
 
     ``workers``: processes of the LocalCluster (default: one per usable core, at most one per point
@@ -119,18 +148,24 @@ def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, sch
     pending = {p.index for p in sweep.points if p.index not in rows}
     ran: dict[int, dict] = {}
     n_groups = sum(1 for g in plan.groups if any(i in pending for i in g.points))
-    say(f"sweep {sweep.name}: {len(sweep.points)} points in {_count(len(plan.groups), 'render group')}"
-        + (f" (axes that change the renders: {', '.join(plan.axes_changing_renders)})" if plan.axes_changing_renders
-           else " (no axis changes the renders)")
+    say(
+        f"sweep {sweep.name}: {len(sweep.points)} points in {_count(len(plan.groups), 'render group')}"
+        + (
+            f" (axes that change the renders: {', '.join(plan.axes_changing_renders)})"
+            if plan.axes_changing_renders
+            else " (no axis changes the renders)"
+        )
         + (f"; {len(resumed)} finished before, {len(pending)} to run" if resume else "")
-        + (f"; {len(plan.failed)} cannot be planned" if plan.failed else ""))
+        + (f"; {len(plan.failed)} cannot be planned" if plan.failed else "")
+    )
     cache = open_cache(sweep.points[0].config.render.cache, 1.0) if sweep.points else None
     if cache is None and len(pending) > n_groups:
         say("note: render.cache is off: a point run again (--resume, a lost worker) renders again")
 
     own_client = cluster = None
-    in_process = choose_executor(plan, pending, workers=workers, scheduler=scheduler, client=client,
-                                 in_process=in_process)
+    in_process = choose_executor(
+        plan, pending, workers=workers, scheduler=scheduler, client=client, in_process=in_process
+    )
     executor = "nothing to run" if not pending else "this process (no Dask)"
     if pending and in_process:
         say("running in this process, without Dask (--workers N runs on a local Dask cluster)")
@@ -139,14 +174,24 @@ def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, sch
             client = own_client = start_client(workers or min(usable_cores(), len(pending)), scheduler)
             cluster = getattr(client, "cluster", None) if scheduler is None else None
         count = len(client.scheduler_info().get("workers", {}))
-        executor = (f"Dask scheduler {scheduler}, {count} workers" if scheduler
-                    else f"Dask cluster {client.scheduler.address}, {count} workers" if own_client is None
-                    else f"Dask LocalCluster, {count} worker processes on {usable_cores()} cores")
+        executor = (
+            f"Dask scheduler {scheduler}, {count} workers"
+            if scheduler
+            else f"Dask cluster {client.scheduler.address}, {count} workers"
+            if own_client is None
+            else f"Dask LocalCluster, {count} worker processes on {usable_cores()} cores"
+        )
         say(f"running on {executor}")
     results: dict[int, Any] = {}
     try:
-        with tqdm(total=len(pending), desc=f"sweep {sweep.name}", unit="point", disable=not progress or not pending,
-                  dynamic_ncols=True) as bar:
+        with tqdm(
+            total=len(pending),
+            desc=f"sweep {sweep.name}",
+            unit="point",
+            disable=not progress or not pending,
+            dynamic_ncols=True,
+        ) as bar:
+
             def on_row(index: int, row: dict) -> None:
                 rows[index] = ran[index] = row
                 if out is not None:
@@ -167,14 +212,19 @@ def run_sweep(sweep: Sweep, out: Path | None, *, workers: int | None = None, sch
             cluster.close()
     done = [r for r in rows.values() if r.get("status") == "ok"]
     summary = {
-        "points": len(sweep.points), "ok": len(done), "failed": len(rows) - len(done),
-        "ran": len(ran), "resumed": len(resumed), "render_groups": len(plan.groups),
+        "points": len(sweep.points),
+        "ok": len(done),
+        "failed": len(rows) - len(done),
+        "ran": len(ran),
+        "resumed": len(resumed),
+        "render_groups": len(plan.groups),
         "render_sets": len({g.renders for g in plan.groups}),
         "axes_changing_renders": list(plan.axes_changing_renders),
         "renders_rendered": int(sum(r.get("renders_rendered") or 0 for r in ran.values())),
         "renders_reused": int(sum(r.get("renders_reused") or 0 for r in ran.values())),
         "points_sharing_renders": int(sum(bool(r.get("render_shared")) for r in ran.values())),
-        "executor": executor, "wall_s": round(time.perf_counter() - start, 3),  # before writing the results
+        "executor": executor,
+        "wall_s": round(time.perf_counter() - start, 3),  # before writing the results
         "render_cache": str(cache.root) if cache is not None else None,
     }
     outcome = SweepOutcome(sweep, plan, rows, summary, results=results)

@@ -75,8 +75,11 @@ def measurements(report: dict) -> dict[str, Any]:
         "renders_rendered": cache.get("rendered", 0),
         "renders_reused": cache.get("hits", 0),
         **flatten(report.get("metrics", {}), "metrics"),
-        **{k: v for k, v in flatten(report.get("render_error", {}), "render_error").items()
-           if not k.startswith("render_error.method")},
+        **{
+            k: v
+            for k, v in flatten(report.get("render_error", {}), "render_error").items()
+            if not k.startswith("render_error.method")
+        },
         **flatten(report.get("timings_s", {}), "timings_s"),
     }
 
@@ -109,8 +112,12 @@ def run_point(task: dict, leader: dict | None = None, *after: Any, keep_result: 
     try:
         cfg = config_from_dict(task["config"], source=f"sweep point {task['label']}")
         prepare_worker(task.get("threads"), cfg.render.variant)
-        result = run_capture(cfg, progress=False, rendered=shared,
-                             on_rendered=(lambda r: kept.update(rendered=r)) if task.get("leader") else None)
+        result = run_capture(
+            cfg,
+            progress=False,
+            rendered=shared,
+            on_rendered=(lambda r: kept.update(rendered=r)) if task.get("leader") else None,
+        )
         if task.get("out_dir"):
             write_point(result, Path(task["out_dir"]), task["keep"])
         row.update(measurements(result.report))
@@ -134,8 +141,7 @@ def row_of(outcome: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------------ client side
-def make_task(sweep: Sweep, point: Point, out: Path | None, *, leader: bool,
-              threads: dict[str, int] | None) -> dict:
+def make_task(sweep: Sweep, point: Point, out: Path | None, *, leader: bool, threads: dict[str, int] | None) -> dict:
     """What a worker needs to run ``point``: the resolved config as plain data, where to write."""
     keep = sweep.spec.keep
     return {
@@ -164,8 +170,15 @@ def groups_to_run(plan: SweepPlan, pending: set[int]) -> list[list[int]]:
     return [[i for i in g.points if i in pending] for g in plan.groups if any(i in pending for i in g.points)]
 
 
-def run_here(sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None, *,
-             on_row: Callable[[int, dict], None], keep_results: bool = False) -> dict[int, Any]:
+def run_here(
+    sweep: Sweep,
+    plan: SweepPlan,
+    pending: set[int],
+    out: Path | None,
+    *,
+    on_row: Callable[[int, dict], None],
+    keep_results: bool = False,
+) -> dict[int, Any]:
     """Run the pending points in this process, group by group (the leader's render stage handed to
     the others). Returns the CaptureResults by point index when ``keep_results``.
 
@@ -180,8 +193,9 @@ def run_here(sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None,
     side_by_side = sweep.spec.keep in ("none", "report") and not any(app.renders for app in apps)
     threads = usable_cores() if side_by_side else 1
     for first, *rest in groups_to_run(plan, pending):
-        leader = run_point(make_task(sweep, sweep.points[first], out, leader=True, threads=None),
-                           keep_result=keep_results)
+        leader = run_point(
+            make_task(sweep, sweep.points[first], out, leader=True, threads=None), keep_result=keep_results
+        )
         on_row(*_kept(results, first, leader, keep_results))
         shared = {"rendered": leader["rendered"]}
         tasks = {i: make_task(sweep, sweep.points[i], out, leader=False, threads=None) for i in rest}
@@ -189,7 +203,9 @@ def run_here(sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None,
         if threads > 1 and len(tasks) > 1 and shared["rendered"] is not None:
             pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="sweep-point")
             try:
-                futures = {pool.submit(run_point, task, shared, keep_result=keep_results): i for i, task in tasks.items()}
+                futures = {
+                    pool.submit(run_point, task, shared, keep_result=keep_results): i for i, task in tasks.items()
+                }
                 for future in as_completed(futures):
                     on_row(*_kept(results, futures[future], future.result(), keep_results))
             finally:  # an interrupt drops the points not started (--resume runs them)
@@ -207,8 +223,9 @@ def _kept(results: dict[int, Any], index: int, outcome: dict, keep_results: bool
     return index, outcome["row"]
 
 
-def run_on_dask(client, sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None, *,
-                on_row: Callable[[int, dict], None]) -> None:
+def run_on_dask(
+    client, sweep: Sweep, plan: SweepPlan, pending: set[int], out: Path | None, *, on_row: Callable[[int, dict], None]
+) -> None:
     """Submit the pending points (leaders first) and hand each finished row to ``on_row`` as it comes."""
     from dask.distributed import as_completed
 
@@ -224,15 +241,29 @@ def run_on_dask(client, sweep: Sweep, plan: SweepPlan, pending: set[int], out: P
         first = sweep.points[members[0]]
         # a group that renders the same images as an earlier one waits for it and reads them from the cache
         after = [first_rendering[renders_of[members[0]]]] if renders_of[members[0]] in first_rendering else []
-        lead = client.submit(run_point, make_task(sweep, first, out, leader=True, threads=leader_threads), None, *after,
-                             key=f"sweep-{first.label}-{first.id[:12]}", pure=False, priority=10)
+        lead = client.submit(
+            run_point,
+            make_task(sweep, first, out, leader=True, threads=leader_threads),
+            None,
+            *after,
+            key=f"sweep-{first.label}-{first.id[:12]}",
+            pure=False,
+            priority=10,
+        )
         row = client.submit(row_of, lead, key=f"row-{first.label}-{first.id[:12]}", pure=False, priority=10)
         rows[row] = members[0]
         first_rendering.setdefault(renders_of[members[0]], row)
         for index in members[1:]:
             p = sweep.points[index]
-            rows[client.submit(run_point_row, make_task(sweep, p, out, leader=False, threads=follower_threads), lead,
-                               key=f"sweep-{p.label}-{p.id[:12]}", pure=False)] = index
+            rows[
+                client.submit(
+                    run_point_row,
+                    make_task(sweep, p, out, leader=False, threads=follower_threads),
+                    lead,
+                    key=f"sweep-{p.label}-{p.id[:12]}",
+                    pure=False,
+                )
+            ] = index
         del lead  # the followers hold it; Dask frees the leader's arrays after the last one
     for future in as_completed(list(rows)):
         index = rows.pop(future)

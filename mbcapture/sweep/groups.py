@@ -82,11 +82,18 @@ def render_inputs(cfg: CaptureConfig, *, accumulation: bool = True) -> dict:
         # what of the lens and the sensor the images depend on (diffraction's f-number, a mono sensor's mixture)
         "images": image_settings(scene, cfg),
         "plan": {
-            "starts_ticks": _array(plan.starts_ticks), "ends_ticks": _array(plan.ends_ticks),
-            "times_s": _array(plan.render_times), "weights_s": _array(plan.weights_s), "groups": list(plan.groups),
-            "buckets_read": list(plan.buckets_read), "spp": _array(plan.spp), "estimator": plan.estimator,
-            "base_spp": plan.base_spp_setting, "base_time_s": repr(plan.base_time_s),
-            "max_spp_per_render": plan.max_spp_per_render, "tick_s": str(timeline.tick_s),
+            "starts_ticks": _array(plan.starts_ticks),
+            "ends_ticks": _array(plan.ends_ticks),
+            "times_s": _array(plan.render_times),
+            "weights_s": _array(plan.weights_s),
+            "groups": list(plan.groups),
+            "buckets_read": list(plan.buckets_read),
+            "spp": _array(plan.spp),
+            "estimator": plan.estimator,
+            "base_spp": plan.base_spp_setting,
+            "base_time_s": repr(plan.base_time_s),
+            "max_spp_per_render": plan.max_spp_per_render,
+            "tick_s": str(timeline.tick_s),
         },
         "n_buckets": timeline.n_buckets,
         "per_group": app.per_group,
@@ -95,8 +102,10 @@ def render_inputs(cfg: CaptureConfig, *, accumulation: bool = True) -> dict:
         wl, curves = film_sensitivity(cfg.sensor)
         out["film_curves"] = [_array(np.asarray(wl, np.float64)), _array(np.asarray(curves, np.float64))]
     if cfg.render.spp is None:  # mbcapture.budget.resolve_spp: samples from the sensor's shot noise
-        out["pilot"] = {"k_e": _array(np.asarray(electrons_per_render_second(cfg.sensor, cfg.render.variant))),
-                        "full_well_e": repr(float(cfg.sensor.full_well_e))}
+        out["pilot"] = {
+            "k_e": _array(np.asarray(electrons_per_render_second(cfg.sensor, cfg.render.variant))),
+            "full_well_e": repr(float(cfg.sensor.full_well_e)),
+        }
     elif not accumulation:  # integrate renders, per stratum, the groups with weight in it
         out["plan"]["weights_s"] = _array(plan.weights_s.sum(axis=1) > 0)
         for k in ("buckets_read",):
@@ -186,5 +195,3 @@ def plan_sweep(sweep: Sweep) -> SweepPlan:
         members.setdefault(key, []).append(index)
     groups = tuple(RenderGroup(key, tuple(ix), renders[key]) for key, ix in members.items())
     return SweepPlan(groups, failed, changing_axes(sweep, keys))
-
-

@@ -51,8 +51,13 @@ def table(sweep, plan, rows: dict[int, dict]):
     for p in sweep.points:
         row = rows.get(p.index, {"status": "not run", "error": None})
         group = plan.group_of(p.index)
-        rec = {"point": p.label, "point_id": p.id, "render_group": group.label if group else None,
-               "status": row.get("status"), "error": row.get("error")}
+        rec = {
+            "point": p.label,
+            "point_id": p.id,
+            "render_group": group.label if group else None,
+            "status": row.get("status"),
+            "error": row.get("error"),
+        }
         rec.update({axis: _cell(p.values.get(axis)) for axis in sweep.axes})
         rec.update({k: v for k, v in row.items() if k not in rec and k not in ("traceback",)})
         records.append(rec)
@@ -137,8 +142,9 @@ class MetricGrid:
         ncols = min(max(len(panels) for _, panels, _, _ in layout.values()), 4)
         nrows = sum(-(-len(panels) // ncols) for _, panels, _, _ in layout.values())
         # one metric: every panel on one scale (labelled on the first column); each row one x axis
-        self.fig, grid = plt.subplots(nrows, ncols, figsize=(3.4 * ncols + 0.6, 2.5 * nrows + 0.5), squeeze=False,
-                                      sharex="row", sharey=True)
+        self.fig, grid = plt.subplots(
+            nrows, ncols, figsize=(3.4 * ncols + 0.6, 2.5 * nrows + 0.5), squeeze=False, sharex="row", sharey=True
+        )
         #: per panel: (its axes, its rows of the table, the x axis, its position function, line keys, structured,
         #: whether it is the first of its row, which has the legend)
         self.panels: list[tuple] = []
@@ -168,8 +174,9 @@ class MetricGrid:
             row += -(-len(panels) // ncols)
         # fixed margins in inches (tight_layout measures every label: half of the plot's time)
         w, h = self.fig.get_size_inches()
-        self.fig.subplots_adjust(left=0.85 / w, right=1 - 0.2 / w, bottom=0.5 / h, top=1 - 0.45 / h, wspace=0.3,
-                                 hspace=0.45)
+        self.fig.subplots_adjust(
+            left=0.85 / w, right=1 - 0.2 / w, bottom=0.5 / h, top=1 - 0.45 / h, wspace=0.3, hspace=0.45
+        )
 
     def draw(self, metric: str):
         """The figure with ``metric`` on every panel (the metric drawn before it taken off)."""
@@ -187,8 +194,14 @@ class MetricGrid:
                     key = key if isinstance(key, tuple) else (key,)
                     order = np.argsort([position(v) for v in part[axis]], kind="stable")
                     label = ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in zip(line_keys, key)) or None
-                    ax.plot(np.asarray([position(v) for v in part[axis]])[order],
-                            part[metric].to_numpy(dtype=float, na_value=np.nan)[order], "o-", ms=3.5, lw=1.2, label=label)
+                    ax.plot(
+                        np.asarray([position(v) for v in part[axis]])[order],
+                        part[metric].to_numpy(dtype=float, na_value=np.nan)[order],
+                        "o-",
+                        ms=3.5,
+                        lw=1.2,
+                        label=label,
+                    )
             else:
                 ax.scatter([position(v) for v in sub[axis]], sub[metric].to_numpy(dtype=float, na_value=np.nan), s=12)
             ax.set_yscale("log" if log_y else "linear")  # the scale's own locators, whatever the last metric set
@@ -219,10 +232,12 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
-CSS = ("body{font-family:sans-serif;max-width:1200px;margin:auto;padding:0 1em}table{border-collapse:collapse;"
-       "font-size:13px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:left}td.num{text-align:right}"
-       "img{max-width:100%}.muted{color:#666}"
-       ".failed{color:#a00}")
+CSS = (
+    "body{font-family:sans-serif;max-width:1200px;margin:auto;padding:0 1em}table{border-collapse:collapse;"
+    "font-size:13px}td,th{border:1px solid #ccc;padding:2px 6px;text-align:left}td.num{text-align:right}"
+    "img{max-width:100%}.muted{color:#666}"
+    ".failed{color:#a00}"
+)
 
 
 def _esc(x: Any) -> str:
@@ -239,10 +254,16 @@ def _html_table(df, columns: list[str], limit: int = 500) -> str:
     head = "".join(f"<th>{_esc(c)}</th>" for c in columns)
     body = []
     for rec in df[columns].head(limit).to_dict("records"):
-        cells = "".join(f"<td class='num'>{_fmt(v)}</td>" if isinstance(v, (int, float)) and not isinstance(v, bool)
-                        else f"<td>{_fmt(v)}</td>" for v in rec.values())
+        cells = "".join(
+            f"<td class='num'>{_fmt(v)}</td>"
+            if isinstance(v, (int, float)) and not isinstance(v, bool)
+            else f"<td>{_fmt(v)}</td>"
+            for v in rec.values()
+        )
         body.append(f"<tr>{cells}</tr>")
-    more = f"<p class='muted'>First {limit} of {len(df)} rows; all of them in results.csv.</p>" if len(df) > limit else ""
+    more = (
+        f"<p class='muted'>First {limit} of {len(df)} rows; all of them in results.csv.</p>" if len(df) > limit else ""
+    )
     return f"<table><tr>{head}</tr>{''.join(body)}</table>{more}"
 
 
@@ -252,38 +273,68 @@ def index_html(sweep, summary: dict, df, plots: dict[str, str]) -> str:
     if sweep.spec.description:
         parts.append(f"<p>{_esc(sweep.spec.description)}</p>")
     facts = [
-        ["sweep file", str(sweep.path)], ["base config", str(sweep.base)],
+        ["sweep file", str(sweep.path)],
+        ["base config", str(sweep.base)],
         ["overrides of every point", " ".join(sweep.overrides) or "none"],
-        ["points", f"{s['points']} ({s['ok']} ok, {s['failed']} failed; {s['ran']} run now, {s['resumed']} from an earlier run)"],
-        ["render groups", f"{s['render_groups']} (points whose render stage is the same share it), rendering "
-                          f"{s['render_sets']} different sets of images (the others find them in the render cache)"],
+        [
+            "points",
+            f"{s['points']} ({s['ok']} ok, {s['failed']} failed; {s['ran']} run now, {s['resumed']} from an earlier run)",
+        ],
+        [
+            "render groups",
+            f"{s['render_groups']} (points whose render stage is the same share it), rendering "
+            f"{s['render_sets']} different sets of images (the others find them in the render cache)",
+        ],
         ["axes that change the renders", ", ".join(s["axes_changing_renders"]) or "none"],
-        ["renders this run", f"{s['renders_rendered']} rendered, {s['renders_reused']} read from the render cache, "
-                             f"{s['points_sharing_renders']} points used their group's render stage"],
-        ["ran on", s["executor"]], ["wall time", f"{s['wall_s']:.1f} s"],
+        [
+            "renders this run",
+            f"{s['renders_rendered']} rendered, {s['renders_reused']} read from the render cache, "
+            f"{s['points_sharing_renders']} points used their group's render stage",
+        ],
+        ["ran on", s["executor"]],
+        ["wall time", f"{s['wall_s']:.1f} s"],
     ]
     parts.append("<table>" + "".join(f"<tr><th>{_esc(k)}</th><td>{_esc(v)}</td></tr>" for k, v in facts) + "</table>")
-    parts.append("<p>Files: <a href='results.csv'>results.csv</a> · <a href='results.parquet'>results.parquet</a> · "
-                 "<a href='sweep.json'>sweep.json</a>" + (" · per-point outputs in <code>points/</code>"
-                                                          if sweep.spec.keep != "none" else "") + "</p>")
+    parts.append(
+        "<p>Files: <a href='results.csv'>results.csv</a> · <a href='results.parquet'>results.parquet</a> · "
+        "<a href='sweep.json'>sweep.json</a>"
+        + (" · per-point outputs in <code>points/</code>" if sweep.spec.keep != "none" else "")
+        + "</p>"
+    )
     failed = df[df["status"] != "ok"]
     if len(failed):
-        parts.append("<h2 class='failed'>Failed points</h2>" + _html_table(failed, ["point", *sweep.axes, "status", "error"]))
-    shown = ["point", "render_group", *sweep.axes, "status",
-             *[c for c in df.columns if c.startswith(PLOTTED) and c in plots], "renders_rendered", "renders_reused", "seconds"]
+        parts.append(
+            "<h2 class='failed'>Failed points</h2>" + _html_table(failed, ["point", *sweep.axes, "status", "error"])
+        )
+    shown = [
+        "point",
+        "render_group",
+        *sweep.axes,
+        "status",
+        *[c for c in df.columns if c.startswith(PLOTTED) and c in plots],
+        "renders_rendered",
+        "renders_reused",
+        "seconds",
+    ]
     shown = [c for c in dict.fromkeys(shown) if c in df.columns]
     parts.append("<h2>Results</h2>" + _html_table(df, shown))
     if plots:
         parts.append("<h2>Plots</h2>")
-        parts.append("<p class='muted'>Each metric against each axis (a row of panels per axis); the other axes "
-                     "are the lines and, with two or more of them, the panels.</p>")
+        parts.append(
+            "<p class='muted'>Each metric against each axis (a row of panels per axis); the other axes "
+            "are the lines and, with two or more of them, the panels.</p>"
+        )
         for metric, file in plots.items():
-            parts.append(f"<h3>{_esc(metric)}</h3><a href='{_esc(file)}'><img src='{_esc(file)}' "
-                         f"alt='{_esc(metric)} against the axes'></a>")
+            parts.append(
+                f"<h3>{_esc(metric)}</h3><a href='{_esc(file)}'><img src='{_esc(file)}' "
+                f"alt='{_esc(metric)} against the axes'></a>"
+            )
     else:
         parts.append("<p class='muted'>No metric varies across the points: nothing to plot.</p>")
-    return (f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>sweep {_esc(sweep.name)}</title>"
-            f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>\n")
+    return (
+        f"<!doctype html><html lang='en'><head><meta charset='utf-8'><title>sweep {_esc(sweep.name)}</title>"
+        f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>\n"
+    )
 
 
 def write_results(out: Path, sweep, plan, rows: dict[int, dict], summary: dict) -> Any:
@@ -307,13 +358,26 @@ def write_results(out: Path, sweep, plan, rows: dict[int, dict], summary: dict) 
                     plots[metric] = name
             finally:
                 grid.close()
-        st.write_json("sweep.json", {
-            "sweep": str(sweep.path), "base": str(sweep.base), "overrides": list(sweep.overrides),
-            "spec": sweep.spec.model_dump(mode="json"), "summary": summary,
-            "groups": [{"group": g.label, "key": g.key, "renders": g.renders, "points": [sweep.points[i].label for i in g.points]}
-                       for g in plan.groups],
-            "points": [{"point": p.label, "id": p.id, "values": p.values} for p in sweep.points],
-        })
+        st.write_json(
+            "sweep.json",
+            {
+                "sweep": str(sweep.path),
+                "base": str(sweep.base),
+                "overrides": list(sweep.overrides),
+                "spec": sweep.spec.model_dump(mode="json"),
+                "summary": summary,
+                "groups": [
+                    {
+                        "group": g.label,
+                        "key": g.key,
+                        "renders": g.renders,
+                        "points": [sweep.points[i].label for i in g.points],
+                    }
+                    for g in plan.groups
+                ],
+                "points": [{"point": p.label, "id": p.id, "values": p.values} for p in sweep.points],
+            },
+        )
         st.write_bytes("index.html", index_html(sweep, summary, df, plots).encode("utf-8"))
     for old in out.glob("plot_*.png"):  # an earlier sweep's plots of metrics this one does not have
         if old.name not in plots.values():

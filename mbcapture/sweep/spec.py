@@ -77,9 +77,14 @@ class RandomKey(_Model):
 
     low: float | None = Field(None, description="Smallest value of the range (with high).")
     high: float | None = Field(None, description="Largest value of the range (with low); included for integer keys.")
-    log: bool = Field(False, description="Sample the logarithm of the value uniformly (low > 0): for scales such as full wells or light levels.")
+    log: bool = Field(
+        False,
+        description="Sample the logarithm of the value uniformly (low > 0): for scales such as full wells or light levels.",
+    )
     integer: bool = Field(False, description="Round samples down to whole numbers (high included).")
-    choices: list[Any] | None = Field(None, min_length=1, description="Pick among these values (each equally likely) instead of a range.")
+    choices: list[Any] | None = Field(
+        None, min_length=1, description="Pick among these values (each equally likely) instead of a range."
+    )
 
     @model_validator(mode="after")
     def _range_or_choices(self) -> "RandomKey":
@@ -139,10 +144,12 @@ class Axes(_Model):
     """What varies: a grid, zipped lists and random samples, combined as a product."""
 
     grid: dict[str, list[Any]] = Field(
-        default_factory=dict, description="Dotted config key -> its values; the points are every combination (the first key varies slowest)."
+        default_factory=dict,
+        description="Dotted config key -> its values; the points are every combination (the first key varies slowest).",
     )
     zip: list[dict[str, list[Any]]] = Field(
-        default_factory=list, description="Groups of keys varied together: in each mapping every list has the same length, and the i-th values go together."
+        default_factory=list,
+        description="Groups of keys varied together: in each mapping every list has the same length, and the i-th values go together.",
     )
     random: RandomAxes | None = Field(None, description="Seeded random samples of some keys.")
 
@@ -203,10 +210,13 @@ class Axes(_Model):
 class SweepSpec(_Model):
     """A sweep file: many captures of one base config, varying a few keys."""
 
-    base: str = Field(description="The base config: a path (relative to the sweep file) or a shipped config's name (metronome_hdr).")
+    base: str = Field(
+        description="The base config: a path (relative to the sweep file) or a shipped config's name (metronome_hdr)."
+    )
     description: str = Field("", description="What the sweep asks, shown on its index.html.")
     set: dict[str, Any] = Field(
-        default_factory=dict, description="Overrides of the base config for every point: dotted key -> value (as --set, but YAML values)."
+        default_factory=dict,
+        description="Overrides of the base config for every point: dotted key -> value (as --set, but YAML values).",
     )
     axes: Axes = Field(description="The keys that vary and their values: grid, zip and random (at least one key).")
     keep: Keep = Field(
@@ -306,7 +316,7 @@ def _read_spec(path: Path) -> SweepSpec:
 
 
 def _base_path(spec: SweepSpec, path: Path) -> Path:
-    local = (path.parent / spec.base)
+    local = path.parent / spec.base
     if local.is_file():
         return local
     try:
@@ -323,8 +333,9 @@ def _axis_origin(spec: SweepSpec, key: str) -> str:
     return "axes.zip"
 
 
-def load_sweep(path: str | Path, overrides: list[str] | tuple[str, ...] = (), *,
-               axes: dict[str, list[Any]] | None = None) -> Sweep:
+def load_sweep(
+    path: str | Path, overrides: list[str] | tuple[str, ...] = (), *, axes: dict[str, list[Any]] | None = None
+) -> Sweep:
     """Load and validate a sweep file and every point's config (ConfigError on the first bad one).
 
     ``overrides``: ``--set KEY=VALUE`` applied to the base for every point (an axis key is refused).
@@ -336,7 +347,9 @@ def load_sweep(path: str | Path, overrides: list[str] | tuple[str, ...] = (), *,
     if axes:
         unknown = sorted(set(axes) - set(spec.axes.grid))
         if unknown:
-            raise ConfigError(f"{path}: {', '.join(unknown)}: not a grid axis of this sweep ({', '.join(spec.axes.grid)})")
+            raise ConfigError(
+                f"{path}: {', '.join(unknown)}: not a grid axis of this sweep ({', '.join(spec.axes.grid)})"
+            )
         spec = spec.model_copy(update={"axes": spec.axes.model_copy(update={"grid": {**spec.axes.grid, **axes}})})
     n = spec.axes.size()
     if n > MAX_POINTS:

@@ -48,8 +48,9 @@ from mbcapture.render.build import (
 )
 from mbcapture.scenes import Camera, SceneModel
 
-DESCRIPTION = ("ColorChecker chart and a picture shaken by hand, lit by R, G, B LED panels "
-               "(groups ambient, led_r, led_g, led_b)")
+DESCRIPTION = (
+    "ColorChecker chart and a picture shaken by hand, lit by R, G, B LED panels (groups ambient, led_r, led_g, led_b)"
+)
 
 HERE = Path(__file__).resolve().parent
 PICTURE = HERE / "picture.png"
@@ -59,13 +60,13 @@ CAMERA_ORIGIN = (0.0, 0.0, 1.0)
 CAMERA_TARGET = (0.0, 0.0, 0.0)
 PATCH_PITCH_M = 0.040
 PATCH_HALF_M = 0.017
-CHART_CENTRE = (0.0, 0.045)            # centre of the 6 x 4 patch grid on the board, m
+CHART_CENTRE = (0.0, 0.045)  # centre of the 6 x 4 patch grid on the board, m
 PICTURE_CENTRE = (0.0, -0.085)
-PICTURE_HALF = (0.12, 0.045)           # 24 x 9 cm
+PICTURE_HALF = (0.12, 0.045)  # 24 x 9 cm
 PICTURE_PX = (320, 120)
 BOARD_CENTRE = (0.0, -0.004)
 BOARD_HALF = (0.15, 0.14)
-LED_HALF_M = 0.04                      # 8 x 8 cm panels
+LED_HALF_M = 0.04  # 8 x 8 cm panels
 LED_POSITIONS = {"led_r": (-0.14, 0.08, 1.0), "led_g": (0.0, 0.16, 1.0), "led_b": (0.14, 0.08, 1.0)}
 AMBIENT_POSITION = (0.0, 0.9, 0.6)
 AMBIENT_HALF_M = 0.25
@@ -75,23 +76,27 @@ CHART_NAME = "ColorChecker N Ohta"
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    led_peak_nm: list[float] = Field(default=[630.0, 525.0, 460.0],
-                                     description="peak wavelength of the red, green and blue LEDs, nm")
-    led_fwhm_nm: list[float] = Field(default=[20.0, 35.0, 25.0],
-                                     description="spectral width (FWHM) of the red, green and blue LEDs, nm")
+    led_peak_nm: list[float] = Field(
+        default=[630.0, 525.0, 460.0], description="peak wavelength of the red, green and blue LEDs, nm"
+    )
+    led_fwhm_nm: list[float] = Field(
+        default=[20.0, 35.0, 25.0], description="spectral width (FWHM) of the red, green and blue LEDs, nm"
+    )
     led_irradiance_w_m2: list[float] = Field(
         default=[3.0, 2.0, 2.4],
-        description="irradiance of each LED (R, G, B) at the chart centre, W m^-2 over all wavelengths")
+        description="irradiance of each LED (R, G, B) at the chart centre, W m^-2 over all wavelengths",
+    )
     ambient_irradiance_w_m2: float = Field(
-        default=1.0, ge=0.0, description="irradiance of the ambient panel (illuminant A) at the chart centre, W m^-2")
-    shake_amplitude_m: float = Field(default=0.004, ge=0.0, le=0.05,
-                                     description="hand-shake amplitude A of the board, m (0: static)")
-    shake_frequency_hz: float = Field(default=4.0, gt=0.0, le=100.0,
-                                      description="hand-shake frequency f, Hz")
-    picture: str | None = Field(default=None,
-                                description="bitmap (PNG/JPEG/EXR) shown below the chart; default: the scene's picture.png")
-    fov_deg: float = Field(default=22.0, gt=5.0, lt=90.0,
-                           description="horizontal field of view of the camera, degrees")
+        default=1.0, ge=0.0, description="irradiance of the ambient panel (illuminant A) at the chart centre, W m^-2"
+    )
+    shake_amplitude_m: float = Field(
+        default=0.004, ge=0.0, le=0.05, description="hand-shake amplitude A of the board, m (0: static)"
+    )
+    shake_frequency_hz: float = Field(default=4.0, gt=0.0, le=100.0, description="hand-shake frequency f, Hz")
+    picture: str | None = Field(
+        default=None, description="bitmap (PNG/JPEG/EXR) shown below the chart; default: the scene's picture.png"
+    )
+    fov_deg: float = Field(default=22.0, gt=5.0, lt=90.0, description="horizontal field of view of the camera, degrees")
 
     @field_validator("led_peak_nm", "led_fwhm_nm", "led_irradiance_w_m2")
     @classmethod
@@ -118,8 +123,16 @@ def make_picture(width: int = PICTURE_PX[0], height: int = PICTURE_PX[1]) -> np.
     img[inside] = wheel[inside]
     img[dist <= r * 0.25] = 1.0
     # diagonal stripes: red, green, blue, yellow, magenta, cyan
-    stripes = np.array([[0.9, 0.05, 0.05], [0.05, 0.7, 0.1], [0.1, 0.15, 0.9],
-                        [0.95, 0.85, 0.05], [0.85, 0.1, 0.75], [0.05, 0.75, 0.8]])
+    stripes = np.array(
+        [
+            [0.9, 0.05, 0.05],
+            [0.05, 0.7, 0.1],
+            [0.1, 0.15, 0.9],
+            [0.95, 0.85, 0.05],
+            [0.85, 0.1, 0.75],
+            [0.05, 0.75, 0.8],
+        ]
+    )
     x0, x1 = width * 0.36, width * 0.68
     band = (x >= x0) & (x < x1)
     k = np.floor((x + y) / (height / 6.0)).astype(int) % len(stripes)
@@ -186,10 +199,20 @@ def make(params: Params) -> SceneModel:
     names = list(refl)
     shapes: list[Shape] = [
         Shape("wall", "rectangle", translate(0, 0, -0.3) @ scale(0.6, 0.5, 1), Material((0.5, 0.5, 0.5))),
-        Shape("board", "rectangle", translate(*BOARD_CENTRE, 0.0) @ scale(*BOARD_HALF, 1),
-              Material((0.04, 0.04, 0.04)), part="chart"),
-        Shape("picture", "rectangle", translate(*PICTURE_CENTRE, 0.0005) @ scale(*PICTURE_HALF, 1),
-              Material(Texture(picture)), part="chart"),
+        Shape(
+            "board",
+            "rectangle",
+            translate(*BOARD_CENTRE, 0.0) @ scale(*BOARD_HALF, 1),
+            Material((0.04, 0.04, 0.04)),
+            part="chart",
+        ),
+        Shape(
+            "picture",
+            "rectangle",
+            translate(*PICTURE_CENTRE, 0.0005) @ scale(*PICTURE_HALF, 1),
+            Material(Texture(picture)),
+            part="chart",
+        ),
     ]
     patches = []
     for i, name in enumerate(names):
@@ -198,25 +221,47 @@ def make(params: Params) -> SceneModel:
         cy = CHART_CENTRE[1] + (1.5 - row) * PATCH_PITCH_M
         patches.append((name, (cx, cy, 0.0005), PATCH_HALF_M))
     # the 24 patches as one shape with one BSDF: as 24 shapes they were most of a render's time
-    shapes.append(Shape("patches", "tiles", np.eye(4), Material(PerTile(tuple(refl[n] for n in names))),
-                        part="chart", tiles=tuple(translate(*c) @ scale(h) for _, c, h in patches)))
+    shapes.append(
+        Shape(
+            "patches",
+            "tiles",
+            np.eye(4),
+            Material(PerTile(tuple(refl[n] for n in names))),
+            part="chart",
+            tiles=tuple(translate(*c) @ scale(h) for _, c, h in patches),
+        )
+    )
 
     led_spectra: dict[str, Spectrum] = {}
-    for g, peak, fwhm, e in zip(("led_r", "led_g", "led_b"), params.led_peak_nm, params.led_fwhm_nm,
-                                params.led_irradiance_w_m2):
+    for g, peak, fwhm, e in zip(
+        ("led_r", "led_g", "led_b"), params.led_peak_nm, params.led_fwhm_nm, params.led_irradiance_w_m2
+    ):
         pos = LED_POSITIONS[g]
         shape = led_spectrum(peak, fwhm)
         rad = _panel_radiance(e, pos, LED_HALF_M)
         spec = Spectrum(shape.wavelengths_nm, tuple(np.asarray(shape.values) * rad))
         led_spectra[g] = spec
-        shapes.append(Shape(f"{g}_panel", "rectangle", frame_towards(pos, (0, 0, 0)) @ scale(LED_HALF_M, LED_HALF_M, 1),
-                            None, Light(g, spec)))
+        shapes.append(
+            Shape(
+                f"{g}_panel",
+                "rectangle",
+                frame_towards(pos, (0, 0, 0)) @ scale(LED_HALF_M, LED_HALF_M, 1),
+                None,
+                Light(g, spec),
+            )
+        )
     amb_shape = ambient_spectrum_shape()
     amb_rad = _panel_radiance(params.ambient_irradiance_w_m2, AMBIENT_POSITION, AMBIENT_HALF_M)
     ambient = Spectrum(amb_shape.wavelengths_nm, tuple(np.asarray(amb_shape.values) * max(amb_rad, 0.0)))
-    shapes.append(Shape("ambient_panel", "rectangle",
-                        frame_towards(AMBIENT_POSITION, (0, 0, 0), up=(0, 0, -1)) @ scale(AMBIENT_HALF_M, AMBIENT_HALF_M, 1),
-                        None, Light("ambient", ambient)))
+    shapes.append(
+        Shape(
+            "ambient_panel",
+            "rectangle",
+            frame_towards(AMBIENT_POSITION, (0, 0, 0), up=(0, 0, -1)) @ scale(AMBIENT_HALF_M, AMBIENT_HALF_M, 1),
+            None,
+            Light("ambient", ambient),
+        )
+    )
 
     amp, f = params.shake_amplitude_m, params.shake_frequency_hz
 
@@ -228,8 +273,14 @@ def make(params: Params) -> SceneModel:
         dx, dy = offset(t_s)
         return translate(float(dx), float(dy), 0.0)
 
-    corners = np.array([[BOARD_CENTRE[0] + sx * BOARD_HALF[0], BOARD_CENTRE[1] + sy * BOARD_HALF[1], 0.0]
-                        for sx in (-1, 1) for sy in (-1, 1)] + [[*p[1][:2], 0.0] for p in patches[::5]])
+    corners = np.array(
+        [
+            [BOARD_CENTRE[0] + sx * BOARD_HALF[0], BOARD_CENTRE[1] + sy * BOARD_HALF[1], 0.0]
+            for sx in (-1, 1)
+            for sy in (-1, 1)
+        ]
+        + [[*p[1][:2], 0.0] for p in patches[::5]]
+    )
 
     def motion_points(times_s: np.ndarray) -> np.ndarray:
         """World positions (time, point, xyz) of the board corners and some patch centres, m."""
@@ -246,8 +297,14 @@ def make(params: Params) -> SceneModel:
         params=params,
         motion_points=None if amp == 0 else motion_points,
         default_film=(640, 512),
-        extra={"patches": patches, "reflectances": refl, "led_spectra": led_spectra,
-               "ambient_spectrum": ambient, "rest_time_s": REST_TIME_S, "picture": picture},
+        extra={
+            "patches": patches,
+            "reflectances": refl,
+            "led_spectra": led_spectra,
+            "ambient_spectrum": ambient,
+            "rest_time_s": REST_TIME_S,
+            "picture": picture,
+        },
     )
 
 

@@ -21,8 +21,9 @@ class Params(BaseModel):
         default=[1.0, 1.0, 1.0],
         description="radiance of the field per channel R, G, B, W m^-2 sr^-1 (>= 0)",
     )
-    fov_deg: float = Field(default=40.0, gt=0.0, lt=170.0,
-                           description="horizontal field of view of the camera, degrees")
+    fov_deg: float = Field(
+        default=40.0, gt=0.0, lt=170.0, description="horizontal field of view of the camera, degrees"
+    )
 
     @field_validator("radiance")
     @classmethod
@@ -39,8 +40,7 @@ def make(params: Params) -> SceneModel:
         name="flatfield",
         groups=("field",),
         switchable=frozenset(),
-        camera=Camera(origin=(0.0, 0.0, 0.0), target=(0.0, 0.0, -1.0), up=(0.0, 1.0, 0.0),
-                      fov_deg=params.fov_deg),
+        camera=Camera(origin=(0.0, 0.0, 0.0), target=(0.0, 0.0, -1.0), up=(0.0, 1.0, 0.0), fov_deg=params.fov_deg),
         build=SceneBuild(shapes=(), environment=Environment("field", rad)),
         params=params,
         motion_points=None,

@@ -33,7 +33,9 @@ CARD_TEXTURE_PX = (240, 160)  # width, height
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    speed_m_per_s: float = Field(2.275, ge=0.0, le=50.0, description="card speed along the image's x axis, m/s (0: static)")
+    speed_m_per_s: float = Field(
+        2.275, ge=0.0, le=50.0, description="card speed along the image's x axis, m/s (0: static)"
+    )
     centre_time_s: float = Field(0.013, description="scene time at which the card's centre crosses the optical axis, s")
     card_width_m: float = Field(0.3, gt=0.01, le=0.6, description="card width, m (its height is 2/3 of it)")
     light_radiance: float = Field(2.5, ge=0.0, description="radiance of the soft box lighting the card, W m^-2 sr^-1")
@@ -49,8 +51,13 @@ def write_card(path: Path = CARD_TEXTURE) -> None:
     img = np.full((h, w, 3), 200, np.uint8)
     for _ in range(14):  # colour blocks
         x0, y0 = rng.integers(0, w - 30), rng.integers(0, h // 2)
-        cv2.rectangle(img, (int(x0), int(y0)), (int(x0 + rng.integers(12, 40)), int(y0 + rng.integers(8, 30))),
-                      tuple(int(c) for c in rng.integers(20, 255, 3)), -1)
+        cv2.rectangle(
+            img,
+            (int(x0), int(y0)),
+            (int(x0 + rng.integers(12, 40)), int(y0 + rng.integers(8, 30))),
+            tuple(int(c) for c in rng.integers(20, 255, 3)),
+            -1,
+        )
     yy, xx = np.mgrid[0:h, 0:w]
     check = ((xx // 6 + yy // 6) % 2).astype(bool) & (yy >= 90) & (yy < 126) & (xx < 80)
     img[check] = (30, 30, 30)
@@ -76,8 +83,13 @@ def make(params: Params) -> SceneModel:
 
     shapes = (
         Shape("card_face", "rectangle", scale(w / 2, w / 3, 1.0), Material(Texture(str(CARD_TEXTURE))), part="card"),
-        Shape("softbox", "rectangle", frame_towards((0.0, 0.6, 0.9), (0.0, 0.0, 0.0)) @ scale(0.5, 0.3, 1.0), None,
-              Light("ambient", (params.light_radiance,) * 3)),
+        Shape(
+            "softbox",
+            "rectangle",
+            frame_towards((0.0, 0.6, 0.9), (0.0, 0.0, 0.0)) @ scale(0.5, 0.3, 1.0),
+            None,
+            Light("ambient", (params.light_radiance,) * 3),
+        ),
     )
     corners = np.array([[sx * w / 2, sy * w / 3, 0.0] for sx in (-1, 1) for sy in (-1, 1)] + [[0.0, 0.0, 0.0]])
 

@@ -77,24 +77,31 @@ TABLE_SPOT_GUIDE = Guide((LAMP_X_M, 0.01, LAMP_Z_M), 0.1, 0.03)
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    tempo_bpm: float = Field(default=120.0, gt=0.0, le=400.0,
-                             description="metronome tempo, beats per minute (a beat is half a swing period)")
-    amplitude_deg: float = Field(default=30.0, gt=0.0, lt=90.0,
-                                 description="needle swing amplitude from the vertical, degrees")
+    tempo_bpm: float = Field(
+        default=120.0, gt=0.0, le=400.0, description="metronome tempo, beats per minute (a beat is half a swing period)"
+    )
+    amplitude_deg: float = Field(
+        default=30.0, gt=0.0, lt=90.0, description="needle swing amplitude from the vertical, degrees"
+    )
     motion_model: Literal["pendulum", "sine"] = Field(
         default="pendulum",
-        description="'pendulum': nonlinear physical pendulum with the tempo's period; 'sine': harmonic")
-    phase_s: float = Field(default=0.0,
-                           description="pendulum time at scene time 0, s (0: needle vertical, moving to image left)")
-    damping_per_s: float = Field(default=0.0, ge=0.0,
-                                 description="needle damping rate gamma, 1/s (0: the escapement keeps the swing)")
-    needle_length_m: float = Field(default=0.10, gt=0.02, le=0.2,
-                                   description="needle length from the pivot to the base of the S, m")
+        description="'pendulum': nonlinear physical pendulum with the tempo's period; 'sine': harmonic",
+    )
+    phase_s: float = Field(
+        default=0.0, description="pendulum time at scene time 0, s (0: needle vertical, moving to image left)"
+    )
+    damping_per_s: float = Field(
+        default=0.0, ge=0.0, description="needle damping rate gamma, 1/s (0: the escapement keeps the swing)"
+    )
+    needle_length_m: float = Field(
+        default=0.10, gt=0.02, le=0.2, description="needle length from the pivot to the base of the S, m"
+    )
     ambient_scale: float = Field(default=1.0, ge=0.0, description="ambient light radiance factor, 1")
     lamp_scale: float = Field(default=1.0, ge=0.0, description="lamp bulb radiance factor, 1")
     flash_scale: float = Field(default=1.0, ge=0.0, description="flash LED radiance factor, 1")
-    fov_deg: float = Field(default=40.0, gt=5.0, lt=120.0,
-                           description="horizontal field of view of the camera, degrees")
+    fov_deg: float = Field(
+        default=40.0, gt=5.0, lt=120.0, description="horizontal field of view of the camera, degrees"
+    )
 
 
 # Geometry of the needle's moving part, in the part frame (origin at the pivot, y along the needle).
@@ -108,30 +115,39 @@ S_GAP_M = 0.004  # between the needle tip and the bottom of the S
 def _letter_s(base_y: float) -> list[tuple[tuple[float, float], tuple[float, float]]]:
     """The S as five strokes: (centre (x, y), half size (x, y)) in the needle plane, m."""
     w, h, st = S_WIDTH_M, S_HEIGHT_M, S_STROKE_M
-    bar = ((w / 2, st / 2))
+    bar = (w / 2, st / 2)
     col = (st / 2, (h - 2 * st) / 4 + st / 2)  # vertical strokes overlap the bars
     return [
-        ((0.0, base_y + h - st / 2), bar),                       # top bar
-        ((0.0, base_y + h / 2), bar),                            # middle bar
-        ((0.0, base_y + st / 2), bar),                           # bottom bar
-        ((-w / 2 + st / 2, base_y + 3 * h / 4), col),            # upper-left stroke
-        ((w / 2 - st / 2, base_y + h / 4), col),                 # lower-right stroke
+        ((0.0, base_y + h - st / 2), bar),  # top bar
+        ((0.0, base_y + h / 2), bar),  # middle bar
+        ((0.0, base_y + st / 2), bar),  # bottom bar
+        ((-w / 2 + st / 2, base_y + 3 * h / 4), col),  # upper-left stroke
+        ((w / 2 - st / 2, base_y + h / 4), col),  # lower-right stroke
     ]
 
 
 def _needle_shapes(length_m: float) -> list[Shape]:
     needle_mat = Material((0.75, 0.72, 0.65))  # brushed metal-ish, Lambertian
-    letter_mat = Material((0.9, 0.88, 0.2))    # yellow S
+    letter_mat = Material((0.9, 0.88, 0.2))  # yellow S
     weight_mat = Material((0.6, 0.55, 0.35))
     shapes = [
-        Shape("needle_rod", "cube", box((0.0, length_m / 2, 0.0), (NEEDLE_HALF_WIDTH_M, length_m / 2, 0.002)),
-              needle_mat, part="needle"),
-        Shape("needle_weight", "cube", box((0.0, 0.55 * length_m, 0.004), (0.009, 0.007, 0.004)),
-              weight_mat, part="needle"),
+        Shape(
+            "needle_rod",
+            "cube",
+            box((0.0, length_m / 2, 0.0), (NEEDLE_HALF_WIDTH_M, length_m / 2, 0.002)),
+            needle_mat,
+            part="needle",
+        ),
+        Shape(
+            "needle_weight",
+            "cube",
+            box((0.0, 0.55 * length_m, 0.004), (0.009, 0.007, 0.004)),
+            weight_mat,
+            part="needle",
+        ),
     ]
     for i, ((cx, cy), (hx, hy)) in enumerate(_letter_s(length_m + S_GAP_M)):
-        shapes.append(Shape(f"letter_s{i}", "cube", box((cx, cy, 0.003), (hx, hy, 0.002)),
-                            letter_mat, part="needle"))
+        shapes.append(Shape(f"letter_s{i}", "cube", box((cx, cy, 0.003), (hx, hy, 0.002)), letter_mat, part="needle"))
     return shapes
 
 
@@ -140,11 +156,17 @@ def _tracked_points_part(length_m: float) -> np.ndarray:
     y0 = length_m + S_GAP_M
     hw = S_WIDTH_M / 2
     z = 0.005
-    return np.array([
-        [0.0, length_m / 2, z], [0.0, length_m, z],
-        [-hw, y0, z], [hw, y0, z], [-hw, y0 + S_HEIGHT_M, z], [hw, y0 + S_HEIGHT_M, z],
-        [0.0, y0 + S_HEIGHT_M / 2, z],
-    ])
+    return np.array(
+        [
+            [0.0, length_m / 2, z],
+            [0.0, length_m, z],
+            [-hw, y0, z],
+            [hw, y0, z],
+            [-hw, y0 + S_HEIGHT_M, z],
+            [hw, y0 + S_HEIGHT_M, z],
+            [0.0, y0 + S_HEIGHT_M / 2, z],
+        ]
+    )
 
 
 def _static_shapes(p: Params) -> list[Shape]:
@@ -155,34 +177,59 @@ def _static_shapes(p: Params) -> list[Shape]:
     body = Material((0.32, 0.16, 0.07))
     shapes = [
         # Table top (0.9 x 0.7 m) and back wall.
-        Shape("table", "rectangle", translate(0, 0, 0.2) @ rot_x @ scale(0.9, 0.6, 1),
-              Material((0.55, 0.40, 0.25))),
-        Shape("wall", "rectangle", translate(0, 0.4, WALL_Z_M) @ scale(1.2, 0.6, 1),
-              Material((0.62, 0.64, 0.66))),
+        Shape("table", "rectangle", translate(0, 0, 0.2) @ rot_x @ scale(0.9, 0.6, 1), Material((0.55, 0.40, 0.25))),
+        Shape("wall", "rectangle", translate(0, 0.4, WALL_Z_M) @ scale(1.2, 0.6, 1), Material((0.62, 0.64, 0.66))),
         # Metronome body: a stepped wedge of three boxes, and a dark front plate behind the needle.
         Shape("body_base", "cube", box((0, 0.02, 0), (0.07, 0.02, BODY_DEPTH_M / 2)), body),
         Shape("body_mid", "cube", box((0, 0.09, -0.005), (0.055, 0.05, BODY_DEPTH_M / 2 - 0.005)), body),
         Shape("body_top", "cube", box((0, 0.165, -0.01), (0.035, 0.025, BODY_DEPTH_M / 2 - 0.01)), body),
-        Shape("body_plate", "rectangle", translate(0, 0.1, BODY_DEPTH_M / 2 + 0.001) @ scale(0.03, 0.07, 1),
-              Material((0.04, 0.035, 0.03))),
+        Shape(
+            "body_plate",
+            "rectangle",
+            translate(0, 0.1, BODY_DEPTH_M / 2 + 0.001) @ scale(0.03, 0.07, 1),
+            Material((0.04, 0.035, 0.03)),
+        ),
         # Still life: red ball, blue can (with lid), green block, near-black ball, white cube.
         Shape("ball_red", "sphere", translate(0.2, 0.055, 0.08) @ scale(0.055), Material((0.65, 0.08, 0.06))),
-        Shape("can_blue", "cylinder", translate(-0.2, 0, 0.02) @ rotate((1, 0, 0), -math.pi / 2)
-              @ scale(0.04, 0.04, 0.12), Material((0.08, 0.15, 0.55))),
+        Shape(
+            "can_blue",
+            "cylinder",
+            translate(-0.2, 0, 0.02) @ rotate((1, 0, 0), -math.pi / 2) @ scale(0.04, 0.04, 0.12),
+            Material((0.08, 0.15, 0.55)),
+        ),
         Shape("can_lid", "disk", translate(-0.2, 0.12, 0.02) @ rot_x @ scale(0.04), Material((0.08, 0.15, 0.55))),
-        Shape("block_green", "cube", translate(-0.09, 0.03, 0.14) @ rotate((0, 1, 0), 0.5)
-              @ scale(0.03, 0.03, 0.03), Material((0.12, 0.45, 0.12))),
+        Shape(
+            "block_green",
+            "cube",
+            translate(-0.09, 0.03, 0.14) @ rotate((0, 1, 0), 0.5) @ scale(0.03, 0.03, 0.03),
+            Material((0.12, 0.45, 0.12)),
+        ),
         Shape("ball_black", "sphere", translate(0.1, 0.025, 0.17) @ scale(0.025), Material((0.02, 0.02, 0.02))),
         Shape("cube_white", "cube", translate(-0.32, 0.035, -0.15) @ scale(0.035), Material((0.85, 0.85, 0.85))),
         # Lamp: a thin stand and a small spherical bulb, in view at the right.
-        Shape("lamp_stand", "cylinder", translate(LAMP_X_M, 0, LAMP_Z_M) @ rotate((1, 0, 0), -math.pi / 2)
-              @ scale(STAND_RADIUS_M, STAND_RADIUS_M, STAND_TOP_M), Material((0.1, 0.1, 0.1))),
-        Shape("lamp_bulb", "sphere", translate(LAMP_X_M, BULB_Y_M, LAMP_Z_M) @ scale(BULB_RADIUS_M), None,
-              Light("lamp", (lamp, lamp * 0.92, lamp * 0.8))),
+        Shape(
+            "lamp_stand",
+            "cylinder",
+            translate(LAMP_X_M, 0, LAMP_Z_M)
+            @ rotate((1, 0, 0), -math.pi / 2)
+            @ scale(STAND_RADIUS_M, STAND_RADIUS_M, STAND_TOP_M),
+            Material((0.1, 0.1, 0.1)),
+        ),
+        Shape(
+            "lamp_bulb",
+            "sphere",
+            translate(LAMP_X_M, BULB_Y_M, LAMP_Z_M) @ scale(BULB_RADIUS_M),
+            None,
+            Light("lamp", (lamp, lamp * 0.92, lamp * 0.8)),
+        ),
         # Ambient: a 0.8 x 0.6 m soft box above and in front of the scene, aimed at it.
-        Shape("ambient_softbox", "rectangle",
-              frame_towards((0.1, 0.9, 0.6), (0.0, 0.05, 0.0)) @ scale(0.4, 0.3, 1), None,
-              Light("ambient", (amb, amb, amb * 0.95))),
+        Shape(
+            "ambient_softbox",
+            "rectangle",
+            frame_towards((0.1, 0.9, 0.6), (0.0, 0.05, 0.0)) @ scale(0.4, 0.3, 1),
+            None,
+            Light("ambient", (amb, amb, amb * 0.95)),
+        ),
     ]
     # Flash LED: 1 x 1 cm, beside the lens, aimed at the metronome.
     cam = _camera(p)
@@ -191,8 +238,15 @@ def _static_shapes(p: Params) -> list[Shape]:
     right = np.cross(fwd, cam.up)
     right /= np.linalg.norm(right)
     led = np.asarray(cam.origin) + FLASH_OFFSET_M[0] * right
-    shapes.append(Shape("flash_led", "rectangle", frame_towards(led, cam.target) @ scale(0.005, 0.005, 1),
-                        None, Light("flash", (flash, flash, flash))))
+    shapes.append(
+        Shape(
+            "flash_led",
+            "rectangle",
+            frame_towards(led, cam.target) @ scale(0.005, 0.005, 1),
+            None,
+            Light("flash", (flash, flash, flash)),
+        )
+    )
     return shapes
 
 
@@ -202,8 +256,13 @@ def _camera(p: Params) -> Camera:
 
 def make(params: Params) -> SceneModel:
     """The metronome scene for ``params``."""
-    pendulum = Pendulum.from_tempo(params.tempo_bpm, params.amplitude_deg, model=params.motion_model,
-                                   phase_s=params.phase_s, damping_per_s=params.damping_per_s)
+    pendulum = Pendulum.from_tempo(
+        params.tempo_bpm,
+        params.amplitude_deg,
+        model=params.motion_model,
+        phase_s=params.phase_s,
+        damping_per_s=params.damping_per_s,
+    )
     pivot = translate(0.0, 0.03, NEEDLE_Z_M)
 
     def needle_to_world(t_s: float) -> np.ndarray:

@@ -35,7 +35,9 @@ from mbcapture.drive import Drive
 from mbcapture.render.build import Light, Material, SceneBuild, Shape, box, frame_towards, rotate, scale, translate
 from mbcapture.scenes import Camera, SceneModel
 
-DESCRIPTION = "still life, lamp moving along an arc (sweeping shadows), ambient flickering at 2x mains (groups ambient, lamp)"
+DESCRIPTION = (
+    "still life, lamp moving along an arc (sweeping shadows), ambient flickering at 2x mains (groups ambient, lamp)"
+)
 
 LAMP_RADIANCE = 4000.0  # W m^-2 sr^-1 of the bulb's surface, at lamp_scale 1 (warm white)
 LAMP_COLOUR = (1.0, 0.9, 0.75)
@@ -52,21 +54,44 @@ CAMERA_TARGET = (0.0, 0.06, -0.05)
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    lamp_height_m: float = Field(0.32, gt=0.25, le=1.0,
-                                 description="height of the lamp's centre above the table, m (above every object)")
-    arc_radius_m: float = Field(0.55, gt=0.05, le=1.0,
-                                description="radius of the lamp's horizontal arc about the vertical axis through the still life, m")
-    lamp_start_deg: float = Field(-110.0, ge=-180.0, le=180.0,
-                                  description="lamp's angle on the arc at scene time 0, degrees from +z (camera side) towards +x")
-    lamp_speed_deg_per_s: float = Field(60.0, ge=-3600.0, le=3600.0,
-                                        description="angular speed of the lamp along the arc, degrees per second (0: still)")
+    lamp_height_m: float = Field(
+        0.32, gt=0.25, le=1.0, description="height of the lamp's centre above the table, m (above every object)"
+    )
+    arc_radius_m: float = Field(
+        0.55,
+        gt=0.05,
+        le=1.0,
+        description="radius of the lamp's horizontal arc about the vertical axis through the still life, m",
+    )
+    lamp_start_deg: float = Field(
+        -110.0,
+        ge=-180.0,
+        le=180.0,
+        description="lamp's angle on the arc at scene time 0, degrees from +z (camera side) towards +x",
+    )
+    lamp_speed_deg_per_s: float = Field(
+        60.0,
+        ge=-3600.0,
+        le=3600.0,
+        description="angular speed of the lamp along the arc, degrees per second (0: still)",
+    )
     lamp_scale: float = Field(1.0, ge=0.0, description="lamp radiance factor, 1")
     ambient_scale: float = Field(1.0, ge=0.0, description="ambient light radiance factor (time average), 1")
-    mains_hz: float = Field(50.0, gt=0.0, le=1000.0,
-                            description="AC mains frequency of the ambient light, Hz (50 or 60); it flickers at twice this")
-    flicker_depth: float = Field(1.0, ge=0.0, le=1.0,
-                                 description="ambient drive 1 - depth cos(2 pi 2 mains_hz t + phase): 1 = |sin|^2 (full), 0 = steady")
-    flicker_phase_deg: float = Field(0.0, description="phase of the ambient flicker at scene time 0, degrees of the flicker cycle")
+    mains_hz: float = Field(
+        50.0,
+        gt=0.0,
+        le=1000.0,
+        description="AC mains frequency of the ambient light, Hz (50 or 60); it flickers at twice this",
+    )
+    flicker_depth: float = Field(
+        1.0,
+        ge=0.0,
+        le=1.0,
+        description="ambient drive 1 - depth cos(2 pi 2 mains_hz t + phase): 1 = |sin|^2 (full), 0 = steady",
+    )
+    flicker_phase_deg: float = Field(
+        0.0, description="phase of the ambient flicker at scene time 0, degrees of the flicker cycle"
+    )
     fov_deg: float = Field(40.0, gt=5.0, lt=120.0, description="horizontal field of view of the camera, degrees")
 
     @model_validator(mode="after")
@@ -110,8 +135,12 @@ def _vase_occluder(name, base, radius, height, colour, n=24) -> Occluder:
     rot_x = rotate((1, 0, 0), -math.pi / 2)  # canonical +z axis -> +y
     shapes = [
         Shape(name, "cylinder", translate(*base) @ rot_x @ scale(radius, radius, height), Material(colour)),
-        Shape(f"{name}_lid", "disk", translate(base[0], base[1] + height, base[2]) @ rot_x @ scale(radius),
-              Material(colour)),
+        Shape(
+            f"{name}_lid",
+            "disk",
+            translate(base[0], base[1] + height, base[2]) @ rot_x @ scale(radius),
+            Material(colour),
+        ),
     ]
     return Occluder(name, shapes, pts)
 
@@ -129,7 +158,9 @@ def lamp_position(p: Params, times_s) -> np.ndarray:
     """(T, 3) world position of the lamp's centre at scene times ``times_s`` (s)."""
     t = np.atleast_1d(np.asarray(times_s, float))
     ang = np.radians(p.lamp_start_deg + p.lamp_speed_deg_per_s * t)
-    return np.stack([p.arc_radius_m * np.sin(ang), np.full_like(ang, p.lamp_height_m), p.arc_radius_m * np.cos(ang)], -1)
+    return np.stack(
+        [p.arc_radius_m * np.sin(ang), np.full_like(ang, p.lamp_height_m), p.arc_radius_m * np.cos(ang)], -1
+    )
 
 
 def cast_shadow(lamp: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -158,14 +189,30 @@ def make(params: Params) -> SceneModel:
     amb = AMBIENT_RADIANCE * params.ambient_scale
     lamp = LAMP_RADIANCE * params.lamp_scale
     shapes = [
-        Shape("table", "rectangle", translate(0, 0, (WALL_Z_M + TABLE_FRONT_Z_M) / 2) @ rot_x
-              @ scale(TABLE_HALF_WIDTH_M, (TABLE_FRONT_Z_M - WALL_Z_M) / 2, 1),
-              Material((0.55, 0.42, 0.28))),
+        Shape(
+            "table",
+            "rectangle",
+            translate(0, 0, (WALL_Z_M + TABLE_FRONT_Z_M) / 2)
+            @ rot_x
+            @ scale(TABLE_HALF_WIDTH_M, (TABLE_FRONT_Z_M - WALL_Z_M) / 2, 1),
+            Material((0.55, 0.42, 0.28)),
+        ),
         Shape("wall", "rectangle", translate(0, 0.5, WALL_Z_M) @ scale(1.2, 0.5, 1), Material((0.7, 0.7, 0.68))),
-        Shape("ambient_softbox", "rectangle", frame_towards((-0.1, 1.0, 0.7), (0.0, 0.0, -0.05)) @ scale(0.45, 0.3, 1),
-              None, Light("ambient", tuple(amb * c for c in AMBIENT_COLOUR))),
-        Shape("lamp_bulb", "sphere", scale(LAMP_BULB_RADIUS_M), None,
-              Light("lamp", tuple(lamp * c for c in LAMP_COLOUR)), part="lamp"),
+        Shape(
+            "ambient_softbox",
+            "rectangle",
+            frame_towards((-0.1, 1.0, 0.7), (0.0, 0.0, -0.05)) @ scale(0.45, 0.3, 1),
+            None,
+            Light("ambient", tuple(amb * c for c in AMBIENT_COLOUR)),
+        ),
+        Shape(
+            "lamp_bulb",
+            "sphere",
+            scale(LAMP_BULB_RADIUS_M),
+            None,
+            Light("lamp", tuple(lamp * c for c in LAMP_COLOUR)),
+            part="lamp",
+        ),
     ]
     for o in OCCLUDERS:
         shapes.extend(o.shapes)
@@ -196,7 +243,10 @@ def make(params: Params) -> SceneModel:
         params=params,
         motion_points=motion_points if moving else None,
         default_film=(640, 512),
-        extra={"shadow_polygons": shadow_polygons, "occluders": tuple(o.name for o in OCCLUDERS),
-               "lamp_position": lambda t: lamp_position(params, t)},
+        extra={
+            "shadow_polygons": shadow_polygons,
+            "occluders": tuple(o.name for o in OCCLUDERS),
+            "lamp_position": lambda t: lamp_position(params, t),
+        },
         drives={"ambient": flicker},
     )

@@ -41,8 +41,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from mbcapture.render.build import Light, Material, SceneBuild, Shape, box, frame_towards, rotate, scale, translate
 from mbcapture.scenes import Camera, SceneModel
 
-DESCRIPTION = ("boxes, a cylinder and a sphere before a wall, a sliding box, four LEDs around the lens "
-               "(groups ambient, flash_top, flash_bottom, flash_left, flash_right)")
+DESCRIPTION = (
+    "boxes, a cylinder and a sphere before a wall, a sliding box, four LEDs around the lens "
+    "(groups ambient, flash_top, flash_bottom, flash_left, flash_right)"
+)
 
 #: Radiance of each light at scale factor 1, W m^-2 sr^-1.
 AMBIENT_RADIANCE = 1.0
@@ -51,8 +53,12 @@ LED_HALF_SIZE_M = 0.005  # 1 x 1 cm emitting square
 
 FLASH_GROUPS = ("flash_top", "flash_bottom", "flash_left", "flash_right")
 #: LED offset direction from the lens per group, in the camera frame (image right, image up).
-LED_DIRECTIONS = {"flash_top": (0.0, 1.0), "flash_bottom": (0.0, -1.0),
-                  "flash_left": (-1.0, 0.0), "flash_right": (1.0, 0.0)}
+LED_DIRECTIONS = {
+    "flash_top": (0.0, 1.0),
+    "flash_bottom": (0.0, -1.0),
+    "flash_left": (-1.0, 0.0),
+    "flash_right": (1.0, 0.0),
+}
 
 SLIDER_HALF_M = (0.035, 0.035, 0.03)  # half sizes of the sliding box
 SLIDER_Y_M = -0.02
@@ -62,23 +68,25 @@ SLIDER_Z_M = 0.37  # centre: its front face is at z = 0.40
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    slide_amplitude_m: float = Field(default=0.12, ge=0.0, le=0.2,
-                                     description="sliding box: amplitude of its left-right motion, m (0: static scene)")
-    slide_frequency_hz: float = Field(default=0.4, gt=0.0, le=20.0,
-                                      description="sliding box: oscillation frequency, Hz")
-    led_offset_m: float = Field(default=0.07, gt=0.005, le=0.3,
-                                description="distance of each LED's centre from the lens centre, m")
-    camera_distance_m: float = Field(default=1.0, ge=0.6, le=3.0,
-                                     description="distance from the lens to the wall, m")
+    slide_amplitude_m: float = Field(
+        default=0.12, ge=0.0, le=0.2, description="sliding box: amplitude of its left-right motion, m (0: static scene)"
+    )
+    slide_frequency_hz: float = Field(
+        default=0.4, gt=0.0, le=20.0, description="sliding box: oscillation frequency, Hz"
+    )
+    led_offset_m: float = Field(
+        default=0.07, gt=0.005, le=0.3, description="distance of each LED's centre from the lens centre, m"
+    )
+    camera_distance_m: float = Field(default=1.0, ge=0.6, le=3.0, description="distance from the lens to the wall, m")
     ambient_scale: float = Field(default=1.0, ge=0.0, description="ambient light radiance factor, 1")
     flash_scale: float = Field(default=1.0, ge=0.0, description="radiance factor of every LED, 1")
-    fov_deg: float = Field(default=40.0, gt=5.0, lt=120.0,
-                           description="horizontal field of view of the camera, degrees")
+    fov_deg: float = Field(
+        default=40.0, gt=5.0, lt=120.0, description="horizontal field of view of the camera, degrees"
+    )
 
 
 def _camera(p: Params) -> Camera:
-    return Camera(origin=(0.0, 0.0, p.camera_distance_m), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0),
-                  fov_deg=p.fov_deg)
+    return Camera(origin=(0.0, 0.0, p.camera_distance_m), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=p.fov_deg)
 
 
 def led_positions(p: Params) -> dict[str, tuple[float, float, float]]:
@@ -103,29 +111,54 @@ def _static_shapes(p: Params) -> list[Shape]:
     rot_x = rotate((1, 0, 0), -math.pi / 2)  # canonical +z -> +y (a cap facing up)
     shapes = [
         # Wall: 1.8 x 1.5 m, fills the view at any allowed camera distance and field of view <= ~60 deg.
-        Shape("wall", "rectangle", scale(0.9 * p.camera_distance_m + 0.3, 0.75 * p.camera_distance_m + 0.3, 1),
-              Material((0.62, 0.60, 0.56))),
+        Shape(
+            "wall",
+            "rectangle",
+            scale(0.9 * p.camera_distance_m + 0.3, 0.75 * p.camera_distance_m + 0.3, 1),
+            Material((0.62, 0.60, 0.56)),
+        ),
         # Tilted box, upper left (front corner ~0.18 m off the wall).
-        Shape("box_tilted", "cube", translate(-0.17, 0.11, 0.12) @ rotate((0, 1, 0), 0.45) @ rotate((1, 0, 0), 0.25)
-              @ scale(0.055, 0.045, 0.04), Material((0.70, 0.25, 0.12))),
+        Shape(
+            "box_tilted",
+            "cube",
+            translate(-0.17, 0.11, 0.12)
+            @ rotate((0, 1, 0), 0.45)
+            @ rotate((1, 0, 0), 0.25)
+            @ scale(0.055, 0.045, 0.04),
+            Material((0.70, 0.25, 0.12)),
+        ),
         # Flat box low on the wall, 0.1 m off it.
         Shape("box_flat", "cube", box((-0.02, -0.17, 0.07), (0.10, 0.035, 0.03)), Material((0.20, 0.35, 0.60))),
         # Vertical cylinder with a top cap, right, axis 0.15 m off the wall.
-        Shape("cylinder", "cylinder", translate(0.19, -0.20, 0.15) @ rotate((1, 0, 0), -math.pi / 2)
-              @ scale(0.045, 0.045, 0.28), Material((0.25, 0.55, 0.25))),
+        Shape(
+            "cylinder",
+            "cylinder",
+            translate(0.19, -0.20, 0.15) @ rotate((1, 0, 0), -math.pi / 2) @ scale(0.045, 0.045, 0.28),
+            Material((0.25, 0.55, 0.25)),
+        ),
         Shape("cylinder_cap", "disk", translate(0.19, 0.08, 0.15) @ rot_x @ scale(0.045), Material((0.25, 0.55, 0.25))),
         # Sphere, upper middle, 0.27 m off the wall.
         Shape("sphere", "sphere", translate(0.06, 0.13, 0.27) @ scale(0.05), Material((0.80, 0.78, 0.70))),
         # Ambient: a 0.8 x 0.5 m soft box above the camera, aimed at the wall.
-        Shape("ambient_softbox", "rectangle",
-              frame_towards((0.0, 0.75, 0.8 * p.camera_distance_m), (0.0, 0.0, 0.0)) @ scale(0.4, 0.25, 1), None,
-              Light("ambient", (amb, amb, amb * 0.9))),
+        Shape(
+            "ambient_softbox",
+            "rectangle",
+            frame_towards((0.0, 0.75, 0.8 * p.camera_distance_m), (0.0, 0.0, 0.0)) @ scale(0.4, 0.25, 1),
+            None,
+            Light("ambient", (amb, amb, amb * 0.9)),
+        ),
     ]
     target = _camera(p).target
     for g, pos in led_positions(p).items():
-        shapes.append(Shape(f"led_{g.removeprefix('flash_')}", "rectangle",
-                            frame_towards(pos, target) @ scale(LED_HALF_SIZE_M, LED_HALF_SIZE_M, 1), None,
-                            Light(g, (led, led, led))))
+        shapes.append(
+            Shape(
+                f"led_{g.removeprefix('flash_')}",
+                "rectangle",
+                frame_towards(pos, target) @ scale(LED_HALF_SIZE_M, LED_HALF_SIZE_M, 1),
+                None,
+                Light(g, (led, led, led)),
+            )
+        )
     return shapes
 
 
@@ -145,8 +178,9 @@ def make(params: Params) -> SceneModel:
         Shape("slider_box", "cube", scale(hx, hy, hz), Material((0.85, 0.75, 0.15)), part="slider"),
     ]
     # the front face's corners and centre, and the back corners (what the camera sees of the box)
-    corners = np.array([[sx * hx, sy * hy, sz * hz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
-                       + [[0.0, 0.0, hz]])
+    corners = np.array(
+        [[sx * hx, sy * hy, sz * hz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)] + [[0.0, 0.0, hz]]
+    )
 
     def motion_points(times_s: np.ndarray) -> np.ndarray:
         """World positions (time, point, xyz) of the sliding box's corners and front centre, m."""

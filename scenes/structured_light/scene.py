@@ -41,17 +41,19 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mbcapture.drive import Drive
-from mbcapture.render.build import Light, Material, Projector, SceneBuild, Shape, box, rotate, scale, translate
+from mbcapture.render.build import Light, Material, Projector, SceneBuild, Shape, rotate, scale, translate
 from mbcapture.scenes import Camera, SceneModel
 
-DESCRIPTION = ("wall, box, sphere, slanted board and a sliding cube; a pattern projector beside the lens "
-               "(groups fringe_1..N or white, gray_1..M) and a flickering lamp (group ambient)")
+DESCRIPTION = (
+    "wall, box, sphere, slanted board and a sliding cube; a pattern projector beside the lens "
+    "(groups fringe_1..N or white, gray_1..M) and a flickering lamp (group ambient)"
+)
 
 CAMERA_ORIGIN = (0.0, 0.0, 1.2)
 WALL_Z_M = -0.2
 LAMP_POSITION = (-0.45, 0.38, 0.85)
 LAMP_RADIUS_M = 0.02
-LAMP_RADIANCE = 800.0          # W m^-2 sr^-1 of the bulb at lamp_scale 1 (time average)
+LAMP_RADIANCE = 800.0  # W m^-2 sr^-1 of the bulb at lamp_scale 1 (time average)
 LAMP_COLOUR = (1.0, 0.92, 0.8)
 CUBE_HALF_M = 0.05
 CUBE_Y_M, CUBE_Z_M = 0.02, 0.33  # the front face at z = 0.38, 0.82 m from the lens
@@ -60,22 +62,47 @@ CUBE_Y_M, CUBE_Z_M = 0.02, 0.33  # the front face at z = 0.38, 0.82 m from the l
 class Params(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    pattern: str = Field("phase_shift", pattern="^(phase_shift|gray_code)$",
-                         description="projected patterns: phase_shift (N sinusoids) or gray_code (white + M Gray-code bits)")
+    pattern: str = Field(
+        "phase_shift",
+        pattern="^(phase_shift|gray_code)$",
+        description="projected patterns: phase_shift (N sinusoids) or gray_code (white + M Gray-code bits)",
+    )
     phase_steps: int = Field(3, ge=3, le=16, description="phase_shift: N, the number of phase-shifted sinusoids")
-    fringe_periods: int = Field(4, ge=1, le=64, description="phase_shift: P, sinusoid periods across the projector's width")
-    gray_bits: int = Field(8, ge=1, le=10, description="gray_code: M, Gray-code bit patterns (2^M stripes across the width)")
-    projector_irradiance_w_m2: float = Field(1.6, gt=0.0, description="E0: irradiance of a fully lit texel 1 m from the "
-                                             "projector on a plane perpendicular to its axis, W m^-2 per RGB channel")
-    projector_baseline_m: float = Field(0.2, gt=0.0, le=1.0, description="distance of the projector's centre to the "
-                                        "right of the lens centre, in the lens plane, m")
-    projector_fov_deg: float = Field(50.0, gt=5.0, lt=120.0, description="horizontal field of view of the projector, degrees")
-    projector_width_px: int = Field(512, ge=16, le=4096, description="projector image width, texels (height: 3/4 of it)")
+    fringe_periods: int = Field(
+        4, ge=1, le=64, description="phase_shift: P, sinusoid periods across the projector's width"
+    )
+    gray_bits: int = Field(
+        8, ge=1, le=10, description="gray_code: M, Gray-code bit patterns (2^M stripes across the width)"
+    )
+    projector_irradiance_w_m2: float = Field(
+        1.6,
+        gt=0.0,
+        description="E0: irradiance of a fully lit texel 1 m from the "
+        "projector on a plane perpendicular to its axis, W m^-2 per RGB channel",
+    )
+    projector_baseline_m: float = Field(
+        0.2,
+        gt=0.0,
+        le=1.0,
+        description="distance of the projector's centre to the right of the lens centre, in the lens plane, m",
+    )
+    projector_fov_deg: float = Field(
+        50.0, gt=5.0, lt=120.0, description="horizontal field of view of the projector, degrees"
+    )
+    projector_width_px: int = Field(
+        512, ge=16, le=4096, description="projector image width, texels (height: 3/4 of it)"
+    )
     lamp_scale: float = Field(2.0, ge=0.0, description="ambient lamp radiance factor (time average), 1")
-    mains_hz: float = Field(50.0, gt=0.0, le=1000.0, description="mains frequency of the lamp, Hz; it flickers at twice this")
-    flicker_depth: float = Field(1.0, ge=0.0, le=1.0, description="lamp drive 1 - depth cos(2 pi 2 mains_hz t + phase); 0 = steady")
+    mains_hz: float = Field(
+        50.0, gt=0.0, le=1000.0, description="mains frequency of the lamp, Hz; it flickers at twice this"
+    )
+    flicker_depth: float = Field(
+        1.0, ge=0.0, le=1.0, description="lamp drive 1 - depth cos(2 pi 2 mains_hz t + phase); 0 = steady"
+    )
     flicker_phase_deg: float = Field(0.0, description="phase of the flicker at scene time 0, degrees of its cycle")
-    slide_amplitude_m: float = Field(0.12, ge=0.0, le=0.2, description="sliding cube: amplitude of its left-right motion, m (0: static)")
+    slide_amplitude_m: float = Field(
+        0.12, ge=0.0, le=0.2, description="sliding cube: amplitude of its left-right motion, m (0: static)"
+    )
     slide_frequency_hz: float = Field(1.0, gt=0.0, le=20.0, description="sliding cube: oscillation frequency, Hz")
     fov_deg: float = Field(40.0, gt=5.0, lt=120.0, description="horizontal field of view of the camera, degrees")
 
@@ -118,20 +145,35 @@ def make(params: Params) -> SceneModel:
     amb = LAMP_RADIANCE * params.lamp_scale
     shapes = [
         Shape("wall", "rectangle", translate(0.0, 0.0, WALL_Z_M) @ scale(1.2, 1.0, 1.0), Material((0.7, 0.7, 0.68))),
-        Shape("box", "cube", translate(-0.2, -0.1, 0.15) @ rotate((0, 1, 0), math.radians(30)) @ scale(0.08, 0.1, 0.08),
-              Material((0.65, 0.45, 0.35))),
+        Shape(
+            "box",
+            "cube",
+            translate(-0.2, -0.1, 0.15) @ rotate((0, 1, 0), math.radians(30)) @ scale(0.08, 0.1, 0.08),
+            Material((0.65, 0.45, 0.35)),
+        ),
         Shape("sphere", "sphere", translate(0.2, 0.13, 0.05) @ scale(0.09), Material((0.8, 0.8, 0.78))),
-        Shape("board", "rectangle", translate(0.22, -0.16, -0.02) @ rotate((0, 1, 0), math.radians(-40))
-              @ scale(0.09, 0.07, 1.0), Material((0.45, 0.6, 0.4), twosided=True)),
-        Shape("lamp", "sphere", translate(*LAMP_POSITION) @ scale(LAMP_RADIUS_M), None,
-              Light("ambient", tuple(amb * c for c in LAMP_COLOUR))),
+        Shape(
+            "board",
+            "rectangle",
+            translate(0.22, -0.16, -0.02) @ rotate((0, 1, 0), math.radians(-40)) @ scale(0.09, 0.07, 1.0),
+            Material((0.45, 0.6, 0.4), twosided=True),
+        ),
+        Shape(
+            "lamp",
+            "sphere",
+            translate(*LAMP_POSITION) @ scale(LAMP_RADIUS_M),
+            None,
+            Light("ambient", tuple(amb * c for c in LAMP_COLOUR)),
+        ),
         Shape("cube", "cube", scale(CUBE_HALF_M), Material((0.8, 0.75, 0.5)), part="slider"),
     ]
     pc = projector_camera(params)
     names, pats, info = patterns(params)
     e0 = params.projector_irradiance_w_m2
-    projectors = tuple(Projector(f"projector_{g}", g, pc.origin, pc.target, pc.up, pc.fov_deg,
-                                 np.repeat((e0 * pat)[..., None], 3, -1)) for g, pat in zip(names, pats))
+    projectors = tuple(
+        Projector(f"projector_{g}", g, pc.origin, pc.target, pc.up, pc.fov_deg, np.repeat((e0 * pat)[..., None], 3, -1))
+        for g, pat in zip(names, pats)
+    )
     A, f = params.slide_amplitude_m, params.slide_frequency_hz
 
     def slider_x(t_s):
@@ -159,7 +201,14 @@ def make(params: Params) -> SceneModel:
         params=params,
         motion_points=motion_points if A > 0 else None,
         default_film=(640, 512),
-        extra={"structured_light": {"kind": params.pattern, "groups": tuple(names), "projector": pc,
-                                    "projector_size_px": (w, h), **info}},
+        extra={
+            "structured_light": {
+                "kind": params.pattern,
+                "groups": tuple(names),
+                "projector": pc,
+                "projector_size_px": (w, h),
+                **info,
+            }
+        },
         drives={"ambient": flicker},
     )

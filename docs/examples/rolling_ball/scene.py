@@ -26,16 +26,26 @@ def make(params: Params) -> SceneModel:
         return translate(v * t_s - 0.1, r, 0.0) @ scale(r)
 
     shapes = (
-        Shape("floor", "rectangle", frame_towards((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), up=(0.0, 0.0, -1.0)) @ scale(1.0),
-              Material((0.5, 0.5, 0.5))),
+        Shape(
+            "floor",
+            "rectangle",
+            frame_towards((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), up=(0.0, 0.0, -1.0)) @ scale(1.0),
+            Material((0.5, 0.5, 0.5)),
+        ),
         Shape("ball_surface", "sphere", np.eye(4), Material((0.7, 0.1, 0.1)), part="ball"),
-        Shape("light", "rectangle", frame_towards((0.0, 1.0, 0.3), (0.0, 0.0, 0.0)) @ scale(0.3),
-              None, Light("lamp", (params.lamp_radiance,) * 3)),
+        Shape(
+            "light",
+            "rectangle",
+            frame_towards((0.0, 1.0, 0.3), (0.0, 0.0, 0.0)) @ scale(0.3),
+            None,
+            Light("lamp", (params.lamp_radiance,) * 3),
+        ),
     )
 
     def motion_points(times_s: np.ndarray) -> np.ndarray:  # (T, M, 3): points on the moving part, world m
-        centre = np.stack([v * np.asarray(times_s, float) - 0.1, np.full(np.shape(times_s), r),
-                           np.zeros(np.shape(times_s))], axis=-1)
+        centre = np.stack(
+            [v * np.asarray(times_s, float) - 0.1, np.full(np.shape(times_s), r), np.zeros(np.shape(times_s))], axis=-1
+        )
         offsets = np.array([[0, 0, 0], [r, 0, 0], [-r, 0, 0], [0, r, 0], [0, -r, 0]], float)
         return centre[:, None, :] + offsets[None]
 
