@@ -81,22 +81,17 @@ def test_the_colour_matrix_maps_a_d65_white_to_the_as_shot_neutral():
         colour_tags(np.array([1.0, 0.0, 1.0]))
 
 
+def _chart_run(tmp_path_factory, name: str, extra: tuple[str, ...] = ()) -> Path:
+    """The colour chart at 160x128, 4 spp, with every read written as a DNG (``extra``: more overrides)."""
+    out = tmp_path_factory.mktemp(name) / "run"
+    over = ["scene.name=colour_chart", "render.width=160", "render.height=128", "render.spp=4", "render.cache=off"]
+    run_capture(load_config(None, [*over, "output.dng=true", *extra]), out, progress=False)
+    return out
+
+
 @pytest.fixture(scope="module")
 def chart_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("dng") / "run"
-    cfg = load_config(
-        None,
-        [
-            "scene.name=colour_chart",
-            "render.width=160",
-            "render.height=128",
-            "render.spp=4",
-            "render.cache=off",
-            "output.dng=true",
-        ],
-    )
-    run_capture(cfg, out, progress=False)
-    return out
+    return _chart_run(tmp_path_factory, "dng")
 
 
 def test_every_read_is_a_dng_with_the_simulated_values(chart_run):
@@ -165,21 +160,7 @@ def test_a_developed_dng_has_the_scene_colours(chart_run):
 
 @pytest.fixture(scope="module")
 def bayer_chart_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("dng_bayer") / "run"
-    cfg = load_config(
-        None,
-        [
-            "scene.name=colour_chart",
-            "render.width=160",
-            "render.height=128",
-            "render.spp=4",
-            "render.cache=off",
-            "output.dng=true",
-            "sensor.cfa=RGGB",
-        ],
-    )
-    run_capture(cfg, out, progress=False)
-    return out
+    return _chart_run(tmp_path_factory, "dng_bayer", ("sensor.cfa=RGGB",))
 
 
 def test_a_developed_bayer_dng_has_the_scene_colours(bayer_chart_run):
