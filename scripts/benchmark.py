@@ -518,10 +518,10 @@ def machine() -> dict:
     }
 
 
-def record(lines: dict[int, list[str]], command: str, path: Path = RECORD) -> dict:
-    """Each measure's ``lines`` into the record at ``path`` (replacing that measure's older entry); returns it."""
+def record(lines: dict[int, list[str]], command: str, where: dict, path: Path = RECORD) -> dict:
+    """Each measure's ``lines`` into the record at ``path`` (replacing that measure's older entry), with
+    ``where`` (:func:`machine`, taken when the run started: the code it measured); returns the record."""
     data = json.loads(path.read_text()) if path.is_file() else {}
-    where = machine()
     for n, text in lines.items():
         data[str(n)] = {**where, "command": command, "lines": text}
     path.write_text(json.dumps(dict(sorted(data.items(), key=lambda kv: int(kv[0]))), indent=1) + "\n")
@@ -592,6 +592,7 @@ def main() -> None:
     if args.write_docs:
         PAGE.write_text(page(json.loads(RECORD.read_text()) if RECORD.is_file() else {}))
         return
+    where = machine()  # the code measured is the code at the start
     tee = _Tee(sys.stdout)
     try:
         with contextlib.redirect_stdout(tee):
@@ -600,7 +601,7 @@ def main() -> None:
         if not args.no_record:
             lines = by_measure(tee.kept.getvalue())
             if lines:
-                PAGE.write_text(page(record(lines, "python scripts/benchmark.py " + " ".join(sys.argv[1:]))))
+                PAGE.write_text(page(record(lines, "python scripts/benchmark.py " + " ".join(sys.argv[1:]), where)))
 
 
 def measure(args) -> None:

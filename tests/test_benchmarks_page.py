@@ -35,8 +35,10 @@ def test_printed_lines_go_to_their_measures_and_a_new_run_replaces_only_its_own(
         2: ["[2] ratio 1.18", "    and more"],
     }
     path = tmp_path / "record.json"
-    bench.record(lines, "python scripts/benchmark.py --only 1,2,7", path)
-    data = bench.record({2: ["[2] ratio 1.05"]}, "python scripts/benchmark.py --only 2", path)
+    where = bench.machine()
+    assert where["cores"] >= 1 and where["commit"] and where["date"][:2] == "20"
+    bench.record(lines, "python scripts/benchmark.py --only 1,2,7", where, path)
+    data = bench.record({2: ["[2] ratio 1.05"]}, "python scripts/benchmark.py --only 2", where, path)
     assert data["2"]["lines"] == ["[2] ratio 1.05"] and data["2"]["command"].endswith("--only 2")
     assert data["7"]["lines"][0].startswith("[7]") and list(data) == ["1", "2", "7"]
     md = bench.page(data)
