@@ -2,11 +2,15 @@
 (:class:`CaptureData`) and returns (:class:`AppOutput`), and the registry that maps an
 application's name to it (:func:`register`, :func:`get`, :func:`names`).
 
-It sits low in the house (docs/architecture.md): a config validates ``app.name`` against it and
-protocols name the application that reads them, while the applications themselves
+It also holds the protocols' registry (:func:`register_protocol`): a protocol is a function of the
+config that returns one period's slots, the reads and the buckets it uses, registered by the
+application module that reads it by default (the HDR protocols and ``custom`` by :mod:`mbcapture.apps.hdr`);
+:func:`mbcapture.timing.protocols.build` turns it into a timeline.
+
+It sits low in the house (docs/architecture.md): a config validates ``app.name`` and ``capture.protocol`` against it, while the applications themselves
 (:mod:`mbcapture.apps`) sit above the render plan and the sensor stage they use. Every module of
 that package is imported on first use (:func:`load_all`), so a new application is one file that
-calls :func:`register` (and, usually, :func:`mbcapture.protocols.register` for its schedule).
+calls :func:`register` (and, usually, :func:`register_protocol` for its schedule).
 Reconstructions are pure numpy on ``CaptureData``, so that they can be tested on small synthetic
 inputs with known answers, without Mitsuba.
 """
@@ -20,15 +24,16 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel
 
+from .strict import StrictModel
 from .errors import ConfigError
 from .sensor import dn_to_electrons
 from .sensor.cfa import BAYER_PATTERNS, channel_map, demosaic
 
 
-class NoParams(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class NoParams(StrictModel):
+    """An application without parameters of its own."""
 
 
 @dataclass
@@ -124,7 +129,7 @@ class App:
     description: str = ""
     #: At most this many float channels in the application's EXRs (3 per RGB image), this many PNG
     #: previews, and this much memory (MB) its own libraries add: the run's resource plan
-    #: (mbcapture.resources); tests/test_docs_and_configs.py holds them to every shipped config.
+    #: (mbcapture.exposure.resources); tests/test_docs_and_configs.py holds them to every shipped config.
     output_channels: int = 36
     previews: int = 8
     libraries_mb: float = 0.0
@@ -209,3 +214,44 @@ def get(name: str) -> App:
     if name not in _REGISTRY:
         raise ConfigError(f"app.name: unknown application {name!r}; expected one of {names()}")
     return _REGISTRY[name]
+
+
+ProtocolBuilder = Callable[[Any], "tuple[list, list, int]"]
+"""``fn(cfg) -> (slots of one period, reads, buckets used)``: a protocol (timing.timeline's
+``SlotSeconds`` and ``ReadEvent``)."""
+
+_PROTOCOLS: dict[str, tuple[ProtocolBuilder, str]] = {}
+
+
+def register_protocol(name: str, app: str = "hdr") -> Callable[[ProtocolBuilder], ProtocolBuilder]:
+    """Decorator: ``fn(cfg) -> (slots of one period, reads, buckets used)`` is protocol ``name``;
+    ``app`` is the application that reconstructs its reads by default."""
+
+    def deco(fn: ProtocolBuilder) -> ProtocolBuilder:
+        _PROTOCOLS[name] = (fn, app)
+        return fn
+
+    return deco
+
+
+def protocol_names() -> list[str]:
+    """Every registered protocol, sorted."""
+    load_all()  # application modules register their own protocols
+    return sorted(_PROTOCOLS)
+
+
+def _protocol(name: str) -> tuple[ProtocolBuilder, str]:
+    load_all()
+    if name not in _PROTOCOLS:
+        raise ConfigError(f"capture.protocol: unknown protocol {name!r}; expected one of {protocol_names()}")
+    return _PROTOCOLS[name]
+
+
+def protocol_app(name: str) -> str:
+    """The application that reconstructs protocol ``name``'s reads by default."""
+    return _protocol(name)[1]
+
+
+def protocol_builder(name: str) -> ProtocolBuilder:
+    """Protocol ``name``'s function of the config (a ConfigError names the known ones)."""
+    return _protocol(name)[0]

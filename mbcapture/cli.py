@@ -15,13 +15,17 @@ import warnings
 from pathlib import Path
 
 from . import application as apps
-from . import characterize, converge, figures, protocols, resources, scenes
+from .studies import characterize, converge
+from . import figures
+from .exposure import resources
+from .scene import scenes
 from .budget import probe_cost, resolve_spp
-from .capture import describe, prepare, render_cache, render_summary, run_capture
-from .cluster import start_client
+from .capture.run import render_summary, run_capture
+from .capture.pipeline import describe, prepare, render_cache
+from .exposure.cluster import start_client
 from .config import load_config
 from .errors import ConfigError, ConfigNotice, MBCaptureError
-from .io import check_out_dir
+from .output.io import check_out_dir
 from .render import Renderer
 from .render.cache import RenderCache, default_cache_dir
 from .sweep import load_sweep, resolve_sweep_path, run_sweep
@@ -409,8 +413,8 @@ def _cmd_figures(args) -> int:
 
 def _cmd_apps(args) -> int:
     by_app: dict[str, list[str]] = {}
-    for p in protocols.names():
-        by_app.setdefault(protocols.default_app(p), []).append(p)
+    for p in apps.protocol_names():
+        by_app.setdefault(apps.protocol_app(p), []).append(p)
     for name in apps.names():
         app = apps.get(name)
         print(

@@ -31,11 +31,12 @@ from pydantic import (
     model_validator,
 )
 
+from .strict import StrictModel
 from . import application as apps
-from . import camera_motion, protocols, scenes
-from .camera_motion import CameraSection
+from .scene import camera_motion, scenes
+from .scene.camera_motion import CameraSection
 from .errors import ConfigError, ConfigNotice
-from .optics import fov_deg_for
+from .scene.optics import fov_deg_for
 from .render.build import MAX_GUIDE_SHARE
 from .sensor.config import SensorConfig
 from .sensor.spectral import EFFECTIVE_WAVELENGTH, is_spectral_variant
@@ -46,10 +47,6 @@ _YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 #: The shipped configs, which ``load_config`` (and ``mbcapture run``) also finds by name.
 SHIPPED_CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 class SceneSection(BaseModel):
@@ -72,7 +69,7 @@ class SceneSection(BaseModel):
             ) from None
 
 
-class RenderSection(_Model):
+class RenderSection(StrictModel):
     width: int = Field(640, gt=0, le=16384, description="Film width in pixels (the paper's sensor: 640).")
     height: int = Field(512, gt=0, le=16384, description="Film height in pixels (the paper's sensor: 512).")
     spp: int | None = Field(
@@ -134,7 +131,7 @@ class RenderSection(_Model):
         description="'independent': each stratum rendered with its own random numbers. 'difference': each stratum "
         "rendered with the same random numbers as a render of the capture's start, and added as a difference to a "
         "base render of the start at render.base_spp (control variate; unbiased): static pixels carry only the "
-        "base's error, identically in every bucket (see mbcapture/integrate.py and scripts/benchmark.py [5]).",
+        "base's error, identically in every bucket (see mbcapture/exposure/integrate.py and scripts/benchmark.py [5]).",
     )
     base_spp: int | None = Field(
         None,
@@ -261,7 +258,7 @@ class RenderSection(_Model):
         return v.strip()
 
 
-class SlotSpec(_Model):
+class SlotSpec(StrictModel):
     bucket: int | Literal["drain"] = Field(
         description="1-based bucket that collects the photodiode's charge during this slot, or 'drain' (charge discarded)."
     )
@@ -271,21 +268,21 @@ class SlotSpec(_Model):
     )
 
 
-class ReadSpec(_Model):
+class ReadSpec(StrictModel):
     name: str | None = Field(None, description="Read name in outputs (default J1, J2, ...).")
     buckets: tuple[int, ...] = Field(
         min_length=1, description="1-based buckets summed on the floating diffusion for this read (non-destructive)."
     )
 
 
-class ScheduleSpec(_Model):
+class ScheduleSpec(StrictModel):
     slots: tuple[SlotSpec, ...] = Field(
         min_length=1, description="One period of the gate schedule; repeated capture.periods times."
     )
     reads: tuple[ReadSpec, ...] = Field(min_length=1, description="Read events at the end of the capture.")
 
 
-class GateCodeSpec(_Model):
+class GateCodeSpec(StrictModel):
     family: Literal["global", "one_hot", "hadamard", "random", "file"] = Field(
         description="Per-pixel gate code (a coded two-bucket sensor): 'global' (every pixel sends sub-frame s to bucket s: "
         "global gates written as a code), 'one_hot' (tile position f sends sub-frame f to bucket 1, the rest to bucket 2), "
@@ -325,7 +322,7 @@ class GateCodeSpec(_Model):
         return self
 
 
-class CaptureSection(_Model):
+class CaptureSection(StrictModel):
     protocol: str = Field(
         "photon_efficient_hdr",
         description="Gate schedule: photon_efficient_hdr, interleaved_hdr, custom, or an application's "
@@ -360,7 +357,7 @@ class CaptureSection(_Model):
         ge=1,
         le=100_000,
         description="A video: this many captures, one per frame at capture.frame_rate_hz, each read out before the next "
-        "(1: a single capture; see mbcapture/video.py).",
+        "(1: a single capture; see mbcapture/capture/video.py).",
     )
     frame_rate_hz: float | None = Field(
         None,
@@ -385,7 +382,7 @@ class CaptureSection(_Model):
         return self
 
 
-class HDRSection(_Model):
+class HDRSection(StrictModel):
     method: Literal["auto", "ramp_fit", "inverse_variance", "debevec"] = Field(
         "auto", description="HDR merge; 'auto' = ramp_fit for cumulative reads, inverse_variance for independent ones."
     )
@@ -405,7 +402,7 @@ class AppSection(BaseModel):
         """(App, its validated params) for a capture with ``protocol``; ConfigError names ``app.<key>``
         (an unknown key lists this application's keys)."""
 
-        app = apps.get(self.name or protocols.default_app(protocol))
+        app = apps.get(self.name or apps.protocol_app(protocol))
         try:
             return app, app.params(**(self.model_extra or {}))
         except ValidationError as exc:
@@ -414,7 +411,7 @@ class AppSection(BaseModel):
             ) from None
 
 
-class OutputSection(_Model):
+class OutputSection(StrictModel):
     png_percentile: float = Field(
         99.5,
         gt=0,
@@ -430,10 +427,9 @@ class OutputSection(_Model):
     )
 
 
-class VideoSection(BaseModel):
+class VideoSection(StrictModel):
     """``video``: the comparisons and previews of a video run (``capture.frames`` > 1)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
     compare_alternating: bool = Field(
         True,
         description="Also simulate the alternating short/long-exposure HDR video of a conventional sensor "
@@ -454,7 +450,7 @@ class VideoSection(BaseModel):
     )
 
 
-class CaptureConfig(_Model):
+class CaptureConfig(StrictModel):
     seed: int = Field(
         0,
         ge=0,
@@ -532,7 +528,7 @@ class CaptureConfig(_Model):
 
 def scene_of(cfg: CaptureConfig) -> scenes.SceneModel:
     """The scene a config captures: ``scene.name`` with its parameters, seen through ``camera``
-    (shake or a trajectory, :func:`mbcapture.camera_motion.apply`; ``camera.focal_length_mm`` sets
+    (shake or a trajectory, :func:`mbcapture.scene.camera_motion.apply`; ``camera.focal_length_mm`` sets
     its field of view)."""
     scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
     if cfg.camera.focal_length_mm is not None:
@@ -679,7 +675,7 @@ def _selected_name(data: dict, section: str) -> str | None:
 
     capture = data.get("capture") if isinstance(data.get("capture"), dict) else {}
     try:
-        return protocols.default_app(capture.get("protocol", CaptureSection.model_fields["protocol"].default))
+        return apps.protocol_app(capture.get("protocol", CaptureSection.model_fields["protocol"].default))
     except (ConfigError, KeyError, TypeError):
         return None
 

@@ -12,7 +12,7 @@ import json
 from pydantic import BaseModel
 
 from . import application as apps
-from . import protocols, scenes
+from .scene import scenes
 from .config import AppSection, CaptureConfig, ReadSpec, ScheduleSpec, SlotSpec
 from .sweep.spec import Axes, RandomAxes, RandomKey, SweepSpec
 
@@ -64,7 +64,7 @@ def config_markdown() -> str:
     out += ["", "## `app`", "", inspect.cleandoc(AppSection.__doc__), "", *_table(AppSection, "app.")]
     for name in apps.names():
         app = apps.get(name)
-        used_by = [p for p in protocols.names() if protocols.default_app(p) == name]
+        used_by = [p for p in apps.protocol_names() if apps.protocol_app(p) == name]
         out += ["", f"### app `{name}`", "", app.description, ""]
         if used_by:
             out += [f"Default for protocol(s): {', '.join(f'`{p}`' for p in used_by)}.", ""]

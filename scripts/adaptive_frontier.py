@@ -44,7 +44,9 @@ from unittest import mock
 import numpy as np
 from scipy.ndimage import grey_dilation
 
-from mbcapture import load_config, pipeline
+from mbcapture import load_config
+from mbcapture.budget import adaptive  # noqa: E402
+from mbcapture.capture import pipeline
 from mbcapture.budget import (
     ADAPTIVE_FOOTPRINT,
     ADAPTIVE_SELECT,
@@ -55,7 +57,7 @@ from mbcapture.budget import (
     scout_ratio,
     tail_pixels,
 )
-from mbcapture.pipeline import capture_in_memory
+from mbcapture.capture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # render_noise_reads.py, a script beside this one
@@ -228,8 +230,8 @@ class Scout:
         return self.tiers
 
 
-def refine_nothing(cfg, renderer, plan, integrated, tiers, info, *args, **kwargs):
-    """Stands in for :func:`mbcapture.pipeline.refine_tail`: the first pass as it is."""
+def refine_nothing(passes, plan, integrated, tiers, info, **kwargs):
+    """Stands in for :func:`mbcapture.budget.adaptive.refine_tail`: the first pass as it is."""
     return integrated, info
 
 
@@ -245,9 +247,9 @@ def render_inputs(config: str, size: str, seeds: list[int], sets: list[str]) -> 
         # both scout (the top-up judges the budget on the first run's choice, as a real run's does) and refine nothing
         overrides = [*base, f"seed={s}", "render.adaptive=true"]
         with (
-            mock.patch.object(pipeline, "tail_pixels", scout),
+            mock.patch.object(adaptive, "tail_pixels", scout),
             mock.patch.object(pipeline, "resolve_spp", samples),
-            mock.patch.object(pipeline, "refine_tail", refine_nothing),
+            mock.patch.object(adaptive, "refine_tail", refine_nothing),
         ):
             runs.append(capture_in_memory(load_config(config, overrides), StageStatus(False)))
         print(f"seed {s}: {time.perf_counter() - t0:.0f} s, spp {runs[-1].plan.spp_label()}", flush=True)

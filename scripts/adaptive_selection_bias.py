@@ -31,8 +31,8 @@ import numpy as np
 from mbcapture import load_config
 from mbcapture.budget import scout_spp, tail_pixels
 from mbcapture.config import scene_of
-from mbcapture.integrate import integrate
-from mbcapture.pipeline import prepare
+from mbcapture.exposure.integrate import integrate
+from mbcapture.capture.pipeline import prepare
 from mbcapture.render import Renderer
 from mbcapture.sensor import electrons_per_render_second
 

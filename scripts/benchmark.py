@@ -19,7 +19,7 @@ docs/benchmarks.md is written from that file (--no-record: print only).
 3. Sensor + reconstruction share of the total run time at the chosen film (4 buckets).
 4. Equal-error speed-up over naive per-slot rendering at capture.periods 64: the naive
    baseline (one render per slot, spp per slot in --naive-spp) against the planner's ladder
-   (--ladder), both measured against a high-spp fine-strata reference (mbcapture.converge);
+   (--ladder), both measured against a high-spp fine-strata reference (mbcapture.studies.converge);
    the planner's time at the naive point's error is interpolated on its log-log ladder.
 5. The noise budget and the render cache (`make capture`'s config at --budget-film, default
    640x512, with its adaptive sampling): the capture with an empty cache (targets: within the budget, at most 3 minutes on
@@ -85,7 +85,7 @@ def timed_capture(overrides: list[str]) -> tuple[float, dict]:
 
 
 def equal_error(args) -> None:
-    from mbcapture.converge import run_converge, write_outputs
+    from mbcapture.studies.converge import run_converge, write_outputs
 
     cfg = load_config(
         ROOT / "configs" / "metronome_hdr.yaml",
@@ -386,8 +386,8 @@ def _child_capture(sets: list[str], workers: int | None) -> dict:
     child = """
 import json, sys, tempfile, time
 from mbcapture import load_config, run_capture
-from mbcapture.cluster import start_client
-from mbcapture.resources import peak_rss_bytes
+from mbcapture.exposure.cluster import start_client
+from mbcapture.exposure.resources import peak_rss_bytes
 cfg = load_config(sys.argv[1], sys.argv[4:])
 workers = int(sys.argv[3])
 client = start_client(workers) if workers else None
@@ -421,7 +421,7 @@ print(json.dumps({"wall_s": wall, "peak_bytes": peak_rss_bytes(), "planned_gb": 
 
 
 def big_sensor(args) -> None:
-    from mbcapture.cluster import usable_cores
+    from mbcapture.exposure.cluster import usable_cores
 
     base = [f"render.spp={args.big_spp}", "render.cache=off", f"render.max_motion_px={args.big_motion_px}"]
     tiled = [*base, f"render.tiles={args.big_tiles}"]
@@ -637,7 +637,7 @@ def measure(args) -> None:
     )
 
     # [2] raw mi.render of the same passes x spp, through the same scene object
-    from mbcapture import scenes
+    from mbcapture.scene import scenes
     from mbcapture.render import Renderer
 
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", film)

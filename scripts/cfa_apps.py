@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from mbcapture import load_config
-from mbcapture.pipeline import capture_in_memory
+from mbcapture.capture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
 ROOT = Path(__file__).resolve().parents[1]

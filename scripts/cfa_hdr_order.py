@@ -17,7 +17,7 @@ from mbcapture import load_config
 from mbcapture.apps import hdr as hdr_app
 from mbcapture.apps.hdr import REL_MSE_EPS_RADIANCE, demosaic_floor, luminance_cd_m2
 from mbcapture.metrics import pu21_psnr, relative_mse
-from mbcapture.pipeline import capture_in_memory
+from mbcapture.capture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 from mbcapture.reconstruct.hdr import merge_hdr
 from mbcapture.sensor.cfa import DEMOSAIC_METHODS, demosaic, demosaic_hdr, to_mosaic

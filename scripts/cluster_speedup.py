@@ -16,8 +16,8 @@ import time
 import numpy as np
 
 from mbcapture import load_config
-from mbcapture.cluster import start_client
-from mbcapture.pipeline import capture_in_memory
+from mbcapture.exposure.cluster import start_client
+from mbcapture.capture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
 

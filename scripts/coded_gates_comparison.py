@@ -21,7 +21,7 @@ import argparse
 from pathlib import Path
 
 from mbcapture import load_config
-from mbcapture.pipeline import capture_in_memory
+from mbcapture.capture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
 ROOT = Path(__file__).resolve().parents[1]

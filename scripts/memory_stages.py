@@ -26,11 +26,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import mbcapture.capture as capture  # noqa: E402
-import mbcapture.pipeline as pipeline  # noqa: E402
+import mbcapture.capture.run as capture  # noqa: E402
+import mbcapture.capture.pipeline as pipeline  # noqa: E402
 from mbcapture import load_config, run_capture  # noqa: E402
 from mbcapture.config import resolve_config_path  # noqa: E402
-from mbcapture.resources import anon_bytes, peak_rss_bytes, rss_bytes  # noqa: E402
+from mbcapture.exposure.resources import anon_bytes, peak_rss_bytes, rss_bytes  # noqa: E402
 
 MIB = 1 << 20
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from mbcapture import load_config
-from mbcapture.camera_motion import moving_region
-from mbcapture.pipeline import prepare
+from mbcapture.scene.camera_motion import moving_region
+from mbcapture.capture.pipeline import prepare
 from mbcapture.render import Renderer, ensure_llvm
 from mbcapture.render.shadows import moving_shadows
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Mutation testing of the physics modules with mutmut (docs/mutation.md): mbcapture/sensor/,
-# mbcapture/reconstruct/, mbcapture/timeline.py and mbcapture/apps/, against the fast pure-numpy
+# mbcapture/reconstruct/, mbcapture/timing/timeline.py and mbcapture/apps/, against the fast pure-numpy
 # tests (no renders, no goldens; the selection is [tool.mutmut] in pyproject.toml).
 #
 #   scripts/mutation.sh                                # every mutant not yet decided (first run: all)

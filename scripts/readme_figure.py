@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from mbcapture import load_config
-from mbcapture.pipeline import capture_in_memory
-from mbcapture.plots import draw_timeline, time_unit
+from mbcapture.capture.pipeline import capture_in_memory
+from mbcapture.output.plots import draw_timeline, time_unit
 from mbcapture.progress import StageStatus
 
 ROOT = Path(__file__).resolve().parents[1]

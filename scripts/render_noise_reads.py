@@ -40,7 +40,9 @@ from unittest import mock
 
 import numpy as np
 
-from mbcapture import load_config, pipeline
+from mbcapture import load_config
+from mbcapture.budget import adaptive  # noqa: E402
+from mbcapture.capture import pipeline
 from mbcapture.budget import (
     budget_quantiles,
     deconvolved_median,
@@ -50,7 +52,7 @@ from mbcapture.budget import (
     resolve_spp,
     tail_pixels,
 )
-from mbcapture.pipeline import capture_in_memory
+from mbcapture.capture.pipeline import capture_in_memory
 from mbcapture.progress import StageStatus
 
 
@@ -143,7 +145,7 @@ def two_runs(config, base: list[str], seeds: list[int], share: bool = True) -> t
     for s in seeds:
         t0 = time.perf_counter()
         choice.start_run()
-        with mock.patch.object(pipeline, "tail_pixels", choice), mock.patch.object(pipeline, "resolve_spp", samples):
+        with mock.patch.object(adaptive, "tail_pixels", choice), mock.patch.object(pipeline, "resolve_spp", samples):
             runs.append(capture_in_memory(load_config(config, [*base, f"seed={s}"]), StageStatus(False)))
         seconds.append(time.perf_counter() - t0)
     return runs, seconds, choice
@@ -254,7 +256,7 @@ def converged(args, base: list[str], runs: list, below: list[np.ndarray], choice
     t0 = time.perf_counter()
     for s in more:
         choice.start_run()
-        with mock.patch.object(pipeline, "tail_pixels", choice):
+        with mock.patch.object(adaptive, "tail_pixels", choice):
             r = capture_in_memory(load_config(args.config, [*base, f"seed={s}"]), StageStatus(False))
         reads.append(r.reads_expected_e)
         full.append(below_full_well(r, cfg.sensor.full_well_e))

@@ -29,7 +29,7 @@ import argparse
 import numpy as np
 
 from mbcapture import load_config
-from mbcapture.capture import prepare
+from mbcapture.capture.pipeline import prepare
 from mbcapture.render.renderer import Renderer
 
 

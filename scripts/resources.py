@@ -3,11 +3,11 @@
     python scripts/resources.py [--configs metronome_hdr,flash_matting] [--sizes 320x256,640x512] [--spp 4]
                                 [--band-rows 64 --tiles 8]
 
-For each config and film size: the planned peak memory and output size (mbcapture.resources), and
+For each config and film size: the planned peak memory and output size (mbcapture.exposure.resources), and
 a real `mbcapture run` in a child process (render cache off, fixed spp): its peak resident memory
 (the child's VmHWM: getrusage's ru_maxrss carries the parent's across exec) and the bytes it wrote
 to --out. Prints the ratio measured / planned for each, and the per-pixel slope of the memory between the first two sizes (what the constants of
-mbcapture/resources.py were fitted to; docs/resources.md has the table). With ``--tiles N`` (and
+mbcapture/exposure/resources.py were fitted to; docs/resources.md has the table). With ``--tiles N`` (and
 ``--band-rows``, so that a small film has several bands) the runs go through their films in N
 tiles of rows, and the planned memory is the tiled plan's (what HELD_PER_BUCKET_SAMPLE was fitted to).
 """
@@ -24,8 +24,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mbcapture import load_config, resources  # noqa: E402
-from mbcapture.pipeline import prepare  # noqa: E402
+from mbcapture import load_config  # noqa: E402
+from mbcapture.exposure import resources  # noqa: E402
+from mbcapture.capture.pipeline import prepare  # noqa: E402
 
 
 def overrides(w: int, h: int, spp: int, tiles: int | None, band_rows: int | None) -> list[str]:
@@ -45,7 +46,7 @@ def measured(config: Path, sets: list[str]) -> tuple[float, float]:
     child = (
         "import resource, sys; from mbcapture import load_config, run_capture; "
         "cfg = load_config(sys.argv[1], sys.argv[3:]); run_capture(cfg, sys.argv[2], progress=False); "
-        "from mbcapture.resources import peak_rss_bytes; print(peak_rss_bytes())"
+        "from mbcapture.exposure.resources import peak_rss_bytes; print(peak_rss_bytes())"
     )
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out"

@@ -39,7 +39,7 @@ import numpy as np
 from scipy.ndimage import grey_dilation, uniform_filter
 
 from mbcapture import load_config
-from mbcapture.capture import prepare
+from mbcapture.capture.pipeline import prepare
 from mbcapture.render.renderer import Renderer
 
 #: Selection levels (tau) and the seeds held out, in turn, as "the run".

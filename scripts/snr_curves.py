@@ -1,7 +1,7 @@
 """HDR signal-to-noise ratio against scene radiance for three capture protocols.
 
 The protocols, the sensor model they run through and the SNR estimate are in
-:mod:`mbcapture.snr` (also used by ``mbcapture figures``); the default sensor here has
+:mod:`mbcapture.studies.snr` (also used by ``mbcapture figures``); the default sensor here has
 fixed-pattern noise off unless ``--fixed-pattern``.
 
 For a static scene interleaved and sequential differ only by dark current; sequential's
@@ -30,7 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mbcapture.sensor import SensorConfig, electrons_per_radiance_second  # noqa: E402
-from mbcapture.snr import GREEN, REPORT_RADIANCES, radiance_range, snr_curves  # noqa: E402
+from mbcapture.studies.snr import GREEN, REPORT_RADIANCES, radiance_range, snr_curves  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -215,7 +215,7 @@ class Golden:
 
     @staticmethod
     def _write_failure(case: str, name: str, expected: np.ndarray, obtained: np.ndarray) -> None:
-        from mbcapture.io import write_exr, write_png
+        from mbcapture.output.io import write_exr, write_png
 
         out = FAILURE_DIR / case
         out.mkdir(parents=True, exist_ok=True)

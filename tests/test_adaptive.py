@@ -11,10 +11,13 @@ import pytest
 from script_modules import load_script
 
 from mbcapture import load_config
+from mbcapture.budget import adaptive
+from mbcapture.budget.adaptive import Passes
+from mbcapture.exposure import integrate as integrate_module
 from mbcapture.budget import ADAPTIVE_SELECT, tail_pixels
 from mbcapture.config import scene_of
-from mbcapture.integrate import integrate, integrate_tiles, refine
-from mbcapture.pipeline import prepare
+from mbcapture.exposure.integrate import integrate, integrate_tiles, refine
+from mbcapture.capture.pipeline import prepare
 from mbcapture.render import Renderer
 from mbcapture.render.shadows import changing_region
 from mbcapture.sensor import electrons_per_render_second
@@ -147,7 +150,7 @@ def test_pixels_through_a_lens_that_mixes_neighbours_are_the_full_renders_estima
         var_alone, var_full = (x[:, g].var(axis=0, ddof=1) for x in (alone, full))
         assert abs(d.sum()) < 5 * np.sqrt((var_alone + var_full).sum() / reps), groups[g]
         assert var_alone.sum() < 2.0 * var_full.sum(), groups[g]
-    asked, _ = r._lens_samples(pix.astype(np.uint32), np.full(pix.size, 1000), np.zeros(pix.size, np.int64))
+    asked, _ = r.lens.samples(pix.astype(np.uint32), np.full(pix.size, 1000), np.zeros(pix.size, np.int64))
     assert 1000 * pix.size < asked.sum() < 2.5 * 1000 * pix.size
 
 
@@ -223,7 +226,7 @@ def test_the_refined_pixels_match_a_brute_force_render_within_their_standard_err
     after, before = flat(refined.mc_var)[:, pixels].ravel(), flat(first.mc_var)[:, pixels].ravel()
     rel_se = sum(v.std() / v.mean() / np.sqrt(v.size) for v in (after, before))
     assert abs(after.mean() / before.mean() * factor - 1) < 5 * rel_se, (after.mean() / before.mean(), rel_se)
-    # a second round (pipeline.second_round): the same pixels to 4x from the 2x they hold, the passes weighed 2 : 2;
+    # a second round (adaptive.second_round): the same pixels to 4x from the 2x they hold, the passes weighed 2 : 2;
     # unbiased, and their variance a quarter of the first pass's
     again = refine(r, plan, refined, pixels, 2 * factor, np.random.SeedSequence(11), have=factor)
     with pytest.raises(ValueError, match="adds no samples"):
@@ -323,7 +326,7 @@ def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
     second pass, which continues the first pass's patterns (render.pattern 'shared', the default) and is
     weighed with it by their samples, brings the estimate under it, and the combination matches a
     brute-force render within its standard error."""
-    from mbcapture.pipeline import over_budget, top_up
+    from mbcapture.budget.adaptive import over_budget, top_up
     from mbcapture.progress import StageStatus
 
     _, timeline, plan, seeds, r = setup
@@ -336,16 +339,9 @@ def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
     before = over_budget(first, timeline, cfg)[0]
     assert 1.3 < before < 4
     topped_plan, topped, info = top_up(
-        cfg,
-        r,
+        Passes(cfg, r, timeline, seeds[2], StageStatus(False), per_group=False, progress=False),
         low,
-        timeline,
         first,
-        seeds[2],
-        StageStatus(False),
-        per_group=False,
-        timer=None,
-        progress=False,
         why_not=None,
     )
     assert info["applied"] and info["before"] == pytest.approx(before, rel=1e-3)
@@ -359,34 +355,20 @@ def test_a_top_up_meets_the_budget_without_bias(setup, monkeypatch):
         assert abs(d.mean()) < 5 * se, (k, d.mean(), se)
     # not applied where it cannot run, and says why
     same_plan, same, note = top_up(
-        cfg,
-        r,
+        Passes(cfg, r, timeline, np.random.SeedSequence(4), StageStatus(False), per_group=False, progress=False),
         low,
-        timeline,
         first,
-        np.random.SeedSequence(4),
-        StageStatus(False),
-        per_group=False,
-        timer=None,
-        progress=False,
         why_not="a reason",
     )
     assert same is first and same_plan is low and not note["applied"] and "a reason" in note["note"]
     # nor where its second set of the film's arrays would not fit in free memory
-    from mbcapture import resources
+    from mbcapture.exposure import resources
 
     monkeypatch.setattr(resources, "free_memory", lambda: (resources.rss_bytes() + 1000, "a test"))
     _, same, note = top_up(
-        cfg,
-        r,
+        Passes(cfg, r, timeline, np.random.SeedSequence(4), StageStatus(False), per_group=False, progress=False),
         low,
-        timeline,
         first,
-        np.random.SeedSequence(4),
-        StageStatus(False),
-        per_group=False,
-        timer=None,
-        progress=False,
         why_not=None,
     )
     assert same is first and not note["applied"] and "free by a test" in note["note"]
@@ -484,7 +466,7 @@ def test_a_choice_from_a_scout_leaves_the_runs_own_estimate_unbiased(chooser):
 def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatch):
     """The pixels adaptive sampling refines are chosen from the scout's renders (seeds of their own, a
     sixteenth of the samples), never from the first pass's differences."""
-    from mbcapture import pipeline
+    from mbcapture.capture import pipeline
     from mbcapture.budget import scout_spp
     from mbcapture.progress import StageStatus
 
@@ -498,8 +480,8 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
         seen.append((mc_diff, args[-1]))
         return tail_pixels(mc_diff, *args, **kwargs)
 
-    monkeypatch.setattr(pipeline, "integrate_tiles", integrate_recorded)
-    monkeypatch.setattr(pipeline, "tail_pixels", choose)
+    monkeypatch.setattr(integrate_module, "integrate_tiles", integrate_recorded)
+    monkeypatch.setattr(adaptive, "tail_pixels", choose)
     cfg = load_config(
         ROOT / "configs" / "metronome_hdr.yaml",
         [
@@ -536,8 +518,8 @@ def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monk
     """scripts/render_noise_reads.py: with adaptive sampling both runs refine the pixels the first run
     chose and render the samples the first run's pilot chose (one estimator, the one whose error the first
     run's own figures estimate); --own-choices lets each choose both."""
-    from mbcapture import pipeline
-    from mbcapture.pipeline import capture_in_memory
+    from mbcapture.capture import pipeline
+    from mbcapture.capture.pipeline import capture_in_memory
     from mbcapture.progress import StageStatus
 
     script = load_script("render_noise_reads")
@@ -571,7 +553,7 @@ def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monk
         used, spp, rounds = [], [], []
         for seed in (1, 2):
             choice.start_run()
-            monkeypatch.setattr(pipeline, "tail_pixels", choice)
+            monkeypatch.setattr(adaptive, "tail_pixels", choice)
             monkeypatch.setattr(pipeline, "resolve_spp", samples)
             run = capture_in_memory(
                 load_config(ROOT / "configs" / "metronome_hdr.yaml", [*sets, f"seed={seed}"]), StageStatus(False)
@@ -611,24 +593,26 @@ def test_adaptive_sampling_is_skipped_where_its_scout_would_not_fit_in_memory(se
     take them, adaptive sampling is not applied and report.json's note says why (as the top-up does)."""
     from contextlib import nullcontext
 
-    from mbcapture import resources
-    from mbcapture.pipeline import scout_tail
+    from mbcapture.exposure import resources
+    from mbcapture.budget.adaptive import scout_tail
     from mbcapture.progress import StageStatus
 
     cfg, timeline, plan, seeds, r = setup
     first = integrate(r, plan, timeline.n_buckets, seeds[2])
     monkeypatch.setattr(resources, "free_memory", lambda: (resources.rss_bytes() + 1000, "a test"))
     tiers, info, _ = scout_tail(
-        cfg,
-        r,
+        Passes(
+            cfg,
+            r,
+            timeline,
+            seeds[2],
+            StageStatus(False),
+            changing=np.zeros((48, 64), bool),
+            timer=lambda name: nullcontext(),
+            progress=False,
+        ),
         plan,
-        timeline,
         first,
-        seeds[2],
-        StageStatus(False),
-        moving=np.zeros((48, 64), bool),
-        timer=lambda name: nullcontext(),
-        progress=False,
     )
     assert tiers is None and info["pixels"] == 0 and "free by a test" in info["note"]
 
@@ -691,21 +675,20 @@ def test_the_frontier_script_predicts_a_refined_variance_as_the_first_passes_ove
 def test_the_top_up_judges_the_budget_on_the_image_adaptive_sampling_will_give(monkeypatch):
     """with_planned_refinement divides the half-sample differences of each tier's pixels by sqrt(factor) (their
     variance by the factor) and leaves the others and its input alone; top_up judges the budget on that."""
-    from mbcapture import pipeline
-    from mbcapture.integrate import Integrated
+    from mbcapture.exposure.integrate import Integrated
     from mbcapture.progress import StageStatus
 
     rng = np.random.default_rng(5)
     diff = rng.normal(size=(2, 4, 5, 3)).astype(np.float32)
     first = Integrated(exposure=np.ones((2, 4, 5, 3)), mc_diff=diff.copy())
     tiers = [(np.array([0, 7]), 2), (np.array([19]), 8)]
-    planned = pipeline.with_planned_refinement(first, tiers)
+    planned = adaptive.with_planned_refinement(first, tiers)
     np.testing.assert_array_equal(first.mc_diff, diff)
     want = diff.reshape(2, 20, 3).copy()
     want[:, [0, 7]] /= np.sqrt(2.0)
     want[:, 19] /= np.sqrt(8.0)
     np.testing.assert_allclose(planned.mc_diff, want.reshape(diff.shape), rtol=1e-6)
-    assert pipeline.with_planned_refinement(first, []) is first
+    assert adaptive.with_planned_refinement(first, []) is first
 
     judged = []
 
@@ -713,18 +696,11 @@ def test_the_top_up_judges_the_budget_on_the_image_adaptive_sampling_will_give(m
         judged.append((integrated.mc_diff, reads, tail))
         return 0.5, "J1", "to_shot_noise_variance_median", 0.05
 
-    monkeypatch.setattr(pipeline, "over_budget", over)
-    out = pipeline.top_up(
-        None,
-        None,
-        None,
+    monkeypatch.setattr(adaptive, "over_budget", over)
+    out = adaptive.top_up(
+        Passes(None, None, None, None, StageStatus(False), per_group=False, progress=False),
         None,
         first,
-        None,
-        StageStatus(False),
-        per_group=False,
-        timer=None,
-        progress=False,
         why_not=None,
         planned=tiers,
     )
@@ -732,17 +708,10 @@ def test_the_top_up_judges_the_budget_on_the_image_adaptive_sampling_will_give(m
     np.testing.assert_array_equal(judged[0][0], planned.mc_diff)
     assert judged[0][1:] == (None, False)  # the tail is not judged unless asked: a rule met it
     figures = {"J1": {}}
-    pipeline.top_up(
-        None,
-        None,
-        None,
+    adaptive.top_up(
+        Passes(None, None, None, None, StageStatus(False), per_group=False, progress=False),
         None,
         first,
-        None,
-        StageStatus(False),
-        per_group=False,
-        timer=None,
-        progress=False,
         why_not=None,
         planned=tiers,
         planned_reads=figures,
@@ -754,7 +723,7 @@ def test_the_top_up_judges_the_budget_on_the_image_adaptive_sampling_will_give(m
 def test_the_tail_model_agrees_with_the_runs_own_estimate_of_a_planned_refinement():
     """budget.TailModel.meets (what adaptive sampling's rules are judged by) says a plan of per-pixel factors
     meets the tail target exactly when render_error, on the first pass with each pixel's half-sample differences
-    over sqrt(factor) (pipeline.with_planned_refinement), puts every read's 99.9th percentile at most at the
+    over sqrt(factor) (adaptive.with_planned_refinement), puts every read's 99.9th percentile at most at the
     target: on heavy-tailed noise, for plans from none to most of the film refined, at three targets."""
     from mbcapture.budget import TailModel, render_error
 
@@ -817,34 +786,33 @@ def test_adaptive_sampling_renders_the_cheapest_rule_that_meets_the_tail():
 
 
 def test_a_second_round_runs_only_where_the_refined_estimate_is_over_and_starts_from_what_each_pixel_holds(monkeypatch):
-    """pipeline.second_round: nothing where the refined render stage's own estimate meets the tail target on every read
+    """adaptive.second_round: nothing where the refined render stage's own estimate meets the tail target on every read
     (a median over its target is the top-up's); else a scout and a refinement again, from the factor each pixel holds (the first round's tiers), at most
     SECOND_ROUND_MAX_FACTOR more, reported under adaptive.second_round with how far over the stage was."""
     from types import SimpleNamespace
 
-    from mbcapture import pipeline
     from mbcapture.progress import StageStatus
 
     cfg = SimpleNamespace(render=SimpleNamespace(width=4, height=2, noise_budget_tail=1.0))
     tiers = [(np.array([1, 2]), 2), (np.array([5]), 8)]
     calls = []
     monkeypatch.setattr(
-        pipeline,
+        adaptive,
         "scout_tail",
         lambda *a, **k: calls.append(("scout", k)) or ([(np.array([5]), 2)], {"pixels": 1}, None),
     )
     monkeypatch.setattr(
-        pipeline,
+        adaptive,
         "refine_tail",
-        lambda cfg, r, plan, integrated, more, info, *a, **k: (
+        lambda passes, plan, integrated, more, info, **k: (
             calls.append(("refine", more, k)) or ("refined", {**info, "seconds": 1.0})
         ),
     )
     for over, runs in ((0.99, False), (1.3, True)):
         calls.clear()
         monkeypatch.setattr(
-            pipeline,
-            "_read_figures",
+            adaptive,
+            "read_figures",
             lambda *a, **k: {
                 "J1": {
                     "to_shot_noise_variance_p999": 0.5,
@@ -853,20 +821,21 @@ def test_a_second_round_runs_only_where_the_refined_estimate_is_over_and_starts_
                 "J4": {"to_shot_noise_variance_p999": over, "to_shot_noise_variance_median": 0.0},
             },
         )
-        out, info = pipeline.second_round(
-            cfg,
-            None,
-            None,
+        out, info = adaptive.second_round(
+            Passes(
+                cfg,
+                None,
+                None,
+                None,
+                StageStatus(False),
+                changing=np.zeros((2, 4), bool),
+                per_group=False,
+                progress=False,
+            ),
             None,
             "first",
             tiers,
             {"pixels": 3},
-            None,
-            StageStatus(False),
-            moving=np.zeros((2, 4), bool),
-            per_group=False,
-            timer=None,
-            progress=False,
         )
         if not runs:
             assert out == "first" and info == {"pixels": 3} and not calls
@@ -874,7 +843,7 @@ def test_a_second_round_runs_only_where_the_refined_estimate_is_over_and_starts_
         assert out == "refined" and info["second_round"] == {"pixels": 1, "before": 1.3, "seconds": 1.0}
         (_, scout), (_, more, refine_kwargs) = calls
         np.testing.assert_array_equal(scout["have"], [1, 2, 2, 1, 1, 8, 1, 1])
-        assert scout["max_factor"] == pipeline.SECOND_ROUND_MAX_FACTOR
+        assert scout["max_factor"] == adaptive.SECOND_ROUND_MAX_FACTOR
         np.testing.assert_array_equal(refine_kwargs["have"], scout["have"])
 
 
@@ -892,7 +861,7 @@ def test_with_adaptive_sampling_the_pilot_aims_the_first_passes_p95_under_the_ta
     assert first_pass_p95_target(render_cfg("render.noise_budget_p95=0.2")) == pytest.approx(0.2)
     assert first_pass_p95_target(render_cfg("render.adaptive=false")) == pytest.approx(1.0)
     seen = {}
-    monkeypatch.setattr(budget, "choose_spp", lambda plan, *a, **k: seen.update(k) or plan)
+    monkeypatch.setattr(budget.pilot, "choose_spp", lambda plan, *a, **k: seen.update(k) or plan)
     cfg = load_config("metronome_hdr", [*SMALL, "render.noise_budget_tail=0.8"])
     plan = replace(prepare(cfg)[2], spp=None)
     resolve_spp(plan, None, cfg, np.random.SeedSequence(1))

@@ -9,7 +9,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mbcapture import load_config, protocols
+from mbcapture import load_config
+from mbcapture.timing import protocols
 from mbcapture.apps import CaptureData
 from mbcapture.apps import flash_matting as fm
 from mbcapture.errors import ConfigError
@@ -213,7 +214,7 @@ def test_reconstruct_on_synthetic_reads_recovers_the_matte(n_flash):
 def test_coverage_of_a_disk_is_its_projected_area():
     from mbcapture.render.build import Material, SceneBuild, Shape, scale, translate
     from mbcapture.render.coverage import coverage_alpha
-    from mbcapture.scenes import Camera, SceneModel
+    from mbcapture.scene.scenes import Camera, SceneModel
 
     cam = Camera(origin=(0.0, 0.0, 1.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=40.0)
     radius, w, h = 0.1, 64, 48
@@ -358,7 +359,7 @@ def test_estimate_alpha_hands_the_method_clipped_inputs_and_keeps_definite_pixel
 def _matting_data():
     """CaptureData of a flash read (buckets 0, 1) and a no-flash read (buckets 2, 3) with the flash
     on for 3 ms in bucket 0 and 1 ms in bucket 1; a static flash-lit radiance L."""
-    from mbcapture.timeline import ReadEvent
+    from mbcapture.timing.timeline import ReadEvent
 
     L = np.random.default_rng(13).uniform(0.1, 2.0, (3, 4, 3))
     flash_s = np.array([0.003, 0.001, 0.0, 0.0])

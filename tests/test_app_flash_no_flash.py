@@ -13,7 +13,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mbcapture import load_config, protocols
+from mbcapture import load_config
+from mbcapture.application import protocol_app
+from mbcapture.timing import protocols
 from mbcapture.apps import CaptureData, get
 from mbcapture.apps.flash_no_flash import (
     METHODS,
@@ -28,7 +30,7 @@ from mbcapture.apps.flash_no_flash import (
     rel_rms,
     white_level,
 )
-from mbcapture.capture import bucket_group_seconds
+from mbcapture.capture.pipeline import bucket_group_seconds
 from mbcapture.config import config_from_dict
 from mbcapture.errors import ConfigError
 from mbcapture.sensor import electrons_per_render_second, simulate_reads
@@ -177,7 +179,7 @@ def test_protocol_interleaves_flash_and_ambient_buckets():
     np.testing.assert_allclose(bg[:, 0], [0.01, 0.0], atol=1e-15)
     np.testing.assert_allclose([float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads], [0.01, 0.01])
     assert float(tl.seconds(tl.end_tick - tl.start_tick)) == pytest.approx(0.02)
-    assert protocols.default_app("flash_no_flash") == "flash_no_flash"
+    assert protocol_app("flash_no_flash") == "flash_no_flash"
     assert get("flash_no_flash").per_group
 
 
@@ -369,14 +371,9 @@ def test_letter_s_mask_is_the_region_its_points_sweep_over_the_capture():
     from fractions import Fraction
 
     from mbcapture.apps.flash_no_flash import _letter_s_mask
-    from mbcapture.camera_motion import moving_region
-    from mbcapture.scenes import Camera, SceneModel
-    from mbcapture.timeline import (
-        ReadEvent,
-        SegmentSeconds,
-        SlotSeconds,
-        build_timeline,
-    )
+    from mbcapture.scene.camera_motion import moving_region
+    from mbcapture.scene.scenes import Camera, SceneModel
+    from mbcapture.timing.timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
 
     def points(t):  # (T, 5, 3): 0-1 a pair moving right at 2 m/s, 2-4 a triangle ("the S") moving down at 2 m/s
         t = np.asarray(t, float)[:, None]
@@ -496,7 +493,7 @@ def test_white_level_rel_rms_blur_agreement_and_display_psnr():
 
 def test_read_roles_from_the_switchable_groups_each_read_saw():
     from mbcapture.apps.flash_no_flash import _read_roles
-    from mbcapture.timeline import ReadEvent
+    from mbcapture.timing.timeline import ReadEvent
 
     # buckets 0-1 make the no-flash read, bucket 2 the flash read; bucket 0 saw nothing switchable,
     # bucket 2 saw flash2 only (seconds per switchable group, columns flash, flash2)

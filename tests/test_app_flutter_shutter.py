@@ -7,11 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mbcapture import load_config, protocols, scenes
+from mbcapture import load_config
+from mbcapture.timing import protocols
+from mbcapture.scene import scenes
 from mbcapture.apps import CaptureData
 from mbcapture.apps import flutter_shutter as fs
 from mbcapture.errors import ConfigError
-from mbcapture.plan import make_plan
+from mbcapture.exposure.plan import make_plan
 from mbcapture.reconstruct import deblur as db
 
 ROOT = Path(__file__).resolve().parents[1]

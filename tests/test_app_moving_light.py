@@ -6,7 +6,8 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from mbcapture import load_config, run_capture, scenes
+from mbcapture import load_config, run_capture
+from mbcapture.scene import scenes
 from mbcapture.apps.moving_light import (
     consistency,
     drive_gains_exact,
@@ -15,9 +16,9 @@ from mbcapture.apps.moving_light import (
     read_spread_rel,
     sweep_region,
 )
-from mbcapture.drive import Drive
+from mbcapture.timing.drive import Drive
 from mbcapture.errors import ConfigError
-from mbcapture.timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
+from mbcapture.timing.timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
 
 
 def square(x0, y0, size):
@@ -206,7 +207,7 @@ def test_still_lamp_is_one_pass_and_the_flicker_is_still_integrated():
     """A static scene renders once however many frames; the flicker lives in the weights only."""
     from pathlib import Path
 
-    from mbcapture.capture import prepare
+    from mbcapture.capture.pipeline import prepare
 
     path = Path(__file__).resolve().parents[1] / "configs" / "moving_light.yaml"
     cfg = load_config(path, ["scene.lamp_speed_deg_per_s=0", "capture.sequential=true"])
@@ -377,7 +378,7 @@ def test_shadow_sweep_mask_covers_both_capture_modes_over_their_joint_span():
         _sweep_times,
         shadow_sweep_mask,
     )
-    from mbcapture.capture import prepare
+    from mbcapture.capture.pipeline import prepare
 
     path = Path(__file__).resolve().parents[1] / "configs" / "moving_light.yaml"
     W, H, grow = 40, 24, 1.5

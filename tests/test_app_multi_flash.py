@@ -6,7 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mbcapture import load_config, protocols, scenes
+from mbcapture import load_config
+from mbcapture.timing import protocols
+from mbcapture.scene import scenes
 from mbcapture.apps import multi_flash as mf
 from mbcapture.errors import ConfigError
 

@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mbcapture import protocols, scenes
+from mbcapture.timing import protocols
+from mbcapture.scene import scenes
 from mbcapture.apps import rgb_illumination as rgb
-from mbcapture.capture import bucket_group_seconds
+from mbcapture.capture.pipeline import bucket_group_seconds
 from mbcapture.config import config_from_dict
 from mbcapture.errors import ConfigError
 
@@ -279,7 +280,7 @@ def test_strata_split_the_window_so_no_point_moves_more_than_the_limit():
     strata (capped at max_strata); a static scene is one stratum at the middle."""
     import dataclasses
 
-    from mbcapture.scenes import Camera, SceneModel
+    from mbcapture.scene.scenes import Camera, SceneModel
 
     cam = Camera((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), 90.0)  # 1 m at 1 m depth = 20 px of 40
 

@@ -6,8 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mbcapture import load_config, protocols, scenes
-from mbcapture import projective as pj
+from mbcapture import load_config
+from mbcapture.timing import protocols
+from mbcapture.scene import scenes
+from mbcapture.scene import projective as pj
 from mbcapture.apps import structured_light as sl
 from mbcapture.errors import ConfigError
 from mbcapture.reconstruct import phase as ph

@@ -21,7 +21,7 @@ import pytest
 import yaml
 
 from mbcapture import load_config
-from mbcapture.capture import run_capture
+from mbcapture.capture.run import run_capture
 
 ROOT = Path(__file__).resolve().parents[1]
 FILM = ["render.width=160", "render.height=128", "render.cache=off"]  # cold: no reused renders

@@ -177,5 +177,5 @@ def test_pooling_alike_is_the_box_mean_where_every_neighbour_is_alike_and_band_b
     e, var = _edge_field()
     s = var * rng.standard_normal(var.shape) ** 2
     whole = pooled_alike(s, e)
-    monkeypatch.setattr(budget, "ALIKE_BAND_ROWS", 5)  # bands of 5 rows with their halos: the same numbers
+    monkeypatch.setattr(budget.quantiles, "ALIKE_BAND_ROWS", 5)  # bands of 5 rows with their halos: the same numbers
     np.testing.assert_array_equal(pooled_alike(s, e), whole)

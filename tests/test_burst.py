@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from mbcapture import load_config, protocols
+from mbcapture import load_config
+from mbcapture.timing import protocols
 from mbcapture.apps import burst
 from mbcapture.errors import ConfigError
 from mbcapture.reconstruct import register as rg
@@ -90,7 +91,7 @@ BURST = ["render.width=160", "render.height=128", "render.spp=2"]
 
 def _scene_timeline(cfg):
     """The capture's scene (with its camera motion) and timeline, without planning its strata."""
-    from mbcapture import camera_motion, scenes
+    from mbcapture.scene import camera_motion, scenes
 
     return camera_motion.apply(scenes.make_scene(cfg.scene.name, cfg.scene.params()), cfg.camera), protocols.build(cfg)
 

@@ -9,10 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from mbcapture import camera_motion as cm
-from mbcapture import load_config, scenes
-from mbcapture.camera_motion import moving_region
-from mbcapture.capture import prepare
+from mbcapture.scene import camera_motion as cm
+from mbcapture import load_config
+from mbcapture.scene import scenes
+from mbcapture.scene.camera_motion import moving_region
+from mbcapture.capture.pipeline import prepare
 from mbcapture.errors import ConfigError
 
 
@@ -171,7 +172,7 @@ def test_renderer_moves_the_camera_and_keys_the_cache_by_its_pose(tmp_path):
 #: another with the kernel history on; prints the kernels compiled for the second pose.
 _NEW_POSE_PROBE = """
 import drjit as dr
-from mbcapture import camera_motion as cm, scenes
+from mbcapture.scene import camera_motion as cm, scenes
 from mbcapture.render import Renderer
 chart = scenes.make_scene("colour_chart", scenes.load_module("colour_chart").Params(shake_amplitude_m=0.0,
                                                                                    ambient_irradiance_w_m2=1.0))
@@ -199,7 +200,7 @@ def _fresh_kernels_for_a_new_pose() -> int:
 def test_natural_vignetting_is_cos4_of_the_field_angle():
     """By hand: the field angle of a pixel centre from the horizontal field of view; 1 on the axis,
     symmetric, cos^4 in the corners."""
-    from mbcapture.optics import natural_vignetting
+    from mbcapture.scene.optics import natural_vignetting
 
     cam = _still_chart().camera
     W, H = 40, 30
@@ -216,7 +217,7 @@ def test_vignetting_darkens_every_render_by_the_analytic_falloff():
     """A flat field through the renderer with camera.vignetting cos4 is the pinhole's image times
     cos^4 of each pixel's field angle, to float32 precision; exposures and truths use the same
     renderer, so they agree."""
-    from mbcapture.optics import natural_vignetting
+    from mbcapture.scene.optics import natural_vignetting
     from mbcapture.render import Renderer
 
     scene = scenes.make_scene("flatfield", scenes.load_module("flatfield").Params())

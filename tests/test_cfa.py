@@ -256,7 +256,7 @@ def test_a_bayer_hdr_merge_has_no_negative_radiance_and_the_error_of_its_causes(
 
 def test_characterize_measures_the_photosites_without_the_mosaic():
     """EMVA 1288 measures each colour's raw photosites; demosaiced frames would filter their noise."""
-    from mbcapture.characterize import monochromatic
+    from mbcapture.studies.characterize import monochromatic
 
     for cfa in ("RGGB", "mono"):
         cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", [f"sensor.cfa={cfa}"])

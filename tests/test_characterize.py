@@ -1,7 +1,7 @@
 """EMVA 1288 characterization of the simulated sensor (mbcapture characterize), sensor presets and
 their round trip through a datasheet.
 
-Every tolerance is the figure's own standard uncertainty, which mbcapture.emva derives from the
+Every tolerance is the figure's own standard uncertainty, which mbcapture.sensor.emva derives from the
 number of pixels and frames behind it, times Z; the configured value a figure is compared with is
 the ensemble value of the config, so the few figures that depend on this one sensor's fixed
 pattern (the mean gain of its pixels, the variance of its rows) carry that sampling term too.
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from mbcapture import characterize as ch
+from mbcapture.studies import characterize as ch
 from mbcapture import load_config
 from mbcapture.errors import ConfigError
 from mbcapture.sensor.presets import DATASHEET_SCHEMA, preset_names

@@ -1,4 +1,4 @@
-"""One capture across a Dask cluster (mbcapture.cluster): the strata render on a LocalCluster's
+"""One capture across a Dask cluster (mbcapture.exposure.cluster): the strata render on a LocalCluster's
 workers and the capture is the local one, bit for bit (same CPU); the CLI takes --workers."""
 
 from pathlib import Path
@@ -8,8 +8,8 @@ import pytest
 from golden_cases import RENDER_REPEAT_RTOL, count_differences
 
 from mbcapture import load_config, run_capture
-from mbcapture.cluster import start_client
-from mbcapture.integrate import render_requests
+from mbcapture.exposure.cluster import start_client
+from mbcapture.exposure.integrate import render_requests
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["render.width=40", "render.height=32", "render.spp=4", "render.max_motion_px=0.05", "render.cache=off"]
@@ -91,8 +91,8 @@ def test_the_difference_estimator_renders_here_and_says_so(client):
 
 def test_render_requests_are_what_integrate_renders():
     """The list the cluster renders is exactly the renders integrate asks for, in its order."""
-    from mbcapture.integrate import integrate
-    from mbcapture.pipeline import prepare
+    from mbcapture.exposure.integrate import integrate
+    from mbcapture.capture.pipeline import prepare
 
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", SMALL)
     _, timeline, plan, seeds = prepare(cfg)

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mbcapture import load_config, protocols
+from mbcapture import load_config
+from mbcapture.timing import protocols
 from mbcapture.errors import ConfigError
-from mbcapture.gatecode import DRAIN, GateCode, default_tile, make_code
+from mbcapture.timing.gatecode import DRAIN, GateCode, default_tile, make_code
 from mbcapture.reconstruct.demultiplex import (
     code_rank,
     demultiplex,
@@ -278,7 +279,7 @@ TINY = ["render.width=48", "render.height=40", "render.spp=4", "app.truth_spp=4"
 
 @pytest.mark.render
 def test_global_gates_written_as_a_code_reproduce_the_capture_bit_for_bit():
-    from mbcapture.pipeline import capture_in_memory
+    from mbcapture.capture.pipeline import capture_in_memory
     from mbcapture.progress import StageStatus
 
     plain = capture_in_memory(load_config(MULTI_FLASH, TINY), StageStatus(False))
@@ -300,7 +301,7 @@ def test_global_gates_written_as_a_code_reproduce_the_capture_bit_for_bit():
 def test_a_coded_capture_conserves_light_and_keeps_the_sensor_physics(family, tmp_path):
     """Every family that routes each sub-frame to a bucket (a file's code without drains) holds the global
     schedule's light, rerouted; 'global' is that schedule (multi_flash), which needs a bucket per sub-frame."""
-    from mbcapture.pipeline import capture_in_memory
+    from mbcapture.capture.pipeline import capture_in_memory
     from mbcapture.progress import StageStatus
 
     quiet = [

@@ -5,13 +5,7 @@ import csv
 import numpy as np
 import pytest
 
-from mbcapture.converge import (
-    Point,
-    equal_error_speedups,
-    fit_slope,
-    planner_seconds_at,
-    relative_error,
-)
+from mbcapture.studies.converge import Point, equal_error_speedups, fit_slope, planner_seconds_at, relative_error
 
 
 def _mc_points(method, c0, c1, sigma, spps, passes):
@@ -58,7 +52,7 @@ def test_relative_error_subtracts_the_reference_noise():
 @pytest.mark.render
 def test_converge_on_a_tiny_capture(tmp_path):
     from mbcapture import load_config
-    from mbcapture.converge import run_converge, write_outputs
+    from mbcapture.studies.converge import run_converge, write_outputs
 
     cfg = load_config("configs/tiny_hdr.yaml", ["capture.periods=4"])
     res = run_converge(cfg, motion_ladder=(1, 4, 16), naive_ladder=(1,), ref_spp=512, ref_motion_div=2.0)

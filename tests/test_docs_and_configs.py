@@ -6,9 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mbcapture import load_config, protocols, run_capture, scenes
+from mbcapture import load_config, run_capture
+from mbcapture.timing import protocols
+from mbcapture.scene import scenes
 from mbcapture.docgen import config_markdown
-from mbcapture.plan import make_plan
+from mbcapture.exposure.plan import make_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))

@@ -5,15 +5,9 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from mbcapture.drive import Drive, periodic_oscillation_ticks
+from mbcapture.timing.drive import Drive, periodic_oscillation_ticks
 from mbcapture.errors import ConfigError
-from mbcapture.timeline import (
-    DRAIN,
-    ReadEvent,
-    SegmentSeconds,
-    SlotSeconds,
-    build_timeline,
-)
+from mbcapture.timing.timeline import DRAIN, ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
 
 MS = Fraction(1, 1000)
 #: one period: buckets 1..4 and a drain, 0.8 ms (1/P = 1250 Hz exactly: the resonant case is exact)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mbcapture import load_config, run_capture
-from mbcapture.io import read_exr
+from mbcapture.output.io import read_exr
 
 pytestmark = pytest.mark.render
 ROOT = Path(__file__).resolve().parents[1]
@@ -121,7 +121,7 @@ def test_bad_input_exits_2_with_one_line_and_writes_nothing(tmp_path):
 
 def test_failed_run_keeps_previous_outputs(tmp_path, monkeypatch):
     """A run that dies while writing leaves the earlier run's files as they were and no partial file."""
-    import mbcapture.io as mio
+    import mbcapture.output.io as mio
 
     out = tmp_path / "o"
     cfg = load_config(TINY, ["render.width=16", "render.height=12"])

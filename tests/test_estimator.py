@@ -20,7 +20,7 @@ def test_difference_estimator_is_unbiased_and_measures_its_error_with_a_fake_ren
     """Fake radiance mu + slope t x column + noise(seed): with common random numbers the strata's
     noise cancels against B^crn, so the estimate is W B + sum_j w_j slope (t_j - t_0): unbiased, with
     the variance of the base alone (sigma^2 / base_spp), which the half difference estimates."""
-    from mbcapture.integrate import integrate
+    from mbcapture.exposure.integrate import integrate
 
     tl = timeline(periods=16)
     p = replace(plan(point_scene(50.0), tl, spp=8), estimator="difference", base_spp_setting=64)
@@ -46,7 +46,7 @@ def test_difference_estimator_is_unbiased_and_measures_its_error_with_a_fake_ren
 
 def _metronome(*overrides: str):
     from mbcapture import load_config
-    from mbcapture.capture import prepare
+    from mbcapture.capture.pipeline import prepare
     from mbcapture.render import Renderer
 
     cfg = load_config(
@@ -70,8 +70,8 @@ def test_difference_estimator_leaves_static_pixels_free_of_per_stratum_noise():
     pixel has its own rendering noise; with the difference estimator a pixel whose paths never meet
     the moving needle is the base render in every stratum, so all frames agree exactly (up to the
     float64 rounding of the weights), while the moving region still differs between frames."""
-    from mbcapture.camera_motion import moving_region
-    from mbcapture.integrate import integrate
+    from mbcapture.scene.camera_motion import moving_region
+    from mbcapture.exposure.integrate import integrate
 
     cfg, scene, tl, p, r = _metronome("render.spp=8")
     assert p.passes >= 4
@@ -93,7 +93,7 @@ def test_estimators_are_unbiased_against_a_brute_force_render():
     the default randomized quasi-Monte Carlo sampler), against independent strata at 64x the samples: the mean over runs of the summed
     difference, in units of its standard error (a t statistic with 7 degrees of freedom), stays
     within T_LIMIT = 5.4 (two-sided p = 0.001)."""
-    from mbcapture.integrate import integrate
+    from mbcapture.exposure.integrate import integrate
     from mbcapture.render import Renderer
 
     cfg, scene, tl, p, r = _metronome("render.max_motion_px=0.15")

@@ -1,4 +1,4 @@
-"""The lens (mbcapture.optics): the diffraction OTF of a circular aperture and its application."""
+"""The lens (mbcapture.scene.optics): the diffraction OTF of a circular aperture and its application."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mbcapture.optics import apply_diffraction, diffraction_otf
+from mbcapture.scene.optics import apply_diffraction, diffraction_otf
 
 
 def test_the_otf_of_a_circular_aperture_by_hand():
@@ -51,7 +51,7 @@ def test_a_flat_field_stays_flat_and_the_wavelengths_must_match_the_channels():
 @pytest.mark.render
 def test_the_renderer_blurs_every_render_by_the_otf():
     """camera.diffraction: each render is the diffraction-free one filtered by apply_diffraction."""
-    from mbcapture import scenes
+    from mbcapture.scene import scenes
     from mbcapture.render import Renderer
     from mbcapture.sensor import SensorConfig
 
@@ -69,7 +69,7 @@ def _edge_scene(depth_m: float):
     """A lit half-plane x >= 0 at ``depth_m`` in front of a camera looking down -z: a vertical edge
     through the image centre, radiance 1."""
     from mbcapture.render.build import Light, SceneBuild, Shape, scale, translate
-    from mbcapture.scenes import Camera, SceneModel
+    from mbcapture.scene.scenes import Camera, SceneModel
 
     half = 10.0 * depth_m
     plane = Shape(
@@ -110,7 +110,7 @@ def test_a_thin_lens_blurs_an_edge_by_the_analytic_defocus_disk(focus_m, radius_
     chosen so that the disk is 5 px at focus 0.5 m; optics.blur_radius_px must say the radius, and the
     rendered edge (mean of its rows, 256 spp) must match the disk's lit share averaged over each pixel,
     within 0.02 everywhere (Monte Carlo noise ~0.004; a disk 20 % too small or large misses by 0.03+)."""
-    from mbcapture.optics import blur_radius_px
+    from mbcapture.scene.optics import blur_radius_px
     from mbcapture.render import Renderer
 
     W, H = 96, 24
@@ -134,7 +134,7 @@ def test_the_thin_lens_follows_the_config(tmp_path):
 
     from mbcapture import load_config
     from mbcapture.config import scene_of
-    from mbcapture.optics import focal_length_m, focus_distance_m
+    from mbcapture.scene.optics import focal_length_m, focus_distance_m
     from mbcapture.render import Renderer
     from mbcapture.render.cache import RenderCache
 
@@ -173,7 +173,7 @@ def test_a_spot_lands_where_the_distortion_polynomial_sends_its_ray(k):
     centroid where the forward polynomial puts that ray, within 0.05 px."""
     from dataclasses import dataclass
 
-    from mbcapture.optics import apply_distortion, undistortion_maps
+    from mbcapture.scene.optics import apply_distortion, undistortion_maps
 
     @dataclass
     class Cam:
@@ -199,7 +199,7 @@ def test_the_taps_and_the_reach_are_the_lens_filters_own():
     weight of each neighbour over the centre's (a delta through apply_diffraction without its clamp), symmetric."""
     from dataclasses import dataclass
 
-    from mbcapture.optics import apply_distortion, bilinear_taps, diffraction_reach, undistortion_maps
+    from mbcapture.scene.optics import apply_distortion, bilinear_taps, diffraction_reach, undistortion_maps
 
     @dataclass
     class Cam:
@@ -222,7 +222,7 @@ def test_the_taps_and_the_reach_are_the_lens_filters_own():
 def test_no_distortion_is_the_identity_and_a_fold_is_refused():
     from dataclasses import dataclass
 
-    from mbcapture.optics import undistortion_maps
+    from mbcapture.scene.optics import undistortion_maps
 
     @dataclass
     class Cam:

@@ -10,7 +10,7 @@ import pytest
 
 from mbcapture import load_config
 from mbcapture.budget import shared_pattern_gain
-from mbcapture.integrate import render_patterns, render_requests
+from mbcapture.exposure.integrate import render_patterns, render_requests
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -110,7 +110,7 @@ def test_each_half_takes_the_samples_after_the_strata_before_it():
         ROOT / "configs" / "metronome_hdr.yaml",
         ["render.width=40", "render.height=32", "render.spp=6", "render.pattern=shared", "render.max_motion_px=0.05"],
     )
-    from mbcapture.pipeline import prepare
+    from mbcapture.capture.pipeline import prepare
 
     _, _, plan, seeds = prepare(cfg)
     plan = replace(plan, spp=np.array([6, 10, 4, 8][: plan.passes] + [6] * max(plan.passes - 4, 0)))
@@ -139,7 +139,7 @@ def test_a_shared_pattern_render_is_keyed_by_its_pattern_and_bands_hold_the_film
     """The same render with another pattern offset differs, with another sampler seed it does not; the
     cache keys the pattern (a second renderer on the same cache gives the first's render, not an
     own-pattern one); a film rendered in bands keys each band's pattern by the image's pixels."""
-    from mbcapture.pipeline import prepare
+    from mbcapture.capture.pipeline import prepare
     from mbcapture.render import Renderer
     from mbcapture.render.cache import open_cache
 
@@ -182,7 +182,7 @@ def test_a_shared_pattern_render_is_the_same_through_either_sensor(monkeypatch):
     independent sampler, which takes any count); through the first (the config's multijitter), at a count it takes
     as asked, they are the same image: the sampler only lays out the lanes and the box filter keeps each sample
     in its pixel. And a count multijitter would round (85 -> 90) is taken exactly."""
-    from mbcapture.pipeline import prepare
+    from mbcapture.capture.pipeline import prepare
     from mbcapture.render import Renderer
 
     cfg = load_config(
@@ -209,7 +209,7 @@ def test_a_shared_pattern_is_unbiased_and_lowers_a_static_reads_variance():
     variances scatters by about 1.5 per cent, so the ratio of two by about 2 per cent). With every stratum
     at offset 0 (the same samples K times) it is higher, not lower (measured: 4.19x). (K and the seeds were
     6 and 10 until 2026-11-28: 27 s, the suite's slowest test; now about 10 s.)"""
-    from mbcapture.pipeline import prepare
+    from mbcapture.capture.pipeline import prepare
     from mbcapture.render import Renderer
 
     cfg = load_config(

@@ -1,4 +1,4 @@
-"""Pendulum model of the metronome needle (mbcapture.pendulum): no Mitsuba needed."""
+"""Pendulum model of the metronome needle (mbcapture.scene.pendulum): no Mitsuba needed."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.special import ellipk
 
-from mbcapture.pendulum import Pendulum, nonlinear_period_s, tempo_period_s
+from mbcapture.scene.pendulum import Pendulum, nonlinear_period_s, tempo_period_s
 
 
 def test_tempo_beats_are_half_periods():

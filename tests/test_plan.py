@@ -5,10 +5,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mbcapture import protocols
+from mbcapture.budget import adaptive
+from mbcapture.budget.adaptive import Passes
+from mbcapture.timing import protocols
 from mbcapture.config import RenderSection, config_from_dict
-from mbcapture.plan import make_plan
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.exposure.plan import make_plan
+from mbcapture.scene.scenes import Camera, SceneModel
 
 CAM = Camera(origin=(0, 0, -10), target=(0, 0, 0), up=(0, 1, 0), fov_deg=40)
 
@@ -149,7 +151,7 @@ def test_render_times_are_inside_their_strata():
 def test_each_half_sample_render_has_its_own_time():
     """The two halves of a stratum are rendered at independent times, each uniform in the stratum;
     the first is the stratum's time (the pilot's)."""
-    from mbcapture.integrate import integrate, render_requests
+    from mbcapture.exposure.integrate import integrate, render_requests
 
     tl = timeline(periods=16)
     p = plan(point_scene(100.0), tl, spp=4)
@@ -175,7 +177,7 @@ def test_the_half_sample_error_estimate_holds_the_time_sampling_noise():
     stratum its render times fell. With no Monte Carlo noise at all, the halves' difference must
     still estimate the exposure's variance over seeds: its mean square over many seeds equals the
     exposures' variance. (Rendered at one shared time, the difference was exactly 0.)"""
-    from mbcapture.integrate import integrate
+    from mbcapture.exposure.integrate import integrate
 
     tl = timeline(periods=16)
     scene = point_scene(10.0, groups=("ambient",), switchable=frozenset())  # a few strata (5), one group
@@ -195,7 +197,7 @@ def test_the_half_sample_error_estimate_holds_the_time_sampling_noise():
 def test_the_second_pass_renders_at_times_of_its_own():
     """Adaptive sampling's second pass draws times of its own: at the first pass's times it would repeat
     the first pass's time noise (a moving edge's positions), which adding the passes could then not lower."""
-    from mbcapture.integrate import integrate, refine
+    from mbcapture.exposure.integrate import integrate, refine
 
     tl = timeline(periods=16)
     p = plan(point_scene(50.0), tl, spp=4)
@@ -290,8 +292,7 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     rebuild the combined exposure exactly (what flash matting's truth relies on)."""
     from types import SimpleNamespace
 
-    from mbcapture import pipeline
-    from mbcapture.integrate import integrate
+    from mbcapture.exposure.integrate import integrate
     from mbcapture.progress import StageStatus
 
     tl = timeline(periods=16)
@@ -307,13 +308,13 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     # the first pass 2x over the budget on J1, whose p95 ratio reads 2.0 there and 1.0 in the second (its
     # median 0.05 and 0.1): c = 2, from the figure that decided
     monkeypatch.setattr(
-        pipeline,
+        adaptive,
         "over_budget",
         lambda integrated, timeline, cfg, *a, **k: (2.0, "J1", "to_shot_noise_variance_p95", 2.0),
     )
     monkeypatch.setattr(
-        pipeline,
-        "_read_figures",
+        adaptive,
+        "read_figures",
         lambda integrated, *a, **k: {
             "J1": {"to_shot_noise_variance_median": 0.05, "to_shot_noise_variance_p95": 2.0}
             if integrated is first
@@ -322,17 +323,10 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     )
     cfg = SimpleNamespace(render=SimpleNamespace(max_spp=1024))
     r.calls.clear()
-    topped_plan, topped, info = pipeline.top_up(
-        cfg,
-        r,
+    topped_plan, topped, info = adaptive.top_up(
+        Passes(cfg, r, tl, np.random.SeedSequence(2), StageStatus(False), per_group=False, progress=False),
         p,
-        tl,
         first,
-        np.random.SeedSequence(2),
-        StageStatus(False),
-        per_group=False,
-        timer=None,
-        progress=False,
         why_not=None,
     )
     assert info["applied"] and info["weight"] == 2.0 and info["figure"] == "p95"
@@ -352,17 +346,10 @@ def test_the_top_up_renders_at_times_of_its_own_and_says_which(monkeypatch):
     assert sum(strata[0]["render_time_weights"]) == pytest.approx(1.0, abs=1e-5)
     # a stratum with no room under render.max_spp: not applied (the second pass must hold every stratum)
     cfg.render.max_spp = int(p.spp.max()) + 1
-    same_plan, same, note = pipeline.top_up(
-        cfg,
-        r,
+    same_plan, same, note = adaptive.top_up(
+        Passes(cfg, r, tl, np.random.SeedSequence(2), StageStatus(False), per_group=False, progress=False),
         p,
-        tl,
         first,
-        np.random.SeedSequence(2),
-        StageStatus(False),
-        per_group=False,
-        timer=None,
-        progress=False,
         why_not=None,
     )
     assert same is first and same_plan is p and not note["applied"]
@@ -376,8 +363,7 @@ def test_with_the_shared_pattern_the_top_up_continues_the_first_pass(monkeypatch
     n2 / n1 = F x margin - 1 (F: how far over the first pass was)."""
     from types import SimpleNamespace
 
-    from mbcapture import pipeline
-    from mbcapture.integrate import integrate, render_patterns, stratum_halves
+    from mbcapture.exposure.integrate import integrate, render_patterns, stratum_halves
     from mbcapture.progress import StageStatus
 
     tl = timeline(periods=16)
@@ -388,17 +374,17 @@ def test_with_the_shared_pattern_the_top_up_continues_the_first_pass(monkeypatch
     seed = np.random.SeedSequence(1)
     first = integrate(r, p, tl.n_buckets, seed)
     monkeypatch.setattr(
-        pipeline,
+        adaptive,
         "over_budget",
         lambda integrated, timeline, cfg, *a, **k: (2.0, "J1", "to_shot_noise_variance_median", 0.2),
     )
     cfg = SimpleNamespace(render=SimpleNamespace(max_spp=1024))
     r.patterns.clear()
-    topped_plan, topped, info = pipeline.top_up(
-        cfg, r, p, tl, first, seed, StageStatus(False), per_group=False, timer=None, progress=False, why_not=None
+    topped_plan, topped, info = adaptive.top_up(
+        Passes(cfg, r, tl, seed, StageStatus(False), per_group=False, progress=False), p, first, why_not=None
     )
     extra = np.array(info["spp_added"])
-    assert info["applied"] and np.all(extra == 2 * int(np.ceil((2.0 * pipeline.TOP_UP_MARGIN - 1) * 8 / 2)))
+    assert info["applied"] and np.all(extra == 2 * int(np.ceil((2.0 * adaptive.TOP_UP_MARGIN - 1) * 8 / 2)))
     assert info["weight"] == pytest.approx(extra.sum() / p.spp.sum())
     firsts = render_patterns(p, seed)
     keys = [firsts[0][h][0] for h in range(2)]
@@ -491,7 +477,7 @@ def test_a_large_film_is_piloted_on_a_random_sample_of_its_blocks(monkeypatch):
     scatter included); rounding up to the ladder adds up to 1.19x below."""
     from mbcapture import budget
 
-    monkeypatch.setattr(budget, "PILOT_BLOCKS", 600)
+    monkeypatch.setattr(budget.pilot, "PILOT_BLOCKS", 600)
     mu, sigma, k_e, f = 2.0, 3.0, 1e5, 0.1
     H, W = 72, 96  # 24 x 32 = 768 blocks: whole films up to 1200
     p0 = plan(point_scene(50.0), timeline(periods=16), spp=None)
@@ -650,26 +636,26 @@ def test_sample_count_ladder_takes_counts_the_sampler_keeps():
     """The pilot's counts step along a ladder of 2.2 % steps, each point moved down to a count the sampler
     takes as asked: multijitter rounds 91 up to 99 (9 x 11), so asking it for the ladder's 91 would
     render 9 % more samples than the ladder meant; 90 (9 x 10) it takes as it is."""
-    from mbcapture.budget import LADDER_STEPS, _ladder
+    from mbcapture.budget import LADDER_STEPS, ladder
 
     def multijitter(m: int) -> int:  # Mitsuba's rule: floor(sqrt(m)) columns, as many rows as m needs
         cols = int(np.floor(np.sqrt(m)))
         return cols * -(-m // cols)
 
     assert multijitter(91) == 99 and multijitter(90) == 90 and multijitter(128) == 132  # the rule as Mitsuba has it
-    assert _ladder(86.3, multijitter) == 90
+    assert ladder(86.3, multijitter) == 90
     step = 2 ** (1 / LADDER_STEPS)
     for x in np.geomspace(4.5, 5000, 400):
-        n = _ladder(x, multijitter)
+        n = ladder(x, multijitter)
         assert multijitter(n) == n and n >= x, (x, n)
         # at most two steps over x (the next ladder point, or the one after where no kept count lies
         # between), or one over the first count the sampler keeps, where those are sparse (12 after 9)
         first = next(m for m in range(int(np.ceil(x)), 10 * int(x)) if multijitter(m) == m)
         assert n <= max(x * step**2, first * step) + 1, (x, n)
     # few distinct counts: one per ladder point
-    values = {_ladder(x, multijitter) for x in np.geomspace(4.5, 5000, 4000)}
+    values = {ladder(x, multijitter) for x in np.geomspace(4.5, 5000, 4000)}
     assert len(values) <= LADDER_STEPS * np.log2(5000 / 4.5) + 2
-    assert _ladder(86.3) == 87  # every count as it is (the shared pattern's renders): the ladder's own point
+    assert ladder(86.3) == 87  # every count as it is (the shared pattern's renders): the ladder's own point
 
 
 def test_per_stratum_spp_follows_the_weights():
@@ -703,16 +689,16 @@ def test_per_stratum_spp_follows_the_weights():
     assert p0.passes >= 10 and w.max() > 5 * w.min()  # strata of very different weight
     n_true = w_jk.max(axis=1) * sigma**2 * k_e / (f * mu)
     assert n_true.min() > 100  # far above the floor of 2 samples: the rule, not the floor, decides
-    from mbcapture.budget import _ladder
+    from mbcapture.budget import ladder
 
-    upper = np.array([2 * _ladder(1.15 * n / 2) for n in n_true])  # each half rounded up to the ladder (9 % steps)
+    upper = np.array([2 * ladder(1.15 * n / 2) for n in n_true])  # each half rounded up to the ladder (9 % steps)
     assert np.all(p.spp >= 0.85 * n_true) and np.all(p.spp <= upper), np.c_[p.spp, n_true]
     # the heaviest stratum gets several times the samples of the lightest
     assert p.spp[np.argmax(w)] > 3 * p.spp[np.argmin(w)]
 
 
 def test_integrate_per_stratum_spp_is_unbiased_and_its_error_estimate_is_right():
-    from mbcapture.integrate import integrate
+    from mbcapture.exposure.integrate import integrate
 
     tl = timeline(periods=16)
     p = plan(point_scene(50.0), tl, spp=2)
@@ -742,7 +728,7 @@ def test_a_reads_monte_carlo_variance_adds_its_buckets_errors_coherently():
     Var = sum_j (sum_k w_jk)^2 sigma^2 / n_j, not as variances (sum_j sum_k w_jk^2 sigma^2 / n_j); the
     half-sample estimate (Integrated.read_mc_var) must say the first, and render_error must judge reads."""
     from mbcapture.budget import render_error
-    from mbcapture.integrate import integrate
+    from mbcapture.exposure.integrate import integrate
 
     tl = timeline(periods=16)
     p = replace(plan(point_scene(50.0), tl, spp=2), spp=None)
@@ -772,7 +758,7 @@ def test_a_reads_monte_carlo_variance_adds_its_buckets_errors_coherently():
 
 
 def test_temporal_error_sees_change_in_time_and_not_noise():
-    from mbcapture.integrate import integrate, temporal_error
+    from mbcapture.exposure.integrate import integrate, temporal_error
 
     tl = timeline(periods=16)
     p = plan(point_scene(50.0), tl, spp=16)

@@ -4,7 +4,7 @@ the projector's pinhole geometry says, with the documented irradiance, and it mo
 import numpy as np
 import pytest
 
-from mbcapture import projective as pj
+from mbcapture.scene import projective as pj
 from mbcapture.errors import ConfigError
 from mbcapture.render.build import (
     Material,
@@ -15,7 +15,7 @@ from mbcapture.render.build import (
     scale,
     translate,
 )
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.scene.scenes import Camera, SceneModel
 
 pytestmark = pytest.mark.render
 

@@ -1,4 +1,4 @@
-"""DNG raw output (output.dng, mbcapture.raw): rawpy (LibRaw) opens every file with the simulated
+"""DNG raw output (output.dng, mbcapture.output.raw): rawpy (LibRaw) opens every file with the simulated
 codes, black and white levels exactly, and develops it to the scene's colours."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import rawpy  # a dependency (pyproject.toml): every test here runs, none is ski
 
 from mbcapture import load_config, run_capture
 from mbcapture.errors import ConfigError
-from mbcapture.io import read_exr
-from mbcapture.raw import CFA_PATTERNS, colour_tags, write_dng
+from mbcapture.output.io import read_exr
+from mbcapture.output.raw import CFA_PATTERNS, colour_tags, write_dng
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -26,7 +26,7 @@ from mbcapture.render.build import (
     scale,
     translate,
 )
-from mbcapture.scenes import Camera, SceneModel, load_module, make_scene
+from mbcapture.scene.scenes import Camera, SceneModel, load_module, make_scene
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -125,7 +125,7 @@ def test_preset_env_var_is_checked(tmp_path):
 
 def test_import_render_does_not_import_mitsuba():
     code = (
-        "import sys, mbcapture.render, mbcapture.scenes; "
+        "import sys, mbcapture.render, mbcapture.scene.scenes; "
         "sys.exit(int('mitsuba' in sys.modules or 'drjit' in sys.modules))"
     )
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]))

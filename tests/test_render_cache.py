@@ -179,7 +179,7 @@ def test_a_pilot_on_blocks_and_adaptive_sampling_are_cached_too(tmp_path, monkey
     from mbcapture import budget
     from mbcapture.render import Renderer
 
-    monkeypatch.setattr(budget, "PILOT_BLOCKS", 8)
+    monkeypatch.setattr(budget.pilot, "PILOT_BLOCKS", 8)
     made = []  # every render of listed pixels this process makes, cached or not
     render_pixels = Renderer._render_pixels
     monkeypatch.setattr(Renderer, "_render_pixels", lambda self, *a: made.append(a) or render_pixels(self, *a))
@@ -224,7 +224,7 @@ def test_cache_off_writes_nothing_and_gives_the_same_images(tmp_path):
 
 
 def test_an_unusable_cache_folder_is_a_config_error(tmp_path):
-    from mbcapture.capture import render_cache
+    from mbcapture.capture.pipeline import render_cache
     from mbcapture.config import RenderSection
     from mbcapture.errors import ConfigError
 

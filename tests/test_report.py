@@ -173,10 +173,10 @@ def test_noise_verdict_follows_the_budget():
 
 def test_long_schedule_is_drawn_in_outline_plus_its_first_periods(monkeypatch):
     """10^6 periods: the timeline draws a bounded number of slots, not one patch per slot."""
-    import mbcapture.plots as plots
-    from mbcapture import protocols
+    import mbcapture.output.plots as plots
+    from mbcapture.timing import protocols
     from mbcapture.config import load_config
-    from mbcapture.plots import MAX_DETAIL_SLOTS, timeline_png
+    from mbcapture.output.plots import MAX_DETAIL_SLOTS, timeline_png
 
     tl = protocols.build(load_config(None, ["scene.name=flatfield", "capture.periods=1000000"]))
     drawn = []
@@ -189,7 +189,7 @@ def test_long_schedule_is_drawn_in_outline_plus_its_first_periods(monkeypatch):
 
 
 def test_colour_map_and_its_scale():
-    from mbcapture.plots import MISSING_GREY, colour_map
+    from mbcapture.output.plots import MISSING_GREY, colour_map
 
     v = np.array([[0.0, 1.0], [2.0, np.nan]])
     rgb, scale = colour_map(v, levels=2)
@@ -204,7 +204,7 @@ def test_colour_map_and_its_scale():
 def test_read_previews_are_white_balanced_so_a_white_surface_is_grey():
     """A read is camera DN: channel c of a white surface is black + g x k_e[c]. Its preview divides by the
     sensor's response per channel, so it is grey; the raw DN are not (the test can fail)."""
-    from mbcapture.report import white_balanced
+    from mbcapture.capture.report import white_balanced
 
     k_e = np.array([2.0, 4.0, 1.0])
     reads = 64.0 + 10.0 * np.ones((2, 3, 5, 3)) * k_e

@@ -1,4 +1,4 @@
-"""Resources planned before any work (mbcapture.resources): the plan against real runs, runs that
+"""Resources planned before any work (mbcapture.exposure.resources): the plan against real runs, runs that
 cannot fit stopped with one line, and a write the disk refuses ending with one line."""
 
 from __future__ import annotations
@@ -11,12 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import mbcapture.io as mio
-import mbcapture.pipeline as pipeline
-from mbcapture import application, load_config, resources, run_capture
+import mbcapture.output.io as mio
+import mbcapture.capture.pipeline as pipeline
+from mbcapture.exposure import integrate as integrate_module
+from mbcapture import application, load_config, run_capture
+from mbcapture.exposure import resources
 from mbcapture.errors import MBCaptureError, ResourceProblem
-from mbcapture.io import OutputError
-from mbcapture.pipeline import prepare
+from mbcapture.output.io import OutputError
+from mbcapture.capture.pipeline import prepare
 
 ROOT = Path(__file__).resolve().parents[1]
 HDR = ROOT / "configs" / "metronome_hdr.yaml"
@@ -61,7 +63,7 @@ def test_the_plan_keeps_its_promise_on_a_real_run(tiles):
     child = (
         "import resource, sys; from mbcapture import load_config, run_capture; "
         "run_capture(load_config(sys.argv[1], sys.argv[3:]), sys.argv[2], progress=False); "
-        "from mbcapture.resources import peak_rss_bytes; print(peak_rss_bytes())"
+        "from mbcapture.exposure.resources import peak_rss_bytes; print(peak_rss_bytes())"
     )
     out = ROOT / "out" / "test-resources-run"
     proc = subprocess.run(
@@ -98,7 +100,7 @@ def test_a_film_that_cannot_fit_stops_before_any_work(monkeypatch, capsys):
     def no_work(*a, **k):
         raise AssertionError("the capture started")
 
-    monkeypatch.setattr(pipeline, "integrate_tiles", no_work)
+    monkeypatch.setattr(integrate_module, "integrate_tiles", no_work)
     monkeypatch.setattr(resources, "free_memory", lambda: (24 * resources.GB, "available memory"))
     rc = main(
         [
@@ -128,7 +130,7 @@ def test_the_memory_cap_is_a_config_key():
 def test_free_memory_counts_the_address_space_limit():
     """Under ulimit -v the free memory is what the limit leaves (a child process sets it)."""
     code = (
-        "import resource; from mbcapture.resources import free_memory, _status_kb; "
+        "import resource; from mbcapture.exposure.resources import free_memory, _status_kb; "
         "size = _status_kb('VmSize') * 1024; resource.setrlimit(resource.RLIMIT_AS, (size + (1 << 30), -1)); "
         "free, source = free_memory(); print(free - _status_kb('VmRSS') * 1024, source)"
     )
@@ -216,7 +218,7 @@ def test_the_noise_report_holds_a_read_not_copies_of_every_bucket():
     """render_error and temporal_error go bucket by bucket (what set a tiled film's peak memory), with the
     figures of the formulas on copies of all the buckets at once, exactly."""
     from mbcapture.budget import BucketElectrons, render_error
-    from mbcapture.integrate import Integrated, temporal_error
+    from mbcapture.exposure.integrate import Integrated, temporal_error
 
     exposure, mc_diff, temporal, k_e = _report_inputs()
     reads, names = [(3,), (2, 3), (1, 2, 3), (0, 1, 2, 3)], ["J1", "J2", "J3", "J4"]
@@ -251,7 +253,7 @@ def test_the_noise_report_holds_a_read_not_copies_of_every_bucket():
 
 # ----------------------------------------------------------------------------- a film spilled to disk
 def test_a_spilled_array_is_an_array_on_a_scratch_file_that_leaves_no_name(tmp_path):
-    from mbcapture.filmstore import FilmStore
+    from mbcapture.exposure.filmstore import FilmStore
 
     store = FilmStore(tmp_path / "scratch")
     a = store.empty((3, 5, 7, 3), np.float64)
@@ -268,7 +270,7 @@ def test_a_spilled_array_is_an_array_on_a_scratch_file_that_leaves_no_name(tmp_p
 
 
 def test_a_scratch_disk_too_small_is_one_line_before_any_array(tmp_path, monkeypatch):
-    from mbcapture import filmstore
+    from mbcapture.exposure import filmstore
 
     def full(fd, offset, length):
         raise OSError(errno.ENOSPC, "No space left on device")
@@ -307,7 +309,7 @@ def test_exr_channels_made_in_scratch_files_write_the_same_file(tmp_path):
     give the same file, byte for byte, as whole arrays in memory."""
     from functools import partial
 
-    from mbcapture.filmstore import FilmStore
+    from mbcapture.exposure.filmstore import FilmStore
 
     rng = np.random.default_rng(3)
     exposure, k_e = rng.random((2, 6, 10, 3)), np.array([900.0, 1000.0, 1100.0])
@@ -330,7 +332,7 @@ def test_tonemap_encodes_a_band_of_rows_at_a_time_with_the_whole_images_values()
     temporaries, not the seven copies the whole-image encoding made; the same bytes."""
     import colour
 
-    from mbcapture.io import luminance, tonemap
+    from mbcapture.output.io import luminance, tonemap
 
     rng = np.random.default_rng(5)
     img = rng.random((1024, 1024, 3)) * 4.0
@@ -349,7 +351,7 @@ def test_tonemap_encodes_a_band_of_rows_at_a_time_with_the_whole_images_values()
 
 
 def test_the_free_memory_reads_a_cgroup_v1_or_v2_limit(tmp_path):
-    from mbcapture.resources import _cgroup_headroom
+    from mbcapture.exposure.resources import _cgroup_headroom
 
     own = tmp_path / "cgroup"
     own.write_text("12:pids:/\n4:memory:/jobs/run7\n0::/\n")
@@ -392,7 +394,7 @@ def test_one_blas_thread_inside_the_block_and_as_before_after():
 
 def test_a_capture_runs_blas_on_one_thread(monkeypatch):
     """capture_in_memory's whole work runs inside one_blas_thread (its renders start while OpenBLAS's
-    workers would still spin after an accumulation: mbcapture.resources.one_blas_thread)."""
+    workers would still spin after an accumulation: mbcapture.exposure.resources.one_blas_thread)."""
     seen = []
     monkeypatch.setattr(pipeline, "_capture_in_memory", lambda *a, **k: seen.append(_blas_threads()))
     before = _blas_threads()

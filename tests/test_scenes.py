@@ -1,4 +1,4 @@
-"""Scene modules metronome and flatfield fulfil the contract of mbcapture.scenes (no Mitsuba)."""
+"""Scene modules metronome and flatfield fulfil the contract of mbcapture.scene.scenes (no Mitsuba)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pydantic import ValidationError
 
 from mbcapture.errors import ConfigError
 from mbcapture.render.build import SceneBuild
-from mbcapture.scenes import SceneModel, available, load_module, make_scene
+from mbcapture.scene.scenes import SceneModel, available, load_module, make_scene
 
 SCENES = ("metronome", "flatfield")
 UNIT_WORDS = ("_bpm", "_deg", "_s", "_m", "scale", "radiance", "model")

@@ -273,7 +273,7 @@ def test_photon_transfer_curve_recovers_gain_read_noise_and_full_well():
 
 
 def _timeline(protocol: str, sequential: bool, periods: int = 4, unit_s: float = 1e-3):
-    from mbcapture import protocols
+    from mbcapture.timing import protocols
     from mbcapture.config import config_from_dict
 
     return protocols.build(

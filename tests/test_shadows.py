@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from mbcapture import load_config
-from mbcapture.camera_motion import moving_region
-from mbcapture.pipeline import prepare
+from mbcapture.scene.camera_motion import moving_region
+from mbcapture.capture.pipeline import prepare
 from mbcapture.render import Renderer
 from mbcapture.render.shadows import changing_region, moving_shadows
 
@@ -60,7 +60,7 @@ def test_where_the_time_is_noise():
     """changing_region: the moving region and the moving shadows together; every pixel where the camera moves at all,
     even by less than camera_motion.FRAME_MOTION_PX (metronome_shake at 160x128 moves its frame by 0.246 px: the
     applications' moving region is then the needle alone, but every edge in the image moves)."""
-    from mbcapture.camera_motion import FRAME_MOTION_PX, frame_motion_px
+    from mbcapture.scene.camera_motion import FRAME_MOTION_PX, frame_motion_px
 
     scene, r, (t0, t1) = renderer_of("multi_flash")
     np.testing.assert_array_equal(

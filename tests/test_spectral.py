@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mbcapture import scenes
+from mbcapture.scene import scenes
 from mbcapture.config import config_from_dict
 from mbcapture.errors import ConfigError
 from mbcapture.sensor import (

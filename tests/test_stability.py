@@ -31,26 +31,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mbcapture import protocols
+from mbcapture.timing import protocols
 from mbcapture.config import config_from_dict, load_config
 from mbcapture.errors import ConfigError
-from mbcapture.integrate import accumulate
-from mbcapture.pendulum import (
-    OVERDAMPED_RATIO,
-    STIFF_RATIO,
-    Pendulum,
-    nonlinear_period_s,
-)
+from mbcapture.exposure.integrate import accumulate
+from mbcapture.scene.pendulum import OVERDAMPED_RATIO, STIFF_RATIO, Pendulum, nonlinear_period_s
 from mbcapture.reconstruct.hdr import merge_hdr, quantization_read_variance_e2
 from mbcapture.sensor import SensorConfig, dn_to_electrons, simulate_reads
 from mbcapture.sensor.sampling import POISSON_EXACT_MAX
-from mbcapture.timeline import (
-    DRAIN,
-    ReadEvent,
-    SegmentSeconds,
-    SlotSeconds,
-    build_timeline,
-)
+from mbcapture.timing.timeline import DRAIN, ReadEvent, SegmentSeconds, SlotSeconds, build_timeline
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "configs" / "tiny_hdr.yaml"
@@ -176,7 +165,7 @@ def test_stiff_escapement_settles_on_the_exact_pendulum():
 
 
 def test_metronome_at_fastest_tempo_and_largest_amplitude_plans_finitely():
-    from mbcapture.capture import prepare
+    from mbcapture.capture.pipeline import prepare
 
     c = load_config(
         TINY,
@@ -453,8 +442,8 @@ class ConstantRenderer:
     level=st.floats(1e-3, 1e3).map(lambda x: float(np.float32(x))),  # what a float32 render holds
 )
 def test_electrons_over_all_buckets_equal_incident_times_gated_fraction(durs, buckets, periods, level):
-    from mbcapture.integrate import integrate
-    from mbcapture.plan import Plan
+    from mbcapture.exposure.integrate import integrate
+    from mbcapture.exposure.plan import Plan
 
     slots = tuple(SlotSeconds(buckets[i], Fraction(d, 10**6)) for i, d in enumerate(durs))
     if all(s.bucket == DRAIN for s in slots):
@@ -632,7 +621,7 @@ def test_exit_status_is_2_from_a_real_process(tmp_path):
 
 # =============================================================================== interrupted runs
 def test_stale_staging_of_dead_processes_only_is_removed(tmp_path):
-    from mbcapture.io import remove_stale_staging
+    from mbcapture.output.io import remove_stale_staging
 
     host = socket.gethostname()
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
@@ -654,7 +643,7 @@ def test_stale_staging_of_dead_processes_only_is_removed(tmp_path):
 
 SLOW_WRITER = textwrap.dedent("""
     import sys, time
-    import mbcapture.io as mio
+    import mbcapture.output.io as mio
     real = mio.write_png
     def slow(*a, **k):
         real(*a, **k)
@@ -755,7 +744,7 @@ def test_same_seed_same_capture_bit_for_bit():
 def test_flat_field_at_zero_and_a_million_full_wells(tmp_path, radiance, expect):
     """End to end at 32x24: zero radiance and ~1e6 x the full well in the 8 ms read."""
     from mbcapture import run_capture
-    from mbcapture.io import read_exr
+    from mbcapture.output.io import read_exr
 
     c = load_config(
         None,

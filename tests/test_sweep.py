@@ -291,7 +291,7 @@ def test_tiny_sweep_renders_each_group_once(tiny_sweep):
 def test_a_sweep_point_equals_mbcapture_run_of_its_config(tiny_sweep, tmp_path):
     """p0001 took p0000's render stage; `mbcapture run` of its config.yaml renders (or reads) on its own."""
     from mbcapture.cli import main
-    from mbcapture.io import read_exr
+    from mbcapture.output.io import read_exr
 
     sweep, out, outcome = tiny_sweep
     point = out / "points" / "p0001"
@@ -386,7 +386,7 @@ def test_the_executor_is_this_process_for_one_set_of_renders_and_dask_otherwise(
 def test_a_sweep_of_one_render_set_runs_here_and_shares_its_error_estimates(tmp_path):
     """No Dask for points that all share one set of renders; the run's rendering-error estimate is
     computed once per full well and light level and equals a capture's own."""
-    from mbcapture.capture import run_capture
+    from mbcapture.capture.run import run_capture
 
     path = write_sweep(
         tmp_path,
@@ -410,7 +410,7 @@ def test_a_sweep_of_one_render_set_runs_here_and_shares_its_error_estimates(tmp_
 def test_an_application_that_says_it_renders_nothing_renders_nothing_on_shared_renders(config, monkeypatch):
     """App.renders False lets a sweep run its points side by side in threads: on another capture's
     renders, such an application's capture must not touch Mitsuba."""
-    from mbcapture.capture import run_capture
+    from mbcapture.capture.run import run_capture
     from mbcapture.render.renderer import Renderer
 
     cfg = load_config(config, ["render.width=16", "render.height=12", "render.spp=4", "render.cache=off"])
@@ -440,12 +440,10 @@ def test_one_figure_redrawn_per_metric_is_the_figure_drawn_afresh():
     import itertools
 
     import imageio.v3 as iio
-    import matplotlib
     import pandas as pd
 
-    from mbcapture.sweep.results import MetricGrid, _png, plot
+    from mbcapture.output.plots import MetricGrid, png_bytes, sweep_plot
 
-    matplotlib.use("Agg")
     grid = list(itertools.product([1.0, 2.0, 5.0, 10.0], [2500, 5000, 10000], ["a", "b"]))
     df = pd.DataFrame(grid, columns=["sensor.read_noise_e", "sensor.full_well_e", "app.kind"])
     df["status"] = "ok"
@@ -453,11 +451,7 @@ def test_one_figure_redrawn_per_metric_is_the_figure_drawn_afresh():
     df["metrics.lin"] = 0.5 + 0.01 * df["sensor.read_noise_e"] - 1e-5 * df["sensor.full_well_e"]
     axes = ["sensor.read_noise_e", "sensor.full_well_e", "app.kind"]
     figure = MetricGrid(df, axes)
-    try:
-        redrawn = {m: _png(figure.draw(m)) for m in ("metrics.log", "metrics.lin", "metrics.log")}
-    finally:
-        figure.close()
+    redrawn = {m: png_bytes(figure.draw(m), dpi=90) for m in ("metrics.log", "metrics.lin", "metrics.log")}
     for metric, png in redrawn.items():
-        fresh = plot(df, metric, axes)
-        np.testing.assert_array_equal(iio.imread(png), iio.imread(_png(fresh)), err_msg=metric)
-        matplotlib.pyplot.close(fresh)
+        fresh = sweep_plot(df, metric, axes)
+        np.testing.assert_array_equal(iio.imread(png), iio.imread(png_bytes(fresh, dpi=90)), err_msg=metric)

@@ -23,7 +23,7 @@ from mbcapture.render.build import (
     spectrum_to_rgb_reflectance,
     translate,
 )
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.scene.scenes import Camera, SceneModel
 
 
 def _png(path, rgb_u8):

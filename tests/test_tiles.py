@@ -10,11 +10,11 @@ import pytest
 from golden_cases import RENDER_REPEAT_RTOL, count_differences
 
 from mbcapture import load_config, run_capture
-from mbcapture.capture import check_resources
+from mbcapture.capture.run import check_resources
 from mbcapture.errors import ResourceProblem
-from mbcapture.pipeline import prepare
+from mbcapture.capture.pipeline import prepare
 from mbcapture.render.bands import band_seed, film_bands, group_bands
-from mbcapture.resources import GB, choose_tiles, estimate
+from mbcapture.exposure.resources import GB, choose_tiles, estimate
 from mbcapture.sensor import SensorConfig, develop_reads, join_rows, simulate_reads
 from mbcapture.sensor.sampling import BandedField, NoiseStreams, uniform_open
 
@@ -161,7 +161,7 @@ def test_a_tiled_capture_is_the_untiled_capture(config, extra, tiles, tmp_path):
         # the exposures and the joined photosite codes (the Bayer reads are demosaiced from them in memory)
         assert isinstance(_root(tiled.bucket_exposure), mmap.mmap) and isinstance(_root(tiled.mosaic_dn), mmap.mmap)
         # its outputs, whose float32 channels are made in scratch files too, are the untiled run's files
-        from mbcapture.capture import write_outputs
+        from mbcapture.capture.run import write_outputs
 
         write_outputs(untiled, tmp_path / "untiled")
         write_outputs(tiled, tmp_path / "tiled")
@@ -225,7 +225,7 @@ def test_the_difference_estimator_integrates_tiles_as_the_whole_film():
     """Its base and common-random-number renders are per tile too (the sensor is left out: at a few
     samples this control variate can give a negative exposure, which the sensor refuses)."""
     from mbcapture.config import scene_of
-    from mbcapture.integrate import integrate, integrate_tiles
+    from mbcapture.exposure.integrate import integrate, integrate_tiles
     from mbcapture.render import Renderer
 
     cfg = load_config(ROOT / "configs" / "metronome_hdr.yaml", [*SMALL, "render.estimator=difference"])
@@ -292,7 +292,7 @@ def test_tiles_are_chosen_from_the_memory_cap_and_shrink_the_estimate():
 def test_a_film_that_tiles_cannot_fit_spills_its_results_to_disk(tmp_path):
     """render.spill null: below what tiles alone need, the whole-film results go to scratch files, and
     the plan counts them as disk (the exposures, both error estimates, the reads, truths and flags)."""
-    from mbcapture.resources import choose_layout, plan_resources, spilled_per_bucket_sample
+    from mbcapture.exposure.resources import choose_layout, plan_resources, spilled_per_bucket_sample
 
     sets = ["render.spp=4", "render.cache=off", f"render.spill_dir={tmp_path}"]
     cfg = load_config(ROOT / "configs" / "sensor_12mp.yaml", sets)

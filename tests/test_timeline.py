@@ -7,18 +7,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mbcapture import protocols
+from mbcapture.timing import protocols
 from mbcapture.config import config_from_dict
 from mbcapture.errors import ConfigError
-from mbcapture.timeline import (
-    DRAIN,
-    ReadEvent,
-    SegmentSeconds,
-    SlotSeconds,
-    build_timeline,
-    common_tick,
-    exact,
-)
+from mbcapture.timing.timeline import DRAIN, ReadEvent, SegmentSeconds, SlotSeconds, build_timeline, common_tick, exact
 
 
 def cfg(**capture):

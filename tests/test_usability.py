@@ -92,7 +92,7 @@ def test_cli_switches_scene_and_prints_the_notice_on_one_line(capsys):
 # ----------------------------------------------------------------------------- --out checked before any work
 @pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc")
 def test_out_that_cannot_be_created_fails_before_any_work(capsys, monkeypatch):
-    import mbcapture.pipeline as pipeline
+    import mbcapture.capture.pipeline as pipeline
 
     def no_work(*a, **k):
         raise AssertionError("the capture started before --out was checked")
@@ -105,7 +105,7 @@ def test_out_that_cannot_be_created_fails_before_any_work(capsys, monkeypatch):
 
 
 def test_out_check_leaves_nothing_behind(tmp_path):
-    from mbcapture.io import check_out_dir
+    from mbcapture.output.io import check_out_dir
 
     check_out_dir(tmp_path / "a" / "b" / "c")
     assert list(tmp_path.iterdir()) == []
@@ -144,7 +144,7 @@ def test_mbcapture_set_applies_after_the_command_line_with_a_notice(monkeypatch)
 
 @pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux /proc")
 def test_converge_checks_its_out_before_the_ladders(capsys, monkeypatch):
-    import mbcapture.converge as converge
+    import mbcapture.studies.converge as converge
 
     def no_work(*a, **k):
         raise AssertionError("the ladders started before --out was checked")

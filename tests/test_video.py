@@ -7,16 +7,17 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter, shift
 
-from mbcapture import load_config, scenes, video
-from mbcapture.capture import prepare
+from mbcapture import load_config
+from mbcapture.scene import scenes
+from mbcapture.capture import video
+from mbcapture.capture.pipeline import frame_period_check, prepare
+from mbcapture.timing import protocols
 from mbcapture.errors import ConfigError
 
 
 def test_a_frame_period_shorter_than_capture_plus_readout_is_refused():
     ok = load_config("hdr_video", ["render.width=16", "render.height=12"])
-    assert __import__("mbcapture.pipeline").pipeline.frame_period_check(
-        ok, __import__("mbcapture").protocols.build(ok)
-    ) == pytest.approx(1 / 30)
+    assert frame_period_check(ok, protocols.build(ok)) == pytest.approx(1 / 30)
     # 8 ms of capture + 10 ms of readout do not fit in 1/60 s
     with pytest.raises(ConfigError, match=r"capture.frame_rate_hz: 60 frames/s .* at most 55.56 frames/s"):
         prepare(load_config("hdr_video", ["capture.frame_rate_hz=60", "render.width=16", "render.height=12"]))
@@ -94,7 +95,7 @@ def test_tiny_video_writes_frames_movie_and_metrics(tmp_path):
     import imageio.v3 as iio
 
     from mbcapture import run_capture
-    from mbcapture.io import read_exr
+    from mbcapture.output.io import read_exr
 
     cfg = load_config(
         "hdr_video",

@@ -43,7 +43,7 @@ and a border of
 ``residual_blur_px``        sigma of the Gaussian blur that best maps the truth onto the result
                             (least squares over sigma in [0, 8] px, scipy ``minimize_scalar``)
 ``motion_blur_px``          mean over frames of how far the frame moved during its own exposure
-                            (:func:`mbcapture.camera_motion.frame_motion_px`, from the trajectory)
+                            (:func:`mbcapture.scene.camera_motion.frame_motion_px`, from the trajectory)
 ``registration_error_px``   per frame: RMS over a 3 x 3 grid of image points (at the camera's target
                             distance) of the estimated warp's position minus the true one, the true
                             correspondence being each point's mean image position over each frame's
@@ -57,23 +57,18 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from .. import protocols
-from ..camera_motion import frame_motion_px, reference_points, still
+from ..strict import StrictModel
+from ..timing import protocols
+from ..scene.camera_motion import frame_motion_px, reference_points, still
 from ..errors import ConfigError
 from ..metrics import luminance, psnr, relative_mse
-from ..reconstruct.register import (
-    ALIGN_METHODS,
-    align_and_average,
-    fit_blur_px,
-    register_to_truth,
-    registration_errors,
-)
+from ..reconstruct.register import ALIGN_METHODS, align_and_average, fit_blur_px, register_to_truth, registration_errors
 from ..render import Renderer
-from ..simulate import capture_timeline
-from ..timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline, exact
-from . import AppOutput, CaptureData, register
+from ..exposure.simulate import capture_timeline
+from ..timing.timeline import ReadEvent, SegmentSeconds, SlotSeconds, build_timeline, exact
+from . import AppOutput, CaptureData, register, register_protocol
 from .hdr import REL_MSE_EPS_RADIANCE
 
 #: Points per axis of the grid on which registration error is measured.
@@ -91,7 +86,7 @@ CAPTIONS = {
 }
 
 
-@protocols.register("burst", app="burst")
+@register_protocol("burst", app="burst")
 def burst_protocol(cfg):
     """K equal exposures T back to back, one per bucket, each read directly (F1..FK)."""
     if cfg.capture.periods != 1:
@@ -106,8 +101,7 @@ def burst_protocol(cfg):
     return [SlotSeconds(b, T) for b in range(k)], [ReadEvent(f"F{b + 1}", (b,)) for b in range(k)], k
 
 
-class BurstParams(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class BurstParams(StrictModel):
     method: Literal["ecc_euclidean", "ecc_homography", "phase_correlation", "none"] = Field(
         "ecc_euclidean",
         description="Registration of each frame onto the reference: ecc_euclidean, ecc_homography "

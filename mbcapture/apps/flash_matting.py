@@ -44,20 +44,15 @@ from fractions import Fraction
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
-from .. import protocols
+from ..strict import StrictModel
 from ..errors import ConfigError
 from ..metrics import luminance, relative_mse
-from ..reconstruct.matting import (
-    estimate_alpha,
-    make_trimap,
-    reference_level,
-    trimap_cue,
-)
+from ..reconstruct.matting import estimate_alpha, make_trimap, reference_level, trimap_cue
 from ..render.coverage import coverage_alpha
-from ..timeline import ReadEvent, SlotSeconds, exact
-from . import AppOutput, CaptureData, register
+from ..timing.timeline import ReadEvent, SlotSeconds, exact
+from . import AppOutput, CaptureData, register, register_protocol
 from .hdr import REL_MSE_EPS_RADIANCE
 
 FLASH_READ, NOFLASH_READ = "flash", "noflash"
@@ -65,9 +60,7 @@ FLASH_READ, NOFLASH_READ = "flash", "noflash"
 MATTING_WHITE_PERCENTILE = 99.9
 
 
-class FlashMattingParams(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
+class FlashMattingParams(StrictModel):
     flash_buckets: Literal[2, 3] = Field(
         2,
         description="How many of the 4 buckets collect with the flash on (read by the flash_matting protocol): 2 is the "
@@ -137,7 +130,7 @@ class FlashMattingParams(BaseModel):
 
 
 # ----------------------------------------------------------------------------- protocol
-@protocols.register("flash_matting", app="flash_matting")
+@register_protocol("flash_matting", app="flash_matting")
 def flash_matting_protocol(cfg):
     """2:2 or 3:1 flash / no-flash buckets (``app.flash_buckets``); reads ``flash`` and ``noflash``."""
     if cfg.sensor.bucket_count < 4:

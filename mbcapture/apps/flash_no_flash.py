@@ -37,14 +37,14 @@ from fractions import Fraction
 from typing import Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from .. import protocols
-from ..camera_motion import moving_region
+from ..strict import StrictModel
+from ..scene.camera_motion import moving_region
 from ..errors import ConfigError
 from ..metrics import luminance, psnr, relative_mse
-from ..timeline import ReadEvent, SlotSeconds, exact
-from . import AppOutput, CaptureData, register
+from ..timing.timeline import ReadEvent, SlotSeconds, exact
+from . import AppOutput, CaptureData, register, register_protocol
 from .hdr import REL_MSE_EPS_RADIANCE
 
 #: The switchable emitter group the protocol pulses.
@@ -67,7 +67,7 @@ CAPTIONS = {
 
 
 # ----------------------------------------------------------------------------- protocol
-@protocols.register("flash_no_flash", app="flash_no_flash")
+@register_protocol("flash_no_flash", app="flash_no_flash")
 def flash_no_flash_protocol(cfg):
     """One period: bucket 1 with the flash on, then bucket 2 ambient only, each T / N; reads
     ``flash`` (bucket 1) and ``noflash`` (bucket 2), each integrating T = unit_exposure_s."""
@@ -82,9 +82,7 @@ def flash_no_flash_protocol(cfg):
 
 
 # ----------------------------------------------------------------------------- parameters
-class FlashNoFlashParams(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
+class FlashNoFlashParams(StrictModel):
     method: Literal["petschnigg", "joint_bilateral", "bilateral", "none"] = Field(
         "petschnigg",
         description="Enhanced image: 'petschnigg' (joint bilateral + detail transfer + shadow/specular mask), "

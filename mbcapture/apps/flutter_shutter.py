@@ -60,21 +60,16 @@ from fractions import Fraction
 from typing import Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
 
-from .. import protocols
+from ..strict import StrictModel
 from ..errors import ConfigError
 from ..metrics import luminance, psnr
-from ..reconstruct.deblur import (
-    deblur_fourier,
-    pixel_least_squares,
-    read_samples,
-    spread_kernel,
-    white_noise_gain,
-)
-from ..sensor import dn_to_electrons, simulate_reads
-from ..timeline import DRAIN, ReadEvent, SlotSeconds, exact
-from . import AppOutput, CaptureData, register
+from ..reconstruct.deblur import deblur_fourier, pixel_least_squares, read_samples, spread_kernel, white_noise_gain
+from ..sensor import dn_to_electrons
+from ..exposure.simulate import sense_frame
+from ..timing.timeline import DRAIN, ReadEvent, SlotSeconds, exact
+from . import AppOutput, CaptureData, register, register_protocol
 
 #: Raskar, Agrawal and Tumblin 2006: their 52-chop code (26 open).
 RASKAR_2006 = "1010000111000001010000110011110111010111001001100111"
@@ -89,9 +84,7 @@ def code_bits(code: str) -> np.ndarray:
     return np.array([int(c) for c in s], np.int64)
 
 
-class FlutterParams(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
+class FlutterParams(StrictModel):
     code: str = Field(
         "raskar2006",
         description="Chop code: 'raskar2006' (the 52-chop code of Raskar et al. 2006) or a "
@@ -137,7 +130,7 @@ class FlutterParams(BaseModel):
 
 
 # --------------------------------------------------------------------------------- protocol
-@protocols.register("flutter_shutter", app="flutter_shutter")
+@register_protocol("flutter_shutter", app="flutter_shutter")
 def flutter_shutter_protocol(cfg):
     """n chops of T/(n N) per period (N = capture.periods); open -> bucket 1, closed -> bucket 2 / drain."""
     _, params = cfg.app.resolve(cfg.capture.protocol)
@@ -269,9 +262,9 @@ def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
         if data.seed is not None
         else 0
     )
-    box_read = simulate_reads(box_e[None], [(0,)], sensor, box_seed, shared_photodiode=False)
-    box_b = dn_to_electrons(box_read.reads_dn, sensor) / k_e
     box_t = float(data.exposure_s.sum())
+    box_read = sense_frame(box_e, sensor, box_seed, box_t)  # its dark current over its exposure too
+    box_b = dn_to_electrons(box_read.reads_dn, sensor) / k_e
     box_samples = [(np.concatenate([s_ for s_, _ in samples]), np.concatenate([w_ for _, w_ in samples]))]
     ref_noise = (
         float(np.sqrt(np.mean(luminance((box_b[0] - box_e / k_e) / box_t)[region] ** 2))) if region.any() else 0.0

@@ -1,4 +1,17 @@
-"""HDR: merge the reads of an HDR protocol into radiance with its uncertainty (``hdr.method``).
+"""HDR: the HDR protocols, and the merge of their reads into radiance with its uncertainty (``hdr.method``).
+
+The protocols (each a function of the config returning one period's slots and the reads):
+
+``photon_efficient_hdr``
+    Slots 4:2:1:1 (for K buckets: 2^(K-2) : ... : 2 : 1 : 1) per period; non-destructive
+    reads of bucket K, K+(K-1), ..., all: exposures T, 2T, 4T, ..., 2^(K-1) T in 2^(K-1) T
+    (the paper's section 4).
+``interleaved_hdr``
+    Slots 8:4:2:1 (2^(K-1) : ... : 1), each bucket read directly: the same exposures in
+    (2^K - 1) T (Wan et al. 2012; the paper's figure 9).
+``custom``
+    One period of slots from ``capture.schedule`` repeated ``capture.periods`` times (any
+    application can read it: ``app.name``; the HDR merge by default).
 
 On a Bayer sensor (``sensor.cfa``) the merge runs on each photosite's reads and the merged radiance
 is demosaiced (:func:`merge_mosaic` says why).
@@ -15,7 +28,11 @@ import numpy as np
 from ..metrics import REC709_LUMA, pu21_psnr, relative_mse
 from ..reconstruct.hdr import merge_hdr, quantization_read_variance_e2, resolve_method
 from ..sensor.cfa import demosaic, demosaic_hdr, spread_to_footprint, to_mosaic
-from . import AppOutput, CaptureData, register
+from ..config import CaptureConfig
+from ..errors import ConfigError
+from ..timing.protocols import need_buckets
+from ..timing.timeline import DRAIN, ReadEvent, SlotSeconds, exact
+from . import AppOutput, CaptureData, register, register_protocol
 
 #: lm/W at 555 nm: radiance (W m^-2 sr^-1) -> luminance (cd m^-2) for PU21, treating the RGB
 #: channels' luminance weights (Rec. 709) as photometric. An approximation, used for the metric only.
@@ -24,6 +41,46 @@ LUMINOUS_EFFICACY_LM_PER_W = 683.0
 #: relMSE floor for radiance images: (0.01 W m^-2 sr^-1)^2, about the darkest lit surfaces of the
 #: shipped scenes, so black pixels do not dominate the mean.
 REL_MSE_EPS_RADIANCE = 1e-4
+
+
+@register_protocol("photon_efficient_hdr")
+def photon_efficient_hdr(cfg: CaptureConfig):
+    """One period: bucket 1 gets 2^(K-2) units, ..., bucket K-1 one unit, bucket K one unit."""
+    k = need_buckets(cfg, max(cfg.sensor.bucket_count, 2))
+    T, N = exact(cfg.capture.unit_exposure_s), cfg.capture.periods
+    units = [2 ** (k - 2 - i) for i in range(k - 1)] + [1]
+    slots = [SlotSeconds(b, T * u / N) for b, u in enumerate(units)]
+    reads = [ReadEvent(f"J{i + 1}", tuple(range(k - 1 - i, k))) for i in range(k)]
+    return slots, reads, k
+
+
+@register_protocol("interleaved_hdr")
+def interleaved_hdr(cfg: CaptureConfig):
+    """One period: bucket 1 gets 2^(K-1) units, ..., bucket K one unit; each read directly."""
+    k = need_buckets(cfg, cfg.sensor.bucket_count)
+    T, N = exact(cfg.capture.unit_exposure_s), cfg.capture.periods
+    slots = [SlotSeconds(b, T * 2 ** (k - 1 - b) / N) for b in range(k)]
+    reads = [ReadEvent(f"J{i + 1}", (k - 1 - i,)) for i in range(k)]
+    return slots, reads, k
+
+
+@register_protocol("custom")
+def custom(cfg: CaptureConfig):
+    sched = cfg.capture.schedule
+    used = {s.bucket for s in sched.slots if s.bucket != "drain"} | {b for r in sched.reads for b in r.buckets}
+    bad = sorted(b for b in used if b < 1)
+    if bad:
+        raise ConfigError(f"capture.schedule: buckets are numbered from 1 (got {bad})")
+    k = need_buckets(cfg, max(used))
+    slots = [
+        SlotSeconds(DRAIN if s.bucket == "drain" else s.bucket - 1, exact(s.duration_s), frozenset(s.groups))
+        for s in sched.slots
+    ]
+    reads = [ReadEvent(r.name or f"J{i + 1}", tuple(b - 1 for b in r.buckets)) for i, r in enumerate(sched.reads)]
+    names_ = [r.name for r in reads]
+    if len(set(names_)) != len(names_):
+        raise ConfigError(f"capture.schedule.reads: read names must be unique (got {names_})")
+    return slots, reads, k
 
 
 def luminance_cd_m2(rgb_radiance: np.ndarray) -> np.ndarray:

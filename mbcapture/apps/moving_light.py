@@ -22,9 +22,10 @@ is what decides whether an HDR merge of them is a picture of one scene:
 from __future__ import annotations
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from .. import protocols
+from ..strict import StrictModel
+from ..timing import protocols
 from ..errors import ConfigError
 from . import AppOutput, CaptureData, register
 from . import hdr as hdr_app
@@ -33,8 +34,7 @@ from . import hdr as hdr_app
 SWEEP_TIME_SAMPLES = 96
 
 
-class MovingLightParams(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class MovingLightParams(StrictModel):
     sweep_grow_px: float = Field(
         1.5,
         ge=0.0,

@@ -81,17 +81,17 @@ from fractions import Fraction
 from typing import Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from .. import protocols
+from ..strict import StrictModel
 from ..errors import ConfigError
 from ..metrics import luminance, nrmse, relative_mse
-from ..projective import points_from_depth
+from ..scene.projective import points_from_depth
 from ..reconstruct.demultiplex import code_rank, demultiplex, demultiplex_guided
 from ..reconstruct.photometric import angular_error_deg, near_light_normals
 from ..render.aov import render_depth, render_normals
-from ..timeline import ReadEvent, SlotSeconds, Timeline, exact
-from . import AppOutput, CaptureData, register
+from ..timing.timeline import ReadEvent, SlotSeconds, Timeline, exact
+from . import AppOutput, CaptureData, register, register_protocol
 
 #: Flash groups in bucket order, and the read names of the protocol.
 FLASH_GROUPS = ("flash_top", "flash_bottom", "flash_left", "flash_right")
@@ -102,7 +102,7 @@ REL_MSE_EPS_RADIANCE = 1e-3
 
 
 # --------------------------------------------------------------------------------- protocol
-@protocols.register("multi_flash", app="multi_flash")
+@register_protocol("multi_flash", app="multi_flash")
 def multi_flash_protocol(cfg):
     """Buckets 1-4: one LED group each for T/N per period; bucket 5 (if any): ambient only."""
     have = cfg.sensor.bucket_count
@@ -119,9 +119,7 @@ def multi_flash_protocol(cfg):
 
 
 # --------------------------------------------------------------------------------- params
-class MultiFlashParams(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
+class MultiFlashParams(StrictModel):
     method: str = Field(
         "raskar2004",
         description="Depth-edge method: raskar2004 (ratio images traversed away from "
@@ -262,7 +260,7 @@ class Epipole:
 
 
 def epipole(camera, position, width: int, height: int) -> Epipole:
-    """The epipole of a light at world ``position`` for ``camera`` (a :class:`~mbcapture.scenes.Camera`)."""
+    """The epipole of a light at world ``position`` for ``camera`` (a :class:`~mbcapture.scene.projective.Camera`)."""
     o = np.asarray(camera.origin, float)
     fwd = np.asarray(camera.target, float) - o
     fwd /= np.linalg.norm(fwd)

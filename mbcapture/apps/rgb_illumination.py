@@ -45,20 +45,17 @@ from __future__ import annotations
 from typing import Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from .. import protocols
-from ..camera_motion import still
+from ..strict import StrictModel
+from ..scene.camera_motion import still
 from ..errors import ConfigError
 from ..render import Renderer
-from ..sensor import dn_to_electrons, electrons_per_render_second, simulate_reads
-from ..sensor.spectral import (
-    channel_quantum_efficiency,
-    film_sensitivity,
-    is_monochrome,
-)
-from ..timeline import ReadEvent, SlotSeconds, exact
-from . import AppOutput, CaptureData, register
+from ..sensor import dn_to_electrons, electrons_per_render_second
+from ..exposure.simulate import sense_frame
+from ..sensor.spectral import channel_quantum_efficiency, film_sensitivity, is_monochrome
+from ..timing.timeline import ReadEvent, SlotSeconds, exact
+from . import AppOutput, CaptureData, register, register_protocol
 
 LED_GROUPS = ("led_r", "led_g", "led_b")
 READ_NAMES = ("R", "G", "B", "ambient")
@@ -75,7 +72,7 @@ CAPTIONS = {
 }
 
 
-@protocols.register("rgb_illumination", app="rgb_illumination")
+@register_protocol("rgb_illumination", app="rgb_illumination")
 def rgb_illumination_protocol(cfg):
     """One period: bucket 1 red LED, bucket 2 green, bucket 3 blue, bucket 4 ambient, each T/N."""
     if cfg.sensor.bucket_count < 4:
@@ -89,9 +86,7 @@ def rgb_illumination_protocol(cfg):
     return slots, reads, 4
 
 
-class Params(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
+class Params(StrictModel):
     method: Literal["chart_fit", "analytic"] = Field(
         "chart_fit",
         description="Colour correction from LED signals to XYZ: 'chart_fit' (3x3 least squares on the "
@@ -379,7 +374,7 @@ def bayer_capture(data: CaptureData, params: Params) -> dict:
     k_e = electrons_per_render_second(sensor, cfg.render.variant)
     expected = exposure * k_e
     rng = np.random.default_rng(data.seed.spawn(3)[2])
-    out = simulate_reads(expected[None], [(0,)], sensor, rng, storage_s=[t1 - t0], shared_photodiode=False)
+    out = sense_frame(expected, sensor, rng, t1 - t0)
     rgb = dn_to_electrons(out.reads_dn, sensor)[0] / (t1 - t0)  # demosaiced by the sensor stage
     return {
         "rates": rgb,

@@ -43,7 +43,7 @@ Reconstruction (pure numpy; radiance rate I_k = read electrons / (k_e t_k), Rec.
        the phase by more than pi between neighbours (the baseline that shows why).
        ``none``: u = phi W / (2 pi P), right for P = 1 only.
     4. Triangulation: the camera ray through each pixel centre meets the plane of the projector's
-       column u (:func:`mbcapture.projective.triangulate_columns`), giving the depth along the
+       column u (:func:`mbcapture.scene.projective.triangulate_columns`), giving the depth along the
        camera's optical axis.
 
 Ground truth and metrics
@@ -66,21 +66,18 @@ from fractions import Fraction
 from typing import Callable, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from .. import protocols, scenes
+from ..output.plots import colormap_rgb
+from ..strict import StrictModel
+from ..scene import scenes
 from ..errors import ConfigError
 from ..metrics import luminance
-from ..projective import frame, points_from_depth, triangulate_columns
-from ..reconstruct.phase import (
-    UNWRAP_METHODS,
-    decode_gray,
-    period_ambiguity,
-    wrapped_phase,
-)
+from ..scene.projective import frame, points_from_depth, triangulate_columns
+from ..reconstruct.phase import UNWRAP_METHODS, decode_gray, period_ambiguity, wrapped_phase
 from ..render.aov import NEAR_CLIP_M, pixel_cosines, render_depth
-from ..timeline import ReadEvent, SlotSeconds, exact
-from . import AppOutput, CaptureData, register
+from ..timing.timeline import ReadEvent, SlotSeconds, exact
+from . import AppOutput, CaptureData, register, register_protocol
 
 AMBIENT_READ = "ambient"
 SCENE_KEY = "structured_light"
@@ -97,7 +94,7 @@ def scene_info(scene) -> dict:
 
 
 # --------------------------------------------------------------------------------- protocol
-@protocols.register("structured_light", app="structured_light")
+@register_protocol("structured_light", app="structured_light")
 def structured_light_protocol(cfg):
     """Buckets 1..N: the scene's pattern groups, T/N_p each per period; bucket N+1 (if any): ambient."""
 
@@ -118,9 +115,7 @@ def structured_light_protocol(cfg):
 
 
 # --------------------------------------------------------------------------------- params
-class StructuredLightParams(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
+class StructuredLightParams(StrictModel):
     ambient: Literal["auto", "subtract", "none"] = Field(
         "auto",
         description="Ambient light: 'auto' subtracts the ambient-only read when the capture has one, 'subtract' "
@@ -324,10 +319,8 @@ def _roles(data: CaptureData, info: dict) -> tuple[list[int], int | None]:
 
 def _depth_preview(z: np.ndarray, z_min: float, z_max: float) -> np.ndarray:
     """(H, W, 3) linear preview: near bright, far dark (turbo colour map), invalid black."""
-    from matplotlib import colormaps
-
     t = np.clip((z_max - np.nan_to_num(z, nan=z_max)) / (z_max - z_min), 0, 1)
-    rgb = colormaps["turbo"](t)[..., :3] ** 2.2  # the PNG writer applies the sRGB curve
+    rgb = colormap_rgb(t, "turbo") ** 2.2  # the PNG writer applies the sRGB curve
     rgb[~np.isfinite(z)] = 0.0
     return rgb
 

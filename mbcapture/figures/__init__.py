@@ -22,10 +22,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from ..capture import run_capture
+from ..capture.run import run_capture
 from ..config import load_config
 from ..errors import ConfigError
-from ..io import check_out_dir, staged_outputs
+from ..output.io import check_out_dir, staged_outputs
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG_DIR = ROOT / "configs"

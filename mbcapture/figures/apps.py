@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..io import tonemap
+from ..output.io import tonemap
 from ..metrics import flat_items
 from . import FigureContext, FigureOutput, figure
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..config import load_config, scene_of
 from ..metrics import row_column_pixel_variances
-from ..optics import (
+from ..scene.optics import (
     blur_radius_px,
     diffraction_otf,
     focal_length_m,
@@ -287,12 +287,12 @@ def camera_distortion(ctx: FigureContext) -> FigureOutput:
         img = r.render(0.0, spp, ctx.seed).sum(axis=0)
         images.append(img)
         ax.imshow(np.clip(img / float(np.percentile(images[0], 99.5)), 0, 1) ** (1 / 2.2))
-        ax.set_title(f"{label}: Mitsuba renders {r.render_fov_deg:.1f} degrees", fontsize=8)
+        ax.set_title(f"{label}: Mitsuba renders {r.lens.render_fov_deg:.1f} degrees", fontsize=8)
         ax.set_xticks([]), ax.set_yticks([])
         t = np.tan(np.radians(r.scene_model.camera.fov_deg) / 2)
         corner = (t, t * H / W)  # where the sensor's corner ray would land without the lens's bending, in px
         shift = 0.0 if not k else float(np.hypot(*corner) * abs(k[0]) * (corner[0] ** 2 + corner[1] ** 2) * W / (2 * t))
-        rows.append([label, r.render_fov_deg, shift])
+        rows.append([label, r.lens.render_fov_deg, shift])
     fig.tight_layout()
     caption = (
         "The colour chart through a lens with radial (Brown-Conrady) distortion: the sensor pixel's ray is the "

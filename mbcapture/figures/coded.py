@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..metrics import luminance
-from ..plots import draw_gate_code
-from ..report import subframe_names
+from ..output.plots import draw_gate_code
+from ..capture.report import subframe_names
 from . import FigureContext, FigureOutput, figure
 
 

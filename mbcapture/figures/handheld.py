@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import camera_motion as cm
-from ..capture import prepare
+from ..scene import camera_motion as cm
+from ..capture.pipeline import prepare
 from ..config import scene_of
-from ..io import tonemap
-from ..video import needle_track
+from ..output.io import tonemap
+from ..capture.video import needle_track
 from . import FigureContext, FigureOutput, figure
 
 

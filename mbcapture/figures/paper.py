@@ -1,7 +1,7 @@
 """The paper's timing, HDR and SNR figures (1, 2, 3, 5, 6, 9, 11) and the HDR SNR curves.
 
 Timing diagrams are drawn from the timelines the simulator actually uses
-(:func:`mbcapture.protocols.build`), and centroids/spans come from
+(:func:`mbcapture.timing.protocols.build`), and centroids/spans come from
 :meth:`Timeline.centroid_ticks` / :meth:`Timeline.span_ticks` (exact fractions), checked
 here against the paper's closed forms (equations 1-5).
 """
@@ -12,13 +12,13 @@ from fractions import Fraction
 
 import numpy as np
 
-from .. import protocols
+from ..timing import protocols
 from ..config import config_from_dict
 from ..errors import MBCaptureError
-from ..io import tonemap
-from ..plots import BUCKET_COLOURS, draw_timeline
+from ..output.io import tonemap
+from ..output.plots import BUCKET_COLOURS, draw_timeline
 from ..sensor import SensorConfig, dn_to_electrons, simulate_reads
-from ..snr import radiance_range, snr_curves
+from ..studies.snr import radiance_range, snr_curves
 from ..sweep import load_sweep, run_sweep
 from . import CONFIG_DIR, FigureContext, FigureOutput, figure
 

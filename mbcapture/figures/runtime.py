@@ -1,9 +1,10 @@
 """Beyond the paper: rendering error against run time, the planner against naive per-slot rendering
-(:mod:`mbcapture.converge`, the same computation as ``mbcapture converge``)."""
+(:mod:`mbcapture.studies.converge`, the same computation as ``mbcapture converge``)."""
 
 from __future__ import annotations
 
-from .. import converge
+from ..output.plots import convergence_figure
+from ..studies import converge
 from . import FigureContext, FigureOutput, figure
 
 
@@ -21,7 +22,7 @@ def error_vs_runtime(ctx: FigureContext) -> FigureOutput:
         result = converge.run_converge(cfg, converge.QUICK_MOTION_LADDER, (1,), ref_spp=32)
     else:
         result = converge.run_converge(cfg)
-    fig = converge.plot(result)
+    fig = convergence_figure(result)
     rows = [["method", "spp", "passes", "samples_per_pixel", "seconds", "error"]]
     rows += [
         [p["method"], p["spp"], p["passes"], p["samples_per_pixel_total"], p["seconds"], p["error"]]

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..io import tonemap
+from ..output.io import tonemap
 from ..reconstruct.deblur import kernel_spectrum, read_samples, spread_kernel
-from ..scenes import make_scene
+from ..scene.scenes import make_scene
 from . import FigureContext, FigureOutput, figure
 
 GRAY = ("scene.pattern=gray_code", "sensor.bucket_count=10")

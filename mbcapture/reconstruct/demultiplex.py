@@ -2,7 +2,7 @@
 
 A coded two-bucket sensor (Wei et al., ECCV 2018) gives every pixel p a few reads m(p) (R), each
 a known 0/1 combination of the S sub-frame images x(p): m(p) = A(p) x(p), A(p) (R, S) from the
-pixel's gate code (:meth:`mbcapture.gatecode.GateCode.measurement`). One pixel's reads cannot
+pixel's gate code (:meth:`mbcapture.timing.gatecode.GateCode.measurement`). One pixel's reads cannot
 determine S > R unknowns; neighbouring pixels carry other codes, so a neighbourhood can.
 
 :func:`demultiplex` solves, at every pixel, the weighted least-squares problem over its

@@ -2,7 +2,7 @@
 
 The structured-light application (:mod:`mbcapture.apps.structured_light`) projects the patterns,
 renders the truth and scores; the decoding lives here. Triangulation is a callable ``tri(u) -> z``
-(projector column to depth) built from :mod:`mbcapture.projective`.
+(projector column to depth) built from :mod:`mbcapture.scene.projective`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..projective import pixel_rays
+from ..scene.projective import pixel_rays
 
 
 # --------------------------------------------------------------------------------- decoding

@@ -167,7 +167,7 @@ class Projector:
     """A pinhole projector (Mitsuba's ``projector`` emitter) casting ``image`` into the scene, in ``group``.
 
     It sits at ``origin`` and looks at ``target`` (``up`` fixes its roll) like
-    :class:`mbcapture.scenes.Camera`, with the horizontal field of view ``fov_deg`` spanning the
+    :class:`mbcapture.scene.projective.Camera`, with the horizontal field of view ``fov_deg`` spanning the
     image's width; its height follows the image's aspect. Measured on Mitsuba 3.9.1 (tests/
     test_projector.py): texel (row i, column j) lights the points that a camera at the same pose,
     field of view and resolution sees in pixel (i, j), texel centres at half-integers, so

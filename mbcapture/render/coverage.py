@@ -17,7 +17,7 @@ from typing import Iterable
 import numpy as np
 
 from ..errors import ConfigError
-from ..scenes import SceneModel
+from ..scene.scenes import SceneModel
 from .build import Environment, SceneBuild
 from .renderer import Renderer
 

@@ -252,3 +252,16 @@ def apply_target_from_env() -> tuple[str, str, int] | None:
     fn(target[0].encode(), target[1].encode(), target[2])
     _applied_target = target
     return target
+
+
+def set_render_threads(variant: str, threads: int | None) -> None:
+    """Render on ``threads`` of this process's cores (None: Dr.Jit's default, every core). For an LLVM
+    ``variant`` the libLLVM is picked first (:func:`ensure_llvm`), as it must be before Mitsuba loads."""
+    if not variant.startswith("llvm"):
+        return
+    ensure_llvm()
+    if threads:
+        import drjit as dr
+
+        if dr.thread_count() != threads:
+            dr.set_thread_count(threads)

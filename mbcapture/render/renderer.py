@@ -1,4 +1,4 @@
-"""Turn a :class:`~mbcapture.scenes.SceneModel` into a Mitsuba scene and render emitter groups.
+"""Turn a :class:`~mbcapture.scene.scenes.SceneModel` into a Mitsuba scene and render emitter groups.
 
 Mitsuba is imported inside :class:`Renderer` only, after :func:`~mbcapture.render.llvm.ensure_llvm`
 has pinned a libLLVM that does not crash.
@@ -8,60 +8,38 @@ from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from ..errors import ConfigError
-from ..optics import (
-    apply_diffraction,
-    apply_distortion,
-    bilinear_taps,
-    diffraction_reach,
+from ..scene.optics import (
     focus_distance_m,
-    natural_vignetting,
     thin_lens_aperture_m,
-    undistortion_maps,
 )
-from ..scenes import SceneModel
+from ..scene.scenes import SceneModel
 from ..sensor.photons import mono_weights
 from ..sensor.spectral import film_sensitivity
 from .build import (
     MAX_GUIDE_SHARE,
-    MOVABLE_EMITTER_KINDS,
     Guide,
-    Material,
-    PerTile,
     SceneBuild,
-    Shape,
-    Spectrum,
-    Texture,
-    spectrum_to_rgb_radiance,
-    spectrum_to_rgb_reflectance,
 )
 from .bands import band_seed, film_bands
+from .lens import Lens
 from .cache import RenderCache, digest
 from .integrator import CAMERA_DIM, PLUGIN_NAME, integrator_class, is_lambertian
 from .pattern import pair as pattern_pair, pixel_key
 from .llvm import apply_target_from_env, ensure_llvm, llvm_target
-from .tiles import materialize, tile_table, tiles_description
-
-if TYPE_CHECKING:
-    from ..sensor.config import SensorConfig
+from .scene_dicts import CHANNELS, SENSORS, SceneDicts
+from .tiles import materialize
+from ..sensor.config import SensorConfig
 
 #: Mitsuba samplers a Renderer may use (render.sampler).
 SAMPLERS = ("multijitter", "ldsampler", "independent")
-#: The scene's second sensor (RGB variants): the first's camera and film with Mitsuba's independent sampler,
-#: for the renders that draw from the shared pattern (mbcapture.render.pattern). Those draw every dimension,
-#: the camera ray's included, from the pattern, so the sampler only lays out mi.render's lanes (spp
-#: consecutive lanes a pixel) and places each sample in its pixel, which the box filter ignores; the
-#: independent sampler takes any count, where multijitter takes 90 when asked for 85 (6 % more samples).
-EXACT_SENSOR = "sensor_exact"
-#: The scene's sensors, in their order in the scene (mi.render's ``sensor`` index).
-_SENSORS = ("sensor", EXACT_SENSOR)
 
 #: Modules whose code turns a scene description into pixels: part of every cache key.
 _PIXEL_CODE = (
@@ -73,6 +51,8 @@ _PIXEL_CODE = (
     "coverage.py",
     "bands.py",
     "tiles.py",
+    "scene_dicts.py",
+    "lens.py",
 )
 
 
@@ -159,6 +139,103 @@ def image_settings(scene: SceneModel, cfg: Any) -> dict[str, Any]:
     }
 
 
+@dataclass(frozen=True, eq=False)
+class RenderSettings:
+    """How a :class:`Renderer` renders, besides its scene and film size (each field a keyword of ``Renderer`` too):
+    the Mitsuba ``variant`` (an llvm/cuda ``*_rgb`` or ``*_spectral`` one), the path's ``max_depth``, Mitsuba's
+    ``sampler``, the ``sensor`` section (a spectral film's curves, diffraction's aperture), ``film_curves``
+    (wavelengths_nm (n,), curves (3, n)) that replace the sensor's in a spectral variant, the lens
+    (``vignetting``, ``distortion``, ``diffraction``, ``thin_lens``: (aperture radius m, focus distance m) or None
+    for a pinhole), a monochrome sensor's channel mixture ``mono``, the film's ``band_rows`` (None: the default)
+    and ``guide_fraction`` (None: the scene's own guide shares; 0: none)."""
+
+    variant: str = "llvm_ad_rgb"
+    max_depth: int = 4
+    sampler: str = "multijitter"
+    sensor: SensorConfig | None = None
+    film_curves: tuple[np.ndarray, np.ndarray] | None = None
+    vignetting: str = "none"
+    distortion: Sequence[float] | None = None
+    diffraction: bool = False
+    thin_lens: tuple[float, float] | None = None
+    mono: np.ndarray | None = None
+    band_rows: int | None = None
+    guide_fraction: float | None = 0.0
+
+    @classmethod
+    def from_config(cls, scene: SceneModel, cfg: Any, **fields: Any) -> "RenderSettings":
+        """The settings a capture config asks for (render.*, camera.*, sensor), with ``fields`` replacing any."""
+        r = cfg.render
+        return cls(
+            **{
+                "variant": r.variant,
+                "max_depth": r.max_depth,
+                "sampler": r.sampler,
+                "sensor": cfg.sensor,
+                "vignetting": cfg.camera.vignetting,
+                "diffraction": cfg.camera.diffraction,
+                "thin_lens": thin_lens_of(scene, cfg),
+                "mono": mono_weights(cfg.sensor, r.variant),
+                "distortion": cfg.camera.distortion,
+                "band_rows": r.band_rows,
+                "guide_fraction": r.guide_fraction,
+                **fields,
+            }
+        )
+
+    def check(self) -> None:
+        """A ConfigError naming the key for a setting no renderer can take."""
+        lens = self.thin_lens
+        if lens is not None and not (lens[0] > 0 and lens[1] > 0):
+            raise ConfigError(f"thin lens: aperture radius and focus distance must be positive, got {lens}")
+        if self.max_depth < 1:
+            raise ConfigError(f"render.max_depth must be >= 1, got {self.max_depth}")
+        if not self.variant.endswith(("_rgb", "_spectral")) or self.variant.startswith("scalar"):
+            raise ConfigError(
+                f"render.variant: expected an llvm/cuda *_rgb or *_spectral variant, got {self.variant!r}"
+            )
+        if self.sampler not in SAMPLERS:
+            raise ConfigError(f"render.sampler: expected one of {list(SAMPLERS)}, got {self.sampler!r}")
+
+    def film_sensitivity(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A spectral film's (wavelengths_nm (n,), curves (3, n)): ``film_curves``, else the sensor's
+        (:func:`mbcapture.sensor.spectral.film_sensitivity`); None in an RGB variant."""
+        spectral = self.variant.endswith("_spectral")
+        if self.film_curves is not None:
+            if not spectral:
+                raise ConfigError(f"render.variant {self.variant!r}: film_curves need a spectral variant")
+            wl, curves = (np.asarray(a, np.float64) for a in self.film_curves)
+            if wl.ndim != 1 or curves.shape != (3, wl.size):
+                raise ConfigError(
+                    f"film_curves: expected wavelengths (n,) and curves (3, n), got {wl.shape}, {curves.shape}"
+                )
+            return wl, curves
+        if not spectral:
+            return None
+        if self.sensor is None:
+            raise ConfigError(f"render.variant {self.variant!r}: a spectral render needs the sensor config")
+        try:
+            return film_sensitivity(self.sensor)
+        except ValueError as exc:
+            raise ConfigError(f"sensor.{exc}") from None
+
+
+def load_mitsuba(variant: str) -> tuple[Any, Any]:
+    """Mitsuba and Dr.Jit with ``variant`` set (an LLVM one after the libLLVM is picked, and compiling for
+    ``$MBCAPTURE_LLVM_TARGET`` where set): the ``(mitsuba, drjit)`` modules."""
+    if variant.startswith("llvm"):
+        ensure_llvm()
+    import drjit as dr
+    import mitsuba as mi
+
+    if variant not in mi.variants():
+        raise ConfigError(f"render.variant: {variant!r} not in {mi.variants()}")
+    mi.set_variant(variant)
+    if variant.startswith("llvm"):
+        apply_target_from_env()  # MBCAPTURE_LLVM_TARGET: compile for another CPU (before any kernel)
+    return mi, dr
+
+
 class Renderer:
     """Radiance images of a scene's emitter groups at given scene times.
 
@@ -220,163 +297,90 @@ class Renderer:
         diffraction) renders one band, the whole film.
     """
 
-    channels: tuple[str, ...] = ("R", "G", "B")
+    channels: tuple[str, ...] = CHANNELS
 
     def __init__(
         self,
         scene: SceneModel,
         width: int,
         height: int,
+        settings: RenderSettings | None = None,
         *,
-        variant: str = "llvm_ad_rgb",
-        max_depth: int = 4,
-        sensor: "SensorConfig | None" = None,
-        film_curves: tuple[np.ndarray, np.ndarray] | None = None,
         cache: RenderCache | None = None,
-        sampler: str = "multijitter",
-        vignetting: str = "none",
-        diffraction: bool = False,
-        thin_lens: tuple[float, float] | None = None,
-        mono: np.ndarray | None = None,
-        distortion: Sequence[float] | None = None,
-        band_rows: int | None = None,
-        guide_fraction: float | None = 0.0,
+        **settings_fields: Any,
     ) -> None:
-        if thin_lens is not None and not (thin_lens[0] > 0 and thin_lens[1] > 0):
-            raise ConfigError(f"thin lens: aperture radius and focus distance must be positive, got {thin_lens}")
-        #: (aperture radius m, focus distance m) of Mitsuba's thinlens sensor; None: a pinhole
-        self.thin_lens = None if thin_lens is None else (float(thin_lens[0]), float(thin_lens[1]))
-        if vignetting not in ("none", "cos4"):
-            raise ConfigError(f"camera.vignetting: expected 'none' or 'cos4', got {vignetting!r}")
-        # radial distortion (mbcapture.optics): Mitsuba renders a pinhole of field render_fov_deg (wider than
-        # the camera's for barrel distortion) and every render is resampled onto the sensor's pixels
-        self.distortion = None if not distortion else tuple(float(k) for k in distortion)
-        self.render_fov_deg = float(scene.camera.fov_deg)
-        self._undistort = None
-        if self.distortion is not None:
-            try:
-                map_x, map_y, t_render = undistortion_maps(scene.camera, width, height, self.distortion)
-            except ValueError as exc:
-                raise ConfigError(str(exc)) from None
-            self._undistort = (map_x, map_y)
-            self.render_fov_deg = float(np.degrees(2.0 * np.arctan(t_render)))
-        # the falloff of each ray's field angle, on the grid Mitsuba renders (before any resampling)
-        self._falloff = (
-            None
-            if vignetting == "none"
-            else natural_vignetting(replace(scene.camera, fov_deg=self.render_fov_deg), width, height).astype(
-                np.float32
-            )[None, :, :, None]
-        )
-        if diffraction and sensor is None:
-            raise ConfigError("camera.diffraction: needs the sensor (f-number, pixel pitch, wavelengths)")
-        self._diffraction = sensor if diffraction else None  # the sensor's f-number, pitch and wavelengths
-        # what render_pixels needs to reach every render pixel a sensor pixel reads: the four each is interpolated
-        # from (distortion) and the log of how much its neighbours weigh in it (diffraction; mbcapture.optics)
-        self._taps = None
-        if self._undistort is not None:  # each tap's samples: its weight b over sum b^2 of the sensor pixel's count
-            index, weight = bilinear_taps(*self._undistort)
-            self._taps = (index.reshape(4, -1), (weight / (weight * weight).sum(axis=0)).reshape(4, -1))
-        self._log_reach = None
-        if diffraction:
-            # a pixel's samples in proportion to its weight k in a sensor pixel, scaled by sum k / sum k^2: the sensor
-            # pixel's variance is then what the first pass's would be at the count it asks for (every pinhole pixel at
-            # it), at about sum k (sum k / sum k^2) = 1.46 times the count (f/2.8, 5.6 um) instead of the window's 289
-            k = diffraction_reach(sensor.pixel_pitch_um, sensor.f_number, sensor.wavelength_nm)
-            self._log_reach = np.log(np.maximum(k * (k.sum() / (k * k).sum()), 1e-300))
-        #: renders made elsewhere (a cluster's workers, mbcapture.cluster), by (t, spp, seed, groups, band): used once
-        self._given: dict[tuple[float, int, int, tuple[str, ...], int], np.ndarray] = {}
-        # a monochrome sensor's mixture of the channels (mbcapture.sensor.mono_weights), or None
-        self._mono = None if mono is None else np.asarray(mono, np.float64).reshape(3)
+        """A renderer of ``scene`` on a ``width`` x ``height`` film, rendering as ``settings`` says (default
+        :class:`RenderSettings`; ``settings_fields``: any of its fields, replacing them), its renders kept in
+        ``cache`` (None: none)."""
+        settings = replace(settings or RenderSettings(), **settings_fields)
+        settings.check()
         if not isinstance(scene.build, SceneBuild):
             raise ConfigError(f"scene {scene.name!r}: build payload is not a SceneBuild")
         if width < 1 or height < 1:
             raise ConfigError(f"film size must be positive, got {width}x{height}")
-        if max_depth < 1:
-            raise ConfigError(f"render.max_depth must be >= 1, got {max_depth}")
-        if not variant.endswith(("_rgb", "_spectral")) or variant.startswith("scalar"):
-            raise ConfigError(f"render.variant: expected an llvm/cuda *_rgb or *_spectral variant, got {variant!r}")
-        if sampler not in SAMPLERS:
-            raise ConfigError(f"render.sampler: expected one of {list(SAMPLERS)}, got {sampler!r}")
-        self.sampler = sampler
-        self.spectral = variant.endswith("_spectral")
-        self._sensitivity: tuple[np.ndarray, np.ndarray] | None = None
-        if film_curves is not None:
-            if not self.spectral:
-                raise ConfigError(f"render.variant {variant!r}: film_curves need a spectral variant")
-            wl, curves = (np.asarray(a, np.float64) for a in film_curves)
-            if wl.ndim != 1 or curves.shape != (3, wl.size):
-                raise ConfigError(
-                    f"film_curves: expected wavelengths (n,) and curves (3, n), got {wl.shape}, {curves.shape}"
-                )
-            self._sensitivity = (wl, curves)
-        elif self.spectral:
-            if sensor is None:
-                raise ConfigError(f"render.variant {variant!r}: a spectral render needs the sensor config")
-            try:
-                self._sensitivity = film_sensitivity(sensor)
-            except ValueError as exc:
-                raise ConfigError(f"sensor.{exc}") from None
-        if variant.startswith("llvm"):
-            ensure_llvm()
-        import drjit as dr
-        import mitsuba as mi
-
-        if variant not in mi.variants():
-            raise ConfigError(f"render.variant: {variant!r} not in {mi.variants()}")
-        mi.set_variant(variant)
-        if variant.startswith("llvm"):
-            apply_target_from_env()  # MBCAPTURE_LLVM_TARGET: compile for another CPU (before any kernel)
-        self._mi, self._dr = mi, dr
-        self.variant = variant
+        self.settings = settings
+        self.variant, self.sampler, self.max_depth = settings.variant, settings.sampler, int(settings.max_depth)
+        self.spectral = self.variant.endswith("_spectral")
+        #: (aperture radius m, focus distance m) of Mitsuba's thinlens sensor; None: a pinhole
+        self.thin_lens = (
+            None if settings.thin_lens is None else (float(settings.thin_lens[0]), float(settings.thin_lens[1]))
+        )
+        self.lens = Lens(
+            scene.camera,
+            width,
+            height,
+            vignetting=settings.vignetting,
+            distortion=settings.distortion,
+            diffraction=settings.diffraction,
+            sensor=settings.sensor,
+        )
+        #: renders made elsewhere (a cluster's workers, mbcapture.exposure.cluster), by (t, spp, seed, groups, band): used once
+        self._given: dict[tuple[float, int, int, tuple[str, ...], int], np.ndarray] = {}
+        # a monochrome sensor's mixture of the channels (mbcapture.sensor.mono_weights), or None
+        self._mono = None if settings.mono is None else np.asarray(settings.mono, np.float64).reshape(3)
+        self._sensitivity = settings.film_sensitivity()
+        self._mi, self._dr = load_mitsuba(self.variant)
         self.scene_model = scene
         self.width, self.height = int(width), int(height)
-        self.max_depth = int(max_depth)
         #: the share of every diffuse bounce sent towards each of the scene's guides (SceneBuild.guides), in their
         #: order: their own shares (``guide_fraction`` None), or ``guide_fraction`` split in their proportions
-        self.guide_shares = guide_shares(scene.build.guides, guide_fraction)
+        self.guide_shares = guide_shares(scene.build.guides, settings.guide_fraction)
         #: the share of every diffuse bounce sent towards the scene's guides together (0: none)
         self.guide_fraction = float(sum(self.guide_shares))
         self.groups: tuple[str, ...] = tuple(scene.groups)
-        build: SceneBuild = scene.build
-        unknown = set(build.emitter_groups()) - set(self.groups)
-        if unknown:
-            raise ConfigError(f"scene {scene.name!r}: emitters in undeclared groups {sorted(unknown)}")
-
-        self._build = build
-        build.check_files(scene.name)
+        self._build = build = scene.build
+        self._check_build(build)
         self._python_objects: list[Any] = []  # Python Mitsuba objects its scenes hold (mbcapture.render.tiles)
-        if build.projectors and self.spectral:
-            raise ConfigError(
-                f"scene {scene.name!r}: projector emitters are supported in RGB variants only, not {variant!r}"
-            )
         self.cache = cache
         # the scene descriptions now; the Mitsuba scenes when something is rendered (a run whose
         # renders all come from the cache never loads them)
-        self._dicts: dict[str | None, dict[str, Any]] = {None: self._scene_dict()}
-        # spectral: a group whose emitters share one spectral shape f_g gets its own scene, with
-        # flat emitters and film curves S_c f_g, so wavelengths are sampled where the group emits
-        if self.spectral:
-            for g in self.groups:
-                shape = self._group_spectral_shape(g)
-                if shape is not None:
-                    self._dicts[g] = self._scene_dict(flat_group=g, film_shape=shape)
-        whole = self.distortion is not None or diffraction  # the lens mixes neighbouring pixels
-        if whole and band_rows is not None and band_rows < self.height:
-            raise ConfigError(
-                "render.band_rows: camera.distortion and camera.diffraction act on the whole film, "
-                "which is then one band; set render.band_rows null"
-            )
+        self._describe = SceneDicts(
+            self._mi,
+            build,
+            scene.name,
+            self.groups,
+            scene.camera,
+            self.width,
+            self.height,
+            self.spectral,
+            self._sensitivity,
+            self.thin_lens,
+            self.lens.render_fov_deg,
+            self.sampler,
+        )
+        self._dicts = self._describe.variant_dicts()
         #: (first row, end row) of each band of the film
-        self.bands: tuple[tuple[int, int], ...] = film_bands(self.width, self.height, band_rows, whole)
+        self.bands: tuple[tuple[int, int], ...] = film_bands(
+            self.width, self.height, settings.band_rows, self.lens.mixes_pixels
+        )
         self._crop: dict[int, tuple[int, int]] = {}  # id(params) -> the rows its film renders now
         self._loaded = False
         self._scene: Any = None
         self._params: Any = None
         self._group_emitters: dict[str, list[Any]] = {}
         self._group_scenes: dict[str, tuple[Any, Any, list[Any]]] = {}
-        integrator_class(variant)  # registers the plugin
-        self._integrator = mi.load_dict({"type": PLUGIN_NAME, "max_depth": self.max_depth})
+        integrator_class(self.variant)  # registers the plugin
+        self._integrator = self._mi.load_dict({"type": PLUGIN_NAME, "max_depth": self.max_depth})
         self._time_s: float | None = None
         #: Seconds spent in the last :meth:`render` (scene update + Mitsuba pass; for a render read
         #: from the cache, the seconds it took when it was made).
@@ -389,6 +393,25 @@ class Renderer:
         #: each spectral film's channel curves, by group (None: the main scene's film), loaded when first needed
         self._film_curves: dict[str | None, list[Any]] = {}
 
+    def _check_build(self, build: SceneBuild) -> None:
+        """The scene's description against this renderer: its emitters in declared groups, its files readable, no
+        projector in a spectral variant, and one band when the lens mixes pixels."""
+        name = self.scene_model.name
+        unknown = set(build.emitter_groups()) - set(self.groups)
+        if unknown:
+            raise ConfigError(f"scene {name!r}: emitters in undeclared groups {sorted(unknown)}")
+        build.check_files(name)
+        if build.projectors and self.spectral:
+            raise ConfigError(
+                f"scene {name!r}: projector emitters are supported in RGB variants only, not {self.variant!r}"
+            )
+        band_rows = self.settings.band_rows
+        if self.lens.mixes_pixels and band_rows is not None and band_rows < self.height:
+            raise ConfigError(
+                "render.band_rows: camera.distortion and camera.diffraction act on the whole film, "
+                "which is then one band; set render.band_rows null"
+            )
+
     def _ensure_loaded(self) -> None:
         """Make this renderer's variant Mitsuba's current one (a process may hold renderers of several: ``mi.render``
         and the module's types are the current variant's), and load the Mitsuba scene(s) from their descriptions
@@ -400,11 +423,11 @@ class Renderer:
         mi = self._mi
         self._scene = self._load(self._dicts[None])
         self._params = mi.traverse(self._scene)
-        self._group_emitters = self._collect_emitters(self._scene)
+        self._group_emitters = self._describe.collect_emitters(self._scene)
         for g, d in self._dicts.items():
             if g is not None:
                 sc = self._load(d)
-                self._group_scenes[g] = (sc, mi.traverse(sc), self._collect_emitters(sc)[g])
+                self._group_scenes[g] = (sc, mi.traverse(sc), self._describe.collect_emitters(sc)[g])
         self._integrator.lambertian = all(
             is_lambertian(sc) for sc in [self._scene, *(v[0] for v in self._group_scenes.values())]
         )
@@ -425,29 +448,12 @@ class Renderer:
         return tuple((g.centre, g.radius, share) for g, share in zip(self._build.guides, self.guide_shares))
 
     @classmethod
-    def from_config(
-        cls, scene: SceneModel, cfg: Any, *, cache: RenderCache | None = None, **overrides: Any
-    ) -> "Renderer":
-        """The renderer a capture config asks for (film, variant, depth, sampler, sensor), with
-        ``overrides`` of any keyword of :class:`Renderer` (e.g. ``film_curves``, ``sensor``)."""
-        r = cfg.render
-        lens = thin_lens_of(scene, cfg)
-        kw: dict[str, Any] = {
-            "variant": r.variant,
-            "max_depth": r.max_depth,
-            "sampler": r.sampler,
-            "sensor": cfg.sensor,
-            "cache": cache,
-            "vignetting": cfg.camera.vignetting,
-            "diffraction": cfg.camera.diffraction,
-            "thin_lens": lens,
-            "mono": mono_weights(cfg.sensor, r.variant),
-            "distortion": cfg.camera.distortion,
-            "band_rows": r.band_rows,
-            "guide_fraction": r.guide_fraction,
-        }
-        kw.update(overrides)
-        return cls(scene, r.width, r.height, **kw)
+    def from_config(cls, scene: SceneModel, cfg: Any, *, cache: RenderCache | None = None, **fields: Any) -> "Renderer":
+        """The renderer a capture config asks for (:meth:`RenderSettings.from_config`), with ``fields`` of
+        :class:`RenderSettings` replacing any (e.g. ``film_curves``, ``sensor``)."""
+        return cls(
+            scene, cfg.render.width, cfg.render.height, RenderSettings.from_config(scene, cfg, **fields), cache=cache
+        )
 
     # -- scene construction -------------------------------------------------------------------
     def _load(self, d: dict[str, Any]) -> Any:
@@ -456,208 +462,6 @@ class Renderer:
         except RuntimeError as exc:  # Mitsuba's own loader errors (e.g. a file it cannot parse)
             msg = " ".join(str(exc).split())
             raise ConfigError(f"scene {self.scene_model.name!r}: Mitsuba cannot load the scene: {msg[:400]}") from None
-
-    def _group_emission(self, group: str) -> list[Any]:
-        out = [s.light.radiance for s in self._build.shapes if s.light is not None and s.light.group == group]
-        env = self._build.environment
-        if env is not None and env.group == group:
-            out.append(env.radiance)
-        return out
-
-    def _group_spectral_shape(self, group: str) -> Spectrum | None:
-        """The common spectral shape (integral 1) of a group's emitters, or None when they are not
-        all Spectra proportional to one another."""
-        rads = self._group_emission(group)
-        if not rads or not all(isinstance(r, Spectrum) for r in rads):
-            return None
-        wl0, v0 = rads[0].arrays
-        total = rads[0].integral()
-        if not total > 0:
-            return None
-        f = v0 / total
-        for r in rads[1:]:
-            wl, v = r.arrays
-            if (
-                wl.shape != wl0.shape
-                or not np.allclose(wl, wl0)
-                or not np.allclose(v / max(r.integral(), 1e-300), f, rtol=1e-6, atol=1e-12 * f.max())
-            ):
-                return None
-        return Spectrum(tuple(wl0), tuple(f))
-
-    def _scene_dict(self, flat_group: str | None = None, film_shape: Spectrum | None = None) -> dict[str, Any]:
-        self._flat_group = flat_group
-        mi = self._mi
-        cam = self.scene_model.camera
-        T = mi.ScalarTransform4f
-        d: dict[str, Any] = {
-            "type": "scene",
-            "sensor": {
-                **(
-                    {"type": "perspective"}
-                    if self.thin_lens is None
-                    else {"type": "thinlens", "aperture_radius": self.thin_lens[0], "focus_distance": self.thin_lens[1]}
-                ),
-                "fov": self.render_fov_deg,
-                "fov_axis": "x",
-                "near_clip": 1e-3,
-                "to_world": T().look_at(origin=list(cam.origin), target=list(cam.target), up=list(cam.up)),
-                "film": self._film_dict(film_shape),
-                "sampler": {"type": self.sampler, "sample_count": 4},
-            },
-        }
-        if not self.spectral:  # the same camera, for the renders that draw from the shared pattern (EXACT_SENSOR)
-            d[EXACT_SENSOR] = {**d["sensor"], "sampler": {"type": "independent", "sample_count": 4}}
-        parts = self._build.parts
-        grouped: dict[str, dict[str, Any]] = {}
-        for s in self._build.shapes:
-            if s.name in d or s.name in parts or s.name in (*_SENSORS, "environment"):
-                raise ConfigError(f"scene {self.scene_model.name!r}: duplicate shape name {s.name!r}")
-            if s.part is not None and s.part not in parts:
-                raise ConfigError(f"shape {s.name!r}: unknown part {s.part!r}")
-            if s.part is None:
-                d[s.name] = self._shape_dict(s, np.asarray(s.to_world, float))
-            elif s.light is not None:
-                if s.kind not in MOVABLE_EMITTER_KINDS:
-                    raise ConfigError(
-                        f"shape {s.name!r}: a moving light must be one of {sorted(MOVABLE_EMITTER_KINDS)}"
-                    )
-                d[s.name] = self._shape_dict(s, parts[s.part](0.0) @ s.to_world)
-            else:
-                grouped.setdefault(s.part, {"type": "shapegroup"})[s.name] = self._shape_dict(
-                    s, np.asarray(s.to_world, float)
-                )
-        for part, group in grouped.items():
-            d[f"{part}__group"] = group
-            d[part] = {
-                "type": "instance",
-                "shapegroup": {"type": "ref", "id": f"{part}__group"},
-                "to_world": T(np.asarray(parts[part](0.0), float)),
-            }
-        env = self._build.environment
-        if env is not None:
-            d["environment"] = {
-                "type": "constant",
-                "radiance": self._emission_dict(env.radiance, env.group == flat_group),
-            }
-        for p in self._build.projectors:
-            if p.name in d or p.name in parts:
-                raise ConfigError(f"scene {self.scene_model.name!r}: duplicate name {p.name!r} (projector)")
-            if p.part is not None and p.part not in parts:
-                raise ConfigError(f"projector {p.name!r}: unknown part {p.part!r}")
-            d[p.name] = self._projector_dict(p)
-        return d
-
-    def _projector_world(self, p, t_s: float) -> np.ndarray:
-        m = p.to_world()
-        return m if p.part is None else np.asarray(self._build.parts[p.part](t_s), float) @ m
-
-    def _projector_dict(self, p) -> dict[str, Any]:
-        """Mitsuba's ``projector``: its texture value v lights a plane perpendicular to the axis at
-        axial distance z with irradiance pi v scale / z^2 (measured), so scale = 1/pi makes the image
-        the irradiance at 1 m (see :class:`~.build.Projector`)."""
-        mi = self._mi
-        return {
-            "type": "projector",
-            "to_world": mi.ScalarTransform4f(self._projector_world(p, 0.0)),
-            "fov": float(p.fov_deg),
-            "fov_axis": "x",
-            "scale": 1.0 / np.pi,
-            "irradiance": {
-                "type": "bitmap",
-                "bitmap": mi.Bitmap(np.ascontiguousarray(p.image)),
-                "raw": True,
-                "filter_type": "bilinear",
-                "wrap_mode": "clamp",
-            },
-        }
-
-    def _film_dict(self, shape: Spectrum | None = None) -> dict[str, Any]:
-        film: dict[str, Any] = {"width": self.width, "height": self.height, "rfilter": {"type": "box"}}
-        if self._sensitivity is None:
-            return {"type": "hdrfilm", "pixel_format": "rgb", **film}
-        wl, srf = self._sensitivity
-        step = np.diff(wl)
-        if not np.allclose(step, step[0]):
-            raise ConfigError("sensor.spectral_response: the camera curves are not on a regular grid")
-        if shape is not None:  # S_c(lambda) f_g(lambda) on a 1 nm grid over the overlap
-            swl, sv = shape.arrays
-            lo, hi = max(np.ceil(wl[0]), np.ceil(swl[0])), min(np.floor(wl[-1]), np.floor(swl[-1]))
-            if hi - lo < 2:
-                raise ConfigError("a spectral emitter lies outside the sensor's spectral range")
-            grid = np.arange(lo, hi + 0.5, 1.0)
-            f = np.interp(grid, swl, sv)
-            srf = np.stack([np.interp(grid, wl, c) * f for c in srf])
-            wl = grid
-        film["type"] = "specfilm"
-        for c, values in zip(self.channels, srf):
-            film[c] = {
-                "type": "regular",
-                "wavelength_min": float(wl[0]),
-                "wavelength_max": float(wl[-1]),
-                "values": ", ".join(repr(float(v)) for v in values),
-            }
-        return film
-
-    def _shape_dict(self, s: Shape, to_world: np.ndarray) -> dict[str, Any]:
-        out = shape_description(self._mi, s, to_world, self._bsdf_dict(s))
-        if s.light is not None and s.kind != "tiles":
-            out["emitter"] = {
-                "type": "area",
-                "radiance": self._emission_dict(s.light.radiance, s.light.group == self._flat_group),
-            }
-        return out
-
-    def _bsdf_dict(self, s: Shape) -> dict[str, Any]:
-        """The shape's Lambertian BSDF (black without a material)."""
-        mat = s.material or Material((0.0, 0.0, 0.0))
-        if isinstance(mat.reflectance, PerTile):
-            refl = tile_table(
-                mat.reflectance.values, self.spectral, f"scene {self.scene_model.name!r}, shape {s.name!r}"
-            )
-        else:
-            refl = self._reflectance_dict(mat.reflectance)
-        bsdf: dict[str, Any] = {"type": "diffuse", "reflectance": refl}
-        return {"type": "twosided", "material": bsdf} if mat.twosided else bsdf
-
-    def _emission_dict(self, value: Any, flat: bool) -> dict[str, Any]:
-        """Emission; ``flat``: a Spectrum's integral as a constant (its shape is in the film)."""
-        if flat:
-            return {"type": "uniform", "value": float(value.integral())}
-        return self._spectrum_dict(value, emission=True)
-
-    def _spectrum_dict(self, value: Any, *, emission: bool) -> dict[str, Any]:
-        """An RGB tuple or a Spectrum as a Mitsuba texture dict for this variant."""
-        if isinstance(value, Spectrum):
-            if self.spectral:
-                wl, v = value.arrays
-                return {
-                    "type": "irregular",
-                    "wavelengths": ", ".join(repr(float(x)) for x in wl),
-                    "values": ", ".join(repr(float(x)) for x in v),
-                }
-            value = spectrum_to_rgb_radiance(value) if emission else spectrum_to_rgb_reflectance(value)
-        return {"type": "rgb", "value": [float(x) for x in value]}
-
-    def _reflectance_dict(self, value: Any) -> dict[str, Any]:
-        if isinstance(value, Texture):
-            return {"type": "bitmap", "filename": str(value.path), "filter_type": value.filter_type}
-        return self._spectrum_dict(value, emission=False)
-
-    def _collect_emitters(self, scene: Any) -> dict[str, list[Any]]:
-        """Group name -> its Mitsuba emitter objects in ``scene``."""
-        by_name = {sh.id(): sh.emitter() for sh in scene.shapes() if sh.emitter() is not None}
-        out: dict[str, list[Any]] = {g: [] for g in self.groups}
-        for s in self._build.shapes:
-            if s.light is not None:
-                out[s.light.group].append(by_name[s.name])
-        if self._build.environment is not None:
-            out[self._build.environment.group].append(scene.environment())
-        if self._build.projectors:
-            by_id = {e.id(): e for e in scene.emitters()}
-            for p in self._build.projectors:
-                out[p.group].append(by_id[p.name])
-        return out
 
     # -- state and rendering ------------------------------------------------------------------
     @property
@@ -699,7 +503,7 @@ class Renderer:
 
     def sample_count(self, spp: int, pattern: bool = False) -> int:
         """The samples per pixel a render takes when asked for ``spp``: exactly ``spp`` where it draws from
-        the shared pattern (``pattern``) in an RGB variant (:data:`EXACT_SENSOR`), else this renderer's
+        the shared pattern (``pattern``) in an RGB variant (:data:`~.scene_dicts.EXACT_SENSOR`), else this renderer's
         sampler's count (ldsampler rounds up to a power of 4, multijitter to a product of two near-equal
         factors)."""
         key = int(spp)
@@ -739,7 +543,7 @@ class Renderer:
         return [[name, [[repr(float(x)) for x in row] for row in m]] for name, m in out]
 
     def _camera_pose(self, t_s: float) -> np.ndarray:
-        """(4, 4) world-from-camera of the moving camera at ``t_s`` (:mod:`mbcapture.camera_motion`)."""
+        """(4, 4) world-from-camera of the moving camera at ``t_s`` (:mod:`mbcapture.scene.camera_motion`)."""
         sm = self.scene_model
         return sm.camera_motion.world_from_camera(sm.camera, [float(t_s)])[0]
 
@@ -781,7 +585,7 @@ class Renderer:
         for params in [self._params, *(p for _, p, _ in self._group_scenes.values())]:
             moved = False
             if pose is not None:  # the handheld camera (camera.shake): opaque, so no kernel recompiles
-                for sensor in _SENSORS:
+                for sensor in SENSORS:
                     if f"{sensor}.to_world" in params:
                         params[f"{sensor}.to_world"] = self._opaque_transform(pose)
                 moved = True
@@ -797,7 +601,7 @@ class Renderer:
                     moved = True
             for p in self._build.projectors:
                 if p.part is not None:
-                    params[f"{p.name}.to_world"] = self._opaque_transform(self._projector_world(p, t_s))
+                    params[f"{p.name}.to_world"] = self._opaque_transform(self._describe.projector_world(p, t_s))
                     moved = True
             if moved:
                 params.update()
@@ -863,22 +667,10 @@ class Renderer:
             return given if given is not None else self.raw_render(t_s, spp, seed, req, band=b, pattern=pattern)
 
         img = band(span[0]) if len(span) == 1 else np.concatenate([band(b) for b in span], axis=1)
-        # the lens (mbcapture.optics): relative illumination, distortion, then diffraction (a blur in the sensor
+        # the lens (mbcapture.scene.optics): relative illumination, distortion, then diffraction (a blur in the sensor
         # plane), on every render alike (exposures, truths, the pilot), after the cache: a render is cached as
         # the pinhole sees it. Distortion and diffraction make the film one band (whole).
-        return self._mono_mixed(self._lens(img, r0, r1))
-
-    def _lens(self, img: np.ndarray, r0: int, r1: int) -> np.ndarray:
-        """The lens on the pinhole's rows ``r0`` .. ``r1`` (group, row, col, channel): relative illumination, then
-        (on the whole film) distortion and diffraction."""
-        if self._falloff is not None:
-            img = img * self._falloff[:, r0:r1]
-        if self._undistort is not None:  # the lens bends each pixel's ray: resample the pinhole render
-            img = apply_distortion(img, *self._undistort)
-        if self._diffraction is not None:
-            s = self._diffraction
-            img = apply_diffraction(img, s.pixel_pitch_um, s.f_number, s.wavelength_nm).astype(np.float32)
-        return img
+        return self._mono_mixed(self.lens.apply(img, r0, r1))
 
     def _mono_mixed(self, img: np.ndarray) -> np.ndarray:
         """``img`` (..., 3) as a monochrome sensor sees it (its one response in every channel); as is otherwise."""
@@ -944,7 +736,7 @@ class Renderer:
         """Whether :meth:`render_pixels` renders the listed pixels alone, at a cost in proportion to them: a lens
         acting pixel by pixel. A lens that mixes neighbours (camera.distortion, camera.diffraction) makes it render
         the whole film, the listed pixels' neighbourhoods at their samples and the rest at one."""
-        return self._undistort is None and self._diffraction is None
+        return not self.lens.mixes_pixels
 
     def render_pixels(
         self,
@@ -1006,13 +798,13 @@ class Renderer:
 
         if self.renders_pixels_alone:
             out = rendered(pix, counts, offsets, seed)
-            if self._falloff is not None:
-                out = out * self._falloff.reshape(-1)[pix][None, :, None]
+            if self.lens.falloff is not None:
+                out = out * self.lens.falloff.reshape(-1)[pix][None, :, None]
             return self._mono_mixed(out)
         # a lens that mixes neighbours: the whole pinhole film, each pixel with the samples that what reads it asks for
         # (its share of them), the rest with one, through the lens as :meth:`render`'s films are
         film = np.arange(self.width * self.height, dtype=np.uint32)
-        asked, first = self._lens_samples(pix, counts, offsets)
+        asked, first = self.lens.samples(pix, counts, offsets)
         if pattern is not None:  # one render: a pixel nothing asks for takes one sample at a place of its own
             start = int(np.random.default_rng(int(seed) & 0xFFFFFFFF).integers(0, 2**31))
             img = rendered(film, np.maximum(asked, 1), np.where(asked > 0, first, start), seed)
@@ -1023,43 +815,8 @@ class Renderer:
             img[:, ~reached] = rendered(
                 film[~reached], np.ones(int((~reached).sum()), np.int64), None, band_seed(seed, 0x5A)
             )
-        img = self._lens(img.reshape(len(req), self.height, self.width, 3), 0, self.height)
+        img = self.lens.apply(img.reshape(len(req), self.height, self.width, 3), 0, self.height)
         return self._mono_mixed(img.reshape(len(req), -1, 3)[:, pix])
-
-    def _lens_samples(
-        self, pix: np.ndarray, counts: np.ndarray, offsets: np.ndarray | None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """(flat, per pinhole pixel) the samples :meth:`render_pixels` renders each pinhole pixel with (0: none asked;
-        it then takes one) and the pattern offset they start at, where sensor pixels ``pix`` ask for ``counts`` from
-        ``offsets``: through diffraction, each sensor pixel's count in proportion to how much each neighbour weighs in
-        it (:func:`mbcapture.optics.diffraction_reach`; rounded, the most over what reaches a pixel), which for a
-        given variance costs the fewest samples; through distortion, the four pixels it is interpolated from, its
-        count over the sum of their squared weights times each one's weight (the same rule). Unbiased whatever they
-        are (every pixel is rendered); they set the variance and the cost."""
-        from scipy.ndimage import grey_dilation
-
-        n = np.zeros(self.height * self.width)
-        n[pix] = counts
-        o = np.zeros(self.height * self.width, np.int64)
-        if offsets is not None:
-            o[pix] = offsets
-        n, o = n.reshape(self.height, self.width), o.reshape(self.height, self.width)
-        if self._log_reach is not None:
-            none = -1e300
-            log_n = grey_dilation(
-                np.where(n > 0, np.log(np.maximum(n, 1.0)), none), structure=self._log_reach, mode="constant", cval=none
-            )
-            n = np.where(log_n > none / 2, np.rint(np.exp(np.minimum(log_n, 700.0))), 0.0)
-            o = grey_dilation(o, size=self._log_reach.shape, mode="constant", cval=0)
-        n, o = n.ravel(), o.ravel()
-        if self._taps is not None:
-            on = np.flatnonzero(n > 0)
-            reach_n, reach_o = np.zeros_like(n), np.zeros_like(o)
-            for taps, share in zip(*self._taps):
-                np.maximum.at(reach_n, taps[on], np.rint(n[on] * share[on]))
-                np.maximum.at(reach_o, taps[on], o[on])
-            n, o = reach_n, reach_o
-        return n.astype(np.int64), o
 
     def _render_pixels(
         self,
@@ -1097,7 +854,7 @@ class Renderer:
 
     def _scene_of(self, group: str) -> tuple[Any, Any, list[list[Any]]]:
         """A spectral group's (scene, its parameters, [its emitters]): its own scene where its emitters share
-        one spectral shape (:meth:`_group_spectral_shape`), else the main one."""
+        one spectral shape (:meth:`~.scene_dicts.SceneDicts.group_spectral_shape`), else the main one."""
         if group in self._group_scenes:
             scene, params, emitters = self._group_scenes[group]
             return scene, params, [emitters]
@@ -1197,7 +954,7 @@ class Renderer:
         return out
 
     def _sensor_index(self, pattern: tuple[int, int] | None) -> int:
-        """The scene's sensor a render uses: :data:`EXACT_SENSOR` (1) where it draws from the shared pattern in
+        """The scene's sensor a render uses: :data:`~.scene_dicts.EXACT_SENSOR` (1) where it draws from the shared pattern in
         an RGB variant, else the user's sampler's (0)."""
         return 1 if pattern is not None and not self.spectral else 0
 
@@ -1206,7 +963,7 @@ class Renderer:
         if self._crop.get(id(params), (0, self.height)) == tuple(rows):
             return
         mi = self._mi
-        for sensor in _SENSORS:
+        for sensor in SENSORS:
             if f"{sensor}.film.crop_size" in params:
                 params[f"{sensor}.film.crop_size"] = mi.ScalarVector2u(self.width, rows[1] - rows[0])
                 params[f"{sensor}.film.crop_offset"] = mi.ScalarPoint2u(0, rows[0])
@@ -1272,22 +1029,6 @@ class Renderer:
         return np.asarray(img, dtype=np.float32)[..., :3]
 
 
-def shape_description(mi: Any, s: Shape, to_world: np.ndarray, bsdf: dict[str, Any]) -> dict[str, Any]:
-    """The scene-description entry of shape ``s``'s geometry at ``to_world`` with ``bsdf`` (no emitter): a tiles
-    shape as one mesh (:func:`mbcapture.render.tiles.tiles_description`), a mesh from its .ply or .obj file, else
-    Mitsuba's shape of its kind. The renderer's scenes and the moving shadows' static scene
-    (:mod:`mbcapture.render.shadows`) are made of these."""
-    if s.kind == "tiles":  # one mesh, one BSDF (mbcapture.render.tiles)
-        return tiles_description(s.tiles, to_world, bsdf)
-    out: dict[str, Any] = {"type": s.kind, "to_world": mi.ScalarTransform4f(np.asarray(to_world, float))}
-    if s.kind == "mesh":
-        out["type"] = "ply" if str(s.mesh).lower().endswith(".ply") else "obj"
-        out["filename"] = str(s.mesh)
-        out["face_normals"] = True
-    out["bsdf"] = bsdf
-    return out
-
-
 def _aligned(a: np.ndarray) -> np.ndarray:
     """``a``'s values in memory aligned to 64 bytes. Dr.Jit reads a numpy array where it lies, and its kernel
     declares the loads aligned or not by the address: an array from wherever numpy put it compiled the same
@@ -1316,7 +1057,7 @@ def _pattern_key(pattern: tuple[int, int] | None) -> tuple[int, int] | None:
 
 class RenderRows:
     """Rows (first, end) of a :class:`Renderer`'s film, a run of whole bands: what
-    :func:`mbcapture.integrate.integrate` asks of a renderer (``render``, the film size, the channels,
+    :func:`mbcapture.exposure.integrate.integrate` asks of a renderer (``render``, the film size, the channels,
     ``sample_count``), so that a tile integrates exactly as the whole film does on those rows."""
 
     def __init__(self, renderer: Renderer, rows: tuple[int, int]):

@@ -1,7 +1,7 @@
 """Where the moving parts' shadows fall: the pixels whose light changes as a moving part passes between
 a light and the static scene.
 
-Adaptive sampling treats the pixels the moving parts cross apart (:func:`mbcapture.pipeline.scout_tail`):
+Adaptive sampling treats the pixels the moving parts cross apart (:func:`mbcapture.budget.adaptive.scout_tail`):
 there a render's time within its stratum is noise that more samples at that time do not lower, so they are
 refined at several times per half-stratum. A moving part's hard shadow is such a pixel too, though nothing
 in it moves: measured on multi_flash at 160x128, the pixels beside the sliding box, where
@@ -10,7 +10,7 @@ first pass's samples at one time per half-stratum (their first pass's ratio abou
 
 No library does this: it casts rays from points of each light through the moving parts' motion points onto the
 scene's static shapes (Mitsuba's ray tracer, in the renderer's variant) and rasterizes the convex hull of
-where they land, per light and time (:func:`mbcapture.camera_motion.hull_mask`). Hard shadows of convex parts
+where they land, per light and time (:func:`mbcapture.scene.camera_motion.hull_mask`). Hard shadows of convex parts
 are covered; what is left out is said in :func:`moving_shadows`. :func:`changing_region`, what adaptive sampling
 takes, adds the moving region and, where the camera moves at all, the whole film.
 """
@@ -19,10 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera_motion import FRAME_MOTION_PX, MOVING_REGION_TIMES, frame_motion_px, hull_mask, moving_region
-from ..projective import frame
+from ..scene.camera_motion import FRAME_MOTION_PX, MOVING_REGION_TIMES, frame_motion_px, hull_mask, moving_region
+from ..scene.projective import frame
 from .build import Shape
-from .renderer import shape_description
+from .scene_dicts import shape_description
 
 #: Points of each canonical shape (Mitsuba's: a rectangle and a disk span [-1, 1]^2 in z = 0, a sphere and a cube
 #: [-1, 1]^3, a cylinder the unit circle from z = 0 to 1) from which a light's shadows are cast: its centre and
@@ -68,7 +68,7 @@ def moving_shadows(renderer, t0_s: float, t1_s: float, width: int, height: int) 
     on the static, non-emitting shapes projected into the camera, one convex hull per light and time (a shadow
     over several surfaces: the hull spans them, more than the shadow); lights too large for a hard shadow
     (:data:`HARD_SHADOW_MAX_ANGLE`) are left out. All False for a static scene, all True
-    where the frame itself moves (:func:`mbcapture.camera_motion.moving_region` is then the whole film).
+    where the frame itself moves (:func:`mbcapture.scene.camera_motion.moving_region` is then the whole film).
     :func:`changing_region` adds the moving region and a moving camera's. Left out: an environment light's soft shadows, a moving light's shadows of the static scene (the
     moving_light scene's lamp: its whole image changes), light the moving parts reflect onto the scene, and
     shadows on other moving parts."""
@@ -136,10 +136,10 @@ def changing_region(
     renderer, t0_s: float, t1_s: float, width: int, height: int, moving: np.ndarray | None = None
 ) -> np.ndarray:
     """(H, W) bool: the pixels where a render's time within its stratum is noise, which adaptive sampling refines at
-    several times per half-stratum (:func:`mbcapture.pipeline.scout_tail`): the moving region
-    (:func:`mbcapture.camera_motion.moving_region`), the moving parts' hard shadows (:func:`moving_shadows`), and
+    several times per half-stratum (:func:`mbcapture.budget.adaptive.scout_tail`): the moving region
+    (:func:`mbcapture.scene.camera_motion.moving_region`), the moving parts' hard shadows (:func:`moving_shadows`), and
     every pixel where the camera moves at all. The applications' moving region counts a moving camera only once its
-    frame moves by :data:`mbcapture.camera_motion.FRAME_MOTION_PX`, but every edge in the image moves with it:
+    frame moves by :data:`mbcapture.scene.camera_motion.FRAME_MOTION_PX`, but every edge in the image moves with it:
     metronome_shake at 160x128, whose frame moves 0.246 px over the capture, kept its J4 ratio at 1.9 on the
     silhouettes of the balls, the cube and the lamp's stand after 8x the first pass's samples at one time per
     half-stratum. ``moving``: the moving region where the caller has it already."""

@@ -391,7 +391,7 @@ def join_rows(
     (``electrons``, ``bucket_saturated`` None), which a tiled capture does not keep. ``bands`` may be
     a generator: each band is copied into the film's arrays as it comes and let go, so the bands are
     never all held at once. ``empty(shape, dtype)`` makes the film's arrays (``np.empty``, or
-    :meth:`mbcapture.filmstore.FilmStore.empty` for arrays on disk)."""
+    :meth:`mbcapture.exposure.filmstore.FilmStore.empty` for arrays on disk)."""
     names = ("reads_dn", "reads_e_expected", "saturated", "mosaic_dn", "mosaic_saturated") + (
         () if reads_only else ("electrons", "bucket_saturated")
     )

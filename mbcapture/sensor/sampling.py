@@ -37,7 +37,7 @@ Streams: :class:`NoiseStreams` spawns one child seed per named stage (``shot``,
 (or changing its parameter) leaves the draws of the others unchanged: a sweep over read noise
 sees the same photons in every point.
 
-Row bands (a film sensed in tiles, :mod:`mbcapture.pipeline`): :class:`BandedField` gives rows
+Row bands (a film sensed in tiles, :mod:`mbcapture.capture.pipeline`): :class:`BandedField` gives rows
 r0:r1 of a field exactly as the whole field has them, without drawing the whole field at once.
 numpy's ``Generator`` draws a double from one 64-bit output and a ziggurat normal from one or
 more, one value after another with nothing buffered, so a stream cut anywhere and resumed from

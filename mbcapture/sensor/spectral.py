@@ -30,12 +30,17 @@ optics (:func:`film_sensitivity`).
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .config import SensorConfig
+
+class SpectralSensor(Protocol):
+    """What the spectral curves need of a sensor (:class:`mbcapture.sensor.config.SensorConfig` has it)."""
+
+    spectral_response: str
+    quantum_efficiency: tuple[float, float, float]
+
 
 __all__ = [
     "EFFECTIVE_WAVELENGTH",
@@ -89,7 +94,7 @@ def is_monochrome(name: str) -> bool:
     return name.startswith(MONOCHROME_PREFIX)
 
 
-def channel_quantum_efficiency(cfg: "SensorConfig") -> tuple[np.ndarray, np.ndarray]:
+def channel_quantum_efficiency(cfg: SpectralSensor) -> tuple[np.ndarray, np.ndarray]:
     """QE curves of the camera ``cfg.spectral_response``, peak-scaled to ``cfg.quantum_efficiency``.
 
     Returns (wavelengths_nm (n,), qe (3, n)) on the dataset's regular grid, float64, channels
@@ -111,7 +116,7 @@ def channel_quantum_efficiency(cfg: "SensorConfig") -> tuple[np.ndarray, np.ndar
     return wl, qe
 
 
-def film_sensitivity(cfg: "SensorConfig") -> tuple[np.ndarray, np.ndarray]:
+def film_sensitivity(cfg: SpectralSensor) -> tuple[np.ndarray, np.ndarray]:
     """Spectral film sensitivities S_c(lambda) = QE_c(lambda) * lambda / (h c).
 
     Returns (wavelengths_nm (n,), S (3, n)) in electrons per joule; with L in W m^-2 sr^-1 nm^-1

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from ..io import check_out_dir, staged_outputs
+from ..output.io import check_out_dir, staged_outputs
 from ..render.cache import open_cache
 from .execute import ROWS_DIR, run_here, run_on_dask, start_client, usable_cores
 from .groups import SweepPlan, group_key, plan_sweep, render_inputs, render_key

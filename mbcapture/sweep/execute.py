@@ -2,7 +2,7 @@
 
 Each render group (:mod:`.groups`) becomes a small task graph: its first pending point (the
 leader) runs a whole capture, renders through the render cache and returns its render stage
-(:class:`mbcapture.pipeline.Rendered`); every other point of the group is a task that depends on
+(:class:`mbcapture.capture.pipeline.Rendered`); every other point of the group is a task that depends on
 the leader and runs the capture from the leader's render stage (sensor, reconstruction, metrics).
 Dask moves the leader's arrays to whichever worker runs a follower and frees them when the last
 one is done. Render groups run in parallel on different workers.
@@ -12,7 +12,7 @@ core would oversubscribe the machine. Each task sets its process's Dr.Jit thread
 gets the cores of its host divided by the number of leaders that can run there at once (one
 render group: all the cores), a follower (numpy) cores / workers, which the sensor's inversions
 use too. Every worker picks its libLLVM (:func:`mbcapture.render.llvm.ensure_llvm`) before Mitsuba
-is imported (:func:`mbcapture.cluster.prepare_worker`).
+is imported (:func:`mbcapture.exposure.cluster.prepare_worker`).
 
 A point that fails (an exception in its capture, a worker lost) becomes a row with its error;
 the sweep goes on. Finished points are written to ``rows/<point id>.json`` as they arrive, so an
@@ -30,17 +30,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from ..capture import run_capture, write_outputs
-from ..cluster import (  # noqa: F401  (sweep API)
-    drjit_threads,
-    prepare_worker,
-    start_client,
-    topology,
-    usable_cores,
-)
+from ..capture.run import run_capture, write_outputs
+from ..exposure.cluster import drjit_threads, prepare_worker, start_client, topology, usable_cores  # noqa: F401  (sweep API)
 from ..config import config_from_dict
 from ..errors import one_line
-from ..io import staged_outputs
+from ..output.io import staged_outputs
 from ..metrics import flat_items
 from ..sensor.sampling import keep_sensor_work
 from .groups import SweepPlan

@@ -1,6 +1,6 @@
 """Render groups: the points of a sweep whose render stage is provably the same.
 
-A capture's render stage (:class:`mbcapture.pipeline.Rendered`: the pilot, the strata's renders and
+A capture's render stage (:class:`mbcapture.capture.pipeline.Rendered`: the pilot, the strata's renders and
 their accumulation into bucket exposures) is a function of what the code hands it, and this module
 computes exactly those arguments from each point's config, with the functions the capture itself
 calls, instead of a list of "render keys" that could drift:
@@ -11,7 +11,7 @@ calls, instead of a list of "render keys" that could drift:
   f-number, pitch and wavelengths, a mono sensor's mixture), and in spectral mode the film's curves
   (``sensor.spectral_response`` and ``quantum_efficiency`` through
   :func:`mbcapture.sensor.spectral.film_sensitivity`);
-* the plan (:func:`mbcapture.pipeline.prepare`): strata, render times, weights, the groups rendered
+* the plan (:func:`mbcapture.capture.pipeline.prepare`): strata, render times, weights, the groups rendered
   in each stratum, the buckets read, samples per pixel, estimator; so ``capture.*`` keys, and the
   ``sensor.*`` keys a protocol reads (``bucket_count``, ``frame_readout_s`` of a sequential capture),
   count exactly where they change the plan;
@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from ..capture import prepare
+from ..capture.pipeline import prepare
 from ..config import CaptureConfig
 from ..errors import MBCaptureError, one_line
 from ..render.cache import digest

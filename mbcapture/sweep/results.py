@@ -7,7 +7,7 @@ application), ``render_error.*``, ``passes``, ``spp_total``, ``renders_rendered`
 (the render cache), ``render_shared`` (the point used its group's render stage), ``timings_s.*`` and
 ``seconds`` (the point's wall time), ``worker``.
 
-Plots (matplotlib; the faceting is a few lines here rather than a plotting library's): for every
+Plots (:class:`mbcapture.output.plots.MetricGrid`): for every
 numeric ``metrics.*`` column and ``render_error.to_shot_noise_variance_median`` (rendering noise
 against the sensor's) where they vary, one figure with a row of panels per
 axis, the metric against that axis; with one other axis its values are the lines, with more, the
@@ -19,7 +19,6 @@ do not repeat, are a scatter plot.
 from __future__ import annotations
 
 import html
-import io
 import json
 import math
 import re
@@ -28,7 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from ..io import staged_outputs
+from ..output.io import staged_outputs
+from ..output.plots import MetricGrid, png_bytes
 
 #: Columns that say which point a row is, in this order, before the axes.
 ID_COLUMNS = ("point", "point_id", "render_group", "status", "error")
@@ -92,144 +92,8 @@ def numeric_columns(df) -> list[str]:
     return out
 
 
-def _numeric(values) -> bool:
-    return all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
-
-
-def _log_scale(values: np.ndarray) -> bool:
-    v = values[np.isfinite(values)]
-    return bool(v.size and v.min() > 0 and v.max() / v.min() > 10)
-
-
-def _major_only(axis, values: np.ndarray) -> None:
-    """No minor ticks on a log axis whose values span two decades or more, which always shows two
-    labelled decades: the minor ticks' artists are most of a panel's drawing time."""
-    from matplotlib.ticker import NullLocator
-
-    v = values[np.isfinite(values) & (values > 0)]
-    if v.size and v.max() / v.min() >= 100:
-        axis.set_minor_locator(NullLocator())
-
-
 def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_")
-
-
-def _facets(ok, axis: str, axes: list[str]) -> tuple[str | None, list, list[str], bool]:
-    """How ``axis`` is drawn: (facet axis or None, its panel values, the axes that make the lines,
-    whether the points form a grid; False for random samples: a scatter)."""
-    others = [a for a in axes if a != axis]
-    structured = not others or bool(ok.groupby(others, dropna=False).size().max() > 1)
-    facet = others[0] if structured and len(others) >= 2 else None
-    panels = list(dict.fromkeys(ok[facet].tolist())) if facet else [None]
-    lines = [a for a in others if a != facet] if structured else []
-    return facet, panels, lines, structured
-
-
-class MetricGrid:
-    """One figure of panels for a sweep's table: a row of panels per axis, each against that axis,
-    faceted by the other axes. :meth:`draw` puts one metric on it; the next call replaces it, so that
-    the plots of every metric share one figure, whose axes and ticks are made once (making a panel's
-    ticks anew is much of a plot's time: the six plots of the 64-point sensor_noise sweep took 2.6 s as
-    fresh figures, 1.8 s redrawn)."""
-
-    def __init__(self, df, axes: list[str]):
-        import matplotlib.pyplot as plt
-        from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator
-
-        self.ok = ok = df[df["status"] == "ok"]
-        layout = {axis: _facets(ok, axis, axes) for axis in axes}
-        ncols = min(max(len(panels) for _, panels, _, _ in layout.values()), 4)
-        nrows = sum(-(-len(panels) // ncols) for _, panels, _, _ in layout.values())
-        # one metric: every panel on one scale (labelled on the first column); each row one x axis
-        self.fig, grid = plt.subplots(
-            nrows, ncols, figsize=(3.4 * ncols + 0.6, 2.5 * nrows + 0.5), squeeze=False, sharex="row", sharey=True
-        )
-        #: per panel: (its axes, its rows of the table, the x axis, its position function, line keys, structured,
-        #: whether it is the first of its row, which has the legend)
-        self.panels: list[tuple] = []
-        row = 0
-        for axis, (facet, panels, line_keys, structured) in layout.items():
-            xs = list(dict.fromkeys(ok[axis].tolist()))
-            numeric_x = _numeric(xs)
-            position = (lambda v: v) if numeric_x else {v: i for i, v in enumerate(xs)}.__getitem__
-            for n, panel in enumerate(panels):
-                ax = grid[row + n // ncols][n % ncols]
-                sub = ok if facet is None else ok[ok[facet] == panel]
-                self.panels.append((ax, sub, axis, position, line_keys, structured, n == 0))
-                # a fixed title position: the automatic one measures every tick label of the panel (a third of the time)
-                ax.set_title(f"{facet} = {panel}" if facet is not None else "", fontsize=8, y=1.0)
-                if numeric_x and _log_scale(np.asarray(xs, dtype=float)):
-                    ax.set_xscale("log")
-                if numeric_x:  # the sweep's own values, labelled as they are
-                    ax.xaxis.set_major_locator(FixedLocator(sorted(float(v) for v in xs)))
-                    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
-                    ax.xaxis.set_minor_locator(NullLocator())
-                else:
-                    ax.set_xticks(range(len(xs)), [str(v) for v in xs], rotation=20, fontsize=7, ha="right")
-                ax.set_xlabel(axis, fontsize=8)
-                ax.tick_params(labelsize=7)
-            for n in range(len(panels), -(-len(panels) // ncols) * ncols):
-                grid[row + n // ncols][n % ncols].set_visible(False)
-            row += -(-len(panels) // ncols)
-        # fixed margins in inches (tight_layout measures every label: half of the plot's time)
-        w, h = self.fig.get_size_inches()
-        self.fig.subplots_adjust(
-            left=0.85 / w, right=1 - 0.2 / w, bottom=0.5 / h, top=1 - 0.45 / h, wspace=0.3, hspace=0.45
-        )
-
-    def draw(self, metric: str):
-        """The figure with ``metric`` on every panel (the metric drawn before it taken off)."""
-        y_all = self.ok[metric].to_numpy(dtype=float, na_value=np.nan)
-        log_y = _log_scale(y_all)
-        for ax, sub, axis, position, line_keys, structured, first in self.panels:
-            for artist in [*ax.lines, *ax.collections]:
-                artist.remove()
-            if ax.get_legend() is not None:
-                ax.get_legend().remove()
-            ax.set_prop_cycle(None)  # the lines' colours from the first again
-            if structured:
-                groups = sub.groupby(line_keys, dropna=False, sort=False) if line_keys else [((), sub)]
-                for key, part in groups:
-                    key = key if isinstance(key, tuple) else (key,)
-                    order = np.argsort([position(v) for v in part[axis]], kind="stable")
-                    label = ", ".join(f"{k.rsplit('.', 1)[-1]}={v}" for k, v in zip(line_keys, key)) or None
-                    ax.plot(
-                        np.asarray([position(v) for v in part[axis]])[order],
-                        part[metric].to_numpy(dtype=float, na_value=np.nan)[order],
-                        "o-",
-                        ms=3.5,
-                        lw=1.2,
-                        label=label,
-                    )
-            else:
-                ax.scatter([position(v) for v in sub[axis]], sub[metric].to_numpy(dtype=float, na_value=np.nan), s=12)
-            ax.set_yscale("log" if log_y else "linear")  # the scale's own locators, whatever the last metric set
-            if log_y:
-                _major_only(ax.yaxis, y_all)
-            ax.grid(True, which="major", alpha=0.3)
-            ax.relim()
-            ax.autoscale_view()
-            if line_keys and first:
-                ax.legend(fontsize=6.5, frameon=False)
-        self.fig.suptitle(metric, fontsize=9)
-        return self.fig
-
-    def close(self) -> None:
-        import matplotlib.pyplot as plt
-
-        plt.close(self.fig)
-
-
-def plot(df, metric: str, axes: list[str]):
-    """A figure of ``metric`` against each axis (one row of panels per axis), faceted by the other axes."""
-    return MetricGrid(df, axes).draw(metric)
-
-
-def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, metadata={"Software": None})
-    return buf.getvalue()
 
 
 CSS = (
@@ -339,10 +203,6 @@ def index_html(sweep, summary: dict, df, plots: dict[str, str]) -> str:
 
 def write_results(out: Path, sweep, plan, rows: dict[int, dict], summary: dict) -> Any:
     """Write the table, plots, sweep.json and index.html into ``out`` (atomically); returns the table."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-
     df = table(sweep, plan, rows)
     plots: dict[str, str] = {}
     with staged_outputs(out) as st:
@@ -351,13 +211,10 @@ def write_results(out: Path, sweep, plan, rows: dict[int, dict], summary: dict) 
         metrics = numeric_columns(df) if (df["status"] == "ok").any() else []
         if metrics:
             grid = MetricGrid(df, sweep.axes)
-            try:
-                for metric in metrics:
-                    name = f"plot_{_slug(metric)}.png"
-                    st.write_bytes(name, _png(grid.draw(metric)))
-                    plots[metric] = name
-            finally:
-                grid.close()
+            for metric in metrics:
+                name = f"plot_{_slug(metric)}.png"
+                st.write_bytes(name, png_bytes(grid.draw(metric), dpi=90))
+                plots[metric] = name
         st.write_json(
             "sweep.json",
             {

@@ -41,14 +41,13 @@ from typing import Any, Literal
 import numpy as np
 import yaml
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     ValidationError,
     field_validator,
     model_validator,
 )
 
+from ..strict import StrictModel
 from ..config import (
     SHIPPED_CONFIG_DIR,
     CaptureConfig,
@@ -68,11 +67,7 @@ MAX_POINTS = 100_000
 Keep = Literal["none", "report", "images", "all"]
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class RandomKey(_Model):
+class RandomKey(StrictModel):
     """How one key is sampled: a range (``low``, ``high``; ``log``, ``integer``) or ``choices``."""
 
     low: float | None = Field(None, description="Smallest value of the range (with high).")
@@ -116,7 +111,7 @@ class RandomKey(_Model):
         return [float(x) for x in v]
 
 
-class RandomAxes(_Model):
+class RandomAxes(StrictModel):
     """Seeded random samples of some keys (one axis per key; the samples are combined with every grid point)."""
 
     samples: int = Field(ge=1, le=MAX_POINTS, description="How many samples to draw.")
@@ -140,7 +135,7 @@ class RandomAxes(_Model):
         return [{key: columns[key][n] for key in self.keys} for n in range(self.samples)]
 
 
-class Axes(_Model):
+class Axes(StrictModel):
     """What varies: a grid, zipped lists and random samples, combined as a product."""
 
     grid: dict[str, list[Any]] = Field(
@@ -207,7 +202,7 @@ class Axes(_Model):
         return n
 
 
-class SweepSpec(_Model):
+class SweepSpec(StrictModel):
     """A sweep file: many captures of one base config, varying a few keys."""
 
     base: str = Field(

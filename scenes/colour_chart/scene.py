@@ -46,7 +46,7 @@ from mbcapture.render.build import (
     scale,
     translate,
 )
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.scene.scenes import Camera, SceneModel
 
 DESCRIPTION = (
     "ColorChecker chart and a picture shaken by hand, lit by R, G, B LED panels (groups ambient, led_r, led_g, led_b)"

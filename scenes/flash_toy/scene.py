@@ -42,7 +42,7 @@ from mbcapture.render.build import (
     scale,
     translate,
 )
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.scene.scenes import Camera, SceneModel
 
 DESCRIPTION = "potted toy plant with waving leaves before a distant cluttered wall (groups ambient, flash)"
 

@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mbcapture.render.build import Light, Material, SceneBuild, Shape, Texture, frame_towards, scale, translate
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.scene.scenes import Camera, SceneModel
 
 DESCRIPTION = "textured card crossing the view fast before a black void, steady soft light (group ambient)"
 

@@ -26,7 +26,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mbcapture.pendulum import Pendulum
+from mbcapture.scene.pendulum import Pendulum
 from mbcapture.render.build import (
     Guide,
     Light,
@@ -39,7 +39,7 @@ from mbcapture.render.build import (
     scale,
     translate,
 )
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.scene.scenes import Camera, SceneModel
 
 DESCRIPTION = "still life with a swinging metronome, letter S on the needle (groups ambient, lamp, flash)"
 

@@ -6,7 +6,7 @@ travels along a horizontal arc to the left of them, just outside the view, so th
 shadows they cast across the table swing during the capture. A large soft box overhead
 (group ``ambient``, always on) is a fluorescent tube on AC mains: its power follows
 sin^2 of the mains voltage, so it flickers at twice the mains frequency (100 or 120 Hz); the
-drive is integrated exactly into the render weights (:class:`mbcapture.drive.Drive`).
+drive is integrated exactly into the render weights (:class:`mbcapture.timing.drive.Drive`).
 
 Coordinates (m): y up, the table top is y = 0, the wall is the plane z = WALL_Z_M, the camera
 looks along -z. The lamp is at height ``lamp_height_m`` on a circle of radius ``arc_radius_m``
@@ -31,9 +31,9 @@ import math
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from mbcapture.drive import Drive
+from mbcapture.timing.drive import Drive
 from mbcapture.render.build import Light, Material, SceneBuild, Shape, box, frame_towards, rotate, scale, translate
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.scene.scenes import Camera, SceneModel
 
 DESCRIPTION = (
     "still life, lamp moving along an arc (sweeping shadows), ambient flickering at 2x mains (groups ambient, lamp)"

@@ -39,7 +39,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mbcapture.render.build import Light, Material, SceneBuild, Shape, box, frame_towards, rotate, scale, translate
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.scene.scenes import Camera, SceneModel
 
 DESCRIPTION = (
     "boxes, a cylinder and a sphere before a wall, a sliding box, four LEDs around the lens "

@@ -23,13 +23,13 @@ projector's axis 1 m away (falling off as 1 / z^2; :class:`mbcapture.render.buil
 
 ``ambient``: a small spherical lamp up and to the left, outside the view (always on): its hard
 shadows make the ambient light vary in space, and its drive flickers at twice ``mains_hz``
-(:class:`mbcapture.drive.Drive`), so it varies in time.
+(:class:`mbcapture.timing.drive.Drive`), so it varies in time.
 
 Motion: the sliding cube's centre is at x(t) = ``slide_amplitude_m`` sin(2 pi f t) (f =
 ``slide_frequency_hz``): 0.75 m/s at t = 0 at the defaults, about 0.8 px/ms at 640x512.
 
 ``extra["structured_light"]``: the pattern kind, the pattern groups in protocol order, the
-projector's pinhole (a :class:`~mbcapture.scenes.Camera`) and image size, and the pattern
+projector's pinhole (a :class:`~mbcapture.scene.projective.Camera`) and image size, and the pattern
 parameters, for the protocol and the reconstruction.
 """
 
@@ -40,9 +40,9 @@ import math
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mbcapture.drive import Drive
+from mbcapture.timing.drive import Drive
 from mbcapture.render.build import Light, Material, Projector, SceneBuild, Shape, rotate, scale, translate
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.scene.scenes import Camera, SceneModel
 
 DESCRIPTION = (
     "wall, box, sphere, slanted board and a sliding cube; a pattern projector beside the lens "

@@ -6,7 +6,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mbcapture.render.build import Light, Material, SceneBuild, Shape, frame_towards, scale, translate
-from mbcapture.scenes import Camera, SceneModel
+from mbcapture.scene.scenes import Camera, SceneModel
 
 DESCRIPTION = "a red ball rolling across a grey floor, lit by one soft light (group 'lamp')"
 

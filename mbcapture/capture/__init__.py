@@ -1,0 +1,1 @@
+"""One capture end to end: the orchestrator, its outputs, videos, report.html."""

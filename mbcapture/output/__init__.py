@@ -1,0 +1,1 @@
+"""Files and pictures: EXR/PNG/MP4/JSON and atomic folders, DNG raw files, matplotlib drawing, HTML pieces."""
