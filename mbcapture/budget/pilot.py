@@ -43,7 +43,9 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
+
+from typing import Any
 
 import numpy as np
 
@@ -246,6 +248,126 @@ def shared_pattern_gain(weights: np.ndarray, exponent: float) -> float:
     return float(k_eff ** -(max(exponent, 1.0) - 1.0))
 
 
+@dataclass
+class PilotRenders:
+    """The pilot's renders: at each pilot stratum ``idx`` (of the plan's), two independent renders at each count of
+    :data:`PILOT_SPP`; ``diffs[spp]`` their differences in electrons per second, ``means`` every pilot sample of a
+    stratum, ``seconds[spp]`` each render's time; ``only`` where the ratios count (the blocks' centres, or
+    everywhere), ``film_share`` the share of the film rendered, ``centres`` the blocks' or None."""
+
+    idx: np.ndarray
+    diffs: dict[int, list[np.ndarray]]
+    means: list[np.ndarray]
+    seconds: dict[int, list[float]]
+    only: Any
+    film_share: float
+    centres: np.ndarray | None
+
+
+def render_pilot(plan: Plan, renderer, k_e: np.ndarray, rng: np.random.Generator) -> PilotRenders:
+    """The pilot's renders (:class:`PilotRenders`): a large film's on a random sample of its 3x3 blocks."""
+    idx = _pilot_indices(plan)
+    seeds = rng.integers(0, 2**31 - 1, size=(len(idx), len(PILOT_SPP), 2))
+    # a large film: a random sample of its blocks, side by side (block_mosaic), whose centres alone count
+    sparse = getattr(renderer, "renders_pixels_alone", False)
+    centres = pilot_blocks(renderer.height, renderer.width, rng) if sparse else None
+    if centres is None:
+        only, film_share = True, 1.0
+        render = lambda t, n, s: _timed_render(renderer, t, n, s, plan.groups)  # noqa: E731
+    else:
+        pixels = block_pixels(centres, renderer.width)
+        only, film_share = mosaic_centres(centres.size)[:, :, None], pixels.size / (renderer.height * renderer.width)
+        render = lambda t, n, s: _timed_pixels(renderer, t, n, s, plan.groups, pixels)  # noqa: E731
+    means: list[np.ndarray] = []
+    diffs: dict[int, list[np.ndarray]] = {s: [] for s in PILOT_SPP}
+    seconds: dict[int, list[float]] = {s: [] for s in PILOT_SPP}
+    for p, j in enumerate(idx):
+        total = 0.0
+        for level, spp in enumerate(PILOT_SPP):
+            (a, ta), (b, tb) = (render(plan.times_s[j], spp, seeds[p, level, h]) for h in range(2))
+            diffs[spp].append((a - b) * k_e)  # (G, H, W, C), electrons per second
+            seconds[spp] += [ta, tb]
+            total = total + (a + b) * spp
+        means.append(total / (2 * sum(PILOT_SPP)))  # every pilot sample of this time
+    return PilotRenders(idx, diffs, means, seconds, only, film_share, centres)
+
+
+def neyman_shape(
+    w: np.ndarray, hi: list[np.ndarray], owner: np.ndarray, lit: np.ndarray, electrons: np.ndarray
+) -> np.ndarray:
+    """(J,) each stratum's share of the samples, the largest 1: the Neyman shape, sqrt of each stratum's summed
+    variance (``hi``: the pilot's differences at its larger count, nearest pilot ``owner``), max over reads."""
+    J, K, _ = w.shape
+    a_jk = np.zeros((J, K))
+    for k in range(K):
+        if lit[k].any():
+            for p in range(len(hi)):
+                d = hi[p][:, lit[k]]
+                sel = owner == p
+                a_jk[sel, k] = np.einsum("jg,gh,jh->j", w[sel, k], d @ d.T, w[sel, k])
+    root = np.sqrt(np.maximum(a_jk, 0.0))
+    # read k alone would take n_jk = sqrt(a_jk) sum_j sqrt(a_jk) / (f E_k), E_k its lit electrons: the
+    # 1 / E_k keeps the reads' counts comparable, so that the max over k is the count every read needs
+    e_k = np.array([electrons[k][lit[k]].sum() for k in range(K)])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shape = np.nan_to_num(root * root.sum(axis=0)[None, :] / np.maximum(e_k, 1e-300)[None, :]).max(axis=1)
+    return np.maximum(shape / shape.max(), 1e-3) if shape.max() > 0 else np.ones(J)
+
+
+def read_needs(
+    pilot: PilotRenders, owner, w, alpha, electrons, lit, targets: tuple[float, float], shared: bool
+) -> tuple[float, list[dict | None]]:
+    """Per read: the median and p95 of the pooled ratios at both pilot counts (strata at alpha_j x the count), the
+    exponent between them and the count each of ``targets`` (median, p95) needs; returns the largest count and what
+    the report keeps of each read (None: a read with no lit sample)."""
+    scale, per_read = 0.0, []
+    n_lo, n_hi = 2 * PILOT_SPP[0], 2 * PILOT_SPP[-1]  # two halves: the main render's total count
+    for k in range(w.shape[1]):
+        if not lit[k].any():
+            per_read.append(None)
+            continue
+        q = {
+            n: budget_quantiles(*_pilot_ratios(pilot.diffs[s], owner, w, alpha, electrons, lit, k))
+            for n, s in ((n_lo, PILOT_SPP[0]), (n_hi, PILOT_SPP[-1]))
+        }
+        need, gain = [], 1.0
+        for i, target in enumerate(targets):
+            lo, hi_q = q[n_lo][i], q[n_hi][i]
+            expo = float(np.clip(np.log(max(lo, 1e-300) / max(hi_q, 1e-300)) / np.log(n_hi / n_lo), *EXPONENT_RANGE))
+            if i == 0 and shared:
+                gain = shared_pattern_gain(w[:, k].sum(axis=1), expo)
+                hi_q = hi_q * gain
+            need.append(n_hi * (hi_q / target) ** (1.0 / expo) if hi_q > 0 else 0.0)
+        per_read.append(
+            {
+                **({"shared_pattern_median_factor": round(gain, 4)} if shared else {}),
+                "median_at": {n_lo: round(q[n_lo][0], 4), n_hi: round(q[n_hi][0], 4)},
+                "p95_at": {n_lo: round(q[n_lo][1], 4), n_hi: round(q[n_hi][1], 4)},
+                "spp_for_median": round(need[0], 1),
+                "spp_for_p95": round(need[1], 1),
+            }
+        )
+        scale = max(scale, *need)
+    return scale, per_read
+
+
+def pilot_cost(pilot: PilotRenders, accumulate_s: float) -> dict:
+    """The cost model from the pilot's render times (:func:`_cost_model`), its kernels' compile time, and scaled to
+    the whole film from a pilot on blocks."""
+    seconds = pilot.seconds
+    # the first render at each count compiled its kernel (Dr.Jit compiles one per sample count):
+    # the cost model takes medians, and the compile time is what the first renders took beyond it
+    pairs = list(zip(seconds[PILOT_SPP[0]], seconds[PILOT_SPP[-1]]))
+    model = _cost_model(pairs, 0.0, accumulate_s, spp_pair=PILOT_SPP)
+    model["compile_s"] = round(
+        max(sum(seconds[s][0] - (model["c0_s"] + model["c1_s_per_spp"] * s) for s in PILOT_SPP), 0.0), 3
+    )
+    if pilot.film_share < 1.0:  # a pass renders the film: its samples and its accumulation in proportion to the pixels
+        model["c1_s_per_spp"] = round(model["c1_s_per_spp"] / pilot.film_share, 6)
+        model["accumulate_s"] = round(model["accumulate_s"] / pilot.film_share, 5)
+    return model
+
+
 def choose_spp(
     plan: Plan,
     renderer,
@@ -271,101 +393,36 @@ def choose_spp(
     p95_target = 10.0 * noise_budget if noise_budget_p95 is None else noise_budget_p95
     t_start = time.perf_counter()
     k_e = np.asarray(k_e, dtype=np.float64)
-    idx = _pilot_indices(plan)
-    rng = np.random.default_rng(seed)
-    seeds = rng.integers(0, 2**31 - 1, size=(len(idx), len(PILOT_SPP), 2))
-    # a large film: a random sample of its blocks, side by side (block_mosaic), whose centres alone count
-    sparse = getattr(renderer, "renders_pixels_alone", False)
-    centres = pilot_blocks(renderer.height, renderer.width, rng) if sparse else None
-    if centres is None:
-        only, film_share = True, 1.0
-        render = lambda t, n, s: _timed_render(renderer, t, n, s, plan.groups)  # noqa: E731
-    else:
-        pixels = block_pixels(centres, renderer.width)
-        only, film_share = mosaic_centres(centres.size)[:, :, None], pixels.size / (renderer.height * renderer.width)
-        render = lambda t, n, s: _timed_pixels(renderer, t, n, s, plan.groups, pixels)  # noqa: E731
+    pilot = render_pilot(plan, renderer, k_e, np.random.default_rng(seed))
+    idx = pilot.idx
     # the budget is met on the reads the sensor outputs: a read's weights (and electrons) are its buckets'
     # sums, and its Monte Carlo errors add coherently (the same renders); one read per bucket without sets
     read_sets = plan.read_sets or tuple((b,) for b in plan.buckets_read)
-    shared = plan.shares_pattern
     w_b = plan.weights_s  # (J, K, G)
     w = np.stack([w_b[:, list(r)].sum(axis=1) for r in read_sets], axis=1)  # (J, R, G)
-    J, K, G = w.shape  # K: reads from here on
+    K = w.shape[1]  # reads from here on
     names = list(plan.read_names) if plan.read_sets else [f"B{b + 1}" for b in plan.buckets_read]
     owner = np.abs(plan.times_s[:, None] - plan.times_s[idx][None, :]).argmin(axis=1)  # nearest pilot
-    means: list[np.ndarray] = []
-    diffs: dict[int, list[np.ndarray]] = {s: [] for s in PILOT_SPP}
-    seconds: dict[int, list[float]] = {s: [] for s in PILOT_SPP}
-    for p, j in enumerate(idx):
-        total = 0.0
-        for level, spp in enumerate(PILOT_SPP):
-            (a, ta), (b, tb) = (render(plan.times_s[j], spp, seeds[p, level, h]) for h in range(2))
-            diffs[spp].append((a - b) * k_e)  # (G, H, W, C), electrons per second
-            seconds[spp] += [ta, tb]
-            total = total + (a + b) * spp
-        means.append(total / (2 * sum(PILOT_SPP)))  # every pilot sample of this time
-    acc = _timed_accumulate(w_b[idx[0]], means[0], w_b.shape[1])
+    acc = _timed_accumulate(w_b[idx[0]], pilot.means[0], w_b.shape[1])
     wp = np.stack([w_b[owner == p].sum(axis=0) for p in range(len(idx))])  # (P, K buckets, G)
     # the ratios' denominator, pooled like their numerator so that its own noise does not scatter them
-    bucket_e = pooled(np.einsum("pkg,pghwc->khwc", wp, np.stack(means), optimize=True) * k_e)
+    bucket_e = pooled(np.einsum("pkg,pghwc->khwc", wp, np.stack(pilot.means), optimize=True) * k_e)
     electrons = np.stack([bucket_e[list(r)].sum(axis=0) for r in read_sets])  # (R, H, W, C)
     # a read's sample counts where it holds light and none of its buckets (nor their sum) is full
     lit = (
         np.stack([(bucket_e[list(r)] < full_well_e).all(axis=0) for r in read_sets])
         & (electrons > 1.0)
         & (electrons < fd_full)
-        & only
+        & pilot.only
     )
-    # Neyman shape of n_j: sqrt of each stratum's summed variance, max over buckets
-    hi = diffs[PILOT_SPP[-1]]
-    a_jk = np.zeros((J, K))
-    for k in range(K):
-        if lit[k].any():
-            for p in range(len(idx)):
-                d = hi[p][:, lit[k]]
-                sel = owner == p
-                a_jk[sel, k] = np.einsum("jg,gh,jh->j", w[sel, k], d @ d.T, w[sel, k])
-    root = np.sqrt(np.maximum(a_jk, 0.0))
-    # bucket k alone would take n_jk = sqrt(a_jk) sum_j sqrt(a_jk) / (f E_k), E_k its lit electrons: the
-    # 1 / E_k keeps the buckets' counts comparable, so that the max over k is the count every bucket needs
-    e_k = np.array([electrons[k][lit[k]].sum() for k in range(K)])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        shape = np.nan_to_num(root * root.sum(axis=0)[None, :] / np.maximum(e_k, 1e-300)[None, :]).max(axis=1)
-    alpha = np.maximum(shape / shape.max(), 1e-3) if shape.max() > 0 else np.ones(J)
-    # per bucket: median and p95 of the pooled ratios at both pilot counts (strata at alpha_j x the
-    # count), the exponent between them, and the count each target needs
-    scale, per_read = 0.0, []
-    n_lo, n_hi = 2 * PILOT_SPP[0], 2 * PILOT_SPP[-1]  # two halves: the main render's total count
-    for k in range(K):
-        if not lit[k].any():
-            per_read.append(None)
-            continue
-        q = {
-            n: budget_quantiles(*_pilot_ratios(diffs[s], owner, w, alpha, electrons, lit, k))
-            for n, s in ((n_lo, PILOT_SPP[0]), (n_hi, PILOT_SPP[-1]))
-        }
-        need, gain = [], 1.0
-        for i, target in enumerate((noise_budget, p95_target)):
-            lo, hi_q = q[n_lo][i], q[n_hi][i]
-            expo = float(np.clip(np.log(max(lo, 1e-300) / max(hi_q, 1e-300)) / np.log(n_hi / n_lo), *EXPONENT_RANGE))
-            if i == 0 and shared:
-                gain = shared_pattern_gain(w[:, k].sum(axis=1), expo)
-                hi_q = hi_q * gain
-            need.append(n_hi * (hi_q / target) ** (1.0 / expo) if hi_q > 0 else 0.0)
-        per_read.append(
-            {
-                **({"shared_pattern_median_factor": round(gain, 4)} if shared else {}),
-                "median_at": {n_lo: round(q[n_lo][0], 4), n_hi: round(q[n_hi][0], 4)},
-                "p95_at": {n_lo: round(q[n_lo][1], 4), n_hi: round(q[n_hi][1], 4)},
-                "spp_for_median": round(need[0], 1),
-                "spp_for_p95": round(need[1], 1),
-            }
-        )
-        scale = max(scale, *need)
+    alpha = neyman_shape(w, pilot.diffs[PILOT_SPP[-1]], owner, lit, electrons)
+    scale, per_read = read_needs(
+        pilot, owner, w, alpha, electrons, lit, (noise_budget, p95_target), plan.shares_pattern
+    )
     # no stratum below the pilot's smaller count: there the ratio was measured, below it only extrapolated
     # (multijitter converges faster than spp^-2 on smooth scenes, so the clipped exponent under-predicts the
     # noise of fewer samples: flutter_shutter 640x512 was given 2 + 2 spp and measured 0.175 > 0.1)
-    n = np.maximum(scale * alpha, float(n_lo)) if scale > 0 else scale * alpha
+    n = np.maximum(scale * alpha, float(2 * PILOT_SPP[0])) if scale > 0 else scale * alpha
     count = sample_counter(renderer, plan)  # what the renders take
     half = np.array([ladder(x / 2, count) for x in n])
     cap = max(max_spp // 2, 1)
@@ -374,29 +431,19 @@ def choose_spp(
     notes = list(plan.notes)
     if capped:
         notes.append(f"render.max_spp={max_spp} capped {capped} strata: the noise budget is not met there")
-    # the first render at each count compiled its kernel (Dr.Jit compiles one per sample count):
-    # the cost model takes medians, and the compile time is what the first renders took beyond it
-    pairs = list(zip(seconds[PILOT_SPP[0]], seconds[PILOT_SPP[-1]]))
-    model = _cost_model(pairs, 0.0, acc, spp_pair=PILOT_SPP)
-    model["compile_s"] = round(
-        max(sum(seconds[s][0] - (model["c0_s"] + model["c1_s_per_spp"] * s) for s in PILOT_SPP), 0.0), 3
-    )
-    if film_share < 1.0:  # a pass renders the film: its samples and its accumulation in proportion to the pixels
-        model["c1_s_per_spp"] = round(model["c1_s_per_spp"] / film_share, 6)
-        model["accumulate_s"] = round(model["accumulate_s"] / film_share, 5)
-    pilot = {
+    record = {
         "times": len(idx),
         "renders": 2 * len(PILOT_SPP) * len(idx),
         "spp": list(PILOT_SPP),
-        "blocks": None if centres is None else int(centres.size),
-        "film_share": round(film_share, 4),
+        "blocks": None if pilot.centres is None else int(pilot.centres.size),
+        "film_share": round(pilot.film_share, 4),
         "seconds": round(time.perf_counter() - t_start, 3),
         "reads_lit": [names[i] for i in range(K) if lit[i].any()],
         "per_read": dict(zip(names, per_read)),
         "targets": {"median": noise_budget, "p95": p95_target},
         "uncapped_spp_max": float(n.max()),
     }
-    return replace(plan, spp=spp, spp_source="noise_budget", pilot=pilot, cost=model, notes=notes)
+    return replace(plan, spp=spp, spp_source="noise_budget", pilot=record, cost=pilot_cost(pilot, acc), notes=notes)
 
 
 #: With adaptive sampling (``render.adaptive``), the first pass brings every read's 95th percentile to this share
