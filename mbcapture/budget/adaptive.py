@@ -187,27 +187,7 @@ def top_up(
     them, a first pass a hair over the median target, 1.008x, took a top-up of 12 % more samples on the
     default capture, which its refined pixels would have brought under the target anyway.)
 
-    The second pass renders each half of each stratum at a time of its own, drawn afresh in the
-    stratum (:meth:`Plan.draw_times`). Where a moving edge crosses a pixel, where in the stratum a
-    render's time falls is noise too, and the first pass's estimate holds it (:attr:`Plan.render_times`);
-    a second pass at the first pass's times would repeat that noise, so combining them would not
-    lower it. The returned plan says which times make up the combined exposure, with which weights
-    (:meth:`Plan.exposure_time_mix`: the applications' truths of what the capture saw render there).
-
-    With render.pattern 'shared' the second pass continues the first pass's patterns: each half of
-    each pixel draws the samples of its sequence after all of the first pass's (the same keys), so
-    that the two passes, weighed by their samples (``c = n2 / n1``), are one pass of n1 + n2 samples,
-    stratified as a whole; its samples are ``n2 / n1 = F x`` :data:`TOP_UP_MARGIN` ``- 1`` for the
-    first pass's factor F over the budget (variance at least as 1 / spp). Otherwise (render.pattern
-    'own') the second pass is independent, with a variance V2 that satisfies 1 / (1 / V1 + 1 / V2) <=
-    V1 / (F x :data:`TOP_UP_MARGIN`) (see :data:`TOP_UP_EXPONENT`), and ``c = V1 / V2`` (in each pass,
-    the worst read's figure that decided the top-up, its median or its p95 ratio: inverse-variance
-    weights, one for the whole film, where the budget is judged; a p95's pixels gain less from a
-    smaller second pass than the median's). At most render.max_spp per stratum in all. The
-    combination ``(E1 + c E2) / (1 + c)`` is unbiased whatever ``c``: each pass is (every sample of a
-    scrambled sequence is uniform, wherever it starts), and ``c`` and the second pass's size depend on
-    the whole film's noise, not on any pixel's value. So is its half-sample difference ``(d1 + c d2) /
-    (1 + c)`` as an error estimate. The second pass goes through the film as the first did (``layout``: its
+    The second pass and its weight: :func:`combine_passes`. The second pass goes through the film as the first did (``layout``: its
     tiles, and where its results are made). Returns the plan with the summed samples, the combined render stage
     and what report.json keeps (None when the first pass met the budget)."""
     if integrated.mc_diff is None:
@@ -232,30 +212,11 @@ def top_up(
     passes.status.add_stage()
     with passes.status.stage(f"top-up render (the estimate is {factor:.2f}x the noise budget)"):
         start = time.perf_counter()
-        count = sample_counter(passes.renderer, plan)
-        # with the shared pattern the second pass continues each pixel's sequences after the first's, and
-        # the two weighed by their samples are one pass of n1 + n2: variance at least as 1 / spp, so
-        # (n1 + n2) / n1 = F x margin. An independent second pass needs V1 / V2 = F x margin - 1, and a
-        # smaller pass is dearer per sample (TOP_UP_EXPONENT)
+        extra = top_up_samples(passes, plan, factor)
+        if isinstance(extra, str):  # the second pass must render every stratum: its exposure is the
+            # combination's only where it holds all of them (a stratum left out would be missing, not less noisy)
+            return plan, integrated, {"applied": False, "before": round(factor, 4), "note": extra}
         extend = plan.shares_pattern
-        gap = factor * TOP_UP_MARGIN - 1.0
-        share = gap if extend else max(gap ** (1.0 / TOP_UP_EXPONENT), gap)  # n2 / n1
-        extra = np.array([2 * count(max(int(np.ceil(share * n / 2)), 1)) for n in plan.spp], np.int64)
-        room = np.maximum(passes.cfg.render.max_spp - plan.spp, 0) // 2 * 2  # two halves of whole samples
-        if (room < 2).any():
-            # the second pass must render every stratum: its exposure is the combination's only where
-            # it holds all of them (a stratum left out would be missing from it, not less noisy)
-            return (
-                plan,
-                integrated,
-                {
-                    "applied": False,
-                    "before": round(factor, 4),
-                    "note": f"render.max_spp={passes.cfg.render.max_spp} reached in "
-                    f"{int((room < 2).sum())} of {plan.passes} strata",
-                },
-            )
-        extra = np.minimum(extra, room)
         child = np.random.SeedSequence(passes.seed.entropy, spawn_key=(*passes.seed.spawn_key, 0x70F))
         rng = np.random.default_rng(
             np.random.SeedSequence(passes.seed.entropy, spawn_key=(*passes.seed.spawn_key, 0x70F, 0x7))
@@ -273,31 +234,7 @@ def top_up(
             desc="top-up",
             continues=(plan, passes.seed) if extend else None,
         )
-        c = float(extra.sum() / plan.spp.sum())  # by their samples: each sample alike when they continue
-        if not extend:  # the two passes' figures as rendered (the planned refinement adds to both alike)
-            v1, v2 = (
-                read_figures(x, passes.timeline, passes.cfg, [worst], plan=plan).get(worst, {}).get(figure, 0.0)
-                for x in (integrated, second)
-            )
-            c = v1 / v2 if v2 > 0 else c
-
-        def mix(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
-            return None if a is None or b is None else passes.layout.mix(a, b, c)
-
-        integrated = Integrated(
-            exposure=mix(integrated.exposure, second.exposure),
-            mc_diff=mix(integrated.mc_diff, second.mc_diff),
-            group_exposure=mix(integrated.group_exposure, second.group_exposure),
-            temporal_diff=mix(integrated.temporal_diff, second.temporal_diff),
-        )
-        # the exposure's times: the first pass's at weight 1 / (1 + c), the second's at c / (1 + c)
-        t1, w1 = plan.exposure_time_mix()
-        plan = replace(
-            plan,
-            spp=plan.spp + extra,
-            mix_times_s=np.concatenate([t1, times], axis=1),
-            mix_weights=np.concatenate([w1, c * second_plan.render_time_shares()], axis=1) / (1.0 + c),
-        )
+        plan, integrated, c = combine_passes(passes, plan, integrated, second, second_plan, worst, figure)
         info = {
             "applied": True,
             "before": round(factor, 4),
@@ -319,6 +256,60 @@ def top_up(
             "seconds": round(time.perf_counter() - start, 3),
         }
     return plan, integrated, info
+
+
+def top_up_samples(passes: Passes, plan: Plan, factor: float) -> np.ndarray | str:
+    """(J,) the top-up's samples per stratum for a first pass ``factor`` over the budget, at most render.max_spp in
+    all, or why it cannot run (a stratum with no room left)."""
+    count = sample_counter(passes.renderer, plan)
+    # with the shared pattern the second pass continues each pixel's sequences after the first's, and
+    # the two weighed by their samples are one pass of n1 + n2: variance at least as 1 / spp, so
+    # (n1 + n2) / n1 = F x margin. An independent second pass needs V1 / V2 = F x margin - 1, and a
+    # smaller pass is dearer per sample (TOP_UP_EXPONENT)
+    gap = factor * TOP_UP_MARGIN - 1.0
+    share = gap if plan.shares_pattern else max(gap ** (1.0 / TOP_UP_EXPONENT), gap)  # n2 / n1
+    extra = np.array([2 * count(max(int(np.ceil(share * n / 2)), 1)) for n in plan.spp], np.int64)
+    room = np.maximum(passes.cfg.render.max_spp - plan.spp, 0) // 2 * 2  # two halves of whole samples
+    if (room < 2).any():
+        return f"render.max_spp={passes.cfg.render.max_spp} reached in {int((room < 2).sum())} of {plan.passes} strata"
+    return np.minimum(extra, room)
+
+
+def combine_passes(
+    passes: Passes, plan: Plan, first: Integrated, second: Integrated, second_plan: Plan, worst: str, figure: str
+) -> tuple[Plan, Integrated, float]:
+    """The first pass and the top-up's ``second`` (rendered at ``second_plan``) as one render stage,
+    ``(E1 + c E2) / (1 + c)``: ``c`` by their samples where the second continues the first's pattern, else by
+    the inverse of the read ``worst``'s ``figure`` in each; returns the plan with the summed samples and the times
+    the combined exposure holds, the combined stage and ``c``."""
+    extra = second_plan.spp
+    times = second_plan.half_times_s
+    c = float(extra.sum() / plan.spp.sum())  # by their samples: each sample alike when they continue
+    if not plan.shares_pattern:  # the two passes' figures as rendered (the planned refinement adds to both alike)
+        v1, v2 = (
+            read_figures(x, passes.timeline, passes.cfg, [worst], plan=plan).get(worst, {}).get(figure, 0.0)
+            for x in (first, second)
+        )
+        c = v1 / v2 if v2 > 0 else c
+
+    def mix(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+        return None if a is None or b is None else passes.layout.mix(a, b, c)
+
+    combined = Integrated(
+        exposure=mix(first.exposure, second.exposure),
+        mc_diff=mix(first.mc_diff, second.mc_diff),
+        group_exposure=mix(first.group_exposure, second.group_exposure),
+        temporal_diff=mix(first.temporal_diff, second.temporal_diff),
+    )
+    # the exposure's times: the first pass's at weight 1 / (1 + c), the second's at c / (1 + c)
+    t1, w1 = plan.exposure_time_mix()
+    plan = replace(
+        plan,
+        spp=plan.spp + extra,
+        mix_times_s=np.concatenate([t1, times], axis=1),
+        mix_weights=np.concatenate([w1, c * second_plan.render_time_shares()], axis=1) / (1.0 + c),
+    )
+    return plan, combined, c
 
 
 #: Adaptive sampling renders each half of a stratum at this many times (one in each equal part of the
@@ -369,17 +360,7 @@ def scout_tail(
         start = time.perf_counter()
         k_e = electrons_per_render_second(passes.cfg.sensor, passes.cfg.render.variant)
         spp = np.asarray(plan.spp, np.int64)
-        scout_plan = replace(plan, spp=scout_spp(spp, sample_counter(passes.renderer, plan)))
-        again = () if have is None else (0x2D,)  # a second round's scout: seeds of its own again
-        with passes.timer("scout"):
-            scout = passes.layout.integrate(
-                passes.renderer,
-                scout_plan,
-                passes.timeline.n_channels,
-                np.random.SeedSequence(passes.seed.entropy, spawn_key=(*passes.seed.spawn_key, 0x5C0, *again)),
-                progress=passes.progress,
-                desc="scout" if have is None else "scout again",
-            )
+        scout_plan, scout = render_scout(passes, plan, again=have is not None)
         # the first pass's ratio over the scout's: as 1/spp where nothing moves; 1 where a render's time is noise,
         # as there both passes draw one time per half-stratum, and their time noise does not fall with samples
         scale = np.where(passes.changing, 1.0, float((scout_plan.spp / np.maximum(spp, 1)).max()))
@@ -435,6 +416,24 @@ def scout_tail(
             predicted_tail=round(max((v["to_shot_noise_variance_p999"] for v in planned.values()), default=0.0), 4),
         )
     return tiers, info, planned
+
+
+def render_scout(passes: Passes, plan: Plan, *, again: bool = False) -> tuple[Plan, Integrated]:
+    """Adaptive sampling's scout: the strata rendered again at about a sixteenth of the first pass's samples
+    (:func:`mbcapture.budget.tiers.scout_spp`) with seeds of their own (``again``: a second round's, of their own
+    again), through the film as the first pass went. Returns its plan and its render stage."""
+    scout_plan = replace(plan, spp=scout_spp(np.asarray(plan.spp, np.int64), sample_counter(passes.renderer, plan)))
+    key = (0x2D,) if again else ()
+    with passes.timer("scout"):
+        scout = passes.layout.integrate(
+            passes.renderer,
+            scout_plan,
+            passes.timeline.n_channels,
+            np.random.SeedSequence(passes.seed.entropy, spawn_key=(*passes.seed.spawn_key, 0x5C0, *key)),
+            progress=passes.progress,
+            desc="scout again" if again else "scout",
+        )
+    return scout_plan, scout
 
 
 def with_planned_refinement(integrated: Integrated, tiers: list[tuple[np.ndarray, int]]) -> Integrated:
