@@ -296,19 +296,23 @@ def integrate(
     if temporal is not None:
         temporal = temporal.astype(DIFF_DTYPE)
     exposure = parts[0] + parts[1] if two else parts[0]
-    mc_diff = None
-    if two:
-        # A = parts[0]/r, B = parts[1]/(1-r): Var[exposure] ~ (A - B)^2 r (1 - r) (r per stratum;
-        # exact when r is uniform, otherwise its weight-averaged value); kept signed (Integrated.mc_diff).
-        # In place on the halves, which are done with: (A - B) sqrt(r (1 - r)), operation for operation
-        rbar = float(np.average(r, weights=np.maximum(plan.weights_s.sum(axis=(1, 2)), 1e-300)))
-        a, b = parts
-        a /= rbar
-        b /= 1 - rbar
-        a -= b
-        a *= np.sqrt(rbar * (1 - rbar))
-        mc_diff = a.astype(DIFF_DTYPE)
+    mc_diff = signed_difference(parts, r, plan.weights_s) if two else None
     return Integrated(exposure=exposure, mc_diff=mc_diff, group_exposure=groups_out, temporal_diff=temporal)
+
+
+def signed_difference(parts: list[np.ndarray], r: np.ndarray, weights_s: np.ndarray) -> np.ndarray:
+    """The signed half-sample error estimate (:attr:`Integrated.mc_diff`) from the two halves' sums ``parts``
+    (spent: computed in place on them), ``r`` (J,) the first half's share of each stratum's samples.
+
+    A = parts[0]/r, B = parts[1]/(1-r): Var[exposure] ~ (A - B)^2 r (1 - r) (r per stratum; exact when r is
+    uniform, otherwise its weight-averaged value), kept signed: (A - B) sqrt(r (1 - r)), operation for operation."""
+    rbar = float(np.average(r, weights=np.maximum(weights_s.sum(axis=(1, 2)), 1e-300)))
+    a, b = parts
+    a /= rbar
+    b /= 1 - rbar
+    a -= b
+    a *= np.sqrt(rbar * (1 - rbar))
+    return a.astype(DIFF_DTYPE)
 
 
 def integrate_tiles(
@@ -540,6 +544,33 @@ def refine(
     extra = fac - held  # (P,)
     first_spp = np.asarray(plan.spp, dtype=np.int64)
     halves = np.stack([first_spp // 2, first_spp - first_spp // 2], axis=1)  # (J, 2): the first pass's halves
+    per_group = per_group and integrated.group_exposure is not None
+    parts, groups_out = _refine_renders(
+        renderer, plan, pix, extra, seed, points, (K, C), per_group=per_group, progress=progress, desc=desc, stage=stage
+    )
+    return _with_refined(integrated, parts, groups_out, pix, held, extra, halves, store)
+
+
+def _refine_renders(
+    renderer,
+    plan: Plan,
+    pix: np.ndarray,
+    extra: np.ndarray,
+    seed,
+    points: int,
+    shape: tuple[int, int],
+    *,
+    per_group: bool,
+    progress: bool,
+    desc: str,
+    stage,
+) -> tuple[list[np.ndarray], np.ndarray | None]:
+    """:func:`refine`'s renders: each half of each stratum at ``points`` times of its own, each pixel of ``pix``
+    with ``extra`` times its first-pass samples; returns each half's (K, P, C) sums (weights applied) and, with
+    ``per_group``, the (K, G, P, C) per-group sums."""
+    K, C = shape
+    first_spp = np.asarray(plan.spp, dtype=np.int64)
+    halves = np.stack([first_spp // 2, first_spp - first_spp // 2], axis=1)  # (J, 2): the first pass's halves
     keys = pattern_keys(seed) if plan.shares_pattern else None
     # the pixels rendered together: all of them with a pattern (counts and offsets per pixel), else by factor
     batches = [np.arange(pix.size)] if keys is not None else [np.flatnonzero(extra == e) for e in np.unique(extra)]
@@ -556,9 +587,7 @@ def refine(
     ]
     used = plan.weights_s.sum(axis=1) > 0
     parts = [np.zeros((K, pix.size, C)) for _ in range(2)]
-    groups_out = (
-        np.zeros((K, len(plan.groups), pix.size, C)) if per_group and integrated.group_exposure is not None else None
-    )
+    groups_out = np.zeros((K, len(plan.groups), pix.size, C)) if per_group else None
     edges = np.arange(points + 1) / points
     with _progress(plan.passes, progress, desc) as bar:
         for j in range(plan.passes):
@@ -590,6 +619,15 @@ def refine(
                                 )
                     offset[h] += counts[:, i]
             bar.update(1)
+    return parts, groups_out
+
+
+def _with_refined(integrated, parts, groups_out, pix, held, extra, halves, store: FilmStore) -> Integrated:
+    """``integrated`` with the pixels ``pix`` the passes' mean by their samples (``held`` : ``extra``); the signed
+    half-sample difference from the two halves' sums (``halves``: the first pass's, (J, 2))."""
+    K, H, W, C = integrated.exposure.shape
+    fac = held + extra
+    first_spp = halves.sum(axis=1)
     r = float((halves[:, 0] / np.maximum(first_spp, 1)).mean())
 
     def combined(first: np.ndarray, second: np.ndarray, pixel_axis: int) -> np.ndarray:
