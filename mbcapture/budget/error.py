@@ -132,44 +132,11 @@ def render_error(
 
     per_read, factors = {}, {}
     for name, buckets in zip(read_names, reads):
-        squared, signal, use = read_squared_difference(
-            mc_diff_exposure, buckets_e, buckets, full_well_e, fd_full_well_e
-        )
-        if not use.any():
+        f = read_figures(mc_diff_exposure, buckets_e, buckets, full_well_e, fd_full_well_e, k_e)
+        if f is None:
             continue
-        dof = effective_dof(squared, use)  # measured before pooling
-        var_e = pooled_alike(squared, signal)
-        del squared
-        var_e *= k_e**2
-        samples = int(use.sum())
-        channels = use.shape[-1]
-        design = float(POOL_PX**2 * channels)  # a pooled estimate shares its renders with 3x3 x C
-        var_e, signal = var_e[use], signal[use]  # the samples that count, the read's whole arrays let go
-        ratio = var_e / signal
-        (median, *median_iv), (p95, *p95_iv), (tail, *tail_iv) = quantiles_with_intervals(
-            ratio, [50.0, 95.0, TAIL_QUANTILE], design
-        )
-        # the median of the true ratios behind the noisy estimates (deconvolved_median); its interval is
-        # the estimates' median's, moved by the same factor
-        true_median = deconvolved_median(ratio, dof)
-        factor = median / true_median if median > 0 and true_median > 0 else chi2_median_factor(dof)
-        median, median_iv = median / factor, [m / factor for m in median_iv]
-        # the deconvolution's own scatter (DECONV_REL_SD), which the order statistics do not hold
-        half = interval_z() * DECONV_REL_SD / np.sqrt(effective_count(ratio.size, design))
-        median_iv = [min(median_iv[0], median * (1.0 - half)), max(median_iv[1], median * (1.0 + half))]
-        per_read[name] = {
-            "samples": samples,
-            "rel_rms": float(np.sqrt(var_e.mean()) / signal.mean()),
-            "to_shot_noise_variance_mean": float(var_e.mean() / signal.mean()),
-            "to_shot_noise_variance_median": median,
-            "to_shot_noise_variance_p95": p95,
-            "to_shot_noise_variance_p999": tail,
-            "to_shot_noise_variance_median_interval": median_iv,
-            "to_shot_noise_variance_p95_interval": p95_iv,
-            "to_shot_noise_variance_p999_interval": tail_iv,
-            "share_above_10": float((ratio > 10.0).mean()),
-            "estimate_dof": round(dof, 3),
-        }
+        per_read[name] = f
+        median, p95, tail = (f[f"to_shot_noise_variance_{q}"] for q in ("median", "p95", "p999"))
         factors[name] = (max(median / noise_budget, p95 / noise_budget_p95), tail / noise_budget_tail)
     if not per_read:
         return {"note": "no unsaturated lit samples"}
@@ -196,4 +163,46 @@ def render_error(
         "deciding_read": deciding,
         "reads": per_read,
         "budget": budget,
+    }
+
+
+def read_figures(mc_diff_exposure, buckets_e, buckets, full_well_e, fd_full_well_e, k_e: np.ndarray) -> dict | None:
+    """The figures of the read summing ``buckets`` (:func:`render_error`'s ``reads``), from its squared half-sample
+    differences (:func:`read_squared_difference`, made here so that each array goes as soon as it is done with);
+    None where no sample counts."""
+    squared, signal, use = read_squared_difference(mc_diff_exposure, buckets_e, buckets, full_well_e, fd_full_well_e)
+    if not use.any():
+        return None
+    dof = effective_dof(squared, use)  # measured before pooling
+    var_e = pooled_alike(squared, signal)
+    del squared
+    var_e *= k_e**2
+    samples = int(use.sum())
+    channels = use.shape[-1]
+    design = float(POOL_PX**2 * channels)  # a pooled estimate shares its renders with 3x3 x C
+    var_e, signal = var_e[use], signal[use]  # the samples that count, the read's whole arrays let go
+    ratio = var_e / signal
+    (median, *median_iv), (p95, *p95_iv), (tail, *tail_iv) = quantiles_with_intervals(
+        ratio, [50.0, 95.0, TAIL_QUANTILE], design
+    )
+    # the median of the true ratios behind the noisy estimates (deconvolved_median); its interval is
+    # the estimates' median's, moved by the same factor
+    true_median = deconvolved_median(ratio, dof)
+    factor = median / true_median if median > 0 and true_median > 0 else chi2_median_factor(dof)
+    median, median_iv = median / factor, [m / factor for m in median_iv]
+    # the deconvolution's own scatter (DECONV_REL_SD), which the order statistics do not hold
+    half = interval_z() * DECONV_REL_SD / np.sqrt(effective_count(ratio.size, design))
+    median_iv = [min(median_iv[0], median * (1.0 - half)), max(median_iv[1], median * (1.0 + half))]
+    return {
+        "samples": samples,
+        "rel_rms": float(np.sqrt(var_e.mean()) / signal.mean()),
+        "to_shot_noise_variance_mean": float(var_e.mean() / signal.mean()),
+        "to_shot_noise_variance_median": median,
+        "to_shot_noise_variance_p95": p95,
+        "to_shot_noise_variance_p999": tail,
+        "to_shot_noise_variance_median_interval": median_iv,
+        "to_shot_noise_variance_p95_interval": p95_iv,
+        "to_shot_noise_variance_p999_interval": tail_iv,
+        "share_above_10": float((ratio > 10.0).mean()),
+        "estimate_dof": round(dof, 3),
     }
