@@ -54,6 +54,20 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mbcapture", description="Multi-bucket sensor capture simulator (Mitsuba 3).")
     p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = p.add_subparsers(dest="command", required=True)
+    _add_run_command(sub)
+    _add_plan_command(sub)
+    _add_converge_command(sub)
+    _add_characterize_command(sub)
+    sub.add_parser("scenes", help="list the scenes and their parameters")
+    _add_figures_command(sub)
+    sub.add_parser("apps", help="list the applications (reconstructions), their protocols and parameters")
+    _add_sweep_command(sub)
+    _add_cache_command(sub)
+    return p
+
+
+def _add_run_command(sub) -> None:
+    """``mbcapture run``."""
 
     run = sub.add_parser("run", help="render, simulate the sensor, reconstruct, write outputs")
     _add_config_args(run)
@@ -74,6 +88,9 @@ def _parser() -> argparse.ArgumentParser:
         help="render the capture's strata on an existing Dask cluster (tcp://host:port)",
     )
 
+
+def _add_plan_command(sub) -> None:
+    """``mbcapture plan``."""
     plan = sub.add_parser("plan", help="show what would be rendered, without rendering")
     _add_config_args(plan)
     plan.add_argument("--json", action="store_true", help="print the plan as JSON")
@@ -83,6 +100,9 @@ def _parser() -> argparse.ArgumentParser:
         help="no pilot/probe render: no spp from render.noise_budget and no time estimate",
     )
 
+
+def _add_converge_command(sub) -> None:
+    """``mbcapture converge``."""
     conv = sub.add_parser("converge", help="rendering error vs run time: planner and naive per-slot ladders")
     _add_config_args(conv)
     conv.add_argument("--out", type=Path, default=None, help="output folder (default: out/converge_<config name>)")
@@ -93,6 +113,9 @@ def _parser() -> argparse.ArgumentParser:
     conv.add_argument("--naive-spp", type=str, default=None, help="naive ladder, spp per slot (default 1,2,4,8)")
     conv.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 256; --quick 64)")
 
+
+def _add_characterize_command(sub) -> None:
+    """``mbcapture characterize``."""
     char = sub.add_parser(
         "characterize",
         help="measure the configured sensor as EMVA 1288 Release 4.0 does; a "
@@ -110,7 +133,9 @@ def _parser() -> argparse.ArgumentParser:
     char.add_argument("--frames", type=int, default=16, help="frames averaged for DSNU and PRNU (default 16)")
     char.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
-    sub.add_parser("scenes", help="list the scenes and their parameters")
+
+def _add_figures_command(sub) -> None:
+    """``mbcapture figures``."""
     figs = sub.add_parser("figures", help="regenerate the paper's figures (PNG, PDF, data, index.html)")
     figs.add_argument("--out", type=Path, default=Path("out/figures"), help="output folder (default: out/figures)")
     figs.add_argument("--quick", action="store_true", help="small size (160x128, 4 spp): every figure in minutes")
@@ -119,8 +144,9 @@ def _parser() -> argparse.ArgumentParser:
     figs.add_argument("--seed", type=int, default=0, help="seed of every capture and simulation")
     figs.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
-    sub.add_parser("apps", help="list the applications (reconstructions), their protocols and parameters")
 
+def _add_sweep_command(sub) -> None:
+    """``mbcapture sweep``."""
     sweep = sub.add_parser(
         "sweep", help="many captures varying some keys (renders shared), on Dask; a table, plots, index.html"
     )
@@ -166,6 +192,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     sweep.add_argument("--quiet", action="store_true", help="no progress bar or summary")
 
+
+def _add_cache_command(sub) -> None:
+    """``mbcapture cache``."""
     cache = sub.add_parser("cache", help="the render cache: where it is and how big, or empty it")
     cache.add_argument(
         "action", choices=["info", "clear"], help="info: folder, entries, size; clear: remove every render"
@@ -176,7 +205,6 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="cache folder (default: $MBCAPTURE_CACHE_DIR or the user cache folder, as render.cache: on)",
     )
-    return p
 
 
 def _cmd_cache(args) -> int:
