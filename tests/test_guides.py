@@ -7,7 +7,7 @@ import pytest
 
 from mbcapture.errors import ConfigError
 from mbcapture.render.build import Guide, Light, Material, SceneBuild, Shape, frame_towards, rotate, scale, translate
-from mbcapture.render.renderer import guide_shares
+from mbcapture.render.settings import guide_shares
 from mbcapture.scene.scenes import Camera, SceneModel, load_module, make_scene
 
 W, H = 24, 16

@@ -36,7 +36,9 @@ import json
 import os
 import tempfile
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -256,3 +258,47 @@ def open_cache(setting: str, max_gb: float) -> RenderCache | None:
 def digest(obj) -> str:
     """SHA-256 of a canonical JSON form of ``obj`` (dicts sorted, floats as repr)."""
     return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":"), default=repr).encode()).hexdigest()
+
+
+@lru_cache(maxsize=None)
+def _file_sha256(path: str, mtime_ns: int, size: int) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def file_digest(path: str | Path) -> str:
+    """SHA-256 of a file's content (memoized by path, modification time and size)."""
+    st = Path(path).stat()
+    return _file_sha256(str(Path(path).resolve()), st.st_mtime_ns, st.st_size)
+
+
+def canonical(obj: Any, mi: Any) -> Any:
+    """A Mitsuba scene dict as plain JSON data for hashing: transforms as matrices, files by content."""
+    if isinstance(obj, dict):
+        return {
+            str(k): ({"file": Path(v).name, "sha256": file_digest(v)} if k == "filename" else canonical(v, mi))
+            for k, v in obj.items()
+        }
+    if isinstance(obj, (list, tuple)):
+        return [canonical(v, mi) for v in obj]
+    if isinstance(obj, (bool, int, str)) or obj is None:
+        return obj
+    if isinstance(obj, float):
+        return repr(obj)
+    if isinstance(obj, mi.ScalarTransform4f):
+        return [[repr(float(x)) for x in row] for row in np.asarray(obj.matrix, dtype=np.float64)]
+    if isinstance(obj, mi.Bitmap):  # e.g. a projector's pattern: by content
+        data = np.ascontiguousarray(np.asarray(obj))
+        return {
+            "bitmap": hashlib.sha256(data.tobytes()).hexdigest(),
+            "shape": list(data.shape),
+            "dtype": data.dtype.str,
+        }
+    if isinstance(obj, np.ndarray):
+        return {"array": hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest(), "shape": list(obj.shape)}
+    # anything else would be hashed by its repr, which need not show its content: refuse, so that
+    # two different scenes can never share a cache key
+    raise TypeError(f"render cache key: cannot hash a {type(obj).__name__} in the scene description")

@@ -8,38 +8,26 @@ from __future__ import annotations
 
 import hashlib
 import time
-from dataclasses import dataclass, replace
-from functools import lru_cache
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from ..errors import ConfigError
-from ..scene.optics import (
-    focus_distance_m,
-    thin_lens_aperture_m,
-)
 from ..scene.scenes import SceneModel
-from ..sensor.photons import mono_weights
-from ..sensor.spectral import film_sensitivity
 from .build import (
-    MAX_GUIDE_SHARE,
-    Guide,
     SceneBuild,
 )
 from .bands import band_seed, film_bands
 from .lens import Lens
-from .cache import RenderCache, digest
-from .integrator import CAMERA_DIM, PLUGIN_NAME, integrator_class, is_lambertian
-from .pattern import pair as pattern_pair, pixel_key
-from .llvm import apply_target_from_env, ensure_llvm, llvm_target
+from .pixels import PixelRendering
+from .settings import RenderSettings, guide_shares, load_mitsuba
+from .cache import RenderCache, canonical, digest, file_digest
+from .integrator import PLUGIN_NAME, integrator_class, is_lambertian
+from .llvm import llvm_target
 from .scene_dicts import CHANNELS, SENSORS, SceneDicts
 from .tiles import materialize
-from ..sensor.config import SensorConfig
-
-#: Mitsuba samplers a Renderer may use (render.sampler).
-SAMPLERS = ("multijitter", "ldsampler", "independent")
 
 #: Modules whose code turns a scene description into pixels: part of every cache key.
 _PIXEL_CODE = (
@@ -53,190 +41,12 @@ _PIXEL_CODE = (
     "tiles.py",
     "scene_dicts.py",
     "lens.py",
+    "settings.py",
+    "pixels.py",
 )
 
 
-@lru_cache(maxsize=None)
-def _file_sha256(path: str, mtime_ns: int, size: int) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def file_digest(path: str | Path) -> str:
-    """SHA-256 of a file's content (memoized by path, modification time and size)."""
-    st = Path(path).stat()
-    return _file_sha256(str(Path(path).resolve()), st.st_mtime_ns, st.st_size)
-
-
-def _canonical(obj: Any, mi: Any) -> Any:
-    """A Mitsuba scene dict as plain JSON data for hashing: transforms as matrices, files by content."""
-    if isinstance(obj, dict):
-        return {
-            str(k): ({"file": Path(v).name, "sha256": file_digest(v)} if k == "filename" else _canonical(v, mi))
-            for k, v in obj.items()
-        }
-    if isinstance(obj, (list, tuple)):
-        return [_canonical(v, mi) for v in obj]
-    if isinstance(obj, (bool, int, str)) or obj is None:
-        return obj
-    if isinstance(obj, float):
-        return repr(obj)
-    if isinstance(obj, mi.ScalarTransform4f):
-        return [[repr(float(x)) for x in row] for row in np.asarray(obj.matrix, dtype=np.float64)]
-    if isinstance(obj, mi.Bitmap):  # e.g. a projector's pattern: by content
-        data = np.ascontiguousarray(np.asarray(obj))
-        return {
-            "bitmap": hashlib.sha256(data.tobytes()).hexdigest(),
-            "shape": list(data.shape),
-            "dtype": data.dtype.str,
-        }
-    if isinstance(obj, np.ndarray):
-        return {"array": hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest(), "shape": list(obj.shape)}
-    # anything else would be hashed by its repr, which need not show its content: refuse, so that
-    # two different scenes can never share a cache key
-    raise TypeError(f"render cache key: cannot hash a {type(obj).__name__} in the scene description")
-
-
-def guide_shares(guides: Sequence[Guide], fraction: float | None) -> tuple[float, ...]:
-    """The share of every diffuse bounce sent towards each of ``guides``: their own shares (``fraction``
-    None), or ``fraction`` of every bounce split among them in proportion to their shares (0: none,
-    all zeros). ConfigError (render.guide_fraction) outside 0 to :data:`~mbcapture.render.build.MAX_GUIDE_SHARE`."""
-    if fraction is None:
-        return tuple(g.share for g in guides)
-    if not 0.0 <= fraction <= MAX_GUIDE_SHARE:
-        raise ConfigError(f"render.guide_fraction: expected null or 0 to {MAX_GUIDE_SHARE}, got {fraction}")
-    total = sum(g.share for g in guides)  # each share is positive (Guide)
-    return tuple(float(fraction) * g.share / total for g in guides)
-
-
-def thin_lens_of(scene: SceneModel, cfg: Any) -> tuple[float, float] | None:
-    """(aperture radius m, focus distance m) of ``camera.lens: thin``, None for a pinhole."""
-    if cfg.camera.lens != "thin":
-        return None
-    focus = cfg.camera.focus_distance_m or focus_distance_m(scene.camera)
-    return thin_lens_aperture_m(scene.camera, cfg.render.width, cfg.sensor.pixel_pitch_um, cfg.sensor.f_number), focus
-
-
-def image_settings(scene: SceneModel, cfg: Any) -> dict[str, Any]:
-    """Everything of the camera and the sensor that :meth:`Renderer.from_config`'s images depend on,
-    as plain data (a sweep's render groups compare them): the field of view, the thin lens, the
-    falloff, distortion, diffraction (with the f-number, pixel pitch and wavelengths it uses) and a
-    mono sensor's channel mixture. Noise, wells and the ADC are not in it."""
-    s, cam = cfg.sensor, cfg.camera
-    mono = mono_weights(s, cfg.render.variant)
-    return {
-        "fov_deg": repr(float(scene.camera.fov_deg)),
-        "thin_lens": None if (lens := thin_lens_of(scene, cfg)) is None else [repr(float(x)) for x in lens],
-        "vignetting": cam.vignetting,
-        "distortion": cam.distortion,
-        "diffraction": None
-        if not cam.diffraction
-        else {"f_number": s.f_number, "pixel_pitch_um": s.pixel_pitch_um, "wavelength_nm": list(s.wavelength_nm)},
-        "mono": None if mono is None else [repr(float(w)) for w in mono],
-    }
-
-
-@dataclass(frozen=True, eq=False)
-class RenderSettings:
-    """How a :class:`Renderer` renders, besides its scene and film size (each field a keyword of ``Renderer`` too):
-    the Mitsuba ``variant`` (an llvm/cuda ``*_rgb`` or ``*_spectral`` one), the path's ``max_depth``, Mitsuba's
-    ``sampler``, the ``sensor`` section (a spectral film's curves, diffraction's aperture), ``film_curves``
-    (wavelengths_nm (n,), curves (3, n)) that replace the sensor's in a spectral variant, the lens
-    (``vignetting``, ``distortion``, ``diffraction``, ``thin_lens``: (aperture radius m, focus distance m) or None
-    for a pinhole), a monochrome sensor's channel mixture ``mono``, the film's ``band_rows`` (None: the default)
-    and ``guide_fraction`` (None: the scene's own guide shares; 0: none)."""
-
-    variant: str = "llvm_ad_rgb"
-    max_depth: int = 4
-    sampler: str = "multijitter"
-    sensor: SensorConfig | None = None
-    film_curves: tuple[np.ndarray, np.ndarray] | None = None
-    vignetting: str = "none"
-    distortion: Sequence[float] | None = None
-    diffraction: bool = False
-    thin_lens: tuple[float, float] | None = None
-    mono: np.ndarray | None = None
-    band_rows: int | None = None
-    guide_fraction: float | None = 0.0
-
-    @classmethod
-    def from_config(cls, scene: SceneModel, cfg: Any, **fields: Any) -> "RenderSettings":
-        """The settings a capture config asks for (render.*, camera.*, sensor), with ``fields`` replacing any."""
-        r = cfg.render
-        return cls(
-            **{
-                "variant": r.variant,
-                "max_depth": r.max_depth,
-                "sampler": r.sampler,
-                "sensor": cfg.sensor,
-                "vignetting": cfg.camera.vignetting,
-                "diffraction": cfg.camera.diffraction,
-                "thin_lens": thin_lens_of(scene, cfg),
-                "mono": mono_weights(cfg.sensor, r.variant),
-                "distortion": cfg.camera.distortion,
-                "band_rows": r.band_rows,
-                "guide_fraction": r.guide_fraction,
-                **fields,
-            }
-        )
-
-    def check(self) -> None:
-        """A ConfigError naming the key for a setting no renderer can take."""
-        lens = self.thin_lens
-        if lens is not None and not (lens[0] > 0 and lens[1] > 0):
-            raise ConfigError(f"thin lens: aperture radius and focus distance must be positive, got {lens}")
-        if self.max_depth < 1:
-            raise ConfigError(f"render.max_depth must be >= 1, got {self.max_depth}")
-        if not self.variant.endswith(("_rgb", "_spectral")) or self.variant.startswith("scalar"):
-            raise ConfigError(
-                f"render.variant: expected an llvm/cuda *_rgb or *_spectral variant, got {self.variant!r}"
-            )
-        if self.sampler not in SAMPLERS:
-            raise ConfigError(f"render.sampler: expected one of {list(SAMPLERS)}, got {self.sampler!r}")
-
-    def film_sensitivity(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """A spectral film's (wavelengths_nm (n,), curves (3, n)): ``film_curves``, else the sensor's
-        (:func:`mbcapture.sensor.spectral.film_sensitivity`); None in an RGB variant."""
-        spectral = self.variant.endswith("_spectral")
-        if self.film_curves is not None:
-            if not spectral:
-                raise ConfigError(f"render.variant {self.variant!r}: film_curves need a spectral variant")
-            wl, curves = (np.asarray(a, np.float64) for a in self.film_curves)
-            if wl.ndim != 1 or curves.shape != (3, wl.size):
-                raise ConfigError(
-                    f"film_curves: expected wavelengths (n,) and curves (3, n), got {wl.shape}, {curves.shape}"
-                )
-            return wl, curves
-        if not spectral:
-            return None
-        if self.sensor is None:
-            raise ConfigError(f"render.variant {self.variant!r}: a spectral render needs the sensor config")
-        try:
-            return film_sensitivity(self.sensor)
-        except ValueError as exc:
-            raise ConfigError(f"sensor.{exc}") from None
-
-
-def load_mitsuba(variant: str) -> tuple[Any, Any]:
-    """Mitsuba and Dr.Jit with ``variant`` set (an LLVM one after the libLLVM is picked, and compiling for
-    ``$MBCAPTURE_LLVM_TARGET`` where set): the ``(mitsuba, drjit)`` modules."""
-    if variant.startswith("llvm"):
-        ensure_llvm()
-    import drjit as dr
-    import mitsuba as mi
-
-    if variant not in mi.variants():
-        raise ConfigError(f"render.variant: {variant!r} not in {mi.variants()}")
-    mi.set_variant(variant)
-    if variant.startswith("llvm"):
-        apply_target_from_env()  # MBCAPTURE_LLVM_TARGET: compile for another CPU (before any kernel)
-    return mi, dr
-
-
-class Renderer:
+class Renderer(PixelRendering):
     """Radiance images of a scene's emitter groups at given scene times.
 
     One :meth:`render` is one Mitsuba pass of :mod:`.integrator`'s per-group path tracer: every
@@ -488,7 +298,7 @@ class Renderer:
         target = llvm_target() if self.variant.startswith("llvm") else {"backend": "cuda"}
         return digest(
             {
-                "scene": [_canonical(d, self._mi) for d in dicts],
+                "scene": [canonical(d, self._mi) for d in dicts],
                 "groups": list(self.groups),
                 "variant": self.variant,
                 "max_depth": self.max_depth,
@@ -731,233 +541,6 @@ class Renderer:
             params["pattern"] = [int(pattern[0]) & 0xFFFFFFFF, _one_or_digest(pattern[1])]
         return params
 
-    @property
-    def renders_pixels_alone(self) -> bool:
-        """Whether :meth:`render_pixels` renders the listed pixels alone, at a cost in proportion to them: a lens
-        acting pixel by pixel. A lens that mixes neighbours (camera.distortion, camera.diffraction) makes it render
-        the whole film, the listed pixels' neighbourhoods at their samples and the rest at one."""
-        return not self.lens.mixes_pixels
-
-    def render_pixels(
-        self,
-        t_s: float,
-        spp: "int | np.ndarray",
-        seed: int,
-        groups: Sequence[str],
-        pixels: np.ndarray,
-        pattern: "tuple[int, int | np.ndarray] | None" = None,
-        cached: bool = False,
-    ) -> np.ndarray:
-        """Radiance of each requested group at the film pixels ``pixels`` (flat indices y * W + x) only,
-        ``spp`` samples each: float32 (len(groups), len(pixels), 3), the same estimator as :meth:`render`
-        (box filter: the mean over each pixel's area; the lens and a mono mixture applied), at a
-        cost in proportion to the pixels where the lens acts pixel by pixel (:attr:`renders_pixels_alone`).
-        Written here because Mitsuba renders whole films
-        (or crop rectangles): the camera rays of the listed pixels are generated as ``mi.render`` does
-        (the sampler seeded over pixels x spp lanes, spp consecutive lanes per pixel, so its
-        stratification is per pixel) and each lane's per-group AOVs (spectral: the film's channels of the
-        sample, one pass a group) are summed into its pixel. A lens that mixes neighbours (distortion,
-        diffraction) reads pinhole pixels around each listed one: the whole pinhole film is rendered, each
-        pixel with the listed pixels' samples in proportion to its weight in them and the rest with one
-        (:meth:`_lens_samples`), and put through the lens as a film is, so the value is unbiased and costs
-        about one sample of the whole film more.
-        ``pattern`` (key, offset): the samples drawn from the shared pattern as :meth:`render` draws them,
-        so that a pixel's value is the one a whole-film render with that pattern gives it. With a pattern,
-        ``spp`` and the offset may be one per pixel (arrays of the pixels' length): pixel i takes the pattern's
-        samples offset[i] .. offset[i] + spp[i] - 1, all pixels in one render (adaptive sampling's tiers).
-        ``cached``: kept in the render cache under the pixels' digest, as :meth:`render` keeps a film (the
-        pilot's blocks and adaptive sampling's passes, which a run on a warm cache with the same choice of
-        pixels reuses)."""
-        req = list(groups)
-        pix = np.ascontiguousarray(np.asarray(pixels, dtype=np.uint32).ravel())
-        counts = np.broadcast_to(np.asarray(spp, np.int64), pix.shape)
-        if pattern is None:
-            if counts.size and counts.min() != counts.max():
-                raise ValueError(
-                    "render_pixels: samples per pixel that vary need a pattern (the sampler's "
-                    "sequences are spp consecutive lanes a pixel)"
-                )
-            n = self.sample_count(int(counts.flat[0]) if counts.size else 1)
-            counts, offsets = np.full(pix.shape, n, np.int64), None
-        else:
-            offsets = np.broadcast_to(np.asarray(pattern[1], np.int64), pix.shape)
-            if counts.size and (counts.min() < 1 or offsets.min() < 0 or (offsets + counts).max() > 2**32):
-                raise ValueError("render_pixels: expected samples >= 1 a pixel and pattern samples within 0 .. 2^32")
-
-        def rendered(at: np.ndarray, n: np.ndarray, first: np.ndarray | None, s: int) -> np.ndarray:
-            """``_render_pixels`` of pixels ``at`` (the pinhole's, before the lens), kept in the cache if asked."""
-            pat = None if pattern is None else (pattern[0], first)
-            if not cached:
-                return self._render_pixels(t_s, n, s, req, at, pat, first)
-            params = {
-                **self._cache_params(n, s, req, pat),
-                "pixels": hashlib.sha256(at.tobytes()).hexdigest(),
-                "n_pixels": int(at.size),
-            }
-            return self.cached("pixels", t_s, params, lambda: self._render_pixels(t_s, n, s, req, at, pat, first))
-
-        if self.renders_pixels_alone:
-            out = rendered(pix, counts, offsets, seed)
-            if self.lens.falloff is not None:
-                out = out * self.lens.falloff.reshape(-1)[pix][None, :, None]
-            return self._mono_mixed(out)
-        # a lens that mixes neighbours: the whole pinhole film, each pixel with the samples that what reads it asks for
-        # (its share of them), the rest with one, through the lens as :meth:`render`'s films are
-        film = np.arange(self.width * self.height, dtype=np.uint32)
-        asked, first = self.lens.samples(pix, counts, offsets)
-        if pattern is not None:  # one render: a pixel nothing asks for takes one sample at a place of its own
-            start = int(np.random.default_rng(int(seed) & 0xFFFFFFFF).integers(0, 2**31))
-            img = rendered(film, np.maximum(asked, 1), np.where(asked > 0, first, start), seed)
-        else:  # the sampler's sequences take one count a render: the reached pixels at it, the rest at one
-            reached = asked > 0
-            img = np.zeros((len(req), film.size, 3), np.float32)
-            img[:, reached] = rendered(film[reached], np.full(int(reached.sum()), int(counts.flat[0])), None, seed)
-            img[:, ~reached] = rendered(
-                film[~reached], np.ones(int((~reached).sum()), np.int64), None, band_seed(seed, 0x5A)
-            )
-        img = self.lens.apply(img.reshape(len(req), self.height, self.width, 3), 0, self.height)
-        return self._mono_mixed(img.reshape(len(req), -1, 3)[:, pix])
-
-    def _render_pixels(
-        self,
-        t_s: float,
-        counts: np.ndarray,
-        seed: int,
-        req: list[str],
-        pix: np.ndarray,
-        pattern: "tuple[int, int | np.ndarray] | None",
-        offsets: np.ndarray | None,
-    ) -> np.ndarray:
-        """:meth:`render_pixels` before the lens's falloff and a mono mixture: ``counts`` samples at each of
-        ``pix``, from the pattern's samples ``offsets`` on (with a pattern) or the sampler's (equal counts).
-        RGB: every group in one pass (its AOVs); spectral: one pass a group, in the scene whose film samples
-        the group's wavelengths (as :meth:`_render`)."""
-        out = np.zeros((len(req), pix.size, 3), np.float32)
-        self._ensure_loaded()  # the emitters of each group are known once the scene is loaded
-        lit = [g for g in req if self._group_emitters[g]]
-        if not lit or pix.size == 0:
-            return out
-        self.set_time(t_s)
-        passes = [[g] for g in lit] if self.spectral else [lit]
-        for groups in passes:
-            scene, params, emitters = (
-                self._scene_of(groups[0])
-                if self.spectral
-                else (self._scene, self._params, [self._group_emitters[g] for g in groups])
-            )
-            self._set_rows(params, (0, self.height))  # the rays below address the whole film
-            self._integrator.set_groups(groups, emitters)
-            sums = self._pixel_sums(scene, groups[0] if self.spectral else None, counts, seed, pix, pattern, offsets)
-            for i, g in enumerate(groups):
-                out[req.index(g)] = sums[:, i]
-        return out
-
-    def _scene_of(self, group: str) -> tuple[Any, Any, list[list[Any]]]:
-        """A spectral group's (scene, its parameters, [its emitters]): its own scene where its emitters share
-        one spectral shape (:meth:`~.scene_dicts.SceneDicts.group_spectral_shape`), else the main one."""
-        if group in self._group_scenes:
-            scene, params, emitters = self._group_scenes[group]
-            return scene, params, [emitters]
-        return self._scene, self._params, [self._group_emitters[group]]
-
-    def _pixel_sums(
-        self,
-        scene: Any,
-        group: str | None,
-        counts: np.ndarray,
-        seed: int,
-        pix: np.ndarray,
-        pattern: "tuple[int, int | np.ndarray] | None",
-        offsets: np.ndarray | None,
-    ) -> np.ndarray:
-        """One pass of :meth:`_render_pixels` in ``scene`` (the integrator's groups set): float64 (pixels,
-        groups, 3), each pixel's mean over its samples. ``group``: the spectral group rendered (its scene's film
-        curves weigh the wavelengths), None in RGB."""
-        mi, dr = self._mi, self._dr
-        lanes = int(counts.sum())
-        sensor = scene.sensors()[self._sensor_index(pattern)]
-        sampler = sensor.sampler().clone()
-        key = index = None
-        if pattern is None:  # the sampler's sequences: n consecutive lanes a pixel
-            n = int(counts[0])
-            sampler.set_sample_count(n)
-            # the clone would keep the last mi.render's count, and the quasi-Monte Carlo samplers would then
-            # stratify over the wrong sequences
-            sampler.set_samples_per_wavefront(n)
-            self._integrator.use_pattern(None)
-            per_pixel = mi.UInt32(n)
-            dr.make_opaque(per_pixel)  # a literal would compile a kernel for every count
-            slot = dr.arange(mi.UInt32, lanes) // per_pixel
-            pixel = dr.gather(mi.UInt32, mi.UInt32(_aligned(pix)), slot)
-        else:  # the pattern draws every dimension: each lane is told its pixel and its sample of the pattern
-            slots = np.repeat(np.arange(pix.size, dtype=np.uint32), counts)
-            starts = np.cumsum(counts) - counts
-            lane_index = (np.arange(lanes, dtype=np.int64) - np.repeat(starts - offsets, counts)).astype(np.uint32)
-            slot, pixel, index = (
-                mi.UInt32(_aligned(slots)),
-                mi.UInt32(_aligned(pix[slots])),
-                mi.UInt32(_aligned(lane_index)),
-            )
-            self._integrator.use_pattern(int(pattern[0]) & 0xFFFFFFFF, 0, 0, lanes=(pixel, index))
-            key = mi.UInt32(int(pattern[0]) & 0xFFFFFFFF)
-            dr.make_opaque(key)
-        sampler.seed(int(seed) & 0xFFFFFFFF, lanes)
-        y = pixel // self.width
-        x = pixel - y * self.width
-        if self.spectral and pattern is not None:
-            # mi.render's spectral camera ray is its sampler's (the integrator cannot redraw its wavelengths and
-            # their weight); these lanes have no sampler sequence of their own, so the ray's point in the pixel,
-            # the aperture and the wavelengths are the pattern's: the same estimator, stratified across the strata
-            draw = lambda d: pattern_pair(dr, mi, index, pixel_key(pixel, key), mi.UInt32(CAMERA_DIM + d))  # noqa: E731
-            in_pixel, aperture = draw(0), (draw(1) if sensor.needs_aperture_sample() else mi.Point2f(0.5))
-            wavelength = draw(2).x
-        else:  # mi.render's order: the point in the pixel, the aperture, the wavelengths (spectral)
-            in_pixel = sampler.next_2d()
-            aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
-            wavelength = sampler.next_1d() if self.spectral else mi.Float(0.0)
-        pos = (mi.Point2f(mi.Float(x), mi.Float(y)) + in_pixel) * mi.ScalarVector2f(1.0 / self.width, 1.0 / self.height)
-        ray, weight = sensor.sample_ray_differential(sensor.shutter_open(), wavelength, pos, aperture)
-        spec, _, aovs = self._integrator.sample(scene, sampler, ray, None, mi.Bool(True))
-        if self.spectral:
-            values = self._film_values(sensor.film(), group, ray.wavelengths, weight * spec)
-        else:
-            values = [value * weight[0] for value in aovs]
-        C = len(values)
-        # the sums' array at a power of two of the pixels (at least 1024): a scatter's kernel holds its target's
-        # size as a literal, so a size of its own for every choice of pixels compiled the render anew each call
-        acc = dr.zeros(mi.Float, (1 << max(10, int(np.ceil(np.log2(pix.size))))) * C)
-        for c, value in enumerate(values):
-            dr.scatter_reduce(dr.ReduceOp.Add, acc, value, slot * C + c)
-        dr.eval(acc)
-        return np.asarray(acc, dtype=np.float64)[: pix.size * C].reshape(pix.size, C // 3, 3) / counts[:, None, None]
-
-    def _film_values(self, film: Any, group: str, wavelengths: Any, spec: Any) -> list[Any]:
-        """What ``specfilm`` stores of one sample (its channels), written here because Mitsuba 3.9.1's Python
-        binding of ``Film.prepare_sample`` corrupts memory (measured: a segmentation fault). As the film
-        does: the sample's value at each wavelength (``spec``, the ray's weight included) over the sum of the
-        film's curves there (its wavelength-sampling density; 1 where that is 0), times each channel's
-        curve, averaged over the wavelengths. The curves are the film's own (the scene's film description)."""
-        mi, dr = self._mi, self._dr
-        key = group if group in self._dicts else None  # the groups of the main scene share its film
-        if key not in self._film_curves:
-            film_dict = self._dicts[key]["sensor"]["film"]
-            self._film_curves[key] = [mi.load_dict(film_dict[c]) for c in self.channels]
-        si = dr.zeros(mi.SurfaceInteraction3f)
-        si.wavelengths = wavelengths
-        total = film.sensor_response_function().eval(si)
-        scaled = spec * dr.select(total != 0.0, dr.rcp(total), 1.0)
-        n = dr.size_v(mi.Spectrum)
-        out = []
-        for curve in self._film_curves[key]:
-            weights = curve.eval(si)
-            out.append(sum(weights[i] * scaled[i] for i in range(n)) * (1.0 / n))
-        return out
-
-    def _sensor_index(self, pattern: tuple[int, int] | None) -> int:
-        """The scene's sensor a render uses: :data:`~.scene_dicts.EXACT_SENSOR` (1) where it draws from the shared pattern in
-        an RGB variant, else the user's sampler's (0)."""
-        return 1 if pattern is not None and not self.spectral else 0
-
     def _set_rows(self, params: Any, rows: tuple[int, int]) -> None:
         """Make the film of the scene whose parameters are ``params`` render rows ``rows`` (a crop window)."""
         if self._crop.get(id(params), (0, self.height)) == tuple(rows):
@@ -1027,18 +610,6 @@ class Renderer:
         )
         img = self._mi.render(self._scene, integrator=integ, spp=int(spp), seed=int(seed))
         return np.asarray(img, dtype=np.float32)[..., :3]
-
-
-def _aligned(a: np.ndarray) -> np.ndarray:
-    """``a``'s values in memory aligned to 64 bytes. Dr.Jit reads a numpy array where it lies, and its kernel
-    declares the loads aligned or not by the address: an array from wherever numpy put it compiled the same
-    render again (0.19 s at 640x512) whenever its alignment differed from the last's (Dr.Jit's kernel log)."""
-    a = np.ascontiguousarray(a)
-    buf = np.empty(a.nbytes + 64, np.uint8)
-    start = (-buf.ctypes.data) % 64
-    out = buf[start : start + a.nbytes].view(a.dtype).reshape(a.shape)
-    out[...] = a
-    return out
 
 
 def _one_or_digest(values: "int | np.ndarray") -> "int | str":

@@ -7,7 +7,7 @@ calls, instead of a list of "render keys" that could drift:
 
 * the renderer: the scene and its parameters, the film, variant, path depth and sampler (the
   ``render`` section), the camera section, what of the lens and the sensor the images depend on
-  (:func:`mbcapture.render.renderer.image_settings`: field of view, thin lens, diffraction's
+  (:func:`mbcapture.render.settings.image_settings`: field of view, thin lens, diffraction's
   f-number, pitch and wavelengths, a mono sensor's mixture), and in spectral mode the film's curves
   (``sensor.spectral_response`` and ``quantum_efficiency`` through
   :func:`mbcapture.sensor.spectral.film_sensitivity`);
@@ -40,7 +40,7 @@ from ..capture.pipeline import prepare
 from ..config import CaptureConfig
 from ..errors import MBCaptureError, one_line
 from ..render.cache import digest
-from ..render.renderer import image_settings
+from ..render.settings import image_settings
 from ..sensor import electrons_per_render_second
 from ..sensor.spectral import film_sensitivity, is_spectral_variant
 from .spec import Sweep
