@@ -8,7 +8,8 @@ import pytest
 from mbcapture.budget import adaptive
 from mbcapture.budget.adaptive import Passes
 from mbcapture.timing import protocols
-from mbcapture.config import RenderSection, config_from_dict
+from mbcapture.config import config_from_dict
+from mbcapture.render.settings import RenderSection
 from mbcapture.exposure.plan import make_plan
 from mbcapture.scene.scenes import Camera, SceneModel
 

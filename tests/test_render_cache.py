@@ -225,7 +225,7 @@ def test_cache_off_writes_nothing_and_gives_the_same_images(tmp_path):
 
 def test_an_unusable_cache_folder_is_a_config_error(tmp_path):
     from mbcapture.capture.pipeline import render_cache
-    from mbcapture.config import RenderSection
+    from mbcapture.render.settings import RenderSection
     from mbcapture.errors import ConfigError
 
     blocker = tmp_path / "file"

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import RenderSection
+from ..render.settings import RenderSection
 from ..errors import ConfigError
 from ..scene.scenes import SceneModel
 from ..timing.timeline import Timeline
