@@ -10,6 +10,7 @@ from mbcapture import load_config
 from mbcapture.timing import protocols
 from mbcapture.scene import scenes
 from mbcapture.apps import multi_flash as mf
+from mbcapture.reconstruct import depth_edges as de
 from mbcapture.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,12 +50,12 @@ def _square_scene(seed=0):
         | fg & ~np.pad(fg, 1)[1:-1, 2:]
         | fg & ~np.pad(fg, 1)[1:-1, :-2]
     )
-    return np.stack(images), [mf.Epipole(False, dirs[n]) for n in ("top", "bottom", "left", "right")], truth, fg
+    return np.stack(images), [de.Epipole(False, dirs[n]) for n in ("top", "bottom", "left", "right")], truth, fg
 
 
 def test_raskar_finds_exactly_the_occluding_border_of_a_square():
     images, epipoles, truth, fg = _square_scene()
-    det = mf.raskar_depth_edges(images, epipoles, step_threshold=0.3)
+    det = de.raskar_depth_edges(images, epipoles, step_threshold=0.3)
     assert truth.sum() == 2 * (R1 - R0 + 1) + 2 * (C1 - C0 + 1) - 4
     np.testing.assert_array_equal(det.edges, truth)
     # each LED finds the side away from it: the left LED the square's right column, and so on
@@ -64,15 +65,15 @@ def test_raskar_finds_exactly_the_occluding_border_of_a_square():
     assert np.allclose(det.ratios[2][R0 : R1 + 1, C1 + 1 : C1 + 1 + SHADOW_PX], INDIRECT)
     assert np.allclose(det.ratios[2][fg], 1.0)
     # the max composite has no shadow left
-    assert np.allclose(mf.max_composite(images), images.max(axis=0))
-    assert mf.luminance(mf.max_composite(images)).min() > 0.1
+    assert np.allclose(de.max_composite(images), images.max(axis=0))
+    assert mf.luminance(de.max_composite(images)).min() > 0.1
 
 
 def test_raskar_traversal_direction_matters():
     """Traversing towards the epipole instead sees the shadow's far end (a rise), not a depth edge."""
     images, epipoles, truth, _ = _square_scene()
-    flipped = [mf.Epipole(False, tuple(-v for v in e.xy)) for e in epipoles]
-    det = mf.raskar_depth_edges(images, flipped, step_threshold=0.3)
+    flipped = [de.Epipole(False, tuple(-v for v in e.xy)) for e in epipoles]
+    det = de.raskar_depth_edges(images, flipped, step_threshold=0.3)
     assert not (det.edges & truth).any()  # every mark is at the shadow's far end, off the square
 
 
@@ -81,8 +82,8 @@ def test_raskar_with_noise_keeps_precision_and_recall():
     rng = np.random.default_rng(7)
     # 3 % Gaussian noise: a false step of 0.3 is a 7-sigma event for the ratio difference
     noisy = images * (1 + 0.03 * rng.standard_normal(images.shape))
-    det = mf.raskar_depth_edges(noisy, epipoles, step_threshold=0.3)
-    s = mf.edge_scores(det.edges, truth, 1.0)
+    det = de.raskar_depth_edges(noisy, epipoles, step_threshold=0.3)
+    s = de.edge_scores(det.edges, truth, 1.0)
     assert s["precision"] == 1.0 and s["recall"] == 1.0
 
 
@@ -90,11 +91,11 @@ def test_dark_or_saturated_pixels_carry_no_edges():
     images, epipoles, truth, _ = _square_scene()
     bad = np.zeros((H, W), bool)
     bad[:, C1] = True  # the square's right column saturated: the left LED's edge is lost there
-    det = mf.raskar_depth_edges(images, epipoles, step_threshold=0.3, bad=bad)
+    det = de.raskar_depth_edges(images, epipoles, step_threshold=0.3, bad=bad)
     assert not det.edges[:, C1].any() and (det.edges == (truth & ~bad)).all()
     dark = images.copy()
     dark[:, :, :5] = 0.0
-    det = mf.raskar_depth_edges(dark, epipoles, min_signal_fraction=0.05)
+    det = de.raskar_depth_edges(dark, epipoles, min_signal_fraction=0.05)
     assert not det.valid[:, :5].any() and det.valid[:, 5:].all()
 
 
@@ -114,14 +115,14 @@ def test_flash_images_subtract_the_ambient_read_in_radiance_units():
 def test_depth_discontinuities_mark_the_near_side_only():
     _, _, truth, fg = _square_scene()
     z = np.where(fg, 1.0, 2.0)
-    np.testing.assert_array_equal(mf.depth_discontinuities(z, 0.05), truth)
+    np.testing.assert_array_equal(de.depth_discontinuities(z, 0.05), truth)
     # a slanted plane changes depth smoothly (1 % per pixel): no edge at a 5 % threshold
     slope = 1.0 + 0.01 * np.arange(W)[None, :] + np.zeros((H, 1))
-    assert not mf.depth_discontinuities(slope, 0.05).any()
-    assert mf.depth_discontinuities(slope, 0.005).sum() == H * (W - 1)  # each pixel nearer than its right neighbour
+    assert not de.depth_discontinuities(slope, 0.05).any()
+    assert de.depth_discontinuities(slope, 0.005).sum() == H * (W - 1)  # each pixel nearer than its right neighbour
     # nothing behind (inf): the surface's border is an edge, the empty pixels are not
     z_inf = np.where(fg, 1.0, np.inf)
-    np.testing.assert_array_equal(mf.depth_discontinuities(z_inf, 0.05), truth)
+    np.testing.assert_array_equal(de.depth_discontinuities(z_inf, 0.05), truth)
 
 
 def test_edge_scores_by_hand():
@@ -130,23 +131,23 @@ def test_edge_scores_by_hand():
     det = np.zeros_like(truth)
     det[6, 2:6] = True  # 4 detections 1 px below the line
     det[0, 0] = True  # 1 far away
-    s = mf.edge_scores(det, truth, 1.0)
+    s = de.edge_scores(det, truth, 1.0)
     assert s["precision"] == pytest.approx(4 / 5)
     # true pixels within 1 px of a detection: columns 1..6 (2..5 directly, 6 is sqrt(2) > 1 away from (6,5))
     assert s["recall"] == pytest.approx(4 / 6)
     assert s["f1"] == pytest.approx(2 * 0.8 * (4 / 6) / (0.8 + 4 / 6))
-    s = mf.edge_scores(det, truth, 1.5)
+    s = de.edge_scores(det, truth, 1.5)
     assert s["recall"] == pytest.approx(5 / 6)  # (5,6) is sqrt(2) from (6,5)
-    assert mf.edge_scores(det, truth, 0.5)["precision"] == 0.0
-    none = mf.edge_scores(np.zeros_like(truth), truth, 1.0)
+    assert de.edge_scores(det, truth, 0.5)["precision"] == 0.0
+    none = de.edge_scores(np.zeros_like(truth), truth, 1.0)
     assert none["precision"] is None and none["recall"] == 0.0
-    masked = mf.edge_scores(det, truth, 1.0, mask=np.arange(10)[None, :] >= 4 + np.zeros((10, 1)))
+    masked = de.edge_scores(det, truth, 1.0, mask=np.arange(10)[None, :] >= 4 + np.zeros((10, 1)))
     assert masked["detected_px"] == 2 and masked["precision"] == 1.0
 
 
 def test_shadow_metrics_find_a_kept_shadow():
     images, _, _, _ = _square_scene()
-    m = mf.shadow_metrics(mf.max_composite(images), images)
+    m = mf.shadow_metrics(de.max_composite(images), images)
     assert m["residual_shadow_fraction"] == 0.0 and m["residual_shadow_mean"] == pytest.approx(0.0, abs=1e-12)
     # taking one flash image as "shadow-free" keeps that LED's shadow: 1/4 of the shadowed pixels
     m = mf.shadow_metrics(images[0], images)
@@ -175,7 +176,7 @@ def test_unknown_method_lists_the_registry():
 def test_epipoles_of_the_scene_leds_are_at_infinity_along_rows_and_columns():
     mod = scenes.load_module("multiflash")
     sc = mod.make(mod.Params())
-    got = {g: mf.epipole(sc.camera, p, 160, 128) for g, p in sc.extra["flash_positions_m"].items()}
+    got = {g: de.epipole(sc.camera, p, 160, 128) for g, p in sc.extra["flash_positions_m"].items()}
     want = {"flash_top": (0, -1), "flash_bottom": (0, 1), "flash_left": (-1, 0), "flash_right": (1, 0)}
     for g, e in got.items():
         assert not e.finite
@@ -188,7 +189,7 @@ def test_finite_epipole_points_shadows_the_right_way(z_led):
     the occluder given by Epipole.away()."""
     cam = scenes.Camera(origin=(0.0, 0.0, 2.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=40.0)
     light = np.array([0.15, -0.1, 2.0 - z_led])
-    e = mf.epipole(cam, light, 64, 48)
+    e = de.epipole(cam, light, 64, 48)
     assert e.finite and e.sign == (1 if z_led > 0 else -1)
     away = e.away(48, 64)
     rng = np.random.default_rng(0)
@@ -284,9 +285,9 @@ def test_step_span_catches_a_two_pixel_shadow_onset():
     img = np.repeat(np.tile(row, (3, 1))[None, ..., None], 3, -1)
     lit = np.ones_like(img)
     images = np.concatenate([img, lit])  # flash 0 from the left casts the shadows; flash 1 lights everything
-    eps = [mf.Epipole(False, (-1.0, 0.0)), mf.Epipole(False, (1.0, 0.0))]
-    one = mf.raskar_depth_edges(images, eps, step_threshold=0.6, step_span_px=1).edges[1]
-    two = mf.raskar_depth_edges(images, eps, step_threshold=0.6, step_span_px=2).edges[1]
+    eps = [de.Epipole(False, (-1.0, 0.0)), de.Epipole(False, (1.0, 0.0))]
+    one = de.raskar_depth_edges(images, eps, step_threshold=0.6, step_span_px=1).edges[1]
+    two = de.raskar_depth_edges(images, eps, step_threshold=0.6, step_span_px=2).edges[1]
     assert not one[2:5].any() and one[8]  # each 1-px drop of the onset is below 0.6; the 1-px shadow is found
     # span 2: the onset's last fully lit pixel; the 1-px shadow is seen one pixel early (7 -> 9 skips it)
     assert np.flatnonzero(two).tolist() == [2, 7]
@@ -300,11 +301,11 @@ def _two_flash(ratio_profile, axis, light_xy):
     r = np.asarray(ratio_profile, float)
     prof = r[:, None] * np.ones((1, w)) if axis == 0 else r[None, :] * np.ones((h, 1))
     images = np.stack([np.ones((h, w, 3)), prof[..., None] * np.ones(3)])
-    return images, [mf.Epipole(False, light_xy)] * 2
+    return images, [de.Epipole(False, light_xy)] * 2
 
 
 def test_epipole_away_is_the_exact_unit_direction_from_the_epipole():
-    e = mf.Epipole(True, (2.5, 1.5), 1)  # on pixel (x=2, y=1)'s centre
+    e = de.Epipole(True, (2.5, 1.5), 1)  # on pixel (x=2, y=1)'s centre
     a = e.away(4, 6)
     yy, xx = np.mgrid[0:4, 0:6]
     v = np.stack([xx + 0.5 - 2.5, yy + 0.5 - 1.5], -1)
@@ -312,20 +313,20 @@ def test_epipole_away_is_the_exact_unit_direction_from_the_epipole():
     expect = np.where(n > 0, v / np.where(n > 0, n, 1), 0.0)
     np.testing.assert_allclose(a, expect, atol=1e-15)
     assert (a[1, 2] == 0).all() and a[1, 3].tolist() == [1.0, 0.0] and a[2, 2].tolist() == [0.0, 1.0]
-    np.testing.assert_allclose(mf.Epipole(True, (2.5, 1.5), -1).away(4, 6), -expect, atol=1e-15)
-    inf = mf.Epipole(False, (3.0, 4.0)).away(2, 3)  # towards the light (3, 4): away is -(0.6, 0.8) everywhere
+    np.testing.assert_allclose(de.Epipole(True, (2.5, 1.5), -1).away(4, 6), -expect, atol=1e-15)
+    inf = de.Epipole(False, (3.0, 4.0)).away(2, 3)  # towards the light (3, 4): away is -(0.6, 0.8) everywhere
     assert inf.shape == (2, 3, 2)
     np.testing.assert_allclose(inf, np.broadcast_to([-0.6, -0.8], (2, 3, 2)), atol=1e-15)
 
 
 def test_epipole_at_unit_distance_and_barely_out_of_the_lens_plane():
     cam = scenes.Camera(origin=(0.0, 0.0, 0.0), target=(0.0, 0.0, 1.0), up=(0.0, 1.0, 0.0), fov_deg=60.0)
-    e = mf.epipole(cam, (0.0, 0.0, 1.0), 32, 24)  # 1 m straight ahead: the image centre
+    e = de.epipole(cam, (0.0, 0.0, 1.0), 32, 24)  # 1 m straight ahead: the image centre
     assert e.finite is True and e.sign == 1 and e.xy == pytest.approx((16.0, 12.0))
-    side = mf.epipole(cam, (10.0, 0.0, 5e-9), 32, 24)  # z / dist = 5e-10: in the lens plane
+    side = de.epipole(cam, (10.0, 0.0, 5e-9), 32, 24)  # z / dist = 5e-10: in the lens plane
     assert side.finite is False and side.xy == pytest.approx((-1.0, 0.0))  # +x world is left in the image
     with pytest.raises(ConfigError, match="scene: a flash at the lens centre"):
-        mf.epipole(cam, (0.0, 0.0, 0.0), 32, 24)
+        de.epipole(cam, (0.0, 0.0, 0.0), 32, 24)
 
 
 def test_raskar_takes_the_local_maximum_of_the_drop_along_the_epipolar_line():
@@ -333,7 +334,7 @@ def test_raskar_takes_the_local_maximum_of_the_drop_along_the_epipolar_line():
     the row where the drop over step_span_px is largest, not the rows after it."""
     prof = [1.0] * 7 + [0.85, 0.45, 0.15, 0.1, 0.1]
     images, eps = _two_flash(prof, 0, (0.0, -1.0))
-    det = mf.raskar_depth_edges(images, eps, step_threshold=0.2, step_span_px=1)
+    det = de.raskar_depth_edges(images, eps, step_threshold=0.2, step_span_px=1)
     expect = np.zeros((12, 14), bool)
     expect[7] = True  # drops 0.15, 0.40, 0.30, 0.05 at rows 6..9: the maximum at row 7
     np.testing.assert_array_equal(det.edges, expect)
@@ -354,7 +355,7 @@ def test_raskar_at_the_image_border(axis, light_xy, flip):
     if flip:
         prof = prof[::-1]
     images, eps = _two_flash(prof, axis, light_xy)
-    one = mf.raskar_depth_edges(images, eps, step_threshold=0.3, step_span_px=1).edges
+    one = de.raskar_depth_edges(images, eps, step_threshold=0.3, step_span_px=1).edges
     expect = np.zeros((12, 14), bool)
     idx = 1 if flip else n - 2
     if axis == 0:
@@ -362,20 +363,20 @@ def test_raskar_at_the_image_border(axis, light_xy, flip):
     else:
         expect[:, idx] = True
     np.testing.assert_array_equal(one, expect)
-    assert not mf.raskar_depth_edges(images, eps, step_threshold=0.3, step_span_px=2).edges.any()
+    assert not de.raskar_depth_edges(images, eps, step_threshold=0.3, step_span_px=2).edges.any()
 
 
 def test_raskar_threshold_is_strict_and_defaults_to_0_3():
     prof = np.ones(14)
     prof[7:] = 0.5  # a drop of exactly 0.5 (luminance scales exactly by a power of two)
     images, eps = _two_flash(prof, 1, (-1.0, 0.0))
-    assert not mf.raskar_depth_edges(images, eps, step_threshold=0.5, step_span_px=1).edges.any()
-    assert mf.raskar_depth_edges(images, eps, step_threshold=0.49, step_span_px=1).edges[:, 6].all()
+    assert not de.raskar_depth_edges(images, eps, step_threshold=0.5, step_span_px=1).edges.any()
+    assert de.raskar_depth_edges(images, eps, step_threshold=0.49, step_span_px=1).edges[:, 6].all()
     prof[7:] = 0.65  # a drop of 0.35: above the default 0.3
     images, eps = _two_flash(prof, 1, (-1.0, 0.0))
-    assert mf.raskar_depth_edges(images, eps, step_span_px=1).edges[:, 6].all()
+    assert de.raskar_depth_edges(images, eps, step_span_px=1).edges[:, 6].all()
     with pytest.raises(ValueError, match="one epipole per flash"):
-        mf.raskar_depth_edges(images[:, :, :, 0], eps)  # (F, H, W): no channel axis
+        de.raskar_depth_edges(images[:, :, :, 0], eps)  # (F, H, W): no channel axis
 
 
 def test_raskar_smoothing_is_a_gaussian_of_each_flash_image():
@@ -385,14 +386,14 @@ def test_raskar_smoothing_is_a_gaussian_of_each_flash_image():
 
     images, epipoles, _, _ = _square_scene(seed=4)
     for s in (0.7, 1.5):
-        got = mf.raskar_depth_edges(images, epipoles, smooth_px=s)
+        got = de.raskar_depth_edges(images, epipoles, smooth_px=s)
         pre = np.stack(
             [np.stack([gaussian_filter(im[..., c], s, mode="nearest") for c in range(3)], -1) for im in images]
         )
-        ref = mf.raskar_depth_edges(pre, epipoles)
+        ref = de.raskar_depth_edges(pre, epipoles)
         np.testing.assert_allclose(got.ratios, ref.ratios, atol=1e-12)
         np.testing.assert_array_equal(got.edges, ref.edges)
-        assert not np.allclose(got.ratios, mf.raskar_depth_edges(images, epipoles).ratios)
+        assert not np.allclose(got.ratios, de.raskar_depth_edges(images, epipoles).ratios)
 
 
 def test_signal_valid_against_the_99th_percentile():
@@ -400,16 +401,16 @@ def test_signal_valid_against_the_99th_percentile():
     lum[0, :1] = 1000.0  # 0.5 % hot pixels do not move the 99th percentile
     lum[5, :] = 0.25  # exactly min_signal_fraction x white: not valid
     lum[6, :] = 0.26
-    v = mf._signal_valid(4.0 * lum, 0.25, None)  # in other units: the same
+    v = de.signal_valid(4.0 * lum, 0.25, None)  # in other units: the same
     assert v[6].all() and not v[5].any() and v.sum() == 200 - 10
     bad = np.zeros((20, 10), bool)
     bad[0, 5] = True
-    v2 = mf._signal_valid(4.0 * lum, 0.25, bad)
+    v2 = de.signal_valid(4.0 * lum, 0.25, bad)
     assert not v2[0, 5] and not v2[5].any() and v2.sum() == 200 - 11
     black = np.zeros((20, 10))
     black[0, 0] = 5.0  # a black image with one bright pixel: its white is 0, nothing is valid
-    assert not mf._signal_valid(black, 0.03, None).any()
-    assert mf._signal_valid(np.zeros((0, 0)), 0.03, None).shape == (0, 0)
+    assert not de.signal_valid(black, 0.03, None).any()
+    assert de.signal_valid(np.zeros((0, 0)), 0.03, None).shape == (0, 0)
 
 
 def test_depth_discontinuities_match_a_pixel_by_pixel_definition():
@@ -422,33 +423,33 @@ def test_depth_discontinuities_match_a_pixel_by_pixel_definition():
                 for qy, qx in ((y - 1, x), (y + 1, x), (y, x - 1), (y, x + 1)):
                     if 0 <= qy < 9 and 0 <= qx < 11 and np.isfinite(z[y, x]) and z[qy, qx] - z[y, x] > rel * z[y, x]:
                         expect[y, x] = True
-        np.testing.assert_array_equal(mf.depth_discontinuities(z, rel), expect)
+        np.testing.assert_array_equal(de.depth_discontinuities(z, rel), expect)
     # exactly rel_jump of the near depth is not a jump
-    assert not mf.depth_discontinuities(np.array([[2.0, 2.5]]), 0.25).any()
+    assert not de.depth_discontinuities(np.array([[2.0, 2.5]]), 0.25).any()
 
 
 def test_edge_scores_edge_cases():
     truth = np.zeros((8, 8), bool)
     det = np.zeros((8, 8), bool)
     det[0, 0] = True
-    s = mf.edge_scores(det, truth, 1.0)  # nothing true: every detection is wrong, recall undefined
+    s = de.edge_scores(det, truth, 1.0)  # nothing true: every detection is wrong, recall undefined
     assert s == {"precision": 0.0, "recall": None, "f1": None, "detected_px": 1, "true_px": 0}
-    s = mf.edge_scores(truth, det, 1.0)  # nothing detected: recall 0, precision undefined
+    s = de.edge_scores(truth, det, 1.0)  # nothing detected: recall 0, precision undefined
     assert s == {"precision": None, "recall": 0.0, "f1": None, "detected_px": 0, "true_px": 1}
     far = np.zeros((8, 8), bool)
     far[7, 7] = True
-    assert mf.edge_scores(det, far, 1.0)["f1"] == 0.0  # precision = recall = 0
+    assert de.edge_scores(det, far, 1.0)["f1"] == 0.0  # precision = recall = 0
     # precision 1/4 < recall 1/2
     truth = np.zeros((8, 8), bool)
     truth[0, 0] = truth[7, 7] = True
     det = np.zeros((8, 8), bool)
     det[0, 0] = det[0, 7] = det[7, 0] = det[4, 4] = True
-    s = mf.edge_scores(det, truth, 0.5)
+    s = de.edge_scores(det, truth, 0.5)
     assert (s["precision"], s["recall"]) == (0.25, 0.5)
     assert s["f1"] == pytest.approx(2 * 0.25 * 0.5 / 0.75)
     mask = np.zeros((8, 8), bool)
     mask[:4] = True
-    s = mf.edge_scores(det, truth, 0.5, mask=mask)
+    s = de.edge_scores(det, truth, 0.5, mask=mask)
     assert (s["detected_px"], s["true_px"], s["precision"], s["recall"]) == (2, 1, 0.5, 1.0)
 
 
@@ -471,7 +472,7 @@ def test_depth_edge_methods_pass_their_parameters():
         method="raskar2004", step_threshold=0.5, step_span_px=1, smooth_px=0.8, min_signal_fraction=0.5
     )
     got = mf.depth_edges(images, epipoles, bad, p)
-    ref = mf.raskar_depth_edges(
+    ref = de.raskar_depth_edges(
         images, epipoles, step_threshold=0.5, step_span_px=1, smooth_px=0.8, min_signal_fraction=0.5, bad=bad
     )
     for a, b in ((got.edges, ref.edges), (got.valid, ref.valid), (got.ratios, ref.ratios)):
@@ -481,7 +482,7 @@ def test_depth_edge_methods_pass_their_parameters():
         c = mf.depth_edges(
             images, epipoles, bad, mf.MultiFlashParams(method="canny_max_composite", canny_low=low, canny_high=high)
         )
-        e = mf.canny_edges(mf.max_composite(images), low=low, high=max(low, high))
+        e = de.canny_edges(de.max_composite(images), low=low, high=max(low, high))
         np.testing.assert_array_equal(c.edges, e)
         assert c.per_flash.shape == (1, H, W) and (c.per_flash[0] == e).all()
         np.testing.assert_array_equal(c.valid, ~bad)
@@ -519,10 +520,10 @@ def test_canny_edges_follow_the_documented_recipe():
     for low, high in ((0.1, 0.25), (0.05, 0.15), (0.2, 0.4), (0.3, 0.3)):
         ref = _canny_reference(img, low, high)
         assert ref.any() and not ref.all()
-        np.testing.assert_array_equal(mf.canny_edges(img, low=low, high=high), ref)
-        np.testing.assert_array_equal(mf.canny_edges(7.0 * img, low=low, high=high), ref)
-    np.testing.assert_array_equal(mf.canny_edges(img), _canny_reference(img, 0.1, 0.25))  # the defaults
-    assert not mf.canny_edges(np.zeros((8, 8, 3))).any()
+        np.testing.assert_array_equal(de.canny_edges(img, low=low, high=high), ref)
+        np.testing.assert_array_equal(de.canny_edges(7.0 * img, low=low, high=high), ref)
+    np.testing.assert_array_equal(de.canny_edges(img), _canny_reference(img, 0.1, 0.25))  # the defaults
+    assert not de.canny_edges(np.zeros((8, 8, 3))).any()
 
 
 def test_layout_finds_flash_and_ambient_reads():
@@ -612,12 +613,12 @@ def test_scores_split_edges_and_shadow_free_error_by_the_moving_region():
     det[R0, C0 : C1 + 1] = False  # a missed true edge (the top row of the square)
     moving = np.zeros((H, W), bool)
     moving[:, :17] = True  # through the square: edges on both sides
-    shadow_free = mf.max_composite(images) * np.linspace(0.8, 1.2, W)[None, :, None]
+    shadow_free = de.max_composite(images) * np.linspace(0.8, 1.2, W)[None, :, None]
     truth = {
         "t_s": 0.5,
         "times_s": [0.5],
         "flash": images,
-        "shadow_free": mf.max_composite(images),
+        "shadow_free": de.max_composite(images),
         "edges": truth_edges,
         "spp": 16,
     }
@@ -625,12 +626,12 @@ def test_scores_split_edges_and_shadow_free_error_by_the_moving_region():
     s = mf._scores(SimpleNamespace(moving_mask=moving), p, det, shadow_free, truth)
     assert s["moving_px"] == moving.sum()
     assert s["depth_edges"] == {
-        "all": mf.edge_scores(det, truth_edges, 1.5),
-        "moving_region": mf.edge_scores(det, truth_edges, 1.5, moving),
-        "static_region": mf.edge_scores(det, truth_edges, 1.5, ~moving),
+        "all": de.edge_scores(det, truth_edges, 1.5),
+        "moving_region": de.edge_scores(det, truth_edges, 1.5, moving),
+        "static_region": de.edge_scores(det, truth_edges, 1.5, ~moving),
     }
-    de = s["depth_edges"]
-    assert de["moving_region"] != de["static_region"] and de["all"] not in (de["moving_region"], de["static_region"])
+    edges = s["depth_edges"]
+    assert edges["moving_region"] != edges["static_region"] and edges["all"] not in (edges["moving_region"], edges["static_region"])
     sm = mf.shadow_metrics(shadow_free, images, shadow_ratio=p.shadow_ratio, min_signal_fraction=0.4)
     assert 0 < sm["shadowed_px"] < mf.shadow_metrics(shadow_free, images)["shadowed_px"]  # fewer pixels count as lit
     assert s["shadow_free"] == {

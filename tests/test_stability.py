@@ -794,12 +794,8 @@ def test_flash_a_million_times_brighter_than_ambient():
 
 def test_multi_flash_ratio_images_where_the_max_is_zero():
     """Pixels that no flash lights (max = 0) get ratio 0, are invalid and never edges; no NaN."""
-    from mbcapture.apps.multi_flash import (
-        Epipole,
-        flash_images,
-        max_composite,
-        raskar_depth_edges,
-    )
+    from mbcapture.apps.multi_flash import flash_images
+    from mbcapture.reconstruct.depth_edges import Epipole, max_composite, raskar_depth_edges
 
     eps = [
         Epipole(False, (1.0, 0.0)),
