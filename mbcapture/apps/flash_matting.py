@@ -251,6 +251,36 @@ CAPTIONS = {
 }
 
 
+def _score_alpha(
+    truth, alpha, trimap, unknown, mask, by_image: dict, n_ch: int, truth_spp: int, images, metrics, png, summary
+) -> None:
+    """The matte against the ground-truth alpha ``truth`` (None: no renderer, none), into ``metrics``, ``images``,
+    ``png`` and ``summary``: SAD and MSE over the image, the trimap's unknown region and the moving region, the
+    trimap's errors, and each candidate image's matte (``by_image``)."""
+    if truth is None:
+        metrics["alpha_truth"] = None
+        metrics["note"] = "no renderer: no ground-truth alpha"
+    else:
+        metrics["alpha_truth"] = (
+            f"coverage of the scene's foreground shapes as the flash read saw it, {truth_spp} spp per stratum"
+        )
+        metrics["alpha"] = matte_scores(alpha, truth)
+        metrics["alpha_unknown"] = matte_scores(alpha, truth, unknown)
+        metrics["alpha_moving"] = matte_scores(alpha, truth, mask) if mask.any() else None
+        metrics["trimap_errors"] = trimap_errors(trimap, truth)
+        metrics["alpha_by_image"] = {name: matte_scores(a, truth) for name, a in by_image.items()}
+        err = np.abs(alpha - truth)
+        images["alpha_truth"] = np.repeat(truth[..., None], n_ch, -1)
+        images["alpha_error"] = np.repeat(err[..., None], n_ch, -1)
+        png["alpha_truth"] = ("alpha_truth", None)
+        png["alpha_error"] = ("alpha_error", None)
+        a = metrics["alpha"]
+        summary.append(
+            f"alpha vs truth: SAD {a['sad']:.1f} px, MSE {a['mse']:.3g}; in the unknown region "
+            f"SAD {metrics['alpha_unknown']['sad']:.1f}, MSE {metrics['alpha_unknown']['mse'] or 0:.3g}"
+        )
+
+
 @register(
     "flash_matting",
     output_channels=33,
@@ -346,29 +376,19 @@ def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
             metrics["flash_only_rel_mse_moving"] = relative_mse(
                 flash_only, fo_truth, mask=np.repeat(mask[..., None], n_ch, -1), eps=REL_MSE_EPS_RADIANCE
             )
-    truth = alpha_truth(data, params)
-    if truth is None:
-        metrics["alpha_truth"] = None
-        metrics["note"] = "no renderer: no ground-truth alpha"
-    else:
-        metrics["alpha_truth"] = (
-            f"coverage of the scene's foreground shapes as the flash read saw it, {params.truth_spp} spp per stratum"
-        )
-        metrics["alpha"] = matte_scores(alpha, truth)
-        metrics["alpha_unknown"] = matte_scores(alpha, truth, unknown)
-        metrics["alpha_moving"] = matte_scores(alpha, truth, mask) if mask.any() else None
-        metrics["trimap_errors"] = trimap_errors(trimap, truth)
-        metrics["alpha_by_image"] = {
-            name: matte_scores(alpha if name == params.matting_image else matte(name), truth) for name in sources
-        }
-        err = np.abs(alpha - truth)
-        images["alpha_truth"] = np.repeat(truth[..., None], n_ch, -1)
-        images["alpha_error"] = np.repeat(err[..., None], n_ch, -1)
-        png["alpha_truth"] = ("alpha_truth", None)
-        png["alpha_error"] = ("alpha_error", None)
-        a = metrics["alpha"]
-        summary.append(
-            f"alpha vs truth: SAD {a['sad']:.1f} px, MSE {a['mse']:.3g}; in the unknown region "
-            f"SAD {metrics['alpha_unknown']['sad']:.1f}, MSE {metrics['alpha_unknown']['mse'] or 0:.3g}"
-        )
+    by_image = {name: (alpha if name == params.matting_image else matte(name)) for name in sources}
+    _score_alpha(
+        alpha_truth(data, params),
+        alpha,
+        trimap,
+        unknown,
+        mask,
+        by_image,
+        n_ch,
+        params.truth_spp,
+        images,
+        metrics,
+        png,
+        summary,
+    )
     return AppOutput(images=images, metrics=metrics, png=png, summary=summary, captions=CAPTIONS)

@@ -314,6 +314,56 @@ def blur_agreement(ambient_in_flash: np.ndarray, ambient_in_noflash: np.ndarray,
     return {"pixels": int(mask.sum()), "rel_rms": rel_rms(ambient_in_flash, ambient_in_noflash, mask)}
 
 
+def enhancement_scores(comps, enhanced, truth_ambient, white: float, mask, p: FlashNoFlashParams) -> dict:
+    """The enhanced image's display PSNR against the ambient truth, and every method's (``by_method``; "none" is
+    the no-flash read), over the image and, with ``mask``, the moving region."""
+    moving = mask is not None
+    by_method = {}
+    for name in METHODS:
+        img = enhanced if name == p.method else enhance(comps, name)
+        row = {"psnr_db": display_psnr(img, truth_ambient, white)}
+        if moving:
+            row["psnr_db_moving"] = display_psnr(img, truth_ambient, white, mask)
+        by_method[name] = row
+    enh = {
+        "method": p.method,
+        "formula": METHODS[p.method][1],
+        "psnr_db": by_method[p.method]["psnr_db"],
+        "noflash_psnr_db": by_method["none"]["psnr_db"],
+        "gain_db": by_method[p.method]["psnr_db"] - by_method["none"]["psnr_db"],
+        "peak": f"luminance percentile {p.white_percentile} of the ambient truth, {white:.4g} W m^-2 sr^-1",
+    }
+    if moving:
+        enh["psnr_db_moving"] = by_method[p.method]["psnr_db_moving"]
+        enh["noflash_psnr_db_moving"] = by_method["none"]["psnr_db_moving"]
+        enh["gain_db_moving"] = enh["psnr_db_moving"] - enh["noflash_psnr_db_moving"]
+    enh["by_method"] = by_method
+    return enh
+
+
+def _summary(blur: dict, fo: dict, enh: dict, method: str, moving: bool) -> list[str]:
+    """The lines the CLI prints after a run."""
+    summary = []
+    if moving:
+        mb = blur["letter_s" if "letter_s" in blur else "moving_region"]
+        where = "letter S" if "letter_s" in blur else "moving region"
+        summary.append(
+            f"motion blur agreement ({where}): ambient in flash vs no-flash read, rel RMS {100 * mb['rel_rms']:.2f}%"
+        )
+        summary.append(f"flash-only relMSE {fo['rel_mse']:.4g} (moving region {fo['rel_mse_moving']:.4g})")
+        summary.append(
+            f"enhanced ({method}) PSNR {enh['psnr_db']:.2f} dB vs no-flash {enh['noflash_psnr_db']:.2f} dB; "
+            f"moving region {enh['psnr_db_moving']:.2f} vs {enh['noflash_psnr_db_moving']:.2f} dB"
+        )
+    else:
+        summary.append(
+            f"flash-only relMSE {fo['rel_mse']:.4g}; enhanced ({method}) PSNR {enh['psnr_db']:.2f} dB "
+            f"vs no-flash {enh['noflash_psnr_db']:.2f} dB"
+        )
+
+    return summary
+
+
 @register(
     "flash_no_flash",
     renders=False,
@@ -369,26 +419,7 @@ def reconstruct(data: CaptureData, p: FlashNoFlashParams) -> AppOutput:
         fo["ghost_rel_mse_moving"] = relative_mse(
             ambient_in_flash + truth_flash_only - truth_ambient, truth_flash_only, mask=mmask, eps=REL_MSE_EPS_RADIANCE
         )
-    by_method = {}
-    for name in METHODS:
-        img = enhanced if name == p.method else enhance(comps, name)
-        row = {"psnr_db": display_psnr(img, truth_ambient, white)}
-        if moving:
-            row["psnr_db_moving"] = display_psnr(img, truth_ambient, white, mask)
-        by_method[name] = row
-    enh = {
-        "method": p.method,
-        "formula": METHODS[p.method][1],
-        "psnr_db": by_method[p.method]["psnr_db"],
-        "noflash_psnr_db": by_method["none"]["psnr_db"],
-        "gain_db": by_method[p.method]["psnr_db"] - by_method["none"]["psnr_db"],
-        "peak": f"luminance percentile {p.white_percentile} of the ambient truth, {white:.4g} W m^-2 sr^-1",
-    }
-    if moving:
-        enh["psnr_db_moving"] = by_method[p.method]["psnr_db_moving"]
-        enh["noflash_psnr_db_moving"] = by_method["none"]["psnr_db_moving"]
-        enh["gain_db_moving"] = enh["psnr_db_moving"] - enh["noflash_psnr_db_moving"]
-    enh["by_method"] = by_method
+    enh = enhancement_scores(comps, enhanced, truth_ambient, white, mask if moving else None, p)
     metrics = {
         "reads": {"flash": data.read_names[i_f], "noflash": data.read_names[i_a]},
         "flash_groups": flash_groups,
@@ -404,23 +435,7 @@ def reconstruct(data: CaptureData, p: FlashNoFlashParams) -> AppOutput:
         },
     }
 
-    summary = []
-    if moving:
-        mb = blur["letter_s" if "letter_s" in blur else "moving_region"]
-        where = "letter S" if "letter_s" in blur else "moving region"
-        summary.append(
-            f"motion blur agreement ({where}): ambient in flash vs no-flash read, rel RMS {100 * mb['rel_rms']:.2f}%"
-        )
-        summary.append(f"flash-only relMSE {fo['rel_mse']:.4g} (moving region {fo['rel_mse_moving']:.4g})")
-        summary.append(
-            f"enhanced ({p.method}) PSNR {enh['psnr_db']:.2f} dB vs no-flash {enh['noflash_psnr_db']:.2f} dB; "
-            f"moving region {enh['psnr_db_moving']:.2f} vs {enh['noflash_psnr_db_moving']:.2f} dB"
-        )
-    else:
-        summary.append(
-            f"flash-only relMSE {fo['rel_mse']:.4g}; enhanced ({p.method}) PSNR {enh['psnr_db']:.2f} dB "
-            f"vs no-flash {enh['noflash_psnr_db']:.2f} dB"
-        )
+    summary = _summary(blur, fo, enh, p.method, moving)
 
     pct = data.cfg.output.png_percentile
     mask_img = (
