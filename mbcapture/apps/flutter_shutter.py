@@ -219,6 +219,22 @@ CAPTIONS = {
 }
 
 
+def box_baseline(data: CaptureData, k_e: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The box exposure a conventional sensor takes over the same chops: every chop in one bucket, the sum of the
+    reads' noise-free electrons read as one frame through the sensor stage (its own noise, its dark current over its
+    exposure). Returns its expected electrons (H, W, C), its read in render units x seconds (1, H, W, C) and its
+    exposure (s)."""
+    box_e = data.reads_e_expected.sum(axis=0)
+    box_seed = (
+        np.random.SeedSequence(data.seed.entropy, spawn_key=(*data.seed.spawn_key, 0xB0C5))
+        if data.seed is not None
+        else 0
+    )
+    box_t = float(data.exposure_s.sum())
+    box_read = sense_frame(box_e, data.cfg.sensor, box_seed, box_t)
+    return box_e, dn_to_electrons(box_read.reads_dn, data.cfg.sensor) / k_e, box_t
+
+
 @register(
     "flutter_shutter",
     output_channels=21,
@@ -255,16 +271,7 @@ def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
     main = results[main_key][0]
 
     # the box baseline: every chop in one bucket = the sum of the reads' noise-free electrons, its own noise
-
-    box_e = data.reads_e_expected.sum(axis=0)
-    box_seed = (
-        np.random.SeedSequence(data.seed.entropy, spawn_key=(*data.seed.spawn_key, 0xB0C5))
-        if data.seed is not None
-        else 0
-    )
-    box_t = float(data.exposure_s.sum())
-    box_read = sense_frame(box_e, sensor, box_seed, box_t)  # its dark current over its exposure too
-    box_b = dn_to_electrons(box_read.reads_dn, sensor) / k_e
+    box_e, box_b, box_t = box_baseline(data, k_e)
     box_samples = [(np.concatenate([s_ for s_, _ in samples]), np.concatenate([w_ for _, w_ in samples]))]
     ref_noise = (
         float(np.sqrt(np.mean(luminance((box_b[0] - box_e / k_e) / box_t)[region] ** 2))) if region.any() else 0.0

@@ -333,6 +333,22 @@ CAPTIONS = {
 }
 
 
+def _scores(dec: dict, truth: dict, lit: np.ndarray, mask: np.ndarray, tolerance_mm: float, periods, pw: int) -> dict:
+    """One decoding's depth scores against the truth: over the lit pixels, and over those of the moving region."""
+    args = (dec["depth"], dec["valid"], dec["column"], dec["phase"], truth)
+    row = {"all": depth_scores(*args, lit, tolerance_mm, periods, pw)}
+    if mask.any():
+        row["moving_region"] = depth_scores(*args, lit & mask, tolerance_mm, periods, pw)
+    return row
+
+
+def _error_preview(err_mm: np.ndarray, undecoded: np.ndarray, tolerance_mm: float) -> np.ndarray:
+    """(H, W, 3) |depth error|: black 0, white 4 x the tolerance or more; blue where lit but not decoded."""
+    e_rgb = np.repeat(np.clip(np.nan_to_num(err_mm, nan=0.0) / (4 * tolerance_mm), 0, 1)[..., None], 3, -1)
+    e_rgb[undecoded] = (0.0, 0.0, 1.0)  # lit but not decoded: blue
+    return e_rgb.astype(np.float32)
+
+
 @register(
     "structured_light",
     output_channels=22,
@@ -406,13 +422,9 @@ def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
     if data.renderer is not None:
         truth = _truth(data, info)
         lit, mask = truth["lit"], data.moving_mask
-        scores = {}
-        for m, dec in decoded.items():
-            args = (dec["depth"], dec["valid"], dec["column"], dec["phase"], truth)
-            row = {"all": depth_scores(*args, lit, params.depth_tolerance_mm, periods, pw)}
-            if mask.any():
-                row["moving_region"] = depth_scores(*args, lit & mask, params.depth_tolerance_mm, periods, pw)
-            scores[m] = row
+        scores = {
+            m: _scores(dec, truth, lit, mask, params.depth_tolerance_mm, periods, pw) for m, dec in decoded.items()
+        }
         metrics["truth"] = {
             "time_s": truth["t_s"],
             "lit_px": int(lit.sum()),
@@ -425,11 +437,7 @@ def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
         out_images["lit_truth"] = lit.astype(np.float32)
         err = np.where(lit & main["valid"], np.abs(main["depth"] - truth["z_m"]) * 1e3, np.nan)
         out_images["depth_error_mm"] = np.nan_to_num(err, nan=0.0).astype(np.float32)
-        e_rgb = np.repeat(
-            np.clip(np.nan_to_num(err, nan=0.0) / (4 * params.depth_tolerance_mm), 0, 1)[..., None], 3, -1
-        )
-        e_rgb[lit & ~main["valid"]] = (0.0, 0.0, 1.0)  # lit but not decoded: blue
-        out_images["error_preview"] = e_rgb.astype(np.float32)
+        out_images["error_preview"] = _error_preview(err, lit & ~main["valid"], params.depth_tolerance_mm)
         out_images["depth_truth_preview"] = _depth_preview(
             np.where(lit, truth["z_m"], np.nan), params.depth_min_m, params.depth_max_m
         )
