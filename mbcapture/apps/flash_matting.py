@@ -251,6 +251,18 @@ CAPTIONS = {
 }
 
 
+def trimap_of(flash_only: np.ndarray, noflash: np.ndarray, params: FlashMattingParams) -> tuple[np.ndarray, np.ndarray]:
+    """The trimap (1 foreground, 0 background, 0.5 unknown) from the flash-only image's cue (``app.trimap_*``), and
+    the cue's ramp from the background level (0) to the foreground level (1), which the matting may start from."""
+    cue = trimap_cue(
+        flash_only, noflash, params.trimap_cue, params.trimap_reference_percentile, params.trimap_ratio_eps
+    )
+    trimap = make_trimap(
+        cue, params.trimap_fg_fraction, params.trimap_bg_fraction, params.trimap_open_px, params.trimap_erode_px
+    )
+    return trimap, (cue - params.trimap_bg_fraction) / (params.trimap_fg_fraction - params.trimap_bg_fraction)
+
+
 def _score_alpha(
     truth, alpha, trimap, unknown, mask, by_image: dict, n_ch: int, truth_spp: int, images, metrics, png, summary
 ) -> None:
@@ -305,13 +317,7 @@ def reconstruct(data: CaptureData, params: FlashMattingParams) -> AppOutput:
     flash_only = flash_only_image(reads_e[i_f], t_f, reads_e[i_n], t_n, data.k_e)
     y = luminance(flash_only)
     ref = reference_level(y, params.trimap_reference_percentile)
-    cue = trimap_cue(
-        flash_only, noflash, params.trimap_cue, params.trimap_reference_percentile, params.trimap_ratio_eps
-    )
-    trimap = make_trimap(
-        cue, params.trimap_fg_fraction, params.trimap_bg_fraction, params.trimap_open_px, params.trimap_erode_px
-    )
-    ramp = (cue - params.trimap_bg_fraction) / (params.trimap_fg_fraction - params.trimap_bg_fraction)
+    trimap, ramp = trimap_of(flash_only, noflash, params)
     sources = {"flash_only": flash_only, "flash": flash, "noflash": noflash}
 
     def matte(name: str) -> np.ndarray:

@@ -219,6 +219,27 @@ CAPTIONS = {
 }
 
 
+def deblurred_reads(data: CaptureData, params: FlutterParams, samples, weights, b: np.ndarray) -> dict:
+    """Each way of deblurring the reads ``b`` (electrons over k_e): the first read alone (``single``) and, with two
+    buckets, both jointly (``joint``); each as (deblurred, the same from the noise-free reads, white-noise gain)."""
+    W = data.cfg.render.width
+    b0 = data.reads_e_expected / np.asarray(data.k_e, float)
+    deblur = DEBLUR_METHODS[params.deblur]  # the name was checked when the config loaded
+
+    def both(idx):
+        s_ = [samples[i] for i in idx]
+        return (
+            deblur(b[idx], s_, weights[idx], params.regularization),
+            deblur(b0[idx], s_, weights[idx], params.regularization),
+            white_noise_gain(s_, np.ones(len(idx)), W, float(data.exposure_s.sum())),
+        )
+
+    results = {"single": both([0])}
+    if len(data.timeline.reads) > 1:
+        results["joint"] = both(list(range(len(data.timeline.reads))))
+    return results
+
+
 def box_baseline(data: CaptureData, k_e: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """The box exposure a conventional sensor takes over the same chops: every chop in one bucket, the sum of the
     reads' noise-free electrons read as one frame through the sensor stage (its own noise, its dark current over its
@@ -253,20 +274,7 @@ def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
     sensor = cfg.sensor
     weights = read_weights(data.reads_e_expected, k_e, sensor.read_noise_e, region)
     b = data.reads_e() / k_e
-    b0 = data.reads_e_expected / k_e
-    deblur = DEBLUR_METHODS[params.deblur]  # the name was checked when the config loaded
-
-    def both(idx, reads=b, reads0=b0, samp=samples, w=weights):
-        s_ = [samp[i] for i in idx]
-        return (
-            deblur(reads[idx], s_, w[idx], params.regularization),
-            deblur(reads0[idx], s_, w[idx], params.regularization),
-            white_noise_gain(s_, np.ones(len(idx)), W, float(data.exposure_s.sum())),
-        )
-
-    results = {"single": both([0])}
-    if len(tl.reads) > 1:
-        results["joint"] = both(list(range(len(tl.reads))))
+    results = deblurred_reads(data, params, samples, weights, b)
     main_key = params.method if params.method in results else "single"
     main = results[main_key][0]
 
@@ -311,8 +319,8 @@ def reconstruct(data: CaptureData, params: FlutterParams) -> AppOutput:
             table[key] = {**score(f, f0, truth, region, ref_noise), "white_noise_gain": gain}
         if not data.sequential and params.shutter == "two_bucket":
             w_box = read_weights(box_e[None], k_e, sensor.read_noise_e, region)
-            fb = deblur(box_b, box_samples, w_box, params.regularization)
-            fb0 = deblur((box_e / k_e)[None], box_samples, w_box, params.regularization)
+            fb = DEBLUR_METHODS[params.deblur](box_b, box_samples, w_box, params.regularization)
+            fb0 = DEBLUR_METHODS[params.deblur]((box_e / k_e)[None], box_samples, w_box, params.regularization)
             images["deblurred_box"] = fb.astype(np.float32)
             images["blurred_box"] = (box_b[0] / box_t).astype(np.float32)
             png["deblurred_box"] = ("deblurred_box", cfg.output.png_percentile)
