@@ -105,6 +105,45 @@ def choose_executor(
     return len({g.renders for g in plan.groups if any(i in pending for i in g.points)}) <= 1
 
 
+def _rows_before(sweep: Sweep, plan, out: Path | None, resume: bool) -> tuple[dict[int, dict], set[int]]:
+    """The rows known before anything runs: those an earlier run into ``out`` finished (with ``resume``), and those
+    of points that cannot be planned (failed, written to ``out/rows``); and which were resumed."""
+    rows: dict[int, dict] = {}
+    resumed: set[int] = set()
+    if resume and out is not None:
+        for p in sweep.points:
+            row = _read_row(out / ROWS_DIR / f"{p.id}.json")
+            if row is not None and row.get("status") == "ok":
+                rows[p.index] = row
+                resumed.add(p.index)
+    for index, error in plan.failed.items():
+        rows[index] = {"status": "failed", "error": error}
+        if out is not None:
+            _write_row(out, sweep.points[index], rows[index])
+    return rows, resumed
+
+
+def _summary(sweep: Sweep, plan, rows: dict, ran: dict, resumed: set, executor: str, start: float, cache) -> dict:
+    """sweep.json's summary: points, what ran and what was reused, the render groups, where it ran, its wall time."""
+    done = [r for r in rows.values() if r.get("status") == "ok"]
+    return {
+        "points": len(sweep.points),
+        "ok": len(done),
+        "failed": len(rows) - len(done),
+        "ran": len(ran),
+        "resumed": len(resumed),
+        "render_groups": len(plan.groups),
+        "render_sets": len({g.renders for g in plan.groups}),
+        "axes_changing_renders": list(plan.axes_changing_renders),
+        "renders_rendered": int(sum(r.get("renders_rendered") or 0 for r in ran.values())),
+        "renders_reused": int(sum(r.get("renders_reused") or 0 for r in ran.values())),
+        "points_sharing_renders": int(sum(bool(r.get("render_shared")) for r in ran.values())),
+        "executor": executor,
+        "wall_s": round(time.perf_counter() - start, 3),  # before writing the results
+        "render_cache": str(cache.root) if cache is not None else None,
+    }
+
+
 def run_sweep(
     sweep: Sweep,
     out: Path | None,
@@ -133,18 +172,7 @@ def run_sweep(
         check_out_dir(out)
     start = time.perf_counter()
     plan = plan_sweep(sweep)
-    rows: dict[int, dict] = {}
-    resumed: set[int] = set()
-    if resume and out is not None:
-        for p in sweep.points:
-            row = _read_row(out / ROWS_DIR / f"{p.id}.json")
-            if row is not None and row.get("status") == "ok":
-                rows[p.index] = row
-                resumed.add(p.index)
-    for index, error in plan.failed.items():
-        rows[index] = {"status": "failed", "error": error}
-        if out is not None:
-            _write_row(out, sweep.points[index], rows[index])
+    rows, resumed = _rows_before(sweep, plan, out, resume)
     pending = {p.index for p in sweep.points if p.index not in rows}
     ran: dict[int, dict] = {}
     n_groups = sum(1 for g in plan.groups if any(i in pending for i in g.points))
@@ -210,23 +238,7 @@ def run_sweep(
             own_client.close()
         if cluster is not None:
             cluster.close()
-    done = [r for r in rows.values() if r.get("status") == "ok"]
-    summary = {
-        "points": len(sweep.points),
-        "ok": len(done),
-        "failed": len(rows) - len(done),
-        "ran": len(ran),
-        "resumed": len(resumed),
-        "render_groups": len(plan.groups),
-        "render_sets": len({g.renders for g in plan.groups}),
-        "axes_changing_renders": list(plan.axes_changing_renders),
-        "renders_rendered": int(sum(r.get("renders_rendered") or 0 for r in ran.values())),
-        "renders_reused": int(sum(r.get("renders_reused") or 0 for r in ran.values())),
-        "points_sharing_renders": int(sum(bool(r.get("render_shared")) for r in ran.values())),
-        "executor": executor,
-        "wall_s": round(time.perf_counter() - start, 3),  # before writing the results
-        "render_cache": str(cache.root) if cache is not None else None,
-    }
+    summary = _summary(sweep, plan, rows, ran, resumed, executor, start, cache)
     outcome = SweepOutcome(sweep, plan, rows, summary, results=results)
     if out is not None:
         outcome.table = write_results(out, sweep, plan, rows, summary)
