@@ -98,6 +98,40 @@ def time_unit(seconds: float) -> tuple[float, str]:
     return (1e-3, "ms") if seconds >= 1e-3 else (1e-6, "µs")
 
 
+def _first_periods(ax, tl: Timeline, groups: list[str], y_top: int, group_colour: str) -> None:
+    """The first periods of a long schedule in detail, on ``ax`` (:func:`timeline_png`'s second panel)."""
+    seg = tl.segments[0]
+    periods = max(1, min(seg.repeats, MAX_DETAIL_SLOTS // max(len(seg.slots), 1), 2))
+    until = seg.start_tick + periods * seg.period_ticks
+    shown_s = float((until - tl.start_tick) * tl.tick_s)
+    unit_d, uname_d = time_unit(shown_s)
+    draw_timeline(ax, tl, y_top, unit_d, "", until_tick=until)
+    for gi, g in enumerate(groups):
+        draw_timeline(
+            ax,
+            tl,
+            y_top - 1 - gi,
+            unit_d,
+            "",
+            height=0.35,
+            until_tick=until,
+            background="#f2f2f2",
+            colour=lambda s, g=g: group_colour if g in s.groups_on else None,
+        )
+    ax.set_yticks(
+        [y_top - k for k in range(1 + len(groups))],
+        [
+            "frames" if tl.sequential else ("sub-frames" if tl.code is not None else "buckets"),
+            *[f"{g} on" for g in groups],
+        ],
+        fontsize=8,
+    )
+    ax.set_xlim(0, shown_s / unit_d)
+    ax.set_ylim(y_top - len(groups) - 0.7, y_top + 0.7)
+    ax.set_xlabel(f"time ({uname_d})")
+    ax.set_title(f"the first {periods} of {seg.repeats} periods", fontsize=9)
+
+
 def timeline_png(tl: Timeline) -> bytes:
     """The gate schedule of a run: buckets (frames for a sequential capture) and switchable groups
     per slot, and each read's span with its centroid; a schedule of more than ``MAX_DETAIL_SLOTS``
@@ -178,38 +212,7 @@ def timeline_png(tl: Timeline) -> bytes:
         fontsize=9,
     )
     if not detail:  # the first periods in detail
-        seg = tl.segments[0]
-        periods = max(1, min(seg.repeats, MAX_DETAIL_SLOTS // max(len(seg.slots), 1), 2))
-        until = seg.start_tick + periods * seg.period_ticks
-        shown_s = float((until - tl.start_tick) * tl.tick_s)
-        unit_d, uname_d = time_unit(shown_s)
-        ax = axes[1]
-        y_top = rows - 1
-        draw_timeline(ax, tl, y_top, unit_d, "", until_tick=until)
-        for gi, g in enumerate(groups):
-            draw_timeline(
-                ax,
-                tl,
-                y_top - 1 - gi,
-                unit_d,
-                "",
-                height=0.35,
-                until_tick=until,
-                background="#f2f2f2",
-                colour=lambda s, g=g: group_colour if g in s.groups_on else None,
-            )
-        ax.set_yticks(
-            [y_top - k for k in range(1 + len(groups))],
-            [
-                "frames" if tl.sequential else ("sub-frames" if tl.code is not None else "buckets"),
-                *[f"{g} on" for g in groups],
-            ],
-            fontsize=8,
-        )
-        ax.set_xlim(0, shown_s / unit_d)
-        ax.set_ylim(y_top - len(groups) - 0.7, y_top + 0.7)
-        ax.set_xlabel(f"time ({uname_d})")
-        ax.set_title(f"the first {periods} of {seg.repeats} periods", fontsize=9)
+        _first_periods(axes[1], tl, groups, rows - 1, group_colour)
     used = sorted({s.bucket for seg in tl.segments for s in seg.slots if s.bucket >= 0})
     kind = "frame" if tl.sequential else ("sub-frame" if tl.code is not None else "bucket")
     handles = [Patch(color=BUCKET_COLOURS[b % len(BUCKET_COLOURS)], label=f"{kind} {b + 1}") for b in used]
