@@ -98,6 +98,33 @@ def _var_of_variance(s2: np.ndarray, n: int) -> np.ndarray:
     return 2.0 * np.asarray(s2) ** 2 / n
 
 
+def dark_variance_at_zero(t_s: np.ndarray, dark: PairStats) -> tuple[float, float]:
+    """The temporal dark variance (DN^2) extrapolated to t = 0 along the dark frames (their variance grows with the
+    dark current's shot noise), at least :data:`MIN_DARK_VARIANCE_DN2`, and its uncertainty."""
+    n = dark.pixels
+    if np.unique(t_s).size > 2:
+        _, s2_dark0, cov_d = weighted_line(t_s, dark.variance, _var_of_variance(dark.variance, n))
+        s_s2_dark0 = float(np.sqrt(cov_d[0, 0]))
+    else:
+        s2_dark0, s_s2_dark0 = float(dark.variance[0]), float(np.sqrt(_var_of_variance(dark.variance[0], n)))
+    s2_dark0 = max(s2_dark0, MIN_DARK_VARIANCE_DN2)
+    return s2_dark0, s_s2_dark0
+
+
+def linearity_error(mu_p, y, var_mean, y_sat: float, i_sat: int) -> tuple[float, float]:
+    """Half the spread (%) of the relative deviations from a line through the origin fitted between 5 % and 95 % of
+    saturation, and the deviation the means' noise alone gives."""
+    lin = (y >= LINEARITY_RANGE[0] * y_sat) & (y <= LINEARITY_RANGE[1] * y_sat) & (np.arange(y.size) < i_sat)
+    if lin.sum() < 3:
+        raise ValueError("fewer than 3 steps between 5 % and 95 % of saturation: raise the steps")
+    slope_l, _, _ = weighted_line(mu_p[lin], y[lin], var_mean[lin], through_origin=True)
+    line = slope_l * mu_p[lin]
+    dev = (y[lin] - line) / line * 100.0
+    le = (dev.max() - dev.min()) / 2
+    s_le = float(np.max(np.sqrt(var_mean[lin]) / line) * 100.0)  # the deviation the mean's noise alone gives
+    return le, s_le
+
+
 def sensitivity(mu_p: np.ndarray, light: PairStats, dark: PairStats, t_s: np.ndarray) -> dict[str, Figure]:
     """Release 4.0 Linear, 'sensitivity, linearity and noise' (photon transfer method), from a series of
     steps of mu_p photons per pixel at exposure times t_s, with their light and dark frame pairs.
@@ -138,13 +165,7 @@ def sensitivity(mu_p: np.ndarray, light: PairStats, dark: PairStats, t_s: np.nda
     sR = float(np.sqrt(covR[1, 1]))
     eta, s_eta = R / K, R / K * np.hypot(sR / R, sK / K)
 
-    # temporal dark noise at t = 0 (the dark frames' variance grows with dark-current shot noise)
-    if np.unique(t_s).size > 2:
-        _, s2_dark0, cov_d = weighted_line(t_s, dark.variance, _var_of_variance(dark.variance, n))
-        s_s2_dark0 = float(np.sqrt(cov_d[0, 0]))
-    else:
-        s2_dark0, s_s2_dark0 = float(dark.variance[0]), float(np.sqrt(_var_of_variance(dark.variance[0], n)))
-    s2_dark0 = max(s2_dark0, MIN_DARK_VARIANCE_DN2)
+    s2_dark0, s_s2_dark0 = dark_variance_at_zero(t_s, dark)
     sigma_y_dark = float(np.sqrt(s2_dark0))
     s_sigma_y_dark = s_s2_dark0 / (2 * sigma_y_dark)
     sigma_d = float(np.sqrt(max(s2_dark0 - SIGMA_Q2_DN2, 0.0)) / K)
@@ -164,14 +185,7 @@ def sensitivity(mu_p: np.ndarray, light: PairStats, dark: PairStats, t_s: np.nda
     dr = mu_p_sat / mu_p_min
     s_dr = dr * np.hypot(0.5 * step_p / mu_p_sat, s_mu_p_min / mu_p_min)
 
-    lin = (y >= LINEARITY_RANGE[0] * y_sat) & (y <= LINEARITY_RANGE[1] * y_sat) & (np.arange(y.size) < i_sat)
-    if lin.sum() < 3:
-        raise ValueError("fewer than 3 steps between 5 % and 95 % of saturation: raise the steps")
-    slope_l, _, _ = weighted_line(mu_p[lin], y[lin], var_mean[lin], through_origin=True)
-    line = slope_l * mu_p[lin]
-    dev = (y[lin] - line) / line * 100.0
-    le = (dev.max() - dev.min()) / 2
-    s_le = float(np.max(np.sqrt(var_mean[lin]) / line) * 100.0)  # the deviation the mean's noise alone gives
+    le, s_le = linearity_error(mu_p, y, var_mean, y_sat, i_sat)
 
     # the charge where the read clips, from the last step when it lies beyond saturation (every pixel
     # clipped: its mean is black level + K x limit); not a figure of the standard: a preset needs it,
