@@ -631,7 +631,10 @@ def test_scores_split_edges_and_shadow_free_error_by_the_moving_region():
         "static_region": de.edge_scores(det, truth_edges, 1.5, ~moving),
     }
     edges = s["depth_edges"]
-    assert edges["moving_region"] != edges["static_region"] and edges["all"] not in (edges["moving_region"], edges["static_region"])
+    assert edges["moving_region"] != edges["static_region"] and edges["all"] not in (
+        edges["moving_region"],
+        edges["static_region"],
+    )
     sm = mf.shadow_metrics(shadow_free, images, shadow_ratio=p.shadow_ratio, min_signal_fraction=0.4)
     assert 0 < sm["shadowed_px"] < mf.shadow_metrics(shadow_free, images)["shadowed_px"]  # fewer pixels count as lit
     assert s["shadow_free"] == {

@@ -247,3 +247,30 @@ def test_no_private_name_is_imported_across_modules():
                     if a.name.startswith("_") and not a.name.startswith("__")
                 ]
     assert found == []
+
+
+#: The most lines a module of the package, and a function, may have: a reader holds a unit in view.
+MAX_MODULE_LINES = 800
+MAX_FUNCTION_LINES = 100
+
+
+def _long_units(root: Path) -> list[str]:
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        text = path.read_text()
+        if text.count("\n") > MAX_MODULE_LINES:
+            found.append(f"{path.relative_to(root)}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                length = node.end_lineno - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    found.append(f"{path.relative_to(root)}:{node.lineno} {node.name}: {length} lines")
+    return found
+
+
+def test_no_module_or_function_is_too_long_to_read(tmp_path):
+    """No module over MAX_MODULE_LINES lines, no function (docstring included) over MAX_FUNCTION_LINES."""
+    assert _long_units(PACKAGE) == []
+    # the check itself finds both
+    (tmp_path / "long.py").write_text("def f():\n" + "    x = 1\n" * MAX_FUNCTION_LINES + "\n" * MAX_MODULE_LINES)
+    assert [h.split(":")[0] for h in _long_units(tmp_path)] == ["long.py", "long.py"]
