@@ -133,6 +133,10 @@ class GateCodeSpec(StrictModel):
         return self
 
 
+#: The protocols that read capture.exposure_ratios (mbcapture.apps.hdr).
+HDR_PROTOCOLS = ("photon_efficient_hdr", "interleaved_hdr")
+
+
 class CaptureSection(StrictModel):
     protocol: str = Field(
         "photon_efficient_hdr",
@@ -142,7 +146,15 @@ class CaptureSection(StrictModel):
     unit_exposure_s: float = Field(
         1e-3,
         gt=0,
-        description="T: the shortest exposure of the HDR protocols (reads are T, 2T, 4T, ...). Unused by 'custom'.",
+        description="T: the shortest exposure of the HDR protocols (reads are T times capture.exposure_ratios). "
+        "Unused by 'custom'.",
+    )
+    exposure_ratios: list[float] | None = Field(
+        None,
+        min_length=2,
+        description="The HDR protocols' read exposures in units of T, ascending from 1 (e.g. [1, 8]: two reads, 8:1), one "
+        "bucket per ratio, at most sensor.bucket_count. null: powers of two over every bucket (1, 2, 4, 8 with 4 "
+        "buckets). Photon-efficient reads sum buckets, so its capture spans the largest ratio; interleaved, the sum.",
     )
     periods: int = Field(
         16, ge=1, le=10**7, description="N: how many times the slot pattern repeats within the exposure."
@@ -178,10 +190,27 @@ class CaptureSection(StrictModel):
         "plus sensor.frame_readout_s.",
     )
 
+    @field_validator("exposure_ratios")
+    @classmethod
+    def _ratios_ascend_from_one(cls, v: list[float] | None) -> list[float] | None:
+        if v is None:
+            return v
+        if not all(math.isfinite(r) for r in v) or v[0] != 1.0 or any(b <= a for a, b in zip(v, v[1:])):
+            raise ValueError(f"expected exposures in units of T ascending from 1 (e.g. [1, 8] or [1, 4, 16]), got {v}")
+        return v
+
     @model_validator(mode="after")
     def _video_needs_a_rate(self) -> "CaptureSection":
         if self.frames > 1 and self.frame_rate_hz is None:
             raise ValueError("capture.frame_rate_hz is required when capture.frames > 1 (a video)")
+        return self
+
+    @model_validator(mode="after")
+    def _ratios_only_for_hdr(self) -> "CaptureSection":
+        if self.exposure_ratios is not None and self.protocol not in HDR_PROTOCOLS:
+            raise ValueError(
+                f"capture.exposure_ratios is only read by {' and '.join(HDR_PROTOCOLS)}, not {self.protocol!r}"
+            )
         return self
 
     @model_validator(mode="after")

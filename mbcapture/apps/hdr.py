@@ -23,6 +23,8 @@ error, and the motion check measures how far apart the exposure-normalized reads
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 
 from ..metrics import REC709_LUMA, pu21_psnr, relative_mse
@@ -43,12 +45,29 @@ LUMINOUS_EFFICACY_LM_PER_W = 683.0
 REL_MSE_EPS_RADIANCE = 1e-4
 
 
+def exposure_ratios(cfg: CaptureConfig, buckets: int) -> list[Fraction]:
+    """The HDR protocols' read exposures in units of T, shortest first, as exact fractions: ``capture.exposure_ratios``
+    (one bucket each, at most the sensor's; a ConfigError otherwise), else powers of two over ``buckets``."""
+    ratios = cfg.capture.exposure_ratios
+    if ratios is None:
+        return [Fraction(2**i) for i in range(buckets)]
+    if len(ratios) > cfg.sensor.bucket_count:
+        raise ConfigError(
+            f"capture.exposure_ratios: {len(ratios)} reads need {len(ratios)} buckets (one each) but "
+            f"sensor.bucket_count is {cfg.sensor.bucket_count}"
+        )
+    return [exact(r) for r in ratios]
+
+
 @register_protocol("photon_efficient_hdr")
 def photon_efficient_hdr(cfg: CaptureConfig):
-    """One period: bucket 1 gets 2^(K-2) units, ..., bucket K-1 one unit, bucket K one unit."""
-    k = need_buckets(cfg, max(cfg.sensor.bucket_count, 2))
+    """One period: bucket K (read first, alone) collects r1 units, bucket K-1 r2 - r1, ..., bucket 1 rK - r(K-1),
+    for ratios r1 = 1 < r2 < ... < rK; read i sums buckets K-i+1..K: exposure ri T. Powers of two by default:
+    2^(K-2) : ... : 2 : 1 : 1."""
+    r = exposure_ratios(cfg, max(cfg.sensor.bucket_count, 2))
+    k = len(r)
     T, N = exact(cfg.capture.unit_exposure_s), cfg.capture.periods
-    units = [2 ** (k - 2 - i) for i in range(k - 1)] + [1]
+    units = [r[k - 1 - b] - (r[k - 2 - b] if b < k - 1 else 0) for b in range(k)]
     slots = [SlotSeconds(b, T * u / N) for b, u in enumerate(units)]
     reads = [ReadEvent(f"J{i + 1}", tuple(range(k - 1 - i, k))) for i in range(k)]
     return slots, reads, k
@@ -56,10 +75,12 @@ def photon_efficient_hdr(cfg: CaptureConfig):
 
 @register_protocol("interleaved_hdr")
 def interleaved_hdr(cfg: CaptureConfig):
-    """One period: bucket 1 gets 2^(K-1) units, ..., bucket K one unit; each read directly."""
-    k = need_buckets(cfg, cfg.sensor.bucket_count)
+    """One period: bucket b collects r(K-b+1) units (bucket K: r1 = 1), each read directly: read i is bucket
+    K-i+1, exposure ri T. Powers of two by default: 2^(K-1) : ... : 1."""
+    r = exposure_ratios(cfg, need_buckets(cfg, cfg.sensor.bucket_count))
+    k = len(r)
     T, N = exact(cfg.capture.unit_exposure_s), cfg.capture.periods
-    slots = [SlotSeconds(b, T * 2 ** (k - 1 - b) / N) for b in range(k)]
+    slots = [SlotSeconds(b, T * r[k - 1 - b] / N) for b in range(k)]
     reads = [ReadEvent(f"J{i + 1}", (k - 1 - i,)) for i in range(k)]
     return slots, reads, k
 
