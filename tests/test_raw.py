@@ -97,10 +97,13 @@ def chart_run(tmp_path_factory):
 def test_every_read_is_a_dng_with_the_simulated_values(chart_run):
     reads = read_exr(chart_run / "reads.exr")
     assert sorted(p.name for p in chart_run.glob("*.dng")) == [f"read_{n}.dng" for n in sorted(reads)]
+    # each read's white level: where it clips (its J buckets' full wells of 10 000 e- at 0.4 DN/e- above a black
+    # level of 256 DN, less 4 read-noise sigmas of 3 e-), not the ADC's top code
+    limit = {"J1": 4251, "J2": 8251, "J3": 12251, "J4": 16251}
     for name, dn in reads.items():
         with rawpy.imread(str(chart_run / f"read_{name}.dng")) as raw:
             assert np.array_equal(raw.raw_image[..., :3], dn.astype(np.uint16)), name
-            assert raw.black_level_per_channel[:3] == [256] * 3 and raw.white_level == 2**14 - 1
+            assert raw.black_level_per_channel[:3] == [256] * 3 and raw.white_level == limit[name], name
     assert "read_J4.dng" in (chart_run / "report.html").read_text()
 
 
@@ -225,3 +228,61 @@ def test_a_mono_sensor_writes_a_one_sample_dng_that_rawpy_reads_back():
             assert raw.white_level == 4095 and raw.black_level_per_channel[0] == 64
         with pytest.raises(ValueError, match="monochrome"):
             write_dng(path, np.zeros((4, 4, 3)), black_level=0, white_level=4095, channel_gain=np.ones(3), cfa="mono")
+
+
+def _develop(path: Path) -> np.ndarray:
+    """rawpy's develop with the camera's white balance (AsShotNeutral), linear sRGB, no auto brightness."""
+    with rawpy.imread(str(path)) as raw:
+        return raw.postprocess(
+            use_camera_wb=True,
+            no_auto_bright=True,
+            output_color=rawpy.ColorSpace.sRGB,
+            gamma=(1, 1),
+            output_bps=16,
+            user_flip=0,
+        ).astype(np.float64)
+
+
+def test_a_clipped_highlight_develops_neutral(tmp_path):
+    """A coloured flat field bright enough to clip every read in every channel: each read's DNG says where it clips
+    (WhiteLevel: its charge limit through gain and black level, less four read-noise sigmas), so LibRaw develops
+    the clipped field white (channels within 1 % of one another). With the ADC's top code as the white level, the
+    same codes develop coloured: the white balance scales the clipped channels unequally."""
+    import tifffile
+
+    from mbcapture.output.raw import white_level_dn
+
+    cfg = load_config(
+        None,
+        [
+            "scene.name=flatfield",
+            "scene.radiance=[20, 40, 10]",
+            "render.width=64",
+            "render.height=48",
+            "render.spp=2",
+            "render.cache=off",
+            "output.dng=true",
+        ],
+    )
+    res = run_capture(cfg, tmp_path / "run", progress=False)
+    assert res.saturated.all()
+    s = cfg.sensor
+    for i, name in enumerate(["J1", "J2", "J3", "J4"]):
+        path = tmp_path / "run" / f"read_{name}.dng"
+        buckets = len(res.timeline.reads[i].buckets)
+        with rawpy.imread(str(path)) as raw:
+            assert raw.white_level == white_level_dn(min(buckets * s.full_well_e, s.fd_full_well_e), s) < s.adc_max_dn
+        mean = _develop(path).reshape(-1, 3).mean(axis=0)
+        assert mean.max() / mean.min() < 1.01, (name, mean)
+        with tifffile.TiffFile(path) as tif:  # ExposureTime and BaselineExposure relate the reads
+            tags = tif.pages[0].tags
+            num, den = tags["ExposureTime"].value
+            assert num / den == pytest.approx(res.report["reads"][i]["exposure_s"], rel=1e-6)
+            num, den = tags[50730].value
+            assert num / den == pytest.approx(np.log2(8e-3 / res.report["reads"][i]["exposure_s"]), abs=1e-6)
+    # the first read's codes (clipped at a quarter of the ADC's range) with the ADC's top code as their white level: tinted
+    old = tmp_path / "old.dng"
+    k = np.array([res.report["electrons_per_render_unit_second"][c] for c in "RGB"]) * s.gain_dn_per_e
+    write_dng(old, res.reads_dn[0], black_level=s.black_level_dn, white_level=s.adc_max_dn, channel_gain=k)
+    mean = _develop(old).reshape(-1, 3).mean(axis=0)
+    assert mean.max() / mean.min() > 1.1, mean

@@ -29,8 +29,8 @@ from .pipeline import (
     render_cache,
 )
 from ..progress import StageStatus
-from ..output.raw import write_dng
-from .report import write_read_previews, write_report
+from ..output.raw import white_level_dn, write_dng
+from .report import read_limits_dn, write_read_previews, write_report
 from ..sensor import electrons_per_render_second
 from .video import run_video, write_video_files
 
@@ -132,14 +132,18 @@ def write_outputs(result: CaptureResult, out: Path, extra=None, *, raw: bool = T
             gain = electrons_per_render_second(cfg.sensor, cfg.render.variant) * cfg.sensor.gain_dn_per_e
             cfa = None if cfg.sensor.cfa == "none" else cfg.sensor.cfa
             codes = result.reads_dn if result.mosaic_dn is None else result.mosaic_dn  # a CFA sensor: its photosites
+            limits = read_limits_dn(result)
+            exposures = [r["exposure_s"] for r in result.report["reads"]]
             for i, n in enumerate(names):
                 write_dng(
                     st.path(f"read_{n}.dng"),
                     codes[i],
                     black_level=cfg.sensor.black_level_dn,
-                    white_level=cfg.sensor.adc_max_dn,
+                    white_level=white_level_dn(limits[i]["charge_limit_e"], cfg.sensor),
                     channel_gain=gain,
                     cfa=cfa,
+                    exposure_s=exposures[i],
+                    baseline_exposure_ev=float(np.log2(max(exposures) / exposures[i])) if exposures[i] > 0 else 0.0,
                 )
         result.report["previews"] = write_read_previews(st, result)  # one common DN scale, and each its own
         st.write_yaml("config.yaml", cfg.to_yaml_dict())

@@ -11,7 +11,12 @@ What is written, per read:
   every pixel sees R, G and B (mbcapture's sensor without a colour filter array), three samples per
   pixel as a linear DNG (PhotometricInterpretation LinearRaw); a monochrome sensor's one sample
   per pixel as a one-sample LinearRaw DNG;
-* BlackLevel (the sensor's black level) and WhiteLevel (the ADC's top code), in DN;
+* BlackLevel (the sensor's black level) and WhiteLevel, in DN: the code at which *this read* clips
+  (:func:`white_level_dn`: its charge limit, the buckets' full wells summed or the floating diffusion's,
+  through gain and black level, less four read-noise sigmas, so that every clipped sample lies at or above
+  it; at most the ADC's top code), so that a raw developer knows where highlights clip and develops them white;
+* ExposureTime (the read's exposure, s) and BaselineExposure (log2 of the longest read's exposure over this
+  read's, EV): developed with it, every read of a capture comes out as bright as the longest;
 * ColorMatrix1 (CIE XYZ to the camera's raw RGB under D65, CalibrationIlluminant1 = D65) and
   AsShotNeutral (the raw RGB of a D65 white), from the camera's response per channel: in an RGB
   render the raw value of channel c is g_c times the scene's linear-sRGB value c, with g_c the
@@ -41,6 +46,7 @@ _DNG_VERSION, _DNG_BACKWARD_VERSION, _UNIQUE_CAMERA_MODEL = 50706, 50707, 50708
 _CFA_PLANE_COLOR, _CFA_LAYOUT = 50710, 50711
 _BLACK_LEVEL, _WHITE_LEVEL = 50714, 50717
 _COLOR_MATRIX_1, _AS_SHOT_NEUTRAL, _CALIBRATION_ILLUMINANT_1 = 50721, 50728, 50778
+_EXPOSURE_TIME, _BASELINE_EXPOSURE = 33434, 50730
 _PHOTOMETRIC_CFA, _PHOTOMETRIC_LINEAR_RAW, _PHOTOMETRIC_BLACK_IS_ZERO = 32803, 34892, 1
 _D65 = 21
 #: The finest denominator of a written RATIONAL or SRATIONAL: six decimals, where the numerator fits.
@@ -82,6 +88,20 @@ def colour_tags(channel_gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return neutral[:, None] * XYZ_TO_SRGB, neutral
 
 
+#: How many read-noise sigmas below a read's clip point its WhiteLevel lies: clipped samples carry the read noise
+#: added after the clip, and at 4 sigma one in 30 000 of them would fall below the white level.
+WHITE_LEVEL_SIGMAS = 4.0
+
+
+def white_level_dn(charge_limit_e: float, sensor) -> int:
+    """The DNG WhiteLevel of a read whose charge clips at ``charge_limit_e``: the code of that charge through the
+    ``sensor``'s gain and black level, less :data:`WHITE_LEVEL_SIGMAS` of its read noise (pixel and row), at most the
+    ADC's top code and above the black level."""
+    noise_dn = sensor.gain_dn_per_e * float(np.hypot(sensor.read_noise_e, sensor.read_noise_row_e))
+    level = sensor.black_level_dn + sensor.gain_dn_per_e * charge_limit_e - WHITE_LEVEL_SIGMAS * noise_dn
+    return int(max(min(np.floor(level), sensor.adc_max_dn), np.floor(sensor.black_level_dn) + 1))
+
+
 def write_dng(
     path: str | Path,
     codes: np.ndarray,
@@ -91,11 +111,14 @@ def write_dng(
     channel_gain: np.ndarray,
     cfa: str | None = None,
     model: str = "mbcapture simulated sensor",
+    exposure_s: float | None = None,
+    baseline_exposure_ev: float = 0.0,
 ) -> None:
     """Write one read as a DNG. ``codes``: integer ADC codes, (H, W) for a ``cfa`` mosaic (one of
     :data:`CFA_PATTERNS`) or a ``cfa='mono'`` sensor, or (H, W, 3) without one; ``black_level`` and
     ``white_level`` in DN;
-    ``channel_gain``: raw DN per unit of the scene's linear sRGB, per channel (:func:`colour_tags`)."""
+    ``channel_gain``: raw DN per unit of the scene's linear sRGB, per channel (:func:`colour_tags`);
+    ``exposure_s``: the read's exposure (ExposureTime); ``baseline_exposure_ev``: BaselineExposure."""
     import tifffile
 
     data = np.asarray(codes)
@@ -109,7 +132,10 @@ def write_dng(
         (_DNG_BACKWARD_VERSION, "B", 4, (1, 1, 0, 0), True),
         (_UNIQUE_CAMERA_MODEL, "s", 0, model, True),
         (_WHITE_LEVEL, "I", 1, (int(white_level),), True),
+        (_BASELINE_EXPOSURE, "2i", 1, _srational([baseline_exposure_ev]), True),
     ]
+    if exposure_s is not None:
+        tags.append((_EXPOSURE_TIME, "2I", 1, _urational([exposure_s]), True))
     if cfa != "mono":
         tags += [
             (_COLOR_MATRIX_1, "2i", 9, _srational(matrix.ravel()), True),
