@@ -261,8 +261,9 @@ class OutputSection(StrictModel):
     dng: bool = Field(
         False,
         description="Also write each read as a DNG raw file, read_<name>.dng: its 16-bit ADC codes (a Bayer sensor's "
-        "mosaic with its CFA pattern, a mono sensor's one sample, else R, G, B per pixel), black and white "
-        "levels, colour matrix and as-shot neutral. rawpy (LibRaw) opens and develops it (tested). Needs "
+        "mosaic with its CFA pattern, a mono sensor's one sample, else R, G, B per pixel), black level, white "
+        "level where that read clips, exposure, colour matrix and as-shot neutral. rawpy (LibRaw) opens and "
+        "develops it (tested). Needs "
         "sensor.adc_bits <= 16 and an RGB render.variant unless mono (docs/characterize.md).",
     )
 
