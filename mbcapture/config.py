@@ -602,16 +602,16 @@ def resolve_config_path(path: str | Path) -> Path:
     """``path`` if it exists, else the shipped config of that name (``metronome_hdr`` or
     ``metronome_hdr.yaml``); a name that is neither fails naming the shipped ones."""
     p = Path(path)
-    if p.exists() or len(p.parts) != 1:
-        if not p.exists():
-            raise ConfigError(f"{p}: config file not found")
+    if p.exists():
         return p
-    shipped = SHIPPED_CONFIG_DIR / (p.name if p.suffix in (".yaml", ".yml") else f"{p.name}.yaml")
-    if shipped.is_file():
-        return shipped
     names = shipped_configs()
     close = difflib.get_close_matches(p.stem, names, n=1, cutoff=0.6)
     hint = f"; did you mean {close[0]}?" if close else ""
+    if len(p.parts) != 1:
+        raise ConfigError(f"{p}: config file not found (the shipped configs, by name: {', '.join(names)}){hint}")
+    shipped = SHIPPED_CONFIG_DIR / (p.name if p.suffix in (".yaml", ".yml") else f"{p.name}.yaml")
+    if shipped.is_file():
+        return shipped
     raise ConfigError(f"{p}: config file not found, and not a shipped config ({', '.join(names)}){hint}")
 
 

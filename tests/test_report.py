@@ -211,3 +211,12 @@ def test_read_previews_are_white_balanced_so_a_white_surface_is_grey():
     out = white_balanced(reads, 64.0, k_e)
     np.testing.assert_allclose(out, 40.0)
     assert not np.allclose(reads - 64.0, (reads - 64.0).mean(axis=-1, keepdims=True))
+
+
+@pytest.mark.render
+def test_the_page_prints_no_raw_python_dict(tiny_run):
+    """Nested figures (render_error.reads.J4...., render_error.budget....) are rows of their own, not a dict's repr."""
+    out, _ = tiny_run
+    page = (out / "report.html").read_text()
+    assert "render_error" in page and "reads.J4.to_shot_noise_variance_median" in page
+    assert "{&#x27;" not in page and "{'" not in page

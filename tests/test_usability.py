@@ -152,3 +152,41 @@ def test_converge_checks_its_out_before_the_ladders(capsys, monkeypatch):
     monkeypatch.setattr(converge, "run_converge", no_work)
     rc, _, err = run_cli(["converge", HDR, "--quick", "--out", "/proc/nope"], capsys)
     assert rc == 2 and "cannot create a folder in /proc" in err
+
+
+def test_an_unknown_scene_names_the_folders_searched():
+    from mbcapture import load_config
+
+    with pytest.raises(ConfigError, match=r"unknown scene 'nosuch'.*scene\.py in .*scenes.*MBCAPTURE_SCENE_PATH"):
+        load_config("metronome_hdr", ["scene.name=nosuch"])
+
+
+def test_a_scene_whose_make_returns_something_else_is_one_line(tmp_path, monkeypatch):
+    from mbcapture.scene import scenes
+
+    folder = tmp_path / "broken_make"
+    folder.mkdir()
+    (folder / "scene.py").write_text(
+        "from pydantic import BaseModel\n"
+        "DESCRIPTION = 'make returns a dict'\n"
+        "class Params(BaseModel):\n    pass\n"
+        "def make(params):\n    return {'not': 'a scene'}\n"
+    )
+    monkeypatch.setenv("MBCAPTURE_SCENE_PATH", str(tmp_path))
+    scenes.load_module.cache_clear()
+    try:
+        with pytest.raises(
+            ConfigError, match=r"broken_make/scene.py: make\(params\) must return .*SceneModel, got dict"
+        ):
+            scenes.make_scene("broken_make", scenes.load_module("broken_make").Params())
+    finally:
+        scenes.load_module.cache_clear()
+
+
+def test_a_config_path_that_does_not_exist_names_the_shipped_configs():
+    from mbcapture.config import resolve_config_path
+
+    with pytest.raises(
+        ConfigError, match=r"configs/metronome_hrd.yaml: config file not found .*metronome_hdr.*did you mean"
+    ):
+        resolve_config_path("configs/metronome_hrd.yaml")

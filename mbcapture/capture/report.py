@@ -447,7 +447,7 @@ def render_noise_section(rep: dict) -> str:
     return (
         "<h2 id='render-noise'>Rendering noise against shot noise</h2>"
         f"<p class='verdict'>{esc(err.get('verdict') or noise_verdict(err))}</p>"
-        + table([[k, v] for k, v in err.items() if k != "verdict"], ["render_error", "value"])
+        + table([[k, v] for k, v in flat_items(err) if k != "verdict"], ["render_error", "value"])
     )
 
 

@@ -131,7 +131,11 @@ def load_module(name: str) -> ModuleType:
     """Import ``scenes/<name>/scene.py``; an unknown name lists the valid ones."""
     scenes = available()
     if name not in scenes:
-        raise ConfigError(f"scene.name: unknown scene {name!r}; expected one of {sorted(scenes)}")
+        searched = ", ".join(str(d) for d in _scene_dirs())
+        raise ConfigError(
+            f"scene.name: unknown scene {name!r}; expected one of {sorted(scenes)} (folders <name>/scene.py in "
+            f"{searched}; $MBCAPTURE_SCENE_PATH adds folders)"
+        )
     path = scenes[name]
     mod_name = f"mbcapture_scene_{name}"
     spec = importlib.util.spec_from_file_location(mod_name, path)
@@ -149,4 +153,13 @@ def load_module(name: str) -> ModuleType:
 
 
 def make_scene(name: str, params: Any) -> SceneModel:
-    return load_module(name).make(params)
+    """Scene ``name``'s model for its validated ``params``; a ``make()`` that returns something else than a
+    SceneModel is one line naming the scene file."""
+    module = load_module(name)
+    scene = module.make(params)
+    if not isinstance(scene, SceneModel):
+        raise ConfigError(
+            f"{available()[name]}: make(params) must return a mbcapture.scene.scenes.SceneModel, "
+            f"got {type(scene).__name__}"
+        )
+    return scene
