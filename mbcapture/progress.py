@@ -51,7 +51,10 @@ class StageStatus:
         self._bar = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        if enabled:
+        # a terminal gets one line redrawn in place (tqdm); a file or a pipe gets plain lines, no carriage return
+        # or cursor escape: a log reads as lines
+        self._file = None if _isatty(file) else file
+        if enabled and self._file is None:
             from tqdm import tqdm
 
             self._bar = tqdm(total=stages, bar_format="{desc}", leave=False, dynamic_ncols=True, file=file)
@@ -62,9 +65,14 @@ class StageStatus:
         return f"{self._name}  {now - self._t_stage:.1f} s  [{count}{now - self._t0:.0f} s in all]"
 
     def refresh(self) -> None:
-        if self._bar is not None and self._name is not None:
+        if self._name is None or not self.enabled:
+            return
+        if self._bar is not None:
             self._bar.set_description_str(self._text(), refresh=True)
-            self.refreshes += 1
+        else:
+            self._file.write(self._text() + "\n")
+            self._file.flush()
+        self.refreshes += 1
 
     def _tick(self) -> None:
         while not self._stop.wait(self.interval_s):

@@ -107,7 +107,8 @@ def test_every_stage_shows_progress(tiny_run):
 
 
 def test_status_line_moves_during_a_silent_stage():
-    """A stage with no progress of its own (a reconstruction, a write) is redrawn while it runs."""
+    """A stage with no progress of its own (a reconstruction, a write) is redrawn while it runs; into a file or a
+    pipe each redraw is a line of its own."""
     from mbcapture.progress import StageStatus
 
     buf = io.StringIO()
@@ -120,6 +121,9 @@ def test_status_line_moves_during_a_silent_stage():
             moved = status.refreshes - start
     assert moved >= 3
     assert "reconstruct (x)" in buf.getvalue() and "stage 1/2" in buf.getvalue()
+    # into a file (not a terminal): plain lines, no carriage return or cursor escape
+    assert "\r" not in buf.getvalue() and "\x1b" not in buf.getvalue()
+    assert all(line.startswith("reconstruct (x)  ") for line in buf.getvalue().splitlines())
     assert not any(t.name == "mbcapture-status" for t in threading.enumerate())  # the ticker is stopped
     quiet = io.StringIO()
     with StageStatus(False, file=quiet) as status:
