@@ -115,15 +115,7 @@ def _developed_colour_error(run: Path) -> tuple[np.ndarray, np.ndarray]:
 
     truth = read_exr(run / "hdr.exr")["truth"]
     reads = read_exr(run / "reads.exr")
-    with rawpy.imread(str(run / "read_J4.dng")) as raw:
-        developed = raw.postprocess(
-            use_camera_wb=True,
-            no_auto_bright=True,
-            output_color=rawpy.ColorSpace.sRGB,
-            gamma=(1, 1),
-            output_bps=16,
-            user_flip=0,
-        ).astype(np.float64)
+    developed = _develop(run / "read_J4.dng")
     with rawpy.imread(str(run / "read_J4.dng")) as raw:
         plain = raw.postprocess(
             user_wb=[1, 1, 1, 1],
