@@ -491,7 +491,7 @@ def refine_tail(
                     timer=passes.timer,
                     progress=passes.progress,
                     have=held[part],
-                    desc=f"refine {int(part.sum())} px" + (" passes.changing" if points > 1 else ""),
+                    desc=f"refine {int(part.sum())} px" + (" moving" if points > 1 else ""),
                     store=passes.layout.store,
                 )
         info["seconds"] = round(info["scout"]["seconds"] + time.perf_counter() - start, 3)
