@@ -72,7 +72,11 @@ def _add_run_command(sub) -> None:
     run = sub.add_parser("run", help="render, simulate the sensor, reconstruct, write outputs")
     _add_config_args(run)
     run.add_argument("--out", type=Path, default=None, help="output folder (default: out/<config name>)")
-    run.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    run_noise = run.add_mutually_exclusive_group()
+    run_noise.add_argument(
+        "--quiet", action="store_true", help="no progress bar or status line; the summary at the end"
+    )
+    run_noise.add_argument("--silent", action="store_true", help="nothing printed but errors")
     run_where = run.add_mutually_exclusive_group()
     run_where.add_argument(
         "--workers",
@@ -255,14 +259,14 @@ def _cmd_run(args) -> int:
         raise ConfigError(f"--workers: expected a number of processes >= 1, got {args.workers}")
     client = None if args.workers is None and args.scheduler is None else start_client(args.workers, args.scheduler)
     try:
-        result = run_capture(cfg, out, progress=not args.quiet, client=client)
+        result = run_capture(cfg, out, progress=not (args.quiet or args.silent), client=client)
     finally:
         if client is not None:
             cluster = getattr(client, "cluster", None)
             client.close()
             if cluster is not None and args.scheduler is None:
                 cluster.close()
-    if not args.quiet:
+    if not args.silent:
         r = result.report
         print(
             f"wrote {out}/  ({r['plan']['passes']} render passes x {result.plan.spp_label()} spp, "

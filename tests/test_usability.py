@@ -190,3 +190,24 @@ def test_a_config_path_that_does_not_exist_names_the_shipped_configs():
         ConfigError, match=r"configs/metronome_hrd.yaml: config file not found .*metronome_hdr.*did you mean"
     ):
         resolve_config_path("configs/metronome_hrd.yaml")
+
+
+@pytest.mark.render
+def test_quiet_keeps_the_summary_and_silent_prints_nothing(tmp_path, capsys):
+    """`mbcapture run --quiet`: no status line or bar, the final summary printed; `--silent`: nothing."""
+    tiny = [
+        "--set",
+        "render.width=16",
+        "--set",
+        "render.height=12",
+        "--set",
+        "render.spp=1",
+        "--set",
+        "render.cache=off",
+    ]
+    assert main(["run", "metronome_hdr", "--out", str(tmp_path / "q"), "--quiet", *tiny]) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith(f"wrote {tmp_path / 'q'}/") and "HDR" in out and "stage" not in err
+    assert main(["run", "metronome_hdr", "--out", str(tmp_path / "s"), "--silent", *tiny]) == 0
+    out, err = capsys.readouterr()
+    assert out == "" and "stage" not in err
