@@ -77,7 +77,7 @@ def photon_efficient_hdr(cfg: CaptureConfig):
 def interleaved_hdr(cfg: CaptureConfig):
     """One period: bucket b collects r(K-b+1) units (bucket K: r1 = 1), each read directly: read i is bucket
     K-i+1, exposure ri T. Powers of two by default: 2^(K-1) : ... : 1."""
-    r = exposure_ratios(cfg, need_buckets(cfg, cfg.sensor.bucket_count))
+    r = exposure_ratios(cfg, cfg.sensor.bucket_count)
     k = len(r)
     T, N = exact(cfg.capture.unit_exposure_s), cfg.capture.periods
     slots = [SlotSeconds(b, T * r[k - 1 - b] / N) for b in range(k)]

@@ -546,7 +546,18 @@ def refine(
     halves = np.stack([first_spp // 2, first_spp - first_spp // 2], axis=1)  # (J, 2): the first pass's halves
     per_group = per_group and integrated.group_exposure is not None
     parts, groups_out = _refine_renders(
-        renderer, plan, pix, extra, seed, points, (K, C), per_group=per_group, progress=progress, desc=desc, stage=stage
+        renderer,
+        plan,
+        pix,
+        extra,
+        halves,
+        seed,
+        points,
+        (K, C),
+        per_group=per_group,
+        progress=progress,
+        desc=desc,
+        stage=stage,
     )
     return _with_refined(integrated, parts, groups_out, pix, held, extra, halves, store)
 
@@ -556,6 +567,7 @@ def _refine_renders(
     plan: Plan,
     pix: np.ndarray,
     extra: np.ndarray,
+    halves: np.ndarray,
     seed,
     points: int,
     shape: tuple[int, int],
@@ -566,11 +578,10 @@ def _refine_renders(
     stage,
 ) -> tuple[list[np.ndarray], np.ndarray | None]:
     """:func:`refine`'s renders: each half of each stratum at ``points`` times of its own, each pixel of ``pix``
-    with ``extra`` times its first-pass samples; returns each half's (K, P, C) sums (weights applied) and, with
-    ``per_group``, the (K, G, P, C) per-group sums."""
+    with ``extra`` times its first-pass samples (``halves``: the first pass's, (J, 2)); returns each half's (K, P, C)
+    sums (weights applied) and, with ``per_group``, the (K, G, P, C) per-group sums."""
     K, C = shape
-    first_spp = np.asarray(plan.spp, dtype=np.int64)
-    halves = np.stack([first_spp // 2, first_spp - first_spp // 2], axis=1)  # (J, 2): the first pass's halves
+    first_spp = halves.sum(axis=1)
     keys = pattern_keys(seed) if plan.shares_pattern else None
     # the pixels rendered together: all of them with a pattern (counts and offsets per pixel), else by factor
     batches = [np.arange(pix.size)] if keys is not None else [np.flatnonzero(extra == e) for e in np.unique(extra)]
