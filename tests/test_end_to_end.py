@@ -89,8 +89,8 @@ def test_hdr_matches_truth_within_its_own_uncertainty(moving_pair):
     inter, _ = moving_pair
     ok = inter.images["valid"].astype(bool) & ~inter.moving_mask[..., None] & (inter.images["sigma"] > 0)
     z = (inter.images["radiance"] - inter.images["truth"])[ok] / inter.images["sigma"][ok]
-    # standardized errors: mean ~ 0 and spread ~ 1 (fixed-pattern noise and Monte Carlo shared by all reads
-    # are not in sigma, so allow a little more than unit spread)
+    # standardized errors: mean ~ 0 and spread ~ 1 (the truth's own Monte Carlo noise is not in sigma, so
+    # allow a little more than unit spread)
     n = z.size
     assert abs(z.mean()) < 4 / np.sqrt(n) + 0.1
     assert 0.7 < z.std() < 1.5

@@ -256,8 +256,8 @@ def test_zero_radiance_gives_black_unsaturated_valid_zero_rate(method):
     out = simulate_reads(flat([0.0] * 4, n), CUM_READS, c, np.random.default_rng(1))
     assert not out.saturated.any() and np.all(out.electrons == 0)
     res = merge_hdr(out.reads_dn, CUM_T, c, method=method, cumulative=True, saturated=out.saturated)
-    assert res.valid.all() and np.all(np.isfinite(res.rate_e_per_s)) and np.all(np.isfinite(res.sigma_e_per_s))
-    se = np.median(res.sigma_e_per_s) / math.sqrt(n)
+    assert res.valid.all() and np.all(np.isfinite(res.rate_e_per_s)) and np.all(np.isfinite(res.sigma_temporal_e_per_s))
+    se = np.median(res.sigma_temporal_e_per_s) / math.sqrt(n)
     if method == "debevec":
         # the hat weight (code - black level) favours reads that noise pushed up: biased upwards at
         # zero light (measured: +770 e-/s = +0.77 e- in the 1 ms read, with 2 e- read noise)
@@ -275,7 +275,7 @@ def test_radiance_far_above_the_full_well_saturates_finitely(times_full_well):
     assert np.all(out.electrons == c.full_well_e) and out.bucket_saturated.all() and out.saturated.all()
     assert np.all(out.reads_dn <= c.adc_max_dn) and np.all(np.isfinite(out.reads_dn))
     res = merge_hdr(out.reads_dn, CUM_T, c, method="ramp_fit", cumulative=True, saturated=out.saturated)
-    assert not res.valid.any() and np.all(np.isinf(res.sigma_e_per_s))
+    assert not res.valid.any() and np.all(np.isinf(res.sigma_temporal_e_per_s))
     assert np.all(np.isfinite(res.rate_e_per_s)) and np.all(res.rate_e_per_s > 0)
 
 
@@ -318,7 +318,7 @@ def test_exposure_ratio_2_to_the_20_in_a_custom_schedule():
         res = merge_hdr(out.reads_dn, t, sensor, method="inverse_variance", cumulative=False, saturated=out.saturated)
         assert np.all(np.isfinite(res.rate_e_per_s)) and res.valid.all()
         assert np.all(res.n_used == (2 if rate * t[1] < fw - 6 * math.sqrt(fw) else 1))
-        se = np.sqrt(np.mean(res.sigma_e_per_s**2) / res.rate_e_per_s.size)
+        se = np.sqrt(np.mean(res.sigma_temporal_e_per_s**2) / res.rate_e_per_s.size)
         assert abs(res.rate_e_per_s.mean() - rate) < N_SIGMA * se
 
 
@@ -340,10 +340,10 @@ def test_twenty_one_cumulative_reads_spanning_2_to_the_20():
         assert n_used == {5e3: 21, 4e6: 13, 4e9: 3}[rate]
         out = simulate_reads(flat(rate * slot_t, n, 3), [r.buckets for r in tl.reads], sensor, np.random.default_rng(7))
         res = merge_hdr(out.reads_dn, t, sensor, method="ramp_fit", cumulative=True, saturated=out.saturated)
-        assert np.all(np.isfinite(res.rate_e_per_s)) and np.all(np.isfinite(res.sigma_e_per_s))
+        assert np.all(np.isfinite(res.rate_e_per_s)) and np.all(np.isfinite(res.sigma_temporal_e_per_s))
         assert np.all(res.n_used == n_used), np.unique(res.n_used)
         x = res.rate_e_per_s.ravel()
-        sig = np.median(res.sigma_e_per_s)
+        sig = np.median(res.sigma_temporal_e_per_s)
         assert abs(x.mean() - rate) < N_SIGMA * sig / math.sqrt(x.size)
         assert x.std() == pytest.approx(sig, rel=0.1)  # the returned sigma is the actual spread
 
@@ -360,7 +360,9 @@ def test_ramp_fit_with_one_unsaturated_read_has_its_single_read_sigma():
     np.testing.assert_allclose(res.rate_e_per_s[one], x / CUM_T[0], rtol=1e-12)
     lam = np.maximum(res.rate_e_per_s[one], 0)
     np.testing.assert_allclose(
-        res.sigma_e_per_s[one], np.sqrt(lam * CUM_T[0] + quantization_read_variance_e2(c)) / CUM_T[0], rtol=1e-12
+        res.sigma_temporal_e_per_s[one],
+        np.sqrt(lam * CUM_T[0] + quantization_read_variance_e2(c)) / CUM_T[0],
+        rtol=1e-12,
     )
 
 
@@ -371,7 +373,11 @@ def test_hdr_with_zero_read_noise(method):
     assert quantization_read_variance_e2(c) == pytest.approx(1 / (12 * 0.4**2))
     dark = simulate_reads(flat([0.0] * 4, 100, 3), CUM_READS, c, np.random.default_rng(12))
     res = merge_hdr(dark.reads_dn, CUM_T, c, method=method, cumulative=True, saturated=dark.saturated)
-    assert np.all(res.rate_e_per_s == 0.0) and np.all(np.isfinite(res.sigma_e_per_s)) and np.all(res.sigma_e_per_s > 0)
+    assert (
+        np.all(res.rate_e_per_s == 0.0)
+        and np.all(np.isfinite(res.sigma_temporal_e_per_s))
+        and np.all(res.sigma_temporal_e_per_s > 0)
+    )
     n = 20_000
     out = simulate_reads(flat(1e5 * SLOTS_T, n, 1), CUM_READS, c, np.random.default_rng(13))
     res = merge_hdr(out.reads_dn, CUM_T, c, method=method, cumulative=True, saturated=out.saturated)

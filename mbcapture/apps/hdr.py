@@ -142,9 +142,9 @@ def demosaic_floor(sensor, k_e: np.ndarray, exposure_s: np.ndarray) -> np.ndarra
     return np.sqrt(quantization_read_variance_e2(sensor)) / (np.asarray(k_e) * float(np.max(exposure_s)))
 
 
-def merge_mosaic(data: CaptureData, method: str, cumulative: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def merge_mosaic(data: CaptureData, method: str, cumulative: bool) -> tuple[np.ndarray, dict, np.ndarray]:
     """A Bayer sensor: merge each photosite's reads (with its own saturation flags), then demosaic the
-    radiance. Returns radiance, sigma, valid (H, W, 3).
+    radiance. Returns radiance, {"sigma": ..., "sigma_temporal": ...} and valid, each (H, W, 3).
 
     Why merge first: saturation belongs to a photosite. Demosaicing the reads first mixes a clipped
     photosite into its neighbours, so every pixel within the demosaicing's reach of it must drop that
@@ -154,7 +154,7 @@ def merge_mosaic(data: CaptureData, method: str, cumulative: bool) -> tuple[np.n
     Measured (``python scripts/cfa_hdr_order.py --size 128x96 --spp 8``: metronome_hdr, RGGB): relMSE 0.0089
     merging first against 0.0109 demosaicing first with menon2007, 0.0159 against 0.0171 with malvar2004,
     0.0685 against 0.0714 with bilinear (both in the logarithmic domain; demosaicing linearly, 0.26 to 0.53).
-    ``sigma`` is the merged photosites' sigma interpolated bilinearly, not the demosaiced value's own
+    Each sigma is the merged photosites' interpolated bilinearly, not the demosaiced value's own
     (averaging lowers it)."""
     hdr = merge_hdr(
         data.mosaic_dn,
@@ -167,10 +167,13 @@ def merge_mosaic(data: CaptureData, method: str, cumulative: bool) -> tuple[np.n
     k = data.k_e[data.photosite_channels()]
     floor = demosaic_floor(data.cfg.sensor, data.k_e, data.exposure_s)
     radiance = demosaic_hdr(hdr.rate_e_per_s / k, data.cfg.sensor.cfa, data.cfg.sensor.demosaic, floor)
-    # an uncertainty interpolated with non-negative weights (Malvar's and Menon's negative ones made it < 0)
-    sigma = demosaic(np.where(hdr.valid, hdr.sigma_e_per_s / k, 0.0), data.cfg.sensor.cfa, "bilinear")
     valid = ~spread_to_footprint(~hdr.valid, data.cfg.sensor.demosaic)
-    return radiance, np.where(valid, sigma, np.inf), valid
+    # an uncertainty interpolated with non-negative weights (Malvar's and Menon's negative ones made it < 0)
+    sigmas = {
+        name: np.where(valid, demosaic(np.where(hdr.valid, s / k, 0.0), data.cfg.sensor.cfa, "bilinear"), np.inf)
+        for name, s in (("sigma", hdr.sigma_e_per_s), ("sigma_temporal", hdr.sigma_temporal_e_per_s))
+    }
+    return radiance, sigmas, valid
 
 
 #: What each preview shows (report.html).
@@ -182,22 +185,24 @@ CAPTIONS = {
 
 @register(
     "hdr",
-    output_channels=15,
+    output_channels=18,
     previews=2,
     renders=False,
-    description="HDR merge of the reads (hdr.method), with sigma and valid layers",
+    description="HDR merge of the reads (hdr.method), with sigma (temporal noise and fixed pattern), "
+    "sigma_temporal and valid layers",
 )
 def reconstruct(data: CaptureData, params) -> AppOutput:
     cfg, tl = data.cfg, data.timeline
     cumulative = not data.sequential and any(len(r.buckets) > 1 for r in tl.reads)
     method = resolve_method(cfg.hdr.method, cumulative)
     if data.bayer:
-        radiance, sigma, valid = merge_mosaic(data, method, cumulative)
+        radiance, sigmas, valid = merge_mosaic(data, method, cumulative)
     else:
         hdr = merge_hdr(
             data.reads_dn, data.exposure_s, cfg.sensor, method=method, cumulative=cumulative, saturated=data.saturated
         )
-        radiance, sigma, valid = hdr.rate_e_per_s / data.k_e, hdr.sigma_e_per_s / data.k_e, hdr.valid
+        radiance, valid = hdr.rate_e_per_s / data.k_e, hdr.valid
+        sigmas = {"sigma": hdr.sigma_e_per_s / data.k_e, "sigma_temporal": hdr.sigma_temporal_e_per_s / data.k_e}
     normalized = normalized_reads(data)
     ref = int(np.argmax(data.exposure_s))
     truth = normalized[ref]
@@ -242,7 +247,7 @@ def reconstruct(data: CaptureData, params) -> AppOutput:
     return AppOutput(
         images={
             "radiance": radiance,
-            "sigma": sigma,
+            **sigmas,
             "valid": valid.astype(np.float32),
             "truth": truth,
             "moving": np.repeat(mask[..., None], n_ch, -1).astype(np.float32),

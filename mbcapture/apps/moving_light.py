@@ -219,7 +219,7 @@ def flicker_metrics(data: CaptureData, group_name: str) -> dict:
 @register(
     "moving_light",
     renders=False,
-    output_channels=21,
+    output_channels=24,
     previews=4,
     memory_scale=1.12,
     params=MovingLightParams,

@@ -39,6 +39,10 @@ Methods (registry :data:`HDR_METHODS`, dispatcher :func:`merge_hdr`):
 Every method sees only usable reads. Where none is usable (all saturated) the result is
 ``valid = False``, the rate is the lower bound max_i x_i / t_i (finite, >= 0) and sigma is
 +inf. Rates are not clipped at zero: around zero light they scatter around zero.
+
+Every method's sigma is the temporal noise's (another capture of the same pixel); the fixed pattern
+(PRNU, DSNU) adds an error that does not average over captures, :func:`fixed_pattern_sigma`.
+:class:`HDRResult` keeps the two apart and gives their sum as ``sigma_e_per_s``.
 """
 
 from __future__ import annotations
@@ -52,7 +56,14 @@ from ..errors import ConfigError
 from ..sensor.config import SensorConfig
 from ..sensor.readout import dn_to_electrons
 
-__all__ = ["HDR_METHODS", "HDRResult", "MergeInput", "merge_hdr", "quantization_read_variance_e2"]
+__all__ = [
+    "HDR_METHODS",
+    "HDRResult",
+    "MergeInput",
+    "fixed_pattern_sigma",
+    "merge_hdr",
+    "quantization_read_variance_e2",
+]
 
 
 @dataclass(frozen=True)
@@ -60,16 +71,27 @@ class HDRResult:
     """Merged HDR estimate, all arrays (H, W, C) (the trailing shape of the reads).
 
     ``rate_e_per_s``: photo-electron rate, electrons/s, float64 (a lower bound where not valid).
-    ``sigma_e_per_s``: 1-sigma uncertainty of the rate from the noise model, electrons/s
-        (+inf where not valid).
+    ``sigma_temporal_e_per_s``: 1-sigma uncertainty of the rate from the temporal noise (shot, read,
+        quantization), electrons/s (+inf where not valid): what another capture of the same pixel
+        would scatter by.
+    ``sigma_fixed_e_per_s``: 1-sigma of the fixed pattern's error in the rate (PRNU and DSNU with their
+        row and column parts, :func:`fixed_pattern_sigma`), electrons/s: what another pixel of the same
+        sensor would differ by.
+    ``sigma_e_per_s``: both together (their variances add: the fixed pattern is independent of the
+        temporal noise), electrons/s: the error against the truth of an uncalibrated sensor.
     ``valid``: False where every read is saturated.
     ``n_used``: number of reads that entered the merge, int64.
     """
 
     rate_e_per_s: np.ndarray
-    sigma_e_per_s: np.ndarray
+    sigma_temporal_e_per_s: np.ndarray
+    sigma_fixed_e_per_s: np.ndarray
     valid: np.ndarray
     n_used: np.ndarray
+
+    @property
+    def sigma_e_per_s(self) -> np.ndarray:
+        return np.hypot(self.sigma_temporal_e_per_s, self.sigma_fixed_e_per_s)
 
 
 @dataclass(frozen=True)
@@ -94,7 +116,10 @@ class MergeInput:
     cfg: SensorConfig
 
 
-MergeMethod = Callable[[MergeInput], tuple[np.ndarray, np.ndarray]]
+#: A merge: (rate, temporal sigma, offset gain), each (P,). The offset gain is the rate's change per
+#: electron added to every usable read alike (a DSNU offset), 1/s: for a fit through the origin it is
+#: not 1/t, and the fixed pattern's sigma needs it.
+MergeMethod = Callable[[MergeInput], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
 def quantization_read_variance_e2(cfg: SensorConfig) -> float:
@@ -121,8 +146,7 @@ def _read_sum(coef: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 def _ramp_fit(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
     n_reads, n_pix = m.x_e.shape
-    rate = np.empty(n_pix)
-    sigma = np.empty(n_pix)
+    rate, sigma, offset = np.empty(n_pix), np.empty(n_pix), np.empty(n_pix)
     codes = np.zeros(n_pix, np.int64)  # bit i: read i usable
     for i in range(n_reads):
         codes[m.usable[i]] |= 1 << i
@@ -145,8 +169,10 @@ def _ramp_fit(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
         w = 1.0 / (np.maximum(lam, 0.0)[None, :] * d[:, None] + m.read_var_e2)
         sel = slice(None) if pix is None else pix
         rate[sel] = lam
-        sigma[sel] = 1.0 / np.sqrt(_read_sum(a**2, w))
-    return rate, sigma
+        fisher = _read_sum(a**2, w)
+        sigma[sel] = 1.0 / np.sqrt(fisher)
+        offset[sel] = _read_sum(a * v.sum(axis=0), w) / fisher  # the estimate with x = 1 in every read
+    return rate, sigma, offset
 
 
 def _per_read_variance(m: MergeInput, rate0: np.ndarray) -> np.ndarray:
@@ -159,7 +185,8 @@ def _inverse_variance(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
     rates = m.x_e / m.exposures_s[:, None]
     w = np.where(m.usable, 1.0 / _per_read_variance(m, _first_pass_rate(m)), 0.0)
     total = w.sum(axis=0)
-    return (w * rates).sum(axis=0) / total, 1.0 / np.sqrt(total)
+    offset = (w / m.exposures_s[:, None]).sum(axis=0) / total
+    return (w * rates).sum(axis=0) / total, 1.0 / np.sqrt(total), offset
 
 
 _HAT_FLOOR = 1e-6
@@ -176,7 +203,8 @@ def _debevec(m: MergeInput) -> tuple[np.ndarray, np.ndarray]:
     rate = (w * rates).sum(axis=0) / total
     var = _per_read_variance(m, _first_pass_rate(m))
     sigma = np.sqrt((w**2 * var).sum(axis=0)) / total
-    return rate, sigma
+    offset = (w / m.exposures_s[:, None]).sum(axis=0) / total
+    return rate, sigma, offset
 
 
 HDR_METHODS: dict[str, MergeMethod] = {
@@ -248,18 +276,19 @@ def merge_hdr(
     dn2 = dn.reshape(n_reads, -1)
     sat2 = sat.reshape(n_reads, -1)
     n = dn2.shape[1]
-    rate, sigma = np.empty(n), np.empty(n)
+    rate, sigma, offset = np.empty(n), np.empty(n), np.empty(n)
     valid, n_used = np.empty(n, dtype=bool), np.empty(n, dtype=np.int64)
     # every method is per sample: MERGE_CHUNK samples at a time give the same values with the
     # temporaries (a dozen (R, chunk) arrays) of one chunk, whatever the film
     for a in range(0, n, MERGE_CHUNK):
         b = min(a + MERGE_CHUNK, n)
-        rate[a:b], sigma[a:b], valid[a:b], n_used[a:b] = _merge_samples(
+        rate[a:b], sigma[a:b], offset[a:b], valid[a:b], n_used[a:b] = _merge_samples(
             dn2[:, a:b], sat2[:, a:b], t, cfg, method, cumulative
         )
     return HDRResult(
         rate_e_per_s=rate.reshape(pixel_shape),
-        sigma_e_per_s=sigma.reshape(pixel_shape),
+        sigma_temporal_e_per_s=sigma.reshape(pixel_shape),
+        sigma_fixed_e_per_s=fixed_pattern_sigma(rate, offset, cfg).reshape(pixel_shape),
         valid=valid.reshape(pixel_shape),
         n_used=n_used.reshape(pixel_shape),
     )
@@ -272,7 +301,8 @@ MERGE_CHUNK = 1 << 18
 def _merge_samples(
     dn2: np.ndarray, sat2: np.ndarray, t: np.ndarray, cfg: SensorConfig, method: str, cumulative: bool
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`merge_hdr` on (R, P) codes and flags: rate, sigma, valid, reads used, each (P,)."""
+    """:func:`merge_hdr` on (R, P) codes and flags: rate, temporal sigma, offset gain (see
+    :data:`MergeMethod`), valid, reads used, each (P,)."""
     x_e = dn_to_electrons(dn2, cfg)
     usable = ~sat2
     if cumulative:  # a read is usable while it and every read before it are unsaturated
@@ -285,6 +315,7 @@ def _merge_samples(
     # rate >= x_i / t_i for every i.
     rate = np.maximum((x_e / t[:, None]).max(axis=0), 0.0)
     sigma = np.full(rate.shape, np.inf)
+    offset = np.zeros(rate.shape)
     if np.any(valid):
         sel = slice(None) if valid.all() else valid  # every sample: no copies
         m = MergeInput(
@@ -296,5 +327,21 @@ def _merge_samples(
             cumulative=cumulative,
             cfg=cfg,
         )
-        rate[sel], sigma[sel] = HDR_METHODS[method](m)
-    return rate, sigma, valid, n_used
+        rate[sel], sigma[sel], offset[sel] = HDR_METHODS[method](m)
+    return rate, sigma, offset, valid, n_used
+
+
+def fixed_pattern_sigma(rate_e_per_s: np.ndarray, offset_gain_per_s: np.ndarray, cfg: SensorConfig) -> np.ndarray:
+    """1-sigma of the fixed pattern's error in a merged rate, electrons/s.
+
+    The sensor draws a relative sensitivity per pixel, per row and per column (PRNU: ``prnu``,
+    ``prnu_row``, ``prnu_col``) that multiplies every bucket alike, and an offset per pixel, row and
+    column (DSNU, electrons: ``dsnu_e``, ``dsnu_row_e``, ``dsnu_col_e``) added to every read alike. A
+    merge is linear in its reads, so the sensitivity scales the merged rate (variance
+    ``(prnu_total rate)^2``, the three parts' variances adding to first order) and the offset enters
+    through the merge's offset gain ``g`` (variance ``(dsnu_total g)^2``). Over the pixels of a
+    flat field these are the spread the pattern adds; at one pixel, the error an uncalibrated sensor
+    makes there."""
+    prnu2 = cfg.prnu**2 + cfg.prnu_row**2 + cfg.prnu_col**2
+    dsnu2 = cfg.dsnu_e**2 + cfg.dsnu_row_e**2 + cfg.dsnu_col_e**2
+    return np.sqrt(prnu2 * rate_e_per_s**2 + dsnu2 * offset_gain_per_s**2)
