@@ -31,6 +31,7 @@ from pydantic import (
     model_validator,
 )
 
+from . import strict
 from .strict import StrictModel
 from . import application as apps
 from .scene import camera_motion, scenes
@@ -49,11 +50,36 @@ _YAML_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 SHIPPED_CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
 
-class SceneSection(BaseModel):
+class _OwnKeysSection(StrictModel):
+    """A section whose keys beside its name belong to what the name picks (a scene's, an
+    application's own parameters): any key is taken, and an assignment is checked by :meth:`check`."""
+
+    model_config = ConfigDict(extra="allow", validate_assignment=True)
+
+    def check(self) -> None:
+        raise NotImplementedError
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        if name.startswith("_"):
+            super().__setattr__(name, value)
+            return
+        had = name in type(self).model_fields or name in (self.model_extra or {})
+        old = getattr(self, name) if had else None
+        super().__setattr__(name, value)
+        try:
+            self.check()
+        except ConfigError:  # leave the section as it was
+            if had:
+                BaseModel.__setattr__(self, name, old)
+            else:
+                (self.model_extra or {}).pop(name, None)
+            raise
+
+
+class SceneSection(_OwnKeysSection):
     """``scene.name`` picks the scene; every other ``scene.*`` key is that scene's own parameter
     (``mbcapture scenes`` lists them)."""
 
-    model_config = ConfigDict(extra="allow", frozen=True)
     name: str = Field("metronome", description="Scene name: a folder scenes/<name>/ (see `mbcapture scenes`).")
 
     def params(self, origin: "Callable[[tuple], str] | None" = None) -> Any:
@@ -67,6 +93,9 @@ class SceneSection(BaseModel):
             raise ConfigError(
                 format_validation(exc, prefix="scene", origin=origin, model=module.Params, owner=f"scene {self.name!r}")
             ) from None
+
+    def check(self) -> None:
+        self.params()
 
 
 class SlotSpec(StrictModel):
@@ -199,6 +228,13 @@ class CaptureSection(StrictModel):
             raise ValueError(f"expected exposures in units of T ascending from 1 (e.g. [1, 8] or [1, 4, 16]), got {v}")
         return v
 
+    @field_validator("protocol")
+    @classmethod
+    def _protocol_known(cls, v: str) -> str:
+        if v not in apps.protocol_names():
+            raise ValueError(f"unknown protocol; expected one of {apps.protocol_names()}")
+        return v
+
     @model_validator(mode="after")
     def _video_needs_a_rate(self) -> "CaptureSection":
         if self.frames > 1 and self.frame_rate_hz is None:
@@ -228,11 +264,10 @@ class HDRSection(StrictModel):
     )
 
 
-class AppSection(BaseModel):
+class AppSection(_OwnKeysSection):
     """``app.name`` picks the reconstruction applied to the reads; every other ``app.*`` key is that
     application's own parameter (``mbcapture apps`` lists them)."""
 
-    model_config = ConfigDict(extra="allow", frozen=True)
     name: str | None = Field(
         None,
         description="Application that reconstructs the reads; default: the protocol's own (hdr for the HDR protocols).",
@@ -249,6 +284,10 @@ class AppSection(BaseModel):
             raise ConfigError(
                 format_validation(exc, prefix="app", origin=origin, model=app.params, owner=f"application {app.name!r}")
             ) from None
+
+    def check(self) -> None:
+        if self.name is not None:  # without a name, the protocol's application: checked when the run starts
+            self.resolve("")
 
 
 class OutputSection(StrictModel):
@@ -323,6 +362,11 @@ class CaptureConfig(StrictModel):
         default_factory=VideoSection, description="A video run's comparisons and previews (capture.frames > 1)."
     )
 
+    @model_validator(mode="after")
+    def _name_sections(self) -> "CaptureConfig":
+        self.name_sections()  # each section's errors on assignment name its dotted key
+        return self
+
     @field_validator("render")
     @classmethod
     def _variant_known(cls, render: RenderSection) -> RenderSection:
@@ -378,40 +422,6 @@ def scene_of(cfg: CaptureConfig) -> scenes.SceneModel:
     return camera_motion.apply(scene, cfg.camera)
 
 
-def _model_at(model: type[BaseModel], path: tuple) -> type[BaseModel] | None:
-    """The pydantic model of the section at ``path`` (field names) below ``model``, or None."""
-    for name in path:
-        field = model.model_fields.get(name) if isinstance(name, str) else None
-        if field is None:
-            return None
-        nested = [
-            a
-            for a in (field.annotation, *getattr(field.annotation, "__args__", ()))
-            if isinstance(a, type) and issubclass(a, BaseModel)
-        ]
-        if not nested:
-            return None
-        model = nested[0]
-    return model
-
-
-def _suggest(key: str, section: tuple, model: type[BaseModel] | None) -> str:
-    """'; did you mean render.spp?': the nearest valid key of the same section (difflib), or a
-    key of that name in another section of the config."""
-    valid = list(model.model_fields) if model is not None else []
-    close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
-    if close:
-        return f"; did you mean {'.'.join((*map(str, section), close[0]))}?"
-    elsewhere = [
-        f"{name}.{key}"
-        for name, f in CaptureConfig.model_fields.items()
-        if (sub := _model_at(CaptureConfig, (name,))) is not None and key in sub.model_fields
-    ]
-    if elsewhere:
-        return f"; did you mean {elsewhere[0]}?"
-    return ""
-
-
 def format_validation(
     exc: ValidationError,
     prefix: str = "",
@@ -419,31 +429,9 @@ def format_validation(
     model: type[BaseModel] | None = None,
     owner: str | None = None,
 ) -> str:
-    """One line for all of ``exc``'s errors: ``[origin: ]key: message`` joined by '; '.
-
-    ``model``: the model that was validated (for the valid keys of an unknown key's section; default
-    the whole config); ``owner``: 'scene 'metronome'' when ``model`` is a scene's or application's
-    own parameters, named in the message with its keys; ``origin(path)``: where the key at ``path``
-    came from (the file or a ``--set``)."""
-    parts = []
-    for err in exc.errors():
-        path = tuple(p for p in err["loc"] if not (isinstance(p, str) and p.startswith("function-")))
-        full = ((prefix,) if prefix else ()) + path
-        loc = ".".join(map(str, full))
-        msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "extra_forbidden":
-            section = _model_at(model or CaptureConfig, path[:-1])
-            if owner and section is not None and len(path) == 1:
-                msg = f"unknown key for {owner} (its keys: {', '.join(section.model_fields) or 'none'})" + _suggest(
-                    str(path[-1]), full[:-1], section
-                )
-            else:
-                msg = "unknown key" + _suggest(str(path[-1]), full[:-1], section)
-        elif "input" in err and not isinstance(err["input"], (dict, list)):
-            msg = f"{msg} (got {err['input']!r})"
-        where = origin(full) if origin else ""
-        parts.append(f"{where + ': ' if where else ''}{loc + ': ' if loc else ''}{msg}")
-    return "; ".join(parts)
+    """:func:`mbcapture.strict.format_validation` with the whole :class:`CaptureConfig` as the root
+    (a key unknown in its section is looked for in the others)."""
+    return strict.format_validation(exc, prefix, origin, model, owner, root=CaptureConfig)
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -591,6 +579,13 @@ def config_from_dict(data: dict, source: str = "config", origin: Callable[[tuple
                 "demultiplexing per-pixel codes on a colour mosaic is not modelled; set sensor.cfa none"
             )
     return cfg
+
+
+def revalidated(cfg: CaptureConfig) -> CaptureConfig:
+    """``cfg`` validated again as a whole, as the YAML would be: what assignments through the API
+    changed (each checked on its own when made) is checked against the other sections (ConfigError
+    otherwise). A config that was not changed comes back equal."""
+    return config_from_dict(cfg.model_dump(), source="config")
 
 
 def shipped_configs() -> list[str]:

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..exposure import resources
 from ..budget import noise_verdict
-from ..config import CaptureConfig
+from ..config import CaptureConfig, revalidated
 from ..errors import ConfigError
 from ..output.io import check_out_dir, staged_outputs
 from .pipeline import (
@@ -73,6 +73,7 @@ def run_capture(
     rendering; ``on_rendered(Rendered)`` is called once this capture's render stage is done (before
     the sensor, so it is called even if a later stage fails). ``client``: a Dask client whose workers
     render the strata (mbcapture.exposure.cluster; not for videos)."""
+    cfg = revalidated(cfg)  # what was assigned through the API, checked against the other sections
     if out_dir is not None:
         check_out_dir(Path(out_dir))
     planned = check_resources(cfg, None if out_dir is None else Path(out_dir))

@@ -17,8 +17,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
+from ..strict import StrictModel
 from .presets import load_preset
 from .spectral import check_spectral_response
 
@@ -31,10 +32,8 @@ def _three_per_channel(name: str, values: list[float]) -> list[float]:
     return values
 
 
-class SensorConfig(BaseModel):
+class SensorConfig(StrictModel):
     """Physical and electrical parameters of one multi-bucket pixel array."""
-
-    model_config = ConfigDict(extra="forbid")
 
     preset: str | None = Field(
         None,
