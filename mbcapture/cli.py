@@ -15,7 +15,7 @@ import warnings
 from pathlib import Path
 
 from . import application as apps
-from .studies import characterize, converge
+from .studies import characterize, converge, dynamic_range
 from . import figures
 from .exposure import resources
 from .scene import scenes
@@ -58,6 +58,7 @@ def _parser() -> argparse.ArgumentParser:
     _add_plan_command(sub)
     _add_converge_command(sub)
     _add_characterize_command(sub)
+    _add_snr_command(sub)
     sub.add_parser("scenes", help="list the scenes and their parameters")
     _add_figures_command(sub)
     sub.add_parser("apps", help="list the applications (reconstructions), their protocols and parameters")
@@ -136,6 +137,30 @@ def _add_characterize_command(sub) -> None:
     )
     char.add_argument("--frames", type=int, default=16, help="frames averaged for DSNU and PRNU (default 16)")
     char.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+
+
+def _add_snr_command(sub) -> None:
+    """``mbcapture snr``."""
+    snr = sub.add_parser(
+        "snr",
+        help="SNR against scene luminance of an HDR capture design, each read and the merge, and its dynamic "
+        "range (analytic, checked on a simulated flat field; no rendering)",
+    )
+    _add_config_args(snr)
+    snr.add_argument(
+        "--vs",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE[;KEY=VALUE...]",
+        help="another design on the same figure: the config with these overrides besides --set's "
+        "(e.g. --vs 'sensor.bucket_count=2;capture.exposure_ratios=[1,8]'); repeatable",
+    )
+    snr.add_argument("--out", type=Path, default=None, help="output folder (default: out/snr_<config name>)")
+    snr.add_argument(
+        "--pixels", type=int, default=4000, help="pixels per level of the simulated check (default 4000; 0: none)"
+    )
+    snr.add_argument("--levels", type=int, default=16, help="radiance levels of the simulated check (default 16)")
+    snr.add_argument("--quiet", action="store_true", help="no summary")
 
 
 def _add_figures_command(sub) -> None:
@@ -249,6 +274,25 @@ def _cmd_characterize(args) -> int:
         width=args.size[0], height=args.size[1], steps=args.steps, dark_steps=args.dark_steps, frames=args.frames
     )
     characterize.characterize(cfg, out, source=str(args.config), settings=settings, progress=not args.quiet)
+    return 0
+
+
+def _cmd_snr(args) -> int:
+    if args.pixels < 0 or args.pixels == 1:
+        raise ConfigError(f"--pixels: expected 0 (no check) or at least 2, got {args.pixels}")
+    if args.levels < 1:
+        raise ConfigError(f"--levels: expected at least 1, got {args.levels}")
+    designs = [dynamic_range.design_of(load_config(args.config, args.overrides), args.config.stem)]
+    for text in args.vs:
+        extra = [part.strip() for part in text.split(";") if part.strip()]
+        designs.append(dynamic_range.design_of(load_config(args.config, [*args.overrides, *extra]), ", ".join(extra)))
+    out = args.out or Path("out") / f"snr_{args.config.stem}"
+    check_out_dir(out)
+    doc = dynamic_range.study(designs, out, pixels=args.pixels, levels=args.levels)
+    if not args.quiet:
+        for line in dynamic_range.summary_lines(doc):
+            print(f"mbcapture: {line}", file=sys.stderr)
+        print(f"mbcapture: wrote {out}/snr.png, snr.json, snr.parquet", file=sys.stderr)
     return 0
 
 
@@ -468,6 +512,7 @@ def main(argv: list[str] | None = None) -> int:
         "cache": _cmd_cache,
         "sweep": _cmd_sweep,
         "characterize": _cmd_characterize,
+        "snr": _cmd_snr,
     }
     # SIGTERM (kill, a batch system's time limit) ends a run like Ctrl-C: staging removed, outputs untouched
     previous = (

@@ -668,3 +668,58 @@ class MetricGrid:
 def sweep_plot(df, metric: str, axes: list[str]):
     """A figure of a sweep's table's ``metric`` against each axis (one row of panels per axis), faceted by the other axes."""
     return MetricGrid(df, axes).draw(metric)
+
+
+def snr_png(designs: list[dict]) -> bytes:
+    """SNR (dB) against scene luminance (log) for one or more capture designs (``mbcapture snr``): the merged
+    HDR's curve thick, each read's thin, each switch point a dotted line of its design's colour, the
+    simulated flat-field points with their 95 % intervals. ``designs``: dicts with ``label``,
+    ``luminance`` (L,), ``merged`` (L,), ``per_read`` {name: (L,)}, ``switch_luminances``, and
+    optionally ``points`` (luminance, snr, half-width of the interval), SNR as a plain ratio."""
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    fig = Figure(figsize=(8.0, 5.2))
+    ax = fig.add_subplot()
+    colours = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"]
+
+    def db(x):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return 20 * np.log10(np.asarray(x, dtype=np.float64))
+
+    left, right = np.inf, 0.0
+    for d, colour in zip(designs, colours * (1 + len(designs) // len(colours))):
+        shown = np.flatnonzero(np.nan_to_num(db(d["merged"]), nan=-np.inf) >= -10)
+        if shown.size:
+            left, right = min(left, d["luminance"][shown[0]]), max(right, d["luminance"][shown[-1]])
+        ax.plot(d["luminance"], db(d["merged"]), color=colour, lw=2.2, label=d["label"])
+        # each read's curve thin, its name where it ends (where that read saturates)
+        for name, snr in d["per_read"].items():
+            ax.plot(d["luminance"], db(snr), color=colour, lw=0.7, alpha=0.55)
+            last = np.flatnonzero(np.isfinite(snr))
+            if last.size:
+                j = int(last[-1])
+                ax.annotate(name, (d["luminance"][j], db(snr[j])), fontsize=6, color=colour, alpha=0.8)
+        for x in d["switch_luminances"]:
+            ax.axvline(x, color=colour, lw=0.8, ls=":")
+        if d.get("points") is not None:
+            lum, snr, half = d["points"]
+            lo, hi = db(np.maximum(snr - half, 1e-12)), db(snr + half)
+            ax.errorbar(lum, db(snr), yerr=[db(snr) - lo, hi - db(snr)], fmt="o", ms=3, color=colour, lw=0.8)
+    ax.axhline(0.0, color="0.5", lw=0.8)
+    ax.set_xscale("log")
+    if np.isfinite(left) and right > left:
+        ax.set_xlim(left / 1.5, right * 1.5)
+    ax.set_ylim(bottom=-10)
+    ax.grid(True, which="major", alpha=0.3)
+    ax.set(
+        xlabel="scene luminance, cd/m² (grey scene; green channel)",
+        ylabel="SNR, dB (20 log10)",
+    )
+    ax.set_title("thick: the HDR merge; thin: each read; dotted: switch points; dots: simulated (95 %)", fontsize=9)
+    handles, labels = ax.get_legend_handles_labels()
+    handles.append(Line2D([], [], marker="o", ls="", color="0.3", ms=3))
+    labels.append("simulated flat field, 95 % interval")
+    ax.legend(handles, labels, fontsize=7, loc="upper left")
+    fig.tight_layout()
+    return png_bytes(fig)
