@@ -50,6 +50,17 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_noise_args(p: argparse.ArgumentParser) -> None:
+    """``--quiet`` and ``--silent``, the same for every command that runs for a while."""
+    noise = p.add_mutually_exclusive_group()
+    noise.add_argument("--quiet", action="store_true", help="no progress bar or status line; the summary at the end")
+    noise.add_argument("--silent", action="store_true", help="nothing printed but errors")
+
+
+def _shows_progress(args) -> bool:
+    return not (args.quiet or args.silent)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mbcapture", description="Multi-bucket sensor capture simulator (Mitsuba 3).")
     p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
@@ -73,11 +84,7 @@ def _add_run_command(sub) -> None:
     run = sub.add_parser("run", help="render, simulate the sensor, reconstruct, write outputs")
     _add_config_args(run)
     run.add_argument("--out", type=Path, default=None, help="output folder (default: out/<config name>)")
-    run_noise = run.add_mutually_exclusive_group()
-    run_noise.add_argument(
-        "--quiet", action="store_true", help="no progress bar or status line; the summary at the end"
-    )
-    run_noise.add_argument("--silent", action="store_true", help="nothing printed but errors")
+    _add_noise_args(run)
     run_where = run.add_mutually_exclusive_group()
     run_where.add_argument(
         "--workers",
@@ -136,7 +143,7 @@ def _add_characterize_command(sub) -> None:
         "--dark-steps", type=int, default=10, help="exposure steps of the dark-current series (default 10)"
     )
     char.add_argument("--frames", type=int, default=16, help="frames averaged for DSNU and PRNU (default 16)")
-    char.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    _add_noise_args(char)
 
 
 def _add_snr_command(sub) -> None:
@@ -160,7 +167,7 @@ def _add_snr_command(sub) -> None:
         "--pixels", type=int, default=4000, help="pixels per level of the simulated check (default 4000; 0: none)"
     )
     snr.add_argument("--levels", type=int, default=16, help="radiance levels of the simulated check (default 16)")
-    snr.add_argument("--quiet", action="store_true", help="no summary")
+    _add_noise_args(snr)
 
 
 def _add_figures_command(sub) -> None:
@@ -171,7 +178,7 @@ def _add_figures_command(sub) -> None:
     figs.add_argument("--only", nargs="+", metavar="NAME", default=None, help="only these figures (see --list)")
     figs.add_argument("--list", action="store_true", help="list the figures and exit")
     figs.add_argument("--seed", type=int, default=0, help="seed of every capture and simulation")
-    figs.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    _add_noise_args(figs)
 
 
 def _add_sweep_command(sub) -> None:
@@ -219,7 +226,7 @@ def _add_sweep_command(sub) -> None:
     sweep.add_argument(
         "--resume", action="store_true", help="skip the points that finished in an earlier run into --out"
     )
-    sweep.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    _add_noise_args(sweep)
 
 
 def _add_cache_command(sub) -> None:
@@ -273,7 +280,9 @@ def _cmd_characterize(args) -> int:
     settings = characterize.Settings(
         width=args.size[0], height=args.size[1], steps=args.steps, dark_steps=args.dark_steps, frames=args.frames
     )
-    characterize.characterize(cfg, out, source=str(args.config), settings=settings, progress=not args.quiet)
+    characterize.characterize(
+        cfg, out, source=str(args.config), settings=settings, progress=_shows_progress(args), summary=not args.silent
+    )
     return 0
 
 
@@ -289,7 +298,7 @@ def _cmd_snr(args) -> int:
     out = args.out or Path("out") / f"snr_{args.config.stem}"
     check_out_dir(out)
     doc = dynamic_range.study(designs, out, pixels=args.pixels, levels=args.levels)
-    if not args.quiet:
+    if not args.silent:
         for line in dynamic_range.summary_lines(doc):
             print(f"mbcapture: {line}", file=sys.stderr)
         print(f"mbcapture: wrote {out}/snr.png, snr.json, snr.parquet", file=sys.stderr)
@@ -303,7 +312,7 @@ def _cmd_run(args) -> int:
         raise ConfigError(f"--workers: expected a number of processes >= 1, got {args.workers}")
     client = None if args.workers is None and args.scheduler is None else start_client(args.workers, args.scheduler)
     try:
-        result = run_capture(cfg, out, progress=not (args.quiet or args.silent), client=client)
+        result = run_capture(cfg, out, progress=_shows_progress(args), client=client)
     finally:
         if client is not None:
             cluster = getattr(client, "cluster", None)
@@ -428,7 +437,7 @@ def _cmd_sweep(args) -> int:
         raise ConfigError(f"--workers: expected a number of processes >= 1, got {args.workers}")
     sweep = load_sweep(args.sweep, args.overrides)
     out = args.out or Path("out") / f"sweep_{resolve_sweep_path(args.sweep).stem}"
-    say = (lambda line: None) if args.quiet else print
+    say = (lambda line: None) if args.silent else print
     try:
         outcome = run_sweep(
             sweep,
@@ -436,7 +445,7 @@ def _cmd_sweep(args) -> int:
             workers=args.workers,
             scheduler=args.scheduler,
             resume=args.resume,
-            progress=not args.quiet,
+            progress=_shows_progress(args),
             in_process=args.in_process,
             say=say,
         )
@@ -479,8 +488,10 @@ def _cmd_figures(args) -> int:
             spec = figures.spec(name)
             print(f"{name}: {spec.title} ({spec.paper})")
         return 0
-    entries = figures.make_figures(args.out, quick=args.quick, only=args.only, seed=args.seed, progress=not args.quiet)
-    if not args.quiet:
+    entries = figures.make_figures(
+        args.out, quick=args.quick, only=args.only, seed=args.seed, progress=_shows_progress(args)
+    )
+    if not args.silent:
         for e in entries:
             print(f"{e['name']:<24} {e['seconds']:7.1f} s  {e['title']}")
         print(f"wrote {args.out}/index.html")

@@ -46,6 +46,8 @@ class StageStatus:
         self.interval_s = interval_s if interval_s is not None else (0.5 if _isatty(file) else 10.0)
         self.refreshes = 0
         self._done = 0
+        self._continues = False  # the stage shown is a part of the last one counted
+        self._next_continues = False
         self._name: str | None = None
         self._t_stage = self._t0 = time.perf_counter()
         self._bar = None
@@ -61,7 +63,12 @@ class StageStatus:
 
     def _text(self) -> str:
         now = time.perf_counter()
-        count = f"stage {self._done + 1}/{self.stages}, " if self.stages else ""
+        if not self.stages:
+            count = ""
+        elif self._continues:
+            count = f"part of stage {self._done}/{self.stages}, "
+        else:
+            count = f"stage {self._done + 1}/{self.stages}, "
         return f"{self._name}  {now - self._t_stage:.1f} s  [{count}{now - self._t0:.0f} s in all]"
 
     def refresh(self) -> None:
@@ -78,18 +85,19 @@ class StageStatus:
         while not self._stop.wait(self.interval_s):
             self.refresh()
 
-    def add_stage(self) -> None:
-        """One more stage than counted at the start (one that only some runs need: a top-up render)."""
-        if self.stages:
-            self.stages += 1
+    def continued(self) -> None:
+        """The next stage is a part of the last one counted: one that only some runs need (a top-up render,
+        adaptive sampling's refinement), so the count and its total, fixed at the start, stay as they are."""
+        self._next_continues = True
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
         """Show ``name`` (and its running time) while the block runs."""
+        continues, self._next_continues = self._next_continues, False
         if not self.enabled:
             yield
             return
-        self._name, self._t_stage = name, time.perf_counter()
+        self._name, self._t_stage, self._continues = name, time.perf_counter(), continues
         self.refresh()
         if self._thread is None:
             self._thread = threading.Thread(target=self._tick, name="mbcapture-status", daemon=True)
@@ -97,7 +105,7 @@ class StageStatus:
         try:
             yield
         finally:
-            self._done += 1
+            self._done += not continues
 
     def close(self) -> None:
         self._stop.set()

@@ -6,6 +6,8 @@ matches a brute-force high-spp render within its standard error."""
 from dataclasses import replace
 from pathlib import Path
 
+import re
+
 import numpy as np
 import pytest
 from script_modules import load_script
@@ -284,9 +286,10 @@ def test_tail_pixels_gives_each_pixel_the_factor_its_estimate_asks_for():
 
 
 @pytest.mark.render
-def test_a_capture_with_adaptive_sampling_reports_its_tiers(tmp_path):
+def test_a_capture_with_adaptive_sampling_reports_its_tiers(tmp_path, capsys):
     """`mbcapture run` with render.adaptive: report.json says which tiers were refined at what factor
-    and what they added, every key documented in docs/report.md."""
+    and what they added, every key documented in docs/report.md; the status lines count the stages
+    against one total, fixed at the start, the refinement shown as a part of the stage before it."""
     from report_checks import undocumented_keys
 
     from mbcapture import run_capture
@@ -307,7 +310,11 @@ def test_a_capture_with_adaptive_sampling_reports_its_tiers(tmp_path):
             "render.noise_budget_tail=10",
         ],
     )
-    result = run_capture(cfg, tmp_path, progress=False)
+    result = run_capture(cfg, tmp_path, progress=True)
+    err = capsys.readouterr().err
+    counts = [tuple(map(int, m)) for m in re.findall(r"\[(?:part of )?stage (\d+)/(\d+),", err)]
+    assert len({n for _, n in counts}) == 1 and all(1 <= i <= n for i, n in counts), sorted(set(counts))
+    assert "part of stage" in err and "adaptive sampling: refine" in err
     info = result.report["adaptive"]
     tiers = info["tiers"]
     assert len(tiers) >= 2 and info["pixels"] == sum(t["pixels"] for t in tiers) <= 32 * 24

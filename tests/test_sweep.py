@@ -455,3 +455,44 @@ def test_one_figure_redrawn_per_metric_is_the_figure_drawn_afresh():
     for metric, png in redrawn.items():
         fresh = sweep_plot(df, metric, axes)
         np.testing.assert_array_equal(iio.imread(png), iio.imread(png_bytes(fresh, dpi=90)), err_msg=metric)
+
+
+def test_no_two_texts_of_a_sweep_figure_overlap():
+    """The bucket-design sweep's layout (two categorical axes, rotated names, and a numeric one): no
+    title, axis label or tick label overlaps another, and every one is inside the figure."""
+    import itertools
+
+    import pandas as pd
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from mbcapture.output.plots import sweep_plot
+
+    rows = [
+        {"status": "ok", "capture.protocol": p, "capture.sequential": s, "sensor.bucket_count": k, "m": 1e-3 * (1 + i)}
+        for i, (p, s, k) in enumerate(
+            itertools.product(["photon_efficient_hdr", "interleaved_hdr"], [False, True], [2, 3, 4])
+        )
+    ]
+    fig = sweep_plot(pd.DataFrame(rows), "m", ["capture.protocol", "capture.sequential", "sensor.bucket_count"])
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw(renderer)
+
+    def drawn_ticks(axis, limits):
+        low, high = sorted(limits)
+        return [t for t, v in zip(axis.get_ticklabels(), axis.get_ticklocs()) if low <= v <= high]
+
+    texts = [fig._suptitle]
+    for ax in fig.axes:
+        if ax.get_visible():
+            texts += [
+                ax.title,
+                ax.xaxis.label,
+                *drawn_ticks(ax.xaxis, ax.get_xlim()),
+                *drawn_ticks(ax.yaxis, ax.get_ylim()),
+            ]
+    boxes = [(t.get_text(), t.get_window_extent(renderer)) for t in texts if t.get_visible() and t.get_text()]
+    whole = fig.bbox
+    for name, box in boxes:
+        assert whole.x0 <= box.x0 and box.x1 <= whole.x1 and whole.y0 <= box.y0 and box.y1 <= whole.y1, name
+    for (a, box_a), (b, box_b) in itertools.combinations(boxes, 2):
+        assert not box_a.overlaps(box_b), (a, b)

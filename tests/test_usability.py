@@ -211,3 +211,29 @@ def test_quiet_keeps_the_summary_and_silent_prints_nothing(tmp_path, capsys):
     assert main(["run", "metronome_hdr", "--out", str(tmp_path / "s"), "--silent", *tiny]) == 0
     out, err = capsys.readouterr()
     assert out == "" and "stage" not in err
+
+
+def test_every_long_command_takes_quiet_and_silent():
+    """run, characterize, snr, figures and sweep: the same two flags, refused together."""
+    from mbcapture.cli import _parser
+
+    parser = _parser()
+    for argv in (
+        ["run", "metronome_hdr"],
+        ["characterize", "metronome_hdr"],
+        ["snr", "metronome_hdr"],
+        ["figures"],
+        ["sweep", "bucket_designs"],
+    ):
+        for flag in ("--quiet", "--silent"):
+            assert getattr(parser.parse_args([*argv, flag]), flag[2:]) is True, (argv, flag)
+        with pytest.raises(SystemExit):
+            parser.parse_args([*argv, "--quiet", "--silent"])
+
+
+def test_snr_quiet_keeps_its_summary_and_silent_prints_nothing(tmp_path, capsys):
+    assert main(["snr", "metronome_hdr", "--out", str(tmp_path / "q"), "--pixels", "0", "--quiet"]) == 0
+    assert "dynamic range" in capsys.readouterr().err
+    assert main(["snr", "metronome_hdr", "--out", str(tmp_path / "s"), "--pixels", "0", "--silent"]) == 0
+    out, err = capsys.readouterr()
+    assert out == "" and err == "" and (tmp_path / "s" / "snr.json").exists()

@@ -72,7 +72,7 @@ def after_first_pass(
             passes, plan, integrated, why_not=why_not, planned=tiers, planned_reads=planned_reads, tail=tail
         )
     if tiers:
-        passes.status.add_stage()  # the scout's stage was counted at the start, its second pass is one more
+        passes.status.continued()  # the scout's stage was counted at the start; its refinement is a part of it
         integrated, adaptive_info = refine_tail(passes, plan, integrated, tiers, adaptive_info)
         integrated, adaptive_info = second_round(passes, plan, integrated, tiers, adaptive_info)
     return plan, integrated, adaptive_info, top_up_info
@@ -209,7 +209,7 @@ def top_up(
             integrated,
             {"applied": False, "before": round(factor, 4), "note": f"not applied: a top-up needs {why_not}"},
         )
-    passes.status.add_stage()
+    passes.status.continued()
     with passes.status.stage(f"top-up render (the estimate is {factor:.2f}x the noise budget)"):
         start = time.perf_counter()
         extra = top_up_samples(passes, plan, factor)
@@ -526,11 +526,11 @@ def second_round(
     have = np.ones(film, np.int64)
     for pixels, f in tiers:
         have[pixels] = f
-    passes.status.add_stage()
+    passes.status.continued()
     more, round_info, _ = scout_tail(passes, plan, integrated, have=have, max_factor=SECOND_ROUND_MAX_FACTOR)
     round_info["before"] = round(factor, 4)
     if more:
-        passes.status.add_stage()
+        passes.status.continued()
         integrated, round_info = refine_tail(passes, plan, integrated, more, round_info, have=have)
     info["second_round"] = round_info
     return integrated, info

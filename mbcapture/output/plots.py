@@ -591,8 +591,13 @@ class MetricGrid:
         layout = {axis: _facets(ok, axis, axes) for axis in axes}
         ncols = min(max(len(panels) for _, panels, _, _ in layout.values()), 4)
         nrows = sum(-(-len(panels) // ncols) for _, panels, _, _ in layout.values())
-        # one metric: every panel on one scale (labelled on the first column); each row one x axis
-        self.fig = Figure(figsize=(3.4 * ncols + 0.6, 2.5 * nrows + 0.5))
+        # one metric: every panel on one scale (labelled on the first column); each row one x axis. Sizes in
+        # inches: a panel 2.2 high, and between rows the room for the row's tick labels (rotated names need
+        # more), its x label and the next row's titles, so that no two texts overlap
+        rotated = any(not _numeric(list(dict.fromkeys(ok[axis].tolist()))) for axis in axes)
+        self.gap_in = 1.05 if rotated else 0.8
+        self.left_in = 1.15 if rotated else 0.85
+        self.fig = Figure(figsize=(3.4 * ncols + self.left_in - 0.25, (2.2 + self.gap_in) * nrows + 0.35))
         grid = self.fig.subplots(nrows, ncols, squeeze=False, sharex="row", sharey=True)
         #: per panel: (its axes, its rows of the table, the x axis, its position function, line keys, structured,
         #: whether it is the first of its row, which has the legend)
@@ -621,10 +626,16 @@ class MetricGrid:
             for n in range(len(panels), -(-len(panels) // ncols) * ncols):
                 grid[row + n // ncols][n % ncols].set_visible(False)
             row += -(-len(panels) // ncols)
-        # fixed margins in inches (tight_layout measures every label: half of the plot's time)
-        w, h = self.fig.get_size_inches()
-        self.fig.subplots_adjust(
-            left=0.85 / w, right=1 - 0.2 / w, bottom=0.5 / h, top=1 - 0.45 / h, wspace=0.3, hspace=0.45
+        # fixed margins in inches (tight_layout measures every label: half of the plot's time); the top holds the
+        # metric's title above the first row's panel titles
+        set_margins(
+            self.fig,
+            left_in=self.left_in,
+            right_in=0.2,
+            bottom_in=self.gap_in - 0.3,
+            top_in=0.65,
+            hspace_in=self.gap_in,
+            wspace=0.3,
         )
 
     def draw(self, metric: str):
@@ -661,7 +672,7 @@ class MetricGrid:
             ax.autoscale_view()
             if line_keys and first:
                 ax.legend(fontsize=6.5, frameon=False)
-        self.fig.suptitle(metric, fontsize=9)
+        self.fig.suptitle(metric, fontsize=9, y=1 - 0.12 / self.fig.get_size_inches()[1], va="top")
         return self.fig
 
 

@@ -409,10 +409,17 @@ def report_html(sheet: dict, plots: dict[str, str]) -> str:
 
 
 def characterize(
-    cfg: CaptureConfig, out_dir, *, source: str, settings: Settings | None = None, progress: bool = True
+    cfg: CaptureConfig,
+    out_dir,
+    *,
+    source: str,
+    settings: Settings | None = None,
+    progress: bool = True,
+    summary: bool = True,
 ) -> dict:
     """Measure the sensor of ``cfg`` and write characterization.json, report.html and its plots into
-    ``out_dir`` (atomically). Returns the datasheet."""
+    ``out_dir`` (atomically). Returns the datasheet. ``progress``: a bar over the frames; ``summary``: one
+    line of the main figures at the end (stderr)."""
     settings = settings or Settings()
     curves = measure(cfg, settings, progress=progress)
     sheet = datasheet(cfg, curves, settings, source)
@@ -424,7 +431,7 @@ def characterize(
                 captions[f"{mode}_{name}.png"] = caption
         st.write_json("characterization.json", sheet)
         st.write_bytes("report.html", report_html(sheet, captions).encode())
-    if progress:
+    if summary:
         g = sheet["reads"]["bucket"]["channels"]["G"]
         print(
             f"mbcapture: characterized ({sheet['config']}), green channel: K {_value(g['system_gain_dn_per_e'])} "
