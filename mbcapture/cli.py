@@ -27,6 +27,7 @@ from .config import load_config
 from .errors import ConfigError, ConfigNotice, MBCaptureError
 from .output.io import check_out_dir
 from .render import Renderer
+from .render import xmlscene
 from .render.cache import RenderCache, default_cache_dir
 from .sweep import load_sweep, resolve_sweep_path, run_sweep
 
@@ -70,7 +71,21 @@ def _parser() -> argparse.ArgumentParser:
     _add_converge_command(sub)
     _add_characterize_command(sub)
     _add_snr_command(sub)
-    sub.add_parser("scenes", help="list the scenes and their parameters")
+    scn = sub.add_parser("scenes", help="list the scenes and their parameters, or the ids of a Mitsuba scene file")
+    scn.add_argument(
+        "file",
+        nargs="?",
+        type=Path,
+        default=None,
+        help="a Mitsuba 3 scene file (.xml): list what scene.groups and scene.motion can name in it",
+    )
+    scn.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a value of one of the file's $parameters (as scene.parameters gives it)",
+    )
     _add_figures_command(sub)
     sub.add_parser("apps", help="list the applications (reconstructions), their protocols and parameters")
     _add_sweep_command(sub)
@@ -470,6 +485,8 @@ def _cmd_sweep(args) -> int:
 
 
 def _cmd_scenes(args) -> int:
+    if args.file is not None:
+        return _list_scene_file(args.file, args.param)
     for name in scenes.available():
         mod = scenes.load_module(name)
         print(f"{name}: {mod.DESCRIPTION}")
@@ -477,9 +494,35 @@ def _cmd_scenes(args) -> int:
     return 0
 
 
+def _list_scene_file(path: Path, params: list[str]) -> int:
+    """``mbcapture scenes FILE.xml``: the file's camera and the objects a config can name."""
+    values = {}
+    for text in params:
+        name, sep, value = text.partition("=")
+        if not sep or not name:
+            raise ConfigError(f"--param {text!r}: expected NAME=VALUE")
+        values[name] = value
+    state, _ = xmlscene.parse(path, values)
+    cam = xmlscene.file_camera(state)
+    print(
+        f"{path}: camera at {cam.origin} looking towards {cam.target}, horizontal field of view {cam.fov_deg:.2f} deg"
+    )
+    for o in xmlscene.file_objects(state):
+        use = (
+            "scene.groups (an emitter)"
+            if o.kind == "Emitter" or o.emits
+            else "scene.motion"
+            if o.kind == "Shape"
+            else "referenced by the shapes"
+        )
+        print(f"    {o.id:<24} {o.kind.lower():<9} {o.plugin:<18} {use}")
+    print("files read: " + ", ".join(str(f) for f in xmlscene.referenced_files(state)))
+    return 0
+
+
 def _print_keys(prefix: str, model) -> None:
     for key, f in model.model_fields.items():
-        print(f"    {prefix}.{key} = {f.default!r}    {f.description or ''}")
+        print(f"    {prefix}.{key} = {f.get_default(call_default_factory=True)!r}    {f.description or ''}")
 
 
 def _cmd_figures(args) -> int:

@@ -632,6 +632,20 @@ def env_overrides() -> list[str]:
     return words
 
 
+#: Keys naming a file that a config file gives relative to itself (a --set gives it relative to the working
+#: directory): scene.file of the ``mitsuba`` scene.
+CONFIG_RELATIVE_KEYS = (("scene", "file"),)
+
+
+def _file_relative_to(data: Any, folder: Path) -> None:
+    """Make each of :data:`CONFIG_RELATIVE_KEYS` in the config file's ``data`` absolute, from ``folder``."""
+    for section, key in CONFIG_RELATIVE_KEYS:
+        part = data.get(section) if isinstance(data, dict) else None
+        value = part.get(key) if isinstance(part, dict) else None
+        if isinstance(value, str) and value and not Path(value).is_absolute():
+            part[key] = str((folder / value).resolve())
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> CaptureConfig:
     """Load a YAML config (a path, or a shipped config's name; the defaults when ``path`` is None)
     and apply ``--set`` overrides, then those of ``$MBCAPTURE_SET``. Switching ``scene.name`` or ``app.name`` by an override drops the
@@ -653,6 +667,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | tuple[str
             raise ConfigError(f"{p}:{where}: malformed YAML ({getattr(exc, 'problem', exc)})") from None
         if data is None:
             data = {}
+        _file_relative_to(data, p.parent)
     overrides = [*overrides, *env_overrides()]
     if isinstance(data, dict):
         data, notices = _switch_selected(data, overrides)

@@ -250,6 +250,19 @@ class Guide:
         object.__setattr__(self, "share", float(self.share))
 
 
+@dataclass(frozen=True, eq=False)
+class SceneFile:
+    """A Mitsuba scene file in a scene (:mod:`mbcapture.render.xmlscene`): ``path`` (absolute), the values of
+    its ``$parameters``, ``emitters``: each emitter's id (a shape's id for its area emitter) with its group,
+    and ``moving``: shape id -> the name of its part in :attr:`SceneBuild.parts` (its world-from-rest matrix
+    over time)."""
+
+    path: str
+    parameters: Mapping[str, str]
+    emitters: tuple[tuple[str, str], ...]
+    moving: Mapping[str, str] = field(default_factory=dict)
+
+
 @dataclass(frozen=True)
 class SceneBuild:
     """Everything :class:`mbcapture.render.Renderer` needs besides the camera.
@@ -265,6 +278,8 @@ class SceneBuild:
     guides
         Spheres around bright patches that are not emitters (:class:`Guide`), towards which a share of
         the bounces is sampled; their shares add up to at most :data:`MAX_GUIDE_SHARE`.
+    file
+        A Mitsuba scene file whose objects join the shapes (:class:`SceneFile`), or None.
     """
 
     shapes: tuple[Shape, ...]
@@ -272,6 +287,7 @@ class SceneBuild:
     environment: Environment | None = None
     projectors: tuple[Projector, ...] = ()
     guides: tuple[Guide, ...] = ()
+    file: SceneFile | None = None
 
     def __post_init__(self) -> None:
         total = sum(g.share for g in self.guides)
@@ -291,6 +307,8 @@ class SceneBuild:
             seen.setdefault(self.environment.group)
         for p in self.projectors:
             seen.setdefault(p.group)
+        for _, group in self.file.emitters if self.file is not None else ():
+            seen.setdefault(group)
         return tuple(seen)
 
     def check_files(self, scene_name: str = "scene") -> None:

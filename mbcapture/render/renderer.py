@@ -43,6 +43,7 @@ _PIXEL_CODE = (
     "lens.py",
     "settings.py",
     "pixels.py",
+    "xmlscene.py",
 )
 
 

@@ -29,6 +29,7 @@ from .build import (
     spectrum_to_rgb_reflectance,
 )
 from .tiles import tile_table, tiles_description
+from . import xmlscene
 
 #: The film's channels.
 CHANNELS = ("R", "G", "B")
@@ -149,6 +150,8 @@ class SceneDicts:
                 grouped.setdefault(s.part, {"type": "shapegroup"})[s.name] = self.shape_dict(
                     s, np.asarray(s.to_world, float), flat_group
                 )
+        if self.build.file is not None:
+            self._add_file(d, grouped)
         for part, group in grouped.items():
             d[f"{part}__group"] = group
             d[part] = {
@@ -169,6 +172,19 @@ class SceneDicts:
                 raise ConfigError(f"projector {p.name!r}: unknown part {p.part!r}")
             d[p.name] = self.projector_dict(p)
         return d
+
+    def _add_file(self, d: dict[str, Any], grouped: dict[str, dict[str, Any]]) -> None:
+        """The scene file's objects (its sensor, film, sampler and integrator left out), each under its id; a moving
+        shape in its part's shape group, moved by the part's instance."""
+        f = self.build.file
+        state, _ = xmlscene.parse(f.path, dict(f.parameters))
+        for key, entry in xmlscene.file_entries(self.mi, state).items():
+            if key in d or key in self.build.parts:
+                raise ConfigError(f"scene.file: {f.path}: id {key!r} is taken by the capture (rename it in the file)")
+            if key in f.moving:
+                grouped.setdefault(f.moving[key], {"type": "shapegroup"})[key] = entry
+            else:
+                d[key] = entry
 
     def projector_world(self, p, t_s: float) -> np.ndarray:
         """Projector ``p``'s to-world matrix at ``t_s`` (its part's motion applied)."""
@@ -277,10 +293,11 @@ class SceneDicts:
                 out[s.light.group].append(by_name[s.name])
         if self.build.environment is not None:
             out[self.build.environment.group].append(scene.environment())
-        if self.build.projectors:
-            by_id = {e.id(): e for e in scene.emitters()}
-            for p in self.build.projectors:
-                out[p.group].append(by_id[p.name])
+        by_id = {e.id(): e for e in scene.emitters()}
+        for p in self.build.projectors:
+            out[p.group].append(by_id[p.name])
+        for name, group in self.build.file.emitters if self.build.file is not None else ():
+            out[group].append(by_name[name] if name in by_name else by_id[name])
         return out
 
     def variant_dicts(self) -> dict[str | None, dict[str, Any]]:
