@@ -115,8 +115,25 @@ class PerTile:
     values: tuple[Union[RGB, Spectrum], ...]
 
 
+@dataclass(frozen=True, eq=False)
+class RadianceImage:
+    """An emitter's radiance that varies over its surface: ``pixels`` (H, W, 3), linear RGB radiance in
+    W m^-2 sr^-1, mapped onto the shape's uv (row 0 at the top, bilinear, clamped at the borders). RGB
+    variants only. The ``image`` scene's plane emits a photograph this way."""
+
+    pixels: np.ndarray
+
+    def __post_init__(self) -> None:
+        img = np.asarray(self.pixels, np.float32)
+        if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
+            raise ValueError(f"RadianceImage: pixels must be (H, W, 3), got {img.shape}")
+        if not np.all(np.isfinite(img)) or np.any(img < 0):
+            raise ValueError("RadianceImage: pixels must be finite and >= 0")
+        object.__setattr__(self, "pixels", np.ascontiguousarray(img))
+
+
 Reflectance = Union[RGB, Spectrum, Texture, PerTile]
-Radiance = Union[RGB, Spectrum]
+Radiance = Union[RGB, Spectrum, RadianceImage]
 
 TEXTURE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".exr"})
 MESH_SUFFIXES = frozenset({".ply", ".obj"})

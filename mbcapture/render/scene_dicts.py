@@ -18,6 +18,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..scene.projective import Camera
 from .build import (
+    RadianceImage,
     MOVABLE_EMITTER_KINDS,
     Material,
     PerTile,
@@ -263,6 +264,17 @@ class SceneDicts:
         """Emission; ``flat``: a Spectrum's integral as a constant (its shape is in the film)."""
         if flat:
             return {"type": "uniform", "value": float(value.integral())}
+        if isinstance(value, RadianceImage):
+            if self.spectral:
+                raise ConfigError(f"scene {self.scene_name!r}: an image's radiance needs an RGB render.variant")
+            return {
+                "type": "bitmap",
+                # the rectangle's v grows upwards, the image's rows downwards (measured: row 0 rendered at the bottom)
+                "bitmap": self.mi.Bitmap(np.ascontiguousarray(value.pixels[::-1])),
+                "raw": True,
+                "filter_type": "bilinear",
+                "wrap_mode": "clamp",
+            }
         return self.spectrum_dict(value, emission=True)
 
     def spectrum_dict(self, value: Any, *, emission: bool) -> dict[str, Any]:
