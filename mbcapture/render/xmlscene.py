@@ -5,7 +5,7 @@ The file is read by Mitsuba's own parser (``mitsuba.parser``: ``<include>``, ``<
 shape, BSDF (conductor, dielectric, plastic, principled, textures, normal maps), emitter (area, point,
 spot, directional, constant, envmap). What a capture replaces: the file's integrator (the project's
 per-group path tracer, :mod:`.integrator`), its film and sampler (``render.*``), and its sensor, which
-becomes the capture's camera (:class:`FileCamera`; ``camera.*`` moves it).
+becomes the capture's camera (:func:`file_camera`; ``camera.*`` moves it).
 
 The parsed scene is turned into a Mitsuba scene *dictionary* (:func:`file_entries`) rather than loaded
 as objects, so that it joins the project's own dictionaries: the capture's sensors are added, moving
@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
+from ..scene.projective import Camera
 from .llvm import ensure_llvm
 
 #: Object types of the file that a capture replaces with its own.
@@ -146,16 +147,6 @@ def file_entries(mi: Any, state: Any) -> dict[str, dict[str, Any]]:
     return out
 
 
-@dataclass(frozen=True)
-class FileCamera:
-    """The file's sensor as the capture's camera: its pose (origin, target, up) and horizontal field of view."""
-
-    origin: tuple[float, float, float]
-    target: tuple[float, float, float]
-    up: tuple[float, float, float]
-    fov_deg: float
-
-
 def _horizontal_fov(fov: float, axis: str, width: int, height: int) -> float:
     """Mitsuba's ``fov`` along ``fov_axis`` as the horizontal field of view of a ``width`` x ``height`` film."""
     aspect = width / height
@@ -175,8 +166,9 @@ def _horizontal_fov(fov: float, axis: str, width: int, height: int) -> float:
     return math.degrees(2 * math.atan(tx))
 
 
-def file_camera(state: Any) -> FileCamera:
-    """The file's first sensor (perspective or thinlens) as a :class:`FileCamera`; a ConfigError without one."""
+def file_camera(state: Any) -> Camera:
+    """The file's first sensor (perspective or thinlens) as the capture's :class:`Camera` (its pose and horizontal
+    field of view); a ConfigError without one."""
     for _, index in _children(state, state.nodes[0]):
         node = state.nodes[index]
         if _type(node) != "Sensor":
@@ -199,7 +191,7 @@ def file_camera(state: Any) -> FileCamera:
         origin = m[:3, 3]
         forward = m[:3, 2] / np.linalg.norm(m[:3, 2])
         up = m[:3, 1] / np.linalg.norm(m[:3, 1])
-        return FileCamera(
+        return Camera(
             tuple(map(float, origin)),
             tuple(map(float, origin + forward)),
             tuple(map(float, up)),

@@ -97,7 +97,7 @@ def make(params: Params) -> SceneModel:
         name="mitsuba",
         groups=groups,
         switchable=frozenset(g for g in groups if g != params.default_group),
-        camera=Camera(origin=cam.origin, target=cam.target, up=cam.up, fov_deg=cam.fov_deg),
+        camera=cam,
         build=SceneBuild(
             shapes=(),
             parts=parts,
@@ -114,7 +114,7 @@ def make(params: Params) -> SceneModel:
     )
 
 
-def _flash_geometry(state, emitters: tuple[tuple[str, str], ...], cam: xmlscene.FileCamera) -> dict:
+def _flash_geometry(state, emitters: tuple[tuple[str, str], ...], cam: Camera) -> dict:
     """Each group's light position (the mean of its emitters', world, m) and the unit direction it faces (a
     spot's axis, an emitting rectangle's normal; else towards the camera's view), as multi-flash reads them."""
     positions, directions = {}, {}
