@@ -57,6 +57,7 @@ def test_a_tiled_capture_on_two_workers_is_the_local_untiled_capture(client):
         np.testing.assert_array_equal(spread.images[name], img, err_msg=name)
 
 
+@pytest.mark.slow
 @pytest.mark.render
 def test_a_capture_with_the_noise_budget_on_two_workers_makes_the_local_choices(client):
     """render.spp null: the first pass renders on the workers; adaptive sampling's scout and refinement and the

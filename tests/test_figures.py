@@ -76,11 +76,26 @@ def test_unknown_figure_is_a_clear_error(tmp_path):
     assert proc.returncode == 2 and "unknown figure" in proc.stderr and proc.stderr.count("\n") == 1
 
 
+#: Figures of 9 s or more at quick size on 2 cores (2026-11-29): in ``make test-slow``, not ``make test``; their
+#: applications' own tests run in both.
+SLOW_FIGURES = {
+    "hdr_video",
+    "fig13_rgb_illumination",
+    "structured_light",
+    "burst",
+    "flutter_shutter",
+    "fig16_flash_matting",
+    "error_vs_runtime",
+}
+
+
 @pytest.mark.render
-@pytest.mark.parametrize("name", figures.names())
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW_FIGURES else n for n in figures.names()]
+)
 def test_quick_figure_is_written(tmp_path, name):
-    """What CI runs: every figure at quick size (the paper's and the applications'), one test each
-    so that the test workers share them out."""
+    """Every figure at quick size (the paper's and the applications'), one test each so that the test
+    workers share them out; the slowest in make test-slow."""
     entries = figures.make_figures(tmp_path, quick=True, only=[name], progress=False)
     assert [e["name"] for e in entries] == [name]
     assert all((tmp_path / f).stat().st_size > 0 for f in entries[0]["files"])

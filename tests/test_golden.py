@@ -210,6 +210,7 @@ def test_a_partial_run_keeps_each_hosts_record_of_the_other_cases():
     assert doc["cases"]["a"]["img"]["rel_l2"] == 3e-5  # the Xeon's spread of the earlier golden kept
 
 
+@pytest.mark.slow
 @pytest.mark.render
 @pytest.mark.skipif(os.environ.get(NESTED_ENV) == "1", reason="already the second-target run")
 def test_goldens_hold_on_a_second_cpu_target(tmp_path, golden):

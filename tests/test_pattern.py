@@ -199,6 +199,7 @@ def test_a_shared_pattern_render_is_the_same_through_either_sensor(monkeypatch):
     np.testing.assert_allclose(through_first, exact, rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.slow
 @pytest.mark.render
 def test_a_shared_pattern_is_unbiased_and_lowers_a_static_reads_variance():
     """K = 4 strata of one static time, their mean, over 8 seeds at 80x64 and 64 spp: with the shared

@@ -700,6 +700,7 @@ def start_slow_run(tmp_path, out, seed):
     return proc
 
 
+@pytest.mark.slow
 @pytest.mark.render
 def test_killed_and_terminated_runs_keep_previous_outputs(tmp_path):
     from mbcapture import run_capture

@@ -172,6 +172,7 @@ def test_a_tiled_capture_is_the_untiled_capture(config, extra, tiles, tmp_path):
         assert not isinstance(_root(tiled.bucket_exposure), mmap.mmap)
 
 
+@pytest.mark.slow
 @pytest.mark.render
 def test_a_tiled_capture_with_the_noise_budget_is_the_untiled_capture(tmp_path):
     """The default path, render.spp null: the pilot, adaptive sampling (scout, rule, refinement, second round)
