@@ -33,6 +33,14 @@ FILM = ["render.width=160", "render.height=128", "render.cache=off"]  # cold: no
 #: neighbouring pixels (camera_full 4.8 before).
 TAIL_NOT_MET: dict[str, str] = {}
 
+#: Shipped configs that cap their samples below what the budget asks for, and why; asserted to miss it (the README's
+#: budget table shows by how much), so that a config that comes to meet it leaves the list.
+CAPPED: dict[str, str] = {
+    name: "the glass ball's caustics (specular paths from a small light) ask for 1024 spp and for refining most "
+    "pixels; the config caps render.max_spp at 128 with adaptive sampling off (docs/scenes.md)"
+    for name in ("table_hdr", "table_flash_no_flash", "table_multi_flash")
+}
+
 
 def budgeted_configs() -> list[str]:
     """The shipped configs whose samples the noise budget chooses."""
@@ -48,7 +56,7 @@ def test_the_budgeted_configs_are_found():
     would make that test pass vacuously)."""
     names = budgeted_configs()
     assert len(names) >= 10 and "metronome_hdr" in names and "flatfield_ptc" in names
-    assert set(TAIL_NOT_MET) <= set(names)  # every config the list excuses is one the test runs
+    assert set(TAIL_NOT_MET) | set(CAPPED) <= set(names)  # every config the lists excuse is one the test runs
 
 
 @pytest.mark.budget
@@ -69,6 +77,9 @@ def test_every_budgeted_config_meets_the_noise_budget_at_160x128(name):
     adaptive = {k: v for k, v in (report.get("adaptive") or {}).items() if k != "tiers"}
     adaptive["factors"] = [t["factor"] for t in (report.get("adaptive") or {}).get("tiers", [])]
     print(f"{name} (top-up: {report.get('top_up')}; adaptive: {adaptive}):\n  " + "\n  ".join(lines))
+    if name in CAPPED:
+        assert not budget["met"], f"{name} now meets the noise budget: take it out of CAPPED"
+        return
     over = {
         n: v
         for n, v in reads.items()
