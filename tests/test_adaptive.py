@@ -520,6 +520,7 @@ def test_a_capture_chooses_its_pixels_from_a_scout_not_its_first_pass(monkeypatc
     assert run.report["adaptive"]["scout"]["spp"] == plan.spp.tolist()
 
 
+@pytest.mark.slow
 @pytest.mark.render
 def test_the_outside_measurement_gives_the_second_run_the_first_runs_choice(monkeypatch):
     """scripts/render_noise_reads.py: with adaptive sampling both runs refine the pixels the first run

@@ -113,6 +113,7 @@ def test_render_requests_are_what_integrate_renders():
     assert rec.calls == render_requests(plan, seeds[2])
 
 
+@pytest.mark.slow
 @pytest.mark.render
 def test_mbcapture_run_takes_workers_and_refuses_a_bad_count(tmp_path, capsys):
     import json

@@ -34,7 +34,12 @@ def test_shipped_config_loads_and_plans(path):
 
 
 @pytest.mark.render
-@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
+@pytest.mark.parametrize(
+    "path",
+    # a video: a capture per frame (15 s at this size): in make test-slow; tests/test_video.py runs a tiny one in make test
+    [pytest.param(p, marks=pytest.mark.slow) if p.name == "hdr_video.yaml" else p for p in CONFIGS],
+    ids=lambda p: p.name,
+)
 def test_shipped_config_runs_at_tiny_size(path, tmp_path):
     """Each shipped config as it is (samples from render.noise_budget, every app with render.spp null),
     with its outputs and report.html."""
