@@ -509,7 +509,7 @@ def _list_scene_file(path: Path, params: list[str]) -> int:
     )
     for o in xmlscene.file_objects(state):
         use = (
-            "scene.groups (an emitter)"
+            "scene.groups (an emitter; a spot or a shape's light also scene.motion)"
             if o.kind == "Emitter" or o.emits
             else "scene.motion"
             if o.kind == "Shape"

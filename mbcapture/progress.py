@@ -119,3 +119,39 @@ class StageStatus:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class _Lines:
+    """A file that takes tqdm's redraws as plain lines: carriage returns and cursor escapes dropped, a blank
+    redraw (tqdm clearing its line) skipped, each redraw its own line."""
+
+    def __init__(self, file: TextIO):
+        self._file = file
+
+    def write(self, text: str) -> None:
+        text = text.replace("\r", "").replace("\x1b[A", "")
+        if text.strip():
+            self._file.write(text.rstrip("\n") + "\n")
+
+    def flush(self) -> None:
+        self._file.flush()
+
+
+def bar(iterable=None, *, total: int | None = None, desc: str, unit: str, enabled: bool = True, **kw):
+    """A tqdm progress bar on stderr: redrawn in place on a terminal; into a file or a pipe, a plain line every
+    10 s (no carriage return or cursor escape: a log reads as lines)."""
+    from tqdm import tqdm
+
+    tty = _isatty(sys.stderr)
+    return tqdm(
+        iterable,
+        total=total,
+        desc=desc,
+        unit=unit,
+        disable=not enabled,
+        leave=False,
+        dynamic_ncols=tty,
+        file=sys.stderr if tty else _Lines(sys.stderr),
+        mininterval=0.1 if tty else 10.0,
+        **kw,
+    )

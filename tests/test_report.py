@@ -2,6 +2,7 @@
 and the pieces (verdict, scales, long schedules, the status line) on synthetic input."""
 
 import io
+import sys
 import json
 import threading
 import time
@@ -224,3 +225,17 @@ def test_the_page_prints_no_raw_python_dict(tiny_run):
     page = (out / "report.html").read_text()
     assert "render_error" in page and "reads.J4.to_shot_noise_variance_median" in page
     assert "{&#x27;" not in page and "{'" not in page
+
+
+def test_a_progress_bar_into_a_file_is_plain_lines(monkeypatch):
+    """Into a file or a pipe a pass bar writes plain lines (tqdm redraws in place with carriage returns)."""
+    from mbcapture.progress import bar
+
+    buf = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", buf)
+    with bar(total=3, desc="render", unit="pass") as b:
+        for _ in range(3):
+            b.update(1)
+    text = buf.getvalue()
+    assert text.startswith("render:") and text.endswith("\n")
+    assert "\r" not in text and "\x1b" not in text

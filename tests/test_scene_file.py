@@ -86,8 +86,8 @@ def test_ids_that_are_not_in_the_file_are_named_with_the_ones_that_are(tmp_path)
         ConfigError, match=r"scene.groups: 'bulb' is not the id of an emitter in .*table.xml \(those:.*flash"
     ):
         scene_of(load_config(table(tmp_path), ["scene.groups={bulb: flash}"]))
-    with pytest.raises(ConfigError, match=r"scene.motion: 'flash' is not the id of a shape without an emitter"):
-        scene_of(load_config(table(tmp_path), ["scene.motion={flash: {type: linear}}"]))
+    with pytest.raises(ConfigError, match=r"scene.motion: 'wood' is not the id of a shape, a spot light or"):
+        scene_of(load_config(table(tmp_path), ["scene.motion={wood: {type: linear}}"]))
 
 
 def test_a_missing_or_broken_file_is_one_line(tmp_path):
@@ -162,3 +162,37 @@ def test_keyframes_pass_through_their_poses_and_named_motions_keep_their_period(
     assert np.degrees(np.arctan2(tip[0], 1 - tip[1])) == pytest.approx(30.0)
     with pytest.raises(ValueError, match="times must ascend"):
         Motion(type="keyframes", keyframes=[{"t": 1.0}, {"t": 0.5}])
+
+
+@pytest.mark.render
+def test_lights_of_the_file_move_through_their_own_transform(tmp_path):
+    """The flash (a spot) swung about the camera's axis and the ceiling panel (an area light) lowered: each
+    group's image changes over time as its light moves, and a moving light refused where it cannot move."""
+    from mbcapture.render import Renderer
+
+    motion = (
+        "  motion:\n"
+        "    flash: {type: orbit, axis: [0, 0, 1], centre: [0, 0.26, 0.62], period_s: 0.04}\n"
+        "    ceiling_panel: {type: linear, velocity_m_s: [0, -30.0, 0]}\n"
+    )
+    cfg = load_config(table(tmp_path, motion), [*TINY, "render.spp=16"])
+    scene = scene_of(cfg)
+    assert set(scene.build.file.moving_lights) == {"flash", "ceiling_panel"} and not scene.build.file.moving
+    renderer = Renderer.from_config(scene, cfg)
+    at = {t: renderer.render(t, 64, 1) for t in (0.0, 0.01)}
+    ambient, flash = scene.groups.index("ambient"), scene.groups.index("flash")
+    # the panel 30 cm lower lights the table more (inverse square); the spot, turned a quarter, lights elsewhere
+    assert at[0.01][ambient].mean() > 1.3 * at[0.0][ambient].mean()
+    assert np.abs(at[0.01][flash] - at[0.0][flash]).mean() > 0.3 * at[0.0][flash].mean()
+    np.testing.assert_array_equal(renderer.render(0.0, 64, 1), at[0.0])  # and back: a pose is a function of time
+    with pytest.raises(ConfigError, match=r"scene.motion: 'sun' is not the id of a shape, a spot light or"):
+        sun = tmp_path / "scene" / "sun.xml"
+        sun.write_text(
+            (tmp_path / "scene" / "table.xml")
+            .read_text()
+            .replace(
+                "</scene>",
+                '<emitter type="directional" id="sun"><vector name="direction" value="0,-1,0"/></emitter></scene>',
+            )
+        )
+        scene_of(load_config(table(tmp_path, "  motion:\n    sun: {type: linear}\n", file="scene/sun.xml")))

@@ -56,7 +56,6 @@ import io
 from dataclasses import dataclass, field
 
 import numpy as np
-from tqdm import tqdm
 
 from ..timing import protocols
 from ..apps.hdr import REL_MSE_EPS_RADIANCE
@@ -65,6 +64,7 @@ from ..output.io import encode_gif, encode_mp4, tonemapped_frames
 from ..metrics import luminance, relative_mse
 from .pipeline import capture_in_memory, frame_period_check, render_cache
 from ..progress import StageStatus
+from ..progress import bar as progress_bar
 from ..reconstruct.hdr import merge_hdr
 from ..render import Renderer, ensure_llvm
 from ..sensor import dn_to_electrons
@@ -247,7 +247,7 @@ def run_video(cfg, *, progress: bool = True):
     renderer = Renderer.from_config(scene, cfg, cache=cache)
     frames = []
     spp = None
-    with tqdm(total=n, desc="frames", unit="frame", disable=not progress, leave=False, dynamic_ncols=True) as bar:
+    with progress_bar(total=n, desc="frames", unit="frame", enabled=progress) as bar:
         for i in range(n):
             fcfg = frame_config(cfg, i, spp)
             with StageStatus(False) as status:

@@ -34,6 +34,7 @@ from scipy.linalg import blas
 from .filmstore import IN_MEMORY, FilmStore
 from .plan import Plan
 from ..render.renderer import RenderRows
+from ..progress import bar
 from ..timing.timeline import Timeline
 
 
@@ -200,9 +201,7 @@ def accumulate_groups(weights_s: np.ndarray, radiance: np.ndarray, out: np.ndarr
 
 
 def _progress(total: int, enabled: bool, desc: str):
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit="pass", disable=not enabled, leave=False, dynamic_ncols=True)
+    return bar(total=total, desc=desc, unit="pass", enabled=enabled)
 
 
 def integrate(

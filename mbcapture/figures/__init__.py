@@ -25,6 +25,7 @@ from typing import Any, Callable
 from ..capture.run import run_capture
 from ..config import load_config
 from ..errors import ConfigError
+from ..progress import bar as progress_bar
 from ..output.io import check_out_dir, staged_outputs
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -188,11 +189,10 @@ def make_figures(
     import matplotlib
 
     matplotlib.use("Agg")
-    from tqdm import tqdm
 
     entries = []
     with staged_outputs(out_dir) as st:
-        for spec in tqdm(chosen, desc="figures", unit="fig", disable=not progress, leave=False):
+        for spec in progress_bar(chosen, desc="figures", unit="fig", enabled=progress):
             t0 = time.perf_counter()
             fig_out = spec.fn(ctx)
             entries.append(_save(spec, fig_out, st, time.perf_counter() - t0))

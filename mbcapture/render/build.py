@@ -271,13 +271,15 @@ class Guide:
 class SceneFile:
     """A Mitsuba scene file in a scene (:mod:`mbcapture.render.xmlscene`): ``path`` (absolute), the values of
     its ``$parameters``, ``emitters``: each emitter's id (a shape's id for its area emitter) with its group,
-    and ``moving``: shape id -> the name of its part in :attr:`SceneBuild.parts` (its world-from-rest matrix
-    over time)."""
+    ``moving``: shape id -> the name of its part in :attr:`SceneBuild.parts` (its world-from-rest matrix over
+    time), and ``moving_lights``: the same for lights (a spot, or a rectangle, disk, sphere or cylinder with an
+    area emitter), moved through their own ``to_world``."""
 
     path: str
     parameters: Mapping[str, str]
     emitters: tuple[tuple[str, str], ...]
     moving: Mapping[str, str] = field(default_factory=dict)
+    moving_lights: Mapping[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

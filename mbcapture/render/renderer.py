@@ -414,6 +414,10 @@ class Renderer(PixelRendering):
                 if p.part is not None:
                     params[f"{p.name}.to_world"] = self._opaque_transform(self._describe.projector_world(p, t_s))
                     moved = True
+            for key, part in self._build.file.moving_lights.items() if self._build.file is not None else ():
+                m = np.asarray(parts[part](t_s), float) @ self._describe.light_rest[key]
+                params[f"{key}.to_world"] = self._opaque_transform(m)
+                moved = True
             if moved:
                 params.update()
         self._time_s = t_s

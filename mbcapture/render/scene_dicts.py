@@ -10,7 +10,7 @@ environment and the projectors. It sits above :mod:`.tiles` (a colour chart's ma
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -77,6 +77,8 @@ class SceneDicts:
     thin_lens: tuple[float, float] | None
     render_fov_deg: float
     sampler: str
+    #: a scene file's moving lights: id -> their to_world as the file places them (filled by :meth:`scene_dict`)
+    light_rest: dict = field(default_factory=dict)
 
     def group_emission(self, group: str) -> list[Any]:
         """The radiances of ``group``'s emitters (area lights and the environment)."""
@@ -182,7 +184,13 @@ class SceneDicts:
         for key, entry in xmlscene.file_entries(self.mi, state).items():
             if key in d or key in self.build.parts:
                 raise ConfigError(f"scene.file: {f.path}: id {key!r} is taken by the capture (rename it in the file)")
-            if key in f.moving:
+            if key in f.moving_lights:  # moved through its own to_world (light cannot be instanced)
+                rest = xmlscene.rest_matrix(entry)
+                self.light_rest[key] = rest
+                entry = {k: v for k, v in entry.items() if k not in ("center", "radius", "position")}
+                entry["to_world"] = self.mi.ScalarTransform4f(rest)
+                d[key] = entry
+            elif key in f.moving:
                 grouped.setdefault(f.moving[key], {"type": "shapegroup"})[key] = entry
             else:
                 d[key] = entry

@@ -225,6 +225,18 @@ def file_objects(state: Any) -> list[FileObject]:
     return out
 
 
+def rest_matrix(entry: dict[str, Any]) -> np.ndarray:
+    """(4, 4) to_world of a file's entry as the file places it: its ``to_world``, a sphere's centre and radius, or a
+    point light's position."""
+    m = np.asarray(entry["to_world"].matrix, dtype=np.float64) if "to_world" in entry else np.eye(4)
+    if "center" in entry or "position" in entry:
+        m = m.copy()
+        m[:3, 3] += np.asarray(entry.get("center", entry.get("position")), dtype=np.float64)
+    if "radius" in entry:
+        m[:3, :3] *= float(entry["radius"])
+    return m
+
+
 def emitter_pose(state: Any, key: str) -> tuple[np.ndarray, np.ndarray | None]:
     """(position, unit direction it faces or None) of emitter ``key`` as the file places it: a point or spot
     light's position (a spot's axis), an emitting shape's bounding-box centre (a rectangle's or disk's normal)."""

@@ -35,6 +35,7 @@ import numpy as np
 from ..sensor import emva
 from ..config import CaptureConfig
 from ..errors import ConfigError
+from ..progress import bar as progress_bar
 from ..output.htmlparts import CSS, esc, figure, fmt, table
 from ..output.io import staged_outputs
 from ..output.plots import datasheet_pngs
@@ -198,7 +199,6 @@ def _stack(stats: list[emva.PairStats]) -> emva.PairStats:
 
 def measure(cfg: CaptureConfig, settings: Settings | None = None, *, progress: bool = True) -> dict[str, ReadCurves]:
     """Take the series of every read mode and compute its figures (per channel)."""
-    from tqdm import tqdm
 
     settings = settings or Settings()
     settings.check()
@@ -209,14 +209,7 @@ def measure(cfg: CaptureConfig, settings: Settings | None = None, *, progress: b
     per_mode = 4 * settings.steps + 2 * settings.dark_steps + 2 * settings.frames
     out: dict[str, ReadCurves] = {}
     dc = cfg.sensor.dark_current_e_per_s
-    with tqdm(
-        total=per_mode * len(modes),
-        desc="characterize",
-        unit="frame",
-        disable=not progress,
-        leave=False,
-        dynamic_ncols=True,
-    ) as bar:
+    with progress_bar(total=per_mode * len(modes), desc="characterize", unit="frame", enabled=progress) as bar:
         for m, (mode, buckets) in enumerate(modes.items()):
             t_sat = charge_limit_e(cfg, len(buckets)) / rate.max()
             t = np.arange(1, settings.steps + 1) * (SERIES_END * t_sat / settings.steps)

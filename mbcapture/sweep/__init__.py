@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from ..output.io import check_out_dir, staged_outputs
+from ..progress import bar as progress_bar
 from ..render.cache import open_cache
 from .execute import ROWS_DIR, run_here, run_on_dask, start_client, usable_cores
 from .groups import SweepPlan, group_key, plan_sweep, render_inputs, render_key
@@ -165,7 +166,6 @@ def run_sweep(
     (the default) as :func:`choose_executor` says; ``client``: a ``dask.distributed.Client`` to run on
     (left open). ``resume``: points whose row in ``out/rows`` says ok are not run again. ``say``: where
     to print a line about the plan."""
-    from tqdm import tqdm
 
     say = say or (lambda line: None)
     if out is not None:
@@ -212,12 +212,8 @@ def run_sweep(
         say(f"running on {executor}")
     results: dict[int, Any] = {}
     try:
-        with tqdm(
-            total=len(pending),
-            desc=f"sweep {sweep.name}",
-            unit="point",
-            disable=not progress or not pending,
-            dynamic_ncols=True,
+        with progress_bar(
+            total=len(pending), desc=f"sweep {sweep.name}", unit="point", enabled=progress and bool(pending)
         ) as bar:
 
             def on_row(index: int, row: dict) -> None:

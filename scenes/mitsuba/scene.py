@@ -47,20 +47,38 @@ class Params(BaseModel):
     default_group: str = Field("ambient", description="the group of every emitter not named in groups (always on)")
     motion: dict[str, Motion] = Field(
         default_factory=dict,
-        description="shape id -> its motion over scene time: type keyframes, linear, orbit or pendulum "
-        "(mbcapture/scene/keyframes.py lists their keys)",
+        description="shape id (or a spot light's, or an emitting rectangle's, disk's, sphere's or cylinder's) -> its "
+        "motion over scene time: type keyframes, linear, orbit or pendulum (mbcapture/scene/keyframes.py lists "
+        "their keys)",
+    )
+
+
+#: What scene.motion can move besides shapes without light: lights moved through their own to_world.
+MOVABLE_LIGHTS = frozenset({"spot", "rectangle", "disk", "sphere", "cylinder"})
+
+
+def _movable_light(o: xmlscene.FileObject) -> bool:
+    return (o.kind == "Emitter" and o.plugin == "spot") or (
+        o.kind == "Shape" and o.emits and o.plugin in MOVABLE_LIGHTS
     )
 
 
 def _check_ids(params: Params, objects: list[xmlscene.FileObject], path: str) -> None:
     emitters = {o.id for o in objects if o.kind == "Emitter" or o.emits}
-    shapes = {o.id for o in objects if o.kind == "Shape" and not o.emits}
-    for key, pool, what in (("groups", emitters, "an emitter"), ("motion", shapes, "a shape without an emitter")):
+    movable = {o.id for o in objects if (o.kind == "Shape" and not o.emits) or _movable_light(o)}
+    for key, pool, what in (
+        ("groups", emitters, "an emitter"),
+        ("motion", movable, "a shape, a spot light or a rectangle, disk, sphere or cylinder light"),
+    ):
         for name in getattr(params, key):
             if name not in pool:
                 raise ConfigError(
                     f"scene.{key}: {name!r} is not the id of {what} in {path} (those: {', '.join(sorted(pool)) or 'none'})"
                 )
+
+
+def shape_ids(objects: list[xmlscene.FileObject]) -> set[str]:
+    return {o.id for o in objects if o.kind == "Shape"}
 
 
 def make(params: Params) -> SceneModel:
@@ -81,7 +99,12 @@ def make(params: Params) -> SceneModel:
         raise ConfigError(f"scene.file: {path} has no emitter: a capture needs light")
     groups = tuple(dict.fromkeys(g for _, g in emitters))
     parts = {f"{shape}__moving": motion.matrix for shape, motion in params.motion.items()}
-    corners = {shape: xmlscene.bounding_box(state, shape) for shape in params.motion}
+    lights = {o.id for o in objects if _movable_light(o)}
+    corners = {
+        key: (xmlscene.emitter_pose(state, key)[0][None, :] if key in lights and key not in shape_ids(objects)
+              else xmlscene.bounding_box(state, key))
+        for key in params.motion
+    }  # fmt: skip
 
     def motion_points(times_s: np.ndarray) -> np.ndarray:
         out = []
@@ -105,7 +128,8 @@ def make(params: Params) -> SceneModel:
                 path,
                 {k: str(v) for k, v in params.parameters.items()},
                 emitters,
-                {shape: f"{shape}__moving" for shape in params.motion},
+                {key: f"{key}__moving" for key in params.motion if key not in lights},
+                {key: f"{key}__moving" for key in params.motion if key in lights},
             ),
         ),
         params=params,
