@@ -14,6 +14,7 @@ shipped ones in ``configs/``, by its name (``metronome_hdr``).
 from __future__ import annotations
 
 import copy
+from abc import abstractmethod
 import dataclasses
 import difflib
 import math
@@ -56,8 +57,9 @@ class _OwnKeysSection(StrictModel):
 
     model_config = ConfigDict(extra="allow", validate_assignment=True)
 
+    @abstractmethod
     def check(self) -> None:
-        raise NotImplementedError
+        """Raise ConfigError if the section's keys are not those of what its name picks."""
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name.startswith("_"):

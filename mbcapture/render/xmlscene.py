@@ -237,19 +237,23 @@ def rest_matrix(entry: dict[str, Any]) -> np.ndarray:
     return m
 
 
-def emitter_pose(state: Any, key: str) -> tuple[np.ndarray, np.ndarray | None]:
-    """(position, unit direction it faces or None) of emitter ``key`` as the file places it: a point or spot
-    light's position (a spot's axis), an emitting shape's bounding-box centre (a rectangle's or disk's normal)."""
-    mi = _mitsuba()
-    entry = file_entries(mi, state)[key]
-    m = np.asarray(entry["to_world"].matrix, dtype=np.float64) if "to_world" in entry else np.eye(4)
+def entries(state: Any) -> dict[str, dict[str, Any]]:
+    """:func:`file_entries` in the current Mitsuba variant (scalar_rgb when none is set): what
+    :func:`emitter_pose` and :func:`bounding_box` read, converted once for all of them."""
+    return file_entries(_mitsuba(), state)
+
+
+def emitter_pose(entries: dict[str, dict[str, Any]], key: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """(position, unit direction it faces or None) of emitter ``key`` of :func:`entries` as the file places it: a
+    point or spot light's position (a spot's axis), an emitting shape's bounding-box centre (a rectangle's or
+    disk's normal)."""
+    entry = entries[key]
+    m = rest_matrix(entry)
+    facing = entry["type"] in ("spot", "rectangle", "disk")
+    axis = m[:3, 2] / np.linalg.norm(m[:3, 2]) if facing else None
     if entry["type"] in ("point", "spot"):
-        position = np.asarray(entry.get("position", m[:3, 3]), dtype=np.float64)
-        axis = m[:3, 2] / np.linalg.norm(m[:3, 2]) if entry["type"] == "spot" else None
-        return position, axis
-    corners = bounding_box(state, key)
-    normal = m[:3, 2] / np.linalg.norm(m[:3, 2]) if entry["type"] in ("rectangle", "disk") else None
-    return corners.mean(axis=0), normal
+        return m[:3, 3], axis
+    return bounding_box(entries, key).mean(axis=0), axis
 
 
 def referenced_files(state: Any) -> list[Path]:
@@ -261,15 +265,12 @@ def referenced_files(state: Any) -> list[Path]:
     return list(dict.fromkeys(files))
 
 
-def bounding_box(state: Any, shape_id: str) -> np.ndarray:
-    """(8, 3) corners of shape ``shape_id``'s world bounding box as the file places it (the shape loaded alone,
-    its references to other objects, such as a shared BSDF, left out: they do not change its box)."""
+def bounding_box(entries: dict[str, dict[str, Any]], shape_id: str) -> np.ndarray:
+    """(8, 3) corners of shape ``shape_id``'s (of :func:`entries`) world bounding box as the file places it (the
+    shape loaded alone, its references to other objects, such as a shared BSDF, left out: they do not change its
+    box)."""
     mi = _mitsuba()
-    entry = {
-        k: v
-        for k, v in file_entries(mi, state)[shape_id].items()
-        if not (isinstance(v, dict) and v.get("type") == "ref")
-    }
+    entry = {k: v for k, v in entries[shape_id].items() if not (isinstance(v, dict) and v.get("type") == "ref")}
     try:
         shape = mi.load_dict(entry)
     except Exception as exc:  # Mitsuba's loader: RuntimeError and others, with its message

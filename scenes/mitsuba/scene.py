@@ -99,10 +99,11 @@ def make(params: Params) -> SceneModel:
         raise ConfigError(f"scene.file: {path} has no emitter: a capture needs light")
     groups = tuple(dict.fromkeys(g for _, g in emitters))
     parts = {f"{shape}__moving": motion.matrix for shape, motion in params.motion.items()}
+    entries = xmlscene.entries(state)  # converted once for every pose and box below
     lights = {o.id for o in objects if _movable_light(o)}
     corners = {
-        key: (xmlscene.emitter_pose(state, key)[0][None, :] if key in lights and key not in shape_ids(objects)
-              else xmlscene.bounding_box(state, key))
+        key: (xmlscene.emitter_pose(entries, key)[0][None, :] if key in lights and key not in shape_ids(objects)
+              else xmlscene.bounding_box(entries, key))
         for key in params.motion
     }  # fmt: skip
 
@@ -134,16 +135,16 @@ def make(params: Params) -> SceneModel:
         ),
         params=params,
         motion_points=motion_points if params.motion else None,
-        extra=_flash_geometry(state, emitters, cam),
+        extra=_flash_geometry(entries, emitters, cam),
     )
 
 
-def _flash_geometry(state, emitters: tuple[tuple[str, str], ...], cam: Camera) -> dict:
+def _flash_geometry(entries: dict, emitters: tuple[tuple[str, str], ...], cam: Camera) -> dict:
     """Each group's light position (the mean of its emitters', world, m) and the unit direction it faces (a
     spot's axis, an emitting rectangle's normal; else towards the camera's view), as multi-flash reads them."""
     positions, directions = {}, {}
     for group in dict.fromkeys(g for _, g in emitters):
-        poses = [xmlscene.emitter_pose(state, key) for key, g in emitters if g == group]
+        poses = [xmlscene.emitter_pose(entries, key) for key, g in emitters if g == group]
         position = np.mean([p for p, _ in poses], axis=0)
         facing = [d for _, d in poses if d is not None]
         d = np.mean(facing, axis=0) if facing else np.asarray(cam.target) - position
