@@ -216,9 +216,9 @@ def get(name: str) -> App:
     return _REGISTRY[name]
 
 
-ProtocolBuilder = Callable[[Any], "tuple[list, list, int]"]
+ProtocolBuilder = Callable[[Any], Any]
 """``fn(cfg) -> (slots of one period, reads, buckets used)``: a protocol (timing.timeline's
-``SlotSeconds`` and ``ReadEvent``)."""
+``SlotSeconds`` and ``ReadEvent``); or ``fn(cfg) -> Timeline`` for one that lays out segments of its own."""
 
 _PROTOCOLS: dict[str, tuple[ProtocolBuilder, str]] = {}
 

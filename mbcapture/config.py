@@ -40,6 +40,7 @@ from .scene.camera_motion import CameraSection
 from .errors import ConfigError, ConfigNotice
 from .scene.optics import fov_deg_for
 from .render.settings import RenderSection
+from .sensor import demodulation
 from .sensor.config import SensorConfig
 from .sensor.spectral import EFFECTIVE_WAVELENGTH, is_spectral_variant
 
@@ -164,6 +165,44 @@ class GateCodeSpec(StrictModel):
         return self
 
 
+class TofSpec(StrictModel):
+    """What an indirect time-of-flight capture measures with (``capture.tof``; the tof_* protocols)."""
+
+    group: str = Field(
+        "illuminator",
+        description="The scene's switchable emitter group that is modulated (the ToF illuminator). Every other "
+        "group is ambient light: it reaches every tap in proportion to its gated time.",
+    )
+    frequencies_mhz: list[float] = Field(
+        [20.0],
+        min_length=1,
+        max_length=4,
+        description="Modulation frequencies, MHz, each measured with capture.tof.phases phases. One frequency wraps "
+        "every c / (2 f) (7.49 m at 20 MHz); two or more are unwrapped together (docs/tof.md).",
+    )
+    phases: int = Field(
+        4,
+        ge=3,
+        le=16,
+        description="Demodulation phases per frequency, evenly spaced from 0 (3, 4 or 8 are usual); a multiple of "
+        "the pixel's taps.",
+    )
+    exposure_s: float = Field(
+        1e-3,
+        gt=0,
+        description="Integration time per frequency, s: the illuminator's on-time for that frequency's phases, "
+        "shared by every design (a 4-tap pixel takes all phases in it at once; a 2-tap pixel two sub-frames of "
+        "half of it; a 1-tap pixel four of a quarter, draining half of each period).",
+    )
+
+    @field_validator("frequencies_mhz")
+    @classmethod
+    def _positive_distinct(cls, v: list[float]) -> list[float]:
+        if not all(math.isfinite(f) and 0.0 < f <= 1000.0 for f in v) or len(set(v)) != len(v):
+            raise ValueError(f"expected distinct frequencies in (0, 1000] MHz, got {v}")
+        return v
+
+
 #: The protocols that read capture.exposure_ratios (mbcapture.apps.hdr).
 HDR_PROTOCOLS = ("photon_efficient_hdr", "interleaved_hdr")
 
@@ -205,6 +244,11 @@ class CaptureSection(StrictModel):
     )
     schedule: ScheduleSpec | None = Field(
         None, description="The 'custom' protocol's schedule (required for it, refused otherwise)."
+    )
+    tof: TofSpec | None = Field(
+        None,
+        description="Indirect time of flight (required by the tof_* protocols, refused by others): the modulated "
+        "group, frequencies, phases and integration time (docs/tof.md).",
     )
     frames: int = Field(
         1,
@@ -248,6 +292,23 @@ class CaptureSection(StrictModel):
         if self.exposure_ratios is not None and self.protocol not in HDR_PROTOCOLS:
             raise ValueError(
                 f"capture.exposure_ratios is only read by {' and '.join(HDR_PROTOCOLS)}, not {self.protocol!r}"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _tof_only_for_tof(self) -> "CaptureSection":
+        design = demodulation.DESIGNS.get(self.protocol)
+        if design is not None and self.tof is None:
+            raise ValueError(f"capture.tof is required by the time-of-flight protocol {self.protocol!r}")
+        if design is None and self.tof is not None:
+            raise ValueError(
+                f"capture.tof is only read by the time-of-flight protocols {sorted(demodulation.DESIGNS)}, "
+                f"not {self.protocol!r}"
+            )
+        if design is not None and self.tof.phases % design.taps:
+            raise ValueError(
+                f"capture.tof.phases: {self.tof.phases} phases do not split over the {design.taps} taps of "
+                f"{self.protocol!r}; use a multiple of {design.taps}"
             )
         return self
 
@@ -418,10 +479,47 @@ def scene_of(cfg: CaptureConfig) -> scenes.SceneModel:
     (shake or a trajectory, :func:`mbcapture.scene.camera_motion.apply`; ``camera.focal_length_mm`` sets
     its field of view)."""
     scene = scenes.make_scene(cfg.scene.name, cfg.scene.params())
+    if cfg.capture.tof is not None:
+        scene = demodulated(scene, cfg)
     if cfg.camera.focal_length_mm is not None:
         fov = fov_deg_for(cfg.camera.focal_length_mm, cfg.render.width, cfg.sensor.pixel_pitch_um)
         scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, fov_deg=fov))
     return camera_motion.apply(scene, cfg.camera)
+
+
+def demodulated(scene: scenes.SceneModel, cfg: CaptureConfig) -> scenes.SceneModel:
+    """``scene`` with the phase groups of a time-of-flight capture added as switchable groups (the taps'
+    images, :mod:`mbcapture.sensor.demodulation`), the modulated group checked."""
+    tof, pixel = cfg.capture.tof, cfg.sensor.tof
+    if tof.group not in scene.groups:
+        raise ConfigError(
+            f"capture.tof.group: {tof.group!r} is not an emitter group of scene {scene.name!r} "
+            f"(its groups: {list(scene.groups)})"
+        )
+    if tof.group not in scene.switchable:
+        raise ConfigError(
+            f"capture.tof.group: {tof.group!r} of scene {scene.name!r} is always on; the modulated illuminator "
+            f"must be switchable (switchable: {sorted(scene.switchable)})"
+        )
+    if is_spectral_variant(cfg.render.variant):
+        raise ConfigError(
+            "render.variant: time-of-flight captures render in RGB variants (the phasor channels are AOVs)"
+        )
+    demod = demodulation.make_demodulation(
+        tof.group,
+        [f * 1e6 for f in tof.frequencies_mhz],
+        tof.phases,
+        demodulation.DESIGNS[cfg.capture.protocol],
+        pixel.demodulation_contrast,
+        pixel.waveform,
+        pixel.harmonics,
+    )
+    return dataclasses.replace(
+        scene,
+        groups=scene.groups + demod.names,
+        switchable=scene.switchable | frozenset(demod.names),
+        demodulation=demod,
+    )
 
 
 def format_validation(

@@ -71,6 +71,8 @@ from functools import lru_cache
 from typing import Any, Sequence
 
 from . import pattern
+from ..sensor import demodulation
+from .aov import NEAR_CLIP_M
 
 #: Name under which the integrator is registered with ``mi.register_integrator``.
 PLUGIN_NAME = "mbcapture_groups"
@@ -78,6 +80,58 @@ PLUGIN_NAME = "mbcapture_groups"
 #: The shared pattern's pairs of dimensions for the camera ray's position in the pixel and on the lens
 #: (far from the paths', which count up from 0 by vertex).
 CAMERA_DIM = 0x7FFF0000
+
+
+def aov_layout(
+    basis: Sequence[str], group_emitters: dict[str, list[Any]]
+) -> tuple[list[str], list[list[float]], dict[str, int]]:
+    """What one pass renders for the images named ``basis`` (emitter groups, and phasor channels named by
+    :func:`mbcapture.sensor.demodulation.basis_name`): the groups to render (those with emitters), each group's
+    wavenumbers, and the index of each rendered name's three AOV channels among :meth:`GroupPath.aov_names`
+    (a name missing from it renders black)."""
+    groups: list[str] = []
+    waves: dict[str, list[float]] = {}
+    for name in basis:
+        parsed = demodulation.parse_basis(name)
+        g = name if parsed is None else parsed[0]
+        if not group_emitters.get(g):
+            continue
+        if g not in groups:
+            groups.append(g)
+        if parsed is not None and parsed[1] not in waves.setdefault(g, []):
+            waves[g].append(parsed[1])
+    slots = {g: i for i, g in enumerate(groups)}
+    n = len(groups)
+    for g in groups:
+        for k in waves.get(g, []):
+            slots[demodulation.basis_name(g, k, "cos")], slots[demodulation.basis_name(g, k, "sin")] = n, n + 1
+            n += 2
+    return groups, [waves.get(g, []) for g in groups], slots
+
+
+def waves_by_group(waves: list[tuple[int, float]], n_groups: int) -> list[list[tuple[int, float]]]:
+    """Per group, (index among ``waves``, wavenumber) of its waves (outside :meth:`GroupPath.sample`, whose
+    ``dr.syntax`` rewrite takes no comprehension over tuples)."""
+    out: list[list[tuple[int, float]]] = [[] for _ in range(n_groups)]
+    for i, (g, k) in enumerate(waves):
+        out[g].append((i, k))
+    return out
+
+
+def add_phasors(phasor, waves, light, length, only=None):
+    """``phasor`` (cos, sin pairs of every (group, wavenumber) in ``waves``) plus ``light[g] cos(k length)`` and
+    ``light[g] sin(k length)`` for the waves whose group ``light`` holds (``only``: (index, k) of the waves to
+    add, default all); a new tuple (Dr.Jit's += is in place)."""
+    import drjit as dr
+
+    out = list(phasor)
+    for i, (g, k) in enumerate(waves) if only is None else [(i, (waves[i][0], k)) for i, k in only]:
+        if g not in (light if isinstance(light, dict) else range(len(light))):
+            continue
+        s, c = dr.sincos(length * k)
+        out[2 * i] = out[2 * i] + light[g] * c
+        out[2 * i + 1] = out[2 * i + 1] + light[g] * s
+    return tuple(out)
 
 
 def mis_power(pdf_a: Any, pdf_b: Any) -> Any:
@@ -238,6 +292,8 @@ class GroupPath:
             raise ValueError("max_depth must be >= 1")
         self.group_names: list[str] = []
         self.group_emitters: list[list[Any]] = []
+        #: per group, the wavenumbers (rad/m) of its phasor channels (:meth:`set_groups`)
+        self.phasors: list[list[float]] = []
         self.spectral: bool = bool(mi.is_spectral)
         #: None: every dimension from Mitsuba's sampler. Else (seed, offset, first pixel): the dimensions
         #: from the shared pattern (mbcapture.render.pattern), the sample j of a pixel being the
@@ -257,14 +313,25 @@ class GroupPath:
         #: (Lambertian scenes; see the module doc). Set by the renderer with :attr:`lambertian`.
         self.light_alone_at_last: bool = False
 
-    def set_groups(self, names: Sequence[str], emitters: Sequence[Sequence[Any]]) -> None:
-        """Choose the groups to render: ``emitters[g]`` are the emitters of ``names[g]``."""
+    def set_groups(
+        self,
+        names: Sequence[str],
+        emitters: Sequence[Sequence[Any]],
+        phasors: Sequence[Sequence[float]] | None = None,
+    ) -> None:
+        """Choose the groups to render: ``emitters[g]`` are the emitters of ``names[g]``; ``phasors[g]`` the
+        wavenumbers k (rad/m) at which group g's light is also written as ``L cos(k l)`` and ``L sin(k l)``,
+        l each path's optical length (none by default)."""
         if len(names) != len(emitters) or not names:
             raise ValueError("need one emitter list per group, at least one group")
         if self.spectral and len(names) != 1:
             raise ValueError("spectral variants render one group per pass (no per-group AOVs)")
+        phasors = [[] for _ in names] if phasors is None else [[float(k) for k in p] for p in phasors]
+        if len(phasors) != len(names) or (self.spectral and any(phasors)):
+            raise ValueError("need one wavenumber list per group (RGB variants only)")
         self.group_names = list(names)
         self.group_emitters = [list(e) for e in emitters]
+        self.phasors = phasors
 
     def use_pattern(self, seed: int | None, offset: int = 0, first_pixel: int = 0, lanes: Any = None) -> None:
         """Draw the next renders' samples from the pattern keyed ``seed`` (None: from Mitsuba's
@@ -278,7 +345,10 @@ class GroupPath:
     def aov_names(self) -> list[str]:
         if self.spectral:
             return []
-        return [f"{g}.{c}" for g in self.group_names for c in "RGB"]
+        names = [f"{g}.{c}" for g in self.group_names for c in "RGB"]
+        for gi, ks in enumerate(self.phasors):
+            names += [f"phasor{gi}_{j}{part}.{c}" for j in range(len(ks)) for part in "cs" for c in "RGB"]
+        return names
 
     def _draws(self, scene, sampler, ray) -> tuple[Any, Any, Any]:
         """``next_1d(sampler, dim, active)``, ``next_2d(...)`` and the camera ray for :meth:`sample`:
@@ -349,6 +419,14 @@ class GroupPath:
         result = tuple(mi.Spectrum(0.0) for _ in range(n_groups))
         n_emitters = sum(len(e) for e in emitters)
         next_1d, next_2d, ray = self._draws(scene, sampler, ray)
+        # phasor channels: per group and wavenumber k, sums of L cos(k l) and L sin(k l), l the optical length
+        # from the camera's centre of projection (the camera ray starts on the near-clip plane, NEAR_CLIP_M / cos
+        # from it) through every vertex to the point on the emitter
+        waves = [(g, k) for g in range(n_groups) for k in self.phasors[g]] if self.phasors else []
+        waves_of = waves_by_group(waves, n_groups)
+        phasor = tuple(mi.Spectrum(0.0) for _ in range(2 * len(waves)))
+        forward = dr.normalize(scene.sensors()[0].world_transform() @ mi.Vector3f(0.0, 0.0, 1.0))
+        path_length = mi.Float(NEAR_CLIP_M) / dr.maximum(dr.dot(ray.d, forward), 1e-6) if waves else mi.Float(0.0)
         shading = lambertian_shading if self.lambertian else general_shading
         guides = self.guides
 
@@ -360,6 +438,8 @@ class GroupPath:
             em_hit = si.emitter(scene, active)
             ds = mi.DirectionSample3f(scene, si, prev_si)
             hit_terms = []
+            here = path_length + dr.select(si.is_valid(), si.t, 0.0)  # camera to this vertex
+            hit_light = [mi.Spectrum(0.0) for _ in range(n_groups)]
             for g in range(n_groups):
                 acc = result[g]
                 for emitter, ptr in zip(emitters[g], ptrs[g]):
@@ -367,8 +447,11 @@ class GroupPath:
                     em_pdf = emitter.pdf_direction(prev_si, ds, hit & ~prev_bsdf_delta)
                     w = dr.select(prev_bsdf_delta, 1.0, mis_power(prev_bsdf_pdf, em_pdf))
                     value = emitter.eval(si, hit & (prev_bsdf_pdf > 0))
-                    acc = acc + dr.select(hit, throughput * value * w, 0.0)
+                    term = dr.select(hit, throughput * value * w, 0.0)
+                    acc = acc + term
+                    hit_light[g] = hit_light[g] + term
                 hit_terms.append(acc)
+            phasor = add_phasors(phasor, waves, hit_light, here)
 
             # the last vertex only collects emission
             active_next = active & si.is_valid() & (depth + 1 < max_depth)
@@ -386,6 +469,7 @@ class GroupPath:
             n_em = 0
             for g in range(n_groups):
                 acc = hit_terms[g]
+                wave_g = waves_of[g]
                 for emitter in emitters[g]:
                     n_em += 1
                     u_em = next_2d(sampler, depth * (n_emitters + 2) + n_em, active_em)
@@ -399,7 +483,9 @@ class GroupPath:
                     ok &= dr.any(bsdf_val * em_weight != 0.0)
                     ok &= ~scene.ray_test(si.spawn_ray_to(ds_em.p), ok)
                     w = dr.select(ds_em.delta | last, 1.0, mis_power(ds_em.pdf, bsdf_pdf))
-                    acc = acc + dr.select(ok, throughput * bsdf_val * em_weight * w, 0.0)
+                    term = dr.select(ok, throughput * bsdf_val * em_weight * w, 0.0)
+                    acc = acc + term
+                    phasor = add_phasors(phasor, waves, {g: term}, here + ds_em.dist, only=wave_g)
                 nee_terms.append(acc)
             result = tuple(nee_terms)
 
@@ -414,6 +500,7 @@ class GroupPath:
             prev_si = si
             prev_bsdf_pdf = pdf_bsdf
             prev_bsdf_delta = delta_bsdf
+            path_length = here
             active = active_next & ~last & (dr.max(throughput) > 0.0)
             depth += 1
 
@@ -421,6 +508,7 @@ class GroupPath:
         for g in range(n_groups):
             total = total + result[g]  # not '+=': Dr.Jit's += is in place
         aovs = [] if self.spectral else [result[g][c] for g in range(n_groups) for c in range(3)]
+        aovs += [value[c] for value in phasor for c in range(3)]
         return total, valid_first, aovs
 
     def to_string(self) -> str:

@@ -12,7 +12,7 @@ from typing import Sequence
 import numpy as np
 
 from .bands import band_seed
-from .integrator import CAMERA_DIM
+from .integrator import aov_layout, CAMERA_DIM
 from .pattern import pair as pattern_pair, pixel_key
 
 
@@ -85,17 +85,21 @@ class PixelRendering:
             if counts.size and (counts.min() < 1 or offsets.min() < 0 or (offsets + counts).max() > 2**32):
                 raise ValueError("render_pixels: expected samples >= 1 a pixel and pattern samples within 0 .. 2^32")
 
+        basis = self.basis_of(req)
+
         def rendered(at: np.ndarray, n: np.ndarray, first: np.ndarray | None, s: int) -> np.ndarray:
-            """``_render_pixels`` of pixels ``at`` (the pinhole's, before the lens), kept in the cache if asked."""
+            """``_render_pixels`` of pixels ``at`` (the pinhole's, before the lens), kept in the cache if asked;
+            phase groups combined after it (:meth:`basis_of`)."""
             pat = None if pattern is None else (pattern[0], first)
             if not cached:
-                return self._render_pixels(t_s, n, s, req, at, pat, first)
+                return self.combined(self._render_pixels(t_s, n, s, basis, at, pat, first), basis, req)
             params = {
-                **self._cache_params(n, s, req, pat),
+                **self._cache_params(n, s, basis, pat),
                 "pixels": hashlib.sha256(at.tobytes()).hexdigest(),
                 "n_pixels": int(at.size),
             }
-            return self.cached("pixels", t_s, params, lambda: self._render_pixels(t_s, n, s, req, at, pat, first))
+            img = self.cached("pixels", t_s, params, lambda: self._render_pixels(t_s, n, s, basis, at, pat, first))
+            return self.combined(img, basis, req)
 
         if self.renders_pixels_alone:
             out = rendered(pix, counts, offsets, seed)
@@ -135,7 +139,7 @@ class PixelRendering:
         the group's wavelengths (as :meth:`_render`)."""
         out = np.zeros((len(req), pix.size, 3), np.float32)
         self._ensure_loaded()  # the emitters of each group are known once the scene is loaded
-        lit = [g for g in req if self._group_emitters[g]]
+        lit, waves, slots = aov_layout(req, self._group_emitters)
         if not lit or pix.size == 0:
             return out
         self.set_time(t_s)
@@ -147,10 +151,14 @@ class PixelRendering:
                 else (self._scene, self._params, [self._group_emitters[g] for g in groups])
             )
             self._set_rows(params, (0, self.height))  # the rays below address the whole film
-            self._integrator.set_groups(groups, emitters)
+            self._integrator.set_groups(groups, emitters, None if self.spectral else waves)
             sums = self._pixel_sums(scene, groups[0] if self.spectral else None, counts, seed, pix, pattern, offsets)
-            for i, g in enumerate(groups):
-                out[req.index(g)] = sums[:, i]
+            if self.spectral:
+                out[req.index(groups[0])] = sums[:, 0]
+                continue
+            for name, i in slots.items():
+                if name in req:
+                    out[req.index(name)] = sums[:, i]
         return out
 
     def _scene_of(self, group: str) -> tuple[Any, Any, list[list[Any]]]:

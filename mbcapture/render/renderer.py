@@ -24,7 +24,7 @@ from .lens import Lens
 from .pixels import PixelRendering
 from .settings import RenderSettings, guide_shares, load_mitsuba
 from .cache import RenderCache, canonical, digest, file_digest
-from .integrator import PLUGIN_NAME, integrator_class, is_lambertian
+from .integrator import PLUGIN_NAME, aov_layout, integrator_class, is_lambertian
 from .llvm import llvm_target
 from .scene_dicts import CHANNELS, SENSORS, SceneDicts
 from .tiles import materialize
@@ -159,6 +159,13 @@ class Renderer(PixelRendering):
         #: the share of every diffuse bounce sent towards the scene's guides together (0: none)
         self.guide_fraction = float(sum(self.guide_shares))
         self.groups: tuple[str, ...] = tuple(scene.groups)
+        #: a time-of-flight capture's phase groups (:mod:`mbcapture.sensor.demodulation`): images made from the
+        #: modulated group's phasor channels after a render (and after the cache), so that every design of the
+        #: taps shares the renders
+        self.demodulation = scene.demodulation
+        phase = set(self.demodulation.names) if self.demodulation is not None else set()
+        #: the groups that have emitters (every group but the phase groups)
+        self.emitter_groups: tuple[str, ...] = tuple(g for g in self.groups if g not in phase)
         self._build = build = scene.build
         self._check_build(build)
         self._python_objects: list[Any] = []  # Python Mitsuba objects its scenes hold (mbcapture.render.tiles)
@@ -169,7 +176,7 @@ class Renderer(PixelRendering):
             self._mi,
             build,
             scene.name,
-            self.groups,
+            self.emitter_groups,
             scene.camera,
             self.width,
             self.height,
@@ -300,7 +307,7 @@ class Renderer(PixelRendering):
         return digest(
             {
                 "scene": [canonical(d, self._mi) for d in dicts],
-                "groups": list(self.groups),
+                "groups": list(self.emitter_groups),
                 "variant": self.variant,
                 "max_depth": self.max_depth,
                 "guides": [[*g.centre, g.radius, share] for g, share in zip(self._build.guides, self.guide_shares)]
@@ -522,17 +529,34 @@ class Renderer(PixelRendering):
         """What :meth:`render` caches: band ``band`` of the render before the lens's falloff, distortion,
         diffraction and mono mixture (what :meth:`give` takes)."""
         req = list(groups)
+        basis = self.basis_of(req)
         n = self.sample_count(spp, pattern is not None)
-        params = self._cache_params(n, seed, req, pattern)
+        params = self._cache_params(n, seed, basis, pattern)
         if len(self.bands) == 1:  # the whole film: the key it has always had
-            return self.cached(
-                "radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), req, None, pattern)
+            img = self.cached(
+                "radiance", t_s, params, lambda: self._render(t_s, int(n), int(seed), basis, None, pattern)
             )
-        rows = self.bands[band]
-        params["rows"] = list(rows)
-        return self.cached(
-            "radiance", t_s, params, lambda: self._render(t_s, int(n), band_seed(seed, band), req, rows, pattern)
-        )
+        else:
+            rows = self.bands[band]
+            params["rows"] = list(rows)
+            img = self.cached(
+                "radiance",
+                t_s,
+                params,
+                lambda: self._render(t_s, int(n), band_seed(seed, band), basis, rows, pattern),
+            )
+        return self.combined(img, basis, req)
+
+    def basis_of(self, req: list[str]) -> list[str]:
+        """What is rendered for the groups ``req``: themselves, a phase group replaced by the modulated group's
+        light and phasor channels (:meth:`mbcapture.sensor.demodulation.Demodulation.basis_of`)."""
+        return req if self.demodulation is None else self.demodulation.basis_of(req)
+
+    def combined(self, img: np.ndarray, basis: list[str], req: list[str]) -> np.ndarray:
+        """Renders of ``basis`` (first axis) -> the images of ``req`` (the phase groups combined)."""
+        if self.demodulation is None or basis == req:
+            return img
+        return self.demodulation.combine(img, basis, req).astype(np.float32)
 
     @staticmethod
     def _cache_params(
@@ -577,7 +601,7 @@ class Renderer(PixelRendering):
             self._integrator.use_pattern(pattern[0], pattern[1], rows[0] * self.width)
         h = rows[1] - rows[0]
         out = np.zeros((len(req), h, self.width, 3), np.float32)
-        lit = [g for g in req if self._group_emitters[g]]
+        lit, waves, slots = aov_layout(req, self._group_emitters)
         if lit and self.spectral:
             self.set_time(t_s)
             for g in lit:
@@ -589,7 +613,7 @@ class Renderer(PixelRendering):
         elif lit:
             self.set_time(t_s)
             self._set_rows(self._params, rows)
-            self._integrator.set_groups(lit, [self._group_emitters[g] for g in lit])
+            self._integrator.set_groups(lit, [self._group_emitters[g] for g in lit], waves)
             img = self._mi.render(
                 self._scene,
                 integrator=self._integrator,
@@ -598,9 +622,10 @@ class Renderer(PixelRendering):
                 sensor=self._sensor_index(pattern),
             )
             arr = np.asarray(img, dtype=np.float32)[..., 3:]
-            arr = arr.reshape(h, self.width, len(lit), 3).transpose(2, 0, 1, 3)
-            for i, g in enumerate(lit):
-                out[req.index(g)] = arr[i]
+            arr = arr.reshape(h, self.width, -1, 3).transpose(2, 0, 1, 3)
+            for name, i in slots.items():
+                if name in req:
+                    out[req.index(name)] = arr[i]
         self.last_render_s = time.perf_counter() - start
         return out
 

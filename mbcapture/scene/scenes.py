@@ -59,6 +59,10 @@ class SceneModel:
         Optional group -> :class:`~mbcapture.timing.drive.Drive`: emitter drive that varies
         continuously in time (mains flicker), integrated exactly into the render weights.
         Groups not named have a constant drive of 1.
+    demodulation
+        A time-of-flight capture's :class:`~mbcapture.sensor.demodulation.Demodulation` (set by the capture,
+        :func:`mbcapture.config.demodulated`): its phase groups are among :attr:`groups`, and the renderer makes
+        their images from the modulated group's phasor channels. None otherwise.
     camera_motion
         Optional :class:`~mbcapture.scene.camera_motion.CameraMotion` (``camera.shake`` or a trajectory
         file, set by the capture, not by scene modules): the camera's pose over time about
@@ -77,6 +81,7 @@ class SceneModel:
     extra: dict = field(default_factory=dict)
     drives: dict = field(default_factory=dict)
     camera_motion: Any = None
+    demodulation: Any = None
 
     @property
     def is_static(self) -> bool:

@@ -23,7 +23,32 @@ from ..strict import StrictModel
 from .presets import load_preset
 from .spectral import check_spectral_response
 
-__all__ = ["SensorConfig"]
+__all__ = ["SensorConfig", "TofPixel"]
+
+
+class TofPixel(StrictModel):
+    """An indirect time-of-flight pixel's demodulation (``sensor.tof``; read by the tof_* protocols only)."""
+
+    demodulation_contrast: float = Field(
+        0.8,
+        gt=0.0,
+        le=1.0,
+        description="Share of the photo-charge the tap gates route to the right tap at the modulation frequency "
+        "(1: ideal; published 2-tap pixels: 0.45 at 50 MHz (TI OPT8241) to 0.9). Scales the correlation, not "
+        "the light collected.",
+    )
+    waveform: Literal["sine", "square"] = Field(
+        "sine",
+        description="The illuminator's modulation: sine (one harmonic), or square of 50 % duty (odd harmonics "
+        "4 / (pi h), rendered up to sensor.tof.harmonics: their aliasing is the 'wiggling' depth error).",
+    )
+    harmonics: int = Field(
+        5,
+        ge=1,
+        le=15,
+        description="Highest harmonic of a square waveform rendered (each odd harmonic costs two channels a "
+        "frequency). Unused with sine.",
+    )
 
 
 def _three_per_channel(name: str, values: list[float]) -> list[float]:
@@ -202,6 +227,11 @@ class SensorConfig(StrictModel):
         description="Seed of the temporal noise of the capture (shot, transfer and read noise). null: derived "
         "from the top-level seed. The renders depend on the top-level seed only, so changing noise_seed draws new "
         "noise on the same (cached) renders.",
+    )
+
+    tof: TofPixel = Field(
+        default_factory=TofPixel,
+        description="Indirect time-of-flight demodulation (the tof_* protocols; docs/tof.md).",
     )
 
     @model_validator(mode="before")

@@ -3,7 +3,8 @@
 
 Protocols are registered by the applications that read them (:func:`mbcapture.application.register_protocol`;
 the HDR protocols and ``custom`` in :mod:`mbcapture.apps.hdr`); a protocol gives one period's slots,
-repeated ``capture.periods`` times.
+repeated ``capture.periods`` times, or a whole :class:`~mbcapture.timing.timeline.Timeline` where it lays
+out segments of its own (the time-of-flight sub-frames, :mod:`mbcapture.apps.tof`).
 
 ``capture.sequential: true`` turns any of them into the conventional-sensor capture of the
 same reads: one contiguous frame per read (its exposure, with the emitter groups its buckets
@@ -105,8 +106,17 @@ def build(cfg: CaptureConfig) -> Timeline:
     pixel when ``capture.gate_code``)."""
     name = cfg.capture.protocol
     if cfg.capture.gate_code is not None:
+        if cfg.capture.tof is not None:
+            raise ConfigError("capture.gate_code: the time-of-flight protocols use global gates; set it null")
         return _coded(cfg)
-    slots, reads, k = protocol_builder(name)(cfg)
+    built = protocol_builder(name)(cfg)
+    if isinstance(built, Timeline):  # a protocol of several segments (the time-of-flight sub-frames)
+        if cfg.capture.sequential:
+            raise ConfigError(
+                f"capture.sequential: protocol {name!r} lays out its own sub-frames; set capture.sequential false"
+            )
+        return built
+    slots, reads, k = built
     if cfg.capture.sequential:
         return _sequential(slots, reads, cfg.capture.periods, cfg)
     segment = SegmentSeconds(exact(cfg.capture.start_s), tuple(slots), cfg.capture.periods)
