@@ -208,6 +208,106 @@ def _reconstruct(values: np.ndarray, variances: np.ndarray | None, taps: list[Ph
     return {"fits": fits, "depth": depth, "spread": spread}
 
 
+def _against_truth(
+    data: CaptureData,
+    params: TofParams,
+    got: dict,
+    expected: dict,
+    valid: np.ndarray,
+    depth: np.ndarray,
+    max_range: float,
+    freqs: list[float],
+) -> tuple[dict, dict, dict, list, list]:
+    """Scores against the depth AOV: (metrics, images, previews, summary lines, warnings)."""
+    metrics, images, png, summary, warnings = {}, {}, {}, [], []
+    tl = data.timeline
+    t_mid = float(Fraction(tl.start_tick + tl.end_tick, 2) * tl.tick_s)
+    truth = render_depth(data.renderer, t_mid).distance_m
+    finite = np.isfinite(truth)
+    far = float(truth[finite].max()) if finite.any() else 0.0
+    near = float(truth[finite].min()) if finite.any() else 0.0
+    if far > max_range:
+        warnings.append(
+            f"the scene reaches {far:.2f} m but the unambiguous range is {max_range:.2f} m: farther surfaces wrap "
+            "to near depths" + ("; add a second frequency (capture.tof.frequencies_mhz)" if len(freqs) == 1 else "")
+        )
+    tol = params.tolerance_mm * 1e-3
+    systematic = expected["depth"]
+    regions = {"all": finite}
+    if data.moving_mask.any():
+        regions["moving_region"] = finite & data.moving_mask
+        regions["static_region"] = finite & ~data.moving_mask
+    corner = _corner_mask(data, truth, params.corner_radius_m)
+    if corner is not None and corner.any():
+        regions["corner"] = corner
+        regions["away_from_corner"] = finite & ~corner
+    fly, edge_px = flying_pixels(got["depth"], valid, truth, params.edge_jump_m)
+    fly0, _ = flying_pixels(systematic, finite, truth, params.edge_jump_m)
+    # the surface each pixel sees at the earliest and the latest tap's time centroid: where it changes by more
+    # than the tolerance, the taps measured different surfaces (the design's exposure to motion artefacts)
+    cents = [tl.centroid_ticks(r.buckets) for r in tl.reads]
+    t_first, t_last = (float(c * tl.tick_s) for c in (min(cents), max(cents)))
+    at_first, at_last = (render_depth(data.renderer, t).distance_m for t in (t_first, t_last))
+    with np.errstate(invalid="ignore"):
+        change = np.abs(np.where(np.isfinite(at_first), at_first, 1e9) - np.where(np.isfinite(at_last), at_last, 1e9))
+    off = change > tol
+    metrics["truth"] = {
+        "time_s": t_mid,
+        "what": "distance along each pixel's centre ray (depth aov) at the capture's mid-time",
+        "near_m": near,
+        "far_m": far,
+        "tolerance_mm": params.tolerance_mm,
+    }
+    metrics["depth"] = {name: depth_scores(depth, truth, m & valid, tol) for name, m in regions.items()}
+    metrics["systematic"] = {name: depth_scores(systematic, truth, m, tol) for name, m in regions.items()}
+    metrics["flying_pixels"] = {
+        "edge_px": edge_px,
+        "measured": int(fly.sum()),
+        "noise_free": int(fly0.sum()),
+        "fraction": float(fly.sum() / edge_px) if edge_px else 0.0,
+    }
+    moving_px = max(int(data.moving_mask.sum()), 1)
+    metrics["motion_artefact"] = {
+        "what": "pixels whose true distance changes by more than the tolerance between the earliest and the latest "
+        "tap's time centroid: their taps measured different surfaces",
+        "taps_apart_s": t_last - t_first,
+        "px": int(off.sum()),
+        "fraction_of_moving_region": float((off & data.moving_mask).sum() / moving_px),
+        "error_there": depth_scores(depth, truth, off & valid, tol),
+    }
+    err = np.where(valid & finite, got["depth"] - truth, np.nan) * 1e3
+    err0 = np.where(finite, systematic - truth, np.nan) * 1e3
+    images["taps_see_motion"] = off.astype(np.float32)
+    images |= {
+        "depth_truth": np.nan_to_num(truth, posinf=0.0).astype(np.float32),
+        "depth_error_mm": np.nan_to_num(err, nan=0.0).astype(np.float32),
+        "systematic_error_mm": np.nan_to_num(err0, nan=0.0).astype(np.float32),
+        "depth_preview": _depth_preview(depth, near, far),
+        "depth_truth_preview": _depth_preview(np.where(finite, truth, np.nan), near, far),
+        "error_preview": _error_preview(err, params.tolerance_mm),
+        "systematic_preview": _error_preview(err0, params.tolerance_mm),
+    }
+    png |= {
+        "depth": ("depth_preview", None),
+        "depth_truth": ("depth_truth_preview", None),
+        "depth_error": ("error_preview", None),
+        "systematic_error": ("systematic_preview", None),
+    }
+    a = metrics["depth"]["all"]
+    fmt = lambda v: "n/a" if v is None else f"{v:.3g}"  # noqa: E731
+    summary.append(
+        f"depth MAE {fmt(a['mae_mm'])} mm, RMSE {fmt(a['rmse_mm'])} mm, "
+        f"{100 * (a['within_tolerance'] or 0):.1f}% within {params.tolerance_mm:g} mm; "
+        f"flying pixels {int(fly.sum())} of {edge_px} at edges"
+    )
+    if "moving_region" in metrics["depth"]:
+        m = metrics["depth"]["moving_region"]
+        summary.append(
+            f"moving region: MAE {fmt(m['mae_mm'])} mm, {100 * (m['within_tolerance'] or 0):.1f}% within tolerance"
+        )
+    return metrics, images, png, summary, warnings
+
+
 @register(
     "tof",
     output_channels=24,
@@ -274,93 +374,11 @@ def reconstruct(data: CaptureData, params: TofParams) -> AppOutput:
     ]
     warnings: list[str] = []
     if data.renderer is not None:
-        tl = data.timeline
-        t_mid = float(Fraction(tl.start_tick + tl.end_tick, 2) * tl.tick_s)
-        truth = render_depth(data.renderer, t_mid).distance_m
-        finite = np.isfinite(truth)
-        far = float(truth[finite].max()) if finite.any() else 0.0
-        near = float(truth[finite].min()) if finite.any() else 0.0
-        if far > max_range:
-            warnings.append(
-                f"the scene reaches {far:.2f} m but the unambiguous range is {max_range:.2f} m: farther surfaces wrap "
-                "to near depths" + ("; add a second frequency (capture.tof.frequencies_mhz)" if len(freqs) == 1 else "")
-            )
-        tol = params.tolerance_mm * 1e-3
-        systematic = expected["depth"]
-        regions = {"all": finite}
-        if data.moving_mask.any():
-            regions["moving_region"] = finite & data.moving_mask
-            regions["static_region"] = finite & ~data.moving_mask
-        corner = _corner_mask(data, truth, params.corner_radius_m)
-        if corner is not None and corner.any():
-            regions["corner"] = corner
-            regions["away_from_corner"] = finite & ~corner
-        fly, edge_px = flying_pixels(got["depth"], valid, truth, params.edge_jump_m)
-        fly0, _ = flying_pixels(systematic, finite, truth, params.edge_jump_m)
-        # the surface each pixel sees at the earliest and the latest tap's time centroid: where it changes by more
-        # than the tolerance, the taps measured different surfaces (the design's exposure to motion artefacts)
-        cents = [tl.centroid_ticks(r.buckets) for r in tl.reads]
-        t_first, t_last = (float(c * tl.tick_s) for c in (min(cents), max(cents)))
-        at_first, at_last = (render_depth(data.renderer, t).distance_m for t in (t_first, t_last))
-        with np.errstate(invalid="ignore"):
-            change = np.abs(
-                np.where(np.isfinite(at_first), at_first, 1e9) - np.where(np.isfinite(at_last), at_last, 1e9)
-            )
-        off = change > tol
-        metrics["truth"] = {
-            "time_s": t_mid,
-            "what": "distance along each pixel's centre ray (depth aov) at the capture's mid-time",
-            "near_m": near,
-            "far_m": far,
-            "tolerance_mm": params.tolerance_mm,
-        }
-        metrics["depth"] = {name: depth_scores(depth, truth, m & valid, tol) for name, m in regions.items()}
-        metrics["systematic"] = {name: depth_scores(systematic, truth, m, tol) for name, m in regions.items()}
-        metrics["flying_pixels"] = {
-            "edge_px": edge_px,
-            "measured": int(fly.sum()),
-            "noise_free": int(fly0.sum()),
-            "fraction": float(fly.sum() / edge_px) if edge_px else 0.0,
-        }
-        moving_px = max(int(data.moving_mask.sum()), 1)
-        metrics["motion_artefact"] = {
-            "what": "pixels whose true distance changes by more than the tolerance between the earliest and the latest "
-            "tap's time centroid: their taps measured different surfaces",
-            "taps_apart_s": t_last - t_first,
-            "px": int(off.sum()),
-            "fraction_of_moving_region": float((off & data.moving_mask).sum() / moving_px),
-            "error_there": depth_scores(depth, truth, off & valid, tol),
-        }
-        err = np.where(valid & finite, got["depth"] - truth, np.nan) * 1e3
-        err0 = np.where(finite, systematic - truth, np.nan) * 1e3
-        images["taps_see_motion"] = off.astype(np.float32)
-        images |= {
-            "depth_truth": np.nan_to_num(truth, posinf=0.0).astype(np.float32),
-            "depth_error_mm": np.nan_to_num(err, nan=0.0).astype(np.float32),
-            "systematic_error_mm": np.nan_to_num(err0, nan=0.0).astype(np.float32),
-            "depth_preview": _depth_preview(depth, near, far),
-            "depth_truth_preview": _depth_preview(np.where(finite, truth, np.nan), near, far),
-            "error_preview": _error_preview(err, params.tolerance_mm),
-            "systematic_preview": _error_preview(err0, params.tolerance_mm),
-        }
-        png |= {
-            "depth": ("depth_preview", None),
-            "depth_truth": ("depth_truth_preview", None),
-            "depth_error": ("error_preview", None),
-            "systematic_error": ("systematic_preview", None),
-        }
-        a = metrics["depth"]["all"]
-        fmt = lambda v: "n/a" if v is None else f"{v:.3g}"  # noqa: E731
-        summary.append(
-            f"depth MAE {fmt(a['mae_mm'])} mm, RMSE {fmt(a['rmse_mm'])} mm, "
-            f"{100 * (a['within_tolerance'] or 0):.1f}% within {params.tolerance_mm:g} mm; "
-            f"flying pixels {int(fly.sum())} of {edge_px} at edges"
-        )
-        if "moving_region" in metrics["depth"]:
-            m = metrics["depth"]["moving_region"]
-            summary.append(
-                f"moving region: MAE {fmt(m['mae_mm'])} mm, {100 * (m['within_tolerance'] or 0):.1f}% within tolerance"
-            )
+        m, im, pv, sm, warnings = _against_truth(data, params, got, expected, valid, depth, max_range, freqs)
+        metrics |= m
+        images |= im
+        png |= pv
+        summary += sm
     else:
         png |= {"depth": ("depth_preview", None)}
         images["depth_preview"] = _depth_preview(depth, float(np.nanmin(depth)) if valid.any() else 0.0, max_range)

@@ -109,6 +109,46 @@ def aov_layout(
     return groups, [waves.get(g, []) for g in groups], slots
 
 
+def emission_hits(emitters, ptrs, si, ds, em_hit, prev_si, prev_bsdf_pdf, prev_bsdf_delta, active, throughput, result):
+    """Per group, (``result`` plus the emission the path segment hits, that emission alone), each term its
+    throughput x emission x the MIS weight against next-event estimation from the previous vertex (1 after a
+    delta BSDF or from the camera)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    sums, light = [], []
+    for acc, ems, eptrs in zip(result, emitters, ptrs):
+        alone = mi.Spectrum(0.0)
+        for emitter, ptr in zip(ems, eptrs):
+            hit = active & (em_hit == ptr)
+            em_pdf = emitter.pdf_direction(prev_si, ds, hit & ~prev_bsdf_delta)
+            w = dr.select(prev_bsdf_delta, 1.0, mis_power(prev_bsdf_pdf, em_pdf))
+            value = emitter.eval(si, hit & (prev_bsdf_pdf > 0))
+            term = dr.select(hit, throughput * value * w, 0.0)
+            acc = acc + term
+            alone = alone + term
+        sums.append(acc)
+        light.append(alone)
+    return sums, light
+
+
+def phasor_start(scene, ray, phasors: list[list[float]], n_groups: int):
+    """The phasor channels' state before a path's first vertex: (waves: (group, wavenumber) of every channel
+    pair, the waves by group, zero sums of L cos(k l) and L sin(k l) a pair, the camera ray's length so far).
+    l is the optical length from the camera's centre of projection (the camera ray starts on the near-clip
+    plane, NEAR_CLIP_M / cos from it) through every vertex to the point on the emitter."""
+    import drjit as dr
+    import mitsuba as mi
+
+    waves = [(g, k) for g in range(n_groups) for k in phasors[g]] if phasors else []
+    zero = tuple(mi.Spectrum(0.0) for _ in range(2 * len(waves)))
+    if not waves:
+        return waves, waves_by_group(waves, n_groups), zero, mi.Float(0.0)
+    forward = dr.normalize(scene.sensors()[0].world_transform() @ mi.Vector3f(0.0, 0.0, 1.0))
+    length = mi.Float(NEAR_CLIP_M) / dr.maximum(dr.dot(ray.d, forward), 1e-6)
+    return waves, waves_by_group(waves, n_groups), zero, length
+
+
 def waves_by_group(waves: list[tuple[int, float]], n_groups: int) -> list[list[tuple[int, float]]]:
     """Per group, (index among ``waves``, wavenumber) of its waves (outside :meth:`GroupPath.sample`, whose
     ``dr.syntax`` rewrite takes no comprehension over tuples)."""
@@ -419,14 +459,7 @@ class GroupPath:
         result = tuple(mi.Spectrum(0.0) for _ in range(n_groups))
         n_emitters = sum(len(e) for e in emitters)
         next_1d, next_2d, ray = self._draws(scene, sampler, ray)
-        # phasor channels: per group and wavenumber k, sums of L cos(k l) and L sin(k l), l the optical length
-        # from the camera's centre of projection (the camera ray starts on the near-clip plane, NEAR_CLIP_M / cos
-        # from it) through every vertex to the point on the emitter
-        waves = [(g, k) for g in range(n_groups) for k in self.phasors[g]] if self.phasors else []
-        waves_of = waves_by_group(waves, n_groups)
-        phasor = tuple(mi.Spectrum(0.0) for _ in range(2 * len(waves)))
-        forward = dr.normalize(scene.sensors()[0].world_transform() @ mi.Vector3f(0.0, 0.0, 1.0))
-        path_length = mi.Float(NEAR_CLIP_M) / dr.maximum(dr.dot(ray.d, forward), 1e-6) if waves else mi.Float(0.0)
+        waves, waves_of, phasor, path_length = phasor_start(scene, ray, self.phasors, n_groups)
         shading = lambertian_shading if self.lambertian else general_shading
         guides = self.guides
 
@@ -437,20 +470,10 @@ class GroupPath:
             # Emission hit by this segment (camera ray or BSDF sample), per group.
             em_hit = si.emitter(scene, active)
             ds = mi.DirectionSample3f(scene, si, prev_si)
-            hit_terms = []
+            hit_terms, hit_light = emission_hits(
+                emitters, ptrs, si, ds, em_hit, prev_si, prev_bsdf_pdf, prev_bsdf_delta, active, throughput, result
+            )
             here = path_length + dr.select(si.is_valid(), si.t, 0.0)  # camera to this vertex
-            hit_light = [mi.Spectrum(0.0) for _ in range(n_groups)]
-            for g in range(n_groups):
-                acc = result[g]
-                for emitter, ptr in zip(emitters[g], ptrs[g]):
-                    hit = active & (em_hit == ptr)
-                    em_pdf = emitter.pdf_direction(prev_si, ds, hit & ~prev_bsdf_delta)
-                    w = dr.select(prev_bsdf_delta, 1.0, mis_power(prev_bsdf_pdf, em_pdf))
-                    value = emitter.eval(si, hit & (prev_bsdf_pdf > 0))
-                    term = dr.select(hit, throughput * value * w, 0.0)
-                    acc = acc + term
-                    hit_light[g] = hit_light[g] + term
-                hit_terms.append(acc)
             phasor = add_phasors(phasor, waves, hit_light, here)
 
             # the last vertex only collects emission
