@@ -2,6 +2,7 @@
 
     python scripts/readme_tables.py                 # run every table's captures, rewrite README.md
     python scripts/readme_tables.py --only budget   # one table's captures; the others keep their numbers
+    python scripts/readme_tables.py --only budget --rows tof_4tap   # one new config's row; the rest kept
     python scripts/readme_tables.py --from-data     # rewrite README.md from docs/measured.json, no runs
     python scripts/readme_tables.py --check         # exit 1 if README.md differs from docs/measured.json
 
@@ -233,6 +234,14 @@ def main(argv: list[str] | None = None) -> int:
         metavar="TABLE",
         help=f"tables to measure ({', '.join([*TABLES, 'budget'])}); the others keep their numbers",
     )
+    ap.add_argument(
+        "--rows",
+        nargs="+",
+        default=None,
+        metavar="LABEL",
+        help="measure only these rows of the tables measured (a config added to the budget table); the other rows "
+        "keep their numbers, and the table records which rows were measured when",
+    )
     ap.add_argument("--from-data", action="store_true", help="rewrite the README from --data without running anything")
     ap.add_argument("--check", action="store_true", help="exit 1 if the README's tables differ from --data")
     args = ap.parse_args(argv)
@@ -250,10 +259,25 @@ def main(argv: list[str] | None = None) -> int:
             if name not in every:
                 raise SystemExit(f"readme_tables: --only: no table {name!r} (tables: {', '.join(every)})")
             t0 = time.perf_counter()
+            old = {r["label"]: r for r in data["tables"].get(name, {}).get("rows", [])}
             rows = []
             for label, config, overrides in every[name]:
+                if args.rows is not None and label not in args.rows and label in old:
+                    rows.append(old[label])  # measured before: kept
+                    continue
                 print(f"{name}: {label} ...", flush=True)
                 rows.append({"label": label, **measure(config, overrides)})
+            if args.rows is not None and name in data["tables"]:  # the table's own run, these rows added to it
+                table = dict(data["tables"][name])
+                table["rows"] = rows
+                table.setdefault("rows_measured_later", []).append(
+                    {"rows": list(args.rows), "machine": machine(), "date": time.strftime("%Y-%m-%d")}
+                )
+                data["tables"][name] = table
+                tmp = args.data.with_name(f".{args.data.name}.tmp")
+                tmp.write_text(json.dumps(data, indent=2) + "\n")
+                os.replace(tmp, args.data)
+                continue
             table = {
                 "machine": f"{machine()}, {rows[0]['variant']}, LLVM {rows[0]['llvm']}",
                 "seconds": round(time.perf_counter() - t0, 1),
