@@ -39,6 +39,10 @@ CAPPED: dict[str, str] = {
     name: "the glass ball's caustics (specular paths from a small light) ask for 1024 spp and for refining most "
     "pixels; the config caps render.max_spp at 128 with adaptive sampling off (docs/scenes.md)"
     for name in ("table_hdr", "table_flash_no_flash", "table_multi_flash")
+} | {
+    "tof_4tap": "a 15 um time-of-flight pixel's 100 000 e- wells keep its shot noise so low (SNR ~300 on the box) "
+    "that the interreflections of the room's walls ask for more than render.max_spp = 1024 (median 0.17 x the "
+    "shot noise's variance at 160x128; docs/tof.md)"
 }
 
 

@@ -241,3 +241,18 @@ def test_the_phasor_channels_agree_with_mitransient_s_histogram():
     assert len(rows) == 5
     for row in rows:
         assert abs(row["z"]) < 4, row
+
+
+def test_a_sweep_shares_renders_between_designs_but_not_their_accumulation():
+    """The taps' images are combined from the rendered channels before accumulation: a 4-tap and an interleaved
+    2-tap capture render the same images (render_key) but accumulate different ones (group_key: their gates' duty
+    differs), as does another demodulation contrast."""
+    from mbcapture.sweep.groups import group_key, render_key
+
+    four = _tof_cfg(**{"render.spp": 4, "render.width": 32, "render.height": 24})
+    two = _tof_cfg(**{"render.spp": 4, "render.width": 32, "render.height": 24, "capture.protocol": "tof_2tap"})
+    dim = _tof_cfg(
+        **{"render.spp": 4, "render.width": 32, "render.height": 24, "sensor.tof.demodulation_contrast": 0.6}
+    )
+    assert render_key(four) == render_key(two) == render_key(dim)
+    assert len({group_key(four), group_key(two), group_key(dim)}) == 3

@@ -734,3 +734,35 @@ def snr_png(designs: list[dict]) -> bytes:
     ax.legend(handles, labels, fontsize=7, loc="upper left")
     fig.tight_layout()
     return png_bytes(fig)
+
+
+def grouped_bars_png(
+    categories: list[str], panels: list[tuple[str, dict[str, list[float]]]], title: str = "", log: bool = False
+) -> bytes:
+    """Side-by-side panels of grouped bars: each panel (y label, {series label: one value per category}), the
+    categories along x, one bar per series in each category (the time-of-flight designs compared:
+    ``scripts/tof_table.py``). ``log``: a logarithmic y axis on every panel (values <= 0 not drawn)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(4.2 * len(panels), 3.8))
+    colours = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"]
+    x = np.arange(len(categories))
+    for i, (ylabel, series) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), i + 1)
+        width = 0.8 / max(len(series), 1)
+        for j, (label, values) in enumerate(series.items()):
+            v = np.asarray(values, dtype=np.float64)
+            if log:
+                v = np.where(v > 0, v, np.nan)
+            ax.bar(x - 0.4 + width * (j + 0.5), v, width, label=label, color=colours[j % len(colours)])
+        ax.set_xticks(x, categories, rotation=30, ha="right", fontsize=7)
+        ax.set_ylabel(ylabel, fontsize=8)
+        if log:
+            ax.set_yscale("log")
+        ax.grid(True, axis="y", alpha=0.3)
+        if i == 0:
+            ax.legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return png_bytes(fig)

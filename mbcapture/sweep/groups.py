@@ -18,7 +18,10 @@ calls, instead of a list of "render keys" that could drift:
 * the seed (render times and samples; ``sensor.noise_seed`` is not used by renders);
 * with ``render.spp`` null, the pilot's inputs: electrons per render unit (optics, QE, pixel) and
   the full well, because the noise budget sets the samples against the sensor's shot noise;
-* whether the application wants per-group exposures (the same renders, accumulated apart).
+* whether the application wants per-group exposures (the same renders, accumulated apart);
+* a time-of-flight capture's demodulation (:class:`mbcapture.sensor.demodulation.Demodulation`): the waveform and
+  harmonics decide the phasor channels rendered, the taps' duty and contrast how they make each tap's image,
+  which happens before the accumulation.
 
 Points with equal keys form one render group: the sweep renders its first point and hands that
 render stage to the others, which only simulate their sensor and reconstruct. Everything else
@@ -98,6 +101,11 @@ def render_inputs(cfg: CaptureConfig, *, accumulation: bool = True) -> dict:
         "n_buckets": timeline.n_buckets,
         "per_group": app.per_group,
     }
+    demod = scene.demodulation
+    if demod is not None:  # a time-of-flight capture: its phase groups' images are combined before accumulation
+        out["demodulation"] = {"waveform": demod.waveform, "harmonics": demod.harmonics}  # what is rendered
+        if accumulation:  # and how the rendered channels make each tap's image
+            out["demodulation"] |= {"duty": repr(demod.duty), "contrast": repr(demod.contrast)}
     if is_spectral_variant(cfg.render.variant):
         wl, curves = film_sensitivity(cfg.sensor)
         out["film_curves"] = [_array(np.asarray(wl, np.float64)), _array(np.asarray(curves, np.float64))]

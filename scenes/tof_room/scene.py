@@ -35,6 +35,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mbcapture.render.build import Light, Material, SceneBuild, Shape, box, frame_towards, scale, translate
 from mbcapture.scene.scenes import Camera, SceneModel
+from mbcapture.timing.drive import Drive
 
 DESCRIPTION = (
     "room corner with a moving box and a window, a ToF illuminator at the camera (groups ambient, illuminator)"
@@ -64,7 +65,10 @@ class Params(BaseModel):
         3.0e5, gt=0.0, description="the ToF illuminator's mean radiance, W m^-2 sr^-1 (2 x 2 cm at the camera)"
     )
     ambient_scale: float = Field(
-        1.0, ge=0.0, description="the window's radiance factor (1: 40 W m^-2 sr^-1, an overcast sky's near infrared)"
+        1.0,
+        ge=0.0,
+        description="the window's radiance factor (1: 40 W m^-2 sr^-1, an overcast sky's near infrared); applied "
+        "as a gain on its rendered light, so every level shares the renders",
     )
     fov_deg: float = Field(60.0, gt=5.0, lt=120.0, description="horizontal field of view of the camera, degrees")
 
@@ -124,7 +128,7 @@ def _room(p: Params) -> tuple[list[Shape], dict]:
     along = 0.45 * p.corner_distance_m * math.sqrt(2)
     centre = corner + left * along + np.array([0.0, 1.4, 0.0]) + np.array([1.0, 0.0, 1.0]) / math.sqrt(2) * 0.01
     pane = frame_towards(centre, centre + np.array([1.0, 0.0, 1.0])) @ scale(0.45, 0.6, 1)
-    shapes.append(Shape("window", "rectangle", pane, None, Light("ambient", (WINDOW_RADIANCE * p.ambient_scale,) * 3)))
+    shapes.append(Shape("window", "rectangle", pane, None, Light("ambient", (WINDOW_RADIANCE,) * 3)))
     return shapes, {"corner": (tuple(corner), (0.0, 1.0, 0.0))}
 
 
@@ -184,4 +188,6 @@ def make(params: Params) -> SceneModel:
         motion_points=None if v == 0.0 else motion_points,
         default_film=(320, 240),
         extra=extra,
+        # the window's level as a constant drive (a gain on its rendered light): every level shares the renders
+        drives={"ambient": Drive(c0=params.ambient_scale)} if params.ambient_scale != 1.0 else {},
     )
