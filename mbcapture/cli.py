@@ -7,12 +7,15 @@ Input errors (config, files, environment) print one line and exit with status 2;
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import signal
 import sys
 import threading
 import warnings
 from pathlib import Path
+
+from pydantic import ValidationError
 
 from . import application as apps
 from .studies import characterize, converge, dynamic_range
@@ -30,6 +33,8 @@ from .render import Renderer
 from .render import xmlscene
 from .render.cache import RenderCache, default_cache_dir
 from .sweep import load_sweep, resolve_sweep_path, run_sweep
+from .design.results import run_design
+from .design.spec import load_design
 
 EXIT_INPUT = 2
 
@@ -71,6 +76,7 @@ def _parser() -> argparse.ArgumentParser:
     _add_converge_command(sub)
     _add_characterize_command(sub)
     _add_snr_command(sub)
+    _add_design_command(sub)
     scn = sub.add_parser("scenes", help="list the scenes and their parameters, or the ids of a Mitsuba scene file")
     scn.add_argument(
         "file",
@@ -159,6 +165,29 @@ def _add_characterize_command(sub) -> None:
     )
     char.add_argument("--frames", type=int, default=16, help="frames averaged for DSNU and PRNU (default 16)")
     _add_noise_args(char)
+
+
+def _add_design_command(sub) -> None:
+    d = sub.add_parser(
+        "design",
+        help="find the schedule and sensor settings that optimise an application's metric (docs/design.md)",
+        description="Search a design spec's variables (Optuna's TPE) for the best value of its objective, each "
+        "design a capture on cached renders with several noise seeds; compare it with the default and with the "
+        "grid at equal evaluations.",
+    )
+    d.add_argument("spec", type=Path, help="design spec: a path or a shipped spec's name (hdr_4bucket)")
+    d.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a key of the base config for every design (e.g. render.width=160)",
+    )
+    d.add_argument("--out", type=Path, default=None, help="output folder (default: out/design_<spec name>)")
+    d.add_argument("--evaluations", type=int, default=None, metavar="N", help="designs to evaluate (the spec's)")
+    d.add_argument("--seeds", type=int, default=None, metavar="N", help="noise seeds per design (the spec's)")
+    _add_noise_args(d)
 
 
 def _add_snr_command(sub) -> None:
@@ -298,6 +327,21 @@ def _cmd_characterize(args) -> int:
     characterize.characterize(
         cfg, out, source=str(args.config), settings=settings, progress=_shows_progress(args), summary=not args.silent
     )
+    return 0
+
+
+def _cmd_design(args) -> int:
+    design = load_design(args.spec, args.overrides)
+    update = {k: v for k, v in (("evaluations", args.evaluations), ("seeds", args.seeds)) if v is not None}
+    if update:
+        try:
+            spec = design.spec.model_validate({**design.spec.model_dump(), **update})
+        except ValidationError as exc:
+            raise ConfigError(f"--evaluations/--seeds: {exc.errors()[0]['msg']}") from None
+        design = dataclasses.replace(design, spec=spec)
+    out = args.out or Path("out") / f"design_{design.name}"
+    say = (lambda line: None) if args.silent else print
+    run_design(design, out, progress=_shows_progress(args), say=say)
     return 0
 
 
@@ -567,6 +611,7 @@ def main(argv: list[str] | None = None) -> int:
         "sweep": _cmd_sweep,
         "characterize": _cmd_characterize,
         "snr": _cmd_snr,
+        "design": _cmd_design,
     }
     # SIGTERM (kill, a batch system's time limit) ends a run like Ctrl-C: staging removed, outputs untouched
     previous = (

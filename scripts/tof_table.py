@@ -45,6 +45,7 @@ def table(df: pd.DataFrame) -> str:
         "flying px",
         "taps saw different surfaces, px",
         "MAE there, mm",
+        "render / shot noise",
     ]
     lines = ["| " + " | ".join(cols) + " |", "|" + " --- |" * len(cols)]
     df = df.assign(_order=df["capture.protocol"].map(DESIGNS.index))
@@ -69,6 +70,7 @@ def table(df: pd.DataFrame) -> str:
                     f(r["metrics.flying_pixels.measured"], "{:.0f}"),
                     f(r["metrics.motion_artefact.px"], "{:.0f}"),
                     f(r["metrics.motion_artefact.error_there.mae_mm"]),
+                    f(r["render_error.to_shot_noise_variance_median"], "{:.2g}"),
                 ]
             )
             + " |"

@@ -256,3 +256,34 @@ def test_a_sweep_shares_renders_between_designs_but_not_their_accumulation():
     )
     assert render_key(four) == render_key(two) == render_key(dim)
     assert len({group_key(four), group_key(two), group_key(dim)}) == 3
+
+
+@pytest.mark.usefixtures("mitsuba_ready")
+def test_one_frequency_shorter_than_the_room_is_a_warning_in_the_report(tmp_path):
+    """At 100 MHz alone the phase wraps every 1.50 m; the room reaches 3 m: the run says so (report.json, its
+    summary lines, report.html), and the depths past 1.5 m come out wrapped to near ones."""
+    import json
+
+    from mbcapture import load_config, run_capture
+
+    cfg = load_config(
+        "tof_4tap", ["capture.tof.frequencies_mhz=[100]", "render.width=24", "render.height=18", "render.spp=4"]
+    )
+    res = run_capture(cfg, tmp_path / "out", progress=False)
+    warnings = res.app_output.metrics["warnings"]
+    assert len(warnings) == 1 and "1.50 m" in warnings[0] and "second frequency" in warnings[0]
+    assert json.loads((tmp_path / "out" / "report.json").read_text())["metrics"]["warnings"] == warnings
+    assert "warning: the scene reaches" in (tmp_path / "out" / "report.html").read_text()
+    img = res.app_output.images
+    far = img["depth_truth"] > 1.6
+    assert far.any() and np.all(img["depth"][far & (img["depth_valid"] > 0)] < 1.5)
+
+
+def test_the_tof_application_names_what_it_needs():
+    from mbcapture.apps.tof import tap_groups
+
+    class NotTof:
+        scene = type("S", (), {"demodulation": None})()
+
+    with pytest.raises(ConfigError, match="tof_"):
+        tap_groups(NotTof())

@@ -1,7 +1,8 @@
 """Flash / no-flash: one bucket sees the scene lit by a pulsed flash, another by ambient light only.
 
-Protocol ``flash_no_flash``: per period one slot of ``unit_exposure_s / periods`` into bucket 1
-with the ``flash`` group on, then one of the same length into bucket 2 with the flash off. Both
+Protocol ``flash_no_flash``: per period (2 ``unit_exposure_s / periods`` long) a slot into bucket 1 with
+the ``flash`` group on, then one into bucket 2 with the flash off; ``app.flash_share`` (0.5) splits the period
+between them and ``app.flash_duty`` (1) is the share of bucket 1's slot the flash is on. Both
 buckets see the same motion, so their ambient components carry the same motion blur, and
 ``flash - noflash`` is the flash-only image even where things move. With
 ``capture.sequential: true`` the same two exposures are taken one after another (flash frame
@@ -69,20 +70,41 @@ CAPTIONS = {
 # ----------------------------------------------------------------------------- protocol
 @register_protocol("flash_no_flash", app="flash_no_flash")
 def flash_no_flash_protocol(cfg):
-    """One period: bucket 1 with the flash on, then bucket 2 ambient only, each T / N; reads
-    ``flash`` (bucket 1) and ``noflash`` (bucket 2), each integrating T = unit_exposure_s."""
+    """One period of 2 T / N: bucket 1 (the flash on for ``app.flash_duty`` of its slot) for ``app.flash_share``
+    of it, then bucket 2 ambient only; reads ``flash`` (bucket 1) and ``noflash`` (bucket 2); with the defaults
+    each integrates T = unit_exposure_s."""
     if cfg.sensor.bucket_count < 2:
         raise ConfigError(
             f"capture.protocol: 'flash_no_flash' needs 2 buckets but sensor.bucket_count is {cfg.sensor.bucket_count}"
         )
-    slot = exact(cfg.capture.unit_exposure_s) / Fraction(cfg.capture.periods)
-    slots = [SlotSeconds(0, slot, frozenset({FLASH_GROUP})), SlotSeconds(1, slot)]
+    _, params = cfg.app.resolve(cfg.capture.protocol)
+    # another application reconstructing this schedule (app.name) has no split keys: the defaults
+    share = exact(getattr(params, "flash_share", FlashNoFlashParams().flash_share))
+    duty = exact(getattr(params, "flash_duty", FlashNoFlashParams().flash_duty))
+    period = 2 * exact(cfg.capture.unit_exposure_s) / Fraction(cfg.capture.periods)
+    lit, dark = period * share * duty, period * share * (1 - duty)
+    slots = [SlotSeconds(0, lit, frozenset({FLASH_GROUP}))] + ([SlotSeconds(0, dark)] if dark > 0 else [])
+    slots.append(SlotSeconds(1, period * (1 - share)))
     reads = [ReadEvent("flash", (0,)), ReadEvent("noflash", (1,))]
     return slots, reads, 2
 
 
 # ----------------------------------------------------------------------------- parameters
 class FlashNoFlashParams(StrictModel):
+    flash_share: float = Field(
+        0.5,
+        gt=0.0,
+        lt=1.0,
+        description="Bucket split: the share of each period the flash bucket collects (the no-flash bucket the "
+        "rest); 0.5: T each. The capture spans 2 x capture.unit_exposure_s whatever the split.",
+    )
+    flash_duty: float = Field(
+        1.0,
+        gt=0.0,
+        le=1.0,
+        description="Flash duty: the share of the flash bucket's slot with the flash on (its start; the flash "
+        "bucket collects ambient light for the rest). 1: on for the whole slot.",
+    )
     method: Literal["petschnigg", "joint_bilateral", "bilateral", "none"] = Field(
         "petschnigg",
         description="Enhanced image: 'petschnigg' (joint bilateral + detail transfer + shadow/specular mask), "

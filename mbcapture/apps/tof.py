@@ -233,6 +233,8 @@ def _against_truth(
         )
     tol = params.tolerance_mm * 1e-3
     systematic = expected["depth"]
+    # noise-free depths where the illuminator's modulation reaches (not an emitter's own surface: the window)
+    lit = np.all([ft["amplitude"] > 1e-3 * np.abs(ft["offset"]) for ft in expected["fits"]], axis=0)
     regions = {"all": finite}
     if data.moving_mask.any():
         regions["moving_region"] = finite & data.moving_mask
@@ -242,7 +244,7 @@ def _against_truth(
         regions["corner"] = corner
         regions["away_from_corner"] = finite & ~corner
     fly, edge_px = flying_pixels(got["depth"], valid, truth, params.edge_jump_m)
-    fly0, _ = flying_pixels(systematic, finite, truth, params.edge_jump_m)
+    fly0, _ = flying_pixels(systematic, finite & lit, truth, params.edge_jump_m)
     # the surface each pixel sees at the earliest and the latest tap's time centroid: where it changes by more
     # than the tolerance, the taps measured different surfaces (the design's exposure to motion artefacts)
     cents = [tl.centroid_ticks(r.buckets) for r in tl.reads]
@@ -259,7 +261,7 @@ def _against_truth(
         "tolerance_mm": params.tolerance_mm,
     }
     metrics["depth"] = {name: depth_scores(depth, truth, m & valid, tol) for name, m in regions.items()}
-    metrics["systematic"] = {name: depth_scores(systematic, truth, m, tol) for name, m in regions.items()}
+    metrics["systematic"] = {name: depth_scores(systematic, truth, m & lit, tol) for name, m in regions.items()}
     metrics["flying_pixels"] = {
         "edge_px": edge_px,
         "measured": int(fly.sum()),
@@ -276,7 +278,7 @@ def _against_truth(
         "error_there": depth_scores(depth, truth, off & valid, tol),
     }
     err = np.where(valid & finite, got["depth"] - truth, np.nan) * 1e3
-    err0 = np.where(finite, systematic - truth, np.nan) * 1e3
+    err0 = np.where(finite & lit, systematic - truth, np.nan) * 1e3
     images["taps_see_motion"] = off.astype(np.float32)
     images |= {
         "depth_truth": np.nan_to_num(truth, posinf=0.0).astype(np.float32),

@@ -736,33 +736,65 @@ def snr_png(designs: list[dict]) -> bytes:
     return png_bytes(fig)
 
 
+def _panel_axes(n: int, width: float, height: float):
+    """A figure of ``n`` panels in up to three columns, and its axes."""
+    from matplotlib.figure import Figure
+
+    cols = min(max(n, 1), 3)
+    rows = -(-max(n, 1) // cols)
+    fig = Figure(figsize=(width * cols, height * rows))
+    return fig, [fig.add_subplot(rows, cols, i + 1) for i in range(n)]
+
+
 def grouped_bars_png(
     categories: list[str], panels: list[tuple[str, dict[str, list[float]]]], title: str = "", log: bool = False
 ) -> bytes:
-    """Side-by-side panels of grouped bars: each panel (y label, {series label: one value per category}), the
-    categories along x, one bar per series in each category (the time-of-flight designs compared:
-    ``scripts/tof_table.py``). ``log``: a logarithmic y axis on every panel (values <= 0 not drawn)."""
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(4.2 * len(panels), 3.8))
-    colours = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b"]
+    """Panels (y label, {series: a value per category}) of grouped bars (``scripts/tof_table.py``)."""
+    fig, axes = _panel_axes(len(panels), 4.2, 3.8)
     x = np.arange(len(categories))
-    for i, (ylabel, series) in enumerate(panels):
-        ax = fig.add_subplot(1, len(panels), i + 1)
+    for i, (ax, (ylabel, series)) in enumerate(zip(axes, panels)):
         width = 0.8 / max(len(series), 1)
         for j, (label, values) in enumerate(series.items()):
             v = np.asarray(values, dtype=np.float64)
-            if log:
-                v = np.where(v > 0, v, np.nan)
-            ax.bar(x - 0.4 + width * (j + 0.5), v, width, label=label, color=colours[j % len(colours)])
+            ax.bar(x - 0.4 + width * (j + 0.5), np.where(v > 0, v, np.nan) if log else v, width, label=label)
         ax.set_xticks(x, categories, rotation=30, ha="right", fontsize=7)
         ax.set_ylabel(ylabel, fontsize=8)
-        if log:
-            ax.set_yscale("log")
+        ax.set_yscale("log" if log else "linear")
         ax.grid(True, axis="y", alpha=0.3)
         if i == 0:
             ax.legend(fontsize=7)
     if title:
         fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return png_bytes(fig)
+
+
+def design_png(panels: list[tuple[str, list[tuple[str, list, list]]]], ylabel: str, log_x: list[bool]) -> bytes:
+    """The objective against each variable of ``mbcapture design`` (per panel: label, [(source, x, y)])."""
+    fig, axes = _panel_axes(len(panels), 4.0, 3.3)
+    style = {"search": ("o", 14), "grid": ("s", 18), "default": ("*", 90)}
+    for i, (ax, (label, sources)) in enumerate(zip(axes, panels)):
+        for name, x, y in sources:
+            marker, size = style.get(name, ("o", 14))
+            ax.scatter(x, y, s=size, marker=marker, label=name)
+        ax.set_xscale("log" if log_x[i] else "linear")
+        ax.set(xlabel=label, ylabel=ylabel)
+        ax.grid(True, alpha=0.3)
+        if i == 0:
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    return png_bytes(fig)
+
+
+def pareto_png(points: list[tuple[str, list, list]], front: tuple[list, list], labels: tuple[str, str]) -> bytes:
+    """Two objectives of every design (per source: label, first, second) and the Pareto front (a line)."""
+    fig, (ax,) = _panel_axes(1, 6.0, 4.4)
+    for name, x, y in points:
+        ax.scatter(x, y, s=14, label=name, alpha=0.8)
+    order = np.argsort(front[0])
+    ax.plot(np.asarray(front[0])[order], np.asarray(front[1])[order], "k-", label="Pareto front")
+    ax.set(xlabel=labels[0], ylabel=labels[1])
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     return png_bytes(fig)
