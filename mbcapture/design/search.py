@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
+import warnings
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -202,13 +203,11 @@ def search(
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     spec = design.spec
     objectives = [spec.objective] + ([spec.second_objective] if spec.second_objective else [])
-    sampler = optuna.samplers.TPESampler(
-        seed=spec.seed,
-        multivariate=True,
-        group=True,
-        n_startup_trials=min(10, max(2, spec.evaluations // 4)),
-        constraints_func=lambda t: (t.user_attrs.get("violation", 1.0),),
-    )
+    with warnings.catch_warnings():  # group (the conditional ratios) is marked experimental
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        sampler = optuna.samplers.TPESampler(
+            seed=spec.seed, multivariate=True, group=True, n_startup_trials=min(10, max(2, spec.evaluations // 4))
+        )
     study = optuna.create_study(directions=[o.direction for o in objectives], sampler=sampler)
     out: list[Evaluation] = []
     # one objective: the last share of the budget polishes the best design locally (Nelder-Mead over its ranges)
@@ -220,7 +219,7 @@ def search(
             ev = Evaluation("search", i, {}, error="two exposure ratios coincide")
         else:
             ev = evaluate("search", i, values)
-        trial.set_user_attr("violation", ev.violation if ev.error is None else 1.0)
+        trial.set_constraint("violation", ev.violation if ev.error is None else 1.0)  # <= 0: kept
         if ev.error is not None or ev.objective is None:
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
         else:
