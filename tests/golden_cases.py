@@ -45,11 +45,20 @@ CAPTURE_CASES = [
     # a Bayer sensor (sensor.cfa): the stage's codes are the photosites' (R, H, W, 1); the HDR merge runs on
     # them and its radiance is demosaiced (menon2007, the default)
     ("bayer", "metronome_hdr.yaml", ["sensor.cfa=RGGB"]),
+    # indirect time of flight: the phasor channels, the taps' combination, the sensor and the depth; the 2-tap
+    # sequential design's sub-frames (segments with a readout between them)
+    ("tof_4tap", "tof_4tap.yaml", []),
+    ("tof_2tap_sequential", "tof_4tap.yaml", ["capture.protocol=tof_2tap_sequential", "sensor.bucket_count=2"]),
 ]
 
 #: Images of a config's captures that are not pinned, and why: a wrapped phase jumps by 2 pi where it
 #: lies within rounding of 0 (the reads are the golden's, but the trigonometry rounds per CPU).
-UNPINNED = {"structured_light.yaml": {"phase": "wrapped to [0, 2 pi): a pixel near 0 flips by 2 pi"}}
+UNPINNED = {
+    "structured_light.yaml": {"phase": "wrapped to [0, 2 pi): a pixel near 0 flips by 2 pi"},
+    "tof_4tap.yaml": {
+        "phase_f1": "wrapped to [0, 2 pi): a pixel near 0 (the window, whose phase is rounding's) flips by 2 pi",
+    },
+}
 
 #: Images that are zero by construction (up to float64 rounding): compared with an absolute
 #: bound, since a relative error of rounding noise means nothing.

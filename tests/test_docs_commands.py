@@ -46,6 +46,30 @@ NOT_RUN = {
         "(tests/test_characterize.py checks the command's datasheet at 48x40)",
         "mbcapture characterize metronome_hdr --size 32x32 --steps 20 --dark-steps 3 --frames 2",
     ),
+    # docs/design.md: a search is dozens of captures (or hundreds of analytic SNRs) even at 16x12; a short one runs
+    "mbcapture design hdr_4bucket --out out/design_hdr_4bucket": (
+        "24 designs x 3 seeds and the grid: a minute at 16x12",
+        "mbcapture design hdr_4bucket --evaluations 2 --seeds 1 --out out/design_hdr_4bucket",
+    ),
+    "mbcapture design noise_optimal_sequential": (
+        "300 analytic designs and the grid: 40 s",
+        "mbcapture design noise_optimal_sequential --evaluations 6",
+    ),
+    "mbcapture design flash_no_flash --set render.width=160 --set render.height=128 --evaluations 60 --seeds 4": (
+        "60 designs x 4 seeds",
+        "mbcapture design flash_no_flash --set render.width=160 --set render.height=128 --evaluations 2 --seeds 1",
+    ),
+    # docs/tof.md: the designs' sweep is 16 captures, 100 s even at 16x12 (tests/test_tof.py checks how its points
+    # share renders; the README's table is its output at 640x480)
+    "mbcapture sweep tof_designs --out out/tof_designs": (
+        "16 captures of up to 13 ms each: 100 s at 16x12",
+        "mbcapture run tof_4tap --set capture.protocol=tof_1tap --set sensor.bucket_count=1 --out out/tof_1tap",
+    ),
+    # docs/tof.md: the benchmark renders 640x480-sized passes whatever MBCAPTURE_SET says
+    "python scripts/benchmark_tof.py": (
+        "renders at 320x240, 16 spp, three times per case",
+        "python scripts/benchmark_tof.py --width 32 --height 24 --spp 1 --repeats 1",
+    ),
     # docs/mutation.md: a mutation run is hours of CPU (every mutant runs its tests), and the report
     # and `mutmut show` read what a run left in mutants/
     "scripts/mutation.sh": ("a full mutation run: hours on 2 cores", None),
