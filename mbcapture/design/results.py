@@ -17,6 +17,8 @@ import math
 from pathlib import Path
 from typing import Any, Callable
 
+import numpy as np
+
 
 from ..output.io import staged_outputs
 from ..output.plots import design_png, pareto_png
@@ -55,16 +57,23 @@ def history(evals: list[Evaluation]):
 
 
 def _margin(a: Evaluation | None, b: Evaluation | None, minimize: bool) -> dict | None:
-    """How much better ``a`` is than ``b``: the difference (positive = better), relative, and in standard errors."""
+    """How much better ``a`` is than ``b``: the difference (positive = better), relative, in standard errors of the
+    two means, and in standard errors of the paired difference (both on the same noise seeds)."""
     if a is None or b is None:
         return None
     diff = (b.objective - a.objective) if minimize else (a.objective - b.objective)
     se = math.hypot(a.objective_se or 0.0, b.objective_se or 0.0)
-    return {
+    out = {
         "better_by": diff,
         "relative": diff / abs(b.objective) if b.objective else None,
         "standard_errors": diff / se if se > 0 else None,
     }
+    n = len(a.per_seed)
+    if n > 1 and len(b.per_seed) == n:  # the same noise seeds: the paired difference's own standard error
+        d = (np.array(b.per_seed) - np.array(a.per_seed)) * (1 if minimize else -1)
+        paired = float(np.std(d, ddof=1) / math.sqrt(n))
+        out["paired_standard_errors"] = float(d.mean() / paired) if paired > 0 else None
+    return out
 
 
 def pareto_front(evals: list[Evaluation], directions: tuple[str, str]) -> list[Evaluation]:

@@ -53,6 +53,8 @@ class Evaluation:
     violation: float = 0.0
     error: str | None = None
     seconds: float = 0.0
+    #: the objective of each noise seed (the same seeds for every design: differences are paired)
+    per_seed: list[float] = field(default_factory=list)
 
     @property
     def feasible(self) -> bool:
@@ -132,6 +134,8 @@ class Evaluator:
                     f"{', '.join(known[:40])}{' ...' if len(known) > 40 else ''}"
                 )
             vals = [r[col] for r in rows]
+            if attr == "objective":
+                ev.per_seed = [float(v) for v in vals]
             setattr(ev, attr, float(np.mean(vals)))
             setattr(ev, f"{attr}_se", float(np.std(vals, ddof=1) / math.sqrt(len(vals))) if len(vals) > 1 else 0.0)
         ev.violation = self._violation(ev.row)
