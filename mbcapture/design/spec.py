@@ -22,7 +22,7 @@ from pydantic import Field, ValidationError, model_validator
 from ..config import SHIPPED_CONFIG_DIR, CaptureConfig, format_validation, load_config, resolve_config_path
 from ..errors import ConfigError, ConfigNotice
 from ..strict import StrictModel
-from ..sweep.spec import yaml_value
+from ..sweep.spec import resolve_shipped, yaml_value
 
 #: The shipped design specs (``mbcapture design hdr_4bucket`` finds configs/designs/hdr_4bucket.yaml).
 SHIPPED_DESIGN_DIR = SHIPPED_CONFIG_DIR / "designs"
@@ -139,16 +139,8 @@ class Design:
 
 
 def resolve_design_path(path: str | Path) -> Path:
-    p = Path(path)
-    if p.exists():
-        return p
-    if len(p.parts) == 1:
-        shipped = SHIPPED_DESIGN_DIR / (p.name if p.suffix in (".yaml", ".yml") else f"{p.name}.yaml")
-        if shipped.is_file():
-            return shipped
-        names = sorted(q.stem for q in SHIPPED_DESIGN_DIR.glob("*.yaml"))
-        raise ConfigError(f"{p}: design spec not found, and not a shipped one ({', '.join(names)})")
-    raise ConfigError(f"{p}: design spec not found")
+    """``path`` if it exists, else the shipped design spec of that name (``hdr_4bucket``)."""
+    return resolve_shipped(path, SHIPPED_DESIGN_DIR, "design spec")
 
 
 def ratios_of(positions: list[float], max_ratio: float) -> list[float]:

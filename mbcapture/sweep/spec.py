@@ -271,18 +271,24 @@ class Sweep:
         return self.spec.axes.keys()
 
 
-def resolve_sweep_path(path: str | Path) -> Path:
-    """``path`` if it exists, else the shipped sweep of that name (``interleaving``)."""
+def resolve_shipped(path: str | Path, folder: Path, what: str) -> Path:
+    """``path`` if it exists, else the YAML file of that name in ``folder`` (a shipped sweep or design spec);
+    a ConfigError naming the shipped ones otherwise."""
     p = Path(path)
     if p.exists():
         return p
     if len(p.parts) == 1:
-        shipped = SHIPPED_SWEEP_DIR / (p.name if p.suffix in (".yaml", ".yml") else f"{p.name}.yaml")
+        shipped = folder / (p.name if p.suffix in (".yaml", ".yml") else f"{p.name}.yaml")
         if shipped.is_file():
             return shipped
-        names = sorted(q.stem for q in SHIPPED_SWEEP_DIR.glob("*.yaml"))
-        raise ConfigError(f"{p}: sweep file not found, and not a shipped sweep ({', '.join(names)})")
-    raise ConfigError(f"{p}: sweep file not found")
+        names = sorted(q.stem for q in folder.glob("*.yaml"))
+        raise ConfigError(f"{p}: {what} not found, and not a shipped one ({', '.join(names)})")
+    raise ConfigError(f"{p}: {what} not found")
+
+
+def resolve_sweep_path(path: str | Path) -> Path:
+    """``path`` if it exists, else the shipped sweep of that name (``interleaving``)."""
+    return resolve_shipped(path, SHIPPED_SWEEP_DIR, "sweep file")
 
 
 def yaml_value(value: Any) -> str:
