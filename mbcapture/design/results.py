@@ -153,6 +153,7 @@ def run_design(design: Design, out: Path, *, progress: bool = True, say: Callabl
     evals: list[Evaluation] = []
     with bar(total=total, desc=f"design {design.name}", unit="design", enabled=progress) as pb:
         evals.append(evaluate("default", 0, {}))
+        evals[0].values = design.base_values()  # shown and plotted as the values it has
         pb.update(1)
         evals += search(design, evaluate, on_done=lambda e: pb.update(1))
         for i, values in enumerate(grid):

@@ -130,12 +130,37 @@ class Design:
     def name(self) -> str:
         return self.path.stem
 
+    def base_values(self) -> dict[str, Any]:
+        """The variables' values in the base config (with the fixed keys): what the default design has. The HDR
+        protocols' exposure ratios null are their powers of two over the buckets."""
+        cfg = self.config({})
+        data = cfg.model_dump(mode="json")
+        out = {}
+        for key, var in self.spec.variables.items():
+            if var.ratios is not None:
+                n = cfg.sensor.bucket_count
+                out[RATIOS_KEY] = cfg.capture.exposure_ratios or [float(2**i) for i in range(n)]
+                out["sensor.bucket_count"] = n
+            elif key.startswith("app."):  # the application's parameters with their defaults
+                out[key] = getattr(cfg.app.resolve(cfg.capture.protocol)[1], key[4:], None)
+            elif key.startswith("scene."):
+                out[key] = getattr(cfg.scene.params(), key[6:], None)
+            else:
+                out[key] = _dotted(data, key)
+        return out
+
     def config(self, values: dict[str, Any]) -> CaptureConfig:
         """The base config with the fixed keys, the command line's and ``values`` set (ConfigError if refused)."""
         own = [f"{k}={yaml_value(v)}" for k, v in values.items()]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConfigNotice)
             return load_config(self.base, [*self.overrides, *own])
+
+
+def _dotted(data: dict, key: str) -> Any:
+    for part in key.split("."):
+        data = data.get(part) if isinstance(data, dict) else None
+    return data
 
 
 def resolve_design_path(path: str | Path) -> Path:

@@ -778,6 +778,7 @@ def design_png(panels: list[tuple[str, list[tuple[str, list, list]]]], ylabel: s
             marker, size = style.get(name, ("o", 14))
             ax.scatter(x, y, s=size, marker=marker, label=name)
         ax.set_xscale("log" if log_x[i] else "linear")
+        ax.xaxis.set_minor_formatter("")  # a log axis's minor labels overlap
         ax.set(xlabel=label, ylabel=ylabel)
         ax.grid(True, alpha=0.3)
         if i == 0:
