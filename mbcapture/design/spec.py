@@ -36,6 +36,12 @@ class Ratios(StrictModel):
         description="Reads (one per bucket): a number, or choices (e.g. [2, 4]); sensor.bucket_count follows it."
     )
     max_ratio: float = Field(gt=1.0, le=1e6, description="The largest ratio a read may have, in units of T.")
+    span_s: float | None = Field(
+        None,
+        gt=0,
+        description="Hold the capture's span: capture.unit_exposure_s follows the ratios (the span over the largest "
+        "ratio for photon-efficient reads, over their sum for interleaved or sequential ones). null: T is its own.",
+    )
 
     @property
     def counts(self) -> list[int]:
@@ -150,7 +156,14 @@ class Design:
         return out
 
     def config(self, values: dict[str, Any]) -> CaptureConfig:
-        """The base config with the fixed keys, the command line's and ``values`` set (ConfigError if refused)."""
+        """The base config with the fixed keys, the command line's and ``values`` set (ConfigError if refused);
+        with ratios that hold the span, T follows them."""
+        var = self.spec.variables.get(RATIOS_KEY)
+        if var is not None and var.ratios is not None and var.ratios.span_s is not None and RATIOS_KEY in values:
+            base = self.config({k: v for k, v in values.items() if k != RATIOS_KEY})
+            r = values[RATIOS_KEY]
+            summed = base.capture.protocol == "interleaved_hdr" or base.capture.sequential
+            values = {**values, "capture.unit_exposure_s": var.ratios.span_s / (sum(r) if summed else max(r))}
         own = [f"{k}={yaml_value(v)}" for k, v in values.items()]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConfigNotice)
