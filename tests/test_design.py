@@ -119,7 +119,7 @@ def test_a_search_on_captures_writes_a_runnable_best_design_and_its_history(tmp_
     best = load_config(out / "best.yaml")  # a config mbcapture run takes
     assert best.render.width == 32
     assert doc["best"]["objective"] == pytest.approx(ok[ok["source"] == "search"]["objective"].min())
-    assert (out / "objective.png").stat().st_size > 1000 and (out / "index.html").is_file()
+    assert (out / "objective.png").stat().st_size > 1000 and (out / "report.html").is_file()
     # every design on the same noise seeds: the margin over the default has its paired standard error too
     margin = doc["margins"]["vs_default"]
     assert margin is not None and np.isfinite(margin["paired_standard_errors"])

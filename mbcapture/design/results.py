@@ -5,7 +5,7 @@ written atomically into the output folder:
 * ``history.parquet`` (and ``.csv``): every evaluation, its source, values, objectives with their standard
   errors, constraint violation and every measured value;
 * ``objective.png``: the objective against each variable; ``pareto.png`` with two objectives;
-* ``design.json`` and ``index.html``: the best design against the default and the grid's best, with the
+* ``design.json`` and ``report.html``: the best design against the default and the grid's best, with the
   margins in standard errors.
 """
 
@@ -125,7 +125,7 @@ def _row_html(name: str, e: Evaluation | None) -> str:
     )
 
 
-def index_html(design: Design, doc: dict, best, default, grid_best, pictures: list[str]) -> str:
+def report_html(design: Design, doc: dict, best, default, grid_best, pictures: list[str]) -> str:
     spec = design.spec
     rows = _row_html("best found", best) + _row_html("default", default) + _row_html("best of the grid", grid_best)
     margins = "".join(
@@ -216,7 +216,7 @@ def run_design(design: Design, out: Path, *, progress: bool = True, say: Callabl
             )
             pictures.append("pareto.png")
         st.write_json("design.json", doc)
-        st.write_bytes("index.html", index_html(design, doc, found, default, grid_best, pictures).encode("utf-8"))
+        st.write_bytes("report.html", report_html(design, doc, found, default, grid_best, pictures).encode("utf-8"))
     if found is not None:
         se = f" ± {found.objective_se:.3g}" if found.objective_se else ""
         say(
@@ -227,5 +227,5 @@ def run_design(design: Design, out: Path, *, progress: bool = True, say: Callabl
         if d and d.get("objective") is not None:
             se = f" ± {d['se']:.3g}" if d.get("se") else ""
             say(f"{name}: {d['objective']:.4g}{se}")
-    say(f"wrote {out}/index.html, best.yaml, history.parquet")
+    say(f"wrote {out}/report.html, best.yaml, history.parquet")
     return doc
