@@ -82,12 +82,12 @@ def test_ratios_grid_and_extremes():
     grid = grid_values(design.spec.variables, 24)
     assert 1 < len(grid) <= 24
     assert all(g["sensor.bucket_count"] == 4 and g["capture.exposure_ratios"][0] == 1.0 for g in grid)
-    # span_s holds the capture's span: T follows the ratios, for every design of the grid
+    # span_s holds the capture's span (T to 4 significant digits): T follows the ratios, for every design of the grid
     from mbcapture.timing import protocols
 
     for g in grid[:5]:
         tl = protocols.build(design.config(g))
-        assert float((tl.end_tick - tl.start_tick) * tl.tick_s) == pytest.approx(0.008, rel=1e-9)
+        assert float((tl.end_tick - tl.start_tick) * tl.tick_s) == pytest.approx(0.008, rel=1e-3)
 
 
 def test_a_search_on_captures_writes_a_runnable_best_design_and_its_history(tmp_path):

@@ -14,6 +14,7 @@ groups); designs that render the same images find them in the render cache.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import time
@@ -75,6 +76,7 @@ class Evaluator:
     def __init__(self, design: Design):
         self.design = design
         self.rendered: OrderedDict[str, Any] = OrderedDict()
+        self.done: dict[str, Evaluation] = {}  # designs evaluated, by their values
 
     def _capture_rows(self, values: dict[str, Any]) -> list[dict]:
         rows = []
@@ -113,6 +115,14 @@ class Evaluator:
         ]
 
     def __call__(self, source: str, index: int, values: dict[str, Any]) -> Evaluation:
+        key = repr(sorted((k, repr(v)) for k, v in values.items()))
+        if key in self.done:  # the same design again (a search over few choices proposes it twice): no new captures
+            return dataclasses.replace(self.done[key], source=source, index=index, seconds=0.0)
+        ev = self._evaluate(source, index, values)
+        self.done[key] = ev
+        return ev
+
+    def _evaluate(self, source: str, index: int, values: dict[str, Any]) -> Evaluation:
         start = time.perf_counter()
         ev = Evaluation(source, index, values)
         spec = self.design.spec
@@ -180,8 +190,14 @@ def suggest(trial, variables: dict[str, Variable]) -> dict[str, Any] | None:
         elif var.integer:
             values[key] = trial.suggest_int(key, math.ceil(var.low), math.floor(var.high), log=var.log)
         else:
-            values[key] = trial.suggest_float(key, var.low, var.high, log=var.log)
+            values[key] = sig4(trial.suggest_float(key, var.low, var.high, log=var.log))
     return values
+
+
+def sig4(x: float) -> float:
+    """``x`` to 4 significant digits: a duration or share written so has a coarse exact tick (the timeline's
+    common divisor of 0.4372918347 s and 1 ms would need more than 2^62 ticks)."""
+    return float(f"{x:.4g}")
 
 
 def _better(obj: Objective) -> Callable[[float, float], bool]:
@@ -215,7 +231,9 @@ def search(
     study = optuna.create_study(directions=[o.direction for o in objectives], sampler=sampler)
     out: list[Evaluation] = []
     # one objective: the last share of the budget polishes the best design locally (Nelder-Mead over its ranges)
-    n_tpe = spec.evaluations if spec.second_objective else max(2, math.ceil(spec.evaluations * (1 - LOCAL_SHARE)))
+    continuous = any(v.ratios is not None or (v.choices is None and not v.integer) for v in spec.variables.values())
+    polished = continuous and spec.second_objective is None
+    n_tpe = max(2, math.ceil(spec.evaluations * (1 - LOCAL_SHARE))) if polished else spec.evaluations
     for i in range(n_tpe):
         trial = study.ask()
         values = suggest(trial, spec.variables)
@@ -272,7 +290,7 @@ def _decode(axes, u: np.ndarray, start: dict[str, Any]) -> dict[str, Any] | None
             positions.append((float(x), how))
         else:
             lo, hi = how.low, how.high
-            values[key] = float(lo * (hi / lo) ** x) if how.log else float(lo + x * (hi - lo))
+            values[key] = sig4(lo * (hi / lo) ** x if how.log else lo + x * (hi - lo))
     if positions:
         ratios = ratios_of([p for p, _ in positions], positions[0][1])
         if ratios is None:
@@ -342,7 +360,7 @@ def grid_values(variables: dict[str, Variable], budget: int) -> list[dict[str, A
             v = np.linspace(var.low, var.high, levels)
         if var.integer:
             return [{key: int(x)} for x in sorted({int(round(x)) for x in v})]
-        return [{key: float(f"{x:.6g}")} for x in v]
+        return [{key: sig4(x)} for x in v]
 
     for levels in range(max(2, budget), 1, -1):
         axes = [axis(k, v, levels) for k, v in variables.items()]

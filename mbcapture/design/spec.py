@@ -163,7 +163,8 @@ class Design:
             base = self.config({k: v for k, v in values.items() if k != RATIOS_KEY})
             r = values[RATIOS_KEY]
             summed = base.capture.protocol == "interleaved_hdr" or base.capture.sequential
-            values = {**values, "capture.unit_exposure_s": var.ratios.span_s / (sum(r) if summed else max(r))}
+            unit = var.ratios.span_s / (sum(r) if summed else max(r))
+            values = {**values, "capture.unit_exposure_s": float(f"{unit:.4g}")}  # a coarse exact tick
         own = [f"{k}={yaml_value(v)}" for k, v in values.items()]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConfigNotice)
