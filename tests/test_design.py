@@ -188,3 +188,18 @@ def test_bad_specs_are_one_line(tmp_path):
     assert not (tmp_path / "o").exists()  # nothing half-written
     with pytest.raises(ConfigError, match="not found"):
         load_design(tmp_path / "missing.yaml")
+
+
+def test_continuous_values_keep_the_timeline_s_tick_coarse():
+    """A share drawn as 0.4372918347 makes the flash slot's exact duration need more than 2^62 ticks; the search
+    writes values to 4 significant digits, which build."""
+    from mbcapture.design.search import sig4
+    from mbcapture.timing import protocols
+
+    design = load_design("flash_no_flash")
+    with pytest.raises(ConfigError, match="2\\^62 ticks"):
+        protocols.build(design.config({"app.flash_share": 0.4372918347, "app.flash_duty": 0.7129384712}))
+    tl = protocols.build(design.config({"app.flash_share": sig4(0.4372918347), "app.flash_duty": sig4(0.7129384712)}))
+    assert [r.name for r in tl.reads] == ["flash", "noflash"]
+    flash, noflash = (float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads)
+    assert flash / (flash + noflash) == pytest.approx(0.4373, rel=1e-9)
