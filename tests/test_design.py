@@ -203,3 +203,24 @@ def test_continuous_values_keep_the_timeline_s_tick_coarse():
     assert [r.name for r in tl.reads] == ["flash", "noflash"]
     flash, noflash = (float(tl.read_exposure_ticks(r) * tl.tick_s) for r in tl.reads)
     assert flash / (flash + noflash) == pytest.approx(0.4373, rel=1e-9)
+
+
+def test_a_space_that_fits_the_budget_is_searched_exhaustively(tmp_path):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(
+        yaml.safe_dump(
+            {
+                "base": "metronome_hdr",
+                "variables": {"capture.unit_exposure_s": {"choices": [1e-4, 2e-4, 4e-4]}},
+                "objective": {"metric": "snr.worst_db", "direction": "maximize"},
+                "evaluator": {"luminance_cd_m2": [1.0, 1000.0]},
+                "evaluations": 5,
+                "seeds": 1,
+            }
+        )
+    )
+    doc = run_design(load_design(spec), tmp_path / "out", progress=False, say=lambda s: None)
+    hist = pd.read_parquet(tmp_path / "out" / "history.parquet")
+    searched = hist[hist["source"] == "search"]["value.capture.unit_exposure_s"]
+    assert sorted(searched) == ["0.0001", "0.0002", "0.0004"]  # each once, not five draws
+    assert doc["best"]["objective"] == pytest.approx(hist[hist["source"] == "search"]["objective"].max())

@@ -1,7 +1,7 @@
 """Searching a design spec: each candidate evaluated (a capture on cached renders, several noise seeds; or the
 analytic SNR), the optimiser (Optuna's TPE), the equal-evaluation grid and the default, for comparison.
 
-Why Optuna's TPE: the variables mix ranges, log ranges, integers and choices, and the exposure ratios are a
+Why Optuna's TPE (and its brute force where every design fits in the budget): the variables mix ranges, log ranges, integers and choices, and the exposure ratios are a
 conditional space (how many reads decides how many ratios); TPE models each directly, takes constraints
 (a design that breaks one is ranked after every one that keeps them) and two objectives (its Pareto front),
 and its draws are seeded. CMA-ES would need a continuous relaxation of the choices.
@@ -194,6 +194,30 @@ def suggest(trial, variables: dict[str, Variable]) -> dict[str, Any] | None:
     return values
 
 
+def finite_size(variables: dict[str, Variable]) -> int | None:
+    """How many designs the variables allow when every one is a choice or an integer range; None otherwise."""
+    n = 1
+    for var in variables.values():
+        if var.choices is not None:
+            n *= len(var.choices)
+        elif var.integer and var.ratios is None:
+            n *= math.floor(var.high) - math.ceil(var.low) + 1
+        else:
+            return None
+    return n
+
+
+def every_design(variables: dict[str, Variable]) -> list[dict[str, Any]]:
+    """Every combination of variables that are all choices or integer ranges."""
+    axes = [
+        [{k: c} for c in v.choices]
+        if v.choices is not None
+        else [{k: i} for i in range(math.ceil(v.low), math.floor(v.high) + 1)]
+        for k, v in variables.items()
+    ]
+    return [{k: v for part in combo for k, v in part.items()} for combo in itertools.product(*axes)]
+
+
 def sig4(x: float) -> float:
     """``x`` to 4 significant digits: a duration or share written so has a coarse exact tick (the timeline's
     common divisor of 0.4372918347 s and 1 ms would need more than 2^62 ticks)."""
@@ -228,6 +252,13 @@ def search(
         sampler = optuna.samplers.TPESampler(
             seed=spec.seed, multivariate=True, group=True, n_startup_trials=min(10, max(2, spec.evaluations // 4))
         )
+    size = finite_size(spec.variables)
+    if size is not None and size <= spec.evaluations:  # every design fits in the budget: try each once
+        out_all = []
+        for i, values in enumerate(every_design(spec.variables)):
+            out_all.append(evaluate("search", i, values))
+            on_done(out_all[-1])
+        return out_all
     study = optuna.create_study(directions=[o.direction for o in objectives], sampler=sampler)
     out: list[Evaluation] = []
     # one objective: the last share of the budget polishes the best design locally (Nelder-Mead over its ranges)
