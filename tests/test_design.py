@@ -3,15 +3,13 @@ search on captures, and bad specs."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
 
 from mbcapture import load_config
+from mbcapture.cli import main
 from mbcapture.design.results import run_design
 from mbcapture.design.search import grid_values
 from mbcapture.design.spec import load_design, ratios_of
@@ -103,7 +101,7 @@ def test_a_search_on_captures_writes_a_runnable_best_design_and_its_history(tmp_
                 },
                 "objective": {"metric": "hdr_rel_mse", "direction": "minimize"},
                 "constraints": {"capture_span_s": {"max": 0.0085}},
-                "evaluations": 4,
+                "evaluations": 3,
                 "seeds": 2,
             }
         )
@@ -111,8 +109,8 @@ def test_a_search_on_captures_writes_a_runnable_best_design_and_its_history(tmp_
     out = tmp_path / "out"
     doc = run_design(load_design(spec), out, progress=False, say=lambda s: None)
     hist = pd.read_parquet(out / "history.parquet")
-    assert list(hist["source"]).count("search") == 4 and (hist["source"] == "default").sum() == 1
-    assert (hist["source"] == "grid").sum() == doc["evaluations"]["grid"] <= 4
+    assert list(hist["source"]).count("search") == 3 and (hist["source"] == "default").sum() == 1
+    assert (hist["source"] == "grid").sum() == doc["evaluations"]["grid"] <= 3
     ok = hist[hist["feasible"]]
     assert (ok["objective_se"] > 0).all()  # two seeds: a standard error
     assert (ok["capture_span_s"] <= 0.0085 + 1e-12).all()  # the best is among designs that keep the constraint
@@ -125,6 +123,7 @@ def test_a_search_on_captures_writes_a_runnable_best_design_and_its_history(tmp_
     assert margin is not None and np.isfinite(margin["paired_standard_errors"])
 
 
+@pytest.mark.slow
 def test_two_objectives_give_a_pareto_front(tmp_path):
     spec = tmp_path / "spec.yaml"
     spec.write_text(
@@ -151,7 +150,7 @@ def test_two_objectives_give_a_pareto_front(tmp_path):
     assert all(b[1] > a[1] for a, b in zip(pts, pts[1:]))
 
 
-def test_bad_specs_are_one_line(tmp_path):
+def test_bad_specs_are_one_line(tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text(
         yaml.safe_dump(
@@ -177,13 +176,9 @@ def test_bad_specs_are_one_line(tmp_path):
             }
         )
     )
-    proc = subprocess.run(
-        [sys.executable, "-m", "mbcapture", "design", str(unknown), "--out", str(tmp_path / "o"), "--quiet"],
-        capture_output=True,
-        text=True,
-    )
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
+    rc = main(["design", str(unknown), "--out", str(tmp_path / "o"), "--quiet"])
+    assert rc == 2
+    lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "objective 'no_such_metric' is not measured" in lines[0] and "hdr_rel_mse" in lines[0]
     assert not (tmp_path / "o").exists()  # nothing half-written
     with pytest.raises(ConfigError, match="not found"):

@@ -14,6 +14,7 @@ from mbcapture.exposure.plan import make_plan
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
+SLOW_CONFIGS = ("hdr_video.yaml", "rgb_illumination.yaml", "flash_matting.yaml")
 
 
 def test_config_doc_is_up_to_date():
@@ -36,8 +37,10 @@ def test_shipped_config_loads_and_plans(path):
 @pytest.mark.render
 @pytest.mark.parametrize(
     "path",
-    # a video: a capture per frame (15 s at this size): in make test-slow; tests/test_video.py runs a tiny one in make test
-    [pytest.param(p, marks=pytest.mark.slow) if p.name == "hdr_video.yaml" else p for p in CONFIGS],
+    # a video: a capture per frame (15 s at this size): in make test-slow; tests/test_video.py runs a tiny one in make test.
+    # rgb_illumination (a spectral render and a Bayer comparison capture, 9.5 s) and flash_matting (6 s): their
+    # goldens run the same configs at 32x24 in make test
+    [pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW_CONFIGS else p for p in CONFIGS],
     ids=lambda p: p.name,
 )
 def test_shipped_config_runs_at_tiny_size(path, tmp_path):

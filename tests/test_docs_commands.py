@@ -46,6 +46,11 @@ NOT_RUN = {
         "(tests/test_characterize.py checks the command's datasheet at 48x40)",
         "mbcapture characterize metronome_hdr --size 32x32 --steps 20 --dark-steps 3 --frames 2",
     ),
+    "mbcapture characterize metronome_hdr --set sensor.preset=global_shutter_cmos --out out/sheet_gs": (
+        "a full datasheet of another preset: 7 s",
+        "mbcapture characterize metronome_hdr --set sensor.preset=global_shutter_cmos --out out/sheet_gs --size 32x32 "
+        "--steps 20 --dark-steps 3 --frames 2",
+    ),
     # docs/design.md: a search is dozens of captures (or hundreds of analytic SNRs) even at 16x12; a short one runs
     "mbcapture design hdr_4bucket --out out/design_hdr_4bucket": (
         "24 designs x 3 seeds and the grid: a minute at 16x12",

@@ -86,6 +86,7 @@ SLOW_FIGURES = {
     "flutter_shutter",
     "fig16_flash_matting",
     "error_vs_runtime",
+    "fig06_interleaving",
 }
 
 

@@ -124,7 +124,12 @@ def test_points_are_the_product_of_grid_zip_and_random_samples(tmp_path):
     assert len({p.id for p in sweep.points}) == len(sweep.points)
 
 
-@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.name)
+# burst_hands plans its hand-held points' strata (8 s): in make test-slow
+@pytest.mark.parametrize(
+    "path",
+    [pytest.param(p, marks=pytest.mark.slow) if p.name == "burst_hands.yaml" else p for p in SHIPPED],
+    ids=lambda p: p.name,
+)
 def test_shipped_sweep_loads_and_plans(path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

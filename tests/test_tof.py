@@ -258,6 +258,7 @@ def test_a_sweep_shares_renders_between_designs_but_not_their_accumulation():
     assert len({group_key(four), group_key(two), group_key(dim)}) == 3
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("mitsuba_ready")
 def test_one_frequency_shorter_than_the_room_is_a_warning_in_the_report(tmp_path):
     """At 100 MHz alone the phase wraps every 1.50 m; the room reaches 3 m: the run says so (report.json, its

@@ -746,20 +746,16 @@ def _panel_axes(n: int, width: float, height: float):
     return fig, [fig.add_subplot(rows, cols, i + 1) for i in range(n)]
 
 
-def grouped_bars_png(
-    categories: list[str], panels: list[tuple[str, dict[str, list[float]]]], title: str = "", log: bool = False
-) -> bytes:
+def grouped_bars_png(categories: list[str], panels: list[tuple[str, dict[str, list[float]]]], title: str = "") -> bytes:
     """Panels (y label, {series: a value per category}) of grouped bars (``scripts/tof_table.py``)."""
     fig, axes = _panel_axes(len(panels), 4.2, 3.8)
     x = np.arange(len(categories))
     for i, (ax, (ylabel, series)) in enumerate(zip(axes, panels)):
         width = 0.8 / max(len(series), 1)
         for j, (label, values) in enumerate(series.items()):
-            v = np.asarray(values, dtype=np.float64)
-            ax.bar(x - 0.4 + width * (j + 0.5), np.where(v > 0, v, np.nan) if log else v, width, label=label)
+            ax.bar(x - 0.4 + width * (j + 0.5), np.asarray(values, dtype=np.float64), width, label=label)
         ax.set_xticks(x, categories, rotation=30, ha="right", fontsize=7)
         ax.set_ylabel(ylabel, fontsize=8)
-        ax.set_yscale("log" if log else "linear")
         ax.grid(True, axis="y", alpha=0.3)
         if i == 0:
             ax.legend(fontsize=7)
