@@ -50,6 +50,7 @@ def test_relative_error_subtracts_the_reference_noise():
 
 
 @pytest.mark.render
+@pytest.mark.slow  # 10 s; the documented `mbcapture converge` command runs at a tiny size in make test
 def test_converge_on_a_tiny_capture(tmp_path):
     from mbcapture import load_config
     from mbcapture.studies.converge import run_converge, write_outputs
