@@ -3,6 +3,8 @@ search on captures, and bad specs."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -219,3 +221,23 @@ def test_a_space_that_fits_the_budget_is_searched_exhaustively(tmp_path):
     searched = hist[hist["source"] == "search"]["value.capture.unit_exposure_s"]
     assert sorted(searched) == ["0.0001", "0.0002", "0.0004"]  # each once, not five draws
     assert doc["best"]["objective"] == pytest.approx(hist[hist["source"] == "search"]["objective"].max())
+
+
+def test_the_grid_s_counted_sizes_are_the_sizes_it_makes():
+    """grid_values counts each axis before making it (the ratios' combinations are many): the count is the
+    number of designs made, for ratios, log ranges, integer ranges and choices."""
+    from mbcapture.design.search import axis_size
+    from mbcapture.design.spec import Variable
+
+    variables = {
+        "capture.exposure_ratios": Variable(ratios={"count": [2, 3], "max_ratio": 1e5}),
+        "capture.unit_exposure_s": Variable(low=1e-5, high=1e-3, log=True),
+        "capture.periods": Variable(low=1, high=6, integer=True),
+        "sensor.gain_dn_per_e": Variable(choices=[0.2, 0.4]),
+    }
+    for budget in (60, 300):
+        grid = grid_values(variables, budget)
+        levels = next(
+            n for n in range(max(2, budget), 1, -1) if math.prod(axis_size(v, n) for v in variables.values()) <= budget
+        )
+        assert len(grid) == math.prod(axis_size(v, levels) for v in variables.values()) <= budget

@@ -68,7 +68,7 @@ from typing import Callable, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from ..output.plots import colormap_rgb
+from ..output.plots import depth_preview
 from ..strict import StrictModel
 from ..scene import scenes
 from ..errors import ConfigError
@@ -317,14 +317,6 @@ def _roles(data: CaptureData, info: dict) -> tuple[list[int], int | None]:
     return [names.index(g) for g in info["groups"]], (names.index(AMBIENT_READ) if AMBIENT_READ in names else None)
 
 
-def _depth_preview(z: np.ndarray, z_min: float, z_max: float) -> np.ndarray:
-    """(H, W, 3) linear preview: near bright, far dark (turbo colour map), invalid black."""
-    t = np.clip((z_max - np.nan_to_num(z, nan=z_max)) / (z_max - z_min), 0, 1)
-    rgb = colormap_rgb(t, "turbo") ** 2.2  # the PNG writer applies the sRGB curve
-    rgb[~np.isfinite(z)] = 0.0
-    return rgb
-
-
 CAPTIONS = {
     "depth": "decoded depth, turbo colour map: app.depth_min_m (near) to app.depth_max_m (far); black = not decoded",
     "depth_truth": "reference: the depth AOV at the capture's mid-time where the projector lights the scene, same scale",
@@ -406,14 +398,14 @@ def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
         "depth": np.nan_to_num(main["depth"], nan=0.0).astype(np.float32),
         "decoded": main["valid"].astype(np.float32),
         "modulation": main["modulation"].astype(np.float32),
-        "depth_preview": _depth_preview(main["depth"], params.depth_min_m, params.depth_max_m),
+        "depth_preview": depth_preview(main["depth"], params.depth_min_m, params.depth_max_m),
     }
     if main["phase"] is not None:
         out_images["phase"] = main["phase"].astype(np.float32)
     if ambient is not None:
         out_images["ambient"] = rate[amb_idx]
     if "ambient_subtracted" in decoded:
-        out_images["depth_preview_ambient_ignored"] = _depth_preview(
+        out_images["depth_preview_ambient_ignored"] = depth_preview(
             decoded["ambient_ignored"]["depth"], params.depth_min_m, params.depth_max_m
         )
     png = {"depth": ("depth_preview", None)}
@@ -438,7 +430,7 @@ def reconstruct(data: CaptureData, params: StructuredLightParams) -> AppOutput:
         err = np.where(lit & main["valid"], np.abs(main["depth"] - truth["z_m"]) * 1e3, np.nan)
         out_images["depth_error_mm"] = np.nan_to_num(err, nan=0.0).astype(np.float32)
         out_images["error_preview"] = _error_preview(err, lit & ~main["valid"], params.depth_tolerance_mm)
-        out_images["depth_truth_preview"] = _depth_preview(
+        out_images["depth_truth_preview"] = depth_preview(
             np.where(lit, truth["z_m"], np.nan), params.depth_min_m, params.depth_max_m
         )
         png |= {"depth_truth": ("depth_truth_preview", None), "depth_error": ("error_preview", None)}

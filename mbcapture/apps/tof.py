@@ -35,7 +35,7 @@ import numpy as np
 from pydantic import Field
 
 from ..errors import ConfigError
-from ..output.plots import colormap_rgb
+from ..output.plots import depth_preview
 from ..reconstruct.tof import depth_noise_m, depth_scores, flying_pixels, joint_range_m, phasor_fit, unwrap
 from ..render.aov import pixel_cosines, render_depth
 from ..scene.projective import points_from_depth
@@ -150,14 +150,6 @@ class TofParams(StrictModel):
 
 
 # --------------------------------------------------------------------------------- app
-def _depth_preview(d: np.ndarray, near: float, far: float) -> np.ndarray:
-    """(H, W, 3) linear: near bright (turbo colour map), invalid black."""
-    t = np.clip((far - np.nan_to_num(d, nan=far)) / max(far - near, 1e-9), 0, 1)
-    rgb = colormap_rgb(t, "turbo") ** 2.2  # the PNG writer applies the sRGB curve
-    rgb[~np.isfinite(d)] = 0.0
-    return rgb.astype(np.float32)
-
-
 def _error_preview(err_mm: np.ndarray, tolerance_mm: float) -> np.ndarray:
     """(H, W, 3) signed depth error: red too far, blue too near, full at 4 x the tolerance; black 0 or invalid."""
     e = np.clip(np.nan_to_num(err_mm, nan=0.0) / (4 * tolerance_mm), -1, 1)
@@ -284,8 +276,8 @@ def _against_truth(
         "depth_truth": np.nan_to_num(truth, posinf=0.0).astype(np.float32),
         "depth_error_mm": np.nan_to_num(err, nan=0.0).astype(np.float32),
         "systematic_error_mm": np.nan_to_num(err0, nan=0.0).astype(np.float32),
-        "depth_preview": _depth_preview(depth, near, far),
-        "depth_truth_preview": _depth_preview(np.where(finite, truth, np.nan), near, far),
+        "depth_preview": depth_preview(depth, near, far).astype(np.float32),
+        "depth_truth_preview": depth_preview(np.where(finite, truth, np.nan), near, far).astype(np.float32),
         "error_preview": _error_preview(err, params.tolerance_mm),
         "systematic_preview": _error_preview(err0, params.tolerance_mm),
     }
@@ -383,7 +375,9 @@ def reconstruct(data: CaptureData, params: TofParams) -> AppOutput:
         summary += sm
     else:
         png |= {"depth": ("depth_preview", None)}
-        images["depth_preview"] = _depth_preview(depth, float(np.nanmin(depth)) if valid.any() else 0.0, max_range)
+        images["depth_preview"] = depth_preview(
+            depth, float(np.nanmin(depth)) if valid.any() else 0.0, max_range
+        ).astype(np.float32)
     metrics["warnings"] = warnings
     summary += [f"warning: {w}" for w in warnings]
     return AppOutput(images=images, metrics=metrics, png=png, summary=summary, captions=CAPTIONS)

@@ -11,7 +11,6 @@ written atomically into the output folder:
 
 from __future__ import annotations
 
-import html
 import json
 import math
 from pathlib import Path
@@ -20,6 +19,7 @@ from typing import Any, Callable
 import numpy as np
 
 
+from ..output.htmlparts import esc, figure, table
 from ..output.io import staged_outputs
 from ..output.plots import design_png, pareto_png
 from ..progress import bar
@@ -115,32 +115,29 @@ def _variable_panels(design: Design, evals: list[Evaluation]):
     return panels, log_x
 
 
-def _row_html(name: str, e: Evaluation | None) -> str:
+def _row(name: str, e: Evaluation | None) -> list:
     if e is None:
-        return f"<tr><td>{name}</td><td colspan='3'>none feasible</td></tr>"
+        return [name, "none feasible", "", ""]
     se = f" ± {e.objective_se:.3g}" if e.objective_se else ""
     vals = ", ".join(f"{k}={v}" for k, v in _shown(e.values).items()) or "(the base config)"
-    return (
-        f"<tr><td>{name}</td><td>{e.objective:.4g}{se}</td><td>{html.escape(vals)}</td><td>{e.seconds:.1f} s</td></tr>"
-    )
+    return [name, f"{e.objective:.4g}{se}", vals, f"{e.seconds:.1f} s"]
 
 
 def report_html(design: Design, doc: dict, best, default, grid_best, pictures: list[str]) -> str:
     spec = design.spec
-    rows = _row_html("best found", best) + _row_html("default", default) + _row_html("best of the grid", grid_best)
+    rows = [_row("best found", best), _row("default", default), _row("best of the grid", grid_best)]
     margins = "".join(
-        f"<p>Best found against {name}: {json.dumps(doc['margins'][key])}</p>"
+        f"<p>Best found against {name}: {esc(json.dumps(doc['margins'][key]))}</p>"
         for key, name in (("vs_default", "the default"), ("vs_grid", "the grid at equal evaluations"))
     )
-    pics = "".join(f"<p><img src='{p}' style='max-width:100%'></p>" for p in pictures)
+    pics = "".join(figure(p, esc(p), plot=True) for p in pictures)
     return (
-        "<!doctype html><html><head><meta charset='utf-8'><title>mbcapture design "
-        f"{html.escape(design.name)}</title></head><body>"
-        f"<h1>Design: {html.escape(design.name)}</h1>"
-        f"<p>{spec.objective.direction} {html.escape(spec.objective.metric)} over {len(spec.variables)} variable(s), "
-        f"{spec.evaluations} evaluations, {spec.seeds} noise seed(s) each; base {html.escape(str(design.base))}.</p>"
-        "<table border='1' cellpadding='4'><tr><th></th><th>objective (mean ± standard error)</th><th>values</th>"
-        f"<th>time</th></tr>{rows}</table>{margins}{pics}</body></html>"
+        f"<!doctype html><html><head><meta charset='utf-8'><title>mbcapture design {esc(design.name)}</title>"
+        f"</head><body><h1>Design: {esc(design.name)}</h1>"
+        f"<p>{spec.objective.direction} {esc(spec.objective.metric)} over {len(spec.variables)} variable(s), "
+        f"{spec.evaluations} evaluations, {spec.seeds} noise seed(s) each; base {esc(str(design.base))}.</p>"
+        + table(rows, ["", "objective (mean ± standard error)", "values", "time"])
+        + f"{margins}{pics}</body></html>"
     )
 
 

@@ -207,6 +207,27 @@ def finite_size(variables: dict[str, Variable]) -> int | None:
     return n
 
 
+def axis_size(var: Variable, levels: int) -> int:
+    """How many values :func:`grid_values` gives ``var`` at ``levels`` levels, without making them. Ratios: the
+    ascending choices of positions whose rounded ratios (:func:`ratios_of`) all differ, i.e. the elementary
+    symmetric polynomial of the lengths of the runs of equal rounded ratios."""
+    if var.choices is not None:
+        return len(var.choices)
+    if var.ratios is not None:
+        rounded = [float(f"{var.ratios.max_ratio**p:.4g}") for p in np.linspace(0, 1, levels + 1)[1:]]
+        runs = [len(list(g)) for r, g in itertools.groupby(rounded) if r > 1.0]
+        total = 0
+        for n in var.ratios.counts:
+            e = [1] + [0] * (n - 1)  # e[j]: ways to take j positions from the runs seen, one a run at most
+            for length in runs:
+                for j in range(n - 1, 0, -1):
+                    e[j] += e[j - 1] * length
+            total += e[n - 1]
+        return total
+    v = np.geomspace(var.low, var.high, levels) if var.log else np.linspace(var.low, var.high, levels)
+    return len({int(round(x)) for x in v}) if var.integer else levels
+
+
 def every_design(variables: dict[str, Variable]) -> list[dict[str, Any]]:
     """Every combination of variables that are all choices or integer ranges."""
     axes = [
@@ -393,10 +414,9 @@ def grid_values(variables: dict[str, Variable], budget: int) -> list[dict[str, A
             return [{key: int(x)} for x in sorted({int(round(x)) for x in v})]
         return [{key: sig4(x)} for x in v]
 
-    for levels in range(max(2, budget), 1, -1):
-        axes = [axis(k, v, levels) for k, v in variables.items()]
-        size = math.prod(len(a) for a in axes)
-        if size <= budget:
+    for levels in range(max(2, budget), 1, -1):  # sizes counted first: the ratios' combinations are many
+        if math.prod(axis_size(v, levels) for v in variables.values()) <= budget:
+            axes = [axis(k, v, levels) for k, v in variables.items()]
             return [{k: v for part in combo for k, v in part.items()} for combo in itertools.product(*axes)]
     axes = [axis(k, v, 2) for k, v in variables.items()]
     points = [{k: v for part in combo for k, v in part.items()} for combo in itertools.product(*axes)]

@@ -337,6 +337,14 @@ def colormap_rgb(t: np.ndarray, name: str = "turbo") -> np.ndarray:
     return colormaps[name](t)[..., :3]
 
 
+def depth_preview(depth: np.ndarray, near: float, far: float) -> np.ndarray:
+    """(H, W, 3) linear preview of a depth map: near bright, far dark (turbo colour map), not finite black."""
+    t = np.clip((far - np.nan_to_num(depth, nan=far)) / max(far - near, 1e-9), 0, 1)
+    rgb = colormap_rgb(t, "turbo") ** 2.2  # the PNG writer applies the sRGB curve
+    rgb[~np.isfinite(depth)] = 0.0
+    return rgb
+
+
 def colour_map(values: np.ndarray, *, log: bool = False, levels: int | None = None) -> tuple[np.ndarray, dict]:
     """A (H, W) map as (H, W, 3) uint8 viridis (NaN: light grey) and its colour scale for the page:
     ``levels``: integers 0..levels, one colour each; otherwise linear (or ``log``) from the finite
@@ -750,17 +758,15 @@ def grouped_bars_png(categories: list[str], panels: list[tuple[str, dict[str, li
     """Panels (y label, {series: a value per category}) of grouped bars (``scripts/tof_table.py``)."""
     fig, axes = _panel_axes(len(panels), 4.2, 3.8)
     x = np.arange(len(categories))
-    for i, (ax, (ylabel, series)) in enumerate(zip(axes, panels)):
+    for ax, (ylabel, series) in zip(axes, panels):
         width = 0.8 / max(len(series), 1)
         for j, (label, values) in enumerate(series.items()):
             ax.bar(x - 0.4 + width * (j + 0.5), np.asarray(values, dtype=np.float64), width, label=label)
         ax.set_xticks(x, categories, rotation=30, ha="right", fontsize=7)
         ax.set_ylabel(ylabel, fontsize=8)
         ax.grid(True, axis="y", alpha=0.3)
-        if i == 0:
-            ax.legend(fontsize=7)
-    if title:
-        fig.suptitle(title, fontsize=9)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     return png_bytes(fig)
 
@@ -768,17 +774,15 @@ def grouped_bars_png(categories: list[str], panels: list[tuple[str, dict[str, li
 def design_png(panels: list[tuple[str, list[tuple[str, list, list]]]], ylabel: str, log_x: list[bool]) -> bytes:
     """The objective against each variable of ``mbcapture design`` (per panel: label, [(source, x, y)])."""
     fig, axes = _panel_axes(len(panels), 4.0, 3.3)
-    style = {"search": ("o", 14), "grid": ("s", 18), "default": ("*", 90)}
+    style = {"search": {"marker": "o", "s": 14}, "grid": {"marker": "s", "s": 18}, "default": {"marker": "*", "s": 90}}
     for i, (ax, (label, sources)) in enumerate(zip(axes, panels)):
         for name, x, y in sources:
-            marker, size = style.get(name, ("o", 14))
-            ax.scatter(x, y, s=size, marker=marker, label=name)
+            ax.scatter(x, y, label=name, **style.get(name, style["search"]))
         ax.set_xscale("log" if log_x[i] else "linear")
         ax.xaxis.set_minor_formatter("")  # a log axis's minor labels overlap
         ax.set(xlabel=label, ylabel=ylabel)
         ax.grid(True, alpha=0.3)
-        if i == 0:
-            ax.legend(fontsize=7)
+    axes[0].legend(fontsize=7)
     fig.tight_layout()
     return png_bytes(fig)
 
@@ -788,8 +792,7 @@ def pareto_png(points: list[tuple[str, list, list]], front: tuple[list, list], l
     fig, (ax,) = _panel_axes(1, 6.0, 4.4)
     for name, x, y in points:
         ax.scatter(x, y, s=14, label=name, alpha=0.8)
-    order = np.argsort(front[0])
-    ax.plot(np.asarray(front[0])[order], np.asarray(front[1])[order], "k-", label="Pareto front")
+    ax.plot(*np.asarray(front, dtype=np.float64)[:, np.argsort(front[0])], "k-", label="Pareto front")
     ax.set(xlabel=labels[0], ylabel=labels[1])
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=7)

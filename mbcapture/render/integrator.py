@@ -133,41 +133,32 @@ def emission_hits(emitters, ptrs, si, ds, em_hit, prev_si, prev_bsdf_pdf, prev_b
 
 
 def phasor_start(scene, ray, phasors: list[list[float]], n_groups: int):
-    """The phasor channels' state before a path's first vertex: (waves: (group, wavenumber) of every channel
-    pair, the waves by group, zero sums of L cos(k l) and L sin(k l) a pair, the camera ray's length so far).
-    l is the optical length from the camera's centre of projection (the camera ray starts on the near-clip
-    plane, NEAR_CLIP_M / cos from it) through every vertex to the point on the emitter."""
+    """The phasor channels' state before a path's first vertex: (waves: (pair index, group, wavenumber) of every
+    cos/sin pair, the waves by group, zero sums of L cos(k l) and L sin(k l) a pair, the camera ray's length so
+    far). l is the optical length from the camera's centre of projection (the camera ray starts on the near-clip
+    plane, NEAR_CLIP_M / cos from it) through every vertex to the point on the emitter. Outside
+    :meth:`GroupPath.sample`, whose ``dr.syntax`` rewrite takes no comprehension over tuples."""
     import drjit as dr
     import mitsuba as mi
 
     waves = [(g, k) for g in range(n_groups) for k in phasors[g]] if phasors else []
+    waves = [(i, g, k) for i, (g, k) in enumerate(waves)]
+    by_group: list[list[tuple[int, int, float]]] = [[w for w in waves if w[1] == g] for g in range(n_groups)]
     zero = tuple(mi.Spectrum(0.0) for _ in range(2 * len(waves)))
     if not waves:
-        return waves, waves_by_group(waves, n_groups), zero, mi.Float(0.0)
+        return waves, by_group, zero, mi.Float(0.0)
     forward = dr.normalize(scene.sensors()[0].world_transform() @ mi.Vector3f(0.0, 0.0, 1.0))
     length = mi.Float(NEAR_CLIP_M) / dr.maximum(dr.dot(ray.d, forward), 1e-6)
-    return waves, waves_by_group(waves, n_groups), zero, length
+    return waves, by_group, zero, length
 
 
-def waves_by_group(waves: list[tuple[int, float]], n_groups: int) -> list[list[tuple[int, float]]]:
-    """Per group, (index among ``waves``, wavenumber) of its waves (outside :meth:`GroupPath.sample`, whose
-    ``dr.syntax`` rewrite takes no comprehension over tuples)."""
-    out: list[list[tuple[int, float]]] = [[] for _ in range(n_groups)]
-    for i, (g, k) in enumerate(waves):
-        out[g].append((i, k))
-    return out
-
-
-def add_phasors(phasor, waves, light, length, only=None):
-    """``phasor`` (cos, sin pairs of every (group, wavenumber) in ``waves``) plus ``light[g] cos(k length)`` and
-    ``light[g] sin(k length)`` for the waves whose group ``light`` holds (``only``: (index, k) of the waves to
-    add, default all); a new tuple (Dr.Jit's += is in place)."""
+def add_phasors(phasor, waves, light, length):
+    """``phasor`` plus ``light[group] cos(k length)`` and ``light[group] sin(k length)`` on the cos/sin pair of each
+    (pair index, group, k) of ``waves``; a new tuple (Dr.Jit's += is in place)."""
     import drjit as dr
 
     out = list(phasor)
-    for i, (g, k) in enumerate(waves) if only is None else [(i, (waves[i][0], k)) for i, k in only]:
-        if g not in (light if isinstance(light, dict) else range(len(light))):
-            continue
+    for i, g, k in waves:
         s, c = dr.sincos(length * k)
         out[2 * i] = out[2 * i] + light[g] * c
         out[2 * i + 1] = out[2 * i + 1] + light[g] * s
@@ -492,7 +483,6 @@ class GroupPath:
             n_em = 0
             for g in range(n_groups):
                 acc = hit_terms[g]
-                wave_g = waves_of[g]
                 for emitter in emitters[g]:
                     n_em += 1
                     u_em = next_2d(sampler, depth * (n_emitters + 2) + n_em, active_em)
@@ -508,7 +498,7 @@ class GroupPath:
                     w = dr.select(ds_em.delta | last, 1.0, mis_power(ds_em.pdf, bsdf_pdf))
                     term = dr.select(ok, throughput * bsdf_val * em_weight * w, 0.0)
                     acc = acc + term
-                    phasor = add_phasors(phasor, waves, {g: term}, here + ds_em.dist, only=wave_g)
+                    phasor = add_phasors(phasor, waves_of[g], {g: term}, here + ds_em.dist)
                 nee_terms.append(acc)
             result = tuple(nee_terms)
 

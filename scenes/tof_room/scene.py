@@ -100,9 +100,8 @@ def _illuminator(p: Params, cam: Camera) -> Shape:
 def _wall(name: str, corner: np.ndarray, along: np.ndarray, length: float, p: Params) -> Shape:
     """A wall from the corner's line ``length`` m along ``along`` (horizontal unit), facing the camera."""
     centre = corner + along * length / 2 + np.array([0.0, WALL_HEIGHT_M / 2, 0.0])
-    normal = np.array([-along[2], 0.0, along[0]]) if along[0] < 0 else np.array([along[2], 0.0, -along[0]])
-    if normal @ (np.array([0.0, CAMERA_HEIGHT_M, 0.0]) - centre) < 0:
-        normal = -normal
+    normal = np.array([-along[2], 0.0, along[0]])  # horizontal, perpendicular to the wall; turned to the camera
+    normal *= np.sign(normal @ (np.array([0.0, CAMERA_HEIGHT_M, 0.0]) - centre))
     m = frame_towards(centre, centre + normal) @ scale(length / 2, WALL_HEIGHT_M / 2, 1)
     return Shape(name, "rectangle", m, Material((p.wall_albedo,) * 3))
 
